@@ -1,0 +1,4 @@
+//! Pure domain core of the CARLA Leaderboard evaluation backend: no AWS, Kubernetes or Lambda.
+
+pub mod py;
+pub mod results;

@@ -1,0 +1,590 @@
+//! The merge of the workers' files into one result, as the official `merge_statistics.py` does.
+//!
+//! Float operations follow the Python source operation by operation (same order, same
+//! rounding points) so that every digit matches; the comments name the upstream step.
+
+use super::model::{ResultsFile, RouteRecord};
+use super::{Leaderboard, MetricSource, ResultsError};
+use crate::py::{self, DumpOptions, Num, PyValue};
+
+/// Digits of `round()` for scores (Leaderboard 2.0).
+const ROUND_DIGITS_SCORE: usize = 6;
+/// Digits of `round()` for infraction rates and standard deviations (Leaderboard 2.0).
+const ROUND_DIGITS: usize = 3;
+
+/// How to merge.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MergeOptions {
+    /// Which evaluator wrote the files.
+    pub leaderboard: Leaderboard,
+    /// Records the plan assigned (routes x repetitions). With it, a result with fewer records
+    /// is partial and never final, whatever the workers' own progress says.
+    pub expected_records: Option<u64>,
+}
+
+/// The merged result and what the caller needs to know about it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MergeOutcome {
+    /// The merged document (`agent_results.json`).
+    pub merged: Merged,
+    /// Whether global statistics exist: every planned route has its record.
+    pub complete: bool,
+}
+
+/// The merged document.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Merged {
+    /// Its format.
+    pub leaderboard: Leaderboard,
+    /// Records, sorted by (route, repetition) and re-indexed.
+    pub records: Vec<RouteRecord>,
+    /// `[records, total]`.
+    pub progress: (u64, u64),
+    /// Global statistics, when complete.
+    pub global: Option<GlobalRecord>,
+    /// `Started`, `Finished`, `Crashed`, `Rejected`, `Invalid` (1.0: `Finished with ...`).
+    pub entry_status: String,
+    /// Whether the result may be published as a leaderboard entry.
+    pub eligible: bool,
+    /// The agent's sensors.
+    pub sensors: Vec<String>,
+    /// `values` as the evaluator writes them (strings).
+    pub values: Vec<String>,
+    /// `labels`, matching `values`.
+    pub labels: Vec<&'static str>,
+    /// Why validation set the status to `Invalid`, if it did.
+    pub invalid_reason: Option<&'static str>,
+}
+
+/// Standard deviation of a score: a number, or the string `"NaN"` that Leaderboard 1.0
+/// writes for a single route.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum StdDev {
+    /// A number (`0` int for a single Leaderboard 2.0 route).
+    Value(Num),
+    /// The string `"NaN"`.
+    NaNString,
+}
+
+/// Global statistics over every route.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GlobalRecord {
+    /// `Perfect`, `Completed`, `Failed` (or, copied from a route, any other status).
+    pub status: String,
+    /// Per-km infraction rates (off-road: km), in the evaluator's key order.
+    pub infractions: Vec<(&'static str, Num)>,
+    /// Mean scores: `score_composed`, `score_route`, `score_penalty`.
+    pub scores: [(&'static str, Num); 3],
+    /// Sample standard deviations of the scores, same keys.
+    pub std_dev: [(&'static str, StdDev); 3],
+    /// Sum of route lengths (m).
+    pub total_length: Num,
+    /// Sum of game durations (s).
+    pub duration_game: Num,
+    /// Sum of system durations (s).
+    pub duration_system: Num,
+    /// `(route_id, index, status)` of each failed route (1.0: of every route).
+    pub exceptions: Vec<(String, i64, String)>,
+}
+
+impl GlobalRecord {
+    /// A score by key.
+    pub fn score(&self, key: &str) -> Option<Num> {
+        self.scores.iter().find(|(k, _)| *k == key).map(|(_, v)| *v)
+    }
+
+    /// An infraction rate by key.
+    pub fn infraction(&self, key: &str) -> Option<Num> {
+        self.infractions.iter().find(|(k, _)| *k == key).map(|(_, v)| *v)
+    }
+
+    /// A metric's value.
+    pub fn metric(&self, source: MetricSource) -> Option<Num> {
+        match source {
+            MetricSource::Score(k) => self.score(k),
+            MetricSource::Infraction(k) => self.infraction(k),
+        }
+    }
+}
+
+/// Merges the workers' validated files.
+///
+/// Files that were missing or unreadable are simply not passed in, as the official merge
+/// skips them; `opts.expected_records` is what keeps such a result from counting as final.
+pub fn merge(files: &[ResultsFile], opts: MergeOptions) -> Result<MergeOutcome, ResultsError> {
+    let lb = opts.leaderboard;
+
+    // Step 1: route ids, totals and the sensors check.
+    let mut sensors: Option<&ResultsFile> = None;
+    let mut total_records: u64 = 0;
+    let mut total_progress: u64 = 0;
+    for file in files {
+        total_records += file.records.len() as u64;
+        total_progress = total_progress.saturating_add(file.progress.1);
+        if !file.sensors.is_empty() {
+            match sensors {
+                None => sensors = Some(file),
+                Some(first) if first.sensors != file.sensors => {
+                    return Err(ResultsError::SensorMismatch {
+                        first: first.source.clone(),
+                        file: file.source.clone(),
+                    })
+                }
+                Some(_) => {}
+            }
+        }
+    }
+    if let Some(expected) = opts.expected_records {
+        if total_records > expected {
+            return Err(ResultsError::UnexpectedRecords {
+                found: total_records as usize,
+                expected,
+            });
+        }
+        // NB: a worker whose file is missing contributes no progress; the plan knows better.
+        total_progress = total_progress.max(expected);
+    }
+
+    // Step 2: concatenate and stably sort by (route, repetition).
+    let mut records: Vec<RouteRecord> =
+        files.iter().flat_map(|f| f.records.iter().cloned()).collect();
+    records.sort_by_key(|r| r.route_id.key());
+
+    let global_statistics = total_progress != 0 && total_records == total_progress;
+    if global_statistics {
+        check_duplicates(&records)?;
+        check_missing_data(&records)?;
+    }
+
+    let sensors = sensors.map(|f| f.sensors.clone()).unwrap_or_default();
+    let mut merged = Merged {
+        leaderboard: lb,
+        records,
+        progress: (total_records, total_progress),
+        global: None,
+        entry_status: "Started".to_owned(),
+        eligible: false,
+        sensors,
+        values: Vec::new(),
+        labels: Vec::new(),
+        invalid_reason: None,
+    };
+    match lb {
+        Leaderboard::V2 => {
+            reindex(&mut merged.records);
+            if global_statistics {
+                global_v2(&mut merged, total_progress);
+                validate_v2(&mut merged);
+            }
+        }
+        Leaderboard::V1 => {
+            // The 1.0 global record lists the workers' own indices; re-index afterwards.
+            if global_statistics {
+                global_v1(&mut merged, total_progress);
+            }
+            reindex(&mut merged.records);
+        }
+    }
+    Ok(MergeOutcome { complete: merged.global.is_some(), merged })
+}
+
+fn reindex(records: &mut [RouteRecord]) {
+    for (i, r) in records.iter_mut().enumerate() {
+        r.index = i as i64;
+    }
+}
+
+fn check_duplicates(records: &[RouteRecord]) -> Result<(), ResultsError> {
+    // Sorted, so duplicates are neighbours; report the first in sorted order as upstream does.
+    for pair in records.windows(2) {
+        if pair[0].route_id.key() == pair[1].route_id.key() {
+            return Err(ResultsError::DuplicateRoute { route_id: pair[0].route_id.raw.clone() });
+        }
+    }
+    Ok(())
+}
+
+/// `check_missing_data`: the repetition count is learnt from the first reset of the
+/// repetition number, and any jump of more than one (route, repetition) unit is a gap.
+fn check_missing_data(records: &[RouteRecord]) -> Result<(), ResultsError> {
+    let mut rep_num: i128 = 1;
+    let mut prev_rep: i128 = 0;
+    let mut prev_total: i128 = 0;
+    let mut prev_id = "";
+    for r in records {
+        let (route, rep) = (r.route_id.route as i128, r.route_id.rep as i128);
+        if rep < prev_rep {
+            rep_num = prev_rep + 1;
+        }
+        let total = route * rep_num + rep;
+        if total - prev_total > 1 {
+            return Err(ResultsError::MissingRouteData {
+                from: prev_id.to_owned(),
+                to: r.route_id.raw.clone(),
+            });
+        }
+        prev_rep = rep;
+        prev_total = total;
+        prev_id = &r.route_id.raw;
+    }
+    Ok(())
+}
+
+fn score_of(r: &RouteRecord, key: &str) -> Num {
+    match key {
+        "score_composed" => r.scores.score_composed,
+        "score_route" => r.scores.score_route,
+        _ => r.scores.score_penalty,
+    }
+}
+
+const SCORE_KEYS: [&str; 3] = ["score_composed", "score_route", "score_penalty"];
+
+/// Sum of the route lengths and durations, as `Num` so that all-int inputs stay int.
+fn totals(records: &[RouteRecord]) -> (Num, Num, Num) {
+    records.iter().fold((Num::Int(0), Num::Int(0), Num::Int(0)), |(l, g, s), r| {
+        (l.add(r.meta.route_length), g.add(r.meta.duration_game), s.add(r.meta.duration_system))
+    })
+}
+
+/// `StatisticsManager.compute_global_statistics` of Leaderboard 2.0.
+fn global_v2(merged: &mut Merged, total_routes: u64) {
+    let records = &merged.records;
+    let n = total_routes as f64;
+
+    // Means and the global result.
+    let mut means = [0.0f64; 3];
+    let mut status = "Perfect".to_owned();
+    let mut exceptions = Vec::new();
+    for r in records {
+        for (mean, key) in means.iter_mut().zip(SCORE_KEYS) {
+            *mean += score_of(r, key).as_f64() / n;
+        }
+        let result = if r.status.contains("Failed") { "Failed" } else { r.status.as_str() };
+        if result == "Failed" {
+            exceptions.push((r.route_id.raw.clone(), r.index, r.status.clone()));
+            status = "Failed".to_owned();
+        } else if status == "Perfect" && result != "Perfect" {
+            status = result.to_owned();
+        }
+    }
+    let means = means.map(|m| py::round(m, ROUND_DIGITS_SCORE));
+    let (total_length, duration_game, duration_system) = totals(records);
+
+    // Sample standard deviation around the rounded means.
+    let std_dev = if total_routes == 1 {
+        [StdDev::Value(Num::Int(0)); 3]
+    } else {
+        let mut sums = [0.0f64; 3];
+        for r in records {
+            for ((sum, key), mean) in sums.iter_mut().zip(SCORE_KEYS).zip(means) {
+                let diff = score_of(r, key).as_f64() - mean;
+                *sum += diff * diff;
+            }
+        }
+        sums.map(|s| {
+            StdDev::Value(Num::Float(py::round((s / (total_routes - 1) as f64).sqrt(), ROUND_DIGITS)))
+        })
+    };
+
+    // Infractions per km driven; off-road is the km driven off-road, not a rate.
+    let kinds = Leaderboard::V2.infraction_kinds();
+    let mut km_driven = 0.0f64;
+    let mut sums: Vec<Num> = vec![Num::Int(0); kinds.len()];
+    for r in records {
+        km_driven += r.meta.route_length.as_f64() / 1000.0 * r.scores.score_route.as_f64() / 100.0;
+        for (sum, kind) in sums.iter_mut().zip(kinds) {
+            *sum = sum.add(infraction_value(r, kind));
+        }
+    }
+    let km_driven = km_driven.max(0.001);
+    let infractions: Vec<(&'static str, Num)> = kinds
+        .iter()
+        .zip(sums)
+        .map(|(kind, sum)| {
+            let value = if *kind == "outside_route_lanes" {
+                sum.as_f64()
+            } else {
+                sum.as_f64() / km_driven
+            };
+            (*kind, Num::Float(py::round(value, ROUND_DIGITS)))
+        })
+        .collect();
+
+    let global = GlobalRecord {
+        status,
+        infractions,
+        scores: [
+            ("score_composed", Num::Float(means[0])),
+            ("score_route", Num::Float(means[1])),
+            ("score_penalty", Num::Float(means[2])),
+        ],
+        std_dev: [
+            ("score_composed", std_dev[0]),
+            ("score_route", std_dev[1]),
+            ("score_penalty", std_dev[2]),
+        ],
+        total_length,
+        duration_game,
+        duration_system,
+        exceptions,
+    };
+
+    let metrics = Leaderboard::V2.metrics();
+    merged.values = metrics
+        .iter()
+        .map(|m| global.metric(m.source).map(Num::py_str).unwrap_or_default())
+        .collect();
+    merged.labels = metrics.iter().map(|m| m.file_label).collect();
+
+    // Entry status: the last crashed or rejected route decides.
+    let mut entry_status = "Finished";
+    for r in records {
+        if r.status.contains("Simulation crashed") {
+            entry_status = "Crashed";
+        } else if r.status.contains("Agent's sensors were invalid") {
+            entry_status = "Rejected";
+        }
+    }
+    merged.global = Some(global);
+    set_entry_status(merged, entry_status);
+}
+
+/// The metres off-road in a route's first off-road message (its 9th space-separated word),
+/// in km; for every other kind, the number of messages.
+fn infraction_value(r: &RouteRecord, kind: &str) -> Num {
+    let messages = r.infraction(kind);
+    if kind != "outside_route_lanes" {
+        return Num::Int(messages.len() as i64);
+    }
+    let Some(first) = messages.first() else {
+        return Num::Float(0.0);
+    };
+    // NB: upstream raises here on a malformed message; the messages are the evaluator's own
+    // text, and a participant who forges one only loses the off-road metres it claimed.
+    let metres = first
+        .split(' ')
+        .nth(8)
+        .and_then(|w| w.trim().parse::<f64>().ok())
+        .filter(|m| m.is_finite() && *m >= 0.0 && *m <= super::MAX_NUMBER)
+        .unwrap_or(0.0);
+    Num::Float(metres / 1000.0)
+}
+
+fn set_entry_status(merged: &mut Merged, status: &str) {
+    merged.entry_status = status.to_owned();
+    merged.eligible = status == "Finished";
+}
+
+/// `validate_and_write_statistics(sensors_initialized=True, crashed=False)`.
+fn validate_v2(merged: &mut Merged) {
+    let reason = if merged.sensors.is_empty() {
+        Some("Missing 'sensors' data")
+    } else if merged.values.is_empty() {
+        Some("Missing 'values' data")
+    } else if merged.entry_status == "Started" {
+        Some("'entry_status' has the 'Started' value")
+    } else if merged.progress.0 != merged.progress.1 || merged.progress.0 != merged.records.len() as u64
+    {
+        Some("'progress' data doesn't match its expected value")
+    } else if merged.records.iter().any(|r| r.status == "Started") {
+        Some("Found a route record with missing data")
+    } else {
+        None
+    };
+    if let Some(reason) = reason {
+        merged.invalid_reason = Some(reason);
+        set_entry_status(merged, "Invalid");
+    }
+}
+
+/// `StatisticsManager.compute_global_statistics` and `save_global_record` of Leaderboard 1.0.
+fn global_v1(merged: &mut Merged, total_routes: u64) {
+    let records = &merged.records;
+    let kinds = Leaderboard::V1.infraction_kinds();
+    let mut sums = [Num::Int(0); 3];
+    let mut rates: Vec<f64> = vec![0.0; kinds.len()];
+    let mut exceptions = Vec::with_capacity(records.len());
+    for (i, r) in records.iter().enumerate() {
+        for (sum, key) in sums.iter_mut().zip(SCORE_KEYS) {
+            *sum = sum.add(score_of(r, key));
+        }
+        let km = (r.scores.score_route.as_f64() / 100.0 * r.meta.route_length.as_f64() / 1000.0)
+            .max(0.001);
+        for (rate, kind) in rates.iter_mut().zip(kinds) {
+            let value = r.infraction(kind).len() as f64 / km;
+            // The first route replaces the initial empty list; later routes add to it.
+            *rate = if i == 0 { value } else { *rate + value };
+        }
+        // NB: upstream compares with `is not 'Completed'`, which is always true for strings
+        // read from JSON: every route is an "exception" and the status is always Failed.
+        exceptions.push((r.route_id.raw.clone(), r.index, r.status.clone()));
+    }
+    let n = total_routes as f64;
+    let means = sums.map(|s| s.as_f64() / n);
+    let std_dev = if total_routes == 1 {
+        [StdDev::NaNString; 3]
+    } else {
+        let mut acc = [0.0f64; 3];
+        for r in records {
+            for ((a, key), mean) in acc.iter_mut().zip(SCORE_KEYS).zip(means) {
+                let diff = score_of(r, key).as_f64() - mean;
+                *a += diff * diff;
+            }
+        }
+        acc.map(|a| StdDev::Value(Num::Float((a / (total_routes - 1) as f64).sqrt())))
+    };
+    let (total_length, duration_game, duration_system) = totals(records);
+    let global = GlobalRecord {
+        status: "Failed".to_owned(),
+        infractions: kinds.iter().copied().zip(rates.into_iter().map(Num::Float)).collect(),
+        scores: [
+            ("score_composed", Num::Float(means[0])),
+            ("score_route", Num::Float(means[1])),
+            ("score_penalty", Num::Float(means[2])),
+        ],
+        std_dev: [
+            ("score_composed", std_dev[0]),
+            ("score_route", std_dev[1]),
+            ("score_penalty", std_dev[2]),
+        ],
+        total_length,
+        duration_game,
+        duration_system,
+        exceptions,
+    };
+    let metrics = Leaderboard::V1.metrics();
+    merged.values = metrics
+        .iter()
+        .map(|m| global.metric(m.source).map(|v| py::format_fixed(v.as_f64(), 3)).unwrap_or_default())
+        .collect();
+    merged.labels = metrics.iter().map(|m| m.file_label).collect();
+    let (status, eligible) = if merged.progress.0 != merged.progress.1 {
+        ("Finished with missing data", false)
+    } else if records.iter().any(|r| r.status.contains("Agent")) {
+        ("Finished with agent errors", true)
+    } else {
+        ("Finished", true)
+    };
+    merged.global = Some(global);
+    merged.entry_status = status.to_owned();
+    merged.eligible = eligible;
+}
+
+impl Merged {
+    /// The document as Python would hold it, keys in the evaluator's order.
+    pub fn to_py(&self) -> PyValue {
+        let records = PyValue::List(self.records.iter().map(record_py).collect());
+        let global = match &self.global {
+            Some(g) => global_py(g, self.leaderboard),
+            None => PyValue::Dict(vec![]),
+        };
+        let checkpoint = PyValue::Dict(vec![
+            ("global_record".into(), global),
+            (
+                "progress".into(),
+                PyValue::List(vec![
+                    Num::Int(self.progress.0 as i64).into(),
+                    Num::Int(self.progress.1 as i64).into(),
+                ]),
+            ),
+            ("records".into(), records),
+        ]);
+        let strings = |v: &[String]| PyValue::List(v.iter().map(|s| s.as_str().into()).collect());
+        PyValue::Dict(vec![
+            ("_checkpoint".into(), checkpoint),
+            ("entry_status".into(), self.entry_status.as_str().into()),
+            ("eligible".into(), self.eligible.into()),
+            ("sensors".into(), strings(&self.sensors)),
+            ("values".into(), strings(&self.values)),
+            ("labels".into(), PyValue::List(self.labels.iter().map(|l| (*l).into()).collect())),
+        ])
+    }
+
+    /// How the evaluator of this leaderboard writes JSON files.
+    pub fn dump_options(&self) -> DumpOptions {
+        DumpOptions { indent: Some(4), sort_keys: self.leaderboard == Leaderboard::V1 }
+    }
+
+    /// `agent_results.json`, byte for byte as the official merge writes it.
+    pub fn to_json(&self) -> String {
+        self.to_py().dumps(self.dump_options())
+    }
+}
+
+fn record_py(r: &RouteRecord) -> PyValue {
+    let mut entries: Vec<(String, PyValue)> = vec![
+        ("index".into(), Num::Int(r.index).into()),
+        ("route_id".into(), r.route_id.raw.as_str().into()),
+        ("status".into(), r.status.as_str().into()),
+    ];
+    if let Some(n) = r.num_infractions {
+        entries.push(("num_infractions".into(), n.into()));
+    }
+    let infractions = r
+        .infractions
+        .iter()
+        .map(|(k, msgs)| {
+            (k.clone(), PyValue::List(msgs.iter().map(|m| m.as_str().into()).collect()))
+        })
+        .collect();
+    entries.push(("infractions".into(), PyValue::Dict(infractions)));
+    let scores = vec![
+        ("score_route".into(), r.scores.score_route.into()),
+        ("score_penalty".into(), r.scores.score_penalty.into()),
+        ("score_composed".into(), r.scores.score_composed.into()),
+    ];
+    entries.push(("scores".into(), PyValue::Dict(scores)));
+    let meta = vec![
+        ("route_length".into(), r.meta.route_length.into()),
+        ("duration_game".into(), r.meta.duration_game.into()),
+        ("duration_system".into(), r.meta.duration_system.into()),
+    ];
+    entries.push(("meta".into(), PyValue::Dict(meta)));
+    PyValue::Dict(entries)
+}
+
+fn global_py(g: &GlobalRecord, lb: Leaderboard) -> PyValue {
+    let nums = |v: &[(&'static str, Num)]| {
+        PyValue::Dict(v.iter().map(|(k, n)| ((*k).to_owned(), (*n).into())).collect())
+    };
+    let std_dev = PyValue::Dict(
+        g.std_dev
+            .iter()
+            .map(|(k, s)| {
+                let v = match s {
+                    StdDev::Value(n) => (*n).into(),
+                    StdDev::NaNString => "NaN".into(),
+                };
+                ((*k).to_owned(), v)
+            })
+            .collect(),
+    );
+    let exceptions = PyValue::List(
+        g.exceptions
+            .iter()
+            .map(|(id, index, status)| {
+                PyValue::List(vec![id.as_str().into(), Num::Int(*index).into(), status.as_str().into()])
+            })
+            .collect(),
+    );
+    let meta = PyValue::Dict(vec![
+        ("total_length".into(), g.total_length.into()),
+        ("duration_game".into(), g.duration_game.into()),
+        ("duration_system".into(), g.duration_system.into()),
+        ("exceptions".into(), exceptions),
+    ]);
+    let scores_key = match lb {
+        Leaderboard::V1 => "scores",
+        Leaderboard::V2 => "scores_mean",
+    };
+    PyValue::Dict(vec![
+        ("index".into(), Num::Int(-1).into()),
+        ("route_id".into(), Num::Int(-1).into()),
+        ("status".into(), g.status.as_str().into()),
+        ("infractions".into(), nums(&g.infractions)),
+        (scores_key.into(), nums(&g.scores)),
+        ("scores_std_dev".into(), std_dev),
+        ("meta".into(), meta),
+    ])
+}

@@ -1,0 +1,551 @@
+//! A worker's results (checkpoint) file, read as untrusted input and validated field by field.
+//!
+//! The file is written inside the participant's container, so anything may be in it. Parsing
+//! is typed (serde, with the JSON path of a bad field kept), then every value is checked
+//! against what the official evaluator can produce: finite, non-negative, bounded numbers,
+//! route ids of the form `RouteScenario_<n>[_rep<r>]`, routes inside the worker's subset and
+//! text without control characters (the text ends up in the participant-facing stdout).
+
+use std::fmt;
+
+use serde::de::{self, Deserializer, MapAccess, Visitor};
+use serde::Deserialize;
+
+use super::{Leaderboard, ResultsError};
+use crate::py::Num;
+
+/// The largest results file we read. The official evaluator writes a few KiB per route; a
+/// 10,000-route worker file stays far below this.
+pub const MAX_FILE_BYTES: usize = 64 * 1024 * 1024;
+
+/// Upper bound for any number in a results file (metres, seconds, scores). It keeps sums of
+/// hundreds of thousands of records exact in `i64` and finite in `f64`.
+pub const MAX_NUMBER: f64 = 1e12;
+
+/// How long an identifier-like string (sensor id, status) may be.
+const MAX_LABEL_LEN: usize = 512;
+
+/// A worker's file as read from disk or S3: absent ones are legitimate mid-run.
+#[derive(Debug, Clone, PartialEq)]
+pub enum WorkerFile {
+    /// The file contributed nothing; the reason is kept for logs.
+    Empty(EmptyReason),
+    /// A validated results file.
+    Present(ResultsFile),
+}
+
+/// Why a worker's file counts as empty, as the official merge treats it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum EmptyReason {
+    /// No file (the worker has not written one yet).
+    Missing,
+    /// Zero bytes, blanks only, or a JSON value that Python reads as falsy (`{}`, `null`, `[]`).
+    Blank,
+    /// Not JSON at all, or cut short: the evaluator rewrites the file after every route, so a
+    /// read can race a write. The official pipeline counts it as empty; so do we, and the
+    /// expected-routes check keeps such a result from ever being final.
+    Unreadable(String),
+}
+
+impl fmt::Display for EmptyReason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            EmptyReason::Missing => f.write_str("missing"),
+            EmptyReason::Blank => f.write_str("empty"),
+            EmptyReason::Unreadable(why) => write!(f, "unreadable ({why})"),
+        }
+    }
+}
+
+/// The routes a worker was assigned, `first..=last` by route number (`ROUTES_SUBSET` `a-b`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RouteSubset {
+    /// First route number of the subset.
+    pub first: u64,
+    /// Last route number of the subset, inclusive.
+    pub last: u64,
+}
+
+impl RouteSubset {
+    /// Whether a route number belongs to the subset.
+    pub fn contains(&self, route: u64) -> bool {
+        (self.first..=self.last).contains(&route)
+    }
+
+    /// Number of routes in the subset.
+    pub fn len(&self) -> u64 {
+        self.last - self.first + 1
+    }
+
+    /// A subset always holds at least one route.
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+}
+
+impl fmt::Display for RouteSubset {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}-{}", self.first, self.last)
+    }
+}
+
+impl std::str::FromStr for RouteSubset {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let parse = |t: &str| {
+            if t.is_empty() || t.len() > 9 || !t.bytes().all(|b| b.is_ascii_digit()) {
+                Err(format!("route subset `{s}` is not of the form `a-b` with a <= b"))
+            } else {
+                t.parse::<u64>().map_err(|e| e.to_string())
+            }
+        };
+        let (first, last) = match s.split_once('-') {
+            Some((a, b)) => (parse(a)?, parse(b)?),
+            None => {
+                let a = parse(s)?;
+                (a, a)
+            }
+        };
+        if first > last {
+            return Err(format!("route subset `{s}` is not of the form `a-b` with a <= b"));
+        }
+        Ok(RouteSubset { first, last })
+    }
+}
+
+/// A parsed route id: `RouteScenario_<route>_rep<rep>` (Leaderboard 1.0 has no `_rep`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RouteId {
+    /// The id as written.
+    pub raw: String,
+    /// Route number.
+    pub route: u64,
+    /// Repetition number; 0 when absent.
+    pub rep: u64,
+}
+
+impl RouteId {
+    /// Parses an id, accepting `_rep<r>` only where the leaderboard writes it.
+    pub fn parse(raw: &str, leaderboard: Leaderboard) -> Option<RouteId> {
+        let rest = raw.strip_prefix("RouteScenario_")?;
+        let (route, rep) = match (leaderboard, rest.split_once("_rep")) {
+            (Leaderboard::V2, Some((route, rep))) => (route, Some(rep)),
+            (Leaderboard::V1, None) => (rest, None),
+            _ => return None,
+        };
+        let number = |t: &str| -> Option<u64> {
+            // Python's int() would also take `+1`, ` 1` or `1_0`; the evaluator never writes them.
+            if t.is_empty() || t.len() > 12 || !t.bytes().all(|b| b.is_ascii_digit()) {
+                return None;
+            }
+            t.parse().ok()
+        };
+        Some(RouteId {
+            raw: raw.to_owned(),
+            route: number(route)?,
+            rep: match rep {
+                Some(r) => number(r)?,
+                None => 0,
+            },
+        })
+    }
+
+    /// The sort key of the official merge: (route number, repetition).
+    pub fn key(&self) -> (u64, u64) {
+        (self.route, self.rep)
+    }
+}
+
+/// Per-route scores.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+pub struct Scores {
+    /// Route completion, percent.
+    pub score_route: Num,
+    /// Infraction penalty factor.
+    pub score_penalty: Num,
+    /// Driving score.
+    pub score_composed: Num,
+}
+
+/// Per-route meta data.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+pub struct Meta {
+    /// Route length in metres.
+    pub route_length: Num,
+    /// Simulated seconds.
+    pub duration_game: Num,
+    /// Wall-clock seconds.
+    pub duration_system: Num,
+}
+
+/// One route's record, validated.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RouteRecord {
+    /// The index the worker gave it (Leaderboard 1.0 reports it in `exceptions`).
+    pub index: i64,
+    /// The route id.
+    pub route_id: RouteId,
+    /// `Perfect`, `Completed`, `Started` or `Failed - <reason>`.
+    pub status: String,
+    /// Total infractions (Leaderboard 2.0 only).
+    pub num_infractions: Option<Num>,
+    /// Infraction messages per kind, in the file's order.
+    pub infractions: Vec<(String, Vec<String>)>,
+    /// Scores.
+    pub scores: Scores,
+    /// Length and durations.
+    pub meta: Meta,
+}
+
+impl RouteRecord {
+    /// The messages of one infraction kind; validation guarantees every kind is present.
+    pub fn infraction(&self, kind: &str) -> &[String] {
+        self.infractions
+            .iter()
+            .find(|(k, _)| k == kind)
+            .map(|(_, v)| v.as_slice())
+            .unwrap_or(&[])
+    }
+}
+
+/// A validated worker results file: what the merge needs of it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResultsFile {
+    /// Where it came from (file path or S3 key), for error messages.
+    pub source: String,
+    /// `_checkpoint.progress` as `[done, total]`.
+    pub progress: (u64, u64),
+    /// `_checkpoint.records`.
+    pub records: Vec<RouteRecord>,
+    /// Sensor type ids, in the agent's order.
+    pub sensors: Vec<String>,
+    /// Whether `_checkpoint.global_record` is non-empty (the worker finished its subset).
+    pub has_global_record: bool,
+    /// `entry_status` as the worker wrote it.
+    pub entry_status: Option<String>,
+}
+
+// ---- raw serde shapes -------------------------------------------------------------------
+
+#[derive(Deserialize)]
+struct RawFile {
+    #[serde(rename = "_checkpoint")]
+    checkpoint: RawCheckpoint,
+    sensors: Vec<String>,
+    #[serde(default)]
+    entry_status: Option<String>,
+}
+
+#[derive(Deserialize)]
+struct RawCheckpoint {
+    #[serde(default)]
+    global_record: Option<OrderedMap<serde::de::IgnoredAny>>,
+    progress: Vec<Num>,
+    records: Vec<RawRecord>,
+}
+
+#[derive(Deserialize)]
+struct RawRecord {
+    index: Num,
+    route_id: String,
+    status: String,
+    #[serde(default)]
+    num_infractions: Option<Num>,
+    infractions: OrderedMap<Vec<String>>,
+    scores: Scores,
+    meta: Meta,
+}
+
+/// A JSON object kept in the file's key order.
+struct OrderedMap<V>(Vec<(String, V)>);
+
+impl<'de, V: Deserialize<'de>> Deserialize<'de> for OrderedMap<V> {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V2<V>(std::marker::PhantomData<V>);
+        impl<'de, V: Deserialize<'de>> Visitor<'de> for V2<V> {
+            type Value = OrderedMap<V>;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("an object")
+            }
+            fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Self::Value, A::Error> {
+                let mut out: Vec<(String, V)> = Vec::new();
+                while let Some((k, v)) = map.next_entry::<String, V>()? {
+                    if out.iter().any(|(seen, _)| *seen == k) {
+                        return Err(de::Error::custom(format_args!("duplicate key `{k}`")));
+                    }
+                    out.push((k, v));
+                }
+                Ok(OrderedMap(out))
+            }
+        }
+        d.deserialize_map(V2(std::marker::PhantomData))
+    }
+}
+
+impl<'de> Deserialize<'de> for Num {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct NumVisitor;
+        impl Visitor<'_> for NumVisitor {
+            type Value = Num;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("a number")
+            }
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<Num, E> {
+                Ok(Num::Int(v))
+            }
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<Num, E> {
+                i64::try_from(v)
+                    .map(Num::Int)
+                    .map_err(|_| E::custom(format_args!("number `{v}` is out of range")))
+            }
+            fn visit_f64<E: de::Error>(self, v: f64) -> Result<Num, E> {
+                Ok(Num::Float(v))
+            }
+        }
+        d.deserialize_any(NumVisitor)
+    }
+}
+
+// ---- parsing and validation ------------------------------------------------------------
+
+/// Reads one worker's file. `bytes` is `None` when the file does not exist.
+///
+/// Missing, blank and unreadable files count as empty (see [`EmptyReason`]); a file that is
+/// JSON but not a valid results file is an error naming the file and the field.
+pub fn read_worker_file(
+    source: &str,
+    bytes: Option<&[u8]>,
+    leaderboard: Leaderboard,
+    subset: Option<RouteSubset>,
+) -> Result<WorkerFile, ResultsError> {
+    let Some(bytes) = bytes else {
+        return Ok(WorkerFile::Empty(EmptyReason::Missing));
+    };
+    if bytes.len() > MAX_FILE_BYTES {
+        return Err(ResultsError::TooLarge {
+            file: source.to_owned(),
+            size: bytes.len() as u64,
+            limit: MAX_FILE_BYTES as u64,
+        });
+    }
+    if bytes.iter().all(u8::is_ascii_whitespace) {
+        return Ok(WorkerFile::Empty(EmptyReason::Blank));
+    }
+    // Python's `if not data: continue` skips falsy documents before looking inside them.
+    match trimmed(bytes) {
+        b"{}" | b"[]" | b"null" | b"\"\"" | b"false" | b"0" => {
+            return Ok(WorkerFile::Empty(EmptyReason::Blank))
+        }
+        _ => {}
+    }
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    let raw: RawFile = match serde_path_to_error::deserialize(&mut de) {
+        Ok(raw) => raw,
+        Err(err) => {
+            let path = err.path().to_string();
+            return classify_parse_error(source, bytes, &path, err.into_inner());
+        }
+    };
+    if let Err(err) = de.end() {
+        return classify_parse_error(source, bytes, ".", err);
+    }
+    validate(source, raw, leaderboard, subset).map(WorkerFile::Present)
+}
+
+fn trimmed(bytes: &[u8]) -> &[u8] {
+    let start = bytes.iter().position(|b| !b.is_ascii_whitespace()).unwrap_or(bytes.len());
+    let end = bytes.iter().rposition(|b| !b.is_ascii_whitespace()).map_or(start, |e| e + 1);
+    &bytes[start..end]
+}
+
+fn classify_parse_error(
+    source: &str,
+    bytes: &[u8],
+    path: &str,
+    inner: serde_json::Error,
+) -> Result<WorkerFile, ResultsError> {
+    match inner.classify() {
+        serde_json::error::Category::Syntax | serde_json::error::Category::Eof => {
+            // Python writes NaN/Infinity bare; they are not JSON and never a valid score.
+            if let Some(literal) = non_finite_at(bytes, inner.line(), inner.column()) {
+                return Err(ResultsError::NonFinite {
+                    file: source.to_owned(),
+                    literal,
+                    line: inner.line(),
+                    column: inner.column(),
+                });
+            }
+            Ok(WorkerFile::Empty(EmptyReason::Unreadable(inner.to_string())))
+        }
+        serde_json::error::Category::Data | serde_json::error::Category::Io => {
+            Err(ResultsError::Invalid {
+                file: source.to_owned(),
+                field: if path == "." { "(document)".to_owned() } else { path.to_owned() },
+                problem: strip_position(&inner.to_string()),
+            })
+        }
+    }
+}
+
+/// serde_json appends " at line L column C"; the field path says more.
+fn strip_position(msg: &str) -> String {
+    match msg.rfind(" at line ") {
+        Some(i) => msg[..i].to_owned(),
+        None => msg.to_owned(),
+    }
+}
+
+fn non_finite_at(bytes: &[u8], line: usize, column: usize) -> Option<String> {
+    let mut offset = 0usize;
+    for _ in 1..line {
+        offset += bytes[offset..].iter().position(|b| *b == b'\n')? + 1;
+    }
+    // serde_json reports the column of the offending character; look a few bytes around it.
+    let at = offset + column.saturating_sub(1);
+    let lo = at.saturating_sub(9);
+    let window = bytes.get(lo..(at + 9).min(bytes.len()))?;
+    let text = String::from_utf8_lossy(window);
+    ["-Infinity", "Infinity", "NaN"]
+        .into_iter()
+        .find(|lit| text.contains(lit))
+        .map(str::to_owned)
+}
+
+fn validate(
+    source: &str,
+    raw: RawFile,
+    leaderboard: Leaderboard,
+    subset: Option<RouteSubset>,
+) -> Result<ResultsFile, ResultsError> {
+    let invalid = |field: String, problem: String| ResultsError::Invalid {
+        file: source.to_owned(),
+        field,
+        problem,
+    };
+    let progress = match raw.checkpoint.progress.as_slice() {
+        [] => (0, 0),
+        [done, total] => (
+            count(*done).ok_or_else(|| {
+                invalid("_checkpoint.progress[0]".into(), "is not a non-negative integer".into())
+            })?,
+            count(*total).ok_or_else(|| {
+                invalid("_checkpoint.progress[1]".into(), "is not a non-negative integer".into())
+            })?,
+        ),
+        other => {
+            return Err(invalid(
+                "_checkpoint.progress".into(),
+                format!("has {} elements, expected `[done, total]`", other.len()),
+            ))
+        }
+    };
+    for (i, sensor) in raw.sensors.iter().enumerate() {
+        check_label(sensor, true).map_err(|p| invalid(format!("sensors[{i}]"), p))?;
+    }
+    let kinds = leaderboard.infraction_kinds();
+    let mut records = Vec::with_capacity(raw.checkpoint.records.len());
+    for (i, r) in raw.checkpoint.records.into_iter().enumerate() {
+        let field = |name: &str| format!("_checkpoint.records[{i}].{name}");
+        let route_id = RouteId::parse(&r.route_id, leaderboard).ok_or_else(|| {
+            invalid(
+                field("route_id"),
+                format!("`{}` is not of the form `{}`", r.route_id, leaderboard.route_id_form()),
+            )
+        })?;
+        if let Some(subset) = subset {
+            if !subset.contains(route_id.route) {
+                return Err(ResultsError::OutsideSubset {
+                    file: source.to_owned(),
+                    route_id: route_id.raw,
+                    subset,
+                });
+            }
+        }
+        let index = match r.index {
+            Num::Int(i) if (i as f64).abs() <= MAX_NUMBER => i,
+            _ => return Err(invalid(field("index"), "is not an integer".into())),
+        };
+        check_label(&r.status, false).map_err(|p| invalid(field("status"), p))?;
+        if let Some(n) = r.num_infractions {
+            non_negative(n).map_err(|p| invalid(field("num_infractions"), p))?;
+        }
+        for kind in kinds {
+            if !r.infractions.0.iter().any(|(k, _)| k == kind) {
+                return Err(invalid(field("infractions"), format!("has no `{kind}` list")));
+            }
+        }
+        if let Some((kind, msg)) = r
+            .infractions
+            .0
+            .iter()
+            .find_map(|(k, msgs)| msgs.iter().find(|m| m.len() > 64 * 1024).map(|m| (k, m)))
+        {
+            return Err(invalid(
+                field(&format!("infractions.{kind}")),
+                format!("holds a {}-byte message", msg.len()),
+            ));
+        }
+        for (name, value) in [
+            ("scores.score_route", r.scores.score_route),
+            ("scores.score_penalty", r.scores.score_penalty),
+            ("scores.score_composed", r.scores.score_composed),
+            ("meta.route_length", r.meta.route_length),
+            ("meta.duration_game", r.meta.duration_game),
+            ("meta.duration_system", r.meta.duration_system),
+        ] {
+            non_negative(value).map_err(|p| invalid(field(name), p))?;
+        }
+        records.push(RouteRecord {
+            index,
+            route_id,
+            status: r.status,
+            num_infractions: r.num_infractions,
+            infractions: r.infractions.0,
+            scores: r.scores,
+            meta: r.meta,
+        });
+    }
+    Ok(ResultsFile {
+        source: source.to_owned(),
+        progress,
+        records,
+        sensors: raw.sensors,
+        has_global_record: raw.checkpoint.global_record.is_some_and(|g| !g.0.is_empty()),
+        entry_status: raw.entry_status,
+    })
+}
+
+fn count(n: Num) -> Option<u64> {
+    match n {
+        Num::Int(i) if i >= 0 && (i as f64) <= MAX_NUMBER => Some(i as u64),
+        _ => None,
+    }
+}
+
+fn non_negative(n: Num) -> Result<(), String> {
+    let v = n.as_f64();
+    if !v.is_finite() {
+        Err(format!("is `{}`, not a finite number", n.py_str()))
+    } else if v < 0.0 {
+        Err(format!("is negative (`{}`)", n.py_str()))
+    } else if v > MAX_NUMBER {
+        Err(format!("is `{}`, over the limit of {MAX_NUMBER:e}", n.py_str()))
+    } else {
+        Ok(())
+    }
+}
+
+/// Text that reaches the participant's stdout must not forge lines or escape sequences.
+fn check_label(s: &str, identifier: bool) -> Result<(), String> {
+    if s.len() > MAX_LABEL_LEN {
+        return Err(format!("is {} bytes long, over the limit of {MAX_LABEL_LEN}", s.len()));
+    }
+    if let Some(c) = s.chars().find(|c| c.is_control()) {
+        return Err(format!("holds the control character {c:?}"));
+    }
+    if identifier && (s.is_empty() || s.chars().any(char::is_whitespace)) {
+        return Err(format!("`{s}` is not a sensor type id"));
+    }
+    Ok(())
+}

@@ -1,0 +1,200 @@
+//! Every case under `shared/fixtures/leaderboard-results/` against the results engine.
+//!
+//! The fixtures were produced by the official Python tooling: merged file and EvalAI files
+//! must equal them as JSON values (int vs float kept), `stdout.txt` byte for byte.
+
+use std::path::{Path, PathBuf};
+
+use lb_domain::results::{
+    merge, read_worker_file, EvalAiFiles, Leaderboard, MergeOptions, ResultsFile, WorkerFile,
+};
+use serde_json::Value;
+
+fn fixtures_dir() -> PathBuf {
+    match std::env::var_os("LB_FIXTURES_DIR") {
+        Some(dir) => PathBuf::from(dir),
+        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/leaderboard-results"),
+    }
+}
+
+struct Case {
+    name: String,
+    dir: PathBuf,
+    leaderboard: Leaderboard,
+    run_merge: bool,
+    inputs: Vec<String>,
+}
+
+fn cases() -> Vec<Case> {
+    let root = fixtures_dir();
+    let mut out = Vec::new();
+    let entries = std::fs::read_dir(&root)
+        .unwrap_or_else(|e| panic!("fixtures missing at {}: {e}", root.display()));
+    for entry in entries {
+        let dir = entry.unwrap().path();
+        let case: Value =
+            serde_json::from_slice(&std::fs::read(dir.join("case.json")).unwrap()).unwrap();
+        out.push(Case {
+            name: case["name"].as_str().unwrap().to_owned(),
+            leaderboard: match case["format"].as_str().unwrap() {
+                "lb1" => Leaderboard::V1,
+                _ => Leaderboard::V2,
+            },
+            run_merge: case["run_merge"].as_bool().unwrap(),
+            inputs: case["merge_file_paths"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|p| p.as_str().unwrap().to_owned())
+                .collect(),
+            dir,
+        });
+    }
+    out.sort_by(|a, b| a.name.cmp(&b.name));
+    assert!(out.len() >= 13, "expected every fixture case, found {}", out.len());
+    out
+}
+
+fn load(case: &Case) -> Vec<ResultsFile> {
+    case.inputs
+        .iter()
+        .filter_map(|rel| {
+            let path = case.dir.join(rel);
+            let bytes = std::fs::read(&path).ok();
+            match read_worker_file(rel, bytes.as_deref(), case.leaderboard, None)
+                .unwrap_or_else(|e| panic!("{}: {rel}: {e}", case.name))
+            {
+                WorkerFile::Present(f) => Some(f),
+                WorkerFile::Empty(_) => None,
+            }
+        })
+        .collect()
+}
+
+fn json(path: &Path) -> Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap())
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn assert_json_eq(case: &str, what: &str, got: &str, want: &Path) {
+    let got: Value = serde_json::from_str(got).unwrap_or_else(|e| panic!("{case} {what}: {e}"));
+    let want = json(want);
+    if got != want {
+        let (g, w) = (got.to_string(), want.to_string());
+        let at = g.bytes().zip(w.bytes()).position(|(a, b)| a != b).unwrap_or(0);
+        panic!(
+            "{case}: {what} differs at byte {at}:\n got: …{}\nwant: …{}",
+            &g[at.saturating_sub(120)..(at + 120).min(g.len())],
+            &w[at.saturating_sub(120)..(at + 120).min(w.len())]
+        );
+    }
+}
+
+#[test]
+fn every_fixture_case_matches_the_official_tooling() {
+    let mut checked = 0;
+    for case in cases() {
+        let expected = case.dir.join("expected");
+        let merged = if case.run_merge {
+            let files = load(&case);
+            let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: None };
+            match merge(&files, opts) {
+                Ok(outcome) => {
+                    assert!(
+                        !expected.join("error.txt").exists(),
+                        "{}: merge succeeded but an error was expected",
+                        case.name
+                    );
+                    let text = outcome.merged.to_json();
+                    assert_json_eq(&case.name, "merged.json", &text, &expected.join("merged.json"));
+                    Some(outcome.merged)
+                }
+                Err(err) => {
+                    let want = std::fs::read_to_string(expected.join("error.txt"))
+                        .unwrap_or_else(|_| panic!("{}: unexpected error {err}", case.name));
+                    let last = want.lines().last().unwrap();
+                    let message = last.strip_prefix("ValueError: ").unwrap_or(last);
+                    assert!(
+                        err.to_string().starts_with(message),
+                        "{}: error `{err}` is not `{message}`",
+                        case.name
+                    );
+                    checked += 1;
+                    continue;
+                }
+            }
+        } else {
+            None
+        };
+        let files = EvalAiFiles::generate(merged.as_ref(), case.leaderboard);
+        assert_json_eq(&case.name, "results.json", &files.results_json(), &expected.join("results.json"));
+        let want_stdout = std::fs::read_to_string(expected.join("stdout.txt")).unwrap();
+        assert_eq!(files.stdout, want_stdout, "{}: stdout.txt", case.name);
+        match (&files.metadata, expected.join("metadata.json")) {
+            (Some(text), path) if path.exists() => {
+                assert_json_eq(&case.name, "metadata.json", text, &path)
+            }
+            (None, path) => assert!(!path.exists(), "{}: metadata.json expected", case.name),
+            (Some(_), _) => panic!("{}: metadata.json written but none expected", case.name),
+        }
+        checked += 1;
+    }
+    assert_eq!(checked, cases().len());
+}
+
+#[test]
+fn merged_files_are_byte_identical_to_python_json_dump() {
+    // Beyond value equality: our writer reproduces json.dump(indent=4) exactly.
+    for case in cases().into_iter().filter(|c| c.run_merge) {
+        let expected = case.dir.join("expected/merged.json");
+        if !expected.exists() {
+            continue;
+        }
+        let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: None };
+        let merged = merge(&load(&case), opts).unwrap().merged;
+        let want = std::fs::read_to_string(&expected).unwrap();
+        assert_eq!(merged.to_json(), want, "{}", case.name);
+        let files = EvalAiFiles::generate(Some(&merged), case.leaderboard);
+        let dir = case.dir.join("expected");
+        let want = std::fs::read_to_string(dir.join("results.json")).unwrap();
+        assert_eq!(files.results_json(), want, "{} results.json", case.name);
+        let want = std::fs::read_to_string(dir.join("metadata.json")).unwrap();
+        assert_eq!(files.metadata.as_deref(), Some(want.as_str()), "{} metadata.json", case.name);
+    }
+}
+
+#[test]
+fn invalid_fixture_reports_the_validation_message() {
+    let case = cases().into_iter().find(|c| c.name.starts_with("l_")).unwrap();
+    let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: None };
+    let merged = merge(&load(&case), opts).unwrap().merged;
+    assert_eq!(merged.entry_status, "Invalid");
+    assert_eq!(merged.invalid_reason, Some("Missing 'sensors' data"));
+    assert!(!merged.eligible);
+}
+
+#[test]
+fn a_missing_worker_keeps_the_result_partial_when_the_plan_is_known() {
+    // Upstream published a Finished score over 15 of 20 routes here; we do not.
+    let case = cases().into_iter().find(|c| c.name.starts_with("a_")).unwrap();
+    let mut files = load(&case);
+    files.pop();
+    let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: None };
+    assert!(merge(&files, opts).unwrap().complete, "upstream rule: 15 == 15 is complete");
+    let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: Some(20) };
+    let outcome = merge(&files, opts).unwrap();
+    assert!(!outcome.complete);
+    assert_eq!(outcome.merged.progress, (15, 20));
+    assert_eq!(outcome.merged.entry_status, "Started");
+    let evalai = EvalAiFiles::generate(Some(&outcome.merged), case.leaderboard);
+    assert!(evalai.stdout.contains("- Completed 15 out of the 20 routes\n"));
+    assert!(evalai.accuracies().iter().all(|(_, v)| *v == lb_domain::py::Num::Int(0)));
+}
+
+#[test]
+fn more_records_than_planned_is_an_error() {
+    let case = cases().into_iter().find(|c| c.name.starts_with("a_")).unwrap();
+    let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: Some(19) };
+    let err = merge(&load(&case), opts).unwrap_err();
+    assert_eq!(err.name(), "UnexpectedRecords");
+}
