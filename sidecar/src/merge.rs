@@ -5,16 +5,20 @@ use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 
 use lb_domain::results::{
-    self, read_worker_file, EvalAiFiles, MergeOptions, MergeOutcome, ResultsError, ResultsFile,
-    WorkerFile, MAX_FILE_BYTES,
+    self, read_worker_files, EvalAiFiles, MergeOptions, MergeOutcome, ResultsError, ResultsFile,
+    WorkerFile, WorkerInput, MAX_FILE_BYTES,
 };
 use tracing::{info, warn};
 
 use crate::cli::MergeArgs;
 
 /// The files `merge` writes, relative to its output directory.
-pub const OUTPUTS: [&str; 4] =
-    ["agent_results.json", "evalai/results.json", "evalai/stdout.txt", "evalai/metadata.json"];
+pub const OUTPUTS: [&str; 4] = [
+    "agent_results.json",
+    "evalai/results.json",
+    "evalai/stdout.txt",
+    "evalai/metadata.json",
+];
 
 /// Why `merge` failed.
 #[derive(Debug, thiserror::Error)]
@@ -73,14 +77,20 @@ pub fn run(args: &MergeArgs) -> Result<(), MergeError> {
             let m = &outcome.merged;
             if let Some(reason) = m.invalid_reason {
                 // The official merge prints this too; operators re-scoring by hand look for it.
-                println!("The statistics are badly formed. Setting their status to 'Invalid': {reason}");
+                println!(
+                    "The statistics are badly formed. Setting their status to 'Invalid': {reason}"
+                );
             }
             println!(
                 "merged {} records from {} of {} files: {}, entry status {}, progress {}/{}",
                 m.records.len(),
                 files,
                 args.files.len(),
-                if outcome.complete { "complete" } else { "partial" },
+                if outcome.complete {
+                    "complete"
+                } else {
+                    "partial"
+                },
                 m.entry_status,
                 m.progress.0,
                 m.progress.1
@@ -98,42 +108,77 @@ pub fn run(args: &MergeArgs) -> Result<(), MergeError> {
 /// Reads and merges the files; returns the outcome and how many files contributed.
 pub fn merge_files(args: &MergeArgs) -> Result<(MergeOutcome, usize), MergeError> {
     if !args.subsets.is_empty() && args.subsets.len() != args.files.len() {
-        return Err(MergeError::SubsetCount { subsets: args.subsets.len(), files: args.files.len() });
+        return Err(MergeError::SubsetCount {
+            subsets: args.subsets.len(),
+            files: args.files.len(),
+        });
     }
-    let mut present: Vec<ResultsFile> = Vec::with_capacity(args.files.len());
-    for (i, path) in args.files.iter().enumerate() {
-        let name = path.display().to_string();
-        let bytes = read_limited(path)?;
-        match read_worker_file(&name, bytes.as_deref(), args.leaderboard, args.subsets.get(i).copied())? {
+    let names: Vec<String> = args.files.iter().map(|p| p.display().to_string()).collect();
+    let contents = args
+        .files
+        .iter()
+        .map(|p| read_limited(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let inputs: Vec<WorkerInput<'_>> = names
+        .iter()
+        .zip(&contents)
+        .enumerate()
+        .map(|(i, (name, bytes))| WorkerInput {
+            source: name,
+            bytes: bytes.as_deref(),
+            subset: args.subsets.get(i).copied(),
+        })
+        .collect();
+    let mut present: Vec<ResultsFile> = Vec::with_capacity(inputs.len());
+    for (input, read) in inputs
+        .iter()
+        .zip(read_worker_files(&inputs, args.leaderboard))
+    {
+        match read? {
             WorkerFile::Present(file) => present.push(file),
-            WorkerFile::Empty(reason) => warn!(file = %name, %reason, "results file counts as empty"),
+            WorkerFile::Empty(reason) => {
+                warn!(file = %input.source, %reason, "results file counts as empty")
+            }
         }
     }
     let opts = MergeOptions {
         leaderboard: args.leaderboard,
-        expected_records: args.expect_routes.map(|n| n.saturating_mul(args.repetitions)),
+        expected_records: args
+            .expect_routes
+            .map(|n| n.saturating_mul(args.repetitions)),
     };
-    let outcome = results::merge(&present, opts)?;
+    let contributed = present.len();
+    let outcome = results::merge(present, opts)?;
     info!(
         records = outcome.merged.records.len(),
         complete = outcome.complete,
         entry_status = %outcome.merged.entry_status,
         "results merged"
     );
-    Ok((outcome, present.len()))
+    Ok((outcome, contributed))
 }
 
 /// The file's bytes, `None` if it does not exist; never reads more than the limit allows.
 fn read_limited(path: &Path) -> Result<Option<Vec<u8>>, MergeError> {
-    let read_err = |source| MergeError::Read { path: path.to_owned(), source };
+    let read_err = |source| MergeError::Read {
+        path: path.to_owned(),
+        source,
+    };
     let file = match fs::File::open(path) {
         Ok(f) => f,
         Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(read_err(e)),
     };
-    let mut bytes = Vec::new();
+    // Sized from the metadata up front: growing a buffer by doubling costs page faults.
+    let hint = file
+        .metadata()
+        .map_or(0, |m| m.len())
+        .min(MAX_FILE_BYTES as u64 + 1);
+    let mut bytes = Vec::with_capacity(hint as usize + 1);
     // One byte over the limit is enough for the parser to report the file as too large.
-    file.take(MAX_FILE_BYTES as u64 + 1).read_to_end(&mut bytes).map_err(read_err)?;
+    file.take(MAX_FILE_BYTES as u64 + 1)
+        .read_to_end(&mut bytes)
+        .map_err(read_err)?;
     Ok(Some(bytes))
 }
 
@@ -155,19 +200,24 @@ fn write_outputs(
     fs::create_dir(staging.path().join("evalai")).map_err(write_err(staging.path()))?;
 
     let evalai = EvalAiFiles::generate(Some(&outcome.merged), leaderboard);
-    let contents: [(&str, String); 4] = [
-        (OUTPUTS[0], outcome.merged.to_json()),
-        (OUTPUTS[1], evalai.results_json()),
-        (OUTPUTS[2], evalai.stdout.clone()),
-        (OUTPUTS[3], evalai.metadata.clone().unwrap_or_default()),
+    // metadata.json is a copy of the merged file: serialize once, write twice.
+    let merged = evalai.metadata.as_deref().unwrap_or_default();
+    let results = evalai.results_json();
+    let contents: [(&str, &str); 4] = [
+        (OUTPUTS[0], merged),
+        (OUTPUTS[1], &results),
+        (OUTPUTS[2], &evalai.stdout),
+        (OUTPUTS[3], merged),
     ];
-    for (rel, text) in &contents {
+    for (rel, text) in contents {
         let path = staging.path().join(rel);
-        let mut f = fs::File::create(&path).map_err(write_err(&path))?;
-        f.write_all(text.as_bytes()).map_err(write_err(&path))?;
-        f.sync_all().map_err(write_err(&path))?;
+        // NB: no fsync: these files are re-derivable from the workers' files, and the
+        // rename below already keeps a reader from seeing a half-written one.
+        fs::File::create(&path)
+            .and_then(|mut f| f.write_all(text.as_bytes()))
+            .map_err(write_err(&path))?;
     }
-    for (rel, _) in &contents {
+    for (rel, _) in contents {
         let target = out.join(rel);
         fs::rename(staging.path().join(rel), &target).map_err(write_err(&target))?;
     }

@@ -9,6 +9,11 @@ pub fn init() {
     // stderr so the two never interleave in a pipe.
     let _ = tracing_subscriber::registry()
         .with(filter)
-        .with(fmt::layer().json().with_writer(std::io::stderr).with_current_span(false))
+        .with(
+            fmt::layer()
+                .json()
+                .with_writer(std::io::stderr)
+                .with_current_span(false),
+        )
         .try_init();
 }

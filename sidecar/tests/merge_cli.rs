@@ -6,7 +6,9 @@ use std::process::{Command, Output};
 fn fixtures() -> PathBuf {
     match std::env::var_os("LB_FIXTURES_DIR") {
         Some(dir) => PathBuf::from(dir),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/fixtures/leaderboard-results"),
+        None => {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/fixtures/leaderboard-results")
+        }
     }
 }
 
@@ -71,7 +73,11 @@ fn merge_writes_the_four_files_identical_to_the_official_ones() {
     ] {
         let out = tempfile::tempdir().unwrap();
         let result = merge(out.path(), &["--leaderboard", lb], &inputs(case));
-        assert!(result.status.success(), "{case}: {}", String::from_utf8_lossy(&result.stderr));
+        assert!(
+            result.status.success(),
+            "{case}: {}",
+            String::from_utf8_lossy(&result.stderr)
+        );
         let expected = fixtures().join(case).join("expected");
         for (ours, theirs) in [
             ("agent_results.json", "merged.json"),
@@ -79,11 +85,20 @@ fn merge_writes_the_four_files_identical_to_the_official_ones() {
             ("evalai/stdout.txt", "stdout.txt"),
             ("evalai/metadata.json", "metadata.json"),
         ] {
-            assert_eq!(read(out.path().join(ours)), read(expected.join(theirs)), "{case}: {ours}");
+            assert_eq!(
+                read(out.path().join(ours)),
+                read(expected.join(theirs)),
+                "{case}: {ours}"
+            );
         }
         assert_eq!(
             listing(out.path()),
-            ["agent_results.json", "evalai/metadata.json", "evalai/results.json", "evalai/stdout.txt"],
+            [
+                "agent_results.json",
+                "evalai/metadata.json",
+                "evalai/results.json",
+                "evalai/stdout.txt"
+            ],
             "{case}: no staging files left"
         );
     }
@@ -93,7 +108,11 @@ fn merge_writes_the_four_files_identical_to_the_official_ones() {
 fn a_merge_error_exits_non_zero_and_leaves_no_stale_or_partial_output() {
     let out = tempfile::tempdir().unwrap();
     // A previous successful merge...
-    assert!(merge(out.path(), &[], &inputs("a_4workers_20routes_finished")).status.success());
+    assert!(
+        merge(out.path(), &[], &inputs("a_4workers_20routes_finished"))
+            .status
+            .success()
+    );
     std::fs::write(out.path().join("notes.txt"), "operator's own file").unwrap();
     // ...then one that fails: its error is reported and the old result is gone.
     for (case, message) in [
@@ -115,14 +134,21 @@ fn fewer_records_than_planned_is_written_as_partial() {
     let mut files = inputs("a_4workers_20routes_finished");
     files[3] = out.path().join("never-written.json");
     let result = merge(out.path(), &["--expect-routes", "20"], &files);
-    assert!(result.status.success(), "{}", String::from_utf8_lossy(&result.stderr));
+    assert!(
+        result.status.success(),
+        "{}",
+        String::from_utf8_lossy(&result.stderr)
+    );
     let stdout = String::from_utf8_lossy(&result.stdout);
     assert!(stdout.contains("partial"), "{stdout}");
     let merged: serde_json::Value =
         serde_json::from_str(&read(out.path().join("agent_results.json"))).unwrap();
     assert_eq!(merged["entry_status"], "Started");
     assert_eq!(merged["eligible"], false);
-    assert_eq!(merged["_checkpoint"]["progress"], serde_json::json!([15, 20]));
+    assert_eq!(
+        merged["_checkpoint"]["progress"],
+        serde_json::json!([15, 20])
+    );
     let results: serde_json::Value =
         serde_json::from_str(&read(out.path().join("evalai/results.json"))).unwrap();
     assert_eq!(results[0]["accuracies"]["Driving score"], 0);
@@ -133,7 +159,11 @@ fn subsets_catch_a_worker_reporting_someone_elses_routes() {
     let out = tempfile::tempdir().unwrap();
     let files = inputs("a_4workers_20routes_finished");
     let ok = merge(out.path(), &["--subsets", "0-4,5-9,10-14,15-19"], &files);
-    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
     let bad = merge(out.path(), &["--subsets", "0-4,10-14,5-9,15-19"], &files);
     assert_eq!(bad.status.code(), Some(1));
     let stderr = String::from_utf8_lossy(&bad.stderr);
@@ -141,13 +171,19 @@ fn subsets_catch_a_worker_reporting_someone_elses_routes() {
     assert!(stderr.contains("worker2.json"), "{stderr}");
     let count = merge(out.path(), &["--subsets", "0-4"], &files);
     assert_eq!(count.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&count.stderr).contains("--subsets gives 1 subsets for 4 files"));
+    assert!(
+        String::from_utf8_lossy(&count.stderr).contains("--subsets gives 1 subsets for 4 files")
+    );
 }
 
 #[test]
 fn bad_arguments_are_named() {
     let out = tempfile::tempdir().unwrap();
-    let result = merge(out.path(), &["--leaderboard", "3.0"], &inputs("i_single_route"));
+    let result = merge(
+        out.path(),
+        &["--leaderboard", "3.0"],
+        &inputs("i_single_route"),
+    );
     assert_eq!(result.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&result.stderr).contains("unknown leaderboard `3.0`"));
     let result = merge(out.path(), &["--subsets", "9-2"], &inputs("i_single_route"));
@@ -161,6 +197,9 @@ fn invalid_results_print_the_official_validation_message() {
     let result = merge(out.path(), &[], &inputs("l_agent_setup_failure_invalid"));
     assert!(result.status.success());
     let stdout = String::from_utf8_lossy(&result.stdout);
-    assert!(stdout.contains("Setting their status to 'Invalid': Missing 'sensors' data"), "{stdout}");
+    assert!(
+        stdout.contains("Setting their status to 'Invalid': Missing 'sensors' data"),
+        "{stdout}"
+    );
     assert!(stdout.contains("entry status Invalid"), "{stdout}");
 }

@@ -25,21 +25,24 @@ impl Num {
         }
     }
 
-    /// Python's `a + b`: int stays int, anything with a float becomes float.
-    pub fn add(self, other: Num) -> Num {
-        match (self, other) {
-            // NB: validation bounds every input int well below i64::MAX / record count, so the
-            // sum cannot overflow; saturate anyway rather than panic on a future caller.
-            (Num::Int(a), Num::Int(b)) => Num::Int(a.saturating_add(b)),
-            (a, b) => Num::Float(a.as_f64() + b.as_f64()),
-        }
-    }
-
     /// Python's `str()` of the number.
     pub fn py_str(self) -> String {
         match self {
             Num::Int(i) => i.to_string(),
             Num::Float(f) => float_repr(f),
+        }
+    }
+}
+
+/// Python's `a + b`: int stays int, anything with a float becomes float.
+impl std::ops::Add for Num {
+    type Output = Num;
+    fn add(self, other: Num) -> Num {
+        match (self, other) {
+            // NB: validation bounds every input int well below i64::MAX / record count, so the
+            // sum cannot overflow; saturate anyway rather than panic on a future caller.
+            (Num::Int(a), Num::Int(b)) => Num::Int(a.saturating_add(b)),
+            (a, b) => Num::Float(a.as_f64() + b.as_f64()),
         }
     }
 }
@@ -68,52 +71,88 @@ pub fn format_fixed(x: f64, ndigits: usize) -> String {
 /// Python's `repr(float)`: the shortest digits that round-trip, in fixed notation for
 /// exponents in `-4..16` and scientific notation (`1e+16`, `6.8e-05`) elsewhere.
 pub fn float_repr(x: f64) -> String {
+    let mut out = String::with_capacity(24);
+    write_float_repr(&mut out, x);
+    out
+}
+
+/// [`float_repr`] appended to a buffer, without allocating.
+pub fn write_float_repr(out: &mut String, x: f64) {
     if x.is_nan() {
-        return "nan".to_owned();
+        out.push_str("nan");
+        return;
     }
     if x.is_infinite() {
-        return if x > 0.0 { "inf" } else { "-inf" }.to_owned();
+        out.push_str(if x > 0.0 { "inf" } else { "-inf" });
+        return;
     }
     if x == 0.0 {
-        return if x.is_sign_negative() { "-0.0" } else { "0.0" }.to_owned();
+        out.push_str(if x.is_sign_negative() { "-0.0" } else { "0.0" });
+        return;
     }
-    // `{:e}` yields the shortest round-trip digits, e.g. `6.8e-5`, `1.23456e2`.
-    let sci = format!("{x:e}");
-    let (mantissa, exp) = sci.split_once('e').unwrap_or((&sci, "0"));
-    let exp: i32 = exp.parse().unwrap_or(0);
-    let (sign, mantissa) = match mantissa.strip_prefix('-') {
-        Some(m) => ("-", m),
-        None => ("", mantissa),
+    // ryu gives the same shortest round-trip digits as CPython's dtoa, in its own layout
+    // (`1e16`, `6.8e-5`, `0.001`); re-lay them out the Python way.
+    let mut buf = ryu::Buffer::new();
+    let text = buf.format_finite(x);
+    let (sign, text) = match text.strip_prefix('-') {
+        Some(t) => ("-", t),
+        None => ("", text),
     };
-    let digits: String = mantissa.chars().filter(|c| *c != '.').collect();
-    let mut out = String::with_capacity(digits.len() + 8);
+    let (mantissa, exp_part) = match text.split_once('e') {
+        Some((m, e)) => (m, e.parse::<i32>().unwrap_or(0)),
+        None => (text, 0),
+    };
+    let mut digits = [0u8; 32];
+    let mut n = 0usize;
+    let mut point: i32 = -1; // digits before the decimal point
+    for b in mantissa.bytes() {
+        if b == b'.' {
+            point = n as i32;
+        } else if n < digits.len() {
+            digits[n] = b;
+            n += 1;
+        }
+    }
+    if point < 0 {
+        point = n as i32;
+    }
+    // Strip leading zeros (`0.001`) and trailing zeros (`100.0`), keeping the value.
+    let lead = digits[..n].iter().take_while(|d| **d == b'0').count();
+    let trail = digits[lead..n]
+        .iter()
+        .rev()
+        .take_while(|d| **d == b'0')
+        .count();
+    let sig = &digits[lead..n - trail];
+    // Value = 0.sig x 10^(point - lead); Python's exponent is that of the first digit.
+    let exp = point - lead as i32 - 1 + exp_part;
+    let sig = std::str::from_utf8(sig).unwrap_or("0");
     out.push_str(sign);
     if (-4..16).contains(&exp) {
         if exp >= 0 {
             let int_len = exp as usize + 1;
-            if digits.len() <= int_len {
-                out.push_str(&digits);
-                out.extend(std::iter::repeat_n('0', int_len - digits.len()));
+            if sig.len() <= int_len {
+                out.push_str(sig);
+                out.extend(std::iter::repeat_n('0', int_len - sig.len()));
                 out.push_str(".0");
             } else {
-                out.push_str(&digits[..int_len]);
+                out.push_str(&sig[..int_len]);
                 out.push('.');
-                out.push_str(&digits[int_len..]);
+                out.push_str(&sig[int_len..]);
             }
         } else {
             out.push_str("0.");
             out.extend(std::iter::repeat_n('0', (-exp - 1) as usize));
-            out.push_str(&digits);
+            out.push_str(sig);
         }
     } else {
-        out.push_str(&digits[..1]);
-        if digits.len() > 1 {
+        out.push_str(&sig[..1]);
+        if sig.len() > 1 {
             out.push('.');
-            out.push_str(&digits[1..]);
+            out.push_str(&sig[1..]);
         }
         let _ = write!(out, "e{}{:02}", if exp < 0 { '-' } else { '+' }, exp.abs());
     }
-    out
 }
 
 /// A JSON document built in the key order Python would write it.
@@ -168,66 +207,191 @@ pub struct DumpOptions {
     pub sort_keys: bool,
 }
 
-impl PyValue {
-    /// Serializes like `json.dumps(value, indent=.., sort_keys=..)` with `ensure_ascii=True`.
-    pub fn dumps(&self, opts: DumpOptions) -> String {
-        let mut out = String::new();
-        self.write(&mut out, opts, 0);
-        out
+/// A streaming writer with the layout of Python's `json.dump` (`ensure_ascii=True`).
+///
+/// Callers emit keys in the order they want; with `sort_keys` they emit them sorted.
+#[derive(Debug)]
+pub struct JsonWriter {
+    out: String,
+    opts: DumpOptions,
+    depth: usize,
+    /// Whether the innermost open container has no item yet.
+    empty: bool,
+    /// Whether a key was just written, so the next value belongs to it.
+    after_key: bool,
+}
+
+impl JsonWriter {
+    /// A writer with room for `capacity` bytes.
+    pub fn new(opts: DumpOptions, capacity: usize) -> Self {
+        JsonWriter {
+            out: String::with_capacity(capacity),
+            opts,
+            depth: 0,
+            empty: true,
+            after_key: false,
+        }
     }
 
-    fn write(&self, out: &mut String, opts: DumpOptions, depth: usize) {
-        match self {
-            PyValue::Null => out.push_str("null"),
-            PyValue::Bool(b) => out.push_str(if *b { "true" } else { "false" }),
-            PyValue::Num(Num::Int(i)) => {
-                let _ = write!(out, "{i}");
+    /// The options in force.
+    pub fn options(&self) -> DumpOptions {
+        self.opts
+    }
+
+    /// The text written.
+    pub fn finish(self) -> String {
+        self.out
+    }
+
+    /// Separator and indentation before a new item of the innermost container.
+    fn item(&mut self) {
+        if self.after_key {
+            self.after_key = false;
+            return;
+        }
+        if self.depth == 0 {
+            return;
+        }
+        match self.opts.indent {
+            Some(n) => {
+                if !self.empty {
+                    self.out.push(',');
+                }
+                self.out.push('\n');
+                indent(&mut self.out, n * self.depth);
             }
-            PyValue::Num(Num::Float(f)) => {
-                // json.dumps writes NaN/Infinity literally; validation keeps them out of our data.
-                if f.is_nan() {
-                    out.push_str("NaN");
-                } else if f.is_infinite() {
-                    out.push_str(if *f > 0.0 { "Infinity" } else { "-Infinity" });
-                } else {
-                    out.push_str(&float_repr(*f));
+            None => {
+                if !self.empty {
+                    self.out.push_str(", ");
                 }
             }
-            PyValue::Str(s) => write_str(out, s),
+        }
+        self.empty = false;
+    }
+
+    fn open(&mut self, c: char) {
+        self.item();
+        self.out.push(c);
+        self.depth += 1;
+        self.empty = true;
+    }
+
+    fn close(&mut self, c: char) {
+        self.depth -= 1;
+        if !self.empty {
+            if let Some(n) = self.opts.indent {
+                self.out.push('\n');
+                indent(&mut self.out, n * self.depth);
+            }
+        }
+        self.empty = false;
+        self.out.push(c);
+    }
+
+    /// `{`
+    pub fn begin_object(&mut self) {
+        self.open('{');
+    }
+    /// `}`
+    pub fn end_object(&mut self) {
+        self.close('}');
+    }
+    /// `[`
+    pub fn begin_list(&mut self) {
+        self.open('[');
+    }
+    /// `]`
+    pub fn end_list(&mut self) {
+        self.close(']');
+    }
+
+    /// An object key; the value written next belongs to it.
+    pub fn key(&mut self, k: &str) {
+        self.item();
+        write_str(&mut self.out, k);
+        self.out.push_str(": ");
+        self.after_key = true;
+    }
+
+    /// A string value.
+    pub fn str(&mut self, s: &str) {
+        self.item();
+        write_str(&mut self.out, s);
+    }
+
+    /// A number value.
+    pub fn num(&mut self, n: Num) {
+        self.item();
+        match n {
+            Num::Int(i) => self.out.push_str(itoa::Buffer::new().format(i)),
+            // json.dumps writes NaN/Infinity literally; validation keeps them out of our data.
+            Num::Float(f) if f.is_nan() => self.out.push_str("NaN"),
+            Num::Float(f) if f.is_infinite() => {
+                self.out
+                    .push_str(if f > 0.0 { "Infinity" } else { "-Infinity" })
+            }
+            Num::Float(f) => write_float_repr(&mut self.out, f),
+        }
+    }
+
+    /// A boolean value.
+    pub fn bool(&mut self, b: bool) {
+        self.item();
+        self.out.push_str(if b { "true" } else { "false" });
+    }
+
+    /// `null`.
+    pub fn null(&mut self) {
+        self.item();
+        self.out.push_str("null");
+    }
+
+    /// A list of strings.
+    pub fn str_list<S: AsRef<str>>(&mut self, items: &[S]) {
+        self.begin_list();
+        for s in items {
+            self.str(s.as_ref());
+        }
+        self.end_list();
+    }
+
+    /// A whole [`PyValue`].
+    pub fn value(&mut self, v: &PyValue) {
+        match v {
+            PyValue::Null => self.null(),
+            PyValue::Bool(b) => self.bool(*b),
+            PyValue::Num(n) => self.num(*n),
+            PyValue::Str(s) => self.str(s),
             PyValue::List(items) => {
-                if items.is_empty() {
-                    out.push_str("[]");
-                    return;
+                self.begin_list();
+                for item in items {
+                    self.value(item);
                 }
-                out.push('[');
-                for (i, item) in items.iter().enumerate() {
-                    separator(out, opts, depth + 1, i == 0);
-                    item.write(out, opts, depth + 1);
-                }
-                closing(out, opts, depth);
-                out.push(']');
+                self.end_list();
             }
             PyValue::Dict(entries) => {
-                if entries.is_empty() {
-                    out.push_str("{}");
-                    return;
-                }
                 let mut refs: Vec<&(String, PyValue)> = entries.iter().collect();
-                if opts.sort_keys {
+                if self.opts.sort_keys {
                     // Python sorts str keys by code point, which is UTF-8 byte order.
                     refs.sort_by(|a, b| a.0.cmp(&b.0));
                 }
-                out.push('{');
-                for (i, (k, v)) in refs.into_iter().enumerate() {
-                    separator(out, opts, depth + 1, i == 0);
-                    write_str(out, k);
-                    out.push_str(": ");
-                    v.write(out, opts, depth + 1);
+                self.begin_object();
+                for (k, v) in refs {
+                    self.key(k);
+                    self.value(v);
                 }
-                closing(out, opts, depth);
-                out.push('}');
+                self.end_object();
             }
         }
+    }
+}
+
+impl PyValue {
+    /// Serializes like `json.dumps(value, indent=.., sort_keys=..)` with `ensure_ascii=True`.
+    pub fn dumps(&self, opts: DumpOptions) -> String {
+        let mut w = JsonWriter::new(opts, 256);
+        w.value(self);
+        w.finish()
     }
 
     /// Looks up a key of a dict.
@@ -239,34 +403,27 @@ impl PyValue {
     }
 }
 
-fn separator(out: &mut String, opts: DumpOptions, depth: usize, first: bool) {
-    match opts.indent {
-        Some(n) => {
-            if !first {
-                out.push(',');
-            }
-            out.push('\n');
-            out.extend(std::iter::repeat_n(' ', n * depth));
-        }
-        None => {
-            if !first {
-                out.push_str(", ");
-            }
-        }
+/// Bytes that `json.dumps(ensure_ascii=True)` does not copy as they are.
+const fn escape_table() -> [bool; 256] {
+    // Everything outside printable ASCII is escaped; inside it, only `"` and `\\`.
+    let mut t = [true; 256];
+    let mut b = 0x20;
+    while b < 0x7f {
+        t[b] = b == b'"' as usize || b == b'\\' as usize;
+        b += 1;
     }
+    t
 }
-
-fn closing(out: &mut String, opts: DumpOptions, depth: usize) {
-    if let Some(n) = opts.indent {
-        out.push('\n');
-        out.extend(std::iter::repeat_n(' ', n * depth));
-    }
-}
+static NEEDS_ESCAPE: [bool; 256] = escape_table();
 
 /// A JSON string with Python's `ensure_ascii=True` escaping.
 fn write_str(out: &mut String, s: &str) {
     out.push('"');
-    for c in s.chars() {
+    let mut rest = s;
+    while let Some(i) = rest.bytes().position(|b| NEEDS_ESCAPE[b as usize]) {
+        out.push_str(&rest[..i]);
+        let c = rest[i..].chars().next().unwrap_or(' ');
+        rest = &rest[i + c.len_utf8()..];
         match c {
             '"' => out.push_str("\\\""),
             '\\' => out.push_str("\\\\"),
@@ -275,16 +432,27 @@ fn write_str(out: &mut String, s: &str) {
             '\t' => out.push_str("\\t"),
             '\u{8}' => out.push_str("\\b"),
             '\u{c}' => out.push_str("\\f"),
-            c if (c as u32) < 0x20 || (c as u32) > 0x7e => {
+            c => {
                 let mut buf = [0u16; 2];
                 for unit in c.encode_utf16(&mut buf) {
                     let _ = write!(out, "\\u{unit:04x}");
                 }
             }
-            c => out.push(c),
         }
     }
+    out.push_str(rest);
     out.push('"');
+}
+
+/// Appends `n` spaces.
+fn indent(out: &mut String, n: usize) {
+    const SPACES: &str = "                                                                ";
+    let mut left = n;
+    while left > 0 {
+        let take = left.min(SPACES.len());
+        out.push_str(&SPACES[..take]);
+        left -= take;
+    }
 }
 
 #[cfg(test)]
@@ -334,25 +502,37 @@ mod tests {
 
     #[test]
     fn num_addition_keeps_int_until_a_float_joins() {
-        assert_eq!(Num::Int(2).add(Num::Int(3)), Num::Int(5));
-        assert_eq!(Num::Int(2).add(Num::Float(0.5)), Num::Float(2.5));
-        assert_eq!(Num::Int(0).add(Num::Float(0.0)).py_str(), "0.0");
+        assert_eq!(Num::Int(2) + Num::Int(3), Num::Int(5));
+        assert_eq!(Num::Int(2) + Num::Float(0.5), Num::Float(2.5));
+        assert_eq!((Num::Int(0) + Num::Float(0.0)).py_str(), "0.0");
     }
 
     #[test]
     fn dumps_matches_python_json_layout() {
         let v = PyValue::Dict(vec![
-            ("b".into(), PyValue::List(vec![Num::Int(1).into(), Num::Float(2.0).into()])),
+            (
+                "b".into(),
+                PyValue::List(vec![Num::Int(1).into(), Num::Float(2.0).into()]),
+            ),
             ("a".into(), PyValue::Str("é\"\n".into())),
             ("e".into(), PyValue::List(vec![])),
         ]);
-        let indented = v.dumps(DumpOptions { indent: Some(4), sort_keys: false });
+        let indented = v.dumps(DumpOptions {
+            indent: Some(4),
+            sort_keys: false,
+        });
         assert_eq!(
             indented,
             "{\n    \"b\": [\n        1,\n        2.0\n    ],\n    \"a\": \"\\u00e9\\\"\\n\",\n    \"e\": []\n}"
         );
-        let sorted = v.dumps(DumpOptions { indent: None, sort_keys: true });
-        assert_eq!(sorted, "{\"a\": \"\\u00e9\\\"\\n\", \"b\": [1, 2.0], \"e\": []}");
+        let sorted = v.dumps(DumpOptions {
+            indent: None,
+            sort_keys: true,
+        });
+        assert_eq!(
+            sorted,
+            "{\"a\": \"\\u00e9\\\"\\n\", \"b\": [1, 2.0], \"e\": []}"
+        );
     }
 
     #[test]

@@ -13,7 +13,8 @@ use serde_json::Value;
 fn fixtures_dir() -> PathBuf {
     match std::env::var_os("LB_FIXTURES_DIR") {
         Some(dir) => PathBuf::from(dir),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/leaderboard-results"),
+        None => Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../../shared/fixtures/leaderboard-results"),
     }
 }
 
@@ -51,7 +52,11 @@ fn cases() -> Vec<Case> {
         });
     }
     out.sort_by(|a, b| a.name.cmp(&b.name));
-    assert!(out.len() >= 13, "expected every fixture case, found {}", out.len());
+    assert!(
+        out.len() >= 13,
+        "expected every fixture case, found {}",
+        out.len()
+    );
     out
 }
 
@@ -81,7 +86,11 @@ fn assert_json_eq(case: &str, what: &str, got: &str, want: &Path) {
     let want = json(want);
     if got != want {
         let (g, w) = (got.to_string(), want.to_string());
-        let at = g.bytes().zip(w.bytes()).position(|(a, b)| a != b).unwrap_or(0);
+        let at = g
+            .bytes()
+            .zip(w.bytes())
+            .position(|(a, b)| a != b)
+            .unwrap_or(0);
         panic!(
             "{case}: {what} differs at byte {at}:\n got: …{}\nwant: …{}",
             &g[at.saturating_sub(120)..(at + 120).min(g.len())],
@@ -97,8 +106,11 @@ fn every_fixture_case_matches_the_official_tooling() {
         let expected = case.dir.join("expected");
         let merged = if case.run_merge {
             let files = load(&case);
-            let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: None };
-            match merge(&files, opts) {
+            let opts = MergeOptions {
+                leaderboard: case.leaderboard,
+                expected_records: None,
+            };
+            match merge(files.clone(), opts) {
                 Ok(outcome) => {
                     assert!(
                         !expected.join("error.txt").exists(),
@@ -106,7 +118,12 @@ fn every_fixture_case_matches_the_official_tooling() {
                         case.name
                     );
                     let text = outcome.merged.to_json();
-                    assert_json_eq(&case.name, "merged.json", &text, &expected.join("merged.json"));
+                    assert_json_eq(
+                        &case.name,
+                        "merged.json",
+                        &text,
+                        &expected.join("merged.json"),
+                    );
                     Some(outcome.merged)
                 }
                 Err(err) => {
@@ -127,7 +144,12 @@ fn every_fixture_case_matches_the_official_tooling() {
             None
         };
         let files = EvalAiFiles::generate(merged.as_ref(), case.leaderboard);
-        assert_json_eq(&case.name, "results.json", &files.results_json(), &expected.join("results.json"));
+        assert_json_eq(
+            &case.name,
+            "results.json",
+            &files.results_json(),
+            &expected.join("results.json"),
+        );
         let want_stdout = std::fs::read_to_string(expected.join("stdout.txt")).unwrap();
         assert_eq!(files.stdout, want_stdout, "{}: stdout.txt", case.name);
         match (&files.metadata, expected.join("metadata.json")) {
@@ -150,8 +172,11 @@ fn merged_files_are_byte_identical_to_python_json_dump() {
         if !expected.exists() {
             continue;
         }
-        let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: None };
-        let merged = merge(&load(&case), opts).unwrap().merged;
+        let opts = MergeOptions {
+            leaderboard: case.leaderboard,
+            expected_records: None,
+        };
+        let merged = merge(load(&case), opts).unwrap().merged;
         let want = std::fs::read_to_string(&expected).unwrap();
         assert_eq!(merged.to_json(), want, "{}", case.name);
         let files = EvalAiFiles::generate(Some(&merged), case.leaderboard);
@@ -159,15 +184,26 @@ fn merged_files_are_byte_identical_to_python_json_dump() {
         let want = std::fs::read_to_string(dir.join("results.json")).unwrap();
         assert_eq!(files.results_json(), want, "{} results.json", case.name);
         let want = std::fs::read_to_string(dir.join("metadata.json")).unwrap();
-        assert_eq!(files.metadata.as_deref(), Some(want.as_str()), "{} metadata.json", case.name);
+        assert_eq!(
+            files.metadata.as_deref(),
+            Some(want.as_str()),
+            "{} metadata.json",
+            case.name
+        );
     }
 }
 
 #[test]
 fn invalid_fixture_reports_the_validation_message() {
-    let case = cases().into_iter().find(|c| c.name.starts_with("l_")).unwrap();
-    let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: None };
-    let merged = merge(&load(&case), opts).unwrap().merged;
+    let case = cases()
+        .into_iter()
+        .find(|c| c.name.starts_with("l_"))
+        .unwrap();
+    let opts = MergeOptions {
+        leaderboard: case.leaderboard,
+        expected_records: None,
+    };
+    let merged = merge(load(&case), opts).unwrap().merged;
     assert_eq!(merged.entry_status, "Invalid");
     assert_eq!(merged.invalid_reason, Some("Missing 'sensors' data"));
     assert!(!merged.eligible);
@@ -176,25 +212,48 @@ fn invalid_fixture_reports_the_validation_message() {
 #[test]
 fn a_missing_worker_keeps_the_result_partial_when_the_plan_is_known() {
     // Upstream published a Finished score over 15 of 20 routes here; we do not.
-    let case = cases().into_iter().find(|c| c.name.starts_with("a_")).unwrap();
+    let case = cases()
+        .into_iter()
+        .find(|c| c.name.starts_with("a_"))
+        .unwrap();
     let mut files = load(&case);
     files.pop();
-    let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: None };
-    assert!(merge(&files, opts).unwrap().complete, "upstream rule: 15 == 15 is complete");
-    let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: Some(20) };
-    let outcome = merge(&files, opts).unwrap();
+    let opts = MergeOptions {
+        leaderboard: case.leaderboard,
+        expected_records: None,
+    };
+    assert!(
+        merge(files.clone(), opts).unwrap().complete,
+        "upstream rule: 15 == 15 is complete"
+    );
+    let opts = MergeOptions {
+        leaderboard: case.leaderboard,
+        expected_records: Some(20),
+    };
+    let outcome = merge(files.clone(), opts).unwrap();
     assert!(!outcome.complete);
     assert_eq!(outcome.merged.progress, (15, 20));
     assert_eq!(outcome.merged.entry_status, "Started");
     let evalai = EvalAiFiles::generate(Some(&outcome.merged), case.leaderboard);
-    assert!(evalai.stdout.contains("- Completed 15 out of the 20 routes\n"));
-    assert!(evalai.accuracies().iter().all(|(_, v)| *v == lb_domain::py::Num::Int(0)));
+    assert!(evalai
+        .stdout
+        .contains("- Completed 15 out of the 20 routes\n"));
+    assert!(evalai
+        .accuracies()
+        .iter()
+        .all(|(_, v)| *v == lb_domain::py::Num::Int(0)));
 }
 
 #[test]
 fn more_records_than_planned_is_an_error() {
-    let case = cases().into_iter().find(|c| c.name.starts_with("a_")).unwrap();
-    let opts = MergeOptions { leaderboard: case.leaderboard, expected_records: Some(19) };
-    let err = merge(&load(&case), opts).unwrap_err();
+    let case = cases()
+        .into_iter()
+        .find(|c| c.name.starts_with("a_"))
+        .unwrap();
+    let opts = MergeOptions {
+        leaderboard: case.leaderboard,
+        expected_records: Some(19),
+    };
+    let err = merge(load(&case), opts).unwrap_err();
     assert_eq!(err.name(), "UnexpectedRecords");
 }

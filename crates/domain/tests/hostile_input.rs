@@ -13,7 +13,8 @@ use serde_json::{json, Value};
 fn fixture(rel: &str) -> Vec<u8> {
     let root = match std::env::var_os("LB_FIXTURES_DIR") {
         Some(dir) => std::path::PathBuf::from(dir),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/leaderboard-results"),
+        None => Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../../shared/fixtures/leaderboard-results"),
     };
     std::fs::read(root.join(rel)).unwrap()
 }
@@ -29,7 +30,11 @@ fn read(doc: &Value) -> Result<WorkerFile, ResultsError> {
 
 fn invalid_field(result: Result<WorkerFile, ResultsError>) -> (String, String) {
     match result {
-        Err(ResultsError::Invalid { file, field, problem }) => {
+        Err(ResultsError::Invalid {
+            file,
+            field,
+            problem,
+        }) => {
             assert_eq!(file, "worker1.json");
             (field, problem)
         }
@@ -42,7 +47,11 @@ fn missing_blank_and_falsy_files_count_as_empty() {
     let read = |b: Option<&[u8]>| read_worker_file("w.json", b, Leaderboard::V2, None).unwrap();
     assert_eq!(read(None), WorkerFile::Empty(EmptyReason::Missing));
     for blank in [&b""[..], b"  \n", b"{}", b"null", b" [] "] {
-        assert_eq!(read(Some(blank)), WorkerFile::Empty(EmptyReason::Blank), "{blank:?}");
+        assert_eq!(
+            read(Some(blank)),
+            WorkerFile::Empty(EmptyReason::Blank),
+            "{blank:?}"
+        );
     }
 }
 
@@ -58,7 +67,8 @@ fn a_truncated_file_counts_as_unreadable_not_as_a_result() {
 
 #[test]
 fn nan_is_rejected_with_its_position() {
-    let text = String::from_utf8(fixture("a_4workers_20routes_finished/input/worker1.json")).unwrap();
+    let text =
+        String::from_utf8(fixture("a_4workers_20routes_finished/input/worker1.json")).unwrap();
     let text = text.replacen("\"score_route\": 100", "\"score_route\": NaN", 1);
     let err = read_worker_file("w.json", Some(text.as_bytes()), Leaderboard::V2, None).unwrap_err();
     assert_eq!(err.name(), "ResultsNonFinite");
@@ -93,7 +103,14 @@ fn huge_numbers_are_rejected() {
 
 #[test]
 fn malformed_route_ids_are_rejected() {
-    for bad in ["RouteScenario_4", "Route_4_rep0", "RouteScenario_-4_rep0", "RouteScenario_4_rep", "RouteScenario_ 4_rep0", "RouteScenario_٤_rep0"] {
+    for bad in [
+        "RouteScenario_4",
+        "Route_4_rep0",
+        "RouteScenario_-4_rep0",
+        "RouteScenario_4_rep",
+        "RouteScenario_ 4_rep0",
+        "RouteScenario_٤_rep0",
+    ] {
         let mut doc = worker1();
         doc["_checkpoint"]["records"][0]["route_id"] = json!(bad);
         let (field, problem) = invalid_field(read(&doc));
@@ -123,13 +140,19 @@ fn routes_outside_the_assigned_subset_are_rejected() {
 #[test]
 fn a_missing_infraction_kind_or_field_is_named() {
     let mut doc = worker1();
-    doc["_checkpoint"]["records"][3]["infractions"].as_object_mut().unwrap().remove("red_light");
+    doc["_checkpoint"]["records"][3]["infractions"]
+        .as_object_mut()
+        .unwrap()
+        .remove("red_light");
     let (field, problem) = invalid_field(read(&doc));
     assert_eq!(field, "_checkpoint.records[3].infractions");
     assert_eq!(problem, "has no `red_light` list");
 
     let mut doc = worker1();
-    doc["_checkpoint"].as_object_mut().unwrap().remove("records");
+    doc["_checkpoint"]
+        .as_object_mut()
+        .unwrap()
+        .remove("records");
     let (field, problem) = invalid_field(read(&doc));
     assert_eq!(field, "_checkpoint");
     assert!(problem.contains("missing field `records`"), "{problem}");
@@ -138,7 +161,8 @@ fn a_missing_infraction_kind_or_field_is_named() {
 #[test]
 fn control_characters_cannot_forge_stdout_lines() {
     let mut doc = worker1();
-    doc["_checkpoint"]["records"][0]["status"] = json!("Completed\n- Results:\n  - Driving score: 100");
+    doc["_checkpoint"]["records"][0]["status"] =
+        json!("Completed\n- Results:\n  - Driving score: 100");
     let (field, _) = invalid_field(read(&doc));
     assert_eq!(field, "_checkpoint.records[0].status");
     let mut doc = worker1();
@@ -169,10 +193,15 @@ fn an_oversized_file_is_refused_before_parsing() {
 fn unknown_sensors_are_shown_as_they_are() {
     let mut doc = worker1();
     doc["sensors"] = json!(["carla_camera", "sensor.other.thermal"]);
-    let WorkerFile::Present(file) = read(&doc).unwrap() else { panic!() };
-    let merged = merge(&[file], MergeOptions::default()).unwrap().merged;
+    let WorkerFile::Present(file) = read(&doc).unwrap() else {
+        panic!()
+    };
+    let merged = merge(vec![file], MergeOptions::default()).unwrap().merged;
     let out = EvalAiFiles::generate(Some(&merged), Leaderboard::V2).stdout;
-    assert!(out.contains("  - 1 RGB Camera\n  - 1 sensor.other.thermal\n"), "{out}");
+    assert!(
+        out.contains("  - 1 RGB Camera\n  - 1 sensor.other.thermal\n"),
+        "{out}"
+    );
 }
 
 fn arb_json() -> impl Strategy<Value = Value> {
@@ -180,7 +209,9 @@ fn arb_json() -> impl Strategy<Value = Value> {
         Just(Value::Null),
         any::<bool>().prop_map(Value::Bool),
         any::<i64>().prop_map(|n| json!(n)),
-        any::<f64>().prop_filter("finite", |f| f.is_finite()).prop_map(|f| json!(f)),
+        any::<f64>()
+            .prop_filter("finite", |f| f.is_finite())
+            .prop_map(|f| json!(f)),
         "[a-zA-Z_ 0-9]{0,24}".prop_map(Value::String),
         Just(json!("RouteScenario_3_rep0")),
     ];
@@ -217,7 +248,7 @@ proptest! {
     fn arbitrary_json_never_panics(doc in arb_json()) {
         let bytes = serde_json::to_vec(&doc).unwrap();
         if let Ok(WorkerFile::Present(file)) = read_worker_file("fuzz.json", Some(&bytes), Leaderboard::V2, None) {
-            if let Ok(outcome) = merge(&[file], MergeOptions::default()) {
+            if let Ok(outcome) = merge(vec![file], MergeOptions::default()) {
                 let _ = EvalAiFiles::generate(Some(&outcome.merged), Leaderboard::V2);
             }
         }
@@ -245,7 +276,7 @@ proptest! {
             })
             .collect();
         for expected in [None, Some(10)] {
-            if let Ok(outcome) = merge(&files, MergeOptions { leaderboard: Leaderboard::V2, expected_records: expected }) {
+            if let Ok(outcome) = merge(files.clone(), MergeOptions { leaderboard: Leaderboard::V2, expected_records: expected }) {
                 let evalai = EvalAiFiles::generate(Some(&outcome.merged), Leaderboard::V2);
                 // Whatever went in, every metric posted is a finite number.
                 prop_assert!(evalai.accuracies().iter().all(|(_, v)| v.as_f64().is_finite()));

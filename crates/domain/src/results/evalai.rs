@@ -50,7 +50,9 @@ impl EvalAiFiles {
 
     /// The metrics as `(EvalAI label, value)`, for the EvalAI API and the database.
     pub fn accuracies(&self) -> Vec<(&str, Num)> {
-        let Some(PyValue::List(splits)) = Some(&self.results) else { return vec![] };
+        let Some(PyValue::List(splits)) = Some(&self.results) else {
+            return vec![];
+        };
         let Some(PyValue::Dict(acc)) = splits.first().and_then(|s| s.get("accuracies")) else {
             return vec![];
         };
@@ -73,7 +75,9 @@ fn results(merged: Option<&Merged>, lb: Leaderboard) -> PyValue {
         .iter()
         .map(|m| {
             // EvalAI rejects strings: until global statistics exist every metric is int 0.
-            let value = global.and_then(|g| g.metric(m.source)).unwrap_or(Num::Int(0));
+            let value = global
+                .and_then(|g| g.metric(m.source))
+                .unwrap_or(Num::Int(0));
             (m.label.to_owned(), PyValue::Num(value))
         })
         .collect();
@@ -126,8 +130,8 @@ fn stdout(m: &Merged) -> String {
 
     let (mut game, mut system) = (Num::Int(0), Num::Int(0));
     for r in &m.records {
-        game = game.add(r.meta.duration_game);
-        system = system.add(r.meta.duration_system);
+        game = game + r.meta.duration_game;
+        system = system + r.meta.duration_system;
     }
     let (ratio, fps) = if system.as_f64() == 0.0 {
         (0.0, 0.0)
@@ -155,7 +159,10 @@ fn stdout(m: &Merged) -> String {
                 (Num::Int(0), Num::Int(0))
             } else {
                 let ratio = r.meta.duration_game.as_f64() / system;
-                (Num::Float(py::round(ratio, 4)), Num::Float(py::round(20.0 * ratio, 4)))
+                (
+                    Num::Float(py::round(ratio, 4)),
+                    Num::Float(py::round(20.0 * ratio, 4)),
+                )
             };
             let _ = write!(
                 out,

@@ -5,7 +5,7 @@
 
 use super::model::{ResultsFile, RouteRecord};
 use super::{Leaderboard, MetricSource, ResultsError};
-use crate::py::{self, DumpOptions, Num, PyValue};
+use crate::py::{self, DumpOptions, JsonWriter, Num};
 
 /// Digits of `round()` for scores (Leaderboard 2.0).
 const ROUND_DIGITS_SCORE: usize = 6;
@@ -95,7 +95,10 @@ impl GlobalRecord {
 
     /// An infraction rate by key.
     pub fn infraction(&self, key: &str) -> Option<Num> {
-        self.infractions.iter().find(|(k, _)| *k == key).map(|(_, v)| *v)
+        self.infractions
+            .iter()
+            .find(|(k, _)| *k == key)
+            .map(|(_, v)| *v)
     }
 
     /// A metric's value.
@@ -111,14 +114,14 @@ impl GlobalRecord {
 ///
 /// Files that were missing or unreadable are simply not passed in, as the official merge
 /// skips them; `opts.expected_records` is what keeps such a result from counting as final.
-pub fn merge(files: &[ResultsFile], opts: MergeOptions) -> Result<MergeOutcome, ResultsError> {
+pub fn merge(files: Vec<ResultsFile>, opts: MergeOptions) -> Result<MergeOutcome, ResultsError> {
     let lb = opts.leaderboard;
 
     // Step 1: route ids, totals and the sensors check.
     let mut sensors: Option<&ResultsFile> = None;
     let mut total_records: u64 = 0;
     let mut total_progress: u64 = 0;
-    for file in files {
+    for file in &files {
         total_records += file.records.len() as u64;
         total_progress = total_progress.saturating_add(file.progress.1);
         if !file.sensors.is_empty() {
@@ -145,9 +148,13 @@ pub fn merge(files: &[ResultsFile], opts: MergeOptions) -> Result<MergeOutcome, 
         total_progress = total_progress.max(expected);
     }
 
+    let sensors = sensors.map(|f| f.sensors.clone()).unwrap_or_default();
+
     // Step 2: concatenate and stably sort by (route, repetition).
-    let mut records: Vec<RouteRecord> =
-        files.iter().flat_map(|f| f.records.iter().cloned()).collect();
+    let mut records: Vec<RouteRecord> = Vec::with_capacity(total_records as usize);
+    for file in files {
+        records.extend(file.records);
+    }
     records.sort_by_key(|r| r.route_id.key());
 
     let global_statistics = total_progress != 0 && total_records == total_progress;
@@ -156,7 +163,6 @@ pub fn merge(files: &[ResultsFile], opts: MergeOptions) -> Result<MergeOutcome, 
         check_missing_data(&records)?;
     }
 
-    let sensors = sensors.map(|f| f.sensors.clone()).unwrap_or_default();
     let mut merged = Merged {
         leaderboard: lb,
         records,
@@ -185,7 +191,10 @@ pub fn merge(files: &[ResultsFile], opts: MergeOptions) -> Result<MergeOutcome, 
             reindex(&mut merged.records);
         }
     }
-    Ok(MergeOutcome { complete: merged.global.is_some(), merged })
+    Ok(MergeOutcome {
+        complete: merged.global.is_some(),
+        merged,
+    })
 }
 
 fn reindex(records: &mut [RouteRecord]) {
@@ -198,7 +207,9 @@ fn check_duplicates(records: &[RouteRecord]) -> Result<(), ResultsError> {
     // Sorted, so duplicates are neighbours; report the first in sorted order as upstream does.
     for pair in records.windows(2) {
         if pair[0].route_id.key() == pair[1].route_id.key() {
-            return Err(ResultsError::DuplicateRoute { route_id: pair[0].route_id.raw.clone() });
+            return Err(ResultsError::DuplicateRoute {
+                route_id: pair[0].route_id.raw.clone(),
+            });
         }
     }
     Ok(())
@@ -242,9 +253,15 @@ const SCORE_KEYS: [&str; 3] = ["score_composed", "score_route", "score_penalty"]
 
 /// Sum of the route lengths and durations, as `Num` so that all-int inputs stay int.
 fn totals(records: &[RouteRecord]) -> (Num, Num, Num) {
-    records.iter().fold((Num::Int(0), Num::Int(0), Num::Int(0)), |(l, g, s), r| {
-        (l.add(r.meta.route_length), g.add(r.meta.duration_game), s.add(r.meta.duration_system))
-    })
+    records
+        .iter()
+        .fold((Num::Int(0), Num::Int(0), Num::Int(0)), |(l, g, s), r| {
+            (
+                l + r.meta.route_length,
+                g + r.meta.duration_game,
+                s + r.meta.duration_system,
+            )
+        })
 }
 
 /// `StatisticsManager.compute_global_statistics` of Leaderboard 2.0.
@@ -260,7 +277,11 @@ fn global_v2(merged: &mut Merged, total_routes: u64) {
         for (mean, key) in means.iter_mut().zip(SCORE_KEYS) {
             *mean += score_of(r, key).as_f64() / n;
         }
-        let result = if r.status.contains("Failed") { "Failed" } else { r.status.as_str() };
+        let result = if r.status.contains("Failed") {
+            "Failed"
+        } else {
+            r.status.as_str()
+        };
         if result == "Failed" {
             exceptions.push((r.route_id.raw.clone(), r.index, r.status.clone()));
             status = "Failed".to_owned();
@@ -283,7 +304,10 @@ fn global_v2(merged: &mut Merged, total_routes: u64) {
             }
         }
         sums.map(|s| {
-            StdDev::Value(Num::Float(py::round((s / (total_routes - 1) as f64).sqrt(), ROUND_DIGITS)))
+            StdDev::Value(Num::Float(py::round(
+                (s / (total_routes - 1) as f64).sqrt(),
+                ROUND_DIGITS,
+            )))
         })
     };
 
@@ -294,7 +318,7 @@ fn global_v2(merged: &mut Merged, total_routes: u64) {
     for r in records {
         km_driven += r.meta.route_length.as_f64() / 1000.0 * r.scores.score_route.as_f64() / 100.0;
         for (sum, kind) in sums.iter_mut().zip(kinds) {
-            *sum = sum.add(infraction_value(r, kind));
+            *sum = *sum + infraction_value(r, kind);
         }
     }
     let km_driven = km_driven.max(0.001);
@@ -384,7 +408,8 @@ fn validate_v2(merged: &mut Merged) {
         Some("Missing 'values' data")
     } else if merged.entry_status == "Started" {
         Some("'entry_status' has the 'Started' value")
-    } else if merged.progress.0 != merged.progress.1 || merged.progress.0 != merged.records.len() as u64
+    } else if merged.progress.0 != merged.progress.1
+        || merged.progress.0 != merged.records.len() as u64
     {
         Some("'progress' data doesn't match its expected value")
     } else if merged.records.iter().any(|r| r.status == "Started") {
@@ -407,7 +432,7 @@ fn global_v1(merged: &mut Merged, total_routes: u64) {
     let mut exceptions = Vec::with_capacity(records.len());
     for (i, r) in records.iter().enumerate() {
         for (sum, key) in sums.iter_mut().zip(SCORE_KEYS) {
-            *sum = sum.add(score_of(r, key));
+            *sum = *sum + score_of(r, key);
         }
         let km = (r.scores.score_route.as_f64() / 100.0 * r.meta.route_length.as_f64() / 1000.0)
             .max(0.001);
@@ -437,7 +462,11 @@ fn global_v1(merged: &mut Merged, total_routes: u64) {
     let (total_length, duration_game, duration_system) = totals(records);
     let global = GlobalRecord {
         status: "Failed".to_owned(),
-        infractions: kinds.iter().copied().zip(rates.into_iter().map(Num::Float)).collect(),
+        infractions: kinds
+            .iter()
+            .copied()
+            .zip(rates.into_iter().map(Num::Float))
+            .collect(),
         scores: [
             ("score_composed", Num::Float(means[0])),
             ("score_route", Num::Float(means[1])),
@@ -456,7 +485,12 @@ fn global_v1(merged: &mut Merged, total_routes: u64) {
     let metrics = Leaderboard::V1.metrics();
     merged.values = metrics
         .iter()
-        .map(|m| global.metric(m.source).map(|v| py::format_fixed(v.as_f64(), 3)).unwrap_or_default())
+        .map(|m| {
+            global
+                .metric(m.source)
+                .map(|v| py::format_fixed(v.as_f64(), 3))
+                .unwrap_or_default()
+        })
         .collect();
     merged.labels = metrics.iter().map(|m| m.file_label).collect();
     let (status, eligible) = if merged.progress.0 != merged.progress.1 {
@@ -472,119 +506,181 @@ fn global_v1(merged: &mut Merged, total_routes: u64) {
 }
 
 impl Merged {
-    /// The document as Python would hold it, keys in the evaluator's order.
-    pub fn to_py(&self) -> PyValue {
-        let records = PyValue::List(self.records.iter().map(record_py).collect());
-        let global = match &self.global {
-            Some(g) => global_py(g, self.leaderboard),
-            None => PyValue::Dict(vec![]),
-        };
-        let checkpoint = PyValue::Dict(vec![
-            ("global_record".into(), global),
-            (
-                "progress".into(),
-                PyValue::List(vec![
-                    Num::Int(self.progress.0 as i64).into(),
-                    Num::Int(self.progress.1 as i64).into(),
-                ]),
-            ),
-            ("records".into(), records),
-        ]);
-        let strings = |v: &[String]| PyValue::List(v.iter().map(|s| s.as_str().into()).collect());
-        PyValue::Dict(vec![
-            ("_checkpoint".into(), checkpoint),
-            ("entry_status".into(), self.entry_status.as_str().into()),
-            ("eligible".into(), self.eligible.into()),
-            ("sensors".into(), strings(&self.sensors)),
-            ("values".into(), strings(&self.values)),
-            ("labels".into(), PyValue::List(self.labels.iter().map(|l| (*l).into()).collect())),
-        ])
-    }
-
     /// How the evaluator of this leaderboard writes JSON files.
     pub fn dump_options(&self) -> DumpOptions {
-        DumpOptions { indent: Some(4), sort_keys: self.leaderboard == Leaderboard::V1 }
+        DumpOptions {
+            indent: Some(4),
+            sort_keys: self.leaderboard == Leaderboard::V1,
+        }
     }
 
     /// `agent_results.json`, byte for byte as the official merge writes it.
     pub fn to_json(&self) -> String {
-        self.to_py().dumps(self.dump_options())
+        // About 1.6 KiB per route in the official layout.
+        let mut w = JsonWriter::new(self.dump_options(), 1024 + self.records.len() * 1800);
+        let scores_key = match self.leaderboard {
+            Leaderboard::V1 => "scores",
+            Leaderboard::V2 => "scores_mean",
+        };
+        let global = match &self.global {
+            Some(g) => global_field(g, scores_key),
+            None => Field::Obj(vec![]),
+        };
+        let checkpoint = Field::Obj(vec![
+            ("global_record", global),
+            ("progress", Field::Progress(self.progress)),
+            ("records", Field::Records(&self.records)),
+        ]);
+        write_field(
+            &mut w,
+            Field::Obj(vec![
+                ("_checkpoint", checkpoint),
+                ("entry_status", Field::Str(&self.entry_status)),
+                ("eligible", Field::Bool(self.eligible)),
+                ("sensors", Field::Strs(&self.sensors)),
+                ("values", Field::Strs(&self.values)),
+                ("labels", Field::Labels(&self.labels)),
+            ]),
+        );
+        w.finish()
     }
 }
 
-fn record_py(r: &RouteRecord) -> PyValue {
-    let mut entries: Vec<(String, PyValue)> = vec![
-        ("index".into(), Num::Int(r.index).into()),
-        ("route_id".into(), r.route_id.raw.as_str().into()),
-        ("status".into(), r.status.as_str().into()),
-    ];
-    if let Some(n) = r.num_infractions {
-        entries.push(("num_infractions".into(), n.into()));
-    }
-    let infractions = r
-        .infractions
-        .iter()
-        .map(|(k, msgs)| {
-            (k.clone(), PyValue::List(msgs.iter().map(|m| m.as_str().into()).collect()))
-        })
-        .collect();
-    entries.push(("infractions".into(), PyValue::Dict(infractions)));
-    let scores = vec![
-        ("score_route".into(), r.scores.score_route.into()),
-        ("score_penalty".into(), r.scores.score_penalty.into()),
-        ("score_composed".into(), r.scores.score_composed.into()),
-    ];
-    entries.push(("scores".into(), PyValue::Dict(scores)));
-    let meta = vec![
-        ("route_length".into(), r.meta.route_length.into()),
-        ("duration_game".into(), r.meta.duration_game.into()),
-        ("duration_system".into(), r.meta.duration_system.into()),
-    ];
-    entries.push(("meta".into(), PyValue::Dict(meta)));
-    PyValue::Dict(entries)
+/// A piece of the merged document, written without building an intermediate tree.
+enum Field<'a> {
+    Num(Num),
+    Str(&'a str),
+    Bool(bool),
+    Strs(&'a [String]),
+    Labels(&'a [&'static str]),
+    Progress((u64, u64)),
+    Records(&'a [RouteRecord]),
+    Infractions(&'a [(super::model::Kind, Vec<String>)]),
+    Nums(&'a [(&'static str, Num)]),
+    StdDevs(&'a [(&'static str, StdDev)]),
+    Exceptions(&'a [(String, i64, String)]),
+    Obj(Vec<(&'a str, Field<'a>)>),
 }
 
-fn global_py(g: &GlobalRecord, lb: Leaderboard) -> PyValue {
-    let nums = |v: &[(&'static str, Num)]| {
-        PyValue::Dict(v.iter().map(|(k, n)| ((*k).to_owned(), (*n).into())).collect())
-    };
-    let std_dev = PyValue::Dict(
-        g.std_dev
-            .iter()
-            .map(|(k, s)| {
-                let v = match s {
-                    StdDev::Value(n) => (*n).into(),
-                    StdDev::NaNString => "NaN".into(),
-                };
-                ((*k).to_owned(), v)
-            })
-            .collect(),
-    );
-    let exceptions = PyValue::List(
-        g.exceptions
-            .iter()
-            .map(|(id, index, status)| {
-                PyValue::List(vec![id.as_str().into(), Num::Int(*index).into(), status.as_str().into()])
-            })
-            .collect(),
-    );
-    let meta = PyValue::Dict(vec![
-        ("total_length".into(), g.total_length.into()),
-        ("duration_game".into(), g.duration_game.into()),
-        ("duration_system".into(), g.duration_system.into()),
-        ("exceptions".into(), exceptions),
-    ]);
-    let scores_key = match lb {
-        Leaderboard::V1 => "scores",
-        Leaderboard::V2 => "scores_mean",
-    };
-    PyValue::Dict(vec![
-        ("index".into(), Num::Int(-1).into()),
-        ("route_id".into(), Num::Int(-1).into()),
-        ("status".into(), g.status.as_str().into()),
-        ("infractions".into(), nums(&g.infractions)),
-        (scores_key.into(), nums(&g.scores)),
-        ("scores_std_dev".into(), std_dev),
-        ("meta".into(), meta),
+fn global_field<'a>(g: &'a GlobalRecord, scores_key: &'a str) -> Field<'a> {
+    Field::Obj(vec![
+        ("index", Field::Num(Num::Int(-1))),
+        ("route_id", Field::Num(Num::Int(-1))),
+        ("status", Field::Str(&g.status)),
+        ("infractions", Field::Nums(&g.infractions)),
+        (scores_key, Field::Nums(&g.scores)),
+        ("scores_std_dev", Field::StdDevs(&g.std_dev)),
+        (
+            "meta",
+            Field::Obj(vec![
+                ("total_length", Field::Num(g.total_length)),
+                ("duration_game", Field::Num(g.duration_game)),
+                ("duration_system", Field::Num(g.duration_system)),
+                ("exceptions", Field::Exceptions(&g.exceptions)),
+            ]),
+        ),
     ])
+}
+
+fn record_field(r: &RouteRecord) -> Field<'_> {
+    let mut fields = Vec::with_capacity(7);
+    fields.push(("index", Field::Num(Num::Int(r.index))));
+    fields.push(("route_id", Field::Str(&r.route_id.raw)));
+    fields.push(("status", Field::Str(&r.status)));
+    if let Some(n) = r.num_infractions {
+        fields.push(("num_infractions", Field::Num(n)));
+    }
+    fields.push(("infractions", Field::Infractions(&r.infractions)));
+    fields.push((
+        "scores",
+        Field::Obj(vec![
+            ("score_route", Field::Num(r.scores.score_route)),
+            ("score_penalty", Field::Num(r.scores.score_penalty)),
+            ("score_composed", Field::Num(r.scores.score_composed)),
+        ]),
+    ));
+    fields.push((
+        "meta",
+        Field::Obj(vec![
+            ("route_length", Field::Num(r.meta.route_length)),
+            ("duration_game", Field::Num(r.meta.duration_game)),
+            ("duration_system", Field::Num(r.meta.duration_system)),
+        ]),
+    ));
+    Field::Obj(fields)
+}
+
+fn write_field(w: &mut JsonWriter, field: Field<'_>) {
+    let sort = w.options().sort_keys;
+    match field {
+        Field::Num(n) => w.num(n),
+        Field::Str(s) => w.str(s),
+        Field::Bool(b) => w.bool(b),
+        Field::Strs(items) => w.str_list(items),
+        Field::Labels(items) => w.str_list(items),
+        Field::Progress((done, total)) => {
+            w.begin_list();
+            w.num(Num::Int(done as i64));
+            w.num(Num::Int(total as i64));
+            w.end_list();
+        }
+        Field::Records(records) => {
+            w.begin_list();
+            for r in records {
+                write_field(w, record_field(r));
+            }
+            w.end_list();
+        }
+        Field::Infractions(kinds) => {
+            let mut refs: Vec<_> = kinds.iter().collect();
+            if sort {
+                refs.sort_by(|a, b| a.0.cmp(&b.0));
+            }
+            w.begin_object();
+            for (kind, messages) in refs {
+                w.key(kind);
+                w.str_list(messages);
+            }
+            w.end_object();
+        }
+        Field::Nums(nums) => write_field(
+            w,
+            Field::Obj(nums.iter().map(|(k, n)| (*k, Field::Num(*n))).collect()),
+        ),
+        Field::StdDevs(values) => {
+            let fields = values
+                .iter()
+                .map(|(k, s)| {
+                    let f = match s {
+                        StdDev::Value(n) => Field::Num(*n),
+                        StdDev::NaNString => Field::Str("NaN"),
+                    };
+                    (*k, f)
+                })
+                .collect();
+            write_field(w, Field::Obj(fields))
+        }
+        Field::Exceptions(items) => {
+            w.begin_list();
+            for (id, index, status) in items {
+                w.begin_list();
+                w.str(id);
+                w.num(Num::Int(*index));
+                w.str(status);
+                w.end_list();
+            }
+            w.end_list();
+        }
+        Field::Obj(mut fields) => {
+            if sort {
+                fields.sort_by(|a, b| a.0.cmp(b.0));
+            }
+            w.begin_object();
+            for (k, v) in fields {
+                w.key(k);
+                write_field(w, v);
+            }
+            w.end_object();
+        }
+    }
 }

@@ -11,8 +11,8 @@ mod model;
 pub use evalai::{EvalAiFiles, METADATA_MISSING_MESSAGE};
 pub use merge::{merge, GlobalRecord, MergeOptions, MergeOutcome, Merged, StdDev};
 pub use model::{
-    read_worker_file, EmptyReason, Meta, ResultsFile, RouteId, RouteRecord, RouteSubset, Scores,
-    WorkerFile, MAX_FILE_BYTES, MAX_NUMBER,
+    read_worker_file, read_worker_files, EmptyReason, Kind, Meta, ResultsFile, RouteId,
+    RouteRecord, RouteSubset, Scores, WorkerFile, WorkerInput, MAX_FILE_BYTES, MAX_NUMBER,
 };
 
 use std::fmt;
@@ -96,7 +96,9 @@ impl std::str::FromStr for Leaderboard {
         match s {
             "1.0" | "1" | "leaderboard-10" => Ok(Leaderboard::V1),
             "2.0" | "2" | "leaderboard-20" => Ok(Leaderboard::V2),
-            other => Err(format!("unknown leaderboard `{other}`, expected `1.0` or `2.0`")),
+            other => Err(format!(
+                "unknown leaderboard `{other}`, expected `1.0` or `2.0`"
+            )),
         }
     }
 }
@@ -129,15 +131,30 @@ const fn metric(
     attribute: &'static str,
     source: MetricSource,
 ) -> Metric {
-    Metric { label, file_label, attribute, source }
+    Metric {
+        label,
+        file_label,
+        attribute,
+        source,
+    }
 }
 
 use MetricSource::{Infraction as I, Score as S};
 
 /// The 15 Leaderboard 2.0 metrics; Leaderboard 1.0 uses the first 12.
 pub const METRICS: [Metric; 15] = [
-    metric("Driving score", "Avg. driving score", "driving_score", S("score_composed")),
-    metric("Route completion", "Avg. route completion", "route_completion", S("score_route")),
+    metric(
+        "Driving score",
+        "Avg. driving score",
+        "driving_score",
+        S("score_composed"),
+    ),
+    metric(
+        "Route completion",
+        "Avg. route completion",
+        "route_completion",
+        S("score_route"),
+    ),
     metric(
         "Infraction penalty",
         "Avg. infraction penalty",
@@ -156,8 +173,18 @@ pub const METRICS: [Metric; 15] = [
         "collisions_vehicles",
         I("collisions_vehicle"),
     ),
-    metric("Collisions layout", "Collisions with layout", "collisions_layout", I("collisions_layout")),
-    metric("Red light infractions", "Red lights infractions", "red_light_infractions", I("red_light")),
+    metric(
+        "Collisions layout",
+        "Collisions with layout",
+        "collisions_layout",
+        I("collisions_layout"),
+    ),
+    metric(
+        "Red light infractions",
+        "Red lights infractions",
+        "red_light_infractions",
+        I("red_light"),
+    ),
     metric(
         "Stop sign infractions",
         "Stop sign infractions",
@@ -170,16 +197,36 @@ pub const METRICS: [Metric; 15] = [
         "off_road_infractions",
         I("outside_route_lanes"),
     ),
-    metric("Route deviations", "Route deviations", "route_deviations", I("route_dev")),
-    metric("Route timeouts", "Route timeouts", "route_timeouts", I("route_timeout")),
-    metric("Agent blocked", "Agent blocked", "agent_blocked", I("vehicle_blocked")),
+    metric(
+        "Route deviations",
+        "Route deviations",
+        "route_deviations",
+        I("route_dev"),
+    ),
+    metric(
+        "Route timeouts",
+        "Route timeouts",
+        "route_timeouts",
+        I("route_timeout"),
+    ),
+    metric(
+        "Agent blocked",
+        "Agent blocked",
+        "agent_blocked",
+        I("vehicle_blocked"),
+    ),
     metric(
         "Yield emergency vehicle infractions",
         "Yield emergency vehicles infractions",
         "yield_emergency_vehicle_infractions",
         I("yield_emergency_vehicle_infractions"),
     ),
-    metric("Scenario timeouts", "Scenario timeouts", "scenario_timeouts", I("scenario_timeouts")),
+    metric(
+        "Scenario timeouts",
+        "Scenario timeouts",
+        "scenario_timeouts",
+        I("scenario_timeouts"),
+    ),
     metric(
         "Min speed infractions",
         "Min speed infractions",

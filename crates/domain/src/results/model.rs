@@ -6,6 +6,7 @@
 //! route ids of the form `RouteScenario_<n>[_rep<r>]`, routes inside the worker's subset and
 //! text without control characters (the text ends up in the participant-facing stdout).
 
+use std::borrow::Cow;
 use std::fmt;
 
 use serde::de::{self, Deserializer, MapAccess, Visitor};
@@ -95,7 +96,9 @@ impl std::str::FromStr for RouteSubset {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         let parse = |t: &str| {
             if t.is_empty() || t.len() > 9 || !t.bytes().all(|b| b.is_ascii_digit()) {
-                Err(format!("route subset `{s}` is not of the form `a-b` with a <= b"))
+                Err(format!(
+                    "route subset `{s}` is not of the form `a-b` with a <= b"
+                ))
             } else {
                 t.parse::<u64>().map_err(|e| e.to_string())
             }
@@ -108,7 +111,9 @@ impl std::str::FromStr for RouteSubset {
             }
         };
         if first > last {
-            return Err(format!("route subset `{s}` is not of the form `a-b` with a <= b"));
+            return Err(format!(
+                "route subset `{s}` is not of the form `a-b` with a <= b"
+            ));
         }
         Ok(RouteSubset { first, last })
     }
@@ -191,7 +196,7 @@ pub struct RouteRecord {
     /// Total infractions (Leaderboard 2.0 only).
     pub num_infractions: Option<Num>,
     /// Infraction messages per kind, in the file's order.
-    pub infractions: Vec<(String, Vec<String>)>,
+    pub infractions: Vec<(Kind, Vec<String>)>,
     /// Scores.
     pub scores: Scores,
     /// Length and durations.
@@ -201,11 +206,19 @@ pub struct RouteRecord {
 impl RouteRecord {
     /// The messages of one infraction kind; validation guarantees every kind is present.
     pub fn infraction(&self, kind: &str) -> &[String] {
-        self.infractions
+        self.infraction_at(kind)
+            .map_or(&[], |i| self.infractions[i].1.as_slice())
+    }
+
+    /// Where a kind is in [`infractions`](Self::infractions). Files list the kinds in the
+    /// evaluator's order, so the canonical position is tried before a scan.
+    fn infraction_at(&self, kind: &str) -> Option<usize> {
+        let canonical = Leaderboard::V2
+            .infraction_kinds()
             .iter()
-            .find(|(k, _)| k == kind)
-            .map(|(_, v)| v.as_slice())
-            .unwrap_or(&[])
+            .position(|k| *k == kind)
+            .filter(|&i| self.infractions.get(i).is_some_and(|(k, _)| k == kind));
+        canonical.or_else(|| self.infractions.iter().position(|(k, _)| k == kind))
     }
 }
 
@@ -252,25 +265,29 @@ struct RawRecord {
     status: String,
     #[serde(default)]
     num_infractions: Option<Num>,
-    infractions: OrderedMap<Vec<String>>,
+    infractions: OrderedMap<Vec<String>, KindKey>,
     scores: Scores,
     meta: Meta,
 }
 
 /// A JSON object kept in the file's key order.
-struct OrderedMap<V>(Vec<(String, V)>);
+struct OrderedMap<V, K = String>(Vec<(K, V)>);
 
-impl<'de, V: Deserialize<'de>> Deserialize<'de> for OrderedMap<V> {
+impl<'de, V: Deserialize<'de>, K: Deserialize<'de> + PartialEq + fmt::Display> Deserialize<'de>
+    for OrderedMap<V, K>
+{
     fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        struct V2<V>(std::marker::PhantomData<V>);
-        impl<'de, V: Deserialize<'de>> Visitor<'de> for V2<V> {
-            type Value = OrderedMap<V>;
+        struct MapVisitor<V, K>(std::marker::PhantomData<(V, K)>);
+        impl<'de, V: Deserialize<'de>, K: Deserialize<'de> + PartialEq + fmt::Display> Visitor<'de>
+            for MapVisitor<V, K>
+        {
+            type Value = OrderedMap<V, K>;
             fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
                 f.write_str("an object")
             }
             fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Self::Value, A::Error> {
-                let mut out: Vec<(String, V)> = Vec::new();
-                while let Some((k, v)) = map.next_entry::<String, V>()? {
+                let mut out: Vec<(K, V)> = Vec::new();
+                while let Some((k, v)) = map.next_entry::<K, V>()? {
                     if out.iter().any(|(seen, _)| *seen == k) {
                         return Err(de::Error::custom(format_args!("duplicate key `{k}`")));
                     }
@@ -279,7 +296,46 @@ impl<'de, V: Deserialize<'de>> Deserialize<'de> for OrderedMap<V> {
                 Ok(OrderedMap(out))
             }
         }
-        d.deserialize_map(V2(std::marker::PhantomData))
+        d.deserialize_map(MapVisitor(std::marker::PhantomData))
+    }
+}
+
+/// An infraction kind; the known ones are interned, so a 1,000-route merge does not allocate
+/// 12,000 copies of the same dozen names.
+pub type Kind = Cow<'static, str>;
+
+struct KindSeed;
+
+impl<'de> Visitor<'de> for KindSeed {
+    type Value = Kind;
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("an infraction kind")
+    }
+    fn visit_str<E: de::Error>(self, v: &str) -> Result<Kind, E> {
+        let known = Leaderboard::V2.infraction_kinds().iter().find(|k| **k == v);
+        Ok(match known {
+            Some(k) => Cow::Borrowed(*k),
+            None => Cow::Owned(v.to_owned()),
+        })
+    }
+}
+
+/// Deserializes a [`Kind`] through [`KindSeed`].
+struct KindKey(Kind);
+
+impl<'de> Deserialize<'de> for KindKey {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_str(KindSeed).map(KindKey)
+    }
+}
+impl PartialEq for KindKey {
+    fn eq(&self, other: &Self) -> bool {
+        self.0 == other.0
+    }
+}
+impl fmt::Display for KindKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
     }
 }
 
@@ -339,23 +395,84 @@ pub fn read_worker_file(
         }
         _ => {}
     }
-    let mut de = serde_json::Deserializer::from_slice(bytes);
-    let raw: RawFile = match serde_path_to_error::deserialize(&mut de) {
+    // NB: tracking the JSON path costs a third of the parse; only a failed parse pays for it.
+    let raw: RawFile = match serde_json::from_slice(bytes) {
         Ok(raw) => raw,
-        Err(err) => {
-            let path = err.path().to_string();
-            return classify_parse_error(source, bytes, &path, err.into_inner());
+        Err(_) => {
+            let mut de = serde_json::Deserializer::from_slice(bytes);
+            return match serde_path_to_error::deserialize::<_, RawFile>(&mut de) {
+                Ok(_) => {
+                    let err = de.end().err().unwrap_or_else(unreachable_parse);
+                    classify_parse_error(source, bytes, ".", err)
+                }
+                Err(err) => {
+                    let path = err.path().to_string();
+                    classify_parse_error(source, bytes, &path, err.into_inner())
+                }
+            };
         }
     };
-    if let Err(err) = de.end() {
-        return classify_parse_error(source, bytes, ".", err);
-    }
     validate(source, raw, leaderboard, subset).map(WorkerFile::Present)
 }
 
+/// One worker's file to read with [`read_worker_files`].
+#[derive(Debug, Clone, Copy)]
+pub struct WorkerInput<'a> {
+    /// Where it came from, for error messages.
+    pub source: &'a str,
+    /// Its bytes; `None` when it does not exist.
+    pub bytes: Option<&'a [u8]>,
+    /// The routes the worker was assigned, when known.
+    pub subset: Option<RouteSubset>,
+}
+
+/// Reads many workers' files, in parallel when they are large enough for it to pay off.
+///
+/// Results come back in input order, one per input.
+pub fn read_worker_files(
+    inputs: &[WorkerInput<'_>],
+    leaderboard: Leaderboard,
+) -> Vec<Result<WorkerFile, ResultsError>> {
+    let read = |i: &WorkerInput<'_>| read_worker_file(i.source, i.bytes, leaderboard, i.subset);
+    let total: usize = inputs.iter().map(|i| i.bytes.map_or(0, <[u8]>::len)).sum();
+    let threads = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(inputs.len());
+    // NB: below ~256 KiB a thread costs more than it saves.
+    if threads < 2 || total < 256 * 1024 {
+        return inputs.iter().map(read).collect();
+    }
+    let chunk = inputs.len().div_ceil(threads);
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = inputs
+            .chunks(chunk)
+            .map(|part| scope.spawn(move || part.iter().map(read).collect::<Vec<_>>()))
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| {
+                h.join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+            })
+            .collect()
+    })
+}
+
+/// `serde_json::from_slice` failed but the same parse with path tracking did not: cannot
+/// happen, and is reported as an unreadable document rather than a panic.
+fn unreachable_parse() -> serde_json::Error {
+    serde::de::Error::custom("the document parses only with path tracking")
+}
+
 fn trimmed(bytes: &[u8]) -> &[u8] {
-    let start = bytes.iter().position(|b| !b.is_ascii_whitespace()).unwrap_or(bytes.len());
-    let end = bytes.iter().rposition(|b| !b.is_ascii_whitespace()).map_or(start, |e| e + 1);
+    let start = bytes
+        .iter()
+        .position(|b| !b.is_ascii_whitespace())
+        .unwrap_or(bytes.len());
+    let end = bytes
+        .iter()
+        .rposition(|b| !b.is_ascii_whitespace())
+        .map_or(start, |e| e + 1);
     &bytes[start..end]
 }
 
@@ -376,12 +493,18 @@ fn classify_parse_error(
                     column: inner.column(),
                 });
             }
-            Ok(WorkerFile::Empty(EmptyReason::Unreadable(inner.to_string())))
+            Ok(WorkerFile::Empty(EmptyReason::Unreadable(
+                inner.to_string(),
+            )))
         }
         serde_json::error::Category::Data | serde_json::error::Category::Io => {
             Err(ResultsError::Invalid {
                 file: source.to_owned(),
-                field: if path == "." { "(document)".to_owned() } else { path.to_owned() },
+                field: if path == "." {
+                    "(document)".to_owned()
+                } else {
+                    path.to_owned()
+                },
                 problem: strip_position(&inner.to_string()),
             })
         }
@@ -427,10 +550,16 @@ fn validate(
         [] => (0, 0),
         [done, total] => (
             count(*done).ok_or_else(|| {
-                invalid("_checkpoint.progress[0]".into(), "is not a non-negative integer".into())
+                invalid(
+                    "_checkpoint.progress[0]".into(),
+                    "is not a non-negative integer".into(),
+                )
             })?,
             count(*total).ok_or_else(|| {
-                invalid("_checkpoint.progress[1]".into(), "is not a non-negative integer".into())
+                invalid(
+                    "_checkpoint.progress[1]".into(),
+                    "is not a non-negative integer".into(),
+                )
             })?,
         ),
         other => {
@@ -450,7 +579,11 @@ fn validate(
         let route_id = RouteId::parse(&r.route_id, leaderboard).ok_or_else(|| {
             invalid(
                 field("route_id"),
-                format!("`{}` is not of the form `{}`", r.route_id, leaderboard.route_id_form()),
+                format!(
+                    "`{}` is not of the form `{}`",
+                    r.route_id,
+                    leaderboard.route_id_form()
+                ),
             )
         })?;
         if let Some(subset) = subset {
@@ -471,8 +604,11 @@ fn validate(
             non_negative(n).map_err(|p| invalid(field("num_infractions"), p))?;
         }
         for kind in kinds {
-            if !r.infractions.0.iter().any(|(k, _)| k == kind) {
-                return Err(invalid(field("infractions"), format!("has no `{kind}` list")));
+            if !r.infractions.0.iter().any(|(k, _)| k.0 == *kind) {
+                return Err(invalid(
+                    field("infractions"),
+                    format!("has no `{kind}` list"),
+                ));
             }
         }
         if let Some((kind, msg)) = r
@@ -501,7 +637,7 @@ fn validate(
             route_id,
             status: r.status,
             num_infractions: r.num_infractions,
-            infractions: r.infractions.0,
+            infractions: r.infractions.0.into_iter().map(|(k, v)| (k.0, v)).collect(),
             scores: r.scores,
             meta: r.meta,
         });
@@ -511,7 +647,10 @@ fn validate(
         progress,
         records,
         sensors: raw.sensors,
-        has_global_record: raw.checkpoint.global_record.is_some_and(|g| !g.0.is_empty()),
+        has_global_record: raw
+            .checkpoint
+            .global_record
+            .is_some_and(|g| !g.0.is_empty()),
         entry_status: raw.entry_status,
     })
 }
@@ -530,7 +669,10 @@ fn non_negative(n: Num) -> Result<(), String> {
     } else if v < 0.0 {
         Err(format!("is negative (`{}`)", n.py_str()))
     } else if v > MAX_NUMBER {
-        Err(format!("is `{}`, over the limit of {MAX_NUMBER:e}", n.py_str()))
+        Err(format!(
+            "is `{}`, over the limit of {MAX_NUMBER:e}",
+            n.py_str()
+        ))
     } else {
         Ok(())
     }
@@ -539,7 +681,10 @@ fn non_negative(n: Num) -> Result<(), String> {
 /// Text that reaches the participant's stdout must not forge lines or escape sequences.
 fn check_label(s: &str, identifier: bool) -> Result<(), String> {
     if s.len() > MAX_LABEL_LEN {
-        return Err(format!("is {} bytes long, over the limit of {MAX_LABEL_LEN}", s.len()));
+        return Err(format!(
+            "is {} bytes long, over the limit of {MAX_LABEL_LEN}",
+            s.len()
+        ));
     }
     if let Some(c) = s.chars().find(|c| c.is_control()) {
         return Err(format!("holds the control character {c:?}"));
