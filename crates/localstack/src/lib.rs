@@ -1,0 +1,3 @@
+//! Local stand-ins for the systems the backend talks to, for tests and local mode.
+
+pub mod moto;

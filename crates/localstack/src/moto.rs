@@ -1,0 +1,168 @@
+//! A `moto_server` on loopback with a free port, started from the project venv, stopped on drop.
+//!
+//! The AWS SDK reaches it through `AWS_ENDPOINT_URL` and dummy credentials (see
+//! [`MotoServer::sdk_env`]); nothing else about AWS is faked in this project.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// How long moto may take to answer after start (its first import is slow on a cold disk).
+pub const START_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Why moto could not be started.
+#[derive(Debug, thiserror::Error)]
+pub enum MotoError {
+    /// No `moto_server` executable where we looked.
+    #[error("`moto_server` not found at `{0}`: run `make venv` (or set LB_MOTO_SERVER)")]
+    NotInstalled(PathBuf),
+    /// The process could not be spawned or the port not reserved.
+    #[error("cannot start `moto_server`: {0}")]
+    Spawn(#[source] std::io::Error),
+    /// The process exited before it answered.
+    #[error("`moto_server` exited during start-up with {0}")]
+    Exited(std::process::ExitStatus),
+    /// It did not answer within [`START_TIMEOUT`].
+    #[error("`moto_server` did not answer on {addr} within {timeout:?}")]
+    Timeout {
+        /// Where it should listen.
+        addr: SocketAddr,
+        /// How long we waited.
+        timeout: Duration,
+    },
+}
+
+/// A running moto server; killed when dropped.
+#[derive(Debug)]
+pub struct MotoServer {
+    child: Child,
+    addr: SocketAddr,
+}
+
+impl MotoServer {
+    /// Where `moto_server` is: `$LB_MOTO_SERVER`, else the project's `.venv`.
+    pub fn executable() -> PathBuf {
+        if let Some(path) = std::env::var_os("LB_MOTO_SERVER") {
+            return PathBuf::from(path);
+        }
+        workspace_root().join(".venv/bin/moto_server")
+    }
+
+    /// Starts moto on `127.0.0.1` with a free port and waits until it answers.
+    pub fn start() -> Result<MotoServer, MotoError> {
+        let exe = Self::executable();
+        if !exe.is_file() {
+            return Err(MotoError::NotInstalled(exe));
+        }
+        let port = free_port().map_err(MotoError::Spawn)?;
+        let addr = SocketAddr::from(([127, 0, 0, 1], port));
+        let child = Command::new(&exe)
+            .args(["-H", "127.0.0.1", "-p", &port.to_string()])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .map_err(MotoError::Spawn)?;
+        let mut server = MotoServer { child, addr };
+        server.wait_ready(START_TIMEOUT)?;
+        tracing::debug!(%addr, "moto server ready");
+        Ok(server)
+    }
+
+    /// The endpoint URL to give the SDK (`AWS_ENDPOINT_URL`).
+    pub fn endpoint(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// The socket address.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Environment for a process that should use this server through the AWS SDK.
+    pub fn sdk_env(&self) -> Vec<(&'static str, String)> {
+        vec![
+            ("AWS_ENDPOINT_URL", self.endpoint()),
+            ("AWS_ACCESS_KEY_ID", "testing".to_owned()),
+            ("AWS_SECRET_ACCESS_KEY", "testing".to_owned()),
+            ("AWS_REGION", "us-east-1".to_owned()),
+        ]
+    }
+
+    /// Empties every service's state (moto's `/moto-api/reset`).
+    pub fn reset(&self) -> std::io::Result<()> {
+        let (status, _) = http(self.addr, "POST", "/moto-api/reset")?;
+        if status == 200 {
+            Ok(())
+        } else {
+            Err(std::io::Error::other(format!(
+                "moto reset answered {status}"
+            )))
+        }
+    }
+
+    fn wait_ready(&mut self, timeout: Duration) -> Result<(), MotoError> {
+        let deadline = Instant::now() + timeout;
+        let mut delay = Duration::from_millis(20);
+        loop {
+            if let Some(status) = self.child.try_wait().map_err(MotoError::Spawn)? {
+                return Err(MotoError::Exited(status));
+            }
+            if matches!(http(self.addr, "GET", "/moto-api/data.json"), Ok((200, _))) {
+                return Ok(());
+            }
+            if Instant::now() >= deadline {
+                return Err(MotoError::Timeout {
+                    addr: self.addr,
+                    timeout,
+                });
+            }
+            std::thread::sleep(delay);
+            delay = (delay * 2).min(Duration::from_millis(200));
+        }
+    }
+}
+
+impl Drop for MotoServer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A port nobody listens on right now. NB: another process may take it before moto binds
+/// it; moto then exits and [`MotoServer::start`] reports it rather than hanging.
+fn free_port() -> std::io::Result<u16> {
+    Ok(TcpListener::bind(("127.0.0.1", 0))?.local_addr()?.port())
+}
+
+/// A minimal HTTP/1.1 exchange, enough to probe a local server without an HTTP stack.
+pub fn http(addr: SocketAddr, method: &str, path: &str) -> std::io::Result<(u16, String)> {
+    let mut stream = TcpStream::connect_timeout(&addr, Duration::from_millis(500))?;
+    stream.set_read_timeout(Some(Duration::from_secs(5)))?;
+    write!(
+        stream,
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+    )?;
+    let mut response = String::new();
+    stream
+        .take(16 * 1024 * 1024)
+        .read_to_string(&mut response)?;
+    let status = response
+        .split_whitespace()
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .ok_or_else(|| std::io::Error::other("malformed HTTP response"))?;
+    let body = response
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.to_owned())
+        .unwrap_or_default();
+    Ok((status, body))
+}
+
+fn workspace_root() -> PathBuf {
+    // crates/localstack -> workspace root
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
