@@ -50,7 +50,7 @@ impl EvalAiFiles {
 
     /// The metrics as `(EvalAI label, value)`, for the EvalAI API and the database.
     pub fn accuracies(&self) -> Vec<(&str, Num)> {
-        let Some(PyValue::List(splits)) = Some(&self.results) else {
+        let PyValue::List(splits) = &self.results else {
             return vec![];
         };
         let Some(PyValue::Dict(acc)) = splits.first().and_then(|s| s.get("accuracies")) else {
