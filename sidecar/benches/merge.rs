@@ -4,7 +4,9 @@
 //! The official Python pipeline takes about 0.5 s on the same input. Exits non-zero when a
 //! median misses its target.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
+
+use lb_domain::testutil::results_fixtures_dir;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
@@ -15,17 +17,8 @@ use lb_domain::results::{
 
 const CASE: &str = "j_big_16workers_1024routes";
 
-fn fixtures() -> PathBuf {
-    match std::env::var_os("LB_FIXTURES_DIR") {
-        Some(dir) => PathBuf::from(dir),
-        None => {
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/fixtures/leaderboard-results")
-        }
-    }
-}
-
 fn inputs() -> Vec<PathBuf> {
-    let dir = fixtures().join(CASE).join("input");
+    let dir = results_fixtures_dir().join(CASE).join("input");
     (1..=16)
         .map(|i| dir.join(format!("worker{i}.json")))
         .collect()

@@ -1,19 +1,12 @@
 //! `lb-sidecar merge` as operators run it: a whole process on the fixture files.
 
 use std::path::{Path, PathBuf};
+
+use lb_domain::testutil::results_fixtures_dir;
 use std::process::{Command, Output};
 
-fn fixtures() -> PathBuf {
-    match std::env::var_os("LB_FIXTURES_DIR") {
-        Some(dir) => PathBuf::from(dir),
-        None => {
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/fixtures/leaderboard-results")
-        }
-    }
-}
-
 fn inputs(case: &str) -> Vec<PathBuf> {
-    let dir = fixtures().join(case);
+    let dir = results_fixtures_dir().join(case);
     let spec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("case.json")).unwrap()).unwrap();
     spec["merge_file_paths"]
@@ -78,7 +71,7 @@ fn merge_writes_the_four_files_identical_to_the_official_ones() {
             "{case}: {}",
             String::from_utf8_lossy(&result.stderr)
         );
-        let expected = fixtures().join(case).join("expected");
+        let expected = results_fixtures_dir().join(case).join("expected");
         for (ours, theirs) in [
             ("agent_results.json", "merged.json"),
             ("evalai/results.json", "results.json"),

@@ -2,3 +2,5 @@
 
 pub mod py;
 pub mod results;
+#[cfg(feature = "test-util")]
+pub mod testutil;

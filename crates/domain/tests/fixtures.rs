@@ -8,15 +8,8 @@ use std::path::{Path, PathBuf};
 use lb_domain::results::{
     merge, read_worker_file, EvalAiFiles, Leaderboard, MergeOptions, ResultsFile, WorkerFile,
 };
+use lb_domain::testutil::results_fixtures_dir;
 use serde_json::Value;
-
-fn fixtures_dir() -> PathBuf {
-    match std::env::var_os("LB_FIXTURES_DIR") {
-        Some(dir) => PathBuf::from(dir),
-        None => Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../../shared/fixtures/leaderboard-results"),
-    }
-}
 
 struct Case {
     name: String,
@@ -27,7 +20,7 @@ struct Case {
 }
 
 fn cases() -> Vec<Case> {
-    let root = fixtures_dir();
+    let root = results_fixtures_dir();
     let mut out = Vec::new();
     let entries = std::fs::read_dir(&root)
         .unwrap_or_else(|e| panic!("fixtures missing at {}: {e}", root.display()));

@@ -1,22 +1,16 @@
 //! Results files written by untrusted code: each problem is a typed error naming the file and
 //! field, or a documented "treated as empty"; never a panic.
 
-use std::path::Path;
-
 use lb_domain::results::{
     merge, read_worker_file, EmptyReason, EvalAiFiles, Leaderboard, MergeOptions, ResultsError,
     RouteSubset, WorkerFile, MAX_FILE_BYTES,
 };
+use lb_domain::testutil::results_fixtures_dir;
 use proptest::prelude::*;
 use serde_json::{json, Value};
 
 fn fixture(rel: &str) -> Vec<u8> {
-    let root = match std::env::var_os("LB_FIXTURES_DIR") {
-        Some(dir) => std::path::PathBuf::from(dir),
-        None => Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../../shared/fixtures/leaderboard-results"),
-    };
-    std::fs::read(root.join(rel)).unwrap()
+    std::fs::read(results_fixtures_dir().join(rel)).unwrap()
 }
 
 fn worker1() -> Value {
