@@ -369,20 +369,30 @@ impl JsonWriter {
                 }
                 self.end_list();
             }
-            PyValue::Dict(entries) => {
-                let mut refs: Vec<&(String, PyValue)> = entries.iter().collect();
-                if self.opts.sort_keys {
-                    // Python sorts str keys by code point, which is UTF-8 byte order.
-                    refs.sort_by(|a, b| a.0.cmp(&b.0));
-                }
-                self.begin_object();
-                for (k, v) in refs {
-                    self.key(k);
-                    self.value(v);
-                }
-                self.end_object();
-            }
+            PyValue::Dict(entries) => self.object(
+                entries.iter().map(|(k, v)| (k.as_str(), v)).collect(),
+                Self::value,
+            ),
         }
+    }
+
+    /// An object from `(key, value)` entries in insertion order, or sorted by key under
+    /// `sort_keys`, each value written by `write`.
+    pub fn object<K: AsRef<str>, V>(
+        &mut self,
+        mut entries: Vec<(K, V)>,
+        mut write: impl FnMut(&mut Self, V),
+    ) {
+        if self.opts.sort_keys {
+            // Python sorts str keys by code point, which is UTF-8 byte order.
+            entries.sort_by(|a, b| a.0.as_ref().cmp(b.0.as_ref()));
+        }
+        self.begin_object();
+        for (k, v) in entries {
+            self.key(k.as_ref());
+            write(self, v);
+        }
+        self.end_object();
     }
 }
 

@@ -611,7 +611,6 @@ fn record_field(r: &RouteRecord) -> Field<'_> {
 }
 
 fn write_field(w: &mut JsonWriter, field: Field<'_>) {
-    let sort = w.options().sort_keys;
     match field {
         Field::Num(n) => w.num(n),
         Field::Str(s) => w.str(s),
@@ -631,18 +630,10 @@ fn write_field(w: &mut JsonWriter, field: Field<'_>) {
             }
             w.end_list();
         }
-        Field::Infractions(kinds) => {
-            let mut refs: Vec<_> = kinds.iter().collect();
-            if sort {
-                refs.sort_by(|a, b| a.0.cmp(&b.0));
-            }
-            w.begin_object();
-            for (kind, messages) in refs {
-                w.key(kind);
-                w.str_list(messages);
-            }
-            w.end_object();
-        }
+        Field::Infractions(kinds) => w.object(
+            kinds.iter().map(|(k, m)| (k.as_ref(), m)).collect(),
+            |w, m| w.str_list(m),
+        ),
         Field::Nums(nums) => write_field(
             w,
             Field::Obj(nums.iter().map(|(k, n)| (*k, Field::Num(*n))).collect()),
@@ -671,16 +662,6 @@ fn write_field(w: &mut JsonWriter, field: Field<'_>) {
             }
             w.end_list();
         }
-        Field::Obj(mut fields) => {
-            if sort {
-                fields.sort_by(|a, b| a.0.cmp(b.0));
-            }
-            w.begin_object();
-            for (k, v) in fields {
-                w.key(k);
-                write_field(w, v);
-            }
-            w.end_object();
-        }
+        Field::Obj(fields) => w.object(fields, write_field),
     }
 }
