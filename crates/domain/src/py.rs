@@ -47,12 +47,6 @@ impl std::ops::Add for Num {
     }
 }
 
-impl From<f64> for Num {
-    fn from(f: f64) -> Self {
-        Num::Float(f)
-    }
-}
-
 /// Python's `round(x, ndigits)` for a float: correctly rounded, ties to even on the exact value.
 pub fn round(x: f64, ndigits: usize) -> f64 {
     if !x.is_finite() {
@@ -192,12 +186,6 @@ impl From<bool> for PyValue {
         PyValue::Bool(b)
     }
 }
-impl From<i64> for PyValue {
-    fn from(i: i64) -> Self {
-        PyValue::Num(Num::Int(i))
-    }
-}
-
 /// Options of Python's `json.dump` that the official scripts use.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct DumpOptions {

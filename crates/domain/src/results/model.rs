@@ -72,16 +72,6 @@ impl RouteSubset {
     pub fn contains(&self, route: u64) -> bool {
         (self.first..=self.last).contains(&route)
     }
-
-    /// Number of routes in the subset.
-    pub fn len(&self) -> u64 {
-        self.last - self.first + 1
-    }
-
-    /// A subset always holds at least one route.
-    pub fn is_empty(&self) -> bool {
-        false
-    }
 }
 
 impl fmt::Display for RouteSubset {
