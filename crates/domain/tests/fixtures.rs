@@ -53,6 +53,20 @@ fn cases() -> Vec<Case> {
     out
 }
 
+fn case(prefix: &str) -> Case {
+    cases()
+        .into_iter()
+        .find(|c| c.name.starts_with(prefix))
+        .unwrap_or_else(|| panic!("no fixture case `{prefix}*`"))
+}
+
+fn options(case: &Case, expected_records: Option<u64>) -> MergeOptions {
+    MergeOptions {
+        leaderboard: case.leaderboard,
+        expected_records,
+    }
+}
+
 fn load(case: &Case) -> Vec<ResultsFile> {
     case.inputs
         .iter()
@@ -99,10 +113,7 @@ fn every_fixture_case_matches_the_official_tooling() {
         let expected = case.dir.join("expected");
         let merged = if case.run_merge {
             let files = load(&case);
-            let opts = MergeOptions {
-                leaderboard: case.leaderboard,
-                expected_records: None,
-            };
+            let opts = options(&case, None);
             match merge(files.clone(), opts) {
                 Ok(outcome) => {
                     assert!(
@@ -165,10 +176,7 @@ fn merged_files_are_byte_identical_to_python_json_dump() {
         if !expected.exists() {
             continue;
         }
-        let opts = MergeOptions {
-            leaderboard: case.leaderboard,
-            expected_records: None,
-        };
+        let opts = options(&case, None);
         let merged = merge(load(&case), opts).unwrap().merged;
         let want = std::fs::read_to_string(&expected).unwrap();
         assert_eq!(merged.to_json(), want, "{}", case.name);
@@ -188,14 +196,8 @@ fn merged_files_are_byte_identical_to_python_json_dump() {
 
 #[test]
 fn invalid_fixture_reports_the_validation_message() {
-    let case = cases()
-        .into_iter()
-        .find(|c| c.name.starts_with("l_"))
-        .unwrap();
-    let opts = MergeOptions {
-        leaderboard: case.leaderboard,
-        expected_records: None,
-    };
+    let case = case("l_");
+    let opts = options(&case, None);
     let merged = merge(load(&case), opts).unwrap().merged;
     assert_eq!(merged.entry_status, "Invalid");
     assert_eq!(merged.invalid_reason, Some("Missing 'sensors' data"));
@@ -205,24 +207,15 @@ fn invalid_fixture_reports_the_validation_message() {
 #[test]
 fn a_missing_worker_keeps_the_result_partial_when_the_plan_is_known() {
     // Upstream published a Finished score over 15 of 20 routes here; we do not.
-    let case = cases()
-        .into_iter()
-        .find(|c| c.name.starts_with("a_"))
-        .unwrap();
+    let case = case("a_");
     let mut files = load(&case);
     files.pop();
-    let opts = MergeOptions {
-        leaderboard: case.leaderboard,
-        expected_records: None,
-    };
+    let opts = options(&case, None);
     assert!(
         merge(files.clone(), opts).unwrap().complete,
         "upstream rule: 15 == 15 is complete"
     );
-    let opts = MergeOptions {
-        leaderboard: case.leaderboard,
-        expected_records: Some(20),
-    };
+    let opts = options(&case, Some(20));
     let outcome = merge(files.clone(), opts).unwrap();
     assert!(!outcome.complete);
     assert_eq!(outcome.merged.progress, (15, 20));
@@ -239,14 +232,8 @@ fn a_missing_worker_keeps_the_result_partial_when_the_plan_is_known() {
 
 #[test]
 fn more_records_than_planned_is_an_error() {
-    let case = cases()
-        .into_iter()
-        .find(|c| c.name.starts_with("a_"))
-        .unwrap();
-    let opts = MergeOptions {
-        leaderboard: case.leaderboard,
-        expected_records: Some(19),
-    };
+    let case = case("a_");
+    let opts = options(&case, Some(19));
     let err = merge(load(&case), opts).unwrap_err();
     assert_eq!(err.name(), "UnexpectedRecords");
 }
