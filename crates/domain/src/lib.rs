@@ -2,5 +2,6 @@
 
 pub mod py;
 pub mod results;
+pub mod submission;
 #[cfg(feature = "test-util")]
 pub mod testutil;
