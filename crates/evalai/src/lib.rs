@@ -1,0 +1,576 @@
+//! EvalAI host API client (reference `evalai-host-api.md`): the only code that talks to EvalAI.
+//!
+//! The server protects nothing: a write lands on a cancelled or finished submission and
+//! silently undoes it. So every write here reads the submission first and never revives a
+//! cancelled one; a 5xx or timeout is followed by a read to learn what really happened;
+//! throttling is honoured through `Retry-After`; every call has a bounded total time.
+
+mod model;
+mod retry;
+
+pub use model::{validate_result, Submission};
+pub use retry::RetryPolicy;
+
+use std::time::Duration;
+
+use lb_domain::submission::SubmissionStatus;
+use reqwest::{Method, StatusCode};
+use serde_json::{json, Value};
+use tracing::{info, warn};
+
+use retry::Attempts;
+
+/// The host's EvalAI auth token. It is never printed, serialized or logged.
+#[derive(Clone)]
+pub struct HostToken(String);
+
+impl HostToken {
+    /// Wraps a token read from Secrets Manager.
+    pub fn new(token: impl Into<String>) -> Self {
+        HostToken(token.into())
+    }
+}
+
+impl std::fmt::Debug for HostToken {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("HostToken(***)")
+    }
+}
+
+/// How the token goes in `Authorization` (EvalAI accepts both, each for its own kind).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum AuthScheme {
+    /// `Bearer <jwt>`: the profile page's refresh token.
+    #[default]
+    Bearer,
+    /// `Token <key>`: the legacy DRF token.
+    Token,
+}
+
+/// Result alias of this crate.
+pub type Result<T, E = EvalAiError> = std::result::Result<T, E>;
+
+/// What went wrong talking to EvalAI; `name()` is what the state machine matches.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalAiError {
+    /// The client could not be built (bad base URL).
+    #[error("invalid EvalAI configuration: {0}")]
+    Config(String),
+    /// 401/403: the token is wrong, expired, not a host's, or the account unverified.
+    #[error("EvalAI refused our credentials ({status}): {message}")]
+    Unauthorized {
+        /// HTTP status.
+        status: u16,
+        /// EvalAI's `detail`/`error`.
+        message: String,
+    },
+    /// 404: no such submission.
+    #[error("EvalAI has no submission `{0}`")]
+    NotFound(u64),
+    /// 400 (or a redirect, which means a wrong URL): the request itself is wrong.
+    #[error("EvalAI rejected the request ({status}): {message}")]
+    Rejected {
+        /// HTTP status.
+        status: u16,
+        /// EvalAI's message.
+        message: String,
+    },
+    /// Still throttled when the retry budget ran out.
+    #[error("EvalAI kept throttling us (429) for {0:?}")]
+    Throttled(Duration),
+    /// 5xx, timeouts or connection failures until the retry budget ran out.
+    #[error("EvalAI unavailable after {attempts} attempts: {last}")]
+    Unavailable {
+        /// Attempts made.
+        attempts: u32,
+        /// The last failure.
+        last: String,
+    },
+    /// EvalAI answered 200 with something we cannot trust.
+    #[error("EvalAI sent an invalid response: {0}")]
+    InvalidResponse(String),
+    /// We refused to send a payload EvalAI would reject or store as garbage.
+    #[error("refusing to send an invalid result to EvalAI: {0}")]
+    InvalidResult(String),
+    /// The write was acknowledged but a read-back shows another status.
+    #[error("EvalAI did not keep our update: expected `{expected}`, found `{found}`")]
+    NotConfirmed {
+        /// What we wrote.
+        expected: SubmissionStatus,
+        /// What the read-back said.
+        found: SubmissionStatus,
+    },
+}
+
+impl EvalAiError {
+    /// The stable PascalCase name raised to the state machine.
+    pub fn name(&self) -> &'static str {
+        match self {
+            EvalAiError::Config(_) => "EvalAiConfig",
+            EvalAiError::Unauthorized { .. } => "EvalAiUnauthorized",
+            EvalAiError::NotFound(_) => "SubmissionNotFound",
+            EvalAiError::Rejected { .. } => "EvalAiRejected",
+            EvalAiError::Throttled(_) => "EvalAiThrottled",
+            EvalAiError::Unavailable { .. } => "EvalAiUnavailable",
+            EvalAiError::InvalidResponse(_) => "EvalAiInvalidResponse",
+            EvalAiError::InvalidResult(_) => "InvalidResult",
+            EvalAiError::NotConfirmed { .. } => "EvalAiNotConfirmed",
+        }
+    }
+
+    /// Worth another try later (the state machine retries these with backoff).
+    pub fn is_transient(&self) -> bool {
+        matches!(
+            self,
+            EvalAiError::Throttled(_)
+                | EvalAiError::Unavailable { .. }
+                | EvalAiError::NotConfirmed { .. }
+        )
+    }
+}
+
+/// What a guarded write did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WriteOutcome {
+    /// The update is on EvalAI.
+    Written,
+    /// Not sent: the submission is `cancelled` (the participant's word is final).
+    Cancelled,
+    /// Not sent: the submission already has a final status this update must not undo.
+    AlreadyFinal(SubmissionStatus),
+}
+
+/// A final update (PUT `update_submission`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FinalUpdate {
+    /// `finished`, `failed` or `cancelled`.
+    pub status: SubmissionStatus,
+    /// The `result` JSON text (a list of splits); required for `finished`.
+    pub result: String,
+    /// Shown to the participant.
+    pub stdout: String,
+    /// Shown to the participant.
+    pub stderr: String,
+    /// Host-only metadata (a JSON text).
+    pub metadata: String,
+}
+
+/// A partial update (PUT `update_partially_evaluated_submission`, `partially_evaluated`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PartialUpdate {
+    /// The `result` JSON text.
+    pub result: String,
+    /// Shown to the participant.
+    pub stdout: String,
+    /// Host-only metadata (a JSON text).
+    pub metadata: String,
+}
+
+/// Where the submission lives on EvalAI (the server cross-checks none of these: we must).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SubmissionRef {
+    /// Challenge id (URL).
+    pub challenge: u64,
+    /// Phase id (body).
+    pub phase: u64,
+    /// Submission id (body).
+    pub submission: u64,
+}
+
+/// The EvalAI client; build once per cold start.
+#[derive(Debug, Clone)]
+pub struct EvalAiClient {
+    http: reqwest::Client,
+    base: String,
+    /// Marked sensitive: `Debug` prints `Sensitive`, and hyper keeps it out of HPACK tables.
+    auth: reqwest::header::HeaderValue,
+    policy: RetryPolicy,
+}
+
+impl EvalAiClient {
+    /// A client for `base_url` (e.g. `https://eval.ai`), authenticated as the host.
+    pub fn new(
+        base_url: &str,
+        token: &HostToken,
+        scheme: AuthScheme,
+        policy: RetryPolicy,
+    ) -> Result<Self> {
+        let base = base_url.trim_end_matches('/').to_string();
+        if !(base.starts_with("https://") || base.starts_with("http://")) {
+            return Err(EvalAiError::Config(format!(
+                "EvalAI URL `{}` must start with https:// or http://",
+                base.escape_debug()
+            )));
+        }
+        if token.0.is_empty() || token.0.chars().any(|c| c.is_whitespace() || c.is_control()) {
+            return Err(EvalAiError::Config(
+                "the EvalAI host token is empty or holds whitespace".into(),
+            ));
+        }
+        let http = reqwest::Client::builder()
+            // NB: a redirect here always means a wrong URL (a missing trailing slash); following
+            // it would turn a PUT into a bodiless retry or a GET (reference §1).
+            .redirect(reqwest::redirect::Policy::none())
+            .connect_timeout(policy.connect_timeout)
+            .timeout(policy.request_timeout)
+            .user_agent(concat!("leaderboard-cloud/", env!("CARGO_PKG_VERSION")))
+            .build()
+            .map_err(|e| EvalAiError::Config(e.to_string()))?;
+        let word = match scheme {
+            AuthScheme::Bearer => "Bearer",
+            AuthScheme::Token => "Token",
+        };
+        let mut auth = reqwest::header::HeaderValue::from_str(&format!("{word} {}", token.0))
+            .map_err(|_| {
+                EvalAiError::Config("the EvalAI host token is not a valid header value".into())
+            })?;
+        auth.set_sensitive(true);
+        Ok(EvalAiClient {
+            http,
+            base,
+            auth,
+            policy,
+        })
+    }
+
+    /// GET `/api/jobs/submission/<id>` (no trailing slash).
+    pub async fn submission(&self, id: u64) -> Result<Submission> {
+        let url = format!("{}/api/jobs/submission/{id}", self.base);
+        let body = self.send(Method::GET, &url, None, id).await?;
+        Submission::from_json(&body)
+    }
+
+    /// The image of a submission whose message had none: the docker `input_file` JSON.
+    /// The file may be on another host (S3): the token is sent only to EvalAI itself.
+    pub async fn submitted_image(&self, submission: &Submission) -> Result<String> {
+        let Some(url) = submission.input_file.as_deref() else {
+            return Err(EvalAiError::InvalidResponse(format!(
+                "submission `{}` has no input_file to read the image from",
+                submission.id
+            )));
+        };
+        let same_origin = url.starts_with(&format!("{}/", self.base));
+        let mut request = self.http.get(url);
+        if same_origin {
+            request = request.header(reqwest::header::AUTHORIZATION, self.auth.clone());
+        }
+        let response = request.send().await.map_err(|e| EvalAiError::Unavailable {
+            attempts: 1,
+            last: e.without_url().to_string(),
+        })?;
+        if !response.status().is_success() {
+            return Err(EvalAiError::InvalidResponse(format!(
+                "input_file answered {}",
+                response.status()
+            )));
+        }
+        let bytes = response
+            .bytes()
+            .await
+            .map_err(|e| EvalAiError::InvalidResponse(e.without_url().to_string()))?;
+        model::image_from_input_file(&bytes)
+    }
+
+    /// PATCH `running` with our Job name, unless the submission was cancelled meanwhile.
+    pub async fn mark_running(&self, at: SubmissionRef, job_name: &str) -> Result<WriteOutcome> {
+        let current = self.submission(at.submission).await?;
+        if let Some(refused) = refuse_write(current.status, SubmissionStatus::Running) {
+            return Ok(refused);
+        }
+        let url = format!(
+            "{}/api/jobs/challenge/{}/update_submission/",
+            self.base, at.challenge
+        );
+        let body = json!({
+            "submission": at.submission,
+            "submission_status": "running",
+            "job_name": job_name,
+        });
+        self.write(Method::PATCH, &url, body, at, SubmissionStatus::Running)
+            .await
+    }
+
+    /// PUT a partial result, unless the submission was cancelled or already final.
+    pub async fn post_partial(
+        &self,
+        at: SubmissionRef,
+        update: &PartialUpdate,
+    ) -> Result<WriteOutcome> {
+        validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
+        let current = self.submission(at.submission).await?;
+        if let Some(refused) = refuse_write(current.status, SubmissionStatus::PartiallyEvaluated) {
+            return Ok(refused);
+        }
+        let url = format!(
+            "{}/api/jobs/challenges/{}/update_partially_evaluated_submission/",
+            self.base, at.challenge
+        );
+        let body = json!({
+            "submission": at.submission,
+            "submission_status": "partially_evaluated",
+            "challenge_phase": at.phase,
+            "result": update.result,
+            "stdout": update.stdout,
+            "stderr": "",
+            "metadata": update.metadata,
+        });
+        self.write(
+            Method::PUT,
+            &url,
+            body,
+            at,
+            SubmissionStatus::PartiallyEvaluated,
+        )
+        .await
+    }
+
+    /// PUT the final update and confirm it with a GET. A cancelled submission is left
+    /// cancelled whatever `update.status` says.
+    pub async fn post_final(
+        &self,
+        at: SubmissionRef,
+        update: &FinalUpdate,
+    ) -> Result<WriteOutcome> {
+        if !matches!(
+            update.status,
+            SubmissionStatus::Finished | SubmissionStatus::Failed | SubmissionStatus::Cancelled
+        ) {
+            return Err(EvalAiError::InvalidResult(format!(
+                "`{}` is not a final status",
+                update.status
+            )));
+        }
+        if update.status == SubmissionStatus::Finished {
+            validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
+        }
+        let current = self.submission(at.submission).await?;
+        if let Some(refused) = refuse_write(current.status, update.status) {
+            return Ok(refused);
+        }
+        let url = format!(
+            "{}/api/jobs/challenge/{}/update_submission/",
+            self.base, at.challenge
+        );
+        let result = if update.status == SubmissionStatus::Finished {
+            update.result.as_str()
+        } else {
+            "[]"
+        };
+        let body = json!({
+            "submission": at.submission,
+            "submission_status": update.status.as_str(),
+            "challenge_phase": at.phase,
+            "result": result,
+            "stdout": update.stdout,
+            "stderr": update.stderr,
+            "metadata": update.metadata,
+        });
+        let outcome = self
+            .write(Method::PUT, &url, body, at, update.status)
+            .await?;
+        if outcome == WriteOutcome::Written {
+            let after = self.submission(at.submission).await?;
+            if after.status != update.status {
+                return Err(EvalAiError::NotConfirmed {
+                    expected: update.status,
+                    found: after.status,
+                });
+            }
+        }
+        Ok(outcome)
+    }
+
+    /// One write with its retries. After a 5xx or a timeout the write may have landed
+    /// (reference §4): read the submission and stop if it already holds `target`.
+    async fn write(
+        &self,
+        method: Method,
+        url: &str,
+        body: Value,
+        at: SubmissionRef,
+        target: SubmissionStatus,
+    ) -> Result<WriteOutcome> {
+        let mut attempts = Attempts::new(&self.policy);
+        loop {
+            match self
+                .once(method.clone(), url, Some(&body), at.submission)
+                .await
+            {
+                Ok(_) => {
+                    info!(submission_id = at.submission, status = %target, "evalai updated");
+                    return Ok(WriteOutcome::Written);
+                }
+                Err(Failure::Final(e)) => return Err(e),
+                Err(Failure::Retry { reason, after }) => {
+                    warn!(submission_id = at.submission, %reason, "evalai write failed, checking");
+                    attempts.wait(reason, after).await?;
+                    let current = self.submission(at.submission).await?;
+                    if current.status == target && target.is_final() {
+                        return Ok(WriteOutcome::Written);
+                    }
+                    if let Some(refused) = refuse_write(current.status, target) {
+                        return Ok(refused);
+                    }
+                }
+            }
+        }
+    }
+
+    /// A read with its retries.
+    async fn send(
+        &self,
+        method: Method,
+        url: &str,
+        body: Option<&Value>,
+        id: u64,
+    ) -> Result<Value> {
+        let mut attempts = Attempts::new(&self.policy);
+        loop {
+            match self.once(method.clone(), url, body, id).await {
+                Ok(value) => return Ok(value),
+                Err(Failure::Final(e)) => return Err(e),
+                Err(Failure::Retry { reason, after }) => attempts.wait(reason, after).await?,
+            }
+        }
+    }
+
+    async fn once(
+        &self,
+        method: Method,
+        url: &str,
+        body: Option<&Value>,
+        id: u64,
+    ) -> Result<Value, Failure> {
+        let mut request = self
+            .http
+            .request(method, url)
+            .header(reqwest::header::AUTHORIZATION, self.auth.clone())
+            .header(reqwest::header::ACCEPT, "application/json");
+        if let Some(body) = body {
+            request = request.json(body);
+        }
+        let response = match request.send().await {
+            Ok(response) => response,
+            Err(e) => {
+                return Err(Failure::Retry {
+                    reason: retry::Reason::Unavailable(e.without_url().to_string()),
+                    after: None,
+                })
+            }
+        };
+        let status = response.status();
+        let retry_after = response
+            .headers()
+            .get(reqwest::header::RETRY_AFTER)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .map(Duration::from_secs);
+        let location = response
+            .headers()
+            .get(reqwest::header::LOCATION)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_owned);
+        let text = response.text().await.unwrap_or_default();
+        if status.is_success() {
+            return serde_json::from_str(&text).map_err(|e| {
+                Failure::Final(EvalAiError::InvalidResponse(format!(
+                    "{status} with a body that is not JSON: {e}"
+                )))
+            });
+        }
+        let message = model::error_message(&text);
+        Err(match status {
+            StatusCode::TOO_MANY_REQUESTS => Failure::Retry {
+                reason: retry::Reason::Throttled,
+                after: Some(retry_after.unwrap_or(Duration::from_secs(60))),
+            },
+            s if s.is_server_error() => Failure::Retry {
+                reason: retry::Reason::Unavailable(format!("{s}: {message}")),
+                after: None,
+            },
+            StatusCode::NOT_FOUND => Failure::Final(EvalAiError::NotFound(id)),
+            StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
+                Failure::Final(EvalAiError::Unauthorized {
+                    status: status.as_u16(),
+                    message,
+                })
+            }
+            s if s.is_redirection() => Failure::Final(EvalAiError::Rejected {
+                status: s.as_u16(),
+                message: format!(
+                    "redirected to `{}`: the URL is wrong (trailing slash?)",
+                    location.unwrap_or_default()
+                ),
+            }),
+            s => Failure::Final(EvalAiError::Rejected {
+                status: s.as_u16(),
+                message,
+            }),
+        })
+    }
+}
+
+/// Why a single request failed.
+enum Failure {
+    Final(EvalAiError),
+    Retry {
+        reason: retry::Reason,
+        after: Option<Duration>,
+    },
+}
+
+/// The write policy: `cancelled` is final for everybody; a final status is not undone by a
+/// progress update (`running`, `partially_evaluated`).
+fn refuse_write(current: SubmissionStatus, target: SubmissionStatus) -> Option<WriteOutcome> {
+    if current == SubmissionStatus::Cancelled {
+        return Some(WriteOutcome::Cancelled);
+    }
+    let progress = matches!(
+        target,
+        SubmissionStatus::Running | SubmissionStatus::PartiallyEvaluated
+    );
+    (progress && current.is_final()).then_some(WriteOutcome::AlreadyFinal(current))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cancelled_is_never_overwritten_and_progress_never_undoes_a_final_status() {
+        use SubmissionStatus::*;
+        for target in [Running, PartiallyEvaluated, Finished, Failed] {
+            assert_eq!(
+                refuse_write(Cancelled, target),
+                Some(WriteOutcome::Cancelled)
+            );
+        }
+        assert_eq!(
+            refuse_write(Finished, PartiallyEvaluated),
+            Some(WriteOutcome::AlreadyFinal(Finished))
+        );
+        assert_eq!(
+            refuse_write(Failed, Running),
+            Some(WriteOutcome::AlreadyFinal(Failed))
+        );
+        assert_eq!(refuse_write(Running, Finished), None);
+        assert_eq!(refuse_write(PartiallyEvaluated, Failed), None);
+        assert_eq!(refuse_write(Submitted, Running), None);
+    }
+
+    #[test]
+    fn the_token_never_shows_in_debug_output() {
+        let token = HostToken::new("very-secret");
+        let client = EvalAiClient::new(
+            "http://127.0.0.1:1",
+            &token,
+            AuthScheme::Bearer,
+            RetryPolicy::default(),
+        )
+        .unwrap();
+        assert!(!format!("{token:?}").contains("very-secret"));
+        let debug = format!("{client:?}");
+        assert!(!debug.contains("very-secret"), "{debug}");
+        assert!(debug.contains("Sensitive"), "{debug}");
+    }
+}
