@@ -191,7 +191,10 @@ impl SubmissionStatus {
     /// After these nothing may be written over the submission: a write would silently undo
     /// the participant's cancel or a published score (the server does not protect them).
     pub fn is_final(self) -> bool {
-        matches!(self, Self::Finished | Self::Failed | Self::Cancelled | Self::Archived)
+        matches!(
+            self,
+            Self::Finished | Self::Failed | Self::Cancelled | Self::Archived
+        )
     }
 }
 
@@ -217,7 +220,9 @@ mod tests {
     use serde_json::json;
 
     fn problem(value: Value) -> String {
-        SubmissionMessage::from_value(&value).unwrap_err().to_string()
+        SubmissionMessage::from_value(&value)
+            .unwrap_err()
+            .to_string()
     }
 
     #[test]

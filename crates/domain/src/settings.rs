@@ -1,0 +1,377 @@
+//! The operator's configuration (the `config` secret in Secrets Manager), typed and checked once.
+//!
+//! The layout is documented in the README ("Configuration"). Unknown keys are refused so a
+//! typo cannot silently fall back to a default; every problem names its JSON path.
+
+use std::collections::BTreeMap;
+
+use serde::Deserialize;
+
+use crate::results::Leaderboard;
+
+/// The whole configuration.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Settings {
+    /// Where EvalAI is and how we authenticate (the token itself is a separate secret).
+    pub evalai: EvalAiSettings,
+    /// EvalAI phase id -> leaderboard and track.
+    pub phases: BTreeMap<u64, PhaseSettings>,
+    /// Per leaderboard (`"1.0"`, `"2.0"`): cluster, storage, images, tracks.
+    pub leaderboards: BTreeMap<String, LeaderboardSettings>,
+}
+
+/// EvalAI endpoint settings.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EvalAiSettings {
+    /// Base URL, e.g. `https://eval.ai`.
+    pub api_server: String,
+    /// `Bearer` (JWT from the profile page, the default) or `Token` (legacy key).
+    #[serde(default = "default_scheme")]
+    pub auth_scheme: String,
+}
+
+fn default_scheme() -> String {
+    "Bearer".into()
+}
+
+/// What a phase evaluates.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhaseSettings {
+    /// `"1.0"` or `"2.0"`.
+    pub leaderboard: String,
+    /// Track codename, e.g. `SENSORS`, `MAP`, `SENSORS_QUALIFIER`.
+    pub track: String,
+}
+
+/// One leaderboard's deployment.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LeaderboardSettings {
+    /// EKS cluster name.
+    pub cluster: String,
+    /// Namespace of the Jobs.
+    #[serde(default = "default_namespace")]
+    pub namespace: String,
+    /// Results bucket.
+    pub bucket: String,
+    /// DynamoDB submissions table.
+    pub submissions_table: String,
+    /// DynamoDB qualifier table.
+    pub qualifier_table: String,
+    /// Container images.
+    pub images: Images,
+    /// Node instance type (the Jobs' node selector).
+    pub instance_type: String,
+    /// GPUs per node: the number of simulator-agent pairs one Job holds.
+    pub gpus_per_node: u32,
+    /// Per track codename.
+    pub tracks: BTreeMap<String, TrackSettings>,
+    /// Qualifier gating.
+    #[serde(default)]
+    pub qualifier: QualifierSettings,
+}
+
+fn default_namespace() -> String {
+    "default".into()
+}
+
+/// Images of the Job containers (the participant's comes with the submission).
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Images {
+    /// CARLA server image.
+    pub carla: String,
+    /// Init/logcopy image: official Leaderboard code, routes, the sidecar.
+    pub private_contents: String,
+}
+
+/// One track.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackSettings {
+    /// Routes of the track's routes file.
+    pub routes: u32,
+    /// Default simulator-agent pairs (a per-submission override in DynamoDB wins).
+    pub workers: u32,
+    /// This track is a qualifier (its result gates the main track).
+    #[serde(default)]
+    pub qualifier: bool,
+}
+
+/// Qualifier gating: which qualifier track opens which track, and the pass marks.
+#[derive(Debug, Clone, PartialEq, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct QualifierSettings {
+    /// Off: every team may run every track.
+    #[serde(default)]
+    pub enabled: bool,
+    /// Main track codename -> the qualifier track a team must have passed.
+    #[serde(default)]
+    pub tracks: BTreeMap<String, String>,
+    /// Metric attribute (e.g. `driving_score`) -> minimum value to pass.
+    #[serde(default)]
+    pub thresholds: BTreeMap<String, f64>,
+}
+
+/// Why the configuration is unusable.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SettingsError {
+    /// Not the documented layout.
+    #[error("invalid configuration at `{path}`: {problem}")]
+    Invalid {
+        /// JSON path of the problem.
+        path: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// The phase is not configured (the message is for another challenge, or config lags).
+    #[error("phase `{0}` is not configured")]
+    UnknownPhase(u64),
+}
+
+impl SettingsError {
+    /// The stable name the state machine matches.
+    pub fn name(&self) -> &'static str {
+        match self {
+            SettingsError::Invalid { .. } => "InvalidSettings",
+            SettingsError::UnknownPhase(_) => "UnknownPhase",
+        }
+    }
+}
+
+/// What a phase resolves to.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Target<'a> {
+    /// Which leaderboard.
+    pub leaderboard: Leaderboard,
+    /// Track codename.
+    pub track: &'a str,
+    /// The leaderboard's deployment.
+    pub deployment: &'a LeaderboardSettings,
+    /// The track's settings.
+    pub track_settings: &'a TrackSettings,
+}
+
+impl Target<'_> {
+    /// The qualifier track this team must have passed first, if gating applies.
+    pub fn required_qualifier(&self) -> Option<&str> {
+        let q = &self.deployment.qualifier;
+        if !q.enabled || self.track_settings.qualifier {
+            return None;
+        }
+        q.tracks.get(self.track).map(String::as_str)
+    }
+}
+
+impl Settings {
+    /// Parses and checks the secret's JSON text.
+    pub fn from_json(text: &str) -> Result<Self, SettingsError> {
+        let de = &mut serde_json::Deserializer::from_str(text);
+        let settings: Settings =
+            serde_path_to_error::deserialize(de).map_err(|e| SettingsError::Invalid {
+                path: e.path().to_string(),
+                problem: e.inner().to_string(),
+            })?;
+        settings.check()?;
+        Ok(settings)
+    }
+
+    fn check(&self) -> Result<(), SettingsError> {
+        let invalid = |path: String, problem: &str| {
+            Err(SettingsError::Invalid {
+                path,
+                problem: problem.to_string(),
+            })
+        };
+        let api = &self.evalai.api_server;
+        if !(api.starts_with("https://") || api.starts_with("http://")) {
+            return invalid("evalai.api_server".into(), "must be an http(s) URL");
+        }
+        if !matches!(self.evalai.auth_scheme.as_str(), "Bearer" | "Token") {
+            return invalid("evalai.auth_scheme".into(), "must be `Bearer` or `Token`");
+        }
+        for (name, lb) in &self.leaderboards {
+            let at = |field: &str| format!("leaderboards.{name}.{field}");
+            if ![Leaderboard::V1, Leaderboard::V2]
+                .iter()
+                .any(|l| l.as_str() == name)
+            {
+                return invalid(format!("leaderboards.{name}"), "key must be `1.0` or `2.0`");
+            }
+            for (field, value) in [
+                ("cluster", &lb.cluster),
+                ("namespace", &lb.namespace),
+                ("bucket", &lb.bucket),
+                ("submissions_table", &lb.submissions_table),
+                ("qualifier_table", &lb.qualifier_table),
+                ("images.carla", &lb.images.carla),
+                ("images.private_contents", &lb.images.private_contents),
+                ("instance_type", &lb.instance_type),
+            ] {
+                if value.trim().is_empty() {
+                    return invalid(at(field), "must not be empty");
+                }
+            }
+            if !(1..=16).contains(&lb.gpus_per_node) {
+                return invalid(at("gpus_per_node"), "must be between 1 and 16");
+            }
+            for (track, t) in &lb.tracks {
+                if t.routes == 0 || t.workers == 0 {
+                    return invalid(
+                        at(&format!("tracks.{track}")),
+                        "routes and workers must be at least 1",
+                    );
+                }
+            }
+            for (main, qualifier) in &lb.qualifier.tracks {
+                if !lb.tracks.get(qualifier).is_some_and(|t| t.qualifier) {
+                    return invalid(
+                        at(&format!("qualifier.tracks.{main}")),
+                        "must name a track marked `qualifier: true`",
+                    );
+                }
+            }
+            for (metric, min) in &lb.qualifier.thresholds {
+                if !min.is_finite() {
+                    return invalid(
+                        at(&format!("qualifier.thresholds.{metric}")),
+                        "must be finite",
+                    );
+                }
+                if !crate::results::METRICS
+                    .iter()
+                    .any(|m| m.attribute == metric)
+                {
+                    return invalid(
+                        at(&format!("qualifier.thresholds.{metric}")),
+                        "is not a metric",
+                    );
+                }
+            }
+        }
+        for (phase, p) in &self.phases {
+            let Some(lb) = self.leaderboards.get(&p.leaderboard) else {
+                return invalid(
+                    format!("phases.{phase}.leaderboard"),
+                    "names no configured leaderboard",
+                );
+            };
+            if !lb.tracks.contains_key(&p.track) {
+                return invalid(
+                    format!("phases.{phase}.track"),
+                    "names no track of its leaderboard",
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// The leaderboard and track of an EvalAI phase.
+    pub fn target(&self, phase_id: u64) -> Result<Target<'_>, SettingsError> {
+        let phase = self
+            .phases
+            .get(&phase_id)
+            .ok_or(SettingsError::UnknownPhase(phase_id))?;
+        // Both lookups were checked at load.
+        let deployment = &self.leaderboards[&phase.leaderboard];
+        Ok(Target {
+            leaderboard: phase.leaderboard.parse().unwrap_or_default(),
+            track: &phase.track,
+            deployment,
+            track_settings: &deployment.tracks[&phase.track],
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const EXAMPLE: &str = r#"{
+      "evalai": {"api_server": "https://eval.ai"},
+      "phases": {"1234": {"leaderboard": "2.0", "track": "SENSORS"},
+                 "1235": {"leaderboard": "2.0", "track": "SENSORS_QUALIFIER"}},
+      "leaderboards": {"2.0": {
+        "cluster": "leaderboard-20", "bucket": "lb20-results",
+        "submissions_table": "lb20-submissions", "qualifier_table": "lb20-qualifier",
+        "images": {"carla": "carlasim/carla:0.9.15", "private_contents": "123.dkr.ecr.us-west-2.amazonaws.com/private:2.0"},
+        "instance_type": "g5.12xlarge", "gpus_per_node": 4,
+        "tracks": {"SENSORS": {"routes": 20, "workers": 4},
+                   "SENSORS_QUALIFIER": {"routes": 2, "workers": 1, "qualifier": true}},
+        "qualifier": {"enabled": true, "tracks": {"SENSORS": "SENSORS_QUALIFIER"},
+                      "thresholds": {"driving_score": 10.0}}
+      }}
+    }"#;
+
+    #[test]
+    fn the_documented_example_resolves_phases_to_tracks() {
+        let settings = Settings::from_json(EXAMPLE).unwrap();
+        let target = settings.target(1234).unwrap();
+        assert_eq!(target.leaderboard, Leaderboard::V2);
+        assert_eq!(target.track_settings.workers, 4);
+        assert_eq!(target.deployment.namespace, "default");
+        assert_eq!(target.required_qualifier(), Some("SENSORS_QUALIFIER"));
+        assert_eq!(settings.target(1235).unwrap().required_qualifier(), None);
+        assert_eq!(settings.target(9).unwrap_err().name(), "UnknownPhase");
+    }
+
+    #[test]
+    fn gating_off_requires_no_qualifier() {
+        let settings =
+            Settings::from_json(&EXAMPLE.replace(r#""enabled": true"#, r#""enabled": false"#))
+                .unwrap();
+        assert_eq!(settings.target(1234).unwrap().required_qualifier(), None);
+    }
+
+    #[test]
+    fn each_problem_names_its_path() {
+        let cases = [
+            (
+                EXAMPLE.replace(r#""workers": 4"#, r#""workers": 0"#),
+                "leaderboards.2.0.tracks.SENSORS",
+            ),
+            (
+                EXAMPLE.replace(r#""gpus_per_node": 4"#, r#""gpus_per_node": "4""#),
+                "leaderboards.2.0.gpus_per_node",
+            ),
+            (
+                EXAMPLE.replace(r#""bucket": "lb20-results""#, r#""bucket": " ""#),
+                "leaderboards.2.0.bucket",
+            ),
+            (
+                EXAMPLE.replace(r#""track": "SENSORS"}"#, r#""track": "MAP"}"#),
+                "phases.1234.track",
+            ),
+            (
+                EXAMPLE.replace(r#""driving_score": 10.0"#, r#""score": 10.0"#),
+                "leaderboards.2.0.qualifier.thresholds.score",
+            ),
+            (
+                EXAMPLE.replace(r#""cluster""#, r#""clustr""#),
+                "leaderboards.2.0",
+            ),
+            (
+                EXAMPLE.replace("https://eval.ai", "eval.ai"),
+                "evalai.api_server",
+            ),
+            (
+                EXAMPLE.replace(
+                    r#""SENSORS": "SENSORS_QUALIFIER""#,
+                    r#""SENSORS": "SENSORS""#,
+                ),
+                "leaderboards.2.0.qualifier.tracks.SENSORS",
+            ),
+        ];
+        for (text, path) in cases {
+            let err = Settings::from_json(&text).unwrap_err();
+            assert!(
+                err.to_string().contains(&format!("`{path}")),
+                "{path}: {err}"
+            );
+            assert_eq!(err.name(), "InvalidSettings");
+        }
+    }
+}
