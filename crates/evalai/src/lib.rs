@@ -29,6 +29,11 @@ impl HostToken {
     pub fn new(token: impl Into<String>) -> Self {
         HostToken(token.into())
     }
+
+    /// The value, for tests that compare it; the client is the only other reader.
+    pub fn expose(&self) -> &str {
+        &self.0
+    }
 }
 
 impl std::fmt::Debug for HostToken {

@@ -1,0 +1,224 @@
+//! The S3 layout of a submission (`<bucket>/<submission_id>/...`, DESIGN "Storage layout")
+//! and the reads and writes the pipeline makes there.
+
+use aws_sdk_s3::primitives::ByteStream;
+use aws_sdk_s3::Client;
+
+use crate::{AwsError, Result};
+
+/// Where the status markers live, under the submission prefix.
+pub const STATUS_DIR: &str = "containers-status";
+/// The cancel marker's file name (the seeds' `SIMULATION_CANCEL_FILE`).
+pub const CANCEL_MARKER: &str = "simulation.cancel";
+/// Biggest worker results file we read (the results engine refuses more anyway).
+pub const MAX_PARTIAL_BYTES: u64 = 64 << 20;
+
+/// One worker's partial results file in S3.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PartialObject {
+    /// Full key.
+    pub key: String,
+    /// Pair ID from `partial_agent_results<ID>.json`.
+    pub pair_id: u32,
+    /// Size in bytes.
+    pub size: u64,
+    /// ETag: tells whether it changed since the last look without downloading it.
+    pub etag: String,
+}
+
+/// The EvalAI files and the merged results, written together.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EvalAiObjects<'a> {
+    /// `agent_results.json` (merged).
+    pub merged: Option<&'a str>,
+    /// `evalai/results.json`.
+    pub results: &'a str,
+    /// `evalai/stdout.txt`.
+    pub stdout: &'a str,
+    /// `evalai/metadata.json`.
+    pub metadata: Option<&'a str>,
+}
+
+/// A submission's folder in the results bucket.
+#[derive(Debug, Clone)]
+pub struct SubmissionStore {
+    client: Client,
+    bucket: String,
+    prefix: String,
+}
+
+impl SubmissionStore {
+    /// `s3://bucket/<submission_id>/`.
+    pub fn new(client: Client, bucket: impl Into<String>, submission_id: u64) -> Self {
+        SubmissionStore {
+            client,
+            bucket: bucket.into(),
+            prefix: format!("{submission_id}/"),
+        }
+    }
+
+    /// `s3://bucket/<id>/`, for records and messages.
+    pub fn location(&self) -> String {
+        format!("s3://{}/{}", self.bucket, self.prefix)
+    }
+
+    /// Keys (relative to the submission) under `dir`, with size and ETag; paginated.
+    async fn list(&self, dir: &str) -> Result<Vec<(String, u64, String)>> {
+        let mut out = Vec::new();
+        let mut pages = self
+            .client
+            .list_objects_v2()
+            .bucket(&self.bucket)
+            .prefix(format!("{}{dir}", self.prefix))
+            .into_paginator()
+            .send();
+        while let Some(page) = pages.next().await {
+            let page = page.map_err(|e| AwsError::sdk("s3", "ListObjectsV2", e))?;
+            for object in page.contents() {
+                let Some(key) = object.key() else { continue };
+                let relative = key.strip_prefix(&self.prefix).unwrap_or(key).to_string();
+                let size = object.size().unwrap_or(0).max(0) as u64;
+                out.push((
+                    relative,
+                    size,
+                    object.e_tag().unwrap_or_default().to_string(),
+                ));
+            }
+        }
+        Ok(out)
+    }
+
+    /// The workers' partial results files, by pair ID. Other names under `agent/` are ignored.
+    pub async fn partials(&self) -> Result<Vec<PartialObject>> {
+        let mut out: Vec<PartialObject> = self
+            .list("agent/")
+            .await?
+            .into_iter()
+            .filter_map(|(relative, size, etag)| {
+                let id = relative
+                    .strip_prefix("agent/partial_agent_results")?
+                    .strip_suffix(".json")?;
+                if id.is_empty() || id.len() > 4 || !id.bytes().all(|b| b.is_ascii_digit()) {
+                    return None;
+                }
+                Some(PartialObject {
+                    key: format!("{}{relative}", self.prefix),
+                    pair_id: id.parse().ok()?,
+                    size,
+                    etag,
+                })
+            })
+            .collect();
+        out.sort_by_key(|p| p.pair_id);
+        Ok(out)
+    }
+
+    /// Reads an object, refusing more than `limit` bytes (it may come from the participant).
+    pub async fn get_bounded(&self, key: &str, limit: u64) -> Result<Vec<u8>> {
+        let out = self
+            .client
+            .get_object()
+            .bucket(&self.bucket)
+            .key(key)
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("s3", "GetObject", e))?;
+        let size = out.content_length().unwrap_or(0).max(0) as u64;
+        if size > limit {
+            return Err(AwsError::TooLarge {
+                bucket: self.bucket.clone(),
+                key: key.to_string(),
+                size,
+                limit,
+            });
+        }
+        let bytes = out
+            .body
+            .collect()
+            .await
+            .map_err(|e| AwsError::Transient {
+                service: "s3",
+                operation: "GetObject",
+                source: Box::new(e),
+            })?
+            .into_bytes();
+        if bytes.len() as u64 > limit {
+            return Err(AwsError::TooLarge {
+                bucket: self.bucket.clone(),
+                key: key.to_string(),
+                size: bytes.len() as u64,
+                limit,
+            });
+        }
+        Ok(bytes.to_vec())
+    }
+
+    /// The marker file names under `containers-status/`.
+    pub async fn markers(&self) -> Result<Vec<String>> {
+        let dir = format!("{STATUS_DIR}/");
+        Ok(self
+            .list(&dir)
+            .await?
+            .into_iter()
+            .filter_map(|(relative, _, _)| relative.strip_prefix(&dir).map(str::to_owned))
+            .filter(|name| !name.is_empty() && !name.contains('/'))
+            .collect())
+    }
+
+    /// Writes the cancel marker the Jobs' logcopy mirrors into the pods.
+    pub async fn put_cancel_marker(&self) -> Result<()> {
+        self.put(
+            &format!("{STATUS_DIR}/{CANCEL_MARKER}"),
+            Vec::new(),
+            "application/octet-stream",
+        )
+        .await
+    }
+
+    /// Writes the merged results and the EvalAI files.
+    pub async fn put_evalai_files(&self, files: &EvalAiObjects<'_>) -> Result<()> {
+        if let Some(merged) = files.merged {
+            self.put(
+                "agent_results.json",
+                merged.as_bytes().to_vec(),
+                "application/json",
+            )
+            .await?;
+        }
+        self.put(
+            "evalai/results.json",
+            files.results.as_bytes().to_vec(),
+            "application/json",
+        )
+        .await?;
+        self.put(
+            "evalai/stdout.txt",
+            files.stdout.as_bytes().to_vec(),
+            "text/plain; charset=utf-8",
+        )
+        .await?;
+        if let Some(metadata) = files.metadata {
+            self.put(
+                "evalai/metadata.json",
+                metadata.as_bytes().to_vec(),
+                "application/json",
+            )
+            .await?;
+        }
+        Ok(())
+    }
+
+    /// Puts one object under the submission prefix.
+    pub async fn put(&self, relative: &str, body: Vec<u8>, content_type: &str) -> Result<()> {
+        self.client
+            .put_object()
+            .bucket(&self.bucket)
+            .key(format!("{}{relative}", self.prefix))
+            .content_type(content_type)
+            .body(ByteStream::from(body))
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("s3", "PutObject", e))?;
+        Ok(())
+    }
+}

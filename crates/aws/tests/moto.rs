@@ -1,0 +1,386 @@
+//! The adapters against a real moto server, through the real SDK clients.
+
+use aws_sdk_dynamodb::types::{
+    AttributeDefinition, AttributeValue, BillingMode, KeySchemaElement, KeyType,
+    ScalarAttributeType,
+};
+use lb_aws::dynamo::{
+    Claim, FinalRecord, NewRecord, QualifierTable, RecordStatus, SubmissionsTable,
+};
+use lb_aws::s3::{EvalAiObjects, SubmissionStore};
+use lb_localstack::moto::MotoServer;
+
+async fn config(moto: &MotoServer) -> aws_config::SdkConfig {
+    lb_aws::sdk_config_at(&moto.endpoint(), "us-west-2").await
+}
+
+async fn create_table(
+    client: &aws_sdk_dynamodb::Client,
+    name: &str,
+    sort: (&str, ScalarAttributeType),
+) {
+    client
+        .create_table()
+        .table_name(name)
+        .billing_mode(BillingMode::PayPerRequest)
+        .attribute_definitions(
+            AttributeDefinition::builder()
+                .attribute_name("team_id")
+                .attribute_type(ScalarAttributeType::N)
+                .build()
+                .unwrap(),
+        )
+        .attribute_definitions(
+            AttributeDefinition::builder()
+                .attribute_name(sort.0)
+                .attribute_type(sort.1)
+                .build()
+                .unwrap(),
+        )
+        .key_schema(
+            KeySchemaElement::builder()
+                .attribute_name("team_id")
+                .key_type(KeyType::Hash)
+                .build()
+                .unwrap(),
+        )
+        .key_schema(
+            KeySchemaElement::builder()
+                .attribute_name(sort.0)
+                .key_type(KeyType::Range)
+                .build()
+                .unwrap(),
+        )
+        .send()
+        .await
+        .unwrap();
+}
+
+fn record(claimed_by: &str, resuming: bool) -> NewRecord {
+    NewRecord {
+        team_id: 7,
+        submission_id: 42,
+        team_name: "Team 🚗 One".into(),
+        track_id: 1234,
+        track_name: "SENSORS".into(),
+        image: "123.dkr.ecr.us-west-2.amazonaws.com/team:1".into(),
+        workers: 4,
+        submitted_time: "2026-11-21T05:00:00Z".into(),
+        claimed_by: claimed_by.into(),
+        resuming,
+    }
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ended() {
+    let moto = MotoServer::start().unwrap();
+    let client = aws_sdk_dynamodb::Client::new(&config(&moto).await);
+    create_table(&client, "subs", ("submission_id", ScalarAttributeType::N)).await;
+    let table = SubmissionsTable::new(client.clone(), "subs");
+
+    assert_eq!(
+        table.claim(&record("exec-1", false)).await.unwrap(),
+        Claim::Claimed
+    );
+    // The same execution retrying its Lambda keeps its claim.
+    assert_eq!(
+        table.claim(&record("exec-1", false)).await.unwrap(),
+        Claim::Claimed
+    );
+    // A duplicate SQS delivery starts a second execution: refused.
+    assert_eq!(
+        table.claim(&record("exec-2", false)).await.unwrap(),
+        Claim::Duplicate {
+            status: Some("QUEUED".into()),
+            claimed_by: Some("exec-1".into())
+        }
+    );
+    // A resume while the first run is still going: refused too.
+    table
+        .mark_running(7, 42, "2026-11-21T05:01:00Z", (0, 20))
+        .await
+        .unwrap();
+    assert!(matches!(
+        table.claim(&record("exec-3", true)).await.unwrap(),
+        Claim::Duplicate { .. }
+    ));
+
+    table
+        .finish(
+            7,
+            42,
+            &FinalRecord {
+                status: RecordStatus::Failed,
+                end_time: "2026-11-21T06:00:00Z".into(),
+                results: "s3://b/42/".into(),
+                metrics: vec![],
+                progress: (5, 20),
+                error: Some("CARLA crashed too often".into()),
+            },
+        )
+        .await
+        .unwrap();
+    // Now a resume may claim it, and its finish clears the old error and stores every metric.
+    assert_eq!(
+        table.claim(&record("exec-4", true)).await.unwrap(),
+        Claim::Claimed
+    );
+    table
+        .mark_running(7, 42, "2026-11-21T07:00:00Z", (3, 20))
+        .await
+        .unwrap();
+    let metrics: Vec<(&'static str, f64)> = lb_domain::results::METRICS
+        .iter()
+        .enumerate()
+        .map(|(i, m)| (m.attribute, i as f64 + 0.5))
+        .collect();
+    table
+        .finish(
+            7,
+            42,
+            &FinalRecord {
+                status: RecordStatus::Finished,
+                end_time: "2026-11-21T08:00:00Z".into(),
+                results: "s3://b/42/".into(),
+                metrics: metrics.clone(),
+                progress: (20, 20),
+                error: None,
+            },
+        )
+        .await
+        .unwrap();
+    let item = table.get(7, 42).await.unwrap().unwrap();
+    assert_eq!(
+        item["submission_status"],
+        AttributeValue::S("FINISHED".into())
+    );
+    assert_eq!(
+        item["start_time"],
+        AttributeValue::S("2026-11-21T07:00:00Z".into()),
+        "the resume's start"
+    );
+    assert_eq!(item["team_name"], AttributeValue::S("Team 🚗 One".into()));
+    assert!(!item.contains_key("error"));
+    for (attribute, value) in metrics {
+        assert_eq!(
+            item[attribute],
+            AttributeValue::N(value.to_string()),
+            "{attribute}"
+        );
+    }
+    assert_eq!(item["routes_done"], AttributeValue::N("20".into()));
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn the_worker_override_and_the_qualifier_table_are_read_as_stored() {
+    let moto = MotoServer::start().unwrap();
+    let client = aws_sdk_dynamodb::Client::new(&config(&moto).await);
+    create_table(&client, "subs", ("submission_id", ScalarAttributeType::N)).await;
+    create_table(&client, "quals", ("track_codename", ScalarAttributeType::S)).await;
+    let table = SubmissionsTable::new(client.clone(), "subs");
+    assert_eq!(table.worker_override(7, 42).await.unwrap(), None);
+    // DynamoDB itself refuses a non-numeric N, so the last case is stored as a string.
+    let cases = [
+        (AttributeValue::N("8".into()), Ok(Some(8))),
+        (AttributeValue::N("0".into()), Err("MalformedRecord")),
+        (AttributeValue::S("x".into()), Err("MalformedRecord")),
+    ];
+    for (value, expected) in cases {
+        client
+            .put_item()
+            .table_name("subs")
+            .item("team_id", AttributeValue::N("7".into()))
+            .item("submission_id", AttributeValue::N("42".into()))
+            .item("parallelization_workers", value.clone())
+            .send()
+            .await
+            .unwrap();
+        let got = table.worker_override(7, 42).await.map_err(|e| e.name());
+        assert_eq!(got, expected, "{value:?}");
+    }
+
+    let quals = QualifierTable::new(client, "quals");
+    assert!(!quals.passed(7, "SENSORS_QUALIFIER").await.unwrap());
+    quals
+        .record(7, "SENSORS_QUALIFIER", 40, true, &[("driving_score", 55.0)])
+        .await
+        .unwrap();
+    assert!(quals.passed(7, "SENSORS_QUALIFIER").await.unwrap());
+    // A later failed attempt does not take the pass away.
+    quals
+        .record(7, "SENSORS_QUALIFIER", 41, false, &[("driving_score", 1.0)])
+        .await
+        .unwrap();
+    assert!(quals.passed(7, "SENSORS_QUALIFIER").await.unwrap());
+    assert!(!quals.passed(8, "SENSORS_QUALIFIER").await.unwrap());
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn the_submission_folder_lists_partials_and_markers_and_refuses_huge_objects() {
+    let moto = MotoServer::start().unwrap();
+    let client = lb_aws::s3_client(&config(&moto).await);
+    client
+        .create_bucket()
+        .bucket("results")
+        .create_bucket_configuration(
+            aws_sdk_s3::types::CreateBucketConfiguration::builder()
+                .location_constraint(aws_sdk_s3::types::BucketLocationConstraint::UsWest2)
+                .build(),
+        )
+        .send()
+        .await
+        .unwrap();
+    let store = SubmissionStore::new(client.clone(), "results", 42);
+    let other = SubmissionStore::new(client, "results", 420);
+    for (key, body) in [
+        ("agent/partial_agent_results2.json", "{\"b\": 2}"),
+        ("agent/partial_agent_results1.json", "{\"a\": 1}"),
+        ("agent/partial_agent_results.json", "no id"),
+        ("agent/partial_agent_results1.json.tmp", "temp"),
+        ("agent/notes.txt", "x"),
+        ("containers-status/agent-1.done", ""),
+        ("containers-status/simulator-1.start0", ""),
+    ] {
+        store
+            .put(key, body.as_bytes().to_vec(), "application/json")
+            .await
+            .unwrap();
+    }
+    other
+        .put(
+            "agent/partial_agent_results9.json",
+            b"{}".to_vec(),
+            "application/json",
+        )
+        .await
+        .unwrap();
+
+    let partials = store.partials().await.unwrap();
+    assert_eq!(
+        partials.iter().map(|p| p.pair_id).collect::<Vec<_>>(),
+        [1, 2]
+    );
+    assert_eq!(partials[0].key, "42/agent/partial_agent_results1.json");
+    assert!(!partials[0].etag.is_empty());
+    assert_eq!(
+        store.get_bounded(&partials[0].key, 100).await.unwrap(),
+        b"{\"a\": 1}"
+    );
+    assert_eq!(
+        store
+            .get_bounded(&partials[0].key, 3)
+            .await
+            .unwrap_err()
+            .name(),
+        "ObjectTooLarge"
+    );
+
+    let mut markers = store.markers().await.unwrap();
+    markers.sort();
+    assert_eq!(markers, ["agent-1.done", "simulator-1.start0"]);
+    store.put_cancel_marker().await.unwrap();
+    assert!(store
+        .markers()
+        .await
+        .unwrap()
+        .contains(&"simulation.cancel".to_string()));
+    assert!(
+        other.markers().await.unwrap().is_empty(),
+        "one submission's markers are its own"
+    );
+
+    store
+        .put_evalai_files(&EvalAiObjects {
+            merged: Some("{}"),
+            results: "[]",
+            stdout: "out",
+            metadata: None,
+        })
+        .await
+        .unwrap();
+    assert_eq!(
+        store.get_bounded("42/evalai/stdout.txt", 10).await.unwrap(),
+        b"out"
+    );
+    assert_eq!(store.location(), "s3://results/42/");
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn settings_and_token_come_from_their_secrets_with_clear_errors() {
+    let moto = MotoServer::start().unwrap();
+    let client = aws_sdk_secretsmanager::Client::new(&config(&moto).await);
+    let settings = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/settings.json"
+    ))
+    .unwrap();
+    for (name, value) in [
+        ("config", settings.as_str()),
+        ("token", r#"{"token": "host-token"}"#),
+        ("broken", "{\"evalai\": 1}"),
+    ] {
+        client
+            .create_secret()
+            .name(name)
+            .secret_string(value)
+            .send()
+            .await
+            .unwrap();
+    }
+    let loaded = lb_aws::secrets::load_settings(&client, "config")
+        .await
+        .unwrap();
+    assert_eq!(loaded.target(1234).unwrap().track, "SENSORS");
+    assert_eq!(
+        lb_aws::secrets::load_token(&client, "token")
+            .await
+            .unwrap()
+            .expose(),
+        "host-token"
+    );
+    let err = lb_aws::secrets::load_settings(&client, "broken")
+        .await
+        .unwrap_err();
+    assert_eq!(err.name(), "InvalidSecret");
+    assert!(err.to_string().contains("`evalai`"), "{err}");
+    let err = lb_aws::secrets::load_settings(&client, "missing")
+        .await
+        .unwrap_err();
+    assert_eq!(err.name(), "AwsServiceError");
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn the_cluster_endpoint_and_ca_come_from_describe_cluster() {
+    let moto = MotoServer::start().unwrap();
+    let config = config(&moto).await;
+    let eks = aws_sdk_eks::Client::new(&config);
+    eks.create_cluster()
+        .name("leaderboard-20")
+        .role_arn("arn:aws:iam::123456789012:role/eks")
+        .resources_vpc_config(
+            aws_sdk_eks::types::VpcConfigRequest::builder()
+                .subnet_ids("subnet-1")
+                .build(),
+        )
+        .send()
+        .await
+        .unwrap();
+    let access = lb_aws::eks::describe_cluster(&eks, "leaderboard-20")
+        .await
+        .unwrap();
+    assert!(
+        access.endpoint.starts_with("https://"),
+        "{}",
+        access.endpoint
+    );
+    assert!(!access.ca_pem.is_empty());
+    let err = lb_aws::eks::describe_cluster(&eks, "nope")
+        .await
+        .unwrap_err();
+    assert_eq!(err.name(), "AwsServiceError");
+}
