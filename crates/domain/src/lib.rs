@@ -2,6 +2,7 @@
 
 pub mod py;
 pub mod results;
+pub mod schedule;
 pub mod settings;
 pub mod submission;
 #[cfg(feature = "test-util")]
