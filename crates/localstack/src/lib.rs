@@ -1,3 +1,6 @@
 //! Local stand-ins for the systems the backend talks to, for tests and local mode.
 
 pub mod moto;
+pub mod stack;
+
+pub use stack::{EvalAi, Stack, StackError};

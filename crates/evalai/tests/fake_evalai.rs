@@ -1,0 +1,289 @@
+//! The client against the fake EvalAI, which enforces the real server's rules.
+
+use std::time::Duration;
+
+use fake_evalai::{FakeEvalAi, Faults, Fixture};
+use lb_domain::submission::SubmissionStatus;
+use lb_evalai::{
+    AuthScheme, EvalAiClient, FinalUpdate, HostToken, PartialUpdate, RetryPolicy, SubmissionRef,
+    WriteOutcome,
+};
+
+const AT: SubmissionRef = SubmissionRef {
+    challenge: 1,
+    phase: 1,
+    submission: 1,
+};
+
+fn policy() -> RetryPolicy {
+    RetryPolicy {
+        initial_backoff: Duration::from_millis(10),
+        max_backoff: Duration::from_millis(50),
+        budget: Duration::from_secs(10),
+        ..RetryPolicy::default()
+    }
+}
+
+fn client(server: &FakeEvalAi, token: &str) -> EvalAiClient {
+    EvalAiClient::new(
+        &server.url(),
+        &HostToken::new(token),
+        AuthScheme::Bearer,
+        policy(),
+    )
+    .unwrap()
+}
+
+/// A `result` with every Leaderboard 2.0 label, as the results engine writes it.
+fn full_result(driving_score: f64) -> String {
+    let accuracies: serde_json::Map<String, serde_json::Value> = lb_domain::results::METRICS
+        .iter()
+        .map(|m| {
+            (
+                m.label.to_string(),
+                serde_json::json!(if m.label == "Driving score" {
+                    driving_score
+                } else {
+                    1.0
+                }),
+            )
+        })
+        .collect();
+    serde_json::json!([{"split": "leaderboard", "show_to_participant": true, "accuracies": accuracies}]).to_string()
+}
+
+fn writes(server: &FakeEvalAi) -> Vec<(String, String)> {
+    server
+        .requests()
+        .into_iter()
+        .filter(|r| !r.admin && r.method != "GET")
+        .map(|r| (r.method, r.path))
+        .collect()
+}
+
+#[tokio::test]
+async fn reads_the_submission_and_names_404_and_bad_tokens() {
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let submission = client(&server, "host-token").submission(1).await.unwrap();
+    assert_eq!(
+        (submission.team_id, submission.team_name.as_str()),
+        (1, "Team One")
+    );
+    assert_eq!(
+        (submission.phase_id, submission.status),
+        (1, SubmissionStatus::Submitted)
+    );
+    assert_eq!(
+        client(&server, "host-token")
+            .submission(999)
+            .await
+            .unwrap_err()
+            .name(),
+        "SubmissionNotFound"
+    );
+    assert_eq!(
+        client(&server, "not-a-token")
+            .submission(1)
+            .await
+            .unwrap_err()
+            .name(),
+        "EvalAiUnauthorized"
+    );
+    let image = client(&server, "host-token")
+        .submitted_image(&submission)
+        .await
+        .unwrap();
+    assert!(!image.is_empty());
+}
+
+#[tokio::test]
+async fn a_whole_run_is_accepted_and_confirmed() {
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let evalai = client(&server, "host-token");
+    assert_eq!(
+        evalai.mark_running(AT, "LB-1-Team-0").await.unwrap(),
+        WriteOutcome::Written
+    );
+    let partial = PartialUpdate {
+        result: full_result(10.0),
+        stdout: "10 of 20 routes".into(),
+        metadata: "{}".into(),
+    };
+    assert_eq!(
+        evalai.post_partial(AT, &partial).await.unwrap(),
+        WriteOutcome::Written
+    );
+    assert_eq!(server.submission(1).unwrap().status, "partially_evaluated");
+    let final_update = FinalUpdate {
+        status: SubmissionStatus::Finished,
+        result: full_result(42.5),
+        stdout: "done".into(),
+        stderr: String::new(),
+        metadata: "{}".into(),
+    };
+    assert_eq!(
+        evalai.post_final(AT, &final_update).await.unwrap(),
+        WriteOutcome::Written
+    );
+    let after = server.submission(1).unwrap();
+    assert_eq!(after.status, "finished");
+    assert_eq!(
+        after.job_name,
+        Some(vec!["lb-1-team-0".to_string()]),
+        "EvalAI lowercases job names"
+    );
+    let row = &after.leaderboard[0];
+    assert_eq!(row.result["Driving score"], serde_json::json!(42.5));
+    assert_eq!(row.result.as_object().unwrap().len(), 15);
+    // A late partial update never undoes the final one.
+    assert_eq!(
+        evalai.post_partial(AT, &partial).await.unwrap(),
+        WriteOutcome::AlreadyFinal(SubmissionStatus::Finished)
+    );
+    assert_eq!(server.submission(1).unwrap().status, "finished");
+}
+
+#[tokio::test]
+async fn a_participant_cancel_is_never_overwritten() {
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let evalai = client(&server, "host-token");
+    evalai.mark_running(AT, "job").await.unwrap();
+    server.cancel(1).unwrap();
+    let before = writes(&server).len();
+    let partial = PartialUpdate {
+        result: full_result(1.0),
+        stdout: String::new(),
+        metadata: "{}".into(),
+    };
+    assert_eq!(
+        evalai.post_partial(AT, &partial).await.unwrap(),
+        WriteOutcome::Cancelled
+    );
+    assert_eq!(
+        evalai.mark_running(AT, "job").await.unwrap(),
+        WriteOutcome::Cancelled
+    );
+    let finished = FinalUpdate {
+        status: SubmissionStatus::Finished,
+        result: full_result(1.0),
+        stdout: String::new(),
+        stderr: String::new(),
+        metadata: "{}".into(),
+    };
+    assert_eq!(
+        evalai.post_final(AT, &finished).await.unwrap(),
+        WriteOutcome::Cancelled
+    );
+    assert_eq!(
+        writes(&server).len(),
+        before,
+        "no write reached EvalAI after the cancel"
+    );
+    assert_eq!(server.submission(1).unwrap().status, "cancelled");
+}
+
+#[tokio::test]
+async fn throttling_is_waited_out_through_retry_after() {
+    let fixture = Fixture {
+        throttle_per_minute: 2,
+        throttle_window_secs: 1,
+        ..Fixture::default()
+    };
+    let server = FakeEvalAi::start(fixture).await.unwrap();
+    let evalai = client(&server, "host-token");
+    for _ in 0..4 {
+        evalai.submission(1).await.unwrap();
+    }
+    assert!(
+        server.requests().iter().any(|r| r.status == 429),
+        "the fake did throttle"
+    );
+}
+
+#[tokio::test]
+async fn a_500_after_the_write_is_resolved_by_reading_not_by_writing_twice() {
+    let failed = FinalUpdate {
+        status: SubmissionStatus::Failed,
+        result: "[]".into(),
+        stdout: String::new(),
+        stderr: "CARLA crashed five times".into(),
+        metadata: "{}".into(),
+    };
+    // Half the answers are 500s sent after the request was applied; the seeds decide which.
+    let mut exercised = 0;
+    for seed in 0..16 {
+        let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+        server
+            .set_faults(Faults {
+                error_500_after_write_rate: 0.5,
+                seed,
+                ..Faults::default()
+            })
+            .unwrap();
+        let outcome = client(&server, "host-token").post_final(AT, &failed).await;
+        let log = server.requests();
+        let puts: Vec<_> = log.iter().filter(|r| r.method == "PUT").collect();
+        if let Some(first) = puts.first() {
+            // Once a PUT landed, the truth is read, never written again.
+            if first.fault.as_deref() == Some("error_500_after") {
+                assert_eq!(puts.len(), 1, "seed {seed}: {log:?}");
+                if outcome.is_ok() {
+                    exercised += 1;
+                }
+            }
+        }
+        match outcome {
+            Ok(outcome) => assert_eq!(outcome, WriteOutcome::Written, "seed {seed}"),
+            Err(e) => assert_eq!(e.name(), "EvalAiUnavailable", "seed {seed}"),
+        }
+        server.set_faults(Faults::default()).unwrap();
+        if !puts.is_empty() {
+            assert_eq!(
+                server.submission(1).unwrap().status,
+                "failed",
+                "seed {seed}"
+            );
+        }
+    }
+    assert!(
+        exercised > 0,
+        "no seed produced a landed PUT answered with a 500"
+    );
+}
+
+#[tokio::test]
+async fn transient_500s_are_retried_until_the_write_lands() {
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let evalai = client(&server, "host-token");
+    server
+        .set_faults(Faults {
+            error_500_rate: 0.5,
+            seed: 7,
+            ..Faults::default()
+        })
+        .unwrap();
+    assert_eq!(
+        evalai.mark_running(AT, "job").await.unwrap(),
+        WriteOutcome::Written
+    );
+    server.set_faults(Faults::default()).unwrap();
+    assert_eq!(server.submission(1).unwrap().status, "running");
+}
+
+#[tokio::test]
+async fn garbage_results_are_refused_before_any_request() {
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let evalai = client(&server, "host-token");
+    let bad = FinalUpdate {
+        status: SubmissionStatus::Finished,
+        result: r#"[{"split": "leaderboard", "accuracies": {"Driving score": "85.2"}}]"#.into(),
+        stdout: String::new(),
+        stderr: String::new(),
+        metadata: "{}".into(),
+    };
+    assert_eq!(
+        evalai.post_final(AT, &bad).await.unwrap_err().name(),
+        "InvalidResult"
+    );
+    assert!(server.requests().is_empty());
+}

@@ -1,0 +1,47 @@
+//! The environment every function reads once at cold start (never secrets: those come from
+//! Secrets Manager).
+
+use crate::FnError;
+
+/// Environment of a function.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FunctionConfig {
+    /// `LB_SETTINGS_SECRET`: id of the settings secret.
+    pub settings_secret: String,
+    /// `LB_EVALAI_TOKEN_SECRET`: id of the EvalAI host token secret.
+    pub token_secret: String,
+}
+
+impl FunctionConfig {
+    /// Reads the variables, naming the first one missing.
+    pub fn from_env() -> Result<Self, FnError> {
+        Self::from_lookup(|name| std::env::var(name).ok())
+    }
+
+    /// Reads through `lookup` (tests pass a map instead of touching the process environment).
+    pub fn from_lookup(lookup: impl Fn(&str) -> Option<String>) -> Result<Self, FnError> {
+        let get = |name: &str| {
+            lookup(name)
+                .filter(|v| !v.trim().is_empty())
+                .ok_or_else(|| FnError::Config(format!("environment variable `{name}` is not set")))
+        };
+        Ok(FunctionConfig {
+            settings_secret: get("LB_SETTINGS_SECRET")?,
+            token_secret: get("LB_EVALAI_TOKEN_SECRET")?,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_missing_variable_is_named() {
+        let err = FunctionConfig::from_lookup(|name| {
+            (name == "LB_SETTINGS_SECRET").then(|| "cfg".into())
+        })
+        .unwrap_err();
+        assert_eq!(err.to_string(), "invalid function configuration: environment variable `LB_EVALAI_TOKEN_SECRET` is not set");
+    }
+}

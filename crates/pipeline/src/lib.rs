@@ -1,0 +1,10 @@
+//! What the pipeline's functions share: the payloads that travel through the state machine,
+//! the error names it matches, and the configuration every function reads once.
+
+pub mod config;
+pub mod error;
+pub mod payload;
+
+pub use config::FunctionConfig;
+pub use error::{FnError, Result};
+pub mod clients;

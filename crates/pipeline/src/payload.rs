@@ -1,0 +1,72 @@
+//! The state machine's payloads: what each Task receives and returns (see
+//! `statemachine/submission.asl.json` for where they sit in the state).
+//!
+//! No secret ever goes in here: payloads are visible in the execution history.
+
+use serde::{Deserialize, Serialize};
+
+/// Intake's input: the Pipe's message and the execution's name (who claims).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IntakeInput {
+    /// The EventBridge Pipe's output, validated by Intake.
+    pub message: serde_json::Value,
+    /// `$$.Execution.Name`.
+    pub execution: String,
+}
+
+/// What Intake decided (`$.intake`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IntakeOutput {
+    /// The Choice after Intake branches on it.
+    pub action: Action,
+    /// Why, in words (skip and reject).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// The submission, once known (absent when skipped before the EvalAI read).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub submission: Option<SubmissionInfo>,
+}
+
+/// Intake's decision.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Action {
+    /// Evaluate it.
+    Run,
+    /// Not ours to run (status, duplicate): end without touching anything.
+    Skip,
+    /// Refuse it with a message to the participant (not qualified, no image).
+    Reject,
+}
+
+/// Everything later stages need to know about the submission.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SubmissionInfo {
+    /// EvalAI challenge id.
+    pub challenge_id: u64,
+    /// EvalAI phase id.
+    pub phase_id: u64,
+    /// EvalAI submission id.
+    pub submission_id: u64,
+    /// Participant team id.
+    pub team_id: u64,
+    /// Participant team name (free text).
+    pub team_name: String,
+    /// `1.0` or `2.0`.
+    pub leaderboard: String,
+    /// Track codename.
+    pub track: String,
+    /// The participant's image.
+    pub image: String,
+    /// Routes of the track.
+    pub routes: u32,
+    /// Simulator-agent pairs.
+    pub workers: u32,
+    /// EvalAI said `resuming`.
+    pub resuming: bool,
+    /// The execution that claimed it.
+    pub execution: String,
+}
