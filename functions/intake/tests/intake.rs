@@ -1,0 +1,215 @@
+//! Intake against the local stack: moto for Secrets Manager and DynamoDB, the fake EvalAI.
+
+use aws_sdk_dynamodb::types::AttributeValue;
+use fake_evalai::{Faults, Fixture};
+use intake::{handle, Deps};
+use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use lb_localstack::{EvalAi, Stack};
+use lb_pipeline::payload::{Action, IntakeInput};
+use lb_pipeline::FunctionConfig;
+use serde_json::json;
+
+async fn stack(settings: &str) -> (Stack, Deps) {
+    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
+        .await
+        .unwrap();
+    stack.provision(settings).await.unwrap();
+    let config = FunctionConfig {
+        settings_secret: SETTINGS_SECRET.into(),
+        token_secret: TOKEN_SECRET.into(),
+    };
+    let deps = Deps::load(&stack.sdk, &config).await.unwrap();
+    (stack, deps)
+}
+
+fn input(message: serde_json::Value, execution: &str) -> IntakeInput {
+    IntakeInput {
+        message,
+        execution: execution.into(),
+    }
+}
+
+async fn record(
+    stack: &Stack,
+    team: u64,
+    submission: u64,
+) -> Option<std::collections::HashMap<String, AttributeValue>> {
+    aws_sdk_dynamodb::Client::new(&stack.sdk)
+        .get_item()
+        .table_name("leaderboard-20-submissions")
+        .key("team_id", AttributeValue::N(team.to_string()))
+        .key("submission_id", AttributeValue::N(submission.to_string()))
+        .send()
+        .await
+        .unwrap()
+        .item
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_new_submission_is_claimed_once_and_a_duplicate_delivery_skipped() {
+    let (stack, deps) = stack(LOCAL_SETTINGS).await;
+    // As EvalAI publishes a new submission: string challenge/phase ids, int submission id.
+    let message = json!({"challenge_pk": "1", "phase_pk": "1", "submission_pk": 1,
+                         "is_static_dataset_code_upload_submission": false,
+                         "submitted_image_uri": "123.dkr.ecr.us-west-2.amazonaws.com/team-one:1"});
+    let out = handle(input(message.clone(), "exec-1"), &deps)
+        .await
+        .unwrap();
+    assert_eq!(out.action, Action::Run, "{out:?}");
+    let info = out.submission.unwrap();
+    assert_eq!((info.team_id, info.team_name.as_str()), (1, "Team One"));
+    assert_eq!(
+        (info.leaderboard.as_str(), info.track.as_str()),
+        ("2.0", "SENSORS")
+    );
+    assert_eq!((info.routes, info.workers), (20, 4));
+    assert_eq!(info.image, "123.dkr.ecr.us-west-2.amazonaws.com/team-one:1");
+    let item = record(&stack, 1, 1).await.expect("claimed");
+    assert_eq!(
+        item["submission_status"],
+        AttributeValue::S("QUEUED".into())
+    );
+    assert_eq!(item["claimed_by"], AttributeValue::S("exec-1".into()));
+
+    let again = handle(input(message, "exec-2"), &deps).await.unwrap();
+    assert_eq!(again.action, Action::Skip);
+    assert!(again.reason.unwrap().contains("duplicate"));
+    assert_eq!(
+        record(&stack, 1, 1).await.unwrap()["claimed_by"],
+        AttributeValue::S("exec-1".into())
+    );
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_message_without_image_uses_the_input_file_and_the_override_sets_workers() {
+    let (stack, deps) = stack(LOCAL_SETTINGS).await;
+    aws_sdk_dynamodb::Client::new(&stack.sdk)
+        .put_item()
+        .table_name("leaderboard-20-submissions")
+        .item("team_id", AttributeValue::N("1".into()))
+        .item("submission_id", AttributeValue::N("1".into()))
+        .item("parallelization_workers", AttributeValue::N("2".into()))
+        .item("submission_status", AttributeValue::S("FAILED".into()))
+        .send()
+        .await
+        .unwrap();
+    stack.fake().resume(1).unwrap_err(); // not failed on EvalAI: the fake refuses, as EvalAI does
+    let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1});
+    let out = handle(input(message, "exec-1"), &deps).await.unwrap();
+    let info = out.submission.unwrap();
+    // The fake's input file holds the image the participant pushed.
+    let expected = stack
+        .fake()
+        .submission(1)
+        .unwrap()
+        .submitted_image_uri
+        .unwrap();
+    assert_eq!(info.image, expected);
+    assert_eq!(
+        out.action,
+        Action::Skip,
+        "a record exists and EvalAI says submitted, not resuming"
+    );
+    assert_eq!(
+        info.workers, 2,
+        "the operator's override wins over the track's 4"
+    );
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn bad_messages_unknown_phases_and_missing_submissions_are_named_errors_with_nothing_claimed()
+{
+    let (stack, deps) = stack(LOCAL_SETTINGS).await;
+    let cases = [
+        (
+            json!({"challenge_pk": 1, "submission_pk": 1}),
+            "InvalidMessage",
+        ),
+        (
+            json!({"challenge_pk": 1, "phase_pk": "one", "submission_pk": 1}),
+            "InvalidMessage",
+        ),
+        (
+            json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1, "submitted_image_uri": 7}),
+            "InvalidMessage",
+        ),
+        (json!("not an object"), "InvalidMessage"),
+        (
+            json!({"challenge_pk": 1, "phase_pk": 99, "submission_pk": 1}),
+            "UnknownPhase",
+        ),
+        (
+            json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 999}),
+            "SubmissionNotFound",
+        ),
+        (
+            json!({"challenge_pk": 1, "phase_pk": 2, "submission_pk": 1}),
+            "PhaseMismatch",
+        ),
+    ];
+    for (message, name) in cases {
+        let err = handle(input(message.clone(), "exec"), &deps)
+            .await
+            .unwrap_err();
+        assert_eq!(err.name(), name, "{message}: {err}");
+        assert!(!err.is_transient());
+    }
+    assert!(record(&stack, 1, 1).await.is_none(), "nothing was claimed");
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn an_ineligible_status_is_skipped_and_an_unqualified_team_rejected() {
+    let gated = LOCAL_SETTINGS.replace(r#""enabled": false"#, r#""enabled": true"#);
+    let (stack, deps) = stack(&gated).await;
+    let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1, "submitted_image_uri": "img:1"});
+
+    let out = handle(input(message.clone(), "exec"), &deps).await.unwrap();
+    assert_eq!(out.action, Action::Reject);
+    assert!(out
+        .reason
+        .unwrap()
+        .contains("qualifier track `SENSORS_QUALIFIER`"));
+    assert!(record(&stack, 1, 1).await.is_none());
+
+    lb_aws::dynamo::QualifierTable::new(
+        aws_sdk_dynamodb::Client::new(&stack.sdk),
+        "leaderboard-20-qualifier",
+    )
+    .record(1, "SENSORS_QUALIFIER", 9, true, &[])
+    .await
+    .unwrap();
+    assert_eq!(
+        handle(input(message.clone(), "exec"), &deps)
+            .await
+            .unwrap()
+            .action,
+        Action::Run
+    );
+
+    stack.fake().cancel(1).unwrap();
+    let out = handle(input(message, "exec-later"), &deps).await.unwrap();
+    assert_eq!(out.action, Action::Skip);
+    assert!(out.reason.unwrap().contains("`cancelled`"));
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn evalai_failures_are_transient_errors_the_state_machine_retries() {
+    let (stack, deps) = stack(LOCAL_SETTINGS).await;
+    stack
+        .fake()
+        .set_faults(Faults {
+            error_500_rate: 1.0,
+            ..Faults::default()
+        })
+        .unwrap();
+    let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1, "submitted_image_uri": "img:1"});
+    let err = handle(input(message, "exec"), &deps).await.unwrap_err();
+    assert_eq!(err.name(), "EvalAiUnavailable");
+    assert!(err.is_transient());
+    assert!(record(&stack, 1, 1).await.is_none());
+}
