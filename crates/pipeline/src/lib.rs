@@ -4,6 +4,7 @@
 pub mod config;
 pub mod error;
 pub mod payload;
+pub mod results;
 
 pub use config::FunctionConfig;
 pub use error::{FnError, Result};

@@ -70,3 +70,64 @@ pub struct SubmissionInfo {
     /// The execution that claimed it.
     pub execution: String,
 }
+
+/// The run as Launch started it and the Monitor carries it along (`$.run`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunState {
+    /// The Jobs, by name.
+    pub jobs: Vec<String>,
+    /// The workers' route subsets, by pair ID (1-based), for the merge.
+    pub pairs: Vec<PairRoutes>,
+    /// Evaluator repetitions (1.0: 5, 2.0: 1).
+    pub repetitions: u32,
+    /// When the Jobs were created (seconds since the Unix epoch).
+    pub launched_at: u64,
+    /// The Monitor's state between rounds.
+    pub monitor: MonitorState,
+}
+
+/// One worker's routes.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PairRoutes {
+    /// Pair ID (1-based, global).
+    pub id: u32,
+    /// `a-b`.
+    pub routes: String,
+}
+
+/// Where the run stands (the Choice after the Monitor reads `state`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MonitorState {
+    /// `running`, or how it ended: `finished`, `failed`, `cancelled`.
+    pub state: RunPhase,
+    /// The next Wait, in seconds.
+    pub wait_seconds: u64,
+    /// Monitor rounds so far.
+    pub rounds: u64,
+    /// The partial results last sent to EvalAI (object ETags); unchanged means no update.
+    #[serde(default)]
+    pub fingerprint: Option<String>,
+    /// Routes done and planned.
+    #[serde(default)]
+    pub progress: (u64, u64),
+    /// Why it ended, for the participant (failed runs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+/// The run's phase.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RunPhase {
+    /// Jobs running: wait and look again.
+    Running,
+    /// Every pair done.
+    Finished,
+    /// Hopeless or out of retries.
+    Failed,
+    /// The participant cancelled.
+    Cancelled,
+}

@@ -1,0 +1,791 @@
+//! The in-Job marker protocol: marker names, CRASH_ID counting, pair and Job states, env names.
+//!
+//! The containers of a Job talk only through empty files in the shared `containers-status`
+//! directory (mirrored to S3 `<submission_id>/containers-status/`). The names are the seeds'
+//! and are a contract with the Monitor and Finalize states; everything that reads or writes
+//! them goes through [`Marker`]. The decisions each container takes from the markers it sees
+//! are the pure functions at the end of this module, so both sides agree by construction.
+
+use std::collections::HashSet;
+use std::fmt;
+
+/// A pair's ID: 1-based and global across the submission's Jobs (worker `i` has ID `i + 1`).
+pub type PairId = u32;
+
+/// The cancel marker, written to S3 by Monitor and mirrored locally by logcopy.
+pub const CANCEL_MARKER: &str = "simulation.cancel";
+
+/// The status directory's name in the logs tree and under the submission's S3 prefix.
+pub const STATUS_DIR: &str = "containers-status";
+/// The agents' results directory's name in the logs tree and in S3.
+pub const AGENT_DIR: &str = "agent";
+/// The logs directory's name in the logs tree and in S3.
+pub const LOGS_DIR: &str = "logs";
+
+/// Environment variables of the in-Job contract (set by the Job templates).
+pub mod env {
+    /// Submission id (integer); every container.
+    pub const SUBMISSION_ID: &str = "LB_SUBMISSION_ID";
+    /// 0-based index of this Job among the submission's Jobs; every container.
+    pub const JOB_INDEX: &str = "LB_JOB_INDEX";
+    /// `1.0` or `2.0`; every container.
+    pub const LEADERBOARD: &str = "LB_LEADERBOARD";
+    /// Status markers directory (default `/tmp/status`).
+    pub const STATUS_DIR: &str = "LB_STATUS_DIR";
+    /// Agents' results directory (default `/tmp/agent`).
+    pub const AGENT_DIR: &str = "LB_AGENT_DIR";
+    /// The pair's logs directory (default `/tmp/logs`).
+    pub const LOGS_DIR: &str = "LB_LOGS_DIR";
+    /// The whole logs volume, for init and logcopy (default `/logs`).
+    pub const LOGS_ROOT: &str = "LB_LOGS_ROOT";
+    /// Where init puts the sidecar binary (default `/opt/lb`).
+    pub const BIN_DIR: &str = "LB_BIN_DIR";
+    /// This pair's ID; simulator and agent.
+    pub const PAIR_ID: &str = "LB_PAIR_ID";
+    /// CARLA's RPC port; simulator and agent.
+    pub const CARLA_PORT: &str = "CARLA_PORT";
+    /// The traffic manager's port (CARLA_PORT + 10); simulator and agent.
+    pub const CARLA_TM_PORT: &str = "CARLA_TM_PORT";
+    /// This pair's route subset `a-b`; simulator and agent.
+    pub const ROUTES_SUBSET: &str = "ROUTES_SUBSET";
+    /// Repetitions of each route; simulator and agent.
+    pub const REPETITIONS: &str = "REPETITIONS";
+    /// Bounded wait for the partner at the start, seconds (default 3600).
+    pub const START_WAIT_SECONDS: &str = "LB_START_WAIT_SECONDS";
+    /// Bounded wait for the partner at the end, seconds (default 600).
+    pub const END_WAIT_SECONDS: &str = "LB_END_WAIT_SECONDS";
+    /// Bounded wait for CARLA's port, seconds (default 300).
+    pub const CARLA_READY_SECONDS: &str = "LB_CARLA_READY_SECONDS";
+    /// Marker polling period, seconds (default 1).
+    pub const POLL_SECONDS: &str = "LB_POLL_SECONDS";
+    /// Agent idle watchdog, seconds without output (default 800).
+    pub const MAX_IDLE_SECONDS: &str = "LB_MAX_IDLE_SECONDS";
+    /// Grace between SIGTERM and SIGKILL when stopping a child, seconds (default 10).
+    pub const STOP_GRACE_SECONDS: &str = "LB_STOP_GRACE_SECONDS";
+    /// Comma list of this Job's pair IDs; logcopy and init.
+    pub const PAIRS: &str = "LB_PAIRS";
+    /// The submissions bucket; logcopy and init.
+    pub const S3_BUCKET: &str = "LB_S3_BUCKET";
+    /// Upload period, seconds (default 10); logcopy.
+    pub const PERIOD_SECONDS: &str = "LB_PERIOD_SECONDS";
+    /// The Job's `backoffLimit`; logcopy finishes when the pairs' restarts reach it.
+    pub const BACKOFF_LIMIT: &str = "LB_BACKOFF_LIMIT";
+    /// `1` when EvalAI said `resuming`: init removes the cancel marker.
+    pub const PARTICIPANT_RESUME: &str = "LB_PARTICIPANT_RESUME";
+    /// Official Leaderboard sources in the private-contents image; init.
+    pub const SOURCE_LEADERBOARD: &str = "LB_SOURCE_LEADERBOARD";
+    /// Official ScenarioRunner sources in the private-contents image; init.
+    pub const SOURCE_SCENARIO_RUNNER: &str = "LB_SOURCE_SCENARIO_RUNNER";
+    /// Official CARLA PythonAPI in the private-contents image; init.
+    pub const SOURCE_CARLA_API: &str = "LB_SOURCE_CARLA_API";
+    /// Leaderboard code volume (default `/workspace/leaderboard`).
+    pub const LEADERBOARD_ROOT: &str = "LEADERBOARD_ROOT";
+    /// ScenarioRunner code volume (default `/workspace/scenario_runner`).
+    pub const SCENARIO_RUNNER_ROOT: &str = "SCENARIO_RUNNER_ROOT";
+    /// CARLA PythonAPI code volume (default `/workspace/CARLA`).
+    pub const CARLA_ROOT: &str = "CARLA_ROOT";
+    /// Exported to the evaluator: `` or `1`.
+    pub const RESUME: &str = "RESUME";
+    /// Exported to the evaluator: its results (checkpoint) file.
+    pub const CHECKPOINT_ENDPOINT: &str = "CHECKPOINT_ENDPOINT";
+    /// Exported to the evaluator: its live results file.
+    pub const DEBUG_CHECKPOINT_ENDPOINT: &str = "DEBUG_CHECKPOINT_ENDPOINT";
+    /// Exported to the evaluator: its recorder directory.
+    pub const RECORD_PATH: &str = "RECORD_PATH";
+}
+
+/// `partial_agent_results<ID>.json`: a pair's results file in the agent directory.
+pub fn partial_results_name(pair: PairId) -> String {
+    format!("partial_agent_results{pair}.json")
+}
+
+/// `simulator/simulator<ID>.log`: CARLA's output, relative to the logs directory.
+pub fn simulator_log(pair: PairId) -> String {
+    format!("simulator/simulator{pair}.log")
+}
+
+/// `agent/agent<ID>`: the agent's logs directory, relative to the logs directory.
+pub fn agent_logs_dir(pair: PairId) -> String {
+    format!("agent/agent{pair}")
+}
+
+/// Whether a path relative to the logs directory is one of these pairs' logs that a new pod
+/// must start from (so that appending continues them instead of overwriting them in S3).
+///
+/// Recordings are left out: each route writes its own, so nothing overwrites them, and they
+/// are by far the largest files.
+pub fn is_pair_log(rel: &str, pairs: &[PairId]) -> bool {
+    pairs.iter().any(|&pair| {
+        if rel == simulator_log(pair) {
+            return true;
+        }
+        let dir = agent_logs_dir(pair);
+        rel.strip_prefix(dir.as_str())
+            .and_then(|rest| rest.strip_prefix('/'))
+            .is_some_and(|rest| !rest.is_empty() && rest != "recorder" && !rest.starts_with("recorder/"))
+    })
+}
+
+/// The two containers of a pair.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Role {
+    /// `simulator-<ID>`: the CARLA server.
+    Simulator,
+    /// `agent-<ID>`: the Leaderboard evaluator and the participant's agent.
+    Agent,
+}
+
+impl Role {
+    /// The marker prefix: `simulator` or `agent`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Role::Simulator => "simulator",
+            Role::Agent => "agent",
+        }
+    }
+
+    /// The other container of the pair.
+    pub fn partner(self) -> Role {
+        match self {
+            Role::Simulator => Role::Agent,
+            Role::Agent => Role::Simulator,
+        }
+    }
+}
+
+impl fmt::Display for Role {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// A status marker: an empty file whose name is the message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Marker {
+    /// `simulator-<ID>.start<CRASH_ID>`: CARLA accepts connections in this attempt.
+    Start {
+        /// The pair.
+        pair: PairId,
+        /// The simulator's attempt.
+        crash_id: u32,
+    },
+    /// `<role>-<ID>.done`: the container finished its part for good.
+    Done {
+        /// Which container.
+        role: Role,
+        /// The pair.
+        pair: PairId,
+    },
+    /// `<role>-<ID>.crash<CRASH_ID>`: the container's attempt ended in failure.
+    Crash {
+        /// Which container.
+        role: Role,
+        /// The pair.
+        pair: PairId,
+        /// The attempt that crashed.
+        crash_id: u32,
+    },
+    /// `simulation.cancel`: the participant cancelled the submission.
+    Cancel,
+    /// `logcopy-<J>.done`: Job `J`'s logcopy made its final upload.
+    LogcopyDone {
+        /// The Job index.
+        job: u32,
+    },
+}
+
+impl fmt::Display for Marker {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Marker::Start { pair, crash_id } => write!(f, "simulator-{pair}.start{crash_id}"),
+            Marker::Done { role, pair } => write!(f, "{role}-{pair}.done"),
+            Marker::Crash {
+                role,
+                pair,
+                crash_id,
+            } => write!(f, "{role}-{pair}.crash{crash_id}"),
+            Marker::Cancel => f.write_str(CANCEL_MARKER),
+            Marker::LogcopyDone { job } => write!(f, "logcopy-{job}.done"),
+        }
+    }
+}
+
+/// A canonical decimal (no sign, no leading zero): `01` is not the marker of pair 1.
+fn canonical_number(text: &str) -> Option<u32> {
+    if text.is_empty() || (text.len() > 1 && text.starts_with('0')) {
+        return None;
+    }
+    if !text.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    text.parse().ok()
+}
+
+impl Marker {
+    /// Parses a file name; anything that is not exactly a marker name is `None`.
+    pub fn parse(name: &str) -> Option<Marker> {
+        if name == CANCEL_MARKER {
+            return Some(Marker::Cancel);
+        }
+        let (owner, event) = name.split_once('.')?;
+        let (who, number) = owner.split_once('-')?;
+        let number = canonical_number(number)?;
+        let role = match who {
+            "simulator" => Role::Simulator,
+            "agent" => Role::Agent,
+            "logcopy" => {
+                return (event == "done").then_some(Marker::LogcopyDone { job: number });
+            }
+            _ => return None,
+        };
+        if event == "done" {
+            return Some(Marker::Done { role, pair: number });
+        }
+        if let Some(id) = event.strip_prefix("crash") {
+            let crash_id = canonical_number(id)?;
+            return Some(Marker::Crash {
+                role,
+                pair: number,
+                crash_id,
+            });
+        }
+        if let (Role::Simulator, Some(id)) = (role, event.strip_prefix("start")) {
+            let crash_id = canonical_number(id)?;
+            return Some(Marker::Start {
+                pair: number,
+                crash_id,
+            });
+        }
+        None
+    }
+
+    /// Whether the marker belongs to one of these pairs or to Job `job`'s logcopy: the stale
+    /// markers a new pod of that Job removes. The cancel marker belongs to the submission.
+    pub fn belongs_to_job(&self, pairs: &[PairId], job: u32) -> bool {
+        match *self {
+            Marker::Start { pair, .. } | Marker::Done { pair, .. } | Marker::Crash { pair, .. } => {
+                pairs.contains(&pair)
+            }
+            Marker::LogcopyDone { job: j } => j == job,
+            Marker::Cancel => false,
+        }
+    }
+}
+
+/// The markers present in a status directory (names that are not markers are ignored).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Markers(HashSet<Marker>);
+
+impl Markers {
+    /// Collects the markers among file names.
+    pub fn from_names<'a>(names: impl IntoIterator<Item = &'a str>) -> Markers {
+        Markers(names.into_iter().filter_map(Marker::parse).collect())
+    }
+
+    /// Whether a marker is present.
+    pub fn contains(&self, marker: &Marker) -> bool {
+        self.0.contains(marker)
+    }
+
+    /// The markers, in no particular order.
+    pub fn iter(&self) -> impl Iterator<Item = &Marker> {
+        self.0.iter()
+    }
+
+    /// Adds a marker.
+    pub fn insert(&mut self, marker: Marker) {
+        self.0.insert(marker);
+    }
+
+    /// How many crash markers a container has: its CRASH_ID for the next attempt.
+    pub fn crash_count(&self, role: Role, pair: PairId) -> u32 {
+        let n = self
+            .0
+            .iter()
+            .filter(|m| matches!(m, Marker::Crash { role: r, pair: p, .. } if *r == role && *p == pair))
+            .count();
+        u32::try_from(n).unwrap_or(u32::MAX)
+    }
+
+    /// What a container in attempt `crash_id` of `pair` needs to know.
+    pub fn pair_view(&self, pair: PairId, crash_id: u32) -> PairView {
+        let crashed = |role| {
+            self.contains(&Marker::Crash {
+                role,
+                pair,
+                crash_id,
+            })
+        };
+        PairView {
+            cancel: self.contains(&Marker::Cancel),
+            simulator_started: self.contains(&Marker::Start { pair, crash_id }),
+            simulator_done: self.contains(&Marker::Done {
+                role: Role::Simulator,
+                pair,
+            }),
+            simulator_crashed: crashed(Role::Simulator),
+            agent_done: self.contains(&Marker::Done {
+                role: Role::Agent,
+                pair,
+            }),
+            agent_crashed: crashed(Role::Agent),
+        }
+    }
+
+    /// Where a pair stands, for logcopy.
+    pub fn pair_state(&self, pair: PairId) -> PairState {
+        let done = |role| self.contains(&Marker::Done { role, pair });
+        if done(Role::Simulator) && done(Role::Agent) {
+            return PairState::Done;
+        }
+        let sim = self.crash_count(Role::Simulator, pair);
+        let agent = self.crash_count(Role::Agent, pair);
+        if sim > 0 && sim == agent {
+            PairState::Crashed { attempts: sim }
+        } else {
+            PairState::Running
+        }
+    }
+}
+
+/// The attempt a container starts now, and the crash markers it owes first.
+///
+/// A container counts its own crash markers. One that was killed without writing its
+/// marker (SIGKILL, node loss) while its partner wrote one for the same attempt would lag one
+/// attempt behind for ever; it catches up by writing the missing markers before starting.
+pub fn start_attempt(markers: &Markers, role: Role, pair: PairId) -> (u32, Vec<Marker>) {
+    let mut attempt = markers.crash_count(role, pair);
+    let mut owed = Vec::new();
+    let crash = |role, crash_id| Marker::Crash {
+        role,
+        pair,
+        crash_id,
+    };
+    while markers.contains(&crash(role.partner(), attempt)) && !markers.contains(&crash(role, attempt)) {
+        owed.push(crash(role, attempt));
+        attempt += 1;
+    }
+    (attempt, owed)
+}
+
+/// What one container of a pair sees of the pair in its current attempt.
+///
+/// Both containers of a pair count their own crash markers; they stay in step because a
+/// container whose partner crashed writes its own crash marker for the same attempt.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PairView {
+    /// The submission was cancelled.
+    pub cancel: bool,
+    /// `simulator-<ID>.start<CRASH_ID>`.
+    pub simulator_started: bool,
+    /// `simulator-<ID>.done`.
+    pub simulator_done: bool,
+    /// `simulator-<ID>.crash<CRASH_ID>`.
+    pub simulator_crashed: bool,
+    /// `agent-<ID>.done`.
+    pub agent_done: bool,
+    /// `agent-<ID>.crash<CRASH_ID>`.
+    pub agent_crashed: bool,
+}
+
+/// The simulator's next move while CARLA runs (or starts).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SimulatorStep {
+    /// Nothing new: keep CARLA running.
+    Continue,
+    /// The agent finished: stop CARLA, write `simulator-<ID>.done`, exit 0.
+    AgentDone,
+    /// Cancelled: stop CARLA, exit 0 without a marker.
+    Cancel,
+    /// The agent crashed: stop CARLA, write this attempt's crash marker, exit 1.
+    AgentCrashed,
+}
+
+/// Decides the simulator's next move. The agent's done marker wins over a cancel, so a pair
+/// that finished is counted as finished.
+pub fn simulator_step(view: &PairView) -> SimulatorStep {
+    if view.agent_done {
+        SimulatorStep::AgentDone
+    } else if view.cancel {
+        SimulatorStep::Cancel
+    } else if view.agent_crashed {
+        SimulatorStep::AgentCrashed
+    } else {
+        SimulatorStep::Continue
+    }
+}
+
+/// The agent's next move, while waiting for CARLA or while the evaluator runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AgentStep {
+    /// Keep waiting (before the start marker) or keep running.
+    Continue,
+    /// The simulator's start marker is there (only while waiting).
+    Start,
+    /// Cancelled: stop the evaluator, exit 0 without a marker.
+    Cancel,
+    /// The simulator crashed in this attempt: stop the evaluator and judge its results.
+    SimulatorCrashed,
+}
+
+/// Decides the agent's next move; `running` says whether the evaluator has been started.
+pub fn agent_step(view: &PairView, running: bool) -> AgentStep {
+    if view.cancel {
+        AgentStep::Cancel
+    } else if view.simulator_crashed {
+        AgentStep::SimulatorCrashed
+    } else if !running && view.simulator_started {
+        AgentStep::Start
+    } else {
+        AgentStep::Continue
+    }
+}
+
+/// Whether the partner has ended this attempt (done, crashed, or cancelled), so a container
+/// that already wrote its own marker can exit.
+pub fn partner_finished(view: &PairView, me: Role) -> bool {
+    view.cancel
+        || match me.partner() {
+            Role::Simulator => view.simulator_done || view.simulator_crashed,
+            Role::Agent => view.agent_done || view.agent_crashed,
+        }
+}
+
+/// Where a pair stands, from logcopy's point of view.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PairState {
+    /// Both done markers are there.
+    Done,
+    /// Its last attempt ended with both crash markers; `attempts` attempts crashed so far.
+    Crashed {
+        /// Crashed attempts.
+        attempts: u32,
+    },
+    /// Anything else: running, starting, or restarting.
+    Running,
+}
+
+/// Why a Job's logcopy finishes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum JobEnd {
+    /// The submission was cancelled.
+    Cancelled,
+    /// Every pair is done.
+    AllDone,
+    /// The pairs' restarts reached the Job's `backoffLimit` and no pair is still running:
+    /// Kubernetes will not restart anything any more.
+    OutOfRetries,
+}
+
+/// Decides whether a Job is over, from its status markers.
+///
+/// With `restartPolicy: OnFailure` the Job controller fails a Job once the restarts of its
+/// containers reach `backoffLimit` (any restart when the limit is 0). Every failed exit of a
+/// pair's container leaves one crash marker, so the crash markers count the restarts.
+pub fn job_end(markers: &Markers, pairs: &[PairId], backoff_limit: Option<u32>) -> Option<JobEnd> {
+    if markers.contains(&Marker::Cancel) {
+        return Some(JobEnd::Cancelled);
+    }
+    let states: Vec<PairState> = pairs.iter().map(|&p| markers.pair_state(p)).collect();
+    if states.iter().all(|s| *s == PairState::Done) {
+        return Some(JobEnd::AllDone);
+    }
+    let limit = backoff_limit?;
+    let restarts: u64 = pairs
+        .iter()
+        .map(|&p| {
+            u64::from(markers.crash_count(Role::Simulator, p))
+                + u64::from(markers.crash_count(Role::Agent, p))
+        })
+        .sum();
+    let exhausted = restarts >= u64::from(limit.max(1));
+    let settled = states.iter().all(|s| *s != PairState::Running);
+    (exhausted && settled).then_some(JobEnd::OutOfRetries)
+}
+
+/// Parses `LB_PAIRS`: a comma list of distinct positive pair IDs, at least one.
+pub fn parse_pairs(text: &str) -> Result<Vec<PairId>, String> {
+    let mut pairs = Vec::new();
+    for part in text.split(',') {
+        let part = part.trim();
+        let id = canonical_number(part)
+            .filter(|id| *id >= 1)
+            .ok_or_else(|| format!("`{part}` is not a positive pair ID"))?;
+        if pairs.contains(&id) {
+            return Err(format!("pair ID `{id}` is listed twice"));
+        }
+        pairs.push(id);
+    }
+    Ok(pairs)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn markers(names: &[&str]) -> Markers {
+        Markers::from_names(names.iter().copied())
+    }
+
+    #[test]
+    fn marker_names_are_exactly_the_seeds_names_and_parse_back() {
+        let cases = [
+            (Marker::Start { pair: 3, crash_id: 0 }, "simulator-3.start0"),
+            (
+                Marker::Done {
+                    role: Role::Simulator,
+                    pair: 12,
+                },
+                "simulator-12.done",
+            ),
+            (
+                Marker::Crash {
+                    role: Role::Simulator,
+                    pair: 1,
+                    crash_id: 2,
+                },
+                "simulator-1.crash2",
+            ),
+            (
+                Marker::Done {
+                    role: Role::Agent,
+                    pair: 4,
+                },
+                "agent-4.done",
+            ),
+            (
+                Marker::Crash {
+                    role: Role::Agent,
+                    pair: 4,
+                    crash_id: 10,
+                },
+                "agent-4.crash10",
+            ),
+            (Marker::Cancel, "simulation.cancel"),
+            (Marker::LogcopyDone { job: 0 }, "logcopy-0.done"),
+        ];
+        for (marker, name) in cases {
+            assert_eq!(marker.to_string(), name);
+            assert_eq!(Marker::parse(name), Some(marker), "{name}");
+        }
+    }
+
+    #[test]
+    fn names_that_only_look_like_markers_are_not_markers() {
+        for name in [
+            "simulator-01.done",
+            "simulator-1.crash01",
+            "simulator--1.done",
+            "simulator-1.done.tmp",
+            "agent-1.start0",
+            "agent-1.crash",
+            "agent-.done",
+            "logcopy-1.crash0",
+            "simulation.cancel2",
+            "partial_agent_results1.json",
+            "simulator-99999999999.done",
+            "",
+        ] {
+            assert_eq!(Marker::parse(name), None, "{name}");
+        }
+    }
+
+    #[test]
+    fn crash_id_counts_only_this_containers_crash_markers() {
+        let m = markers(&[
+            "simulator-1.crash0",
+            "simulator-1.crash1",
+            "agent-1.crash0",
+            "simulator-2.crash0",
+            "simulator-1.start0",
+            "simulator-1.crash-x",
+        ]);
+        assert_eq!(m.crash_count(Role::Simulator, 1), 2);
+        assert_eq!(m.crash_count(Role::Agent, 1), 1);
+        assert_eq!(m.crash_count(Role::Agent, 2), 0);
+        assert_eq!(m.crash_count(Role::Simulator, 3), 0);
+    }
+
+    #[test]
+    fn a_container_killed_without_its_crash_marker_catches_up_with_its_partner() {
+        let m = markers(&["agent-1.crash0", "simulator-1.crash0", "agent-1.crash1"]);
+        assert_eq!(start_attempt(&m, Role::Agent, 1), (2, vec![]));
+        assert_eq!(
+            start_attempt(&m, Role::Simulator, 1),
+            (
+                2,
+                vec![Marker::Crash {
+                    role: Role::Simulator,
+                    pair: 1,
+                    crash_id: 1
+                }]
+            )
+        );
+        assert_eq!(start_attempt(&Markers::default(), Role::Simulator, 1), (0, vec![]));
+    }
+
+    #[test]
+    fn a_pair_view_looks_at_the_current_attempt_only() {
+        let m = markers(&["simulator-1.start0", "simulator-1.crash0", "agent-1.crash0"]);
+        let old = m.pair_view(1, 0);
+        assert!(old.simulator_started && old.simulator_crashed && old.agent_crashed);
+        let new = m.pair_view(1, 1);
+        assert_eq!(new, PairView::default());
+        assert_eq!(agent_step(&new, false), AgentStep::Continue);
+    }
+
+    #[test]
+    fn the_simulator_prefers_a_finished_agent_over_a_cancel() {
+        let mut view = PairView {
+            cancel: true,
+            agent_done: true,
+            ..PairView::default()
+        };
+        assert_eq!(simulator_step(&view), SimulatorStep::AgentDone);
+        view.agent_done = false;
+        view.agent_crashed = true;
+        assert_eq!(simulator_step(&view), SimulatorStep::Cancel);
+        view.cancel = false;
+        assert_eq!(simulator_step(&view), SimulatorStep::AgentCrashed);
+        assert_eq!(
+            simulator_step(&PairView::default()),
+            SimulatorStep::Continue
+        );
+    }
+
+    #[test]
+    fn the_agent_starts_on_the_start_marker_and_stops_on_crash_or_cancel() {
+        let started = PairView {
+            simulator_started: true,
+            ..PairView::default()
+        };
+        assert_eq!(agent_step(&started, false), AgentStep::Start);
+        assert_eq!(agent_step(&started, true), AgentStep::Continue);
+        let crashed = PairView {
+            simulator_crashed: true,
+            ..started
+        };
+        assert_eq!(agent_step(&crashed, true), AgentStep::SimulatorCrashed);
+        assert_eq!(agent_step(&crashed, false), AgentStep::SimulatorCrashed);
+        let cancelled = PairView {
+            cancel: true,
+            ..crashed
+        };
+        assert_eq!(agent_step(&cancelled, true), AgentStep::Cancel);
+    }
+
+    #[test]
+    fn a_container_waits_at_the_end_until_its_partner_has_a_marker() {
+        let mut view = PairView {
+            agent_done: true,
+            ..PairView::default()
+        };
+        assert!(!partner_finished(&view, Role::Agent));
+        assert!(partner_finished(&view, Role::Simulator));
+        view.simulator_crashed = true;
+        assert!(partner_finished(&view, Role::Agent));
+        let cancelled = PairView {
+            cancel: true,
+            ..PairView::default()
+        };
+        assert!(partner_finished(&cancelled, Role::Agent));
+    }
+
+    #[test]
+    fn a_job_ends_when_every_pair_is_done_or_on_cancel() {
+        let pairs = [1, 2];
+        let half = markers(&["simulator-1.done", "agent-1.done", "agent-2.done"]);
+        assert_eq!(job_end(&half, &pairs, None), None);
+        let all = markers(&[
+            "simulator-1.done",
+            "agent-1.done",
+            "agent-2.done",
+            "simulator-2.done",
+            "simulator-3.crash0",
+        ]);
+        assert_eq!(job_end(&all, &pairs, None), Some(JobEnd::AllDone));
+        let cancelled = markers(&["simulation.cancel"]);
+        assert_eq!(job_end(&cancelled, &pairs, Some(8)), Some(JobEnd::Cancelled));
+    }
+
+    #[test]
+    fn a_job_is_out_of_retries_when_restarts_reach_the_backoff_limit_and_nothing_runs() {
+        let pairs = [1, 2];
+        let mut m = markers(&[
+            "simulator-1.done",
+            "agent-1.done",
+            "simulator-2.crash0",
+            "agent-2.crash0",
+        ]);
+        assert_eq!(job_end(&m, &pairs, Some(4)), None, "2 restarts of 4");
+        assert_eq!(job_end(&m, &pairs, None), None, "no limit known");
+        m.insert(Marker::Crash {
+            role: Role::Simulator,
+            pair: 2,
+            crash_id: 1,
+        });
+        assert_eq!(m.pair_state(2), PairState::Running, "agent has not ended yet");
+        assert_eq!(job_end(&m, &pairs, Some(3)), None, "pair 2 still running");
+        m.insert(Marker::Crash {
+            role: Role::Agent,
+            pair: 2,
+            crash_id: 1,
+        });
+        assert_eq!(m.pair_state(2), PairState::Crashed { attempts: 2 });
+        assert_eq!(job_end(&m, &pairs, Some(4)), Some(JobEnd::OutOfRetries));
+        assert_eq!(job_end(&m, &pairs, Some(5)), None);
+        let one = markers(&["simulator-1.crash0", "agent-1.crash0"]);
+        assert_eq!(job_end(&one, &[1], Some(0)), Some(JobEnd::OutOfRetries));
+    }
+
+    #[test]
+    fn stale_markers_of_a_job_are_its_pairs_and_its_logcopy_but_never_the_cancel() {
+        let pairs = [5, 6];
+        for (name, mine) in [
+            ("simulator-5.start0", true),
+            ("agent-6.crash3", true),
+            ("simulator-6.done", true),
+            ("logcopy-1.done", true),
+            ("logcopy-0.done", false),
+            ("agent-1.done", false),
+            ("simulation.cancel", false),
+        ] {
+            let marker = Marker::parse(name).unwrap();
+            assert_eq!(marker.belongs_to_job(&pairs, 1), mine, "{name}");
+        }
+    }
+
+    #[test]
+    fn pair_logs_are_the_simulator_log_and_the_agent_directory_without_recordings() {
+        let pairs = [1, 2];
+        for (rel, mine) in [
+            ("simulator/simulator1.log", true),
+            ("simulator/simulator10.log", false),
+            ("agent/agent2/agent.log", true),
+            ("agent/agent2/live_results.json", true),
+            ("agent/agent2/recorder/RouteScenario_0_rep0.log", false),
+            ("agent/agent2/recorder", false),
+            ("agent/agent20/agent.log", false),
+            ("agent/agent2", false),
+            ("agent/agent3/agent.log", false),
+        ] {
+            assert_eq!(is_pair_log(rel, &pairs), mine, "{rel}");
+        }
+    }
+
+    #[test]
+    fn pairs_lists_are_positive_distinct_ids() {
+        assert_eq!(parse_pairs("1,2,3,4"), Ok(vec![1, 2, 3, 4]));
+        assert_eq!(parse_pairs(" 5 , 6"), Ok(vec![5, 6]));
+        for bad in ["", "0", "1,1", "1,,2", "a", "-1", "01"] {
+            assert!(parse_pairs(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn file_names_of_a_pair_follow_the_contract() {
+        assert_eq!(partial_results_name(3), "partial_agent_results3.json");
+        assert_eq!(simulator_log(3), "simulator/simulator3.log");
+        assert_eq!(agent_logs_dir(3), "agent/agent3");
+    }
+}

@@ -1,0 +1,719 @@
+//! The job context: everything a Job template may read, typed, validated and built from the
+//! plan, the submission and the leaderboard's settings.
+//!
+//! It serializes to the JSON the templates' `.$` paths read (documented field by field in
+//! `templates/README.md`). It has no `Option` fields, so a path that resolves against one
+//! context resolves against all of them, and no field for any secret: the EvalAI token
+//! cannot reach a Job because there is nowhere to put it.
+
+use std::collections::BTreeMap;
+
+use lb_domain::plan::{
+    is_dns_label, is_label_value, label_value, Plan, COMPONENT_LABEL, COMPONENT_SUBMISSION,
+    JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY, MANAGED_BY_LABEL, SUBMISSION_LABEL,
+    TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
+};
+use lb_domain::results::Leaderboard;
+use lb_domain::settings::LeaderboardSettings;
+use serde::{Deserialize, Serialize};
+
+use crate::image::parse_image;
+
+/// How much of the team name the `team-name` annotation keeps.
+pub const MAX_TEAM_NAME_ANNOTATION: usize = 256;
+
+/// Where the projected service-account token for IRSA is mounted in init and logcopy.
+pub const AWS_TOKEN_DIR: &str = "/var/run/secrets/eks.amazonaws.com/serviceaccount";
+
+/// Why a job context cannot be built. Each variant has a stable [`name`](Self::name).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ContextError {
+    /// An image reference outside the reference grammar.
+    #[error("the {field} `{image}` is not a valid image reference: {reason}")]
+    InvalidImage {
+        /// Which image (`participant image`, `CARLA image`, ...).
+        field: &'static str,
+        /// The reference as given (control characters escaped).
+        image: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A setting or submission field with an unusable value.
+    #[error("`{field}` = `{value}` is invalid: {reason}")]
+    InvalidSetting {
+        /// The setting.
+        field: &'static str,
+        /// Its value (control characters escaped, shortened).
+        value: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+impl ContextError {
+    /// The stable PascalCase name.
+    pub fn name(&self) -> &'static str {
+        match self {
+            ContextError::InvalidImage { .. } => "InvalidImage",
+            ContextError::InvalidSetting { .. } => "InvalidJobSetting",
+        }
+    }
+}
+
+fn shown(value: &str) -> String {
+    let escaped: String = value.escape_debug().collect();
+    if escaped.chars().count() > 200 {
+        format!("{}...", escaped.chars().take(200).collect::<String>())
+    } else {
+        escaped
+    }
+}
+
+fn invalid(field: &'static str, value: impl ToString, reason: impl Into<String>) -> ContextError {
+    ContextError::InvalidSetting {
+        field,
+        value: shown(&value.to_string()),
+        reason: reason.into(),
+    }
+}
+
+/// Directories of the official code inside the private-contents image (init copies them).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Sources {
+    /// Leaderboard (with the private routes under `data/`).
+    pub leaderboard: String,
+    /// ScenarioRunner.
+    pub scenario_runner: String,
+    /// CARLA PythonAPI.
+    pub carla_api: String,
+}
+
+/// The sidecar's timers, in seconds (the in-Job contract's optional variables).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Timers {
+    /// `LB_START_WAIT_SECONDS`: the agent waits this long for CARLA's start marker.
+    pub start_wait_seconds: u32,
+    /// `LB_END_WAIT_SECONDS`: a container waits this long for its partner at the end.
+    pub end_wait_seconds: u32,
+    /// `LB_CARLA_READY_SECONDS`: CARLA must accept connections within this.
+    pub carla_ready_seconds: u32,
+    /// `LB_POLL_SECONDS`: marker polling period.
+    pub poll_seconds: u32,
+    /// `LB_MAX_IDLE_SECONDS`: the agent is stopped after this long without output.
+    pub max_idle_seconds: u32,
+    /// `LB_PERIOD_SECONDS`: logcopy's upload period.
+    pub logcopy_period_seconds: u32,
+}
+
+impl Default for Timers {
+    fn default() -> Self {
+        Timers {
+            start_wait_seconds: 3600,
+            end_wait_seconds: 600,
+            carla_ready_seconds: 300,
+            poll_seconds: 1,
+            max_idle_seconds: 800,
+            logcopy_period_seconds: 10,
+        }
+    }
+}
+
+/// What a Job needs from the deployment, per leaderboard. Build it with
+/// [`JobSettings::from_deployment`] and adjust fields as the configuration says.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobSettings {
+    /// Namespace of the Jobs.
+    pub namespace: String,
+    /// Service account of the Pods. It must carry no `eks.amazonaws.com/role-arn`
+    /// annotation (see `templates/README.md`: the webhook would hand AWS credentials to
+    /// every container); the IAM role trusts `system:serviceaccount:<namespace>:<this>`.
+    pub service_account: String,
+    /// IAM role init and logcopy assume (IRSA) to read and write the bucket.
+    pub s3_role_arn: String,
+    /// AWS region of the bucket and STS.
+    pub region: String,
+    /// Submissions bucket.
+    pub bucket: String,
+    /// Node instance type (node selector).
+    pub instance_type: String,
+    /// CARLA server image.
+    pub carla_image: String,
+    /// Init/logcopy image (official code, private routes, the sidecar).
+    pub private_contents_image: String,
+    /// Job `backoffLimit`: container restarts across the Job before it fails (each
+    /// crash-resume restarts a simulator and an agent: 8 allows four resumes).
+    pub backoff_limit: u32,
+    /// Job `activeDeadlineSeconds`.
+    pub active_deadline_seconds: u64,
+    /// Job `ttlSecondsAfterFinished` (a safety net: Finalize deletes the Jobs).
+    pub ttl_seconds_after_finished: u32,
+    /// Pod `terminationGracePeriodSeconds` (logcopy's final upload on deletion).
+    pub termination_grace_seconds: u32,
+    /// Evaluator `--repetitions` (1.0: 5, 2.0: 1).
+    pub repetitions: u32,
+    /// Routes file for regular tracks.
+    pub routes_file: String,
+    /// Routes file for qualifier tracks.
+    pub qualifier_routes_file: String,
+    /// Scenarios file (Leaderboard 1.0 only; empty for 2.0).
+    pub scenarios_file: String,
+    /// Official code directories in the private-contents image.
+    pub sources: Sources,
+    /// The sidecar's timers.
+    pub timers: Timers,
+}
+
+impl JobSettings {
+    /// The defaults for `leaderboard`, with the cluster-specific values from the operator's
+    /// deployment settings, the region and the S3 role.
+    pub fn from_deployment(
+        leaderboard: Leaderboard,
+        deployment: &LeaderboardSettings,
+        region: &str,
+        s3_role_arn: &str,
+    ) -> JobSettings {
+        let (repetitions, scenarios) = match leaderboard {
+            Leaderboard::V1 => (
+                5,
+                "/workspace/leaderboard/data/all_towns_traffic_scenarios_private.json",
+            ),
+            Leaderboard::V2 => (1, ""),
+        };
+        JobSettings {
+            namespace: deployment.namespace.clone(),
+            service_account: "submission-worker".into(),
+            s3_role_arn: s3_role_arn.into(),
+            region: region.into(),
+            bucket: deployment.bucket.clone(),
+            instance_type: deployment.instance_type.clone(),
+            carla_image: deployment.images.carla.clone(),
+            private_contents_image: deployment.images.private_contents.clone(),
+            backoff_limit: 8,
+            active_deadline_seconds: 4 * 24 * 3600,
+            ttl_seconds_after_finished: 24 * 3600,
+            termination_grace_seconds: 60,
+            repetitions,
+            routes_file: "/workspace/leaderboard/data/routes_testing.xml".into(),
+            qualifier_routes_file: "/workspace/leaderboard/data/routes_qualifier.xml".into(),
+            scenarios_file: scenarios.into(),
+            sources: Sources {
+                leaderboard: "/src/leaderboard".into(),
+                scenario_runner: "/src/scenario_runner".into(),
+                carla_api: "/src/CARLA".into(),
+            },
+            timers: Timers::default(),
+        }
+    }
+}
+
+/// The submission as Intake established it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SubmissionInfo {
+    /// EvalAI submission id.
+    pub submission_id: u64,
+    /// EvalAI challenge id.
+    pub challenge_id: u64,
+    /// EvalAI phase id.
+    pub phase_id: u64,
+    /// EvalAI participant team id.
+    pub team_id: u64,
+    /// Team name as EvalAI gives it (untrusted: only label-safe forms reach the Job).
+    pub team_name: String,
+    /// Track codename (`SENSORS`, `MAP`, `SENSORS_QUALIFIER`, ...).
+    pub track: String,
+    /// Whether the track is a qualifier (it runs the qualifier routes).
+    pub qualifier: bool,
+    /// The participant's image (untrusted; checked against the reference grammar).
+    pub participant_image: String,
+    /// EvalAI said `resuming`: init removes the cancel marker.
+    pub participant_resume: bool,
+}
+
+/// The team, as the Job may show it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct TeamContext {
+    /// EvalAI participant team id.
+    pub id: u64,
+    /// The name without control characters, cut to 256 characters (annotation only).
+    pub name: String,
+    /// Label-safe form of the name (possibly empty).
+    pub label: String,
+}
+
+/// Images of the Job's containers, each checked against the reference grammar.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ImagesContext {
+    /// CARLA server.
+    pub carla: String,
+    /// Init and logcopy.
+    pub private_contents: String,
+    /// The participant's agent.
+    pub participant: String,
+}
+
+/// What the evaluator runs.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct EvaluationContext {
+    /// `ROUTES`: the routes file (qualifier routes on a qualifier track).
+    pub routes_file: String,
+    /// `SCENARIOS` (Leaderboard 1.0; empty for 2.0).
+    pub scenarios_file: String,
+    /// `REPETITIONS`.
+    pub repetitions: u32,
+}
+
+/// AWS access of init and logcopy (IRSA through an explicitly projected token).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct AwsContext {
+    /// `AWS_REGION`.
+    pub region: String,
+    /// `LB_S3_BUCKET`.
+    pub bucket: String,
+    /// `AWS_ROLE_ARN`.
+    pub role_arn: String,
+    /// `AWS_WEB_IDENTITY_TOKEN_FILE`.
+    pub token_file: String,
+}
+
+/// Kubernetes settings of the Job and its Pod.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct KubernetesContext {
+    /// Namespace.
+    pub namespace: String,
+    /// Service account (no role annotation; see [`JobSettings::service_account`]).
+    pub service_account: String,
+    /// Node selector instance type.
+    pub instance_type: String,
+    /// `backoffLimit`.
+    pub backoff_limit: u32,
+    /// `activeDeadlineSeconds`.
+    pub active_deadline_seconds: u64,
+    /// `ttlSecondsAfterFinished`.
+    pub ttl_seconds_after_finished: u32,
+    /// `terminationGracePeriodSeconds`.
+    pub termination_grace_seconds: u32,
+}
+
+/// This Job within the submission.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct JobInfo {
+    /// 0-based index.
+    pub index: u32,
+    /// Name (a DNS-1123 label).
+    pub name: String,
+    /// Its pair IDs, comma separated (`LB_PAIRS`).
+    pub pair_ids: String,
+    /// How many pairs it holds.
+    pub pair_count: u32,
+}
+
+/// One simulator-agent pair (the `pair` of the pair section).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct PairContext {
+    /// 1-based global ID.
+    pub id: u32,
+    /// 0-based worker index.
+    pub worker: u32,
+    /// Slot in the Job (k).
+    pub slot: u32,
+    /// `ROUTES_SUBSET` (`a-b`).
+    pub routes: String,
+    /// `CARLA_PORT`.
+    pub carla_port: u16,
+    /// `CARLA_TM_PORT`.
+    pub tm_port: u16,
+    /// GPU index on the node (`NVIDIA_VISIBLE_DEVICES`, graphics adapter).
+    pub gpu: u32,
+}
+
+/// Everything a Job template reads. Serialized, it is the input of the `.$` paths.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct JobContext {
+    /// `1.0` or `2.0`.
+    pub leaderboard: String,
+    /// EvalAI submission id.
+    pub submission_id: u64,
+    /// EvalAI challenge id.
+    pub challenge_id: u64,
+    /// EvalAI phase id.
+    pub phase_id: u64,
+    /// The team.
+    pub team: TeamContext,
+    /// Track codename.
+    pub track: String,
+    /// `LB_PARTICIPANT_RESUME`: `1` or empty.
+    pub participant_resume: String,
+    /// Images.
+    pub images: ImagesContext,
+    /// Evaluator settings.
+    pub evaluation: EvaluationContext,
+    /// AWS access of init and logcopy.
+    pub aws: AwsContext,
+    /// Job and Pod settings.
+    pub kubernetes: KubernetesContext,
+    /// Sidecar timers.
+    pub timers: Timers,
+    /// Official code in the private-contents image.
+    pub sources: Sources,
+    /// This Job.
+    pub job: JobInfo,
+    /// Labels of the Job and its Pods.
+    pub labels: BTreeMap<String, String>,
+    /// The Job's pairs.
+    pub pairs: Vec<PairContext>,
+}
+
+fn check_path(field: &'static str, value: &str, allow_empty: bool) -> Result<(), ContextError> {
+    if value.is_empty() && allow_empty {
+        return Ok(());
+    }
+    // NB: restricted so nothing Kubernetes (`$(VAR)`) or a shell would expand can hide here.
+    let ok = value.starts_with('/')
+        && value.len() <= 1024
+        && value
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"/._-".contains(&b));
+    if ok {
+        Ok(())
+    } else {
+        Err(invalid(
+            field,
+            value,
+            "expected an absolute path of letters, digits, `/`, `.`, `_` and `-`",
+        ))
+    }
+}
+
+fn check_range(field: &'static str, value: u64, min: u64, max: u64) -> Result<(), ContextError> {
+    if (min..=max).contains(&value) {
+        Ok(())
+    } else {
+        Err(invalid(field, value, format!("expected {min} to {max}")))
+    }
+}
+
+fn check_image(field: &'static str, image: &str) -> Result<String, ContextError> {
+    parse_image(image)
+        .map(|r| r.to_string())
+        .map_err(|reason| ContextError::InvalidImage {
+            field,
+            image: shown(image),
+            reason,
+        })
+}
+
+fn is_dns_subdomain(s: &str) -> bool {
+    !s.is_empty() && s.len() <= 253 && s.split('.').all(is_dns_label)
+}
+
+fn check_settings(s: &JobSettings) -> Result<(), ContextError> {
+    if !is_dns_label(&s.namespace) {
+        return Err(invalid(
+            "namespace",
+            &s.namespace,
+            "expected a DNS-1123 label",
+        ));
+    }
+    if !is_dns_subdomain(&s.service_account) {
+        return Err(invalid(
+            "service_account",
+            &s.service_account,
+            "expected a DNS-1123 subdomain",
+        ));
+    }
+    let role_ok = ["arn:aws:iam::", "arn:aws-cn:iam::", "arn:aws-us-gov:iam::"]
+        .iter()
+        .find_map(|p| s.s3_role_arn.strip_prefix(p))
+        .and_then(|rest| rest.split_once(":role/"))
+        .is_some_and(|(account, name)| {
+            account.len() == 12
+                && account.bytes().all(|b| b.is_ascii_digit())
+                && !name.is_empty()
+                && s.s3_role_arn.len() <= 2048
+                && name
+                    .bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b"+=,.@_/-".contains(&b))
+        });
+    if !role_ok {
+        return Err(invalid(
+            "s3_role_arn",
+            &s.s3_role_arn,
+            "expected an IAM role ARN (arn:aws:iam::<12 digits>:role/<name>)",
+        ));
+    }
+    let region_ok = (1..=32).contains(&s.region.len())
+        && s.region
+            .bytes()
+            .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-');
+    if !region_ok {
+        return Err(invalid(
+            "region",
+            &s.region,
+            "expected a region such as `us-west-2`",
+        ));
+    }
+    let b = s.bucket.as_bytes();
+    let bucket_ok = (3..=63).contains(&b.len())
+        && b.iter()
+            .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || *c == b'-' || *c == b'.')
+        && b[0].is_ascii_alphanumeric()
+        && b[b.len() - 1].is_ascii_alphanumeric();
+    if !bucket_ok {
+        return Err(invalid("bucket", &s.bucket, "expected an S3 bucket name"));
+    }
+    if s.instance_type.is_empty() || !is_label_value(&s.instance_type) {
+        return Err(invalid(
+            "instance_type",
+            &s.instance_type,
+            "expected an instance type such as `g5.12xlarge`",
+        ));
+    }
+    check_range("backoff_limit", s.backoff_limit.into(), 0, 100)?;
+    check_range(
+        "active_deadline_seconds",
+        s.active_deadline_seconds,
+        60,
+        14 * 24 * 3600,
+    )?;
+    check_range(
+        "ttl_seconds_after_finished",
+        s.ttl_seconds_after_finished.into(),
+        0,
+        30 * 24 * 3600,
+    )?;
+    check_range(
+        "termination_grace_seconds",
+        s.termination_grace_seconds.into(),
+        1,
+        3600,
+    )?;
+    check_range("repetitions", s.repetitions.into(), 1, 100)?;
+    check_path("routes_file", &s.routes_file, false)?;
+    check_path("qualifier_routes_file", &s.qualifier_routes_file, false)?;
+    check_path("scenarios_file", &s.scenarios_file, true)?;
+    check_path("sources.leaderboard", &s.sources.leaderboard, false)?;
+    check_path("sources.scenario_runner", &s.sources.scenario_runner, false)?;
+    check_path("sources.carla_api", &s.sources.carla_api, false)?;
+    const WEEK: u64 = 7 * 24 * 3600;
+    let t = &s.timers;
+    check_range(
+        "timers.start_wait_seconds",
+        t.start_wait_seconds.into(),
+        0,
+        WEEK,
+    )?;
+    check_range(
+        "timers.end_wait_seconds",
+        t.end_wait_seconds.into(),
+        0,
+        WEEK,
+    )?;
+    check_range(
+        "timers.carla_ready_seconds",
+        t.carla_ready_seconds.into(),
+        1,
+        WEEK,
+    )?;
+    check_range("timers.poll_seconds", t.poll_seconds.into(), 1, 3600)?;
+    check_range(
+        "timers.max_idle_seconds",
+        t.max_idle_seconds.into(),
+        1,
+        WEEK,
+    )?;
+    check_range(
+        "timers.logcopy_period_seconds",
+        t.logcopy_period_seconds.into(),
+        1,
+        3600,
+    )?;
+    Ok(())
+}
+
+fn printable(text: &str, max_chars: usize) -> String {
+    text.chars()
+        .filter(|c| !c.is_control())
+        .take(max_chars)
+        .collect()
+}
+
+impl JobContext {
+    /// Builds the context of Job `job_index` of `plan`, validating every input.
+    pub fn build(
+        leaderboard: Leaderboard,
+        plan: &Plan,
+        job_index: u32,
+        submission: &SubmissionInfo,
+        settings: &JobSettings,
+    ) -> Result<JobContext, ContextError> {
+        check_settings(settings)?;
+        if plan.submission_id != submission.submission_id {
+            return Err(invalid(
+                "submission_id",
+                submission.submission_id,
+                format!("the plan is for submission {}", plan.submission_id),
+            ));
+        }
+        let Some(job) = plan.jobs.get(job_index as usize) else {
+            return Err(invalid(
+                "job_index",
+                job_index,
+                format!("the plan has {} Job(s)", plan.jobs.len()),
+            ));
+        };
+        let track_ok = !submission.track.is_empty()
+            && submission.track.len() <= 63
+            && submission
+                .track
+                .bytes()
+                .all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'_');
+        if !track_ok {
+            return Err(invalid(
+                "track",
+                &submission.track,
+                "expected a track codename of uppercase letters, digits and `_`",
+            ));
+        }
+        if leaderboard == Leaderboard::V1 && settings.scenarios_file.is_empty() {
+            return Err(invalid(
+                "scenarios_file",
+                "",
+                "Leaderboard 1.0 needs a scenarios file",
+            ));
+        }
+        let images = ImagesContext {
+            carla: check_image("CARLA image", &settings.carla_image)?,
+            private_contents: check_image(
+                "private-contents image",
+                &settings.private_contents_image,
+            )?,
+            participant: check_image("participant image", &submission.participant_image)?,
+        };
+        let team_label = label_value(&submission.team_name);
+        let labels: BTreeMap<String, String> = [
+            (COMPONENT_LABEL, COMPONENT_SUBMISSION.to_owned()),
+            (MANAGED_BY_LABEL, MANAGED_BY.to_owned()),
+            (SUBMISSION_LABEL, submission.submission_id.to_string()),
+            (TEAM_ID_LABEL, submission.team_id.to_string()),
+            (TEAM_LABEL, team_label.clone()),
+            (JOB_INDEX_LABEL, job.index.to_string()),
+            (LEADERBOARD_LABEL, leaderboard.as_str().to_owned()),
+            (TRACK_LABEL, label_value(&submission.track)),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_owned(), v))
+        .collect();
+        Ok(JobContext {
+            leaderboard: leaderboard.as_str().to_owned(),
+            submission_id: submission.submission_id,
+            challenge_id: submission.challenge_id,
+            phase_id: submission.phase_id,
+            team: TeamContext {
+                id: submission.team_id,
+                name: printable(&submission.team_name, MAX_TEAM_NAME_ANNOTATION),
+                label: team_label,
+            },
+            track: submission.track.clone(),
+            participant_resume: if submission.participant_resume {
+                "1"
+            } else {
+                ""
+            }
+            .to_owned(),
+            images,
+            evaluation: EvaluationContext {
+                routes_file: if submission.qualifier {
+                    settings.qualifier_routes_file.clone()
+                } else {
+                    settings.routes_file.clone()
+                },
+                scenarios_file: settings.scenarios_file.clone(),
+                repetitions: settings.repetitions,
+            },
+            aws: AwsContext {
+                region: settings.region.clone(),
+                bucket: settings.bucket.clone(),
+                role_arn: settings.s3_role_arn.clone(),
+                token_file: format!("{AWS_TOKEN_DIR}/token"),
+            },
+            kubernetes: KubernetesContext {
+                namespace: settings.namespace.clone(),
+                service_account: settings.service_account.clone(),
+                instance_type: settings.instance_type.clone(),
+                backoff_limit: settings.backoff_limit,
+                active_deadline_seconds: settings.active_deadline_seconds,
+                ttl_seconds_after_finished: settings.ttl_seconds_after_finished,
+                termination_grace_seconds: settings.termination_grace_seconds,
+            },
+            timers: settings.timers.clone(),
+            sources: settings.sources.clone(),
+            job: JobInfo {
+                index: job.index,
+                name: job.name.clone(),
+                pair_ids: job.pair_ids(),
+                pair_count: job.pairs.len() as u32,
+            },
+            labels,
+            pairs: job
+                .pairs
+                .iter()
+                .map(|p| PairContext {
+                    id: p.id,
+                    worker: p.worker,
+                    slot: p.slot,
+                    routes: p.routes.to_string(),
+                    carla_port: p.carla_port,
+                    tm_port: p.tm_port,
+                    gpu: p.gpu,
+                })
+                .collect(),
+        })
+    }
+
+    /// A complete, valid context (20 routes, 4 workers, one Job) used to check templates at
+    /// load time and in examples.
+    pub fn sample(leaderboard: Leaderboard) -> JobContext {
+        let deployment = LeaderboardSettings {
+            cluster: "leaderboard".into(),
+            namespace: "default".into(),
+            bucket: "leaderboard-submissions".into(),
+            submissions_table: "submissions".into(),
+            qualifier_table: "qualifier".into(),
+            images: lb_domain::settings::Images {
+                carla: "carlasim/carla:0.9.15".into(),
+                private_contents: "registry.example.com/private-contents:1".into(),
+            },
+            instance_type: "g5.12xlarge".into(),
+            gpus_per_node: 4,
+            tracks: BTreeMap::new(),
+            qualifier: Default::default(),
+        };
+        let settings = JobSettings::from_deployment(
+            leaderboard,
+            &deployment,
+            "us-west-2",
+            "arn:aws:iam::123456789012:role/leaderboard-s3",
+        );
+        let plan = lb_domain::plan::plan(lb_domain::plan::PlanInput {
+            submission_id: 1,
+            team_name: "sample",
+            routes: 20,
+            workers: 4,
+            gpus_per_node: 4,
+        })
+        .expect("the sample plan is valid");
+        let submission = SubmissionInfo {
+            submission_id: 1,
+            challenge_id: 1,
+            phase_id: 1,
+            team_id: 1,
+            team_name: "sample".into(),
+            track: "SENSORS".into(),
+            qualifier: false,
+            participant_image: "registry.example.com/team/agent:1".into(),
+            participant_resume: false,
+        };
+        JobContext::build(leaderboard, &plan, 0, &submission, &settings)
+            .expect("the sample context is valid")
+    }
+}

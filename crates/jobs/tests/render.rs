@@ -1,0 +1,771 @@
+//! Rendering the built-in templates for real plans: names, labels, env, images, route
+//! subsets, ports, GPUs, mounts, isolation of the agent, several Jobs, hostile inputs, and
+//! the golden files under `tests/golden/` (regenerate with `LB_UPDATE_GOLDEN=1`).
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use k8s_openapi::api::batch::v1::Job;
+use k8s_openapi::api::core::v1::{Container, PodSpec};
+use lb_domain::plan::{plan, PlanInput, SUBMISSION_LABEL, TEAM_LABEL};
+use lb_domain::results::Leaderboard;
+use lb_domain::settings::{Images, LeaderboardSettings};
+use lb_jobs::template::{LEADERBOARD_10, LEADERBOARD_20};
+use lb_jobs::{
+    render_plan, ContextError, JobContext, JobSettings, JobTemplate, RenderError, SubmissionInfo,
+    TemplateError,
+};
+use proptest::prelude::*;
+use serde_json::Value;
+
+const CARLA_20: &str = "342236305043.dkr.ecr.us-west-2.amazonaws.com/leaderboard-20:carla-0.9.15";
+const CARLA_10: &str = "342236305043.dkr.ecr.us-west-2.amazonaws.com/leaderboard-10:carla-0.9.10.1";
+const PRIVATE: &str =
+    "342236305043.dkr.ecr.us-west-2.amazonaws.com/leaderboard-20:private-contents";
+const AGENT: &str = "342236305043.dkr.ecr.us-west-2.amazonaws.com/team-77:submission-4242";
+
+fn settings(leaderboard: Leaderboard) -> JobSettings {
+    let deployment = LeaderboardSettings {
+        cluster: "leaderboard-20".into(),
+        namespace: "submissions".into(),
+        bucket: "leaderboard-20-results".into(),
+        submissions_table: "submissions".into(),
+        qualifier_table: "qualifier".into(),
+        images: Images {
+            carla: match leaderboard {
+                Leaderboard::V1 => CARLA_10,
+                Leaderboard::V2 => CARLA_20,
+            }
+            .into(),
+            private_contents: PRIVATE.into(),
+        },
+        instance_type: "g5.12xlarge".into(),
+        gpus_per_node: 4,
+        tracks: BTreeMap::new(),
+        qualifier: Default::default(),
+    };
+    JobSettings::from_deployment(
+        leaderboard,
+        &deployment,
+        "us-west-2",
+        "arn:aws:iam::342236305043:role/leaderboard-20-submission-s3",
+    )
+}
+
+fn submission(team: &str, image: &str) -> SubmissionInfo {
+    SubmissionInfo {
+        submission_id: 4242,
+        challenge_id: 2098,
+        phase_id: 4191,
+        team_id: 77,
+        team_name: team.into(),
+        track: "SENSORS".into(),
+        qualifier: false,
+        participant_image: image.into(),
+        participant_resume: false,
+    }
+}
+
+fn jobs(leaderboard: Leaderboard, routes: u32, workers: u32, team: &str) -> Vec<Job> {
+    let p = plan(PlanInput {
+        submission_id: 4242,
+        team_name: team,
+        routes,
+        workers,
+        gpus_per_node: 4,
+    })
+    .unwrap();
+    render_plan(
+        leaderboard,
+        &p,
+        &submission(team, AGENT),
+        &settings(leaderboard),
+    )
+    .unwrap()
+}
+
+fn pod(job: &Job) -> &PodSpec {
+    job.spec.as_ref().unwrap().template.spec.as_ref().unwrap()
+}
+
+fn container<'j>(job: &'j Job, name: &str) -> &'j Container {
+    let p = pod(job);
+    p.containers
+        .iter()
+        .chain(p.init_containers.iter().flatten())
+        .find(|c| c.name == name)
+        .unwrap_or_else(|| panic!("no container {name}"))
+}
+
+fn env(c: &Container) -> BTreeMap<String, String> {
+    c.env
+        .iter()
+        .flatten()
+        .map(|e| (e.name.clone(), e.value.clone().unwrap_or_default()))
+        .collect()
+}
+
+fn mounts(c: &Container) -> Vec<(String, String, String)> {
+    c.volume_mounts
+        .iter()
+        .flatten()
+        .map(|m| {
+            (
+                m.mount_path.clone(),
+                m.name.clone(),
+                m.sub_path.clone().unwrap_or_default(),
+            )
+        })
+        .collect()
+}
+
+fn names(job: &Job) -> Vec<String> {
+    pod(job).containers.iter().map(|c| c.name.clone()).collect()
+}
+
+fn command(c: &Container) -> Vec<String> {
+    c.command
+        .iter()
+        .flatten()
+        .chain(c.args.iter().flatten())
+        .cloned()
+        .collect()
+}
+
+#[test]
+fn a_20_route_4_worker_leaderboard_2_submission_is_one_job_of_four_pairs() {
+    let jobs = jobs(Leaderboard::V2, 20, 4, "Team Zoë");
+    assert_eq!(jobs.len(), 1);
+    let job = &jobs[0];
+    assert_eq!(job.metadata.name.as_deref(), Some("lb-4242-team-zoe-0"));
+    assert_eq!(job.metadata.namespace.as_deref(), Some("submissions"));
+    assert_eq!(
+        names(job),
+        [
+            "simulator-1",
+            "agent-1",
+            "simulator-2",
+            "agent-2",
+            "simulator-3",
+            "agent-3",
+            "simulator-4",
+            "agent-4",
+            "logcopy"
+        ]
+    );
+    let init: Vec<&str> = pod(job)
+        .init_containers
+        .iter()
+        .flatten()
+        .map(|c| c.name.as_str())
+        .collect();
+    assert_eq!(init, ["private-contents"]);
+
+    let spec = job.spec.as_ref().unwrap();
+    assert_eq!(spec.backoff_limit, Some(8));
+    assert_eq!(spec.active_deadline_seconds, Some(4 * 24 * 3600));
+    assert_eq!(pod(job).restart_policy.as_deref(), Some("OnFailure"));
+    assert_eq!(pod(job).automount_service_account_token, Some(false));
+    assert_eq!(pod(job).enable_service_links, Some(false));
+    assert_eq!(
+        pod(job).service_account_name.as_deref(),
+        Some("submission-worker")
+    );
+    assert_eq!(
+        pod(job).node_selector.as_ref().unwrap()["node.kubernetes.io/instance-type"],
+        "g5.12xlarge"
+    );
+
+    for (i, subset) in ["0-4", "5-9", "10-14", "15-19"].iter().enumerate() {
+        let id = i + 1;
+        let port = 2000 + 100 * i;
+        for role in ["simulator", "agent"] {
+            let c = container(job, &format!("{role}-{id}"));
+            let e = env(c);
+            assert_eq!(e["LB_SUBMISSION_ID"], "4242");
+            assert_eq!(e["LB_JOB_INDEX"], "0");
+            assert_eq!(e["LB_LEADERBOARD"], "2.0");
+            assert_eq!(e["LB_PAIR_ID"], id.to_string());
+            assert_eq!(e["ROUTES_SUBSET"], *subset);
+            assert_eq!(e["CARLA_PORT"], port.to_string());
+            assert_eq!(e["CARLA_TM_PORT"], (port + 10).to_string());
+            assert_eq!(e["REPETITIONS"], "1");
+            assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], i.to_string());
+            assert_eq!(e["LB_START_WAIT_SECONDS"], "3600");
+            assert_eq!(command(c)[0], "/opt/lb/lb-sidecar");
+        }
+        let sim = container(job, &format!("simulator-{id}"));
+        assert_eq!(sim.image.as_deref(), Some(CARLA_20));
+        assert_eq!(sim.working_dir.as_deref(), Some("/home/carla"));
+        assert_eq!(
+            command(sim)[1..],
+            [
+                "simulator",
+                "--",
+                "./CarlaUE4.sh",
+                "-vulkan",
+                "-carla-rpc-port=$(CARLA_PORT)",
+                "-RenderOffScreen",
+                "-nosound",
+                &format!("-ini:[/Script/Engine.RendererSettings]:r.GraphicsAdapter={i}"),
+            ]
+        );
+        let agent = container(job, &format!("agent-{id}"));
+        assert_eq!(agent.image.as_deref(), Some(AGENT));
+        let e = env(agent);
+        assert_eq!(e["CHALLENGE_TRACK_CODENAME"], "SENSORS");
+        assert_eq!(
+            e["ROUTES"],
+            "/workspace/leaderboard/data/routes_testing.xml"
+        );
+        assert_eq!(e["LB_MAX_IDLE_SECONDS"], "800");
+        assert_eq!(e["LEADERBOARD_ROOT"], "/workspace/leaderboard");
+        assert!(e["PYTHONPATH"].contains("carla-0.9.15"));
+        assert!(!e.contains_key("SCENARIOS"));
+        let cmd = command(agent);
+        assert_eq!(cmd[1..5], ["agent", "--", "bash", "-c"]);
+        for flag in [
+            "--traffic-manager-port=\"${CARLA_TM_PORT}\"",
+            "--debug-checkpoint=\"${DEBUG_CHECKPOINT_ENDPOINT}\"",
+            "--routes-subset=\"${ROUTES_SUBSET}\"",
+            "--checkpoint=\"${CHECKPOINT_ENDPOINT}\"",
+            "--resume=\"${RESUME}\"",
+            "agent_sources.sh",
+        ] {
+            assert!(cmd[5].contains(flag), "{flag} missing from {}", cmd[5]);
+        }
+        assert_eq!(
+            mounts(agent),
+            [
+                (
+                    "/tmp/status".into(),
+                    "logs".into(),
+                    "containers-status".into()
+                ),
+                ("/tmp/agent".into(), "logs".into(), "agent".into()),
+                ("/tmp/logs".into(), "logs".into(), "logs".into()),
+                ("/opt/lb".into(), "lb-bin".into(), String::new()),
+                ("/dev/shm".into(), "dshm".into(), String::new()),
+                (
+                    "/workspace/leaderboard".into(),
+                    "leaderboard".into(),
+                    String::new()
+                ),
+                (
+                    "/workspace/scenario_runner".into(),
+                    "scenario-runner".into(),
+                    String::new()
+                ),
+                ("/workspace/CARLA".into(), "carla-api".into(), String::new()),
+            ]
+        );
+        assert_eq!(
+            mounts(sim)[..3],
+            [
+                (
+                    "/tmp/status".into(),
+                    "logs".into(),
+                    "containers-status".into()
+                ),
+                ("/tmp/logs".into(), "logs".into(), "logs".into()),
+                ("/opt/lb".into(), "lb-bin".into(), String::new()),
+            ]
+        );
+    }
+
+    let logcopy = container(job, "logcopy");
+    assert_eq!(logcopy.image.as_deref(), Some(PRIVATE));
+    assert_eq!(command(logcopy), ["/opt/lb/lb-sidecar", "logcopy"]);
+    let e = env(logcopy);
+    assert_eq!(e["LB_PAIRS"], "1,2,3,4");
+    assert_eq!(e["LB_S3_BUCKET"], "leaderboard-20-results");
+    assert_eq!(e["LB_PERIOD_SECONDS"], "10");
+    assert_eq!(e["LB_BACKOFF_LIMIT"], "8");
+    assert_eq!(e["AWS_REGION"], "us-west-2");
+    assert_eq!(
+        e["AWS_ROLE_ARN"],
+        "arn:aws:iam::342236305043:role/leaderboard-20-submission-s3"
+    );
+    assert_eq!(
+        e["AWS_WEB_IDENTITY_TOKEN_FILE"],
+        "/var/run/secrets/eks.amazonaws.com/serviceaccount/token"
+    );
+    assert_eq!(
+        mounts(logcopy)[0],
+        ("/logs".into(), "logs".into(), String::new())
+    );
+
+    let init = container(job, "private-contents");
+    assert_eq!(command(init), ["lb-sidecar", "init"]);
+    let e = env(init);
+    assert_eq!(e["LB_PAIRS"], "1,2,3,4");
+    assert_eq!(e["LB_PARTICIPANT_RESUME"], "");
+    assert_eq!(e["LB_SOURCE_LEADERBOARD"], "/src/leaderboard");
+    assert!(e.contains_key("AWS_ROLE_ARN"));
+}
+
+#[test]
+fn every_job_and_its_pods_carry_the_submission_labels() {
+    let jobs = jobs(Leaderboard::V2, 20, 4, "Team Zoë");
+    let job = &jobs[0];
+    let labels = job.metadata.labels.as_ref().unwrap();
+    let expected: BTreeMap<String, String> = [
+        ("app.kubernetes.io/component", "submission"),
+        ("app.kubernetes.io/managed-by", "leaderboard-cloud"),
+        ("leaderboard.carla.org/job-index", "0"),
+        ("leaderboard.carla.org/leaderboard", "2.0"),
+        ("leaderboard.carla.org/submission-id", "4242"),
+        ("leaderboard.carla.org/team", "Team-Zoe"),
+        ("leaderboard.carla.org/team-id", "77"),
+        ("leaderboard.carla.org/track", "SENSORS"),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_owned(), v.to_owned()))
+    .collect();
+    assert_eq!(labels, &expected);
+    let template = job
+        .spec
+        .as_ref()
+        .unwrap()
+        .template
+        .metadata
+        .as_ref()
+        .unwrap();
+    assert_eq!(template.labels.as_ref(), Some(&expected));
+    assert_eq!(
+        template.annotations.as_ref().unwrap()["leaderboard.carla.org/team-name"],
+        "Team Zoë"
+    );
+}
+
+#[test]
+fn no_aws_variable_or_token_reaches_the_simulators_and_agents() {
+    for leaderboard in [Leaderboard::V1, Leaderboard::V2] {
+        let jobs = jobs(leaderboard, 20, 4, "t");
+        let p = pod(&jobs[0]);
+        for c in p.containers.iter().filter(|c| c.name != "logcopy") {
+            let raw = serde_json::to_string(c).unwrap();
+            assert!(!raw.contains("AWS_"), "{} has AWS variables", c.name);
+            assert!(!raw.contains("token"), "{} mentions a token", c.name);
+            assert!(!raw.contains("/var/run/secrets"), "{}", c.name);
+            assert!(c.env_from.is_none());
+            assert_ne!(
+                c.security_context.as_ref().and_then(|s| s.privileged),
+                Some(true)
+            );
+        }
+        // The projected token is mounted by init and logcopy only.
+        let token_users: Vec<&str> = p
+            .containers
+            .iter()
+            .chain(p.init_containers.iter().flatten())
+            .filter(|c| {
+                c.volume_mounts
+                    .iter()
+                    .flatten()
+                    .any(|m| m.name == "aws-iam-token")
+            })
+            .map(|c| c.name.as_str())
+            .collect();
+        assert_eq!(token_users, ["logcopy", "private-contents"]);
+        assert_eq!(p.automount_service_account_token, Some(false));
+    }
+}
+
+#[test]
+fn a_12_route_3_worker_leaderboard_1_submission_runs_three_pairs_five_times() {
+    let jobs = jobs(Leaderboard::V1, 12, 3, "team");
+    assert_eq!(jobs.len(), 1);
+    let job = &jobs[0];
+    assert_eq!(
+        names(job),
+        [
+            "simulator-1",
+            "agent-1",
+            "simulator-2",
+            "agent-2",
+            "simulator-3",
+            "agent-3",
+            "logcopy"
+        ]
+    );
+    for (i, subset) in ["0-3", "4-7", "8-11"].iter().enumerate() {
+        let sim = container(job, &format!("simulator-{}", i + 1));
+        assert_eq!(sim.image.as_deref(), Some(CARLA_10));
+        assert_eq!(
+            command(sim)[1..],
+            [
+                "simulator",
+                "--",
+                "./CarlaUE4.sh",
+                "-opengl",
+                "-nosound",
+                "-carla-rpc-port=$(CARLA_PORT)"
+            ]
+        );
+        assert_eq!(env(sim)["SDL_VIDEODRIVER"], "offscreen");
+        let agent = container(job, &format!("agent-{}", i + 1));
+        let e = env(agent);
+        assert_eq!(e["ROUTES_SUBSET"], *subset);
+        assert_eq!(e["REPETITIONS"], "5");
+        assert_eq!(e["LB_LEADERBOARD"], "1.0");
+        assert_eq!(
+            e["SCENARIOS"],
+            "/workspace/leaderboard/data/all_towns_traffic_scenarios_private.json"
+        );
+        assert!(e["PYTHONPATH"].contains("carla-0.9.10"));
+        let cmd = &command(agent)[5];
+        assert!(cmd.contains("--scenarios=\"${SCENARIOS}\""));
+        assert!(!cmd.contains("traffic-manager-port"));
+        assert!(!cmd.contains("debug-checkpoint"));
+        assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], i.to_string());
+    }
+    assert_eq!(env(container(job, "logcopy"))["LB_PAIRS"], "1,2,3");
+}
+
+#[test]
+fn more_workers_than_gpus_make_several_jobs_with_global_pair_ids() {
+    let jobs = jobs(Leaderboard::V2, 20, 10, "team");
+    let job_names: Vec<&str> = jobs
+        .iter()
+        .map(|j| j.metadata.name.as_deref().unwrap())
+        .collect();
+    assert_eq!(
+        job_names,
+        ["lb-4242-team-0", "lb-4242-team-1", "lb-4242-team-2"]
+    );
+    assert_eq!(
+        names(&jobs[2]),
+        [
+            "simulator-9",
+            "agent-9",
+            "simulator-10",
+            "agent-10",
+            "logcopy"
+        ]
+    );
+    let e = env(container(&jobs[2], "agent-10"));
+    assert_eq!(e["LB_JOB_INDEX"], "2");
+    assert_eq!(e["LB_PAIR_ID"], "10");
+    assert_eq!(e["CARLA_PORT"], "2100");
+    assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], "1");
+    assert_eq!(e["ROUTES_SUBSET"], "18-19");
+    assert_eq!(env(container(&jobs[1], "logcopy"))["LB_PAIRS"], "5,6,7,8");
+    for (i, job) in jobs.iter().enumerate() {
+        let labels = job.metadata.labels.as_ref().unwrap();
+        assert_eq!(labels[SUBMISSION_LABEL], "4242");
+        assert_eq!(labels["leaderboard.carla.org/job-index"], i.to_string());
+    }
+}
+
+#[test]
+fn a_qualifier_track_runs_the_qualifier_routes_and_a_resume_is_passed_to_init() {
+    let p = plan(PlanInput {
+        submission_id: 4242,
+        team_name: "t",
+        routes: 10,
+        workers: 2,
+        gpus_per_node: 4,
+    })
+    .unwrap();
+    let mut s = submission("t", AGENT);
+    s.track = "SENSORS_QUALIFIER".into();
+    s.qualifier = true;
+    s.participant_resume = true;
+    let jobs = render_plan(Leaderboard::V2, &p, &s, &settings(Leaderboard::V2)).unwrap();
+    let e = env(container(&jobs[0], "agent-1"));
+    assert_eq!(
+        e["ROUTES"],
+        "/workspace/leaderboard/data/routes_qualifier.xml"
+    );
+    assert_eq!(e["CHALLENGE_TRACK_CODENAME"], "SENSORS_QUALIFIER");
+    assert_eq!(
+        env(container(&jobs[0], "private-contents"))["LB_PARTICIPANT_RESUME"],
+        "1"
+    );
+}
+
+#[test]
+fn hostile_images_are_refused_before_rendering() {
+    let p = plan(PlanInput {
+        submission_id: 4242,
+        team_name: "t",
+        routes: 20,
+        workers: 4,
+        gpus_per_node: 4,
+    })
+    .unwrap();
+    for bad in [
+        "",
+        "img:latest\n    command: [sh]",
+        "img --privileged",
+        "Team/Agent:latest",
+        "img:$(AWS_ROLE_ARN)",
+        "img@sha256:short",
+    ] {
+        let err = render_plan(
+            Leaderboard::V2,
+            &p,
+            &submission("t", bad),
+            &settings(Leaderboard::V2),
+        )
+        .unwrap_err();
+        assert_eq!(err.name(), "InvalidImage", "{bad:?}");
+        assert!(
+            matches!(
+                &err,
+                RenderError::Context(ContextError::InvalidImage {
+                    field: "participant image",
+                    ..
+                })
+            ),
+            "{err}"
+        );
+    }
+    let mut s = settings(Leaderboard::V2);
+    s.carla_image = "carla image".into();
+    let err = render_plan(Leaderboard::V2, &p, &submission("t", AGENT), &s).unwrap_err();
+    assert!(err.to_string().contains("CARLA image"), "{err}");
+}
+
+#[test]
+fn invalid_settings_are_named() {
+    let p = plan(PlanInput {
+        submission_id: 4242,
+        team_name: "t",
+        routes: 20,
+        workers: 4,
+        gpus_per_node: 4,
+    })
+    .unwrap();
+    type Edit = Box<dyn Fn(&mut JobSettings)>;
+    let edits: Vec<(&str, Edit)> = vec![
+        ("namespace", Box::new(|s| s.namespace = "Bad NS".into())),
+        (
+            "s3_role_arn",
+            Box::new(|s| s.s3_role_arn = "arn:aws:iam::1:role/x".into()),
+        ),
+        ("bucket", Box::new(|s| s.bucket = "Bucket_Name".into())),
+        ("region", Box::new(|s| s.region = "us west".into())),
+        (
+            "routes_file",
+            Box::new(|s| s.routes_file = "/data/$(AWS_ROLE_ARN).xml".into()),
+        ),
+        ("repetitions", Box::new(|s| s.repetitions = 0)),
+        (
+            "instance_type",
+            Box::new(|s| s.instance_type = String::new()),
+        ),
+        (
+            "service_account",
+            Box::new(|s| s.service_account = "-sa".into()),
+        ),
+    ];
+    for (field, edit) in edits {
+        let mut s = settings(Leaderboard::V2);
+        edit(&mut s);
+        let err = render_plan(Leaderboard::V2, &p, &submission("t", AGENT), &s).unwrap_err();
+        assert_eq!(err.name(), "InvalidJobSetting");
+        assert!(
+            matches!(&err, RenderError::Context(ContextError::InvalidSetting { field: f, .. }) if *f == field),
+            "{field}: {err}"
+        );
+    }
+    let mut bad_track = submission("t", AGENT);
+    bad_track.track = "sensors; rm".into();
+    let err = render_plan(Leaderboard::V2, &p, &bad_track, &settings(Leaderboard::V2)).unwrap_err();
+    assert!(err.to_string().contains("`track`"), "{err}");
+    let mut other = submission("t", AGENT);
+    other.submission_id = 1;
+    let err = render_plan(Leaderboard::V2, &p, &other, &settings(Leaderboard::V2)).unwrap_err();
+    assert!(
+        err.to_string().contains("the plan is for submission 4242"),
+        "{err}"
+    );
+}
+
+fn hostile_name() -> impl Strategy<Value = String> {
+    prop_oneof![
+        Just(String::new()),
+        Just("🚗🏎️ Fast & Furious".to_owned()),
+        Just("x".repeat(300)),
+        Just("'; DROP TABLE teams; --".to_owned()),
+        Just("team\nkind: Pod\n  evil: true".to_owned()),
+        Just("{{ .Values }} $(AWS_ROLE_ARN) ${HOME}".to_owned()),
+        Just("\u{1b}[31mred\u{1b}[0m\u{0}".to_owned()),
+        Just("-._-".to_owned()),
+        ".{0,200}",
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+    #[test]
+    fn any_team_name_renders_valid_jobs_with_label_safe_values(name in hostile_name()) {
+        let jobs = jobs(Leaderboard::V2, 20, 6, &name);
+        prop_assert_eq!(jobs.len(), 2);
+        for job in &jobs {
+            let n = job.metadata.name.as_deref().unwrap();
+            prop_assert!(lb_domain::plan::is_dns_label(n), "{}", n);
+            let label = &job.metadata.labels.as_ref().unwrap()[TEAM_LABEL];
+            prop_assert!(lb_domain::plan::is_label_value(label), "{:?}", label);
+            let annotation = &job.metadata.annotations.as_ref().unwrap()["leaderboard.carla.org/team-name"];
+            prop_assert!(!annotation.chars().any(char::is_control));
+            prop_assert!(annotation.chars().count() <= 256);
+        }
+        prop_assert_ne!(jobs[0].metadata.name.as_ref(), jobs[1].metadata.name.as_ref());
+    }
+}
+
+#[test]
+fn every_dollar_path_in_the_templates_resolves_against_the_job_context() {
+    for leaderboard in [Leaderboard::V1, Leaderboard::V2] {
+        let template = JobTemplate::builtin(leaderboard).unwrap();
+        let ctx = JobContext::sample(leaderboard);
+        let mut input = serde_json::to_value(&ctx).unwrap();
+        input["pair"] = serde_json::to_value(&ctx.pairs[0]).unwrap();
+        input["assembled"] = serde_json::json!({"init_containers": [], "containers": []});
+        let fields = template.dynamic_fields();
+        assert!(fields.len() > 30, "{}", fields.len());
+        for (section, field) in fields {
+            for path in field.paths {
+                assert!(
+                    path.select(&input, &Value::Null).is_some(),
+                    "{}: {section} {} reads {} which the context lacks",
+                    template.name(),
+                    field.location,
+                    path.text()
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn a_template_reading_a_missing_context_key_fails_to_load() {
+    let broken = LEADERBOARD_20.replace("$.images.carla", "$.images.carla_typo");
+    let err = JobTemplate::parse("broken", &broken).unwrap_err();
+    assert!(matches!(err, TemplateError::Check { .. }), "{err:?}");
+    let msg = err.to_string();
+    assert!(msg.contains("'$.images.carla_typo'"), "{msg}");
+    assert!(msg.contains("States.Runtime"), "{msg}");
+    assert_eq!(RenderError::from(err).name(), "InvalidJobTemplate");
+}
+
+#[test]
+fn a_misplaced_or_unknown_kubernetes_field_fails_to_load_with_its_path() {
+    let broken = LEADERBOARD_10.replace("    workingDir: /home/carla", "    workDir: /home/carla");
+    let msg = JobTemplate::parse("broken", &broken)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("`spec.template.spec.containers[0].workDir`"),
+        "{msg}"
+    );
+    let broken = LEADERBOARD_20.replace(
+        "        restartPolicy: OnFailure",
+        "        restartPolicy: Never",
+    );
+    let msg = JobTemplate::parse("broken", &broken)
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("restartPolicy"), "{msg}");
+}
+
+#[test]
+fn malformed_template_files_are_refused() {
+    for (text, needle) in [
+        ("pair: [\n", "not a valid template file"),
+        ("pair: []\nper_job: {init_containers: [], containers: []}\njob: {}\nextra: 1\n", "unknown field `extra`"),
+        ("pair: [{name.$: 3}]\nper_job: {init_containers: [], containers: []}\njob: {}\n", "section `pair`"),
+        (
+            "pair: [{name.$: \"States.Format('{} {}', $.pair.id)\"}]\nper_job: {init_containers: [], containers: []}\njob: {}\n",
+            "2 `{}` but 1 value",
+        ),
+    ] {
+        let msg = JobTemplate::parse("t", text).unwrap_err().to_string();
+        assert!(msg.contains(needle), "{text}: {msg}");
+    }
+}
+
+fn golden_path(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/golden")
+        .join(name)
+}
+
+fn to_yaml(jobs: &[Job]) -> String {
+    let mut out = String::from(
+        "# Generated by crates/jobs/tests/render.rs; regenerate with LB_UPDATE_GOLDEN=1 cargo test -p lb-jobs.\n",
+    );
+    for job in jobs {
+        out.push_str("---\n");
+        out.push_str(&serde_yaml::to_string(job).unwrap());
+    }
+    out
+}
+
+fn check_golden(name: &str, jobs: &[Job]) {
+    let path = golden_path(name);
+    let rendered = to_yaml(jobs);
+    if std::env::var_os("LB_UPDATE_GOLDEN").is_some() {
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(&path, &rendered).unwrap();
+        return;
+    }
+    let expected = std::fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("{}: {e} (run with LB_UPDATE_GOLDEN=1)", path.display()));
+    assert!(
+        expected == rendered,
+        "{} is stale; run `LB_UPDATE_GOLDEN=1 cargo test -p lb-jobs` and review the diff",
+        path.display()
+    );
+}
+
+#[test]
+fn the_golden_files_match_the_rendered_jobs() {
+    check_golden(
+        "leaderboard-20.yaml",
+        &jobs(Leaderboard::V2, 20, 4, "Team Zoë"),
+    );
+    check_golden(
+        "leaderboard-10.yaml",
+        &jobs(Leaderboard::V1, 12, 3, "Team Zoë"),
+    );
+}
+
+/// Runs the pinned `kubernetes-validate` (tests/requirements.txt) on every rendered template.
+#[test]
+#[ignore = "needs venv"]
+fn kubernetes_validate_accepts_every_rendered_job() {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let tool = root.join(".venv/bin/kubernetes-validate");
+    assert!(
+        tool.exists(),
+        "{} is missing: run `make venv`",
+        tool.display()
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let mut files = Vec::new();
+    for (name, jobs) in [
+        ("lb20.yaml", jobs(Leaderboard::V2, 20, 10, "Team Zoë")),
+        ("lb10.yaml", jobs(Leaderboard::V1, 12, 3, "team")),
+    ] {
+        let path = dir.path().join(name);
+        std::fs::write(&path, to_yaml(&jobs)).unwrap();
+        files.push(path);
+    }
+    let output = std::process::Command::new(&tool)
+        .arg("--strict")
+        .arg("--quiet")
+        .args(&files)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "kubernetes-validate failed:\n{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}

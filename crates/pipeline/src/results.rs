@@ -1,0 +1,150 @@
+//! The submission's results as the workers left them in S3: fingerprinted cheaply, merged with
+//! the Leaderboard's rules, turned into the EvalAI files and stored next to them.
+
+use lb_aws::s3::{EvalAiObjects, SubmissionStore, MAX_PARTIAL_BYTES};
+use lb_domain::results::{
+    self, read_worker_files, EvalAiFiles, Leaderboard, MergeOptions, ResultsFile, RouteSubset, WorkerFile, WorkerInput,
+};
+use tracing::warn;
+
+use crate::payload::PairRoutes;
+use crate::FnError;
+
+/// The merged view of one moment.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Snapshot {
+    /// What was read (see [`fingerprint`]).
+    pub fingerprint: String,
+    /// The EvalAI files.
+    pub files: EvalAiFiles,
+    /// `agent_results.json`, when any worker wrote results.
+    pub merged_json: Option<String>,
+    /// Routes done and planned.
+    pub progress: (u64, u64),
+    /// Every planned route has a record and the global statistics exist.
+    pub complete: bool,
+    /// (DynamoDB attribute, value) per metric.
+    pub metrics: Vec<(&'static str, f64)>,
+}
+
+/// Identifies the workers' files as they are now (keys and ETags), from one listing.
+pub async fn fingerprint(store: &SubmissionStore) -> Result<String, FnError> {
+    Ok(fingerprint_of(&store.partials().await?))
+}
+
+fn fingerprint_of(partials: &[lb_aws::s3::PartialObject]) -> String {
+    partials
+        .iter()
+        .map(|p| format!("{}:{}", p.pair_id, p.etag.trim_matches('"')))
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// Downloads the workers' files, merges them and writes the EvalAI files to S3.
+///
+/// A worker file is the participant's container's output: its errors (`ResultsInvalid`, ...)
+/// are raised with their names so the run fails with a readable reason.
+pub async fn collect(
+    store: &SubmissionStore,
+    leaderboard: Leaderboard,
+    pairs: &[PairRoutes],
+    repetitions: u32,
+) -> Result<Snapshot, FnError> {
+    let partials = store.partials().await?;
+    let fingerprint = fingerprint_of(&partials);
+    let mut sources = Vec::new();
+    let mut contents = Vec::new();
+    let mut subsets = Vec::new();
+    for partial in &partials {
+        let Some(pair) = pairs.iter().find(|p| p.id == partial.pair_id) else {
+            warn!(key = %partial.key, "results file of no planned worker, ignored");
+            continue;
+        };
+        let subset: RouteSubset = pair
+            .routes
+            .parse()
+            .map_err(|e| FnError::Input(format!("pair {} routes `{}`: {e}", pair.id, pair.routes)))?;
+        sources.push(partial.key.clone());
+        contents.push(store.get_bounded(&partial.key, MAX_PARTIAL_BYTES).await?);
+        subsets.push(subset);
+    }
+    let inputs: Vec<WorkerInput<'_>> = sources
+        .iter()
+        .zip(&contents)
+        .zip(&subsets)
+        .map(|((source, bytes), subset)| WorkerInput {
+            source,
+            bytes: Some(bytes),
+            subset: Some(*subset),
+        })
+        .collect();
+    let mut present: Vec<ResultsFile> = Vec::new();
+    for read in read_worker_files(&inputs, leaderboard) {
+        match read.map_err(results_error)? {
+            WorkerFile::Present(file) => present.push(file),
+            WorkerFile::Empty(reason) => warn!(%reason, "a results file counts as empty"),
+        }
+    }
+    let planned: u64 = pairs
+        .iter()
+        .filter_map(|p| p.routes.parse::<RouteSubset>().ok())
+        .map(|s| s.last - s.first + 1)
+        .sum::<u64>()
+        * u64::from(repetitions);
+    let (merged, complete) = if present.is_empty() {
+        (None, false)
+    } else {
+        let outcome = results::merge(
+            present,
+            MergeOptions {
+                leaderboard,
+                expected_records: Some(planned),
+            },
+        )
+        .map_err(results_error)?;
+        (Some(outcome.merged), outcome.complete)
+    };
+    let files = EvalAiFiles::generate(merged.as_ref(), leaderboard);
+    let merged_json = merged.as_ref().map(|m| m.to_json());
+    let progress = merged.as_ref().map_or((0, planned), |m| m.progress);
+    let metrics = metrics(&files, leaderboard);
+    store
+        .put_evalai_files(&EvalAiObjects {
+            merged: merged_json.as_deref(),
+            results: &files.results_json(),
+            stdout: &files.stdout,
+            metadata: files.metadata.as_deref(),
+        })
+        .await?;
+    Ok(Snapshot {
+        fingerprint,
+        files,
+        merged_json,
+        progress,
+        complete,
+        metrics,
+    })
+}
+
+/// (DynamoDB attribute, value) for each metric EvalAI gets.
+fn metrics(files: &EvalAiFiles, leaderboard: Leaderboard) -> Vec<(&'static str, f64)> {
+    let accuracies = files.accuracies();
+    leaderboard
+        .metrics()
+        .iter()
+        .filter_map(|m| {
+            accuracies
+                .iter()
+                .find(|(label, _)| *label == m.label)
+                .map(|(_, value)| (m.attribute, value.as_f64()))
+        })
+        .collect()
+}
+
+fn results_error(e: lb_domain::results::ResultsError) -> FnError {
+    FnError::Stage {
+        name: e.name(),
+        message: e.to_string(),
+        transient: false,
+    }
+}
