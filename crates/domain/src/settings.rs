@@ -72,6 +72,10 @@ pub struct LeaderboardSettings {
     /// Qualifier gating.
     #[serde(default)]
     pub qualifier: QualifierSettings,
+    /// IAM role the Jobs' init and logcopy containers assume (IRSA) for the bucket; empty
+    /// where credentials come otherwise (local mode).
+    #[serde(default)]
+    pub job_role_arn: String,
 }
 
 fn default_namespace() -> String {
@@ -114,6 +118,27 @@ pub struct QualifierSettings {
     /// Metric attribute (e.g. `driving_score`) -> minimum value to pass.
     #[serde(default)]
     pub thresholds: BTreeMap<String, f64>,
+}
+
+impl QualifierSettings {
+    /// Whether `metrics` ((attribute, value) pairs) pass every threshold, and the verdict
+    /// line shown first in the participant's stdout. A missing metric fails its threshold.
+    pub fn verdict(&self, metrics: &[(&str, f64)]) -> (bool, String) {
+        let mut passed = true;
+        let mut parts = Vec::new();
+        for (attribute, min) in &self.thresholds {
+            let value = metrics
+                .iter()
+                .find(|(a, _)| a == attribute)
+                .map(|(_, v)| *v);
+            let ok = value.is_some_and(|v| v >= *min);
+            passed &= ok;
+            let shown = value.map_or("missing".to_string(), |v| format!("{v}"));
+            parts.push(format!("{attribute} {shown} (needs {min})"));
+        }
+        let word = if passed { "PASSED" } else { "NOT PASSED" };
+        (passed, format!("Qualifier {word}: {}", parts.join(", ")))
+    }
 }
 
 /// Why the configuration is unusable.
@@ -316,6 +341,25 @@ mod tests {
         assert_eq!(target.required_qualifier(), Some("SENSORS_QUALIFIER"));
         assert_eq!(settings.target(1235).unwrap().required_qualifier(), None);
         assert_eq!(settings.target(9).unwrap_err().name(), "UnknownPhase");
+    }
+
+    #[test]
+    fn the_qualifier_verdict_needs_every_threshold() {
+        let q = Settings::from_json(EXAMPLE).unwrap().leaderboards["2.0"]
+            .qualifier
+            .clone();
+        assert_eq!(
+            q.verdict(&[("driving_score", 12.5)]),
+            (
+                true,
+                "Qualifier PASSED: driving_score 12.5 (needs 10)".to_string()
+            )
+        );
+        assert!(!q.verdict(&[("driving_score", 9.99)]).0);
+        assert_eq!(
+            q.verdict(&[]).1,
+            "Qualifier NOT PASSED: driving_score missing (needs 10)"
+        );
     }
 
     #[test]

@@ -687,6 +687,7 @@ impl JobContext {
             gpus_per_node: 4,
             tracks: BTreeMap::new(),
             qualifier: Default::default(),
+            job_role_arn: String::new(),
         };
         let settings = JobSettings::from_deployment(
             leaderboard,

@@ -43,6 +43,7 @@ fn settings(leaderboard: Leaderboard) -> JobSettings {
         gpus_per_node: 4,
         tracks: BTreeMap::new(),
         qualifier: Default::default(),
+        job_role_arn: String::new(),
     };
     JobSettings::from_deployment(
         leaderboard,

@@ -1,6 +1,7 @@
 //! What the pipeline's functions share: the payloads that travel through the state machine,
 //! the error names it matches, and the configuration every function reads once.
 
+pub mod cluster;
 pub mod config;
 pub mod error;
 pub mod payload;

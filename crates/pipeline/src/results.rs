@@ -3,7 +3,8 @@
 
 use lb_aws::s3::{EvalAiObjects, SubmissionStore, MAX_PARTIAL_BYTES};
 use lb_domain::results::{
-    self, read_worker_files, EvalAiFiles, Leaderboard, MergeOptions, ResultsFile, RouteSubset, WorkerFile, WorkerInput,
+    self, read_worker_files, EvalAiFiles, Leaderboard, MergeOptions, ResultsFile, RouteSubset,
+    WorkerFile, WorkerInput,
 };
 use tracing::warn;
 
@@ -60,10 +61,9 @@ pub async fn collect(
             warn!(key = %partial.key, "results file of no planned worker, ignored");
             continue;
         };
-        let subset: RouteSubset = pair
-            .routes
-            .parse()
-            .map_err(|e| FnError::Input(format!("pair {} routes `{}`: {e}", pair.id, pair.routes)))?;
+        let subset: RouteSubset = pair.routes.parse().map_err(|e| {
+            FnError::Input(format!("pair {} routes `{}`: {e}", pair.id, pair.routes))
+        })?;
         sources.push(partial.key.clone());
         contents.push(store.get_bounded(&partial.key, MAX_PARTIAL_BYTES).await?);
         subsets.push(subset);

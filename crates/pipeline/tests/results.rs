@@ -11,7 +11,10 @@ fn pairs(subsets: &[&str]) -> Vec<PairRoutes> {
     subsets
         .iter()
         .enumerate()
-        .map(|(i, routes)| PairRoutes { id: i as u32 + 1, routes: routes.to_string() })
+        .map(|(i, routes)| PairRoutes {
+            id: i as u32 + 1,
+            routes: routes.to_string(),
+        })
         .collect()
 }
 
@@ -36,7 +39,14 @@ async fn the_finished_fixture_merges_to_the_official_files_and_lands_in_s3() {
     assert_eq!(fingerprint(&store).await.unwrap(), "");
     for id in 1..=4 {
         let bytes = std::fs::read(case.join(format!("input/worker{id}.json"))).unwrap();
-        store.put(&format!("agent/partial_agent_results{id}.json"), bytes, "application/json").await.unwrap();
+        store
+            .put(
+                &format!("agent/partial_agent_results{id}.json"),
+                bytes,
+                "application/json",
+            )
+            .await
+            .unwrap();
     }
     let snapshot = collect(&store, Leaderboard::V2, &plan, 1).await.unwrap();
     assert!(snapshot.complete);
@@ -44,10 +54,18 @@ async fn the_finished_fixture_merges_to_the_official_files_and_lands_in_s3() {
     assert_eq!(snapshot.metrics.len(), 15);
     assert_eq!(snapshot.fingerprint, fingerprint(&store).await.unwrap());
     let expected = |name: &str| std::fs::read_to_string(case.join("expected").join(name)).unwrap();
-    assert_eq!(stored(&store, "42/evalai/stdout.txt").await, expected("stdout.txt"));
-    assert_eq!(stored(&store, "42/agent_results.json").await, expected("merged.json"));
-    let results: serde_json::Value = serde_json::from_str(&stored(&store, "42/evalai/results.json").await).unwrap();
-    let expected_results: serde_json::Value = serde_json::from_str(&expected("results.json")).unwrap();
+    assert_eq!(
+        stored(&store, "42/evalai/stdout.txt").await,
+        expected("stdout.txt")
+    );
+    assert_eq!(
+        stored(&store, "42/agent_results.json").await,
+        expected("merged.json")
+    );
+    let results: serde_json::Value =
+        serde_json::from_str(&stored(&store, "42/evalai/results.json").await).unwrap();
+    let expected_results: serde_json::Value =
+        serde_json::from_str(&expected("results.json")).unwrap();
     assert_eq!(results, expected_results);
 }
 
@@ -60,13 +78,27 @@ async fn two_of_four_workers_reported_is_partial_and_a_changed_file_changes_the_
     let plan = pairs(&["0-4", "5-9", "10-14", "15-19"]);
     for id in 1..=2 {
         let bytes = std::fs::read(case.join(format!("input/worker{id}.json"))).unwrap();
-        store.put(&format!("agent/partial_agent_results{id}.json"), bytes, "application/json").await.unwrap();
+        store
+            .put(
+                &format!("agent/partial_agent_results{id}.json"),
+                bytes,
+                "application/json",
+            )
+            .await
+            .unwrap();
     }
     let first = collect(&store, Leaderboard::V2, &plan, 1).await.unwrap();
     assert!(!first.complete);
     assert_eq!(first.progress, (10, 20));
     let bytes = std::fs::read(case.join("input/worker3.json")).unwrap();
-    store.put("agent/partial_agent_results3.json", bytes, "application/json").await.unwrap();
+    store
+        .put(
+            "agent/partial_agent_results3.json",
+            bytes,
+            "application/json",
+        )
+        .await
+        .unwrap();
     assert_ne!(fingerprint(&store).await.unwrap(), first.fingerprint);
 }
 
@@ -78,7 +110,16 @@ async fn a_worker_file_outside_its_subset_is_a_named_error() {
     let case = results_fixtures_dir().join("a_4workers_20routes_finished");
     let bytes = std::fs::read(case.join("input/worker2.json")).unwrap();
     // Worker 2's routes (5-9) uploaded as worker 1's (0-4): the participant cannot move routes.
-    store.put("agent/partial_agent_results1.json", bytes, "application/json").await.unwrap();
-    let err = collect(&store, Leaderboard::V2, &pairs(&["0-4", "5-9"]), 1).await.unwrap_err();
+    store
+        .put(
+            "agent/partial_agent_results1.json",
+            bytes,
+            "application/json",
+        )
+        .await
+        .unwrap();
+    let err = collect(&store, Leaderboard::V2, &pairs(&["0-4", "5-9"]), 1)
+        .await
+        .unwrap_err();
     assert_eq!(err.name(), "ResultsOutsideSubset", "{err}");
 }

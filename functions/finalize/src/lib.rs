@@ -1,0 +1,374 @@
+//! Finalize (stage 5 and the failure path): decide the final status, make the final merge,
+//! record the qualifier outcome, post the final update to EvalAI (confirmed by a GET), write
+//! the final DynamoDB record and delete the Jobs.
+//!
+//! It only ever acts on a submission this execution claimed (or rejected): an execution that
+//! failed before its claim must not touch a submission another execution is evaluating.
+//! Every step is idempotent, so the state machine can retry it.
+
+use std::time::Duration;
+
+use aws_config::SdkConfig;
+use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable};
+use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
+use lb_domain::settings::Settings;
+use lb_domain::submission::SubmissionStatus;
+use lb_evalai::{EvalAiClient, FinalUpdate, SubmissionRef, WriteOutcome};
+use lb_pipeline::cluster::{cluster_error, Clusters};
+use lb_pipeline::payload::{Action, IntakeOutput, RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::results::{collect, Snapshot};
+use lb_pipeline::{clients, FnError, FunctionConfig, Result};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use tracing::{info, warn};
+
+/// How long Finalize waits for deleted Jobs' pods to go (their logcopy's last upload).
+pub const DELETE_WAIT: Duration = Duration::from_secs(120);
+
+/// What Finalize needs: everything the pipeline touches.
+#[derive(Debug)]
+pub struct Deps {
+    /// The operator's configuration.
+    pub settings: Settings,
+    /// EvalAI, as the host.
+    pub evalai: EvalAiClient,
+    /// The Job clusters.
+    pub clusters: Clusters,
+    /// S3.
+    pub s3: aws_sdk_s3::Client,
+    /// DynamoDB.
+    pub dynamo: aws_sdk_dynamodb::Client,
+    /// How long to wait for deleted pods.
+    pub delete_wait: Duration,
+}
+
+impl Deps {
+    /// Cold start: environment, secrets, clients.
+    pub async fn from_env() -> Result<Deps> {
+        let config = FunctionConfig::from_env()?;
+        let sdk = lb_aws::sdk_config().await;
+        let clusters = Clusters::from_env(&sdk);
+        Self::load(&sdk, &config, clusters).await
+    }
+
+    /// The same from an explicit SDK configuration and cluster access (local mode, tests).
+    pub async fn load(
+        sdk: &SdkConfig,
+        config: &FunctionConfig,
+        clusters: Clusters,
+    ) -> Result<Deps> {
+        let settings = clients::settings(sdk, config).await?;
+        let evalai = clients::evalai(sdk, config, &settings).await?;
+        Ok(Deps {
+            settings,
+            evalai,
+            clusters,
+            s3: lb_aws::s3_client(sdk),
+            dynamo: aws_sdk_dynamodb::Client::new(sdk),
+            delete_wait: DELETE_WAIT,
+        })
+    }
+}
+
+/// Finalize's input: the whole execution state (`{"state.$": "$"}`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FinalizeInput {
+    /// The state as the failed or finished path left it.
+    pub state: Value,
+}
+
+/// What Finalize did (`$.final`; the Choice after it reads `pipeline_error`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FinalizeOutput {
+    /// The submission's final status on our side (`FINISHED`, `FAILED`, `CANCELLED`), or
+    /// `UNCLAIMED` when this execution never owned it.
+    pub status: String,
+    /// A stage failed: the execution ends as failed so operators see it.
+    pub pipeline_error: bool,
+    /// Why, for failed submissions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+/// The Lambda entry: JSON in, JSON out.
+pub async fn handle_json(input: Value, deps: &Deps) -> Result<Value> {
+    let input: FinalizeInput = serde_json::from_value(input)
+        .map_err(|e| FnError::Input(format!("finalize input: {e}")))?;
+    let output = handle(input, deps).await?;
+    serde_json::to_value(output).map_err(|e| FnError::Input(e.to_string()))
+}
+
+/// The error a Catch put at `$.error`, in words: Lambda's `Cause` is a JSON text holding
+/// `errorMessage`.
+pub fn caught_error(state: &Value) -> Option<String> {
+    let error = state.get("error")?;
+    let name = error
+        .get("Error")
+        .and_then(Value::as_str)
+        .unwrap_or("Error");
+    let cause = error
+        .get("Cause")
+        .and_then(Value::as_str)
+        .unwrap_or_default();
+    let message = serde_json::from_str::<Value>(cause)
+        .ok()
+        .and_then(|c| {
+            c.get("errorMessage")
+                .and_then(Value::as_str)
+                .map(str::to_owned)
+        })
+        .unwrap_or_else(|| cause.to_string());
+    Some(if message.is_empty() {
+        name.to_string()
+    } else {
+        format!("{name}: {message}")
+    })
+}
+
+/// Ends one execution.
+pub async fn handle(input: FinalizeInput, deps: &Deps) -> Result<FinalizeOutput> {
+    let state = input.state;
+    let error = caught_error(&state);
+    let intake: Option<IntakeOutput> = state
+        .get("intake")
+        .and_then(|v| serde_json::from_value(v.clone()).ok());
+    let (action, submission) = match intake {
+        Some(IntakeOutput {
+            action,
+            submission: Some(submission),
+            reason,
+        }) => ((action, reason), submission),
+        _ => {
+            // NB: not ours. Telling EvalAI or deleting Jobs here could end another
+            // execution's evaluation of the same submission.
+            warn!(
+                error = error.as_deref().unwrap_or_default(),
+                "failed before claiming a submission"
+            );
+            return Ok(FinalizeOutput {
+                status: "UNCLAIMED".into(),
+                pipeline_error: true,
+                reason: error,
+            });
+        }
+    };
+    let at = SubmissionRef {
+        challenge: submission.challenge_id,
+        phase: submission.phase_id,
+        submission: submission.submission_id,
+    };
+    if action.0 == Action::Reject {
+        let reason = action
+            .1
+            .unwrap_or_else(|| "the submission was refused".into());
+        post(
+            deps,
+            at,
+            SubmissionStatus::Failed,
+            None,
+            String::new(),
+            reason.clone(),
+        )
+        .await?;
+        return Ok(FinalizeOutput {
+            status: RecordStatus::Failed.as_str().into(),
+            pipeline_error: false,
+            reason: Some(reason),
+        });
+    }
+    if action.0 != Action::Run {
+        return Ok(FinalizeOutput {
+            status: "UNCLAIMED".into(),
+            pipeline_error: error.is_some(),
+            reason: error,
+        });
+    }
+    let run: Option<RunState> = state
+        .get("run")
+        .and_then(|v| serde_json::from_value(v.clone()).ok());
+    finish_run(deps, &submission, run, error).await
+}
+
+async fn finish_run(
+    deps: &Deps,
+    submission: &SubmissionInfo,
+    run: Option<RunState>,
+    error: Option<String>,
+) -> Result<FinalizeOutput> {
+    let id = submission.submission_id;
+    let target = deps.settings.target(submission.phase_id)?;
+    let store = SubmissionStore::new(deps.s3.clone(), &target.deployment.bucket, id);
+
+    // Stop the Jobs first: GPUs cost money, and their logcopy makes its last upload on the way out.
+    let cluster = deps.clusters.connect(target.deployment).await?;
+    let deleted = cluster
+        .delete_all(&id.to_string())
+        .await
+        .map_err(cluster_error)?;
+    info!(submission_id = id, ?deleted, "jobs deleted");
+    if !cluster
+        .wait_gone(&id.to_string(), deps.delete_wait, Duration::from_secs(2))
+        .await
+        .map_err(cluster_error)?
+    {
+        warn!(
+            submission_id = id,
+            "jobs still terminating; results as they are now"
+        );
+    }
+
+    let cancelled = run
+        .as_ref()
+        .is_some_and(|r| r.monitor.state == RunPhase::Cancelled)
+        || store.markers().await?.iter().any(|m| m == CANCEL_MARKER);
+    let snapshot: Option<std::result::Result<Snapshot, FnError>> = match &run {
+        Some(run) => Some(collect(&store, target.leaderboard, &run.pairs, run.repetitions).await),
+        None => None,
+    };
+    let (mut status, mut reason) = match (&error, &run, &snapshot) {
+        _ if cancelled => (SubmissionStatus::Cancelled, None),
+        (Some(error), _, _) => (
+            SubmissionStatus::Failed,
+            Some(format!("the evaluation failed: {error}")),
+        ),
+        (None, _, Some(Err(e))) if !e.is_transient() => (
+            SubmissionStatus::Failed,
+            Some(format!("the results cannot be used: {}", e.chain())),
+        ),
+        (None, _, Some(Err(e))) => {
+            return Err(FnError::Stage {
+                name: e.name(),
+                message: e.chain(),
+                transient: true,
+            })
+        }
+        (None, Some(run), Some(Ok(snapshot))) => match run.monitor.state {
+            RunPhase::Finished if snapshot.complete => (SubmissionStatus::Finished, None),
+            RunPhase::Finished => (
+                SubmissionStatus::Failed,
+                Some(format!(
+                    "the evaluation ended with {} of {} routes evaluated",
+                    snapshot.progress.0, snapshot.progress.1
+                )),
+            ),
+            _ => (
+                SubmissionStatus::Failed,
+                Some(
+                    run.monitor
+                        .reason
+                        .clone()
+                        .unwrap_or_else(|| "the evaluation failed".into()),
+                ),
+            ),
+        },
+        _ => (
+            SubmissionStatus::Failed,
+            Some("the evaluation did not start".into()),
+        ),
+    };
+    let snapshot = snapshot.and_then(|s| s.ok());
+    let metrics: Vec<(&'static str, f64)> = snapshot
+        .as_ref()
+        .map(|s| s.metrics.clone())
+        .unwrap_or_default();
+
+    let mut stdout = snapshot
+        .as_ref()
+        .map(|s| s.files.stdout.clone())
+        .unwrap_or_default();
+    if status == SubmissionStatus::Finished && target.track_settings.qualifier {
+        let (passed, verdict) = target.deployment.qualifier.verdict(&metrics);
+        QualifierTable::new(deps.dynamo.clone(), &target.deployment.qualifier_table)
+            .record(submission.team_id, &submission.track, id, passed, &metrics)
+            .await?;
+        stdout = format!("{verdict}\n\n{stdout}");
+    }
+    let outcome = post(
+        deps,
+        SubmissionRef {
+            challenge: submission.challenge_id,
+            phase: submission.phase_id,
+            submission: id,
+        },
+        status,
+        snapshot.as_ref(),
+        stdout,
+        reason.clone().unwrap_or_default(),
+    )
+    .await?;
+    if outcome == WriteOutcome::Cancelled {
+        status = SubmissionStatus::Cancelled;
+        reason = None;
+    }
+    let record_status = match status {
+        SubmissionStatus::Finished => RecordStatus::Finished,
+        SubmissionStatus::Cancelled => RecordStatus::Cancelled,
+        _ => RecordStatus::Failed,
+    };
+    SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table)
+        .finish(
+            submission.team_id,
+            id,
+            &FinalRecord {
+                status: record_status,
+                end_time: clients::now_rfc3339(),
+                results: store.location(),
+                metrics,
+                progress: snapshot.as_ref().map_or((0, 0), |s| s.progress),
+                error: reason.clone(),
+            },
+        )
+        .await?;
+    info!(
+        submission_id = id,
+        status = record_status.as_str(),
+        "finalized"
+    );
+    Ok(FinalizeOutput {
+        status: record_status.as_str().into(),
+        pipeline_error: error.is_some(),
+        reason,
+    })
+}
+
+/// The final EvalAI update: scores for a finished run; for a failed one, the partial summary
+/// as stdout and the reason as stderr.
+async fn post(
+    deps: &Deps,
+    at: SubmissionRef,
+    status: SubmissionStatus,
+    snapshot: Option<&Snapshot>,
+    stdout: String,
+    stderr: String,
+) -> Result<WriteOutcome> {
+    let update = FinalUpdate {
+        status,
+        result: snapshot.map_or_else(|| "[]".to_string(), |s| s.files.results_json()),
+        stdout,
+        stderr,
+        metadata: snapshot
+            .and_then(|s| s.files.metadata.clone())
+            .unwrap_or_else(|| "{}".into()),
+    };
+    Ok(deps.evalai.post_final(at, &update).await?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn a_caught_lambda_error_reads_as_its_name_and_message() {
+        let state = json!({"error": {"Error": "KubeForbidden",
+            "Cause": "{\"errorType\":\"KubeForbidden\",\"errorMessage\":\"jobs.batch is forbidden\"}"}});
+        assert_eq!(
+            caught_error(&state).unwrap(),
+            "KubeForbidden: jobs.batch is forbidden"
+        );
+        let timeout = json!({"error": {"Error": "States.Timeout", "Cause": ""}});
+        assert_eq!(caught_error(&timeout).unwrap(), "States.Timeout");
+        assert_eq!(caught_error(&json!({})), None);
+    }
+}

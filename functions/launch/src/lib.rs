@@ -1,0 +1,175 @@
+//! Launch (stages 2 and 3): plan the workers, render the leaderboard's Job template and create
+//! the Jobs on its cluster (adopting those that already exist), then tell EvalAI and DynamoDB
+//! the submission runs.
+
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use aws_config::SdkConfig;
+use lb_aws::dynamo::SubmissionsTable;
+use lb_domain::plan::{plan, PlanInput};
+use lb_domain::schedule::FIRST_WAIT;
+use lb_domain::settings::Settings;
+use lb_evalai::{EvalAiClient, SubmissionRef, WriteOutcome};
+use lb_jobs::{render_plan, JobSettings};
+use lb_pipeline::cluster::{cluster_error, Clusters};
+use lb_pipeline::payload::{MonitorState, PairRoutes, RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::{clients, FnError, FunctionConfig, Result};
+use serde::Deserialize;
+use tracing::{info, warn};
+
+/// What Launch needs: the settings, the clusters, EvalAI (to say it runs), the submissions table.
+#[derive(Debug)]
+pub struct Deps {
+    /// The operator's configuration.
+    pub settings: Settings,
+    /// EvalAI, as the host.
+    pub evalai: EvalAiClient,
+    /// The Job clusters.
+    pub clusters: Clusters,
+    /// DynamoDB.
+    pub dynamo: aws_sdk_dynamodb::Client,
+    /// Region of the bucket (the Jobs' `AWS_REGION`).
+    pub region: String,
+}
+
+impl Deps {
+    /// Cold start: environment, secrets, clients.
+    pub async fn from_env() -> Result<Deps> {
+        let config = FunctionConfig::from_env()?;
+        let sdk = lb_aws::sdk_config().await;
+        let clusters = Clusters::from_env(&sdk);
+        Self::load(&sdk, &config, clusters).await
+    }
+
+    /// The same from an explicit SDK configuration and cluster access (local mode, tests).
+    pub async fn load(
+        sdk: &SdkConfig,
+        config: &FunctionConfig,
+        clusters: Clusters,
+    ) -> Result<Deps> {
+        let settings = clients::settings(sdk, config).await?;
+        let evalai = clients::evalai(sdk, config, &settings).await?;
+        Ok(Deps {
+            settings,
+            evalai,
+            clusters,
+            dynamo: aws_sdk_dynamodb::Client::new(sdk),
+            region: sdk.region().map(|r| r.to_string()).unwrap_or_default(),
+        })
+    }
+}
+
+/// Launch's input.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaunchInput {
+    /// As Intake established it.
+    pub submission: SubmissionInfo,
+}
+
+/// The Lambda entry: JSON in, JSON out.
+pub async fn handle_json(input: serde_json::Value, deps: &Deps) -> Result<serde_json::Value> {
+    let input: LaunchInput =
+        serde_json::from_value(input).map_err(|e| FnError::Input(format!("launch input: {e}")))?;
+    let output = handle(input, deps).await?;
+    serde_json::to_value(output).map_err(|e| FnError::Input(e.to_string()))
+}
+
+fn stage(name: &'static str, message: String) -> FnError {
+    FnError::Stage {
+        name,
+        message,
+        transient: false,
+    }
+}
+
+/// Creates the submission's Jobs and starts its run state.
+pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
+    let submission = input.submission;
+    let target = deps.settings.target(submission.phase_id)?;
+    let plan = plan(PlanInput {
+        submission_id: submission.submission_id,
+        team_name: &submission.team_name,
+        routes: submission.routes,
+        workers: submission.workers,
+        gpus_per_node: target.deployment.gpus_per_node,
+    })
+    .map_err(|e| stage(e.name(), e.to_string()))?;
+    let job_settings = JobSettings::from_deployment(
+        target.leaderboard,
+        target.deployment,
+        &deps.region,
+        &target.deployment.job_role_arn,
+    );
+    let jobs = render_plan(
+        target.leaderboard,
+        &plan,
+        &lb_jobs::SubmissionInfo {
+            submission_id: submission.submission_id,
+            challenge_id: submission.challenge_id,
+            phase_id: submission.phase_id,
+            team_id: submission.team_id,
+            team_name: submission.team_name.clone(),
+            track: submission.track.clone(),
+            qualifier: target.track_settings.qualifier,
+            participant_image: submission.image.clone(),
+            participant_resume: submission.resuming,
+        },
+        &job_settings,
+    )
+    .map_err(|e| stage(e.name(), e.to_string()))?;
+
+    let cluster = deps.clusters.connect(target.deployment).await?;
+    let mut names = Vec::with_capacity(jobs.len());
+    for job in &jobs {
+        let launched = cluster.create_or_adopt(job).await.map_err(cluster_error)?;
+        info!(submission_id = submission.submission_id, job = %launched.name, adopted = launched.adopted, "job launched");
+        names.push(launched.name);
+    }
+
+    let at = SubmissionRef {
+        challenge: submission.challenge_id,
+        phase: submission.phase_id,
+        submission: submission.submission_id,
+    };
+    match deps.evalai.mark_running(at, &names.join(",")).await? {
+        WriteOutcome::Written => {}
+        other => warn!(
+            submission_id = submission.submission_id,
+            ?other,
+            "not marked running; the monitor will see why"
+        ),
+    }
+    let total = u64::from(submission.routes) * u64::from(job_settings.repetitions);
+    SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table)
+        .mark_running(
+            submission.team_id,
+            submission.submission_id,
+            &clients::now_rfc3339(),
+            (0, total),
+        )
+        .await?;
+
+    Ok(RunState {
+        jobs: names,
+        pairs: plan
+            .pairs()
+            .map(|p| PairRoutes {
+                id: p.id,
+                routes: p.routes.to_string(),
+            })
+            .collect(),
+        repetitions: job_settings.repetitions,
+        launched_at: SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs()),
+        monitor: MonitorState {
+            state: RunPhase::Running,
+            wait_seconds: FIRST_WAIT.as_secs(),
+            rounds: 0,
+            fingerprint: None,
+            progress: (0, total),
+            reason: None,
+        },
+    })
+}

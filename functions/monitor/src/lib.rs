@@ -1,0 +1,227 @@
+//! Monitor (stage 4): one round of the Wait -> Monitor -> Choice loop.
+//!
+//! Per round it reads the Jobs, the workers' results in S3 and the EvalAI status: one GET
+//! always, one partial PUT only when the results changed (EvalAI allows 60 requests a minute
+//! for every submission in flight together). A participant's cancel becomes the S3 cancel
+//! marker; a hopeless run (image that cannot be pulled, unschedulable, out of retries) ends
+//! with a reason the participant can act on. Transient trouble with EvalAI or S3 skips this
+//! round's update instead of failing a run that may last three days.
+
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use aws_config::SdkConfig;
+use lb_aws::dynamo::SubmissionsTable;
+use lb_aws::s3::SubmissionStore;
+use lb_cluster::{Verdict, VerdictPolicy};
+use lb_domain::results::Leaderboard;
+use lb_domain::schedule::{monitor_interval, MAX_EVALUATION};
+use lb_domain::settings::Settings;
+use lb_domain::submission::SubmissionStatus;
+use lb_evalai::{EvalAiClient, PartialUpdate, SubmissionRef, WriteOutcome};
+use lb_pipeline::cluster::{cluster_error, Clusters};
+use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::results::{collect, fingerprint};
+use lb_pipeline::{clients, FnError, FunctionConfig, Result};
+use serde::Deserialize;
+use tracing::{info, warn};
+
+/// What the Monitor needs: settings, clusters, EvalAI, S3, the submissions table.
+#[derive(Debug)]
+pub struct Deps {
+    /// The operator's configuration.
+    pub settings: Settings,
+    /// EvalAI, as the host.
+    pub evalai: EvalAiClient,
+    /// The Job clusters.
+    pub clusters: Clusters,
+    /// S3.
+    pub s3: aws_sdk_s3::Client,
+    /// DynamoDB.
+    pub dynamo: aws_sdk_dynamodb::Client,
+    /// How long an unschedulable pod is waited for.
+    pub policy: VerdictPolicy,
+}
+
+impl Deps {
+    /// Cold start: environment, secrets, clients.
+    pub async fn from_env() -> Result<Deps> {
+        let config = FunctionConfig::from_env()?;
+        let sdk = lb_aws::sdk_config().await;
+        let clusters = Clusters::from_env(&sdk);
+        Self::load(&sdk, &config, clusters).await
+    }
+
+    /// The same from an explicit SDK configuration and cluster access (local mode, tests).
+    pub async fn load(
+        sdk: &SdkConfig,
+        config: &FunctionConfig,
+        clusters: Clusters,
+    ) -> Result<Deps> {
+        let settings = clients::settings(sdk, config).await?;
+        let evalai = clients::evalai(sdk, config, &settings).await?;
+        Ok(Deps {
+            settings,
+            evalai,
+            clusters,
+            s3: lb_aws::s3_client(sdk),
+            dynamo: aws_sdk_dynamodb::Client::new(sdk),
+            policy: VerdictPolicy::default(),
+        })
+    }
+}
+
+/// The Monitor's input.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MonitorInput {
+    /// As Intake established it.
+    pub submission: SubmissionInfo,
+    /// As Launch or the previous round left it.
+    pub run: RunState,
+}
+
+/// The Lambda entry: JSON in, JSON out.
+pub async fn handle_json(input: serde_json::Value, deps: &Deps) -> Result<serde_json::Value> {
+    let input: MonitorInput =
+        serde_json::from_value(input).map_err(|e| FnError::Input(format!("monitor input: {e}")))?;
+    let output = handle(input, deps).await?;
+    serde_json::to_value(output).map_err(|e| FnError::Input(e.to_string()))
+}
+
+fn now_secs() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
+}
+
+/// One monitor round.
+pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
+    let MonitorInput {
+        submission,
+        mut run,
+    } = input;
+    let id = submission.submission_id;
+    let target = deps.settings.target(submission.phase_id)?;
+    let leaderboard: Leaderboard = target.leaderboard;
+    let elapsed = Duration::from_secs(now_secs().saturating_sub(run.launched_at));
+    run.monitor.rounds += 1;
+    run.monitor.wait_seconds = monitor_interval(elapsed).as_secs();
+
+    let cluster = deps
+        .clusters
+        .connect(target.deployment)
+        .await?
+        .with_policy(deps.policy);
+    let observation = cluster
+        .observe(&id.to_string())
+        .await
+        .map_err(cluster_error)?
+        .expect_jobs(run.jobs.len() as u32);
+    let store = SubmissionStore::new(deps.s3.clone(), &target.deployment.bucket, id);
+    let at = SubmissionRef {
+        challenge: submission.challenge_id,
+        phase: submission.phase_id,
+        submission: id,
+    };
+
+    // Results first: a changed set is merged and sent (the PUT's own GET reads the status);
+    // an unchanged one costs one listing and one GET.
+    let mut evalai_status = None;
+    match fingerprint(&store).await {
+        Ok(current)
+            if Some(&current) != run.monitor.fingerprint.as_ref() && !current.is_empty() =>
+        {
+            match collect(&store, leaderboard, &run.pairs, run.repetitions).await {
+                Ok(snapshot) => {
+                    run.monitor.progress = snapshot.progress;
+                    let update = PartialUpdate {
+                        result: snapshot.files.results_json(),
+                        stdout: snapshot.files.stdout.clone(),
+                        metadata: snapshot
+                            .files
+                            .metadata
+                            .clone()
+                            .unwrap_or_else(|| "{}".into()),
+                    };
+                    match deps.evalai.post_partial(at, &update).await {
+                        Ok(WriteOutcome::Written) => {
+                            run.monitor.fingerprint = Some(snapshot.fingerprint);
+                            evalai_status = Some(SubmissionStatus::PartiallyEvaluated);
+                        }
+                        Ok(WriteOutcome::Cancelled) => {
+                            evalai_status = Some(SubmissionStatus::Cancelled)
+                        }
+                        Ok(WriteOutcome::AlreadyFinal(status)) => evalai_status = Some(status),
+                        Err(e) if e.is_transient() => {
+                            warn!(submission_id = id, error = %e, "partial update skipped this round")
+                        }
+                        Err(e) => return Err(e.into()),
+                    }
+                }
+                Err(e) if e.is_transient() => {
+                    warn!(submission_id = id, error = %e.chain(), "results not read this round")
+                }
+                Err(e) => {
+                    // The participant's own files are broken; the sidecar marks that pair crashed.
+                    warn!(submission_id = id, error = %e.chain(), "results unusable this round");
+                    run.monitor.fingerprint = Some(current);
+                }
+            }
+        }
+        Ok(_) => {}
+        Err(e) if e.is_transient() => {
+            warn!(submission_id = id, error = %e.chain(), "results not listed this round")
+        }
+        Err(e) => return Err(e),
+    }
+    if evalai_status.is_none() {
+        match deps.evalai.submission(id).await {
+            Ok(current) => evalai_status = Some(current.status),
+            Err(e) if e.is_transient() => {
+                warn!(submission_id = id, error = %e, "status not read this round")
+            }
+            Err(e) => return Err(e.into()),
+        }
+    }
+
+    if evalai_status == Some(SubmissionStatus::Cancelled) {
+        store.put_cancel_marker().await?;
+        info!(
+            submission_id = id,
+            "the participant cancelled: cancel marker written"
+        );
+        run.monitor.state = RunPhase::Cancelled;
+        return Ok(run);
+    }
+    match observation.verdict {
+        Verdict::Running if elapsed > MAX_EVALUATION => {
+            run.monitor.state = RunPhase::Failed;
+            run.monitor.reason = Some(format!(
+                "the evaluation ran longer than the {} hours allowed",
+                MAX_EVALUATION.as_secs() / 3600
+            ));
+        }
+        Verdict::Running => {
+            let table =
+                SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table);
+            if let Err(e) = table
+                .mark_running(
+                    submission.team_id,
+                    id,
+                    &clients::now_rfc3339(),
+                    run.monitor.progress,
+                )
+                .await
+            {
+                warn!(submission_id = id, error = %e, "progress not recorded this round");
+            }
+        }
+        Verdict::Finished => run.monitor.state = RunPhase::Finished,
+        Verdict::Failed { kind, message, .. } => {
+            info!(submission_id = id, kind = kind.name(), %message, "run failed");
+            run.monitor.state = RunPhase::Failed;
+            run.monitor.reason = Some(message);
+        }
+    }
+    Ok(run)
+}

@@ -1,0 +1,14 @@
+use lambda_runtime::{run, service_fn, LambdaEvent};
+
+#[tokio::main]
+async fn main() -> Result<(), lambda_runtime::Error> {
+    lambda_runtime::tracing::init_default_subscriber();
+    let deps = monitor::Deps::from_env().await?;
+    let deps = &deps;
+    run(service_fn(
+        move |event: LambdaEvent<serde_json::Value>| async move {
+            monitor::handle_json(event.payload, deps).await
+        },
+    ))
+    .await
+}
