@@ -1,0 +1,549 @@
+//! The client side: connecting (kubeconfig or EKS), create-or-adopt, observe, delete.
+
+use std::future::Future;
+use std::path::Path;
+use std::time::Duration;
+
+use k8s_openapi::api::batch::v1::Job;
+use k8s_openapi::api::core::v1::Pod;
+use k8s_openapi::jiff::Timestamp;
+use kube::api::{Api, DeleteParams, ListParams, PostParams};
+use kube::config::{KubeConfigOptions, Kubeconfig};
+use serde::{Deserialize, Serialize};
+use tracing::{debug, info, instrument, warn};
+
+use crate::error::{ClusterError, Result};
+use crate::labels;
+use crate::observe::{self, JobState, Observation, VerdictPolicy};
+
+/// Bounds on talking to the API server.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Timeouts {
+    /// Establishing a connection (TCP and TLS).
+    pub connect: Duration,
+    /// Waiting for a response once the request is sent.
+    pub read: Duration,
+    /// One whole call, including kube's own bounded retries of 429/503/504.
+    pub call: Duration,
+}
+
+impl Default for Timeouts {
+    fn default() -> Self {
+        Timeouts {
+            connect: Duration::from_secs(5),
+            read: Duration::from_secs(20),
+            call: Duration::from_secs(30),
+        }
+    }
+}
+
+/// The result of [`Cluster::create_or_adopt`].
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Launched {
+    /// The Job's name.
+    pub name: String,
+    /// Its uid, as the server reports it.
+    pub uid: Option<String>,
+    /// The submission it belongs to.
+    pub submission_id: String,
+    /// `true` when it already existed (a retry or a duplicate Launch) and was adopted.
+    pub adopted: bool,
+    /// `true` when the adopted Job had already completed or failed (a leftover of an earlier
+    /// run that was never deleted): the caller decides whether to delete and launch again.
+    pub already_ended: bool,
+}
+
+/// The result of [`Cluster::delete_all`].
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Deleted {
+    /// Jobs whose deletion was requested (their pods go first: foreground propagation).
+    pub jobs: Vec<String>,
+    /// Pods of the submission that no Job owned any more, deleted directly.
+    pub orphan_pods: Vec<String>,
+    /// Objects that vanished between the list and the delete.
+    pub already_gone: Vec<String>,
+}
+
+/// A namespace of a Kubernetes cluster holding submissions' Jobs.
+#[derive(Clone)]
+pub struct Cluster {
+    client: kube::Client,
+    namespace: String,
+    timeouts: Timeouts,
+    policy: VerdictPolicy,
+}
+
+impl std::fmt::Debug for Cluster {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // NB: no client: its config holds the bearer token.
+        f.debug_struct("Cluster")
+            .field("namespace", &self.namespace)
+            .field("timeouts", &self.timeouts)
+            .field("policy", &self.policy)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Cluster {
+    /// Wraps an existing client (tests pass a `tower_test` mock).
+    pub fn new(client: kube::Client, namespace: impl Into<String>) -> Self {
+        Cluster {
+            client,
+            namespace: namespace.into(),
+            timeouts: Timeouts::default(),
+            policy: VerdictPolicy::default(),
+        }
+    }
+
+    /// Connects with a kubeconfig file (local mode, a developer's cluster); `context` defaults
+    /// to the file's current context, the namespace to the context's (else `default`).
+    ///
+    /// Must run inside a Tokio runtime.
+    pub async fn from_kubeconfig(path: &Path, context: Option<&str>) -> Result<Self> {
+        Self::from_kubeconfig_with(path, context, Timeouts::default()).await
+    }
+
+    /// [`Cluster::from_kubeconfig`] with explicit timeouts.
+    pub async fn from_kubeconfig_with(
+        path: &Path,
+        context: Option<&str>,
+        timeouts: Timeouts,
+    ) -> Result<Self> {
+        let config_error =
+            |problem: String, e: kube::config::KubeconfigError| ClusterError::Config {
+                problem,
+                source: Some(Box::new(e)),
+            };
+        let kubeconfig = Kubeconfig::read_from(path)
+            .map_err(|e| config_error(format!("kubeconfig `{}` is unusable", path.display()), e))?;
+        let options = KubeConfigOptions {
+            context: context.map(str::to_owned),
+            ..KubeConfigOptions::default()
+        };
+        let mut config = kube::Config::from_custom_kubeconfig(kubeconfig, &options)
+            .await
+            .map_err(|e| {
+                let which = context.map_or("the current context".to_string(), |c| {
+                    format!("context `{c}`")
+                });
+                config_error(
+                    format!("kubeconfig `{}`: {which} is unusable", path.display()),
+                    e,
+                )
+            })?;
+        apply_timeouts(&mut config, &timeouts);
+        let namespace = config.default_namespace.clone();
+        let client = client_from(config)?;
+        Ok(Cluster::new(client, namespace).with_timeouts(timeouts))
+    }
+
+    /// Connects to an EKS cluster: `endpoint` and `ca_pem` from `DescribeCluster`, `token` the
+    /// EKS IAM bearer token. The token lives ~15 minutes: build a `Cluster` per invocation from
+    /// a fresh (cached) token. Namespace `default` until [`Cluster::with_namespace`].
+    ///
+    /// Must run inside a Tokio runtime.
+    pub fn for_eks(endpoint: &str, ca_pem: &[u8], token: &str) -> Result<Self> {
+        let timeouts = Timeouts::default();
+        let config = eks_config(endpoint, ca_pem, token, &timeouts)?;
+        let namespace = config.default_namespace.clone();
+        Ok(Cluster::new(client_from(config)?, namespace).with_timeouts(timeouts))
+    }
+
+    /// Uses `namespace` for every call.
+    pub fn with_namespace(mut self, namespace: impl Into<String>) -> Self {
+        self.namespace = namespace.into();
+        self
+    }
+
+    /// Uses `timeouts.call` as the bound on each call (connect and read bounds are fixed
+    /// when the client is built).
+    pub fn with_timeouts(mut self, timeouts: Timeouts) -> Self {
+        self.timeouts = timeouts;
+        self
+    }
+
+    /// Uses `policy` for verdicts.
+    pub fn with_policy(mut self, policy: VerdictPolicy) -> Self {
+        self.policy = policy;
+        self
+    }
+
+    /// The namespace of every call.
+    pub fn namespace(&self) -> &str {
+        &self.namespace
+    }
+
+    fn jobs(&self) -> Api<Job> {
+        Api::namespaced(self.client.clone(), &self.namespace)
+    }
+
+    fn pods(&self) -> Api<Pod> {
+        Api::namespaced(self.client.clone(), &self.namespace)
+    }
+
+    /// Runs one API call under the call bound.
+    async fn call<T>(
+        &self,
+        operation: &'static str,
+        fut: impl Future<Output = kube::Result<T>>,
+    ) -> Result<kube::Result<T>> {
+        tokio::time::timeout(self.timeouts.call, fut)
+            .await
+            .map_err(|_| ClusterError::Timeout {
+                operation,
+                limit: self.timeouts.call,
+            })
+    }
+
+    /// Creates `job`, or adopts the existing Job of that name when it belongs to the same
+    /// submission, so retries and duplicate Launches never make a second Job.
+    ///
+    /// The Job (and its pod template) must carry the submission-id and managed-by labels, or
+    /// [`Cluster::observe`] could not find it.
+    #[instrument(skip_all, fields(submission_id = tracing::field::Empty, job = tracing::field::Empty))]
+    pub async fn create_or_adopt(&self, job: &Job) -> Result<Launched> {
+        let (name, submission_id) = self.check_launchable(job)?;
+        tracing::Span::current()
+            .record("submission_id", submission_id.as_str())
+            .record("job", name.as_str());
+        let api = self.jobs();
+        let created = self
+            .call("create job", api.create(&PostParams::default(), job))
+            .await?;
+        let status = match created {
+            Ok(made) => {
+                let uid = made.metadata.uid.clone();
+                info!(uid = uid.as_deref().unwrap_or(""), "job created");
+                return Ok(Launched {
+                    name,
+                    uid,
+                    submission_id,
+                    adopted: false,
+                    already_ended: false,
+                });
+            }
+            Err(kube::Error::Api(status))
+                if status.reason == "AlreadyExists"
+                    || (status.code == 409 && status.reason.is_empty()) =>
+            {
+                status
+            }
+            Err(e) => {
+                let e = ClusterError::from_kube("create job", &format!("Job `{name}`"), e);
+                warn!(error = %e, name = e.name(), "job not created");
+                return Err(e);
+            }
+        };
+        debug!(message = %status.message, "job exists; checking whose it is");
+        let existing = match self.call("get job", api.get(&name)).await? {
+            Ok(j) => j,
+            Err(kube::Error::Api(s)) if s.is_not_found() => {
+                // NB: it was deleted between our create and get; the next attempt creates it.
+                return Err(ClusterError::JobTerminating {
+                    job: name,
+                    submission_id,
+                });
+            }
+            Err(e) => {
+                return Err(ClusterError::from_kube(
+                    "get job",
+                    &format!("Job `{name}`"),
+                    e,
+                ))
+            }
+        };
+        let owner = existing
+            .metadata
+            .labels
+            .as_ref()
+            .and_then(|l| l.get(labels::SUBMISSION_ID))
+            .cloned();
+        if owner.as_deref() != Some(submission_id.as_str()) {
+            let e = ClusterError::JobNameTaken {
+                job: name,
+                submission_id,
+                owner: owner.unwrap_or_else(|| "<none>".into()),
+            };
+            warn!(error = %e, "job name taken");
+            return Err(e);
+        }
+        if existing.metadata.deletion_timestamp.is_some() {
+            // A resume launched while the previous run's Job is still being deleted.
+            return Err(ClusterError::JobTerminating {
+                job: name,
+                submission_id,
+            });
+        }
+        let uid = existing.metadata.uid.clone();
+        let already_ended = matches!(
+            observe::job_state(&existing),
+            JobState::Complete | JobState::Failed { .. }
+        );
+        info!(
+            uid = uid.as_deref().unwrap_or(""),
+            already_ended, "existing job adopted"
+        );
+        Ok(Launched {
+            name,
+            uid,
+            submission_id,
+            adopted: true,
+            already_ended,
+        })
+    }
+
+    /// The Job's name and submission id, once it is known to be trackable.
+    fn check_launchable(&self, job: &Job) -> Result<(String, String)> {
+        let name = job.metadata.name.clone().unwrap_or_default();
+        let invalid = |problem: String| ClusterError::InvalidJobSpec {
+            job: if name.is_empty() {
+                "<unnamed>".into()
+            } else {
+                name.clone()
+            },
+            problem,
+        };
+        if name.is_empty() {
+            return Err(invalid("it has no `metadata.name`".into()));
+        }
+        if let Some(ns) = &job.metadata.namespace {
+            if ns != &self.namespace {
+                return Err(invalid(format!(
+                    "its namespace `{ns}` is not the cluster namespace `{}`",
+                    self.namespace
+                )));
+            }
+        }
+        let job_labels = job.metadata.labels.clone().unwrap_or_default();
+        let Some(submission_id) = job_labels.get(labels::SUBMISSION_ID).cloned() else {
+            return Err(invalid(format!(
+                "it has no `{}` label",
+                labels::SUBMISSION_ID
+            )));
+        };
+        labels::validate_submission_id(&submission_id)?;
+        let pod_labels = job
+            .spec
+            .as_ref()
+            .and_then(|s| s.template.metadata.as_ref())
+            .and_then(|m| m.labels.clone())
+            .unwrap_or_default();
+        for (what, l) in [("the Job", &job_labels), ("its pod template", &pod_labels)] {
+            if l.get(labels::SUBMISSION_ID) != Some(&submission_id) {
+                return Err(invalid(format!(
+                    "{what} lacks `{}={submission_id}`",
+                    labels::SUBMISSION_ID
+                )));
+            }
+            if l.get(labels::MANAGED_BY).map(String::as_str) != Some(labels::MANAGED_BY_VALUE) {
+                return Err(invalid(format!(
+                    "{what} lacks `{}={}`",
+                    labels::MANAGED_BY,
+                    labels::MANAGED_BY_VALUE
+                )));
+            }
+        }
+        Ok((name, submission_id))
+    }
+
+    /// Lists the submission's Jobs and Pods and maps them to an [`Observation`] now.
+    #[instrument(skip(self))]
+    pub async fn observe(&self, submission_id: &str) -> Result<Observation> {
+        let (jobs, pods) = self.list(submission_id).await?;
+        let obs = observe::observe(submission_id, &jobs, &pods, Timestamp::now(), &self.policy);
+        debug!(
+            jobs = obs.jobs.len(),
+            restarts = obs.restarts(),
+            verdict = ?obs.verdict,
+            "observed"
+        );
+        Ok(obs)
+    }
+
+    /// The submission's Jobs and Pods, as the server lists them.
+    pub async fn list(&self, submission_id: &str) -> Result<(Vec<Job>, Vec<Pod>)> {
+        let params = ListParams::default().labels(&labels::submission_selector(submission_id)?);
+        let jobs = self
+            .call("list jobs", self.jobs().list(&params))
+            .await?
+            .map_err(|e| ClusterError::from_kube("list jobs", "", e))?;
+        let pods = self
+            .call("list pods", self.pods().list(&params))
+            .await?
+            .map_err(|e| ClusterError::from_kube("list pods", "", e))?;
+        Ok((jobs.items, pods.items))
+    }
+
+    /// Deletes every Job of the submission with foreground propagation (their pods go first),
+    /// then any pod of the submission no Job owns. Idempotent: what is already gone is fine.
+    #[instrument(skip(self))]
+    pub async fn delete_all(&self, submission_id: &str) -> Result<Deleted> {
+        let params = ListParams::default().labels(&labels::submission_selector(submission_id)?);
+        let jobs = self
+            .call("list jobs", self.jobs().list(&params))
+            .await?
+            .map_err(|e| ClusterError::from_kube("list jobs", "", e))?;
+        let mut deleted = Deleted::default();
+        let foreground = DeleteParams::foreground();
+        for job in &jobs.items {
+            let Some(name) = job.metadata.name.clone() else {
+                continue;
+            };
+            match self
+                .call("delete job", self.jobs().delete(&name, &foreground))
+                .await?
+            {
+                Ok(_) => deleted.jobs.push(name),
+                Err(kube::Error::Api(s)) if s.is_not_found() => deleted.already_gone.push(name),
+                Err(e) => {
+                    return Err(ClusterError::from_kube(
+                        "delete job",
+                        &format!("Job `{name}`"),
+                        e,
+                    ))
+                }
+            }
+        }
+        let pods = self
+            .call("list pods", self.pods().list(&params))
+            .await?
+            .map_err(|e| ClusterError::from_kube("list pods", "", e))?;
+        let owned = |p: &Pod| {
+            p.metadata
+                .owner_references
+                .iter()
+                .flatten()
+                .any(|o| o.kind == "Job")
+        };
+        for pod in pods.items.iter().filter(|p| !owned(p)) {
+            let Some(name) = pod.metadata.name.clone() else {
+                continue;
+            };
+            match self
+                .call(
+                    "delete pod",
+                    self.pods().delete(&name, &DeleteParams::default()),
+                )
+                .await?
+            {
+                Ok(_) => deleted.orphan_pods.push(name),
+                Err(kube::Error::Api(s)) if s.is_not_found() => deleted.already_gone.push(name),
+                Err(e) => {
+                    return Err(ClusterError::from_kube(
+                        "delete pod",
+                        &format!("Pod `{name}`"),
+                        e,
+                    ))
+                }
+            }
+        }
+        info!(
+            jobs = deleted.jobs.len(),
+            orphan_pods = deleted.orphan_pods.len(),
+            already_gone = deleted.already_gone.len(),
+            "deletion requested"
+        );
+        Ok(deleted)
+    }
+
+    /// Polls (every `poll`, at most until `timeout`) until the submission has no Job and no
+    /// Pod left. `Ok(true)` when gone, `Ok(false)` when time ran out first.
+    #[instrument(skip(self))]
+    pub async fn wait_gone(
+        &self,
+        submission_id: &str,
+        timeout: Duration,
+        poll: Duration,
+    ) -> Result<bool> {
+        let deadline = tokio::time::Instant::now() + timeout;
+        let poll = poll.max(Duration::from_millis(10));
+        loop {
+            let (jobs, pods) = self.list(submission_id).await?;
+            if jobs.is_empty() && pods.is_empty() {
+                return Ok(true);
+            }
+            let now = tokio::time::Instant::now();
+            if now >= deadline {
+                debug!(
+                    jobs = jobs.len(),
+                    pods = pods.len(),
+                    "still there at the deadline"
+                );
+                return Ok(false);
+            }
+            tokio::time::sleep(poll.min(deadline - now)).await;
+        }
+    }
+}
+
+fn apply_timeouts(config: &mut kube::Config, timeouts: &Timeouts) {
+    config.connect_timeout = Some(timeouts.connect);
+    config.read_timeout = Some(timeouts.read);
+    config.write_timeout = Some(timeouts.read);
+    // NB: with a read timeout, count it from the request, not from when a pooled
+    // connection went idle.
+    config.reset_reader_on_write = true;
+}
+
+/// The kube config of an EKS cluster: `https` endpoint, its CA (PEM) as the only root, the
+/// bearer token, bounded timeouts.
+pub fn eks_config(
+    endpoint: &str,
+    ca_pem: &[u8],
+    token: &str,
+    timeouts: &Timeouts,
+) -> Result<kube::Config> {
+    let problem = |p: String| ClusterError::Config {
+        problem: p,
+        source: None,
+    };
+    let url: http::Uri =
+        endpoint
+            .parse()
+            .map_err(|e: http::uri::InvalidUri| ClusterError::Config {
+                problem: format!("EKS endpoint `{endpoint}` is not a URL"),
+                source: Some(Box::new(e)),
+            })?;
+    if url.scheme_str() != Some("https") || url.host().is_none() {
+        return Err(problem(format!(
+            "EKS endpoint `{endpoint}` is not an https URL"
+        )));
+    }
+    let certs: Vec<Vec<u8>> = pem::parse_many(ca_pem)
+        .map_err(|e| ClusterError::Config {
+            problem: "the cluster CA is not PEM".into(),
+            source: Some(Box::new(e)),
+        })?
+        .into_iter()
+        .filter(|p| p.tag() == "CERTIFICATE")
+        .map(pem::Pem::into_contents)
+        .collect();
+    if certs.is_empty() {
+        return Err(problem("the cluster CA holds no certificate".into()));
+    }
+    let token = token.trim();
+    if token.is_empty() || token.chars().any(|c| c.is_whitespace() || c.is_control()) {
+        return Err(problem(
+            "the bearer token is empty or not a single word".into(),
+        ));
+    }
+    let mut config = kube::Config::new(url);
+    config.root_cert = Some(certs);
+    config.auth_info.token = Some(secrecy::SecretString::from(token.to_owned()));
+    apply_timeouts(&mut config, timeouts);
+    Ok(config)
+}
+
+/// Builds the client; kube spawns its request buffer, hence the runtime check.
+fn client_from(config: kube::Config) -> Result<kube::Client> {
+    if tokio::runtime::Handle::try_current().is_err() {
+        return Err(ClusterError::Config {
+            problem: "a Kubernetes client must be built inside a Tokio runtime".into(),
+            source: None,
+        });
+    }
+    kube::Client::try_from(config).map_err(|e| ClusterError::Config {
+        problem: "cannot build the HTTPS client (bad CA or TLS settings?)".into(),
+        source: Some(Box::new(e)),
+    })
+}

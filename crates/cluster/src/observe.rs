@@ -1,0 +1,1401 @@
+//! Pure mapping from a submission's Jobs and Pods (as the API server returns them) to per-Job
+//! states, container states and one verdict the Monitor can act on.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use k8s_openapi::api::batch::v1::Job;
+use k8s_openapi::api::core::v1::{Container, ContainerStatus, Pod};
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::{ObjectMeta, Time};
+use k8s_openapi::jiff::Timestamp;
+use serde::{Deserialize, Serialize};
+
+use crate::labels;
+
+/// Waiting reasons that mean an image will not arrive by waiting.
+const PULL_FAILURES: [&str; 4] = [
+    "ErrImagePull",
+    "ImagePullBackOff",
+    "InvalidImageName",
+    "ErrImageNeverPull",
+];
+
+/// Waiting reasons of a container whose configuration the kubelet cannot apply.
+const CONFIG_FAILURES: [&str; 2] = ["CreateContainerConfigError", "CreateContainerError"];
+
+/// Phrases of a pull failure caused by registry throttling, which goes away by itself.
+const THROTTLED_PULL: [&str; 3] = ["toomanyrequests", "429 too many requests", "rate limit"];
+
+/// Longest piece of a Kubernetes message copied into a participant message.
+const MAX_QUOTED: usize = 600;
+
+/// How patient the verdict is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct VerdictPolicy {
+    /// A pod unschedulable for this long makes the submission hopeless. Generous by default:
+    /// the cluster autoscaler needs minutes to add a GPU node, longer when capacity is short.
+    pub unschedulable_limit: Duration,
+    /// A container that cannot be created (`CreateContainerConfigError`: a missing Secret or
+    /// ConfigMap, an unsupported volume) this long after its pod started makes the submission
+    /// hopeless; Kubernetes retries forever, so without this the Job would hold its node
+    /// until the deadline.
+    pub config_error_limit: Duration,
+}
+
+impl Default for VerdictPolicy {
+    fn default() -> Self {
+        VerdictPolicy {
+            unschedulable_limit: Duration::from_secs(30 * 60),
+            config_error_limit: Duration::from_secs(10 * 60),
+        }
+    }
+}
+
+/// Everything the pipeline needs to know about a submission's Jobs at one instant.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Observation {
+    /// The EvalAI submission id.
+    pub submission_id: String,
+    /// When the mapping was made (the clock that measured unschedulable durations).
+    pub observed_at: Timestamp,
+    /// The submission's Jobs, by index then name, each with its Pods.
+    pub jobs: Vec<JobView>,
+    /// Pods labelled with the submission whose Job is not among `jobs` (leftovers of a
+    /// deleted Job). They never decide the verdict.
+    pub stray_pods: Vec<PodView>,
+    /// What the Monitor should do.
+    pub verdict: Verdict,
+}
+
+/// One Job.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobView {
+    /// Its name.
+    pub name: String,
+    /// The `job-index` label, when it is a number.
+    pub index: Option<u32>,
+    /// Where it is in its life.
+    pub state: JobState,
+    /// Pods running now (`status.active`).
+    pub active: i32,
+    /// Pods ready now (`status.ready`).
+    pub ready: i32,
+    /// Pods that succeeded.
+    pub succeeded: i32,
+    /// Pods that failed (a container restart in place does not count, a pod replacement does).
+    pub failed: i32,
+    /// When the Job controller started it.
+    pub start_time: Option<Timestamp>,
+    /// When it completed.
+    pub completion_time: Option<Timestamp>,
+    /// Whether it is being deleted.
+    pub terminating: bool,
+    /// Its Pods, by name.
+    pub pods: Vec<PodView>,
+}
+
+/// Life stage of a Job, from its conditions.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "state")]
+pub enum JobState {
+    /// Created, no pod running yet.
+    Pending,
+    /// At least one pod active.
+    Running,
+    /// `spec.suspend` is set: nothing runs until someone resumes it.
+    Suspended,
+    /// `Complete` (or `SuccessCriteriaMet`, while its pods finish terminating).
+    Complete,
+    /// `Failed` (or `FailureTarget`, while its pods are being terminated).
+    Failed {
+        /// The condition reason: `BackoffLimitExceeded`, `DeadlineExceeded`, ...
+        reason: String,
+        /// The condition message.
+        message: String,
+    },
+}
+
+/// One Pod.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PodView {
+    /// Its name.
+    pub name: String,
+    /// The Job it belongs to (owner reference or `job-name` label).
+    pub job: Option<String>,
+    /// `Pending`, `Running`, `Succeeded`, `Failed` or `Unknown`.
+    pub phase: String,
+    /// `status.reason`, e.g. `Evicted`.
+    pub reason: Option<String>,
+    /// `status.message`.
+    pub message: Option<String>,
+    /// The node it runs on.
+    pub node: Option<String>,
+    /// When the kubelet accepted it.
+    pub start_time: Option<Timestamp>,
+    /// Whether it is being deleted.
+    pub terminating: bool,
+    /// Set while the scheduler cannot place it.
+    pub unschedulable: Option<Unschedulable>,
+    /// Init containers, then containers, in spec order.
+    pub containers: Vec<ContainerView>,
+}
+
+/// The scheduler's complaint about a pod.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Unschedulable {
+    /// Since when (`lastTransitionTime` of `PodScheduled`), when known.
+    pub since: Option<Timestamp>,
+    /// The scheduler's message (`0/3 nodes are available: ...`).
+    pub message: String,
+}
+
+/// One container of a pod.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ContainerView {
+    /// Its name (`simulator-1`, `agent-1`, `logcopy`, `private-contents`).
+    pub name: String,
+    /// The image as the spec names it.
+    pub image: String,
+    /// Whether it is an init container.
+    pub init: bool,
+    /// What it is doing now.
+    pub state: ContainerState,
+    /// Whether it passes its readiness check.
+    pub ready: bool,
+    /// How often the kubelet restarted it in place.
+    pub restart_count: i32,
+    /// How its previous run ended.
+    pub last_exit: Option<Exit>,
+}
+
+/// A container's current state.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "state")]
+pub enum ContainerState {
+    /// No status yet (the pod is not scheduled, or the kubelet has not reported).
+    NotCreated,
+    /// Waiting: `ContainerCreating`, `PodInitializing`, `CrashLoopBackOff`, `ImagePullBackOff`, ...
+    Waiting {
+        /// The kubelet's reason.
+        reason: String,
+        /// The kubelet's message.
+        message: Option<String>,
+    },
+    /// Running.
+    Running {
+        /// Since when.
+        started_at: Option<Timestamp>,
+    },
+    /// Ended.
+    Terminated(Exit),
+}
+
+/// How a container run ended.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Exit {
+    /// Exit code.
+    pub exit_code: i32,
+    /// `Completed`, `Error`, `OOMKilled`, ...
+    pub reason: Option<String>,
+    /// Termination message.
+    pub message: Option<String>,
+    /// When.
+    pub finished_at: Option<Timestamp>,
+}
+
+/// What the Monitor should do about the submission.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "verdict")]
+pub enum Verdict {
+    /// Keep waiting: pending, running, restarting.
+    Running,
+    /// Every Job is complete.
+    Finished,
+    /// Nothing good will come from waiting.
+    Failed {
+        /// Why, as a stable name.
+        kind: FailureKind,
+        /// The Job concerned, when one is.
+        job: Option<String>,
+        /// The container concerned, when one is.
+        container: Option<String>,
+        /// A message the participant can read and act on.
+        message: String,
+    },
+}
+
+impl Verdict {
+    /// Whether the submission's Jobs will not change by themselves any more.
+    pub fn is_terminal(&self) -> bool {
+        !matches!(self, Verdict::Running)
+    }
+}
+
+/// Why a submission failed, as the Monitor sees it from Kubernetes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum FailureKind {
+    /// The participant's image cannot be pulled or is not a valid reference.
+    ParticipantImagePull,
+    /// One of the evaluation's own images cannot be pulled.
+    InfrastructureImagePull,
+    /// A container cannot be created (its configuration refers to something missing).
+    ContainerConfig,
+    /// A pod stayed unschedulable longer than the policy allows.
+    Unschedulable,
+    /// A Job failed more often than its backoff limit.
+    BackoffLimitExceeded,
+    /// A Job ran longer than its active deadline.
+    DeadlineExceeded,
+    /// A Job failed for another reason.
+    JobFailed,
+    /// A Job of the submission does not exist.
+    JobsMissing,
+}
+
+impl FailureKind {
+    /// The stable PascalCase name.
+    pub fn name(self) -> &'static str {
+        match self {
+            FailureKind::ParticipantImagePull => "ParticipantImagePull",
+            FailureKind::InfrastructureImagePull => "InfrastructureImagePull",
+            FailureKind::ContainerConfig => "ContainerConfig",
+            FailureKind::Unschedulable => "Unschedulable",
+            FailureKind::BackoffLimitExceeded => "BackoffLimitExceeded",
+            FailureKind::DeadlineExceeded => "DeadlineExceeded",
+            FailureKind::JobFailed => "JobFailed",
+            FailureKind::JobsMissing => "JobsMissing",
+        }
+    }
+}
+
+impl Observation {
+    /// Container restarts across every Job's pods.
+    pub fn restarts(&self) -> i64 {
+        self.jobs
+            .iter()
+            .flat_map(|j| &j.pods)
+            .flat_map(|p| &p.containers)
+            .map(|c| i64::from(c.restart_count.max(0)))
+            .sum()
+    }
+
+    /// When the first Job started, if any has.
+    pub fn started_at(&self) -> Option<Timestamp> {
+        self.jobs.iter().filter_map(|j| j.start_time).min()
+    }
+
+    /// Fails a verdict that is not already failed when a Job index below `count` is absent
+    /// (deleted outside the pipeline, or never created): `Finished` over half the Jobs is not
+    /// a finished submission.
+    pub fn expect_jobs(mut self, count: u32) -> Self {
+        if matches!(self.verdict, Verdict::Failed { .. }) {
+            return self;
+        }
+        let missing: Vec<String> = (0..count)
+            .filter(|i| !self.jobs.iter().any(|j| j.index == Some(*i)))
+            .map(|i| i.to_string())
+            .collect();
+        if !missing.is_empty() {
+            self.verdict = Verdict::Failed {
+                kind: FailureKind::JobsMissing,
+                job: None,
+                container: None,
+                message: format!(
+                    "the evaluation stopped unexpectedly: its Kubernetes Job(s) with index {} of {count} no longer exist",
+                    missing.join(", ")
+                ),
+            };
+        }
+        self
+    }
+}
+
+/// Maps the listed Jobs and Pods of `submission_id` to an observation at `now`.
+pub fn observe(
+    submission_id: &str,
+    jobs: &[Job],
+    pods: &[Pod],
+    now: Timestamp,
+    policy: &VerdictPolicy,
+) -> Observation {
+    let mut views: Vec<JobView> = jobs.iter().map(job_view).collect();
+    views.sort_by(|a, b| (a.index, &a.name).cmp(&(b.index, &b.name)));
+    let mut stray_pods = Vec::new();
+    let mut pod_views: Vec<PodView> = pods.iter().map(pod_view).collect();
+    pod_views.sort_by(|a, b| a.name.cmp(&b.name));
+    for pod in pod_views {
+        match views
+            .iter_mut()
+            .find(|j| pod.job.as_deref() == Some(j.name.as_str()))
+        {
+            Some(job) => job.pods.push(pod),
+            None => stray_pods.push(pod),
+        }
+    }
+    let verdict = verdict(&views, now, policy);
+    Observation {
+        submission_id: submission_id.to_string(),
+        observed_at: now,
+        jobs: views,
+        stray_pods,
+        verdict,
+    }
+}
+
+fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict {
+    if jobs.is_empty() {
+        return Verdict::Failed {
+            kind: FailureKind::JobsMissing,
+            job: None,
+            container: None,
+            message: "the evaluation stopped unexpectedly: its Kubernetes Jobs no longer exist"
+                .into(),
+        };
+    }
+    // NB: only pods that can still make progress count; a finished or dying Job's pods
+    // say nothing about the future.
+    let live = || {
+        jobs.iter()
+            .filter(|j| {
+                !j.terminating && !matches!(j.state, JobState::Complete | JobState::Failed { .. })
+            })
+            .flat_map(|j| j.pods.iter().map(move |p| (j, p)))
+            .filter(|(_, p)| !p.terminating && matches!(p.phase.as_str(), "Pending" | "Running"))
+    };
+    // The participant's image first: it is the one failure they can fix themselves.
+    let mut infra_pull = None;
+    for (job, pod) in live() {
+        for c in &pod.containers {
+            let ContainerState::Waiting { reason, message } = &c.state else {
+                continue;
+            };
+            if !PULL_FAILURES.contains(&reason.as_str()) || is_throttled(message.as_deref()) {
+                continue;
+            }
+            let detail = match message {
+                Some(m) if !m.is_empty() => format!("{reason}: {}", quote(m)),
+                _ => reason.clone(),
+            };
+            if is_participant(&c.name) {
+                let message = if reason == "InvalidImageName" {
+                    format!(
+                        "the submitted image `{}` is not a valid image reference ({detail}); check the image URI you pushed to EvalAI",
+                        c.image
+                    )
+                } else {
+                    format!(
+                        "the submitted image `{}` could not be pulled ({detail}); check that the image URI is correct and that the image was pushed (and is readable by the evaluation cluster)",
+                        c.image
+                    )
+                };
+                return Verdict::Failed {
+                    kind: FailureKind::ParticipantImagePull,
+                    job: Some(job.name.clone()),
+                    container: Some(c.name.clone()),
+                    message,
+                };
+            }
+            infra_pull.get_or_insert_with(|| Verdict::Failed {
+                kind: FailureKind::InfrastructureImagePull,
+                job: Some(job.name.clone()),
+                container: Some(c.name.clone()),
+                message: format!(
+                    "the evaluation could not start: the organizers' image `{}` of container `{}` could not be pulled ({detail}); this is not a problem with your submission",
+                    c.image, c.name
+                ),
+            });
+        }
+    }
+    if let Some(v) = infra_pull {
+        return v;
+    }
+    if let Some(job) = jobs
+        .iter()
+        .find(|j| matches!(j.state, JobState::Failed { .. }))
+    {
+        return job_failed(job);
+    }
+    for (job, pod) in live() {
+        let Some(started) = pod.start_time else {
+            continue;
+        };
+        if !waited_at_least(now, started, policy.config_error_limit) {
+            continue;
+        }
+        for c in &pod.containers {
+            let ContainerState::Waiting { reason, message } = &c.state else {
+                continue;
+            };
+            if CONFIG_FAILURES.contains(&reason.as_str()) {
+                let detail = match message {
+                    Some(m) if !m.is_empty() => format!("{reason}: {}", quote(m)),
+                    _ => reason.clone(),
+                };
+                return Verdict::Failed {
+                    kind: FailureKind::ContainerConfig,
+                    job: Some(job.name.clone()),
+                    container: Some(c.name.clone()),
+                    message: format!(
+                        "the evaluation could not start: container `{}` could not be created ({detail}); this is not a problem with your submission",
+                        c.name
+                    ),
+                };
+            }
+        }
+    }
+    let limit = policy.unschedulable_limit;
+    for (job, pod) in live() {
+        let Some(u) = &pod.unschedulable else {
+            continue;
+        };
+        let Some(since) = u.since else { continue };
+        if waited_at_least(now, since, limit) {
+            let waited = now.as_second().saturating_sub(since.as_second());
+            return Verdict::Failed {
+                kind: FailureKind::Unschedulable,
+                job: Some(job.name.clone()),
+                container: None,
+                message: format!(
+                    "the evaluation could not be scheduled on the cluster for {} minutes ({}); please try again later or contact the organizers",
+                    waited / 60,
+                    quote(&u.message)
+                ),
+            };
+        }
+    }
+    if jobs.iter().all(|j| j.state == JobState::Complete) {
+        Verdict::Finished
+    } else {
+        Verdict::Running
+    }
+}
+
+/// Whether `since` is at least `limit` before `now` (a clock behind `since` never is).
+fn waited_at_least(now: Timestamp, since: Timestamp, limit: Duration) -> bool {
+    let waited = now.as_second().saturating_sub(since.as_second());
+    waited >= 0 && waited.unsigned_abs() >= limit.as_secs()
+}
+
+fn job_failed(job: &JobView) -> Verdict {
+    let JobState::Failed { reason, message } = &job.state else {
+        return Verdict::Running;
+    };
+    let restarts: Vec<String> = job
+        .pods
+        .iter()
+        .flat_map(|p| &p.containers)
+        .filter(|c| c.restart_count > 0)
+        .map(|c| match &c.last_exit {
+            Some(e) => format!(
+                "{} restarted {}x, last exit code {}",
+                c.name, c.restart_count, e.exit_code
+            ),
+            None => format!("{} restarted {}x", c.name, c.restart_count),
+        })
+        .collect();
+    let restarts = if restarts.is_empty() {
+        String::new()
+    } else {
+        format!("; {}", restarts.join(", "))
+    };
+    let detail = if message.is_empty() {
+        reason.clone()
+    } else {
+        format!("{reason}: {}", quote(message))
+    };
+    let (kind, what) = match reason.as_str() {
+        "BackoffLimitExceeded" => (
+            FailureKind::BackoffLimitExceeded,
+            "its containers failed more often than the retry limit allows",
+        ),
+        "DeadlineExceeded" => (
+            FailureKind::DeadlineExceeded,
+            "it ran longer than the time limit of an evaluation",
+        ),
+        _ => (FailureKind::JobFailed, "Kubernetes marked it failed"),
+    };
+    Verdict::Failed {
+        kind,
+        job: Some(job.name.clone()),
+        container: None,
+        message: format!(
+            "the evaluation Job `{}` failed: {what} ({detail}{restarts})",
+            job.name
+        ),
+    }
+}
+
+/// The agent containers run the participant's image (see the in-Job contract).
+fn is_participant(container: &str) -> bool {
+    container == "agent" || container.starts_with("agent-")
+}
+
+fn is_throttled(message: Option<&str>) -> bool {
+    let Some(m) = message else { return false };
+    let m = m.to_ascii_lowercase();
+    THROTTLED_PULL.iter().any(|p| m.contains(p))
+}
+
+/// At most [`MAX_QUOTED`] characters of `text`, marked when cut.
+fn quote(text: &str) -> String {
+    let text = text.trim();
+    match text.char_indices().nth(MAX_QUOTED) {
+        Some((at, _)) => format!("{}...", &text[..at]),
+        None => text.to_string(),
+    }
+}
+
+fn ts(t: &Option<Time>) -> Option<Timestamp> {
+    t.as_ref().map(|t| t.0)
+}
+
+fn name_of(meta: &ObjectMeta) -> String {
+    meta.name.clone().unwrap_or_default()
+}
+
+/// A Job's life stage from its conditions and counters.
+pub(crate) fn job_state(job: &Job) -> JobState {
+    let status = job.status.clone().unwrap_or_default();
+    let conditions = status.conditions.unwrap_or_default();
+    let is_true = |ty: &str| {
+        conditions
+            .iter()
+            .find(|c| c.type_ == ty && c.status == "True")
+    };
+    if let Some(c) = is_true("Failed").or_else(|| is_true("FailureTarget")) {
+        JobState::Failed {
+            reason: c.reason.clone().unwrap_or_else(|| "Unknown".into()),
+            message: c.message.clone().unwrap_or_default(),
+        }
+    } else if is_true("Complete")
+        .or_else(|| is_true("SuccessCriteriaMet"))
+        .is_some()
+    {
+        JobState::Complete
+    } else if is_true("Suspended").is_some() {
+        JobState::Suspended
+    } else if status.active.unwrap_or(0) > 0 {
+        JobState::Running
+    } else {
+        JobState::Pending
+    }
+}
+
+fn job_view(job: &Job) -> JobView {
+    let status = job.status.clone().unwrap_or_default();
+    let active = status.active.unwrap_or(0);
+    let state = job_state(job);
+    JobView {
+        name: name_of(&job.metadata),
+        index: job
+            .metadata
+            .labels
+            .as_ref()
+            .and_then(|l| l.get(labels::JOB_INDEX))
+            .and_then(|v| v.parse().ok()),
+        state,
+        active,
+        ready: status.ready.unwrap_or(0),
+        succeeded: status.succeeded.unwrap_or(0),
+        failed: status.failed.unwrap_or(0),
+        start_time: ts(&status.start_time),
+        completion_time: ts(&status.completion_time),
+        terminating: job.metadata.deletion_timestamp.is_some(),
+        pods: Vec::new(),
+    }
+}
+
+fn owning_job(meta: &ObjectMeta) -> Option<String> {
+    let owner = meta
+        .owner_references
+        .iter()
+        .flatten()
+        .find(|o| o.kind == "Job" && o.api_version.starts_with("batch/"))
+        .map(|o| o.name.clone());
+    owner.or_else(|| {
+        let labels = meta.labels.as_ref()?;
+        labels::JOB_NAME_LABELS
+            .iter()
+            .find_map(|k| labels.get(*k).cloned())
+    })
+}
+
+fn pod_view(pod: &Pod) -> PodView {
+    let status = pod.status.clone().unwrap_or_default();
+    let spec = pod.spec.clone().unwrap_or_default();
+    let unschedulable = status
+        .conditions
+        .iter()
+        .flatten()
+        .find(|c| {
+            c.type_ == "PodScheduled"
+                && c.status == "False"
+                && c.reason.as_deref() == Some("Unschedulable")
+        })
+        .map(|c| Unschedulable {
+            since: ts(&c.last_transition_time),
+            message: c.message.clone().unwrap_or_default(),
+        });
+    let init_statuses = index_statuses(status.init_container_statuses.as_deref());
+    let statuses = index_statuses(status.container_statuses.as_deref());
+    let mut containers: Vec<ContainerView> = spec
+        .init_containers
+        .iter()
+        .flatten()
+        .map(|c| container_view(c, init_statuses.get(c.name.as_str()).copied(), true))
+        .collect();
+    containers.extend(
+        spec.containers
+            .iter()
+            .map(|c| container_view(c, statuses.get(c.name.as_str()).copied(), false)),
+    );
+    PodView {
+        name: name_of(&pod.metadata),
+        job: owning_job(&pod.metadata),
+        phase: status.phase.unwrap_or_else(|| "Unknown".into()),
+        reason: status.reason,
+        message: status.message,
+        node: spec.node_name,
+        start_time: ts(&status.start_time),
+        terminating: pod.metadata.deletion_timestamp.is_some(),
+        unschedulable,
+        containers,
+    }
+}
+
+fn index_statuses(statuses: Option<&[ContainerStatus]>) -> BTreeMap<&str, &ContainerStatus> {
+    statuses
+        .unwrap_or_default()
+        .iter()
+        .map(|s| (s.name.as_str(), s))
+        .collect()
+}
+
+fn exit(t: &k8s_openapi::api::core::v1::ContainerStateTerminated) -> Exit {
+    Exit {
+        exit_code: t.exit_code,
+        reason: t.reason.clone(),
+        message: t.message.clone(),
+        finished_at: ts(&t.finished_at),
+    }
+}
+
+fn container_view(spec: &Container, status: Option<&ContainerStatus>, init: bool) -> ContainerView {
+    let image = spec
+        .image
+        .clone()
+        .filter(|i| !i.is_empty())
+        .or_else(|| status.map(|s| s.image.clone()))
+        .unwrap_or_default();
+    let Some(status) = status else {
+        return ContainerView {
+            name: spec.name.clone(),
+            image,
+            init,
+            state: ContainerState::NotCreated,
+            ready: false,
+            restart_count: 0,
+            last_exit: None,
+        };
+    };
+    let state = match &status.state {
+        Some(s) => {
+            if let Some(t) = &s.terminated {
+                ContainerState::Terminated(exit(t))
+            } else if let Some(r) = &s.running {
+                ContainerState::Running {
+                    started_at: ts(&r.started_at),
+                }
+            } else if let Some(w) = &s.waiting {
+                ContainerState::Waiting {
+                    reason: w.reason.clone().unwrap_or_default(),
+                    message: w.message.clone(),
+                }
+            } else {
+                ContainerState::NotCreated
+            }
+        }
+        None => ContainerState::NotCreated,
+    };
+    ContainerView {
+        name: spec.name.clone(),
+        image,
+        init,
+        state,
+        ready: status.ready,
+        restart_count: status.restart_count,
+        last_exit: status
+            .last_state
+            .as_ref()
+            .and_then(|s| s.terminated.as_ref())
+            .map(exit),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Jobs and Pods of a `kubectl get jobs,pods -o yaml` style `List`.
+    fn load(text: &str) -> (Vec<Job>, Vec<Pod>) {
+        let list: serde_json::Value = serde_yaml::from_str(text).expect("fixture is YAML");
+        assert_eq!(list["kind"], "List");
+        let mut jobs = Vec::new();
+        let mut pods = Vec::new();
+        for item in list["items"].as_array().expect("items") {
+            match item["kind"].as_str() {
+                Some("Job") => jobs.push(serde_json::from_value(item.clone()).expect("a Job")),
+                Some("Pod") => pods.push(serde_json::from_value(item.clone()).expect("a Pod")),
+                other => panic!("unexpected kind {other:?}"),
+            }
+        }
+        (jobs, pods)
+    }
+
+    fn at(hh: i8, mm: i8) -> Timestamp {
+        format!("2025-03-14T{hh:02}:{mm:02}:00Z").parse().unwrap()
+    }
+
+    fn run(text: &str) -> Observation {
+        run_at(text, at(9, 45), &VerdictPolicy::default())
+    }
+
+    fn run_at(text: &str, now: Timestamp, policy: &VerdictPolicy) -> Observation {
+        let (jobs, pods) = load(text);
+        observe("4242", &jobs, &pods, now, policy)
+    }
+
+    fn failed(obs: &Observation) -> (FailureKind, Option<&str>, Option<&str>, &str) {
+        match &obs.verdict {
+            Verdict::Failed {
+                kind,
+                job,
+                container,
+                message,
+            } => (
+                *kind,
+                job.as_deref(),
+                container.as_deref(),
+                message.as_str(),
+            ),
+            other => panic!("expected a failure, got {other:?}"),
+        }
+    }
+
+    const RUNNING: &str = include_str!("../tests/fixtures/running.yaml");
+    const PENDING_INIT: &str = include_str!("../tests/fixtures/pending-init.yaml");
+    const FINISHED: &str = include_str!("../tests/fixtures/finished-two-jobs.yaml");
+    const BACKOFF: &str = include_str!("../tests/fixtures/backoff-limit.yaml");
+    const DEADLINE: &str = include_str!("../tests/fixtures/deadline-exceeded.yaml");
+    const PULL_BACKOFF: &str = include_str!("../tests/fixtures/image-pull-backoff.yaml");
+    const ERR_PULL: &str = include_str!("../tests/fixtures/err-image-pull.yaml");
+    const INVALID_NAME: &str = include_str!("../tests/fixtures/invalid-image-name.yaml");
+    const RATE_LIMITED: &str = include_str!("../tests/fixtures/pull-rate-limited.yaml");
+    const INFRA_PULL: &str = include_str!("../tests/fixtures/infra-image-pull.yaml");
+    const UNSCHEDULABLE: &str = include_str!("../tests/fixtures/unschedulable.yaml");
+    const CRASH_LOOP: &str = include_str!("../tests/fixtures/crash-loop.yaml");
+    const HALF_DONE: &str = include_str!("../tests/fixtures/one-complete-one-running.yaml");
+    const EVICTED: &str = include_str!("../tests/fixtures/evicted-replaced.yaml");
+    const SUCCESS_CRITERIA: &str = include_str!("../tests/fixtures/success-criteria-met.yaml");
+    const FAILURE_TARGET: &str = include_str!("../tests/fixtures/failure-target.yaml");
+    const JOB_TERMINATING: &str = include_str!("../tests/fixtures/job-terminating.yaml");
+    const STRAY: &str = include_str!("../tests/fixtures/stray-pod.yaml");
+    const EMPTY: &str = include_str!("../tests/fixtures/empty.yaml");
+
+    const ALL: [&str; 19] = [
+        RUNNING,
+        PENDING_INIT,
+        FINISHED,
+        BACKOFF,
+        DEADLINE,
+        PULL_BACKOFF,
+        ERR_PULL,
+        INVALID_NAME,
+        RATE_LIMITED,
+        INFRA_PULL,
+        UNSCHEDULABLE,
+        CRASH_LOOP,
+        HALF_DONE,
+        EVICTED,
+        SUCCESS_CRITERIA,
+        FAILURE_TARGET,
+        JOB_TERMINATING,
+        STRAY,
+        EMPTY,
+    ];
+
+    #[test]
+    fn every_fixture_decodes_as_the_api_server_sends_it() {
+        for text in ALL {
+            let (jobs, pods) = load(text);
+            for j in &jobs {
+                assert!(j.status.is_some() && j.metadata.uid.is_some());
+                assert_eq!(
+                    j.metadata.labels.as_ref().unwrap()[crate::labels::SUBMISSION_ID],
+                    "4242"
+                );
+            }
+            for p in &pods {
+                assert!(p.status.as_ref().and_then(|s| s.phase.as_ref()).is_some());
+            }
+            // Every Job and Pod lands somewhere in the observation.
+            let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+            let placed: usize =
+                obs.jobs.iter().map(|j| j.pods.len()).sum::<usize>() + obs.stray_pods.len();
+            assert_eq!((obs.jobs.len(), placed), (jobs.len(), pods.len()));
+        }
+    }
+
+    #[test]
+    fn a_running_job_is_running_and_reports_the_agent_restarts() {
+        let obs = run(RUNNING);
+        assert_eq!(obs.verdict, Verdict::Running);
+        let job = &obs.jobs[0];
+        assert_eq!(
+            (job.name.as_str(), job.index),
+            ("lb-4242-team-77-0", Some(0))
+        );
+        assert_eq!(job.state, JobState::Running);
+        assert_eq!((job.active, job.ready), (1, 1));
+        assert_eq!(job.start_time, Some(at(9, 0)));
+        let pod = &job.pods[0];
+        assert_eq!(pod.phase, "Running");
+        assert_eq!(
+            pod.node.as_deref(),
+            Some("ip-10-0-12-34.us-west-2.compute.internal")
+        );
+        let agent = pod.containers.iter().find(|c| c.name == "agent-1").unwrap();
+        assert_eq!(agent.restart_count, 2);
+        assert_eq!(agent.last_exit.as_ref().unwrap().exit_code, 1);
+        assert_eq!(
+            agent.last_exit.as_ref().unwrap().reason.as_deref(),
+            Some("Error")
+        );
+        assert!(matches!(
+            agent.state,
+            ContainerState::Running {
+                started_at: Some(_)
+            }
+        ));
+        assert_eq!(obs.restarts(), 2);
+        assert_eq!(obs.started_at(), Some(at(9, 0)));
+        assert!(!obs.verdict.is_terminal());
+    }
+
+    #[test]
+    fn containers_are_listed_init_first_in_spec_order_with_the_spec_image() {
+        let obs = run(RUNNING);
+        let names: Vec<(&str, bool)> = obs.jobs[0].pods[0]
+            .containers
+            .iter()
+            .map(|c| (c.name.as_str(), c.init))
+            .collect();
+        assert_eq!(
+            names,
+            [
+                ("private-contents", true),
+                ("simulator-1", false),
+                ("agent-1", false),
+                ("logcopy", false)
+            ]
+        );
+        let init = &obs.jobs[0].pods[0].containers[0];
+        assert!(
+            matches!(&init.state, ContainerState::Terminated(e) if e.exit_code == 0 && e.reason.as_deref() == Some("Completed"))
+        );
+        assert!(init
+            .image
+            .ends_with("leaderboard-20-private-contents:latest"));
+    }
+
+    #[test]
+    fn a_pod_still_initialising_is_running_not_hopeless() {
+        let obs = run(PENDING_INIT);
+        assert_eq!(obs.verdict, Verdict::Running);
+        assert_eq!(obs.jobs[0].state, JobState::Running);
+        let agent = &obs.jobs[0].pods[0].containers[2];
+        assert_eq!(
+            agent.state,
+            ContainerState::Waiting {
+                reason: "PodInitializing".into(),
+                message: None
+            }
+        );
+    }
+
+    #[test]
+    fn two_complete_jobs_are_finished() {
+        let obs = run(FINISHED);
+        assert_eq!(obs.verdict, Verdict::Finished);
+        assert!(obs.verdict.is_terminal());
+        assert_eq!(obs.jobs.len(), 2);
+        for (i, job) in obs.jobs.iter().enumerate() {
+            assert_eq!(job.index, Some(i as u32));
+            assert_eq!(job.state, JobState::Complete);
+            assert_eq!(job.succeeded, 1);
+            assert!(job.completion_time.is_some());
+            assert_eq!(job.pods.len(), 1);
+            assert_eq!(job.pods[0].phase, "Succeeded");
+        }
+        assert_eq!(obs.clone().expect_jobs(2).verdict, Verdict::Finished);
+    }
+
+    #[test]
+    fn backoff_limit_exceeded_fails_naming_the_reason_and_the_restarts() {
+        let obs = run(BACKOFF);
+        assert_eq!(
+            obs.jobs[0].state,
+            JobState::Failed {
+                reason: "BackoffLimitExceeded".into(),
+                message: "Job has reached the specified backoff limit".into()
+            }
+        );
+        let (kind, job, container, message) = failed(&obs);
+        assert_eq!(kind, FailureKind::BackoffLimitExceeded);
+        assert_eq!(kind.name(), "BackoffLimitExceeded");
+        assert_eq!(job, Some("lb-4242-team-77-0"));
+        assert_eq!(container, None);
+        assert!(
+            message.contains("BackoffLimitExceeded: Job has reached the specified backoff limit"),
+            "{message}"
+        );
+        assert!(
+            message.contains("agent-1 restarted 3x, last exit code 1"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn deadline_exceeded_fails_with_its_own_kind() {
+        let obs = run(DEADLINE);
+        let (kind, _, _, message) = failed(&obs);
+        assert_eq!(kind, FailureKind::DeadlineExceeded);
+        assert!(message.contains("time limit"), "{message}");
+        assert!(
+            message.contains("Job was active longer than specified deadline"),
+            "{message}"
+        );
+        assert!(obs.jobs[0].pods.is_empty());
+    }
+
+    #[test]
+    fn an_agent_in_image_pull_back_off_fails_naming_the_image() {
+        let obs = run(PULL_BACKOFF);
+        let (kind, job, container, message) = failed(&obs);
+        assert_eq!(kind, FailureKind::ParticipantImagePull);
+        assert_eq!(job, Some("lb-4242-team-77-0"));
+        assert_eq!(container, Some("agent-1"));
+        assert!(
+            message.contains(
+                "`342236305043.dkr.ecr.us-west-2.amazonaws.com/evalai-team-77:submission-4242`"
+            ),
+            "{message}"
+        );
+        assert!(
+            message.contains("check that the image URI is correct"),
+            "{message}"
+        );
+        assert!(message.contains("ImagePullBackOff"), "{message}");
+    }
+
+    #[test]
+    fn an_agent_in_err_image_pull_fails_at_once() {
+        let obs = run(ERR_PULL);
+        let (kind, _, container, message) = failed(&obs);
+        assert_eq!(kind, FailureKind::ParticipantImagePull);
+        assert_eq!(container, Some("agent-1"));
+        assert!(
+            message.contains("ErrImagePull: failed to pull and unpack image"),
+            "{message}"
+        );
+        assert!(message.contains("not found"), "{message}");
+    }
+
+    #[test]
+    fn an_invalid_image_name_tells_the_participant_to_check_the_uri() {
+        let obs = run(INVALID_NAME);
+        let (kind, _, _, message) = failed(&obs);
+        assert_eq!(kind, FailureKind::ParticipantImagePull);
+        assert!(
+            message.contains("`Team77/Agent:V3` is not a valid image reference"),
+            "{message}"
+        );
+        assert!(message.contains("must be lowercase"), "{message}");
+        assert!(message.contains("check the image URI"), "{message}");
+    }
+
+    #[test]
+    fn a_pull_throttled_by_the_registry_is_not_hopeless() {
+        let obs = run(RATE_LIMITED);
+        assert_eq!(obs.verdict, Verdict::Running);
+        let agent = &obs.jobs[0].pods[0].containers[2];
+        assert!(
+            matches!(&agent.state, ContainerState::Waiting { reason, .. } if reason == "ErrImagePull")
+        );
+    }
+
+    #[test]
+    fn an_unpullable_organizers_image_is_not_blamed_on_the_participant() {
+        let obs = run(INFRA_PULL);
+        let (kind, _, container, message) = failed(&obs);
+        assert_eq!(kind, FailureKind::InfrastructureImagePull);
+        assert_eq!(container, Some("private-contents"));
+        assert!(
+            message.contains("not a problem with your submission"),
+            "{message}"
+        );
+        assert!(
+            message.contains("leaderboard-20-private-contents:latest"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn the_participant_image_wins_over_an_organizers_image_in_the_message() {
+        let (jobs, mut pods) = load(PULL_BACKOFF);
+        let (_, infra) = load(INFRA_PULL);
+        let mut infra = infra[0].clone();
+        // Sorted first by name, so it is met first.
+        infra.metadata.name = Some("lb-4242-team-77-0-aaaaa".into());
+        pods.push(infra);
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        assert_eq!(failed(&obs).0, FailureKind::ParticipantImagePull);
+    }
+
+    #[test]
+    fn an_unschedulable_pod_is_hopeless_only_after_the_limit() {
+        let policy = VerdictPolicy {
+            unschedulable_limit: Duration::from_secs(30 * 60),
+            ..VerdictPolicy::default()
+        };
+        // Unschedulable since 09:01.
+        let early = run_at(UNSCHEDULABLE, at(9, 30), &policy);
+        assert_eq!(early.verdict, Verdict::Running);
+        let unsched = early.jobs[0].pods[0].unschedulable.as_ref().unwrap();
+        assert_eq!(unsched.since, Some(at(9, 1)));
+        assert!(unsched.message.starts_with("0/3 nodes are available"));
+        assert_eq!(early.jobs[0].pods[0].node, None);
+        assert!(early.jobs[0].pods[0]
+            .containers
+            .iter()
+            .all(|c| c.state == ContainerState::NotCreated));
+
+        let late = run_at(UNSCHEDULABLE, at(9, 31), &policy);
+        let (kind, job, _, message) = failed(&late);
+        assert_eq!(kind, FailureKind::Unschedulable);
+        assert_eq!(job, Some("lb-4242-team-77-0"));
+        assert!(message.contains("for 30 minutes"), "{message}");
+        assert!(message.contains("Insufficient nvidia.com/gpu"), "{message}");
+    }
+
+    #[test]
+    fn the_unschedulable_limit_is_configurable() {
+        let short = VerdictPolicy {
+            unschedulable_limit: Duration::from_secs(60),
+            ..VerdictPolicy::default()
+        };
+        assert_eq!(
+            failed(&run_at(UNSCHEDULABLE, at(9, 2), &short)).0,
+            FailureKind::Unschedulable
+        );
+        assert_eq!(
+            run_at(UNSCHEDULABLE, at(9, 1), &short).verdict,
+            Verdict::Running
+        );
+    }
+
+    #[test]
+    fn an_unschedulable_pod_without_a_transition_time_is_never_hopeless() {
+        let (jobs, mut pods) = load(UNSCHEDULABLE);
+        for c in pods[0]
+            .status
+            .as_mut()
+            .unwrap()
+            .conditions
+            .as_mut()
+            .unwrap()
+        {
+            c.last_transition_time = None;
+        }
+        let obs = observe("4242", &jobs, &pods, at(23, 0), &VerdictPolicy::default());
+        assert_eq!(obs.verdict, Verdict::Running);
+        assert_eq!(
+            obs.jobs[0].pods[0].unschedulable.as_ref().unwrap().since,
+            None
+        );
+    }
+
+    #[test]
+    fn a_clock_behind_the_transition_time_is_not_hopeless() {
+        let short = VerdictPolicy {
+            unschedulable_limit: Duration::ZERO,
+            ..VerdictPolicy::default()
+        };
+        assert_eq!(
+            run_at(UNSCHEDULABLE, at(8, 0), &short).verdict,
+            Verdict::Running
+        );
+    }
+
+    #[test]
+    fn crash_loop_back_off_is_not_hopeless_but_restarts_are_counted() {
+        let obs = run(CRASH_LOOP);
+        assert_eq!(obs.verdict, Verdict::Running);
+        let agent = &obs.jobs[0].pods[0].containers[2];
+        assert!(
+            matches!(&agent.state, ContainerState::Waiting { reason, message: Some(m) } if reason == "CrashLoopBackOff" && m.contains("back-off 40s"))
+        );
+        assert!(!agent.ready);
+        assert_eq!(obs.restarts(), 6);
+    }
+
+    #[test]
+    fn one_complete_job_and_one_running_job_are_running() {
+        let obs = run(HALF_DONE);
+        assert_eq!(obs.verdict, Verdict::Running);
+        assert_eq!(obs.jobs[0].state, JobState::Complete);
+        assert_eq!(obs.jobs[1].state, JobState::Running);
+        assert_eq!(obs.jobs[1].pods[0].name, "lb-4242-team-77-1-r5t6y");
+    }
+
+    #[test]
+    fn an_evicted_pod_replaced_by_a_running_one_is_running() {
+        let obs = run(EVICTED);
+        assert_eq!(obs.verdict, Verdict::Running);
+        let job = &obs.jobs[0];
+        assert_eq!((job.failed, job.active), (1, 1));
+        let evicted = job.pods.iter().find(|p| p.phase == "Failed").unwrap();
+        assert_eq!(evicted.reason.as_deref(), Some("Evicted"));
+        assert!(evicted
+            .message
+            .as_deref()
+            .unwrap()
+            .contains("ephemeral-storage"));
+    }
+
+    #[test]
+    fn success_criteria_met_counts_as_complete_while_pods_terminate() {
+        let obs = run(SUCCESS_CRITERIA);
+        assert_eq!(obs.jobs[0].state, JobState::Complete);
+        assert!(obs.jobs[0].pods[0].terminating);
+        assert_eq!(obs.verdict, Verdict::Finished);
+    }
+
+    #[test]
+    fn failure_target_counts_as_failed_before_the_failed_condition() {
+        let obs = run(FAILURE_TARGET);
+        assert!(
+            matches!(&obs.jobs[0].state, JobState::Failed { reason, .. } if reason == "BackoffLimitExceeded")
+        );
+        assert_eq!(failed(&obs).0, FailureKind::BackoffLimitExceeded);
+    }
+
+    #[test]
+    fn the_pods_of_a_job_being_deleted_do_not_make_the_submission_hopeless() {
+        let obs = run(JOB_TERMINATING);
+        assert!(obs.jobs[0].terminating);
+        assert_eq!(obs.verdict, Verdict::Running);
+    }
+
+    #[test]
+    fn stray_pods_are_reported_apart_and_do_not_decide() {
+        let obs = run(STRAY);
+        assert_eq!(obs.verdict, Verdict::Running);
+        assert_eq!(obs.jobs.len(), 1);
+        assert_eq!(obs.jobs[0].pods.len(), 1);
+        assert_eq!(obs.stray_pods.len(), 1);
+        // No owner reference: the job-name label still says whose it was.
+        assert_eq!(obs.stray_pods[0].job.as_deref(), Some("lb-4242-team-77-1"));
+    }
+
+    #[test]
+    fn pods_attach_to_their_job_by_label_without_an_owner_reference() {
+        let (jobs, mut pods) = load(RUNNING);
+        pods[0].metadata.owner_references = None;
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        assert_eq!(obs.jobs[0].pods.len(), 1);
+        let labels = |p: &mut Pod| p.metadata.labels.as_mut().unwrap().clone();
+        let mut l = labels(&mut pods[0]);
+        l.remove("batch.kubernetes.io/job-name");
+        pods[0].metadata.labels = Some(l.clone());
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        assert_eq!(obs.jobs[0].pods.len(), 1, "the legacy job-name label");
+        l.remove("job-name");
+        pods[0].metadata.labels = Some(l);
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        assert_eq!((obs.jobs[0].pods.len(), obs.stray_pods.len()), (0, 1));
+    }
+
+    #[test]
+    fn no_jobs_means_the_jobs_are_missing() {
+        let obs = run(EMPTY);
+        let (kind, job, _, message) = failed(&obs);
+        assert_eq!((kind, job), (FailureKind::JobsMissing, None));
+        assert!(message.contains("no longer exist"));
+        assert_eq!(obs.restarts(), 0);
+        assert_eq!(obs.started_at(), None);
+    }
+
+    #[test]
+    fn expecting_more_jobs_than_exist_fails_a_finished_verdict() {
+        let obs = run(FINISHED).expect_jobs(3);
+        let (kind, _, _, message) = failed(&obs);
+        assert_eq!(kind, FailureKind::JobsMissing);
+        assert!(message.contains("index 2 of 3"), "{message}");
+        let obs = run(RUNNING).expect_jobs(2);
+        assert_eq!(failed(&obs).0, FailureKind::JobsMissing);
+    }
+
+    #[test]
+    fn expecting_jobs_keeps_an_earlier_failure_and_accepts_a_full_set() {
+        let obs = run(PULL_BACKOFF).expect_jobs(4);
+        assert_eq!(failed(&obs).0, FailureKind::ParticipantImagePull);
+        assert_eq!(run(HALF_DONE).expect_jobs(2).verdict, Verdict::Running);
+        assert_eq!(run(HALF_DONE).expect_jobs(0).verdict, Verdict::Running);
+    }
+
+    #[test]
+    fn a_malformed_job_index_label_is_ignored_not_fatal() {
+        let (mut jobs, pods) = load(RUNNING);
+        jobs[0]
+            .metadata
+            .labels
+            .as_mut()
+            .unwrap()
+            .insert(crate::labels::JOB_INDEX.into(), "zero".into());
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        assert_eq!(obs.jobs[0].index, None);
+        assert_eq!(obs.verdict, Verdict::Running);
+        assert_eq!(failed(&obs.expect_jobs(1)).0, FailureKind::JobsMissing);
+    }
+
+    #[test]
+    fn a_suspended_job_is_reported_as_such_and_waited_for() {
+        let (mut jobs, pods) = load(PENDING_INIT);
+        let status = jobs[0].status.as_mut().unwrap();
+        status.active = Some(0);
+        status.conditions = Some(vec![k8s_openapi::api::batch::v1::JobCondition {
+            type_: "Suspended".into(),
+            status: "True".into(),
+            reason: Some("JobSuspended".into()),
+            message: Some("Job suspended".into()),
+            last_probe_time: None,
+            last_transition_time: Some(Time(at(9, 10))),
+        }]);
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        assert_eq!(obs.jobs[0].state, JobState::Suspended);
+        assert_eq!(obs.verdict, Verdict::Running);
+    }
+
+    #[test]
+    fn a_job_failed_for_another_reason_is_a_generic_job_failure() {
+        let (mut jobs, pods) = load(BACKOFF);
+        for c in jobs[0]
+            .status
+            .as_mut()
+            .unwrap()
+            .conditions
+            .as_mut()
+            .unwrap()
+        {
+            c.reason = Some("PodFailurePolicy".into());
+            c.message = Some("Container agent-1 for pod x failed with exit code 42 matching FailJob rule at index 0".into());
+        }
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let (kind, _, _, message) = failed(&obs);
+        assert_eq!(kind, FailureKind::JobFailed);
+        assert!(
+            message.contains("PodFailurePolicy: Container agent-1"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn a_condition_that_is_not_true_does_not_count() {
+        let (mut jobs, pods) = load(BACKOFF);
+        for c in jobs[0]
+            .status
+            .as_mut()
+            .unwrap()
+            .conditions
+            .as_mut()
+            .unwrap()
+        {
+            c.status = "False".into();
+        }
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        assert_eq!(obs.jobs[0].state, JobState::Pending);
+        assert_eq!(obs.verdict, Verdict::Running);
+    }
+
+    #[test]
+    fn long_kubelet_messages_are_cut_for_the_participant() {
+        let long = "é".repeat(1000);
+        let cut = quote(&long);
+        assert_eq!(cut.chars().count(), MAX_QUOTED + 3);
+        assert!(cut.ends_with("..."));
+        assert_eq!(quote("  short  "), "short");
+    }
+
+    #[test]
+    fn objects_without_status_or_names_do_not_panic() {
+        let jobs = vec![Job::default()];
+        let pods = vec![Pod::default()];
+        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        assert_eq!(obs.jobs[0].state, JobState::Pending);
+        assert_eq!(obs.stray_pods[0].phase, "Unknown");
+        assert_eq!(obs.verdict, Verdict::Running);
+    }
+
+    #[test]
+    fn the_observation_round_trips_through_json() {
+        for text in [RUNNING, BACKOFF, PULL_BACKOFF, UNSCHEDULABLE] {
+            let obs = run(text);
+            let json = serde_json::to_value(&obs).unwrap();
+            let back: Observation = serde_json::from_value(json.clone()).unwrap();
+            assert_eq!(back, obs);
+            assert!(json["verdict"]["verdict"].is_string());
+        }
+        let json = serde_json::to_value(run(BACKOFF).verdict).unwrap();
+        assert_eq!(json["kind"], "BackoffLimitExceeded");
+        assert_eq!(json["verdict"], "Failed");
+    }
+
+    #[test]
+    fn a_container_that_cannot_be_created_is_hopeless_only_after_the_limit() {
+        let (jobs, mut pods) = load(PENDING_INIT);
+        let status = pods[0].status.as_mut().unwrap();
+        let agent = status
+            .container_statuses
+            .as_mut()
+            .unwrap()
+            .iter_mut()
+            .find(|c| c.name == "agent-1")
+            .unwrap();
+        agent.state.as_mut().unwrap().waiting =
+            Some(k8s_openapi::api::core::v1::ContainerStateWaiting {
+                reason: Some("CreateContainerConfigError".into()),
+                message: Some("secret \"leaderboard-20-s3\" not found".into()),
+            });
+        let policy = VerdictPolicy {
+            config_error_limit: Duration::from_secs(10 * 60),
+            ..VerdictPolicy::default()
+        };
+        // The pod started at 09:01.
+        let early = observe("4242", &jobs, &pods, at(9, 10), &policy);
+        assert_eq!(early.verdict, Verdict::Running);
+        assert_eq!(early.jobs[0].pods[0].start_time, Some(at(9, 1)));
+        let late = observe("4242", &jobs, &pods, at(9, 11), &policy);
+        let (kind, _, container, message) = failed(&late);
+        assert_eq!(kind, FailureKind::ContainerConfig);
+        assert_eq!(container, Some("agent-1"));
+        assert!(
+            message.contains("secret \"leaderboard-20-s3\" not found"),
+            "{message}"
+        );
+        assert!(
+            message.contains("not a problem with your submission"),
+            "{message}"
+        );
+    }
+}

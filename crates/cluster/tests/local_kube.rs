@@ -1,0 +1,346 @@
+//! The adapter against the project's local Kubernetes API server, whose pods run as local
+//! processes: real Jobs of shell-command containers, through `Cluster::from_kubeconfig`.
+
+use std::future::Future;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use lb_cluster::{
+    Cluster, ContainerState, FailureKind, Job, JobState, Observation, Verdict, VerdictPolicy,
+};
+use local_kube::{Config, ImageMap, LocalKube};
+use serde_json::json;
+
+/// Bound on every wait for the local server to get somewhere.
+const WAIT: Duration = Duration::from_secs(20);
+const UNPULLABLE: &str = "registry.example/team-77/agent:missing";
+
+async fn start(config: Config) -> (LocalKube, Cluster, tempfile::TempDir) {
+    let lk = LocalKube::start(config).await.expect("local-kube starts");
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kubeconfig");
+    lk.write_kubeconfig(&path).expect("kubeconfig written");
+    let cluster = Cluster::from_kubeconfig(&path, None)
+        .await
+        .expect("cluster from kubeconfig");
+    (lk, cluster, dir)
+}
+
+fn images() -> ImageMap {
+    ImageMap::from_yaml(&format!("'{UNPULLABLE}': {{pull: fail}}"), Path::new("/")).unwrap()
+}
+
+/// A Job of submission `sub` with the labels the templates set, one container per
+/// `(name, image, shell script)`.
+fn job(
+    sub: &str,
+    index: u32,
+    restart: &str,
+    backoff: i32,
+    containers: &[(&str, &str, &str)],
+) -> Job {
+    let labels = json!({
+        "leaderboard.carla.org/submission-id": sub,
+        "leaderboard.carla.org/job-index": index.to_string(),
+        "leaderboard.carla.org/team-id": "77",
+        "leaderboard.carla.org/leaderboard": "2.0",
+        "app.kubernetes.io/managed-by": "leaderboard-cloud",
+    });
+    let containers: Vec<_> = containers
+        .iter()
+        .map(|(name, image, script)| json!({"name": name, "image": image, "command": ["sh", "-c", script]}))
+        .collect();
+    serde_json::from_value(json!({
+        "apiVersion": "batch/v1",
+        "kind": "Job",
+        "metadata": {"name": format!("lb-{sub}-team-77-{index}"), "labels": labels},
+        "spec": {
+            "backoffLimit": backoff,
+            "template": {
+                "metadata": {"labels": labels},
+                "spec": {"restartPolicy": restart, "terminationGracePeriodSeconds": 1, "containers": containers}
+            }
+        }
+    }))
+    .unwrap()
+}
+
+/// Observes every 50 ms until `done` accepts an observation or `WAIT` passes.
+async fn observe_until<F>(cluster: &Cluster, sub: &str, what: &str, mut done: F) -> Observation
+where
+    F: FnMut(&Observation) -> bool,
+{
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let obs = cluster.observe(sub).await.expect("observe");
+        if done(&obs) {
+            return obs;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "timed out waiting for {what}; last: {obs:#?}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+async fn bounded<T>(f: impl Future<Output = T>) -> T {
+    tokio::time::timeout(WAIT, f).await.expect("bounded wait")
+}
+
+#[tokio::test]
+async fn a_job_of_shell_containers_is_observed_running_then_finished() {
+    let (_lk, cluster, _dir) = start(Config::default()).await;
+    let j = job(
+        "5001",
+        0,
+        "OnFailure",
+        2,
+        &[
+            ("simulator-1", "busybox", "sleep 1"),
+            ("agent-1", "team/agent:v1", "sleep 1; echo done"),
+        ],
+    );
+    let launched = bounded(cluster.create_or_adopt(&j)).await.unwrap();
+    assert!(!launched.adopted);
+    // A retried Launch adopts the same Job.
+    let again = bounded(cluster.create_or_adopt(&j)).await.unwrap();
+    assert!(again.adopted);
+    assert_eq!(again.uid, launched.uid);
+
+    let running = observe_until(&cluster, "5001", "a running agent", |o| {
+        o.jobs.first().is_some_and(|j| {
+            j.pods
+                .iter()
+                .flat_map(|p| &p.containers)
+                .any(|c| c.name == "agent-1" && matches!(c.state, ContainerState::Running { .. }))
+        })
+    })
+    .await;
+    assert_eq!(running.verdict, Verdict::Running);
+    assert_eq!(running.jobs.len(), 1);
+    assert_eq!(running.jobs[0].index, Some(0));
+
+    let finished = observe_until(&cluster, "5001", "Finished", |o| {
+        o.verdict == Verdict::Finished
+    })
+    .await;
+    assert_eq!(finished.jobs[0].state, JobState::Complete);
+    assert_eq!(finished.clone().expect_jobs(1).verdict, Verdict::Finished);
+    let agent = finished.jobs[0].pods[0]
+        .containers
+        .iter()
+        .find(|c| c.name == "agent-1")
+        .unwrap();
+    assert!(matches!(&agent.state, ContainerState::Terminated(e) if e.exit_code == 0));
+}
+
+#[tokio::test]
+async fn a_crashing_job_is_observed_failed_with_backoff_limit_exceeded() {
+    let (_lk, cluster, _dir) = start(Config::default()).await;
+    let j = job(
+        "5002",
+        0,
+        "Never",
+        1,
+        &[("agent-1", "team/agent:v1", "echo crash; exit 3")],
+    );
+    bounded(cluster.create_or_adopt(&j)).await.unwrap();
+    let obs = observe_until(&cluster, "5002", "Failed", |o| o.verdict.is_terminal()).await;
+    match &obs.verdict {
+        Verdict::Failed {
+            kind, job, message, ..
+        } => {
+            assert_eq!(*kind, FailureKind::BackoffLimitExceeded, "{message}");
+            assert_eq!(job.as_deref(), Some("lb-5002-team-77-0"));
+            assert!(message.contains("BackoffLimitExceeded"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(
+        matches!(&obs.jobs[0].state, JobState::Failed { reason, .. } if reason == "BackoffLimitExceeded")
+    );
+}
+
+#[tokio::test]
+async fn an_unpullable_participant_image_is_observed_failed_naming_the_image() {
+    let (_lk, cluster, _dir) = start(Config {
+        images: images(),
+        ..Config::default()
+    })
+    .await;
+    let j = job(
+        "5003",
+        0,
+        "OnFailure",
+        2,
+        &[
+            ("simulator-1", "busybox", "sleep 30"),
+            ("agent-1", UNPULLABLE, "echo never"),
+        ],
+    );
+    bounded(cluster.create_or_adopt(&j)).await.unwrap();
+    let obs = observe_until(&cluster, "5003", "an image failure", |o| {
+        o.verdict.is_terminal()
+    })
+    .await;
+    match &obs.verdict {
+        Verdict::Failed {
+            kind,
+            container,
+            message,
+            ..
+        } => {
+            assert_eq!(*kind, FailureKind::ParticipantImagePull, "{message}");
+            assert_eq!(container.as_deref(), Some("agent-1"));
+            assert!(message.contains(&format!("`{UNPULLABLE}`")), "{message}");
+            assert!(
+                message.contains("check that the image URI is correct"),
+                "{message}"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    let deleted = bounded(cluster.delete_all("5003")).await.unwrap();
+    assert_eq!(deleted.jobs, ["lb-5003-team-77-0"]);
+}
+
+#[tokio::test]
+async fn delete_all_leaves_nothing_and_is_idempotent() {
+    let (_lk, cluster, _dir) = start(Config::default()).await;
+    for index in 0..2 {
+        let j = job(
+            "5004",
+            index,
+            "OnFailure",
+            2,
+            &[("simulator-1", "busybox", "sleep 60")],
+        );
+        bounded(cluster.create_or_adopt(&j)).await.unwrap();
+    }
+    // Another submission's Job must survive.
+    let other = job(
+        "5005",
+        0,
+        "OnFailure",
+        2,
+        &[("simulator-1", "busybox", "sleep 60")],
+    );
+    bounded(cluster.create_or_adopt(&other)).await.unwrap();
+    observe_until(&cluster, "5004", "two running Jobs", |o| {
+        o.jobs.len() == 2 && o.jobs.iter().all(|j| j.state == JobState::Running)
+    })
+    .await;
+
+    let deleted = bounded(cluster.delete_all("5004")).await.unwrap();
+    assert_eq!(deleted.jobs, ["lb-5004-team-77-0", "lb-5004-team-77-1"]);
+    let gone = cluster
+        .wait_gone("5004", Duration::from_secs(10), Duration::from_millis(100))
+        .await
+        .unwrap();
+    assert!(gone, "the Jobs and their pods are gone");
+    let (jobs, pods) = cluster.list("5004").await.unwrap();
+    assert!(jobs.is_empty() && pods.is_empty());
+    let again = bounded(cluster.delete_all("5004")).await.unwrap();
+    assert_eq!(again, lb_cluster::Deleted::default());
+
+    let (jobs, _) = cluster.list("5005").await.unwrap();
+    assert_eq!(jobs.len(), 1, "the other submission is untouched");
+    bounded(cluster.delete_all("5005")).await.unwrap();
+}
+
+#[tokio::test]
+async fn a_same_named_job_of_another_submission_is_refused() {
+    let (_lk, cluster, _dir) = start(Config::default()).await;
+    let mine = job(
+        "5006",
+        0,
+        "OnFailure",
+        2,
+        &[("simulator-1", "busybox", "sleep 30")],
+    );
+    bounded(cluster.create_or_adopt(&mine)).await.unwrap();
+    // Same name, different submission label.
+    let mut theirs = job(
+        "5007",
+        0,
+        "OnFailure",
+        2,
+        &[("simulator-1", "busybox", "sleep 30")],
+    );
+    theirs.metadata.name = mine.metadata.name.clone();
+    let err = bounded(cluster.create_or_adopt(&theirs)).await.unwrap_err();
+    assert_eq!(err.name(), "JobNameTaken", "{err}");
+    assert!(err.to_string().contains("`5006`"), "{err}");
+    bounded(cluster.delete_all("5006")).await.unwrap();
+}
+
+#[tokio::test]
+async fn the_real_server_refusals_map_to_invalid_and_forbidden() {
+    let (_lk, cluster, _dir) = start(Config {
+        forbidden_namespaces: vec!["locked".into()],
+        ..Config::default()
+    })
+    .await;
+    let mut invalid = job(
+        "5008",
+        0,
+        "OnFailure",
+        2,
+        &[("simulator-1", "busybox", "true")],
+    );
+    invalid
+        .spec
+        .as_mut()
+        .unwrap()
+        .template
+        .spec
+        .as_mut()
+        .unwrap()
+        .containers[0]
+        .image = None;
+    let err = bounded(cluster.create_or_adopt(&invalid))
+        .await
+        .unwrap_err();
+    assert_eq!(err.name(), "KubeInvalid", "{err}");
+    assert!(
+        err.to_string()
+            .contains("spec.template.spec.containers[0].image"),
+        "{err}"
+    );
+
+    let locked = cluster.clone().with_namespace("locked");
+    let j = job(
+        "5008",
+        0,
+        "OnFailure",
+        2,
+        &[("simulator-1", "busybox", "true")],
+    );
+    let err = bounded(locked.create_or_adopt(&j)).await.unwrap_err();
+    assert_eq!(err.name(), "KubeForbidden", "{err}");
+    assert_eq!(
+        bounded(locked.observe("5008")).await.unwrap_err().name(),
+        "KubeForbidden"
+    );
+}
+
+#[tokio::test]
+async fn zero_hopeless_limits_do_not_fail_a_healthy_job() {
+    // Local pods are scheduled and created at once; zero limits must not invent a failure.
+    let (_lk, cluster, _dir) = start(Config::default()).await;
+    let cluster = cluster.with_policy(VerdictPolicy {
+        unschedulable_limit: Duration::ZERO,
+        config_error_limit: Duration::ZERO,
+    });
+    let j = job(
+        "5009",
+        0,
+        "OnFailure",
+        2,
+        &[("simulator-1", "busybox", "sleep 1")],
+    );
+    bounded(cluster.create_or_adopt(&j)).await.unwrap();
+    let obs = observe_until(&cluster, "5009", "Finished", |o| o.verdict.is_terminal()).await;
+    assert_eq!(obs.verdict, Verdict::Finished);
+}
