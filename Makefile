@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv test test-unit lint fmt bench build clean
+.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -20,7 +20,13 @@ $(VENV_STAMP): tests/requirements.txt
 
 venv: $(VENV_STAMP) ## Install the emulators (pinned moto[server]) into .venv
 
-test: venv ## The whole suite, emulator tests included (README's and CI's command)
+.PHONY: kubectl
+kubectl: ## Install kubectl (Debian's kubernetes-client) when it is missing
+	@command -v kubectl >/dev/null || { sudo=; [ "$$(id -u)" = 0 ] || sudo=sudo; \
+		$$sudo apt-get update -qq && \
+		$$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq kubernetes-client; }
+
+test: venv kubectl ## The whole suite, emulator tests included (README's and CI's command)
 	$(CARGO) test --workspace --all-targets -- --include-ignored
 	$(CARGO) test --workspace --doc
 
@@ -36,6 +42,25 @@ fmt: ## Format the code
 
 bench: ## Merge benchmark on the 1024-route fixture (targets: 5 ms in-process, 15 ms process)
 	$(CARGO) bench -p sidecar --bench merge
+
+# The sidecar runs inside the CARLA image and any participant image (Ubuntu 18.04+): linked
+# by zig against glibc 2.17, then checked for newer symbols.
+SIDECAR_TARGET := x86_64-unknown-linux-gnu
+SIDECAR_GLIBC := 2.17
+SIDECAR_BIN := $(or $(CARGO_TARGET_DIR),target)/$(SIDECAR_TARGET)/release/lb-sidecar
+SIDECAR_TOOLS := $(VENV)/.sidecar-tools
+
+$(SIDECAR_TOOLS): sidecar/build-requirements.txt
+	test -x $(VENV)/bin/pip || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check -r sidecar/build-requirements.txt
+	touch $@
+
+sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) zigbuild --release -p sidecar --bin lb-sidecar --target $(SIDECAR_TARGET).$(SIDECAR_GLIBC)
+	sidecar/check-glibc.sh $(SIDECAR_BIN) $(SIDECAR_GLIBC)
+
+bench-sidecar: venv ## logcopy's peak memory uploading a 1 GiB tree to moto (target < 20 MiB)
+	$(CARGO) bench -p sidecar --bench logcopy
 
 build: ## Release build of every binary
 	$(CARGO) build --workspace --release

@@ -1,1 +1,20 @@
-//! placeholder
+//! A local Kubernetes API server (`batch/v1` Jobs, `v1` Pods, logs, discovery) whose pods run
+//! as local processes: kube-rs and the real kubectl work against it unchanged.
+
+mod api;
+mod config;
+mod error;
+mod imagemap;
+mod kubeconfig;
+pub mod objects;
+mod runtime;
+pub mod selector;
+mod server;
+pub mod status;
+mod store;
+
+pub use config::{Config, Isolation, Timing};
+pub use error::{Error, Result};
+pub use imagemap::{ImageEntry, ImageMap, ImageMapError, Pull};
+pub use kubeconfig::kubeconfig_yaml;
+pub use server::LocalKube;

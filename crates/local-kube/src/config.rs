@@ -1,0 +1,63 @@
+//! Typed configuration of a local-kube server.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use crate::imagemap::ImageMap;
+
+/// How container processes are isolated from each other and from the host.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Isolation {
+    /// A private mount namespace when one can be made (root, or an unprivileged user
+    /// namespace), else none.
+    #[default]
+    Auto,
+    /// Always a private mount namespace; `start` fails when none can be made.
+    MountNamespace,
+    /// Plain processes: containers that mount volumes or image files cannot start.
+    None,
+}
+
+/// Delays of the process runtime, short by default so whole submissions rehearse in seconds.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Timing {
+    /// First delay before restarting a failed container (doubles per restart).
+    pub restart_backoff: Duration,
+    /// Longest restart (and pod replacement) delay.
+    pub max_backoff: Duration,
+    /// First delay before the controller replaces a failed pod (`restartPolicy: Never`).
+    pub pod_backoff: Duration,
+    /// How long an unpullable image shows `ErrImagePull` before `ImagePullBackOff` (and back).
+    pub image_pull_backoff: Duration,
+    /// Cap on `terminationGracePeriodSeconds` between SIGTERM and SIGKILL.
+    pub max_grace_period: Duration,
+}
+
+impl Default for Timing {
+    fn default() -> Self {
+        Self {
+            restart_backoff: Duration::from_millis(200),
+            max_backoff: Duration::from_secs(2),
+            pod_backoff: Duration::from_millis(200),
+            image_pull_backoff: Duration::from_secs(1),
+            max_grace_period: Duration::from_secs(2),
+        }
+    }
+}
+
+/// Server configuration.
+#[derive(Clone, Debug, Default)]
+pub struct Config {
+    /// Image -> local command map.
+    pub images: ImageMap,
+    /// Where pod directories (volumes, logs) go; a fresh temporary directory when unset.
+    pub state_dir: Option<PathBuf>,
+    /// Bearer token every request must carry, when set.
+    pub token: Option<String>,
+    /// Namespaces the (single) user may not touch: 403 Forbidden.
+    pub forbidden_namespaces: Vec<String>,
+    /// Container isolation.
+    pub isolation: Isolation,
+    /// Runtime delays.
+    pub timing: Timing,
+}

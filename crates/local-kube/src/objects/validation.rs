@@ -1,0 +1,559 @@
+//! Job validation with the real field paths and messages, plus refusals of what local-kube
+//! does not implement.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use k8s_openapi::api::batch::v1::Job;
+use k8s_openapi::api::core::v1::{Container, PodSpec, Volume};
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector as LabelSelectorSpec;
+
+use super::names::{
+    dns1123_label_errors, dns1123_subdomain_errors, label_value_errors, qualified_name_errors,
+};
+use super::{
+    CONTROLLER_UID_LABEL, JOB_NAME_LABEL, LEGACY_CONTROLLER_UID_LABEL, LEGACY_JOB_NAME_LABEL,
+};
+use crate::selector::LabelSelector;
+use crate::status::{go_quote, FieldError};
+
+/// The `fieldRef.fieldPath` values a container env may use.
+pub const SUPPORTED_FIELD_PATHS: &[&str] = &[
+    "metadata.annotations",
+    "metadata.labels",
+    "metadata.name",
+    "metadata.namespace",
+    "metadata.uid",
+    "spec.nodeName",
+    "spec.serviceAccountName",
+    "status.hostIP",
+    "status.hostIPs",
+    "status.podIP",
+    "status.podIPs",
+];
+
+/// Go's `%#v` of a `map[string]string` (keys sorted, as fmt prints maps).
+pub fn go_map(m: Option<&BTreeMap<String, String>>) -> String {
+    let body: Vec<String> = m
+        .into_iter()
+        .flatten()
+        .map(|(k, v)| format!("{}:{}", go_quote(k), go_quote(v)))
+        .collect();
+    format!("map[string]string{{{}}}", body.join(", "))
+}
+
+/// The protobuf `String()` of a LabelSelector, as Invalid messages print it.
+pub fn go_selector(s: &LabelSelectorSpec) -> String {
+    let labels: Vec<String> = s
+        .match_labels
+        .iter()
+        .flatten()
+        .map(|(k, v)| format!("{k}: {v},"))
+        .collect();
+    let exprs: Vec<String> = s
+        .match_expressions
+        .iter()
+        .flatten()
+        .map(|e| {
+            format!(
+                "LabelSelectorRequirement{{Key:{},Operator:{},Values:[{}],}},",
+                e.key,
+                e.operator,
+                e.values.clone().unwrap_or_default().join(" ")
+            )
+        })
+        .collect();
+    format!(
+        "&LabelSelector{{MatchLabels:map[string]string{{{}}},MatchExpressions:[]LabelSelectorRequirement{{{}}},}}",
+        labels.join(""),
+        exprs.join("")
+    )
+}
+
+fn labels(map: Option<&BTreeMap<String, String>>, path: &str, errs: &mut Vec<FieldError>) {
+    for (k, v) in map.into_iter().flatten() {
+        for msg in qualified_name_errors(k) {
+            errs.push(FieldError::invalid(path, k, msg));
+        }
+        for msg in label_value_errors(v) {
+            errs.push(FieldError::invalid(path, v, msg));
+        }
+    }
+}
+
+fn annotations(map: Option<&BTreeMap<String, String>>, path: &str, errs: &mut Vec<FieldError>) {
+    let mut total = 0;
+    for (k, v) in map.into_iter().flatten() {
+        for msg in qualified_name_errors(k) {
+            errs.push(FieldError::invalid(path, &k.to_lowercase(), msg));
+        }
+        total += k.len() + v.len();
+    }
+    if total > 256 * 1024 {
+        errs.push(FieldError {
+            type_: crate::status::FieldErrorType::Invalid,
+            field: path.into(),
+            value: Some(String::new()),
+            detail: "may not be more than 262144 bytes".into(),
+        });
+    }
+}
+
+fn nonnegative(v: Option<i64>, path: &str, errs: &mut Vec<FieldError>) {
+    if let Some(v) = v.filter(|v| *v < 0) {
+        errs.push(FieldError::invalid_raw(
+            path,
+            v.to_string(),
+            "must be greater than or equal to 0",
+        ));
+    }
+}
+
+fn local_kube_refuses(path: &str, what: &str, errs: &mut Vec<FieldError>) {
+    errs.push(FieldError::forbidden(
+        path,
+        format!("local-kube does not implement {what}"),
+    ));
+}
+
+/// Every validation error of a Job about to be created (after defaults and selector generation).
+pub fn validate_job(job: &Job, uid: &str) -> Vec<FieldError> {
+    let mut errs = Vec::new();
+    let name = job.metadata.name.clone().unwrap_or_default();
+    if name.is_empty() {
+        errs.push(FieldError::required(
+            "metadata.name",
+            "name or generateName is required",
+        ));
+    } else {
+        for msg in dns1123_subdomain_errors(&name) {
+            errs.push(FieldError::invalid("metadata.name", &name, msg));
+        }
+    }
+    labels(job.metadata.labels.as_ref(), "metadata.labels", &mut errs);
+    annotations(
+        job.metadata.annotations.as_ref(),
+        "metadata.annotations",
+        &mut errs,
+    );
+    let Some(spec) = job.spec.as_ref() else {
+        errs.push(FieldError::required("spec.template.spec.containers", ""));
+        return errs;
+    };
+    let template_labels = spec
+        .template
+        .metadata
+        .as_ref()
+        .and_then(|m| m.labels.as_ref());
+    let manual = spec.manual_selector == Some(true);
+    if !manual && template_labels.is_some() {
+        // The generated selector must have put the job's own labels on the template.
+        for (key, want) in [
+            (LEGACY_CONTROLLER_UID_LABEL, uid),
+            (LEGACY_JOB_NAME_LABEL, name.as_str()),
+            (CONTROLLER_UID_LABEL, uid),
+            (JOB_NAME_LABEL, name.as_str()),
+        ] {
+            let path = format!("spec.template.metadata.labels[{key}]");
+            match template_labels.and_then(|l| l.get(key)) {
+                None => errs.push(FieldError::required(path, format!("must be '{want}'"))),
+                Some(v) if v != want => errs.push(FieldError::invalid_raw(
+                    path,
+                    go_map(template_labels),
+                    format!("must be '{want}'"),
+                )),
+                Some(_) => {}
+            }
+        }
+        if let Some(sel) = &spec.selector {
+            let expected: BTreeMap<String, String> =
+                [(CONTROLLER_UID_LABEL.to_owned(), uid.to_owned())].into();
+            if let Ok(parsed) = LabelSelector::from_spec(sel) {
+                if !parsed.matches(Some(&expected)) {
+                    errs.push(FieldError::invalid_raw(
+                        "spec.selector",
+                        go_selector(sel),
+                        "`selector` not auto-generated",
+                    ));
+                }
+            }
+        }
+    }
+    nonnegative(
+        spec.parallelism.map(i64::from),
+        "spec.parallelism",
+        &mut errs,
+    );
+    nonnegative(
+        spec.completions.map(i64::from),
+        "spec.completions",
+        &mut errs,
+    );
+    nonnegative(
+        spec.backoff_limit.map(i64::from),
+        "spec.backoffLimit",
+        &mut errs,
+    );
+    nonnegative(
+        spec.active_deadline_seconds,
+        "spec.activeDeadlineSeconds",
+        &mut errs,
+    );
+    nonnegative(
+        spec.ttl_seconds_after_finished.map(i64::from),
+        "spec.ttlSecondsAfterFinished",
+        &mut errs,
+    );
+    match &spec.selector {
+        None => errs.push(FieldError::required("spec.selector", "")),
+        Some(sel) => match LabelSelector::from_spec(sel) {
+            Err(e) => errs.push(FieldError::invalid_raw(
+                "spec.selector",
+                go_selector(sel),
+                e,
+            )),
+            Ok(parsed) => {
+                if parsed.is_empty() {
+                    errs.push(FieldError::invalid_raw(
+                        "spec.selector",
+                        go_selector(sel),
+                        "empty selector is invalid for deployment",
+                    ));
+                } else if !parsed.matches(template_labels) {
+                    errs.push(FieldError::invalid_raw(
+                        "spec.template.metadata.labels",
+                        go_map(template_labels),
+                        "`selector` does not match template `labels`",
+                    ));
+                }
+            }
+        },
+    }
+    if spec
+        .completion_mode
+        .as_deref()
+        .is_some_and(|m| m != "NonIndexed")
+    {
+        local_kube_refuses("spec.completionMode", "Indexed Jobs", &mut errs);
+    }
+    if spec.pod_failure_policy.is_some() {
+        local_kube_refuses("spec.podFailurePolicy", "pod failure policies", &mut errs);
+    }
+    if spec.success_policy.is_some() {
+        local_kube_refuses("spec.successPolicy", "success policies", &mut errs);
+    }
+    if spec.backoff_limit_per_index.is_some() || spec.max_failed_indexes.is_some() {
+        local_kube_refuses("spec.backoffLimitPerIndex", "per-index backoff", &mut errs);
+    }
+    if spec.suspend == Some(true) {
+        local_kube_refuses("spec.suspend", "suspended Jobs", &mut errs);
+    }
+    if let Some(m) = spec.template.metadata.as_ref() {
+        labels(m.labels.as_ref(), "spec.template.labels", &mut errs);
+        annotations(
+            m.annotations.as_ref(),
+            "spec.template.annotations",
+            &mut errs,
+        );
+    }
+    match &spec.template.spec {
+        None => errs.push(FieldError::required("spec.template.spec.containers", "")),
+        Some(pod) => validate_pod_spec(pod, "spec.template.spec", &mut errs),
+    }
+    errs
+}
+
+fn volume_sources(v: &Volume) -> Vec<String> {
+    match serde_json::to_value(v) {
+        Ok(serde_json::Value::Object(m)) => m.keys().filter(|k| *k != "name").cloned().collect(),
+        _ => Vec::new(),
+    }
+}
+
+fn validate_pod_spec(pod: &PodSpec, path: &str, errs: &mut Vec<FieldError>) {
+    let mut volume_names = BTreeSet::new();
+    for (i, v) in pod.volumes.iter().flatten().enumerate() {
+        let vpath = format!("{path}.volumes[{i}]");
+        if v.name.is_empty() {
+            errs.push(FieldError::required(format!("{vpath}.name"), ""));
+        } else {
+            for msg in dns1123_label_errors(&v.name) {
+                errs.push(FieldError::invalid(format!("{vpath}.name"), &v.name, msg));
+            }
+            if !volume_names.insert(v.name.clone()) {
+                errs.push(FieldError::duplicate(format!("{vpath}.name"), &v.name));
+            }
+        }
+        let sources = volume_sources(v);
+        match sources.len() {
+            0 => errs.push(FieldError::required(vpath, "must specify a volume type")),
+            1 => {}
+            _ => errs.push(FieldError::forbidden(
+                format!("{vpath}.{}", sources[1]),
+                "may not specify more than 1 volume type",
+            )),
+        }
+    }
+    match pod.restart_policy.as_deref() {
+        Some("OnFailure") | Some("Never") => {}
+        other => errs.push(FieldError::not_supported(
+            format!("{path}.restartPolicy"),
+            other.unwrap_or_default(),
+            &["OnFailure", "Never"],
+        )),
+    }
+    if pod.containers.is_empty() {
+        errs.push(FieldError::required(format!("{path}.containers"), ""));
+    }
+    let mut names = BTreeSet::new();
+    for (i, c) in pod.init_containers.iter().flatten().enumerate() {
+        let cpath = format!("{path}.initContainers[{i}]");
+        validate_container(c, &cpath, &volume_names, &mut names, errs);
+        if c.restart_policy.is_some() {
+            local_kube_refuses(
+                &format!("{cpath}.restartPolicy"),
+                "sidecar (restartable init) containers",
+                errs,
+            );
+        }
+    }
+    for (i, c) in pod.containers.iter().enumerate() {
+        let cpath = format!("{path}.containers[{i}]");
+        validate_container(c, &cpath, &volume_names, &mut names, errs);
+    }
+    nonnegative(
+        pod.termination_grace_period_seconds,
+        &format!("{path}.terminationGracePeriodSeconds"),
+        errs,
+    );
+    if let Some(d) = pod.active_deadline_seconds.filter(|d| *d <= 0) {
+        errs.push(FieldError::invalid_raw(
+            format!("{path}.activeDeadlineSeconds"),
+            d.to_string(),
+            "must be between 1 and 2147483647, inclusive",
+        ));
+    }
+}
+
+fn validate_container(
+    c: &Container,
+    cpath: &str,
+    volumes: &BTreeSet<String>,
+    names: &mut BTreeSet<String>,
+    errs: &mut Vec<FieldError>,
+) {
+    if c.name.is_empty() {
+        errs.push(FieldError::required(format!("{cpath}.name"), ""));
+    } else {
+        for msg in dns1123_label_errors(&c.name) {
+            errs.push(FieldError::invalid(format!("{cpath}.name"), &c.name, msg));
+        }
+        if !names.insert(c.name.clone()) {
+            errs.push(FieldError::duplicate(format!("{cpath}.name"), &c.name));
+        }
+    }
+    if c.image.as_deref().unwrap_or_default().trim().is_empty() {
+        errs.push(FieldError::required(format!("{cpath}.image"), ""));
+    }
+    let mut mount_paths = BTreeSet::new();
+    for (j, m) in c.volume_mounts.iter().flatten().enumerate() {
+        let mpath = format!("{cpath}.volumeMounts[{j}]");
+        if m.name.is_empty() {
+            errs.push(FieldError::required(format!("{mpath}.name"), ""));
+        } else if !volumes.contains(&m.name) {
+            errs.push(FieldError::not_found(format!("{mpath}.name"), &m.name));
+        }
+        if m.mount_path.is_empty() {
+            errs.push(FieldError::required(format!("{mpath}.mountPath"), ""));
+        } else if !mount_paths.insert(m.mount_path.clone()) {
+            errs.push(FieldError::invalid(
+                format!("{mpath}.mountPath"),
+                &m.mount_path,
+                "must be unique",
+            ));
+        }
+        if let Some(sub) = m.sub_path.as_deref().filter(|s| !s.is_empty()) {
+            if sub.starts_with('/') {
+                errs.push(FieldError::invalid(
+                    format!("{mpath}.subPath"),
+                    sub,
+                    "must be a relative path",
+                ));
+            }
+            if sub.split('/').any(|part| part == "..") {
+                errs.push(FieldError::invalid(
+                    format!("{mpath}.subPath"),
+                    sub,
+                    "must not contain '..'",
+                ));
+            }
+        }
+        if m.sub_path_expr.is_some() {
+            local_kube_refuses(&format!("{mpath}.subPathExpr"), "subPathExpr", errs);
+        }
+    }
+    for (k, e) in c.env.iter().flatten().enumerate() {
+        let epath = format!("{cpath}.env[{k}]");
+        if e.name.is_empty() {
+            errs.push(FieldError::required(format!("{epath}.name"), ""));
+        } else if e.name.contains('=') || !e.name.bytes().all(|b| (0x20..0x7f).contains(&b)) {
+            errs.push(FieldError::invalid(
+                format!("{epath}.name"),
+                &e.name,
+                "a valid environment variable name must consist only of printable ASCII characters other than '='",
+            ));
+        }
+        let Some(from) = &e.value_from else { continue };
+        if e.value.as_deref().is_some_and(|v| !v.is_empty()) {
+            errs.push(FieldError::invalid(
+                format!("{epath}.valueFrom"),
+                "",
+                "may not be specified when `value` is not empty",
+            ));
+        }
+        let count = [
+            from.field_ref.is_some(),
+            from.resource_field_ref.is_some(),
+            from.config_map_key_ref.is_some(),
+            from.secret_key_ref.is_some(),
+            from.file_key_ref.is_some(),
+        ]
+        .iter()
+        .filter(|b| **b)
+        .count();
+        if count != 1 {
+            errs.push(FieldError::invalid(
+                format!("{epath}.valueFrom"),
+                "",
+                "must specify one of: `fieldRef`, `resourceFieldRef`, `configMapKeyRef` or `secretKeyRef`",
+            ));
+        }
+        if let Some(f) = &from.field_ref {
+            let base = f.field_path.split('[').next().unwrap_or_default();
+            let subscripted = f.field_path.contains('[');
+            let ok = SUPPORTED_FIELD_PATHS.contains(&base)
+                && (subscripted == matches!(base, "metadata.labels" | "metadata.annotations"));
+            if !ok {
+                errs.push(FieldError::not_supported(
+                    format!("{epath}.valueFrom.fieldRef.fieldPath"),
+                    &f.field_path,
+                    SUPPORTED_FIELD_PATHS,
+                ));
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::objects::job::prepare_create;
+
+    fn job(yaml: &str) -> Job {
+        serde_yaml::from_str(yaml).unwrap()
+    }
+
+    const BASE: &str = r#"
+apiVersion: batch/v1
+kind: Job
+metadata: {name: ok}
+spec:
+  template:
+    spec:
+      restartPolicy: Never
+      containers: [{name: c, image: busybox, command: [true]}]
+"#;
+
+    fn causes(yaml: &str) -> Vec<String> {
+        match prepare_create(job(yaml), "default", None) {
+            Ok(_) => Vec::new(),
+            Err(e) => e.details.unwrap()["causes"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|c| {
+                    format!(
+                        "{}: {}",
+                        c["field"].as_str().unwrap(),
+                        c["message"].as_str().unwrap()
+                    )
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn a_minimal_job_is_valid() {
+        assert!(causes(BASE).is_empty());
+    }
+
+    #[test]
+    fn restart_policy_always_is_refused_as_the_real_server_does() {
+        let c = causes(&BASE.replace("restartPolicy: Never", "dnsPolicy: ClusterFirst"));
+        assert_eq!(
+            c,
+            vec!["spec.template.spec.restartPolicy: Unsupported value: \"Always\": supported values: \"OnFailure\", \"Never\""]
+        );
+    }
+
+    #[test]
+    fn a_name_longer_than_a_label_fails_on_the_generated_template_labels() {
+        let long = "a".repeat(64);
+        let c = causes(&BASE.replace("name: ok", &format!("name: {long}")));
+        assert_eq!(c.len(), 2, "{c:?}");
+        assert!(c.iter().all(|m| m
+            == &format!(
+                "spec.template.labels: Invalid value: \"{long}\": must be no more than 63 bytes"
+            )));
+    }
+
+    #[test]
+    fn missing_volumes_duplicates_and_bad_subpaths_are_reported() {
+        let y = r#"
+metadata: {name: v}
+spec:
+  template:
+    spec:
+      restartPolicy: OnFailure
+      volumes: [{name: logs, emptyDir: {}}, {name: logs, emptyDir: {}}]
+      containers:
+      - name: a
+        image: x
+        volumeMounts: [{name: nope, mountPath: /a}, {name: logs, mountPath: /a, subPath: ../up}]
+      - name: a
+        image: ""
+"#;
+        let c = causes(y);
+        let want = [
+            "spec.template.spec.volumes[1].name: Duplicate value: \"logs\"",
+            "spec.template.spec.containers[0].volumeMounts[0].name: Not found: \"nope\"",
+            "spec.template.spec.containers[0].volumeMounts[1].mountPath: Invalid value: \"/a\": must be unique",
+            "spec.template.spec.containers[0].volumeMounts[1].subPath: Invalid value: \"../up\": must not contain '..'",
+            "spec.template.spec.containers[1].name: Duplicate value: \"a\"",
+            "spec.template.spec.containers[1].image: Required value",
+        ];
+        for w in want {
+            assert!(c.iter().any(|m| m == w), "missing {w} in {c:?}");
+        }
+    }
+
+    #[test]
+    fn a_hand_written_selector_needs_manual_selector() {
+        let y = BASE.replace(
+            "spec:\n  template:",
+            "spec:\n  selector: {matchLabels: {app: x}}\n  template:",
+        );
+        let c = causes(&y);
+        assert!(c.iter().any(|m| m.starts_with("spec.selector: Invalid value: &LabelSelector{MatchLabels:map[string]string{app: x,") && m.ends_with("`selector` not auto-generated")), "{c:?}");
+    }
+
+    #[test]
+    fn unsupported_field_refs_are_refused() {
+        let y = BASE.replace(
+            "command: [true]}",
+            "command: [true], env: [{name: X, valueFrom: {fieldRef: {fieldPath: spec.bogus}}}]}",
+        );
+        let c = causes(&y);
+        assert_eq!(c.len(), 1);
+        assert!(c[0].starts_with("spec.template.spec.containers[0].env[0].valueFrom.fieldRef.fieldPath: Unsupported value: \"spec.bogus\""));
+    }
+}

@@ -1,0 +1,636 @@
+//! The kubelet of one pod: volumes, init containers in order, then containers in parallel as
+//! local processes, restarts under `OnFailure`, and the container states the API shows.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use k8s_openapi::api::core::v1::{
+    Container, ContainerState, ContainerStateRunning, ContainerStateTerminated, ContainerStatus,
+    HostIP, Pod, PodIP, PodStatus, Volume,
+};
+use sha2::{Digest, Sha256};
+use tokio::sync::watch;
+use tokio::task::JoinSet;
+use tracing::{debug, info, warn};
+
+use super::env::{argv, environment, EnvBase, LOCAL_IP};
+use super::mounts::{plan, Mount};
+use super::process::{command, exit_code, signal_group, terminate, wait_group_gone, Launch};
+use super::Runtime;
+use crate::imagemap::Pull;
+use crate::objects::names::random_u64;
+use crate::objects::pod::{refresh_status, waiting};
+use crate::objects::JOB_TRACKING_FINALIZER;
+use crate::store::{time_now, ObjKey};
+
+/// Stop request: `None` keeps running; `Some(grace)` terminates with that grace period.
+pub type StopRx = watch::Receiver<Option<Duration>>;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Slot {
+    Init(usize),
+    App(usize),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Outcome {
+    Succeeded,
+    Failed,
+    Stopped,
+}
+
+struct PodWorker {
+    rt: Arc<Runtime>,
+    key: ObjKey,
+    pod: Pod,
+    dir: PathBuf,
+    restart_policy: String,
+    owner: Option<String>,
+}
+
+/// Waits for a stop request and returns its grace period.
+async fn stop_requested(stop: &mut StopRx) -> Duration {
+    match stop.wait_for(Option::is_some).await {
+        Ok(v) => v.unwrap_or_default(),
+        // NB: the runtime dropped the handle: treat as an immediate stop.
+        Err(_) => Duration::ZERO,
+    }
+}
+
+fn container_id() -> String {
+    format!("local-kube://{:016x}{:016x}", random_u64(), random_u64())
+}
+
+fn image_id(image: &str) -> String {
+    let digest = Sha256::digest(image.as_bytes());
+    let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
+    let repo = image.split('@').next().unwrap_or(image);
+    format!("{repo}@sha256:{hex}")
+}
+
+/// Runs one pod until its containers are done or a stop arrives, then signals `done`.
+pub async fn run_pod(rt: Arc<Runtime>, pod: Pod, stop: StopRx, done: watch::Sender<bool>) {
+    let key = ObjKey::of(&pod.metadata);
+    let dir = rt.pod_dir(&pod);
+    let restart_policy = pod
+        .spec
+        .as_ref()
+        .and_then(|s| s.restart_policy.clone())
+        .unwrap_or_else(|| "Never".into());
+    let owner = crate::objects::pod::controller_uid(&pod);
+    let worker = Arc::new(PodWorker {
+        rt,
+        key,
+        pod,
+        dir,
+        restart_policy,
+        owner,
+    });
+    worker.run(stop).await;
+    let _ = done.send(true);
+}
+
+impl PodWorker {
+    fn spec_container(&self, slot: Slot) -> &Container {
+        let spec = self
+            .pod
+            .spec
+            .as_ref()
+            .expect("pods are created with a spec");
+        match slot {
+            Slot::Init(i) => &spec.init_containers.as_ref().expect("slot exists")[i],
+            Slot::App(i) => &spec.containers[i],
+        }
+    }
+
+    fn update(&self, f: impl FnOnce(&mut PodStatus)) {
+        let policy = self.restart_policy.clone();
+        self.rt.store.update::<Pod>(&self.key, |pod| {
+            let status = pod.status.get_or_insert_with(Default::default);
+            f(status);
+            refresh_status(status, &policy);
+            if matches!(status.phase.as_deref(), Some("Succeeded" | "Failed")) {
+                if let Some(f) = pod.metadata.finalizers.as_mut() {
+                    f.retain(|x| x != JOB_TRACKING_FINALIZER);
+                }
+                if pod.metadata.finalizers.as_ref().is_some_and(Vec::is_empty) {
+                    pod.metadata.finalizers = None;
+                }
+            }
+        });
+        if let Some(owner) = &self.owner {
+            self.rt.notify_job(owner);
+        }
+    }
+
+    fn set(&self, slot: Slot, f: impl FnOnce(&mut ContainerStatus)) {
+        self.update(|status| {
+            let list = match slot {
+                Slot::Init(_) => status.init_container_statuses.as_mut(),
+                Slot::App(_) => status.container_statuses.as_mut(),
+            };
+            let idx = match slot {
+                Slot::Init(i) | Slot::App(i) => i,
+            };
+            if let Some(s) = list.and_then(|l| l.get_mut(idx)) {
+                f(s);
+            }
+        });
+    }
+
+    fn initial_status(&self) {
+        let spec = self
+            .pod
+            .spec
+            .as_ref()
+            .expect("pods are created with a spec");
+        let inits = spec.init_containers.clone().unwrap_or_default();
+        let first = if inits.is_empty() {
+            "ContainerCreating"
+        } else {
+            "PodInitializing"
+        };
+        let status_of = |c: &Container, reason: &str| ContainerStatus {
+            name: c.name.clone(),
+            image: c.image.clone().unwrap_or_default(),
+            image_id: String::new(),
+            ready: false,
+            restart_count: 0,
+            started: Some(false),
+            state: Some(waiting(reason, None)),
+            ..Default::default()
+        };
+        let now = time_now();
+        self.update(|status| {
+            status.host_ip = Some(LOCAL_IP.into());
+            status.host_ips = Some(vec![HostIP {
+                ip: LOCAL_IP.into(),
+            }]);
+            status.pod_ip = Some(LOCAL_IP.into());
+            status.pod_ips = Some(vec![PodIP {
+                ip: LOCAL_IP.into(),
+            }]);
+            status.start_time = Some(now);
+            status.init_container_statuses = (!inits.is_empty()).then(|| {
+                inits
+                    .iter()
+                    .map(|c| status_of(c, "PodInitializing"))
+                    .collect()
+            });
+            status.container_statuses = Some(
+                spec.containers
+                    .iter()
+                    .map(|c| status_of(c, first))
+                    .collect(),
+            );
+        });
+    }
+
+    async fn run(self: &Arc<Self>, mut stop: StopRx) {
+        if let Err(e) = std::fs::create_dir_all(self.dir.join("logs")) {
+            warn!(pod = %self.key.name, error = %e, "cannot create pod directory");
+        }
+        self.initial_status();
+        let volumes = match self.prepare_volumes() {
+            Ok(v) => Arc::new(v),
+            Err(msg) => {
+                let spec = self
+                    .pod
+                    .spec
+                    .as_ref()
+                    .expect("pods are created with a spec");
+                let n = spec.containers.len();
+                let reason = "CreateContainerConfigError";
+                self.update(|status| {
+                    for s in status.container_statuses.iter_mut().flatten().take(n) {
+                        s.state = Some(waiting(reason, Some(msg.clone())));
+                    }
+                });
+                stop_requested(&mut stop).await;
+                return;
+            }
+        };
+        let spec = self
+            .pod
+            .spec
+            .as_ref()
+            .expect("pods are created with a spec");
+        let n_init = spec.init_containers.as_ref().map_or(0, Vec::len);
+        for i in 0..n_init {
+            match self
+                .run_container(Slot::Init(i), &volumes, stop.clone())
+                .await
+            {
+                Outcome::Succeeded => {
+                    debug!(pod = %self.key.name, init = i, "init container done");
+                }
+                Outcome::Failed | Outcome::Stopped => return,
+            }
+        }
+        if n_init > 0 {
+            self.update(|status| {
+                for s in status.container_statuses.iter_mut().flatten() {
+                    s.state = Some(waiting("ContainerCreating", None));
+                }
+            });
+        }
+        let mut set = JoinSet::new();
+        for i in 0..spec.containers.len() {
+            let me = self.clone();
+            let volumes = volumes.clone();
+            let stop = stop.clone();
+            set.spawn(async move { me.run_container(Slot::App(i), &volumes, stop).await });
+        }
+        while set.join_next().await.is_some() {}
+        info!(pod = %self.key.name, "pod containers finished");
+    }
+
+    fn prepare_volumes(&self) -> Result<HashMap<String, PathBuf>, String> {
+        let spec = self
+            .pod
+            .spec
+            .as_ref()
+            .expect("pods are created with a spec");
+        let mut out = HashMap::new();
+        for v in spec.volumes.iter().flatten() {
+            let path = self.volume_path(v)?;
+            out.insert(v.name.clone(), path);
+        }
+        Ok(out)
+    }
+
+    fn volume_path(&self, v: &Volume) -> Result<PathBuf, String> {
+        if v.empty_dir.is_some() {
+            let dir = self.dir.join("volumes").join(&v.name);
+            std::fs::create_dir_all(&dir)
+                .map_err(|e| format!("volume {:?}: cannot create emptyDir: {e}", v.name))?;
+            return Ok(dir);
+        }
+        if let Some(hp) = &v.host_path {
+            let path = PathBuf::from(&hp.path);
+            let kind = hp.type_.as_deref().unwrap_or_default();
+            let bad = |what: &str| {
+                Err(format!(
+                    "volume {:?}: hostPath {:?} {what}",
+                    v.name, hp.path
+                ))
+            };
+            match kind {
+                "DirectoryOrCreate" => {
+                    std::fs::create_dir_all(&path).map_err(|e| {
+                        format!(
+                            "volume {:?}: cannot create hostPath {:?}: {e}",
+                            v.name, hp.path
+                        )
+                    })?;
+                }
+                "FileOrCreate" if !path.exists() => {
+                    std::fs::File::create(&path).map_err(|e| {
+                        format!(
+                            "volume {:?}: cannot create hostPath {:?}: {e}",
+                            v.name, hp.path
+                        )
+                    })?;
+                }
+                "Directory" if !path.is_dir() => return bad("is not a directory"),
+                "File" if !path.is_file() => return bad("is not a file"),
+                _ if !path.exists() => return bad("does not exist"),
+                _ => {}
+            }
+            return Ok(path);
+        }
+        let kind = serde_json::to_value(v)
+            .ok()
+            .and_then(|j| {
+                j.as_object()
+                    .and_then(|m| m.keys().find(|k| *k != "name").cloned())
+            })
+            .unwrap_or_else(|| "this".into());
+        Err(format!(
+            "volume {:?}: local-kube does not implement {kind} volumes",
+            v.name
+        ))
+    }
+
+    /// Waits in a state that only a stop ends (configuration errors, unpullable images).
+    async fn wait_stuck(
+        &self,
+        slot: Slot,
+        reason: &str,
+        message: String,
+        mut stop: StopRx,
+    ) -> Outcome {
+        if reason == "ErrImagePull" {
+            let image = self.spec_container(slot).image.clone().unwrap_or_default();
+            let period = self.rt.timing.image_pull_backoff;
+            let mut pull_error = true;
+            loop {
+                let (r, m) = if pull_error {
+                    ("ErrImagePull", message.clone())
+                } else {
+                    (
+                        "ImagePullBackOff",
+                        format!("Back-off pulling image {image:?}: ErrImagePull: {message}"),
+                    )
+                };
+                self.set(slot, |s| s.state = Some(waiting(r, Some(m))));
+                tokio::select! {
+                    _ = stop_requested(&mut stop) => return Outcome::Stopped,
+                    _ = tokio::time::sleep(period) => {}
+                }
+                pull_error = !pull_error;
+            }
+        }
+        self.set(slot, |s| s.state = Some(waiting(reason, Some(message))));
+        stop_requested(&mut stop).await;
+        Outcome::Stopped
+    }
+
+    async fn run_container(
+        self: &Arc<Self>,
+        slot: Slot,
+        volumes: &HashMap<String, PathBuf>,
+        stop: StopRx,
+    ) -> Outcome {
+        let c = self.spec_container(slot).clone();
+        let image = c.image.clone().unwrap_or_default();
+        let entry = self.rt.images.lookup(&image);
+        if entry.is_some_and(|e| e.pull == Pull::Fail) {
+            let msg = format!(
+                "failed to pull and unpack image {image:?}: the image map marks it `pull: fail`"
+            );
+            return self.wait_stuck(slot, "ErrImagePull", msg, stop).await;
+        }
+        let base = EnvBase {
+            path: &self.rt.host_path,
+            home: &self.rt.home,
+        };
+        let env = match environment(&c, entry, &self.pod, &base) {
+            Ok(env) => env,
+            Err(e) => {
+                return self
+                    .wait_stuck(slot, "CreateContainerConfigError", e.0, stop)
+                    .await
+            }
+        };
+        let argv = match argv(&c, &image, entry, &env) {
+            Ok(a) => a,
+            Err(e) => return self.wait_stuck(slot, "ErrImagePull", e.0, stop).await,
+        };
+        let mut mounts = Vec::new();
+        for m in c.volume_mounts.iter().flatten() {
+            let Some(src) = volumes.get(&m.name) else {
+                let msg = format!("volume {:?} is not defined", m.name);
+                return self
+                    .wait_stuck(slot, "CreateContainerConfigError", msg, stop)
+                    .await;
+            };
+            let mut src = src.clone();
+            if let Some(sub) = m.sub_path.as_deref().filter(|s| !s.is_empty()) {
+                src = src.join(sub);
+                // NB: the kubelet creates a missing subPath as a directory.
+                if !src.exists() {
+                    if let Err(e) = std::fs::create_dir_all(&src) {
+                        let msg =
+                            format!("cannot create subPath {sub:?} of volume {:?}: {e}", m.name);
+                        return self
+                            .wait_stuck(slot, "CreateContainerConfigError", msg, stop)
+                            .await;
+                    }
+                }
+            }
+            mounts.push(Mount {
+                src,
+                dst: PathBuf::from(&m.mount_path),
+                read_only: m.read_only == Some(true),
+            });
+        }
+        for (host, inside) in entry.map(|e| e.files.clone()).unwrap_or_default() {
+            mounts.push(Mount {
+                src: host,
+                dst: PathBuf::from(inside),
+                read_only: true,
+            });
+        }
+        let workdir = c
+            .working_dir
+            .clone()
+            .filter(|w| !w.is_empty())
+            .or_else(|| entry.and_then(|e| e.working_dir.clone()))
+            .map(PathBuf::from)
+            .unwrap_or_else(|| self.dir.join("work"));
+        if !mounts.is_empty() && self.rt.ns == super::process::Namespaces::None {
+            let msg = format!(
+                "container {:?} mounts {} path(s) but local-kube runs without mount namespaces (isolation None or unavailable)",
+                c.name,
+                mounts.len()
+            );
+            return self
+                .wait_stuck(slot, "CreateContainerConfigError", msg, stop)
+                .await;
+        }
+        let plan = match plan(mounts, &workdir) {
+            Ok(p) => p,
+            Err(msg) => {
+                return self
+                    .wait_stuck(slot, "CreateContainerConfigError", msg, stop)
+                    .await
+            }
+        };
+        for path in plan.created.iter().filter(|p| !p.starts_with(&self.dir)) {
+            info!(container = %c.name, path = %path.display(), "created a missing mount point on the host");
+        }
+        self.attempts(slot, &c, &image, &argv, &env, &workdir, &plan.mounts, stop)
+            .await
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    async fn attempts(
+        &self,
+        slot: Slot,
+        c: &Container,
+        image: &str,
+        argv: &[String],
+        env: &BTreeMap<String, String>,
+        workdir: &Path,
+        mounts: &[Mount],
+        mut stop: StopRx,
+    ) -> Outcome {
+        let is_init = matches!(slot, Slot::Init(_));
+        let log_dir = self.dir.join("logs").join(&c.name);
+        let _ = std::fs::create_dir_all(&log_dir);
+        let mut attempt: i32 = 0;
+        let mut last: Option<ContainerStateTerminated> = None;
+        loop {
+            if stop.borrow().is_some() || self.rt.is_shutting_down() {
+                return Outcome::Stopped;
+            }
+            let log = log_dir.join(format!("{attempt}.log"));
+            let id = container_id();
+            let started_at = time_now();
+            let launch = Launch {
+                argv,
+                env,
+                workdir,
+                mounts,
+                log: &log,
+            };
+            let spawned =
+                command(&launch, &self.rt.ns).and_then(|mut cmd| self.rt.procs.spawn(&mut cmd));
+            let last_state = last.clone().map(|t| ContainerState {
+                terminated: Some(t),
+                ..Default::default()
+            });
+            let (code, message, stopped) = match spawned {
+                Err(e) => {
+                    if self.rt.is_shutting_down() {
+                        return Outcome::Stopped;
+                    }
+                    let _ = std::fs::write(
+                        &log,
+                        format!("local-kube: cannot start {:?}: {e}\n", argv[0]),
+                    );
+                    (128, Some(format!("exec: {:?}: {e}", argv[0])), false)
+                }
+                Ok((mut child, pgid)) => {
+                    info!(pod = %self.key.name, container = %c.name, attempt, pgid, "container started");
+                    let running = ContainerState {
+                        running: Some(ContainerStateRunning {
+                            started_at: Some(started_at.clone()),
+                        }),
+                        ..Default::default()
+                    };
+                    let (img, iid, cid) = (image.to_owned(), image_id(image), id.clone());
+                    self.set(slot, |s| {
+                        s.state = Some(running);
+                        s.last_state = last_state.clone();
+                        s.restart_count = attempt;
+                        s.ready = !is_init;
+                        s.started = Some(true);
+                        s.image = img;
+                        s.image_id = iid;
+                        s.container_id = Some(cid);
+                    });
+                    let result = tokio::select! {
+                        status = child.wait() => {
+                            // NB: like a container's PID namespace, nothing outlives the main process.
+                            signal_group(pgid, nix::sys::signal::Signal::SIGKILL);
+                            (status.map(|s| exit_code(&s)).unwrap_or(-1), false)
+                        }
+                        grace = stop_requested(&mut stop) => {
+                            let status = terminate(&mut child, pgid, grace).await;
+                            (status.map(|s| exit_code(&s)).unwrap_or(137), true)
+                        }
+                    };
+                    // NB: the pod only goes away once its processes have, as with a real runtime.
+                    if !wait_group_gone(pgid, Duration::from_secs(2)).await {
+                        warn!(pod = %self.key.name, container = %c.name, pgid, "processes outlived SIGKILL");
+                    }
+                    self.rt.procs.forget(pgid);
+                    info!(pod = %self.key.name, container = %c.name, attempt, exit_code = result.0, "container exited");
+                    (result.0, None, result.1)
+                }
+            };
+            let reason = match (code, &message) {
+                (_, Some(_)) => "StartError",
+                (0, None) => "Completed",
+                _ => "Error",
+            };
+            let terminated = ContainerStateTerminated {
+                container_id: Some(id),
+                exit_code: code,
+                finished_at: Some(time_now()),
+                message,
+                reason: Some(reason.into()),
+                signal: None,
+                started_at: Some(started_at),
+            };
+            let final_state = |s: &mut ContainerStatus, t: &ContainerStateTerminated| {
+                s.state = Some(ContainerState {
+                    terminated: Some(t.clone()),
+                    ..Default::default()
+                });
+                s.last_state = last_state.clone();
+                s.restart_count = attempt;
+                s.ready = is_init && t.exit_code == 0;
+                s.started = Some(false);
+            };
+            if stopped || code == 0 || self.restart_policy != "OnFailure" {
+                self.set(slot, |s| final_state(s, &terminated));
+                return match (stopped, code) {
+                    (true, _) => Outcome::Stopped,
+                    (false, 0) => Outcome::Succeeded,
+                    _ => Outcome::Failed,
+                };
+            }
+            let timing = &self.rt.timing;
+            let factor = 1u32 << attempt.clamp(0, 16);
+            let backoff = timing
+                .restart_backoff
+                .saturating_mul(factor)
+                .min(timing.max_backoff);
+            let pod = &self.pod.metadata;
+            let msg = format!(
+                "back-off {} restarting failed container={} pod={}_{}({})",
+                go_duration(backoff),
+                c.name,
+                pod.name.as_deref().unwrap_or_default(),
+                pod.namespace.as_deref().unwrap_or_default(),
+                pod.uid.as_deref().unwrap_or_default()
+            );
+            let as_last = ContainerState {
+                terminated: Some(terminated.clone()),
+                ..Default::default()
+            };
+            self.set(slot, |s| {
+                s.state = Some(waiting("CrashLoopBackOff", Some(msg)));
+                s.last_state = Some(as_last);
+                s.restart_count = attempt;
+                s.ready = false;
+                s.started = Some(false);
+            });
+            tokio::select! {
+                _ = stop_requested(&mut stop) => return Outcome::Stopped,
+                _ = tokio::time::sleep(backoff) => {}
+            }
+            last = Some(terminated);
+            attempt += 1;
+        }
+    }
+}
+
+/// Go's `time.Duration` string for the short delays used here (`200ms`, `1.6s`, `10s`).
+fn go_duration(d: Duration) -> String {
+    if d < Duration::from_secs(1) {
+        format!("{}ms", d.as_millis())
+    } else {
+        let s = d.as_secs_f64();
+        if s.fract() == 0.0 {
+            format!("{}s", s as u64)
+        } else {
+            format!("{s}s")
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_print_like_go() {
+        assert_eq!(go_duration(Duration::from_millis(200)), "200ms");
+        assert_eq!(go_duration(Duration::from_millis(1600)), "1.6s");
+        assert_eq!(go_duration(Duration::from_secs(10)), "10s");
+    }
+
+    #[test]
+    fn image_ids_are_stable_digests() {
+        let a = image_id("carla:0.9.15");
+        assert!(a.starts_with("carla:0.9.15@sha256:"));
+        assert_eq!(a.len(), "carla:0.9.15@sha256:".len() + 64);
+        assert_eq!(a, image_id("carla:0.9.15"));
+    }
+}
