@@ -14,15 +14,33 @@ pub struct Cli {
     pub command: Command,
 }
 
-/// Subcommands.
+/// Subcommands. Everything but `merge` is configured by environment variables (see the
+/// README); a missing or malformed one is named in an `InvalidEnvironment` error.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Init container: copy the official code and this binary into the shared volumes,
+    /// create the logs tree, clear stale markers, download partial results and logs.
+    Init,
+    /// Run CARLA (`-- CMD...`) as the simulator of a pair.
+    Simulator(WrapArgs),
+    /// Run the Leaderboard evaluator (`-- CMD...`) as the agent of a pair.
+    Agent(WrapArgs),
+    /// Upload the logs tree to S3 every period until the Job is over.
+    Logcopy,
     /// Merge workers' results files and write the merged file and the EvalAI files.
     ///
     /// Writes DIR/agent_results.json and DIR/evalai/{results.json,stdout.txt,metadata.json},
     /// all or nothing: on an error nothing new is written and earlier outputs are removed, so
     /// a stale result can never be published.
     Merge(MergeArgs),
+}
+
+/// The wrapped command of `simulator` and `agent`.
+#[derive(Debug, Args)]
+pub struct WrapArgs {
+    /// The command and its arguments, after `--`.
+    #[arg(last = true, required = true, value_name = "CMD")]
+    pub command: Vec<String>,
 }
 
 /// Arguments of `lb-sidecar merge`.

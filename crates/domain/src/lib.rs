@@ -1,7 +1,7 @@
 //! Pure domain core of the CARLA Leaderboard evaluation backend: no AWS, Kubernetes or Lambda.
 
-pub mod protocol;
 pub mod plan;
+pub mod protocol;
 pub mod py;
 pub mod results;
 pub mod schedule;

@@ -122,7 +122,9 @@ pub fn is_pair_log(rel: &str, pairs: &[PairId]) -> bool {
         let dir = agent_logs_dir(pair);
         rel.strip_prefix(dir.as_str())
             .and_then(|rest| rest.strip_prefix('/'))
-            .is_some_and(|rest| !rest.is_empty() && rest != "recorder" && !rest.starts_with("recorder/"))
+            .is_some_and(|rest| {
+                !rest.is_empty() && rest != "recorder" && !rest.starts_with("recorder/")
+            })
     })
 }
 
@@ -302,7 +304,9 @@ impl Markers {
         let n = self
             .0
             .iter()
-            .filter(|m| matches!(m, Marker::Crash { role: r, pair: p, .. } if *r == role && *p == pair))
+            .filter(
+                |m| matches!(m, Marker::Crash { role: r, pair: p, .. } if *r == role && *p == pair),
+            )
             .count();
         u32::try_from(n).unwrap_or(u32::MAX)
     }
@@ -361,7 +365,9 @@ pub fn start_attempt(markers: &Markers, role: Role, pair: PairId) -> (u32, Vec<M
         pair,
         crash_id,
     };
-    while markers.contains(&crash(role.partner(), attempt)) && !markers.contains(&crash(role, attempt)) {
+    while markers.contains(&crash(role.partner(), attempt))
+        && !markers.contains(&crash(role, attempt))
+    {
         owed.push(crash(role, attempt));
         attempt += 1;
     }
@@ -530,7 +536,13 @@ mod tests {
     #[test]
     fn marker_names_are_exactly_the_seeds_names_and_parse_back() {
         let cases = [
-            (Marker::Start { pair: 3, crash_id: 0 }, "simulator-3.start0"),
+            (
+                Marker::Start {
+                    pair: 3,
+                    crash_id: 0,
+                },
+                "simulator-3.start0",
+            ),
             (
                 Marker::Done {
                     role: Role::Simulator,
@@ -621,7 +633,10 @@ mod tests {
                 }]
             )
         );
-        assert_eq!(start_attempt(&Markers::default(), Role::Simulator, 1), (0, vec![]));
+        assert_eq!(
+            start_attempt(&Markers::default(), Role::Simulator, 1),
+            (0, vec![])
+        );
     }
 
     #[test]
@@ -705,7 +720,10 @@ mod tests {
         ]);
         assert_eq!(job_end(&all, &pairs, None), Some(JobEnd::AllDone));
         let cancelled = markers(&["simulation.cancel"]);
-        assert_eq!(job_end(&cancelled, &pairs, Some(8)), Some(JobEnd::Cancelled));
+        assert_eq!(
+            job_end(&cancelled, &pairs, Some(8)),
+            Some(JobEnd::Cancelled)
+        );
     }
 
     #[test]
@@ -724,7 +742,11 @@ mod tests {
             pair: 2,
             crash_id: 1,
         });
-        assert_eq!(m.pair_state(2), PairState::Running, "agent has not ended yet");
+        assert_eq!(
+            m.pair_state(2),
+            PairState::Running,
+            "agent has not ended yet"
+        );
         assert_eq!(job_end(&m, &pairs, Some(3)), None, "pair 2 still running");
         m.insert(Marker::Crash {
             role: Role::Agent,

@@ -301,6 +301,9 @@ impl PodWorker {
             }
             return Ok(path);
         }
+        if let Some(projected) = &v.projected {
+            return self.projected_volume(v, projected);
+        }
         let kind = serde_json::to_value(v)
             .ok()
             .and_then(|j| {
@@ -312,6 +315,47 @@ impl PodWorker {
             "volume {:?}: local-kube does not implement {kind} volumes",
             v.name
         ))
+    }
+
+    /// A `projected` volume of service account tokens, as the kubelet writes it. There is no
+    /// token issuer here: the file holds a placeholder that no AWS or Kubernetes API accepts,
+    /// which is what a local run needs (credentials for moto come from the image map's env).
+    fn projected_volume(
+        &self,
+        v: &Volume,
+        projected: &k8s_openapi::api::core::v1::ProjectedVolumeSource,
+    ) -> Result<PathBuf, String> {
+        let dir = self.dir.join("volumes").join(&v.name);
+        std::fs::create_dir_all(&dir)
+            .map_err(|e| format!("volume {:?}: cannot create projected volume: {e}", v.name))?;
+        for source in projected.sources.iter().flatten() {
+            let Some(token) = &source.service_account_token else {
+                return Err(format!(
+                    "volume {:?}: local-kube implements only serviceAccountToken projections",
+                    v.name
+                ));
+            };
+            let relative = std::path::Path::new(&token.path);
+            if token.path.is_empty()
+                || relative.is_absolute()
+                || relative
+                    .components()
+                    .any(|c| matches!(c, std::path::Component::ParentDir))
+            {
+                return Err(format!(
+                    "volume {:?}: serviceAccountToken path {:?} must be relative, without `..`",
+                    v.name, token.path
+                ));
+            }
+            let file = dir.join(relative);
+            if let Some(parent) = file.parent() {
+                std::fs::create_dir_all(parent).map_err(|e| format!("volume {:?}: {e}", v.name))?;
+            }
+            let audience = token.audience.as_deref().unwrap_or("local-kube");
+            std::fs::write(&file, format!("local-kube-unsigned-token.{audience}"))
+                .map_err(|e| format!("volume {:?}: cannot write the token: {e}", v.name))?;
+        }
+        Ok(dir)
     }
 
     /// Waits in a state that only a stop ends (configuration errors, unpullable images).

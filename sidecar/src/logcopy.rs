@@ -1,0 +1,426 @@
+//! `lb-sidecar logcopy`: uploads what changed under the logs tree every period, mirrors the
+//! cancel marker, and finishes with a final upload and `logcopy-<J>.done`.
+//!
+//! A file is recorded as uploaded only after S3 accepted it, so an S3 outage loses nothing:
+//! the pass stops at the first S3 error, the next one (after an exponential backoff) tries
+//! again. Memory is bounded by one part ([`PART_BYTES`]) plus one entry per tracked file.
+
+use std::io::{self, Read, Seek};
+use std::os::unix::fs::MetadataExt;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use lb_domain::protocol::{self, job_end, JobEnd, Marker, CANCEL_MARKER, STATUS_DIR};
+use sha2::{Digest, Sha256};
+use tracing::{debug, info, warn};
+
+use crate::config::{process_env, Env, EnvError, LogcopyConfig};
+use crate::s3::{S3Error, UploadError, MAX_OBJECT_BYTES, PART_BYTES, S3};
+use crate::signals::{Signals, Wake};
+use crate::status::StatusDir;
+use crate::tree::{self, Action, Tracker};
+
+/// Longest pause between passes while S3 keeps failing.
+const MAX_BACKOFF: Duration = Duration::from_secs(300);
+/// How long the final upload may keep retrying after a normal end.
+const FINAL_UPLOAD_LIMIT: Duration = Duration::from_secs(600);
+/// After SIGTERM: how long to wait for the pairs' last markers, and the whole budget (the
+/// kubelet's default grace period is 30 s).
+const TERM_SETTLE: Duration = Duration::from_secs(12);
+const TERM_BUDGET: Duration = Duration::from_secs(25);
+
+/// Why logcopy failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LogcopyError {
+    /// The environment is incomplete or malformed.
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    /// The logs tree is not there.
+    #[error("cannot read the logs tree `{path}`: {source}")]
+    Tree {
+        /// `LB_LOGS_ROOT`.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: io::Error,
+    },
+    /// The final upload did not get through before the deadline.
+    #[error("the final upload did not complete: {0}")]
+    FinalUpload(#[source] S3Error),
+    /// The async runtime or the signal handlers could not be set up.
+    #[error("cannot set up the runtime: {0}")]
+    Runtime(#[source] io::Error),
+}
+
+impl LogcopyError {
+    /// Stable name for scripts and logs.
+    pub fn name(&self) -> &'static str {
+        match self {
+            LogcopyError::Env(e) => e.name(),
+            LogcopyError::Tree { .. } => "LogsTreeUnreadable",
+            LogcopyError::FinalUpload(_) => "FinalUploadFailed",
+            LogcopyError::Runtime(_) => "RuntimeFailed",
+        }
+    }
+}
+
+/// How logcopy ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LogcopyEnd {
+    /// The Job is over (`logcopy-<J>.done` written).
+    Job(JobEnd),
+    /// SIGTERM: final upload made, no done marker (the pod is going away).
+    Terminated,
+}
+
+/// Runs the subcommand with the configuration from the environment.
+pub fn run() -> Result<LogcopyEnd, LogcopyError> {
+    let cfg = LogcopyConfig::read(&Env::new(&process_env))?;
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(LogcopyError::Runtime)?;
+    rt.block_on(async {
+        let mut signals = Signals::install().map_err(LogcopyError::Runtime)?;
+        let s3 = S3::connect(&cfg.aws).await;
+        Logcopy::new(&cfg, s3)?.run(&mut signals).await
+    })
+}
+
+/// What one pass did; logged as one line per pass (tests count uploads from it).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PassStats {
+    /// Regular files in the tree.
+    pub files: usize,
+    /// Objects written.
+    pub uploaded: usize,
+    /// Bytes written.
+    pub uploaded_bytes: u64,
+    /// Files whose metadata changed but whose content was hashed and found the same.
+    pub same_content: usize,
+    /// Files that could not be read (they are tried again next pass).
+    pub unreadable: usize,
+}
+
+/// The uploader's state.
+pub struct Logcopy<'a> {
+    cfg: &'a LogcopyConfig,
+    s3: S3,
+    status: StatusDir,
+    dev: u64,
+    tracker: Tracker,
+}
+
+impl<'a> Logcopy<'a> {
+    /// Checks the logs tree and prepares the state.
+    pub fn new(cfg: &'a LogcopyConfig, s3: S3) -> Result<Logcopy<'a>, LogcopyError> {
+        let tree_err = |source| LogcopyError::Tree {
+            path: cfg.logs_root.clone(),
+            source,
+        };
+        let dev = std::fs::metadata(&cfg.logs_root).map_err(tree_err)?.dev();
+        let status = StatusDir::new(cfg.logs_root.join(STATUS_DIR));
+        std::fs::create_dir_all(status.path()).map_err(tree_err)?;
+        Ok(Logcopy {
+            cfg,
+            s3,
+            status,
+            dev,
+            tracker: Tracker::default(),
+        })
+    }
+
+    fn key(&self, rel: &str) -> String {
+        format!("{}/{rel}", self.cfg.common.submission_id)
+    }
+
+    /// The period loop, until the Job ends or SIGTERM.
+    pub async fn run(&mut self, signals: &mut Signals) -> Result<LogcopyEnd, LogcopyError> {
+        info!(
+            pairs = ?self.cfg.pairs,
+            period = ?self.cfg.period,
+            bucket = %self.s3.bucket(),
+            backoff_limit = ?self.cfg.backoff_limit,
+            "logcopy started"
+        );
+        let mut failures = 0u32;
+        loop {
+            let period = tokio::select! {
+                result = self.period() => Some(result),
+                () = signals.terminate() => None,
+            };
+            match period {
+                None => return self.terminated().await,
+                Some(Ok(_)) => failures = 0,
+                Some(Err(e)) => {
+                    failures = failures.saturating_add(1);
+                    warn!(error = %e, failures, "S3 is failing; the next pass retries");
+                }
+            }
+            let markers = self.status.markers().unwrap_or_default();
+            if let Some(end) = job_end(&markers, &self.cfg.pairs, self.cfg.backoff_limit) {
+                return self.finish(end, signals).await;
+            }
+            let pause = backoff(self.cfg.period, failures);
+            if signals.sleep(pause).await == Wake::Terminate {
+                return self.terminated().await;
+            }
+        }
+    }
+
+    /// One period: mirror the cancel marker, then upload what changed.
+    async fn period(&mut self) -> Result<PassStats, S3Error> {
+        self.mirror_cancel().await?;
+        self.pass().await
+    }
+
+    async fn mirror_cancel(&self) -> Result<(), S3Error> {
+        let key = self.key(&format!("{STATUS_DIR}/{CANCEL_MARKER}"));
+        if !self.status.contains(Marker::Cancel) && self.s3.exists(&key).await? {
+            info!("the submission was cancelled: mirroring the cancel marker");
+            if let Err(e) = self.status.write(Marker::Cancel) {
+                warn!(error = %e, "cannot write the cancel marker");
+            }
+        }
+        Ok(())
+    }
+
+    /// Uploads every changed file; stops at the first S3 error.
+    pub async fn pass(&mut self) -> Result<PassStats, S3Error> {
+        let started = Instant::now();
+        let (entries, skipped) = match tree::scan(&self.cfg.logs_root, self.dev) {
+            Ok(found) => found,
+            Err(e) => {
+                warn!(root = %self.cfg.logs_root.display(), error = %e, "cannot walk the logs tree");
+                return Ok(PassStats::default());
+            }
+        };
+        if skipped != tree::Skipped::default() {
+            debug!(?skipped, "files left out of the upload");
+        }
+        self.tracker.retain_present(&entries);
+        let mut stats = PassStats {
+            files: entries.len(),
+            ..PassStats::default()
+        };
+        for entry in &entries {
+            let last = self.tracker.get(&entry.rel).copied();
+            if tree::action(last.as_ref(), &entry.meta) == Action::Skip {
+                continue;
+            }
+            match self.sync_file(entry, last.as_ref()).await {
+                Ok(Some(bytes)) => {
+                    stats.uploaded += 1;
+                    stats.uploaded_bytes += bytes;
+                }
+                Ok(None) => stats.same_content += 1,
+                Err(UploadError::Read { path, source }) => {
+                    debug!(%path, error = %source, "cannot read a file; next pass retries");
+                    stats.unreadable += 1;
+                }
+                Err(UploadError::S3(e)) => {
+                    info!(
+                        uploaded = stats.uploaded,
+                        uploaded_bytes = stats.uploaded_bytes,
+                        "logcopy pass interrupted"
+                    );
+                    return Err(e);
+                }
+            }
+        }
+        info!(
+            files = stats.files,
+            uploaded = stats.uploaded,
+            uploaded_bytes = stats.uploaded_bytes,
+            same_content = stats.same_content,
+            unreadable = stats.unreadable,
+            tracked = self.tracker.len(),
+            elapsed_ms = started.elapsed().as_millis() as u64,
+            "logcopy pass"
+        );
+        Ok(stats)
+    }
+
+    /// Uploads one file if its content changed; `Some(bytes)` when it was uploaded.
+    async fn sync_file(
+        &mut self,
+        entry: &tree::Entry,
+        last: Option<&tree::Uploaded>,
+    ) -> Result<Option<u64>, UploadError> {
+        let path = entry.path.display().to_string();
+        let read_err = |source| UploadError::Read {
+            path: path.clone(),
+            source,
+        };
+        let (mut file, meta) = tree::open_checked(&entry.path, self.dev).map_err(read_err)?;
+        if meta.size > MAX_OBJECT_BYTES {
+            return Err(read_err(io::Error::other(format!(
+                "{} bytes is over the {MAX_OBJECT_BYTES}-byte upload limit",
+                meta.size
+            ))));
+        }
+        let key = self.key(&entry.rel);
+        let same_size = last.is_some_and(|u| u.meta.size == meta.size);
+        if meta.size <= PART_BYTES {
+            let mut bytes = Vec::with_capacity(meta.size as usize);
+            (&mut file)
+                .take(meta.size)
+                .read_to_end(&mut bytes)
+                .map_err(read_err)?;
+            let hash: [u8; 32] = Sha256::digest(&bytes).into();
+            if same_size && last.is_some_and(|u| u.hash == hash) {
+                self.tracker.record(&entry.rel, meta, hash);
+                return Ok(None);
+            }
+            let len = bytes.len() as u64;
+            self.s3.put(&key, bytes).await?;
+            self.tracker.record(&entry.rel, meta, hash);
+            debug!(%key, bytes = len, "uploaded");
+            return Ok(Some(len));
+        }
+        if same_size {
+            let hash = tree::hash_file(&mut file, meta.size).map_err(read_err)?;
+            if last.is_some_and(|u| u.hash == hash) {
+                self.tracker.record(&entry.rel, meta, hash);
+                return Ok(None);
+            }
+            file.rewind().map_err(read_err)?;
+        }
+        let hash = self
+            .s3
+            .put_multipart(&key, &mut file, meta.size, &path)
+            .await?;
+        self.tracker.record(&entry.rel, meta, hash);
+        debug!(%key, bytes = meta.size, "uploaded in parts");
+        Ok(Some(meta.size))
+    }
+
+    /// The Job is over: final upload (retried until it gets through, bounded), done marker.
+    async fn finish(
+        &mut self,
+        end: JobEnd,
+        signals: &mut Signals,
+    ) -> Result<LogcopyEnd, LogcopyError> {
+        info!(?end, "the Job is over: final upload");
+        if end == JobEnd::Cancelled {
+            // Give the pairs a moment to stop and write their last lines.
+            let settle = self.cfg.period.min(Duration::from_secs(5));
+            if signals.sleep(settle).await == Wake::Terminate {
+                return self.terminated().await;
+            }
+        }
+        let deadline = Instant::now() + FINAL_UPLOAD_LIMIT;
+        let marker = Marker::LogcopyDone {
+            job: self.cfg.common.job_index,
+        };
+        let mut failures = 0u32;
+        loop {
+            let attempt = async {
+                self.pass().await?;
+                // NB: written after the final pass so it never precedes what it vouches for.
+                if let Err(e) = self.status.write(marker) {
+                    warn!(error = %e, "cannot write the done marker locally");
+                }
+                self.s3
+                    .put(&self.key(&format!("{STATUS_DIR}/{marker}")), Vec::new())
+                    .await
+            };
+            let result = tokio::select! {
+                r = attempt => Some(r),
+                () = signals.terminate() => None,
+            };
+            match result {
+                None => return self.terminated().await,
+                Some(Ok(())) => {
+                    info!(?end, %marker, "logcopy done");
+                    return Ok(LogcopyEnd::Job(end));
+                }
+                Some(Err(e)) => {
+                    failures = failures.saturating_add(1);
+                    if Instant::now() >= deadline {
+                        return Err(LogcopyError::FinalUpload(e));
+                    }
+                    warn!(error = %e, failures, "final upload failed; retrying");
+                    let pause = backoff(self.cfg.period, failures)
+                        .min(deadline.saturating_duration_since(Instant::now()));
+                    if signals.sleep(pause).await == Wake::Terminate {
+                        return self.terminated().await;
+                    }
+                }
+            }
+        }
+    }
+
+    /// SIGTERM: wait briefly for the pairs' last markers, then one bounded final upload.
+    async fn terminated(&mut self) -> Result<LogcopyEnd, LogcopyError> {
+        let started = Instant::now();
+        info!("SIGTERM: final upload");
+        while started.elapsed() < TERM_SETTLE {
+            let markers = self.status.markers().unwrap_or_default();
+            let settled = markers.contains(&Marker::Cancel)
+                || self
+                    .cfg
+                    .pairs
+                    .iter()
+                    .all(|&p| markers.pair_state(p) != protocol::PairState::Running);
+            if settled {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+        let budget = TERM_BUDGET.saturating_sub(started.elapsed());
+        let mut failures = 0u32;
+        let deadline = Instant::now() + budget;
+        loop {
+            match tokio::time::timeout(
+                deadline.saturating_duration_since(Instant::now()),
+                self.pass(),
+            )
+            .await
+            {
+                Ok(Ok(_)) => return Ok(LogcopyEnd::Terminated),
+                Ok(Err(e)) => {
+                    failures += 1;
+                    if Instant::now() >= deadline {
+                        return Err(LogcopyError::FinalUpload(e));
+                    }
+                    warn!(error = %e, failures, "final upload failed; retrying");
+                    let pause = Duration::from_millis(500 * u64::from(failures))
+                        .min(deadline.saturating_duration_since(Instant::now()));
+                    tokio::time::sleep(pause).await;
+                }
+                Err(_) => {
+                    warn!("the final upload ran out of time");
+                    return Ok(LogcopyEnd::Terminated);
+                }
+            }
+        }
+    }
+}
+
+/// The pause before the next pass: the period, doubled per consecutive failure, capped.
+pub fn backoff(period: Duration, failures: u32) -> Duration {
+    if failures == 0 {
+        return period;
+    }
+    let factor = 1u32 << failures.min(6);
+    period.saturating_mul(factor).min(MAX_BACKOFF.max(period))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_per_failure_and_is_capped() {
+        let p = Duration::from_secs(10);
+        assert_eq!(backoff(p, 0), p);
+        assert_eq!(backoff(p, 1), Duration::from_secs(20));
+        assert_eq!(backoff(p, 3), Duration::from_secs(80));
+        assert_eq!(backoff(p, 30), MAX_BACKOFF);
+        assert_eq!(
+            backoff(Duration::from_secs(600), 2),
+            Duration::from_secs(600)
+        );
+    }
+}

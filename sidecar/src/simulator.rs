@@ -1,0 +1,192 @@
+//! `lb-sidecar simulator -- CMD`: runs CARLA and plays the simulator's side of the protocol.
+//!
+//! Start CARLA in its own process group (output to `logs/simulator/simulator<ID>.log`); it
+//! is ready when its port accepts connections (bounded by `LB_CARLA_READY_SECONDS`); write
+//! `simulator-<ID>.start<CRASH_ID>`; then agent done -> stop CARLA, `simulator-<ID>.done`,
+//! exit 0; agent crashed -> stop, this attempt's crash marker, exit 1; CARLA died (or never
+//! became ready) -> `simulator-<ID>.crash<CRASH_ID>`, wait (bounded) for the agent, exit 1;
+//! cancel -> stop, exit 0. SIGTERM stops CARLA and writes the marker the pair's state calls for.
+
+use std::time::Instant;
+
+use lb_domain::protocol::{self, simulator_step, Marker, Role, SimulatorStep};
+use tracing::{info, warn};
+
+use crate::config::{process_env, Env, PairConfig};
+use crate::pair::{self, port_open, write_marker, PairError, PairOutcome};
+use crate::signals::{Signals, Wake};
+use crate::status::StatusDir;
+use crate::supervise::{become_subreaper, Supervised};
+
+/// Runs the subcommand with the configuration from the environment.
+pub fn run(command: &[String]) -> Result<PairOutcome, PairError> {
+    let cfg = PairConfig::read(&Env::new(&process_env))?;
+    pair::runtime()?.block_on(simulate(&cfg, command))
+}
+
+/// The simulator's state machine.
+pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcome, PairError> {
+    let mut signals = Signals::install().map_err(PairError::Runtime)?;
+    become_subreaper();
+    let status = StatusDir::new(&cfg.status_dir);
+    let id = cfg.pair;
+    let (attempt, owed) = protocol::start_attempt(&pair::markers(&status), Role::Simulator, id);
+    for marker in owed {
+        warn!(%marker, "writing a crash marker a killed attempt did not write");
+        write_marker(&status, marker)?;
+    }
+    let done = Marker::Done {
+        role: Role::Simulator,
+        pair: id,
+    };
+    let crash = Marker::Crash {
+        role: Role::Simulator,
+        pair: id,
+        crash_id: attempt,
+    };
+    match simulator_step(&pair::view(&status, id, attempt)) {
+        SimulatorStep::AgentDone => {
+            info!(pair = id, "the agent is already done");
+            write_marker(&status, done)?;
+            return Ok(PairOutcome::Done);
+        }
+        SimulatorStep::Cancel => {
+            info!(pair = id, "cancelled before start");
+            return Ok(PairOutcome::Cancelled);
+        }
+        SimulatorStep::AgentCrashed | SimulatorStep::Continue => {}
+    }
+
+    let log = cfg.logs_dir.join(protocol::simulator_log(id));
+    let mut child =
+        Supervised::spawn(command, &[], &log, true).map_err(|source| PairError::Spawn {
+            program: command.first().cloned().unwrap_or_default(),
+            source,
+        })?;
+    info!(
+        pair = id,
+        attempt,
+        port = cfg.carla_port,
+        "simulator started"
+    );
+    child.note(&format!(
+        "simulator {id} attempt {attempt}: started, waiting for port {}",
+        cfg.carla_port
+    ));
+
+    let ready_by = Instant::now() + cfg.carla_ready;
+    let mut ready = false;
+    loop {
+        if let Some(exit) = child.try_exit() {
+            warn!(pair = id, %exit, ready, "CARLA exited");
+            child.note(&format!("CARLA exited ({exit})"));
+            return crashed(cfg, &mut signals, &status, child, attempt).await;
+        }
+        if !ready {
+            if port_open(cfg.carla_port).await {
+                ready = true;
+                info!(pair = id, attempt, "CARLA accepts connections");
+                child.note("CARLA accepts connections");
+                write_marker(
+                    &status,
+                    Marker::Start {
+                        pair: id,
+                        crash_id: attempt,
+                    },
+                )?;
+            } else if Instant::now() >= ready_by {
+                warn!(pair = id, waited = ?cfg.carla_ready, "CARLA did not open its port in time");
+                child.note(&format!(
+                    "CARLA did not accept connections within {:?}",
+                    cfg.carla_ready
+                ));
+                return crashed(cfg, &mut signals, &status, child, attempt).await;
+            }
+        }
+        match simulator_step(&pair::view(&status, id, attempt)) {
+            SimulatorStep::Continue => {}
+            SimulatorStep::AgentDone => {
+                child.note("the agent is done: stopping CARLA");
+                child.stop(cfg.stop_grace).await;
+                write_marker(&status, done)?;
+                return Ok(PairOutcome::Done);
+            }
+            SimulatorStep::Cancel => {
+                child.note("submission cancelled: stopping CARLA");
+                child.stop(cfg.stop_grace).await;
+                return Ok(PairOutcome::Cancelled);
+            }
+            SimulatorStep::AgentCrashed => {
+                child.note("the agent crashed: stopping CARLA");
+                child.stop(cfg.stop_grace).await;
+                write_marker(&status, crash)?;
+                return Ok(PairOutcome::Crashed);
+            }
+        }
+        if signals.sleep(cfg.poll).await == Wake::Terminate {
+            info!(pair = id, "SIGTERM: stopping CARLA");
+            child.note("SIGTERM: stopping CARLA");
+            child.stop(cfg.stop_grace).await;
+            return match simulator_step(&pair::view(&status, id, attempt)) {
+                SimulatorStep::AgentDone => {
+                    write_marker(&status, done)?;
+                    Ok(PairOutcome::Done)
+                }
+                SimulatorStep::Cancel => Ok(PairOutcome::Cancelled),
+                SimulatorStep::AgentCrashed | SimulatorStep::Continue => {
+                    write_marker(&status, crash)?;
+                    Ok(PairOutcome::Crashed)
+                }
+            };
+        }
+    }
+}
+
+/// CARLA died or never became ready: crash marker, then wait (bounded) for the agent.
+async fn crashed(
+    cfg: &PairConfig,
+    signals: &mut Signals,
+    status: &StatusDir,
+    mut child: Supervised,
+    attempt: u32,
+) -> Result<PairOutcome, PairError> {
+    let id = cfg.pair;
+    child.stop(cfg.stop_grace).await;
+    write_marker(
+        status,
+        Marker::Crash {
+            role: Role::Simulator,
+            pair: id,
+            crash_id: attempt,
+        },
+    )?;
+    let wait_until = Instant::now() + cfg.end_wait;
+    loop {
+        let view = pair::view(status, id, attempt);
+        if view.agent_done {
+            // NB: the evaluator had finished every route; the pair is done after all.
+            child.note("the agent is done after all");
+            write_marker(
+                status,
+                Marker::Done {
+                    role: Role::Simulator,
+                    pair: id,
+                },
+            )?;
+            return Ok(PairOutcome::Done);
+        }
+        if view.cancel {
+            return Ok(PairOutcome::Cancelled);
+        }
+        if view.agent_crashed {
+            return Ok(PairOutcome::Crashed);
+        }
+        if Instant::now() >= wait_until {
+            warn!(pair = id, waited = ?cfg.end_wait, "the agent wrote no marker in time");
+            return Ok(PairOutcome::Crashed);
+        }
+        if signals.sleep(cfg.poll).await == Wake::Terminate {
+            return Ok(PairOutcome::Crashed);
+        }
+    }
+}

@@ -1,0 +1,348 @@
+//! The logs tree as logcopy sees it: a bounded walk, and what changed since the last upload.
+//!
+//! The tree holds files the participant's code wrote, so it is hostile: symbolic links are
+//! never followed, files are opened with `O_NOFOLLOW` and must be regular files on the logs
+//! volume itself (same device as the root), which keeps a planted link to a token or another
+//! mount from being uploaded. Counts, depth and key lengths are bounded.
+
+use std::collections::HashMap;
+use std::fs::{self, File, OpenOptions};
+use std::io::{self, Read};
+use std::os::unix::fs::{MetadataExt, OpenOptionsExt};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use nix::fcntl::OFlag;
+use sha2::{Digest, Sha256};
+
+/// At most this many files are tracked; more are ignored (and reported).
+pub const MAX_FILES: usize = 100_000;
+/// Directories deeper than this are not walked.
+pub const MAX_DEPTH: usize = 16;
+/// Longest relative path uploaded (S3 keys are at most 1,024 bytes with the prefix).
+pub const MAX_KEY_BYTES: usize = 900;
+/// A file modified this recently may still change within its timestamp's granularity, so
+/// its metadata alone is not trusted next time (git's "racily clean" rule).
+const RACY: Duration = Duration::from_secs(2);
+
+/// A regular file found by [`scan`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Entry {
+    /// Path relative to the root, `/`-separated: the key suffix.
+    pub rel: String,
+    /// Full path.
+    pub path: PathBuf,
+    /// Its metadata at scan time.
+    pub meta: FileMeta,
+}
+
+/// What identifies a version of a file without reading it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FileMeta {
+    /// Size in bytes.
+    pub size: u64,
+    /// Modification time, nanoseconds since the epoch.
+    pub mtime_ns: i128,
+    /// Inode (a replaced file is a new one).
+    pub ino: u64,
+}
+
+impl FileMeta {
+    fn of(m: &fs::Metadata) -> FileMeta {
+        FileMeta {
+            size: m.len(),
+            mtime_ns: i128::from(m.mtime()) * 1_000_000_000 + i128::from(m.mtime_nsec()),
+            ino: m.ino(),
+        }
+    }
+
+    /// Whether the file changed so recently that the same metadata may hide a later write.
+    fn racy(&self, now: SystemTime) -> bool {
+        let now_ns = now
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as i128);
+        now_ns - self.mtime_ns < RACY.as_nanos() as i128
+    }
+}
+
+/// What a walk left out, for the logs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Skipped {
+    /// Symbolic links, devices, sockets, FIFOs, other mounts.
+    pub not_regular: usize,
+    /// Names that are not clean UTF-8 or make too long a key.
+    pub bad_names: usize,
+    /// Files beyond [`MAX_FILES`] or directories beyond [`MAX_DEPTH`].
+    pub over_limits: usize,
+}
+
+/// Walks the tree under `root` (on device `dev`), sorted so that `containers-status/` comes
+/// last: the markers must never reach S3 before the results and logs they vouch for.
+pub fn scan(root: &Path, dev: u64) -> io::Result<(Vec<Entry>, Skipped)> {
+    let mut entries = Vec::new();
+    let mut skipped = Skipped::default();
+    walk(root, "", dev, 0, &mut entries, &mut skipped)?;
+    entries.sort_by(|a, b| {
+        let status = |e: &Entry| e.rel.starts_with("containers-status/");
+        status(a).cmp(&status(b)).then_with(|| a.rel.cmp(&b.rel))
+    });
+    Ok((entries, skipped))
+}
+
+fn walk(
+    dir: &Path,
+    prefix: &str,
+    dev: u64,
+    depth: usize,
+    out: &mut Vec<Entry>,
+    skipped: &mut Skipped,
+) -> io::Result<()> {
+    let listing = match fs::read_dir(dir) {
+        Ok(l) => l,
+        // A directory removed under us (or unreadable) is not worth failing the pass for,
+        // except the root itself.
+        Err(e) if depth > 0 => {
+            tracing::debug!(dir = %dir.display(), error = %e, "cannot list a directory");
+            return Ok(());
+        }
+        Err(e) => return Err(e),
+    };
+    for item in listing {
+        let Ok(item) = item else { continue };
+        let Some(name) = item.file_name().to_str().map(str::to_owned) else {
+            skipped.bad_names += 1;
+            continue;
+        };
+        let rel = if prefix.is_empty() {
+            name.clone()
+        } else {
+            format!("{prefix}/{name}")
+        };
+        if !key_ok(&name) || rel.len() > MAX_KEY_BYTES {
+            skipped.bad_names += 1;
+            continue;
+        }
+        // NB: DirEntry::metadata does not follow symbolic links.
+        let Ok(meta) = item.metadata() else { continue };
+        if meta.dev() != dev {
+            skipped.not_regular += 1;
+        } else if meta.is_dir() {
+            if depth + 1 >= MAX_DEPTH {
+                skipped.over_limits += 1;
+            } else {
+                walk(&item.path(), &rel, dev, depth + 1, out, skipped)?;
+            }
+        } else if meta.is_file() {
+            if out.len() >= MAX_FILES {
+                skipped.over_limits += 1;
+            } else {
+                out.push(Entry {
+                    rel,
+                    path: item.path(),
+                    meta: FileMeta::of(&meta),
+                });
+            }
+        } else {
+            skipped.not_regular += 1;
+        }
+    }
+    Ok(())
+}
+
+/// A name that is safe as part of an S3 key and a local path: printable, not `.`/`..`.
+pub fn key_ok(name: &str) -> bool {
+    !name.is_empty()
+        && name != "."
+        && name != ".."
+        && !name.contains('/')
+        && !name.chars().any(char::is_control)
+}
+
+/// A key suffix that is safe to turn into a local path (init's downloads).
+pub fn rel_path_ok(rel: &str) -> bool {
+    rel.len() <= MAX_KEY_BYTES && !rel.starts_with('/') && rel.split('/').all(key_ok)
+}
+
+/// Opens a file found by the walk, refusing links, non-regular files and other devices.
+/// Returns the open file and its metadata now.
+pub fn open_checked(path: &Path, dev: u64) -> io::Result<(File, FileMeta)> {
+    let file = OpenOptions::new()
+        .read(true)
+        .custom_flags((OFlag::O_NOFOLLOW | OFlag::O_NONBLOCK | OFlag::O_CLOEXEC).bits())
+        .open(path)?;
+    let meta = file.metadata()?;
+    if !meta.is_file() || meta.dev() != dev {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "not a regular file on the logs volume",
+        ));
+    }
+    Ok((file, FileMeta::of(&meta)))
+}
+
+/// SHA-256 of `size` bytes of a file, read with a small buffer.
+pub fn hash_file(file: &mut File, size: u64) -> io::Result<[u8; 32]> {
+    let mut hasher = Sha256::new();
+    let mut buf = vec![0u8; 64 * 1024];
+    let mut limited = file.take(size);
+    loop {
+        let n = limited.read(&mut buf)?;
+        if n == 0 {
+            return Ok(hasher.finalize().into());
+        }
+        hasher.update(&buf[..n]);
+    }
+}
+
+/// The version of a file last uploaded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Uploaded {
+    /// Metadata when it was read for the upload.
+    pub meta: FileMeta,
+    /// SHA-256 of the bytes sent.
+    pub hash: [u8; 32],
+    /// Whether the metadata was too fresh to be trusted.
+    pub racy: bool,
+}
+
+/// What to do with a file this pass.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Action {
+    /// Same metadata as the uploaded version: not even opened.
+    Skip,
+    /// Same size, other metadata (or racy): hash it, upload only if the content differs.
+    Compare,
+    /// New or resized: upload.
+    Upload,
+}
+
+/// Decides from metadata alone; no file is read for an unchanged one.
+pub fn action(last: Option<&Uploaded>, now: &FileMeta) -> Action {
+    match last {
+        None => Action::Upload,
+        Some(u) if u.meta == *now && !u.racy => Action::Skip,
+        Some(u) if u.meta.size == now.size => Action::Compare,
+        Some(_) => Action::Upload,
+    }
+}
+
+/// The uploaded versions, by relative path.
+#[derive(Debug, Default)]
+pub struct Tracker {
+    uploaded: HashMap<String, Uploaded>,
+}
+
+impl Tracker {
+    /// The last uploaded version of a file.
+    pub fn get(&self, rel: &str) -> Option<&Uploaded> {
+        self.uploaded.get(rel)
+    }
+
+    /// Records a version as uploaded (only ever after S3 said so).
+    pub fn record(&mut self, rel: &str, meta: FileMeta, hash: [u8; 32]) {
+        let racy = meta.racy(SystemTime::now());
+        self.uploaded
+            .insert(rel.to_owned(), Uploaded { meta, hash, racy });
+    }
+
+    /// Forgets files that are gone, so the map never outgrows the tree.
+    pub fn retain_present(&mut self, entries: &[Entry]) {
+        if self.uploaded.len() > entries.len() {
+            let present: std::collections::HashSet<&str> =
+                entries.iter().map(|e| e.rel.as_str()).collect();
+            self.uploaded.retain(|k, _| present.contains(k.as_str()));
+        }
+    }
+
+    /// How many files are tracked.
+    pub fn len(&self) -> usize {
+        self.uploaded.len()
+    }
+
+    /// Whether nothing is tracked.
+    pub fn is_empty(&self) -> bool {
+        self.uploaded.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::symlink;
+
+    fn meta(size: u64, mtime_ns: i128) -> FileMeta {
+        FileMeta {
+            size,
+            mtime_ns,
+            ino: 7,
+        }
+    }
+
+    #[test]
+    fn unchanged_metadata_is_skipped_without_reading() {
+        let u = Uploaded {
+            meta: meta(10, 5),
+            hash: [0; 32],
+            racy: false,
+        };
+        assert_eq!(action(Some(&u), &meta(10, 5)), Action::Skip);
+        assert_eq!(action(Some(&u), &meta(10, 6)), Action::Compare);
+        assert_eq!(action(Some(&u), &meta(11, 6)), Action::Upload);
+        assert_eq!(action(None, &meta(10, 5)), Action::Upload);
+        let racy = Uploaded { racy: true, ..u };
+        assert_eq!(action(Some(&racy), &meta(10, 5)), Action::Compare);
+    }
+
+    #[test]
+    fn the_walk_skips_links_and_puts_the_markers_last() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        fs::create_dir_all(root.join("containers-status")).unwrap();
+        fs::create_dir_all(root.join("logs/agent/agent1")).unwrap();
+        fs::write(root.join("containers-status/agent-1.done"), "").unwrap();
+        fs::write(root.join("logs/agent/agent1/agent.log"), "hello").unwrap();
+        fs::write(root.join("z.txt"), "z").unwrap();
+        symlink("/etc/passwd", root.join("logs/agent/agent1/secret")).unwrap();
+        symlink("/etc", root.join("logs/etc")).unwrap();
+        let dev = fs::metadata(root).unwrap().dev();
+        let (entries, skipped) = scan(root, dev).unwrap();
+        let rels: Vec<&str> = entries.iter().map(|e| e.rel.as_str()).collect();
+        assert_eq!(
+            rels,
+            [
+                "logs/agent/agent1/agent.log",
+                "z.txt",
+                "containers-status/agent-1.done"
+            ]
+        );
+        assert_eq!(skipped.not_regular, 2);
+        assert!(open_checked(&root.join("logs/agent/agent1/secret"), dev).is_err());
+    }
+
+    #[test]
+    fn keys_from_s3_never_escape_the_local_tree() {
+        assert!(rel_path_ok("logs/agent/agent1/agent.log"));
+        for bad in [
+            "../x",
+            "/etc/passwd",
+            "logs/../../x",
+            "logs//x",
+            "logs/./x",
+            "a\nb",
+            "",
+        ] {
+            assert!(!rel_path_ok(bad), "{bad:?}");
+        }
+    }
+
+    #[test]
+    fn hashing_reads_only_the_given_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("f");
+        fs::write(&path, "abcdef").unwrap();
+        let mut f = File::open(&path).unwrap();
+        let short = hash_file(&mut f, 3).unwrap();
+        let expected: [u8; 32] = Sha256::digest(b"abc").into();
+        assert_eq!(short, expected);
+    }
+}

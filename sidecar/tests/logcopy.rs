@@ -1,0 +1,298 @@
+//! `lb-sidecar logcopy` (and whole Jobs around it) against moto.
+
+mod support;
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use nix::sys::signal::Signal;
+use support::*;
+
+const LIMIT: Duration = Duration::from_secs(60);
+
+fn key(rel: &str) -> String {
+    format!("{SUBMISSION}/{rel}")
+}
+
+fn write(root: &Path, rel: &str, bytes: &[u8]) {
+    let path = root.join(rel);
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// Uploads counted from logcopy's own pass lines, from the `skip`-th line on.
+fn uploads(lc: &Proc, skip: usize) -> (usize, u64) {
+    let passes = lc.events("logcopy pass");
+    let n = passes[skip.min(passes.len())..]
+        .iter()
+        .map(|p| p["fields"]["uploaded"].as_u64().unwrap())
+        .sum::<u64>();
+    (passes.len(), n)
+}
+
+fn wait_passes(lc: &Proc, count: usize) {
+    wait_until("logcopy passes", LIMIT, || {
+        lc.events("logcopy pass").len() >= count
+    });
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn an_unchanged_tree_sends_nothing_and_a_changed_file_is_sent_alone() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    let big: Vec<u8> = (0..9 * 1024 * 1024u32).map(|i| (i % 251) as u8).collect();
+    write(vols.root(), "logs/agent/agent1/agent.log", b"route 0\n");
+    write(vols.root(), "logs/simulator/simulator1.log", &big);
+    write(vols.root(), "agent/partial_agent_results1.json", b"{}");
+    let mut lc = logcopy(&vols, &moto, None, &[]);
+    let first = lc.wait_event("logcopy pass", LIMIT, |_| true);
+    assert_eq!(first["fields"]["uploaded"], 3, "{}", lc.log());
+    assert_eq!(
+        moto.get(&key("logs/simulator/simulator1.log")).unwrap(),
+        big
+    );
+
+    // Several periods with nothing new: no object is sent.
+    let (seen, _) = uploads(&lc, 0);
+    wait_passes(&lc, seen + 4);
+    assert_eq!(uploads(&lc, 1).1, 0, "{}", lc.log());
+
+    // One file changes: that file only.
+    let (seen, _) = uploads(&lc, 0);
+    std::fs::OpenOptions::new()
+        .append(true)
+        .open(vols.root().join("logs/agent/agent1/agent.log"))
+        .and_then(|mut f| std::io::Write::write_all(&mut f, b"route 1\n"))
+        .unwrap();
+    wait_passes(&lc, seen + 3);
+    assert_eq!(uploads(&lc, seen).1, 1, "{}", lc.log());
+    assert_eq!(
+        moto.get(&key("logs/agent/agent1/agent.log")).unwrap(),
+        b"route 0\nroute 1\n"
+    );
+
+    // Rewritten with the same bytes: hashed, found the same, not sent.
+    let (seen, _) = uploads(&lc, 0);
+    write(vols.root(), "logs/simulator/simulator1.log", &big);
+    wait_passes(&lc, seen + 3);
+    assert_eq!(uploads(&lc, seen).1, 0, "{}", lc.log());
+    let same: u64 = lc.events("logcopy pass")[seen..]
+        .iter()
+        .map(|p| p["fields"]["same_content"].as_u64().unwrap())
+        .sum();
+    assert!(same >= 1, "{}", lc.log());
+
+    lc.signal(Signal::SIGTERM);
+    write(vols.status().as_path(), "simulator-1.crash0", b"");
+    write(vols.status().as_path(), "agent-1.crash0", b"");
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn sigterm_makes_a_final_upload_and_exits_cleanly_without_the_done_marker() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    write(vols.root(), "logs/agent/agent1/agent.log", b"one\n");
+    let mut lc = logcopy(&vols, &moto, None, &[("LB_PERIOD_SECONDS", "30")]);
+    lc.wait_event("logcopy pass", LIMIT, |_| true);
+    write(vols.root(), "logs/agent/agent1/agent.log", b"one\ntwo\n");
+    lc.signal(Signal::SIGTERM);
+    // The pair gets SIGTERM too and writes its markers a moment later.
+    std::thread::sleep(Duration::from_millis(300));
+    write(vols.status().as_path(), "simulator-1.crash0", b"");
+    write(vols.status().as_path(), "agent-1.crash0", b"");
+    let sent = Instant::now();
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+    assert!(sent.elapsed() < Duration::from_secs(10));
+    assert_eq!(
+        moto.get(&key("logs/agent/agent1/agent.log")).unwrap(),
+        b"one\ntwo\n"
+    );
+    assert!(moto.exists(&key("containers-status/agent-1.crash0")));
+    assert!(!moto.exists(&key("containers-status/logcopy-0.done")));
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn an_s3_outage_loses_nothing() {
+    let moto = Moto::start();
+    let proxy = Proxy::start(moto.server.addr());
+    let vols = Volumes::new();
+    write(vols.root(), "logs/a.log", b"a1");
+    let mut lc = logcopy(&vols, &moto, Some(&proxy.endpoint()), &[]);
+    lc.wait_event("logcopy pass", LIMIT, |p| p["fields"]["uploaded"] == 1);
+
+    proxy.set_up(false);
+    write(vols.root(), "logs/a.log", b"a1 a2");
+    write(vols.root(), "logs/b.log", b"b1");
+    let big: Vec<u8> = (0..10 * 1024 * 1024u32).map(|i| (i % 241) as u8).collect();
+    write(vols.root(), "logs/c.bin", &big);
+    lc.wait_event("S3 is failing; the next pass retries", LIMIT, |e| {
+        e["fields"]["failures"].as_u64() >= Some(2)
+    });
+    assert_eq!(
+        moto.get(&key("logs/a.log")).unwrap(),
+        b"a1",
+        "nothing got through"
+    );
+
+    proxy.set_up(true);
+    wait_until("everything uploaded", LIMIT, || {
+        moto.get(&key("logs/a.log")).as_deref() == Some(&b"a1 a2"[..])
+            && moto.get(&key("logs/b.log")).as_deref() == Some(&b"b1"[..])
+            && moto.get(&key("logs/c.bin")).as_deref() == Some(&big[..])
+    });
+    lc.signal(Signal::SIGTERM);
+    write(vols.status().as_path(), "simulator-1.crash0", b"");
+    write(vols.status().as_path(), "agent-1.crash0", b"");
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_whole_job_leaves_finished_partial_results_ready_for_merge_in_s3() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    let pair = Pair::new(1, "0-4");
+    let mut lc = logcopy(&vols, &moto, None, &[]);
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    assert_eq!(agent.wait(LIMIT).code(), Some(0), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(0), "{}", sim.log());
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+
+    let keys = moto.keys(SUBMISSION);
+    for expected in [
+        "agent/partial_agent_results1.json",
+        "logs/agent/agent1/agent.log",
+        "logs/agent/agent1/live_results.json",
+        "logs/simulator/simulator1.log",
+        "containers-status/simulator-1.start0",
+        "containers-status/agent-1.done",
+        "containers-status/simulator-1.done",
+        "containers-status/logcopy-0.done",
+    ] {
+        assert!(
+            keys.contains(&key(expected)),
+            "{expected} missing from {keys:?}"
+        );
+    }
+    let results = moto.get(&key("agent/partial_agent_results1.json")).unwrap();
+    assert!(finished(&results, "0-4"));
+    // What Monitor does with it: the merge.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("worker1.json");
+    std::fs::write(&file, &results).unwrap();
+    let out = std::process::Command::new(SIDECAR)
+        .args(["merge", "--expect-routes", "5", "--subsets", "0-4", "--out"])
+        .arg(dir.path().join("out"))
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    assert!(String::from_utf8_lossy(&out.stdout).contains("complete"));
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_cancel_in_s3_stops_every_process_within_one_period() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    let pair = Pair::new(1, "0-4").with("FAKE_EVALUATOR_ROUTE_SECONDS", "30");
+    let mut lc = logcopy(&vols, &moto, None, &[]);
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    wait_until("the evaluator runs", LIMIT, || {
+        vols.agent_log(1).contains("Running the route")
+    });
+    moto.put(&key("containers-status/simulation.cancel"), b"");
+    let cancelled = Instant::now();
+    assert_eq!(agent.wait(LIMIT).code(), Some(0), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(0), "{}", sim.log());
+    let pairs_stopped = cancelled.elapsed();
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+    // One period (1 s) to see it, one poll (0.2 s) to act, plus the evaluator's stop.
+    assert!(pairs_stopped < Duration::from_secs(4), "{pairs_stopped:?}");
+    assert!(
+        cancelled.elapsed() < Duration::from_secs(6),
+        "{:?}",
+        cancelled.elapsed()
+    );
+    assert!(vols.marker("simulation.cancel"));
+    assert!(!vols.marker("agent-1.crash0") && !vols.marker("agent-1.done"));
+    assert!(moto.exists(&key("containers-status/logcopy-0.done")));
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn logcopy_ends_when_the_restarts_reach_the_backoff_limit() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    write(vols.status().as_path(), "simulator-1.crash0", b"");
+    write(vols.status().as_path(), "agent-1.crash0", b"");
+    let mut patient = logcopy(&vols, &moto, None, &[("LB_BACKOFF_LIMIT", "4")]);
+    patient.wait_event("logcopy pass", LIMIT, |_| true);
+    std::thread::sleep(Duration::from_secs(2));
+    assert!(patient.try_exit().is_none(), "2 restarts of 4: keeps going");
+    patient.signal(Signal::SIGTERM);
+    assert_eq!(patient.wait(LIMIT).code(), Some(0));
+
+    let mut done = logcopy(&vols, &moto, None, &[("LB_BACKOFF_LIMIT", "2")]);
+    assert_eq!(done.wait(LIMIT).code(), Some(0), "{}", done.log());
+    assert!(!done.events("the Job is over: final upload").is_empty());
+    assert!(moto.exists(&key("containers-status/logcopy-0.done")));
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_new_pod_resumes_from_s3_after_a_crash_and_appends_to_the_logs() {
+    let moto = Moto::start();
+    let once = tempfile::tempdir().unwrap();
+    let pair = Pair::new(1, "0-4")
+        .with("FAKE_EVALUATOR_ROUTE_SECONDS", "0.5")
+        .with("FAKE_CARLA_CRASH_AFTER", "1.2")
+        .with("FAKE_CARLA_ONCE_DIR", once.path().display().to_string());
+
+    // Pod 1: CARLA crashes, then the pod is deleted (node lost): logcopy's final upload.
+    let pod1 = Volumes::new();
+    let mut lc = logcopy(&pod1, &moto, None, &[]);
+    let mut sim = pair.simulator(&pod1);
+    let mut agent = pair.agent(&pod1);
+    assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(1));
+    lc.signal(Signal::SIGTERM);
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+    assert!(moto.exists(&key("containers-status/agent-1.crash0")));
+    let partial = route_ids(&pod1.checkpoint(1));
+    assert!(partial.len() < 5);
+
+    // Pod 2: init brings the results and logs back, the markers are cleared.
+    let pod2 = Volumes::new();
+    let code = tempfile::tempdir().unwrap();
+    let mut init = init_command(&pod2, &moto, code.path(), &[]);
+    assert_eq!(init.wait(LIMIT).code(), Some(0), "{}", init.log());
+    assert!(!moto.exists(&key("containers-status/agent-1.crash0")));
+    assert_eq!(route_ids(&pod2.checkpoint(1)), partial);
+    let mut lc = logcopy(&pod2, &moto, None, &[]);
+    let mut sim = pair.simulator(&pod2);
+    let mut agent = pair.agent(&pod2);
+    assert_eq!(agent.wait(LIMIT).code(), Some(0), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(0));
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+    assert!(pod2.agent_log(1).contains("(resuming)"));
+
+    let results = moto.get(&key("agent/partial_agent_results1.json")).unwrap();
+    assert!(finished(&results, "0-4"));
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("r.json"), &results).unwrap();
+    let expected: Vec<String> = (0..=4).map(|r| format!("RouteScenario_{r}_rep0")).collect();
+    assert_eq!(route_ids(&dir.path().join("r.json")), expected);
+    let log = String::from_utf8(moto.get(&key("logs/agent/agent1/agent.log")).unwrap()).unwrap();
+    assert_eq!(
+        log.matches("evaluator started").count(),
+        2,
+        "both pods' output is kept: {log}"
+    );
+}

@@ -1,0 +1,237 @@
+//! `lb-sidecar simulator` and `agent` as the kubelet runs them: whole processes around the
+//! fake CARLA and the fake evaluator, with temp dirs standing in for the Job's volumes.
+
+mod support;
+
+use std::time::{Duration, Instant};
+
+use nix::sys::signal::Signal;
+use support::*;
+
+const LIMIT: Duration = Duration::from_secs(60);
+
+#[test]
+fn a_pair_runs_its_routes_and_both_write_done_markers() {
+    let vols = Volumes::new();
+    let pair = Pair::new(1, "0-4");
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    assert_eq!(agent.wait(LIMIT).code(), Some(0), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(0), "{}", sim.log());
+    assert_eq!(
+        vols.markers(),
+        ["agent-1.done", "simulator-1.done", "simulator-1.start0"]
+    );
+    let results = std::fs::read(vols.checkpoint(1)).unwrap();
+    assert!(finished(&results, "0-4"));
+    assert_eq!(route_ids(&vols.checkpoint(1)).len(), 5);
+    let log = vols.agent_log(1);
+    assert!(log.contains("Preparing RouteScenario_4"), "{log}");
+    assert!(
+        log.contains("evaluator started on routes 0-4\n"),
+        "not a resume: {log}"
+    );
+    assert!(
+        vols.root()
+            .join("logs/agent/agent1/live_results.json")
+            .exists(),
+        "DEBUG_CHECKPOINT_ENDPOINT is the live results file"
+    );
+    assert!(vols.simulator_log(1).contains("CARLA accepts connections"));
+}
+
+#[test]
+fn carla_dying_mid_route_crashes_the_pair_and_the_rerun_resumes_every_route_once() {
+    let vols = Volumes::new();
+    let once = tempfile::tempdir().unwrap();
+    let pair = Pair::new(2, "5-9")
+        .with("FAKE_EVALUATOR_ROUTE_SECONDS", "0.5")
+        .with("FAKE_CARLA_CRASH_AFTER", "1.2")
+        .with("FAKE_CARLA_ONCE_DIR", once.path().display().to_string());
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
+    assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
+    assert_eq!(
+        vols.markers(),
+        ["agent-2.crash0", "simulator-2.crash0", "simulator-2.start0"]
+    );
+    let partial = route_ids(&vols.checkpoint(2));
+    assert!(partial.len() < 5, "the crash came mid-run: {partial:?}");
+
+    // The kubelet restarts both containers (restartPolicy OnFailure).
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    assert_eq!(agent.wait(LIMIT).code(), Some(0), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(0), "{}", sim.log());
+    assert!(vols.marker("simulator-2.start1"));
+    assert!(vols.marker("agent-2.done") && vols.marker("simulator-2.done"));
+    assert!(
+        vols.agent_log(2).contains("(resuming)"),
+        "RESUME=1 on the re-run"
+    );
+    let ids = route_ids(&vols.checkpoint(2));
+    let expected: Vec<String> = (5..=9).map(|r| format!("RouteScenario_{r}_rep0")).collect();
+    assert_eq!(ids, expected, "every route exactly once");
+    assert!(finished(&std::fs::read(vols.checkpoint(2)).unwrap(), "5-9"));
+}
+
+#[test]
+fn a_silent_evaluator_is_stopped_by_the_watchdog_and_counts_as_a_crash() {
+    let vols = Volumes::new();
+    let child_pid = vols.root().join("child.pid");
+    let pair = Pair::new(3, "0-4")
+        .with("LB_MAX_IDLE_SECONDS", "2")
+        .with("FAKE_EVALUATOR_HANG_AT_ROUTE", "2")
+        .with("FAKE_EVALUATOR_SPAWN_CHILD", "group")
+        .with(
+            "FAKE_EVALUATOR_CHILD_PID_FILE",
+            child_pid.display().to_string(),
+        );
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    let started = Instant::now();
+    assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
+    assert!(started.elapsed() < Duration::from_secs(20));
+    assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
+    assert!(vols.marker("agent-3.crash0") && vols.marker("simulator-3.crash0"));
+    assert!(vols
+        .agent_log(3)
+        .contains("no output for 2s: stopping the evaluator"));
+    // The participant's child left the process group; it is gone all the same.
+    let pid: i32 = std::fs::read_to_string(&child_pid)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    assert!(!alive(pid), "orphan {pid} survived the agent");
+}
+
+#[test]
+fn invalid_results_are_a_crash() {
+    let vols = Volumes::new();
+    let pair = Pair::new(4, "0-2").with("FAKE_EVALUATOR_GARBAGE", "schema");
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
+    assert!(vols.marker("agent-4.crash0"), "{:?}", vols.markers());
+    assert!(!vols.marker("agent-4.done"));
+    assert!(vols
+        .agent_log(4)
+        .contains("crash: the results file is invalid"));
+}
+
+#[test]
+fn the_cancel_marker_stops_both_containers_within_a_poll_without_markers() {
+    let vols = Volumes::new();
+    let pair = Pair::new(5, "0-4").with("FAKE_EVALUATOR_ROUTE_SECONDS", "30");
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    wait_until("the evaluator runs", LIMIT, || {
+        vols.agent_log(5).contains("Running the route")
+    });
+    std::fs::write(vols.status().join("simulation.cancel"), "").unwrap();
+    let cancelled = Instant::now();
+    assert_eq!(agent.wait(LIMIT).code(), Some(0));
+    assert_eq!(sim.wait(LIMIT).code(), Some(0));
+    assert!(
+        cancelled.elapsed() < Duration::from_secs(3),
+        "took {:?}",
+        cancelled.elapsed()
+    );
+    assert_eq!(vols.markers(), ["simulation.cancel", "simulator-5.start0"]);
+}
+
+#[test]
+fn sigterm_stops_the_evaluator_and_every_child_and_writes_a_crash_marker() {
+    let vols = Volumes::new();
+    let child_pid = vols.root().join("child.pid");
+    let pair = Pair::new(6, "0-4")
+        .with("FAKE_EVALUATOR_ROUTE_SECONDS", "30")
+        .with("FAKE_EVALUATOR_SPAWN_CHILD", "stubborn")
+        .with(
+            "FAKE_EVALUATOR_CHILD_PID_FILE",
+            child_pid.display().to_string(),
+        );
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    wait_until("the participant's child", LIMIT, || child_pid.exists());
+    let pid: i32 = std::fs::read_to_string(&child_pid)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    assert!(alive(pid));
+    agent.signal(Signal::SIGTERM);
+    sim.signal(Signal::SIGTERM);
+    let sent = Instant::now();
+    assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
+    // Grace 2 s for the stubborn child, then SIGKILL.
+    assert!(
+        sent.elapsed() < Duration::from_secs(8),
+        "{:?}",
+        sent.elapsed()
+    );
+    assert!(!alive(pid), "the stubborn child survived");
+    assert!(vols.marker("agent-6.crash0") && vols.marker("simulator-6.crash0"));
+}
+
+#[test]
+fn an_evaluator_that_leaves_a_child_behind_does_not_leave_an_orphan() {
+    let vols = Volumes::new();
+    let child_pid = vols.root().join("child.pid");
+    let pair = Pair::new(7, "0-1")
+        .with("FAKE_EVALUATOR_SPAWN_CHILD", "group")
+        .with(
+            "FAKE_EVALUATOR_CHILD_PID_FILE",
+            child_pid.display().to_string(),
+        );
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent(&vols);
+    assert_eq!(agent.wait(LIMIT).code(), Some(0), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(0));
+    let pid: i32 = std::fs::read_to_string(&child_pid)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    assert!(!alive(pid), "orphan {pid} survived");
+}
+
+#[test]
+fn an_agent_whose_simulator_never_starts_gives_up_after_the_start_wait() {
+    let vols = Volumes::new();
+    let pair = Pair::new(8, "0-4").with("LB_START_WAIT_SECONDS", "1");
+    let mut agent = pair.agent(&vols);
+    assert_eq!(agent.wait(LIMIT).code(), Some(1));
+    assert_eq!(vols.markers(), ["agent-8.crash0"]);
+}
+
+#[test]
+fn a_simulator_whose_carla_never_opens_its_port_crashes_after_the_ready_wait() {
+    let vols = Volumes::new();
+    let pair = Pair::new(9, "0-4")
+        .with("LB_CARLA_READY_SECONDS", "1")
+        .with("LB_END_WAIT_SECONDS", "1")
+        .with("FAKE_CARLA_START_DELAY", "30");
+    let mut sim = pair.simulator(&vols);
+    assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
+    assert_eq!(vols.markers(), ["simulator-9.crash0"]);
+    assert!(vols.simulator_log(9).contains("did not accept connections"));
+}
+
+#[test]
+fn a_bad_variable_is_named_and_nothing_starts() {
+    let vols = Volumes::new();
+    let pair = Pair::new(10, "0-4").with("LB_PAIR_ID", "zero");
+    let mut agent = pair.agent(&vols);
+    assert_eq!(agent.wait(LIMIT).code(), Some(1));
+    let log = agent.log();
+    assert!(
+        log.contains("lb-sidecar: InvalidEnvironment: `LB_PAIR_ID` is `zero`"),
+        "{log}"
+    );
+    assert!(vols.markers().is_empty());
+}
