@@ -23,7 +23,7 @@ use lb_asl::AslError;
 use lb_domain::plan::Plan;
 use lb_domain::results::Leaderboard;
 
-pub use context::{ContextError, JobContext, JobSettings, SubmissionInfo};
+pub use context::{ContextError, JobContext, JobSettings, SubmissionInfo, Timers};
 pub use image::{parse_image, ImageRef};
 pub use template::{JobTemplate, TemplateError};
 

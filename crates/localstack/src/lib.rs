@@ -2,5 +2,6 @@
 
 pub mod moto;
 pub mod stack;
+pub mod workloads;
 
 pub use stack::{EvalAi, Stack, StackError};

@@ -9,6 +9,7 @@ use aws_sdk_dynamodb::types::{
 };
 use fake_evalai::{FakeEvalAi, Fixture};
 use lb_domain::settings::Settings;
+use local_kube::LocalKube;
 
 use crate::moto::{MotoError, MotoServer};
 
@@ -32,6 +33,9 @@ pub enum StackError {
     /// The fake EvalAI.
     #[error("fake EvalAI: {0}")]
     EvalAi(String),
+    /// The local Kubernetes API.
+    #[error("local Kubernetes API: {0}")]
+    Kube(String),
     /// Creating a table, bucket or secret failed.
     #[error("provisioning `{what}` failed: {source}")]
     Provision {
@@ -49,6 +53,7 @@ impl StackError {
         match self {
             StackError::Moto(_) => "MotoUnavailable",
             StackError::EvalAi(_) => "FakeEvalAiUnavailable",
+            StackError::Kube(_) => "LocalKubeUnavailable",
             StackError::Provision { .. } => "ProvisionFailed",
         }
     }
@@ -80,6 +85,12 @@ pub struct Stack {
     pub evalai_token: String,
     /// SDK configuration pointing at moto.
     pub sdk: SdkConfig,
+    /// The local Kubernetes API, when the stack started one.
+    pub kube: Option<LocalKube>,
+    /// Its kubeconfig (in `workdir`).
+    pub kubeconfig: Option<std::path::PathBuf>,
+    /// Scratch directory of this stack (kubeconfig, pod directories); removed on drop.
+    pub workdir: tempfile::TempDir,
     /// How long start-up took.
     pub started_in: Duration,
 }
@@ -96,7 +107,19 @@ impl std::fmt::Debug for Stack {
 impl Stack {
     /// Starts moto and EvalAI side by side.
     pub async fn start(evalai: EvalAi) -> Result<Stack, StackError> {
+        Self::start_with(evalai, None).await
+    }
+
+    /// Starts moto, EvalAI and, with a configuration, the local Kubernetes API, side by side.
+    pub async fn start_with(
+        evalai: EvalAi,
+        kube: Option<local_kube::Config>,
+    ) -> Result<Stack, StackError> {
         let started = Instant::now();
+        let workdir = tempfile::Builder::new()
+            .prefix("lb-stack-")
+            .tempdir()
+            .map_err(|e| StackError::Kube(format!("scratch directory: {e}")))?;
         // NB: moto's start-up (a Python import) dominates; the fake EvalAI starts meanwhile.
         let moto = tokio::task::spawn_blocking(MotoServer::start);
         let (fake_evalai, evalai_url, evalai_token) = match evalai {
@@ -112,6 +135,21 @@ impl Stack {
             }
             EvalAi::External { url, token } => (None, url, token),
         };
+        let (kube, kubeconfig) = match kube {
+            Some(mut config) => {
+                if config.state_dir.is_none() {
+                    config.state_dir = Some(workdir.path().join("pods"));
+                }
+                let server =
+                    LocalKube::spawn(config).map_err(|e| StackError::Kube(e.to_string()))?;
+                let path = workdir.path().join("kubeconfig");
+                server
+                    .write_kubeconfig(&path)
+                    .map_err(|e| StackError::Kube(e.to_string()))?;
+                (Some(server), Some(path))
+            }
+            None => (None, None),
+        };
         let moto = moto
             .await
             .map_err(|e| StackError::EvalAi(format!("moto start-up task: {e}")))??;
@@ -122,8 +160,26 @@ impl Stack {
             evalai_url,
             evalai_token,
             sdk,
+            kube,
+            kubeconfig,
+            workdir,
             started_in: started.elapsed(),
         })
+    }
+
+    /// Starts the local Kubernetes API now (when its image map needs moto's endpoint).
+    pub fn start_kube(&mut self, mut config: local_kube::Config) -> Result<(), StackError> {
+        if config.state_dir.is_none() {
+            config.state_dir = Some(self.workdir.path().join("pods"));
+        }
+        let server = LocalKube::spawn(config).map_err(|e| StackError::Kube(e.to_string()))?;
+        let path = self.workdir.path().join("kubeconfig");
+        server
+            .write_kubeconfig(&path)
+            .map_err(|e| StackError::Kube(e.to_string()))?;
+        self.kube = Some(server);
+        self.kubeconfig = Some(path);
+        Ok(())
     }
 
     /// The fake EvalAI (panics if the stack uses an external one: a test bug).

@@ -30,6 +30,8 @@ pub struct Deps {
     pub dynamo: aws_sdk_dynamodb::Client,
     /// Region of the bucket (the Jobs' `AWS_REGION`).
     pub region: String,
+    /// The sidecar's timers, when not the defaults (local runs poll faster).
+    pub timers: Option<lb_jobs::Timers>,
 }
 
 impl Deps {
@@ -55,6 +57,7 @@ impl Deps {
             clusters,
             dynamo: aws_sdk_dynamodb::Client::new(sdk),
             region: sdk.region().map(|r| r.to_string()).unwrap_or_default(),
+            timers: None,
         })
     }
 }
@@ -95,12 +98,15 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         gpus_per_node: target.deployment.gpus_per_node,
     })
     .map_err(|e| stage(e.name(), e.to_string()))?;
-    let job_settings = JobSettings::from_deployment(
+    let mut job_settings = JobSettings::from_deployment(
         target.leaderboard,
         target.deployment,
         &deps.region,
         &target.deployment.job_role_arn,
     );
+    if let Some(timers) = &deps.timers {
+        job_settings.timers = timers.clone();
+    }
     let jobs = render_plan(
         target.leaderboard,
         &plan,

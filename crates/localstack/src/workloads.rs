@@ -1,0 +1,220 @@
+//! What the Job images become on this machine: the image map that makes the rendered Jobs run
+//! with the real sidecar, the fake CARLA and the fake evaluator, S3 served by moto.
+
+use std::collections::BTreeMap;
+use std::os::unix::fs::PermissionsExt;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use lb_domain::settings::Settings;
+use local_kube::{ImageEntry, ImageMap, Pull};
+
+/// The three programs a local Job runs.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Binaries {
+    /// `lb-sidecar`.
+    pub sidecar: PathBuf,
+    /// `fake-carla`.
+    pub fake_carla: PathBuf,
+    /// `fake-evaluator`.
+    pub fake_evaluator: PathBuf,
+}
+
+impl Binaries {
+    /// The binaries in `dir` (a cargo profile directory such as `target/debug`).
+    pub fn in_dir(dir: &Path) -> std::io::Result<Binaries> {
+        let find = |name: &str| {
+            let path = dir.join(name);
+            if path.is_file() {
+                Ok(path)
+            } else {
+                Err(std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    format!(
+                        "`{}` not built (cargo build -p sidecar -p fake-workloads --bins)",
+                        path.display()
+                    ),
+                ))
+            }
+        };
+        Ok(Binaries {
+            sidecar: find("lb-sidecar")?,
+            fake_carla: find("fake-carla")?,
+            fake_evaluator: find("fake-evaluator")?,
+        })
+    }
+
+    /// Builds them with cargo (debug profile) and returns where they are.
+    pub fn build() -> std::io::Result<Binaries> {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let status = Command::new(cargo)
+            .current_dir(&root)
+            .args([
+                "build",
+                "--quiet",
+                "-p",
+                "sidecar",
+                "-p",
+                "fake-workloads",
+                "--bins",
+            ])
+            .status()?;
+        if !status.success() {
+            return Err(std::io::Error::other(format!(
+                "cargo build of the workloads failed: {status}"
+            )));
+        }
+        let target = std::env::var_os("CARGO_TARGET_DIR")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| root.join("target"));
+        Self::in_dir(&target.join("debug"))
+    }
+}
+
+/// How the fake programs behave in a local run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Behaviour {
+    /// Seconds the fake evaluator spends per route.
+    pub route_seconds: f64,
+    /// Extra environment of the participant's image (the fake evaluator's `FAKE_*` switches).
+    pub evaluator_env: BTreeMap<String, String>,
+    /// Extra environment of the CARLA image (`FAKE_CARLA_*`).
+    pub carla_env: BTreeMap<String, String>,
+}
+
+impl Default for Behaviour {
+    fn default() -> Self {
+        Behaviour {
+            route_seconds: 0.1,
+            evaluator_env: BTreeMap::new(),
+            carla_env: BTreeMap::new(),
+        }
+    }
+}
+
+/// Builds the image map of a local run in `scratch`: every leaderboard's CARLA and
+/// private-contents images from `settings`, and participant images by `participant_glob`
+/// (`*` matches any). `moto` is moto's endpoint, given to init and logcopy as their S3.
+pub fn image_map(
+    settings: &Settings,
+    bins: &Binaries,
+    moto: &str,
+    scratch: &Path,
+    participant_glob: &str,
+    behaviour: &Behaviour,
+    unpullable: &[&str],
+) -> std::io::Result<ImageMap> {
+    let bin = scratch.join("bin");
+    let shims = scratch.join("shims");
+    let sources = scratch.join("sources");
+    for dir in [&bin, &shims] {
+        std::fs::create_dir_all(dir)?;
+    }
+    // init runs `lb-sidecar` from the image's PATH and copies itself into the Job's volume.
+    let sidecar = bin.join("lb-sidecar");
+    let _ = std::fs::remove_file(&sidecar);
+    std::fs::copy(&bins.sidecar, &sidecar)?;
+    // The agent runs `python3 -u .../leaderboard_evaluator.py ...`: python3 is the fake.
+    let python = shims.join("python3");
+    std::fs::write(
+        &python,
+        format!(
+            "#!/bin/sh\nexec '{}' \"$@\"\n",
+            bins.fake_evaluator.display()
+        ),
+    )?;
+    std::fs::set_permissions(&python, std::fs::Permissions::from_mode(0o755))?;
+    // The official code the private-contents image carries.
+    for (dir, file) in [
+        ("leaderboard/leaderboard", "leaderboard_evaluator.py"),
+        ("leaderboard/data", "routes_testing.xml"),
+        ("scenario_runner", "README"),
+        ("CARLA/PythonAPI", "README"),
+    ] {
+        std::fs::create_dir_all(sources.join(dir))?;
+        std::fs::write(
+            sources.join(dir).join(file),
+            "# stand-in: the fake evaluator runs instead\n",
+        )?;
+    }
+
+    let aws_env = BTreeMap::from([
+        ("AWS_ENDPOINT_URL".to_string(), moto.to_string()),
+        ("AWS_ACCESS_KEY_ID".to_string(), "testing".to_string()),
+        ("AWS_SECRET_ACCESS_KEY".to_string(), "testing".to_string()),
+    ]);
+    let mut map = ImageMap::default();
+    let insert = |map: &mut ImageMap, image: &str, entry: ImageEntry| {
+        map.insert(image, entry)
+            .map(|_| ())
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e.to_string()))
+    };
+    for lb in settings.leaderboards.values() {
+        insert(
+            &mut map,
+            &lb.images.carla,
+            ImageEntry {
+                files: BTreeMap::from([(
+                    bins.fake_carla.clone(),
+                    "/home/carla/CarlaUE4.sh".to_string(),
+                )]),
+                env: behaviour.carla_env.clone(),
+                working_dir: Some("/home/carla".into()),
+                ..ImageEntry::default()
+            },
+        )?;
+        insert(
+            &mut map,
+            &lb.images.private_contents,
+            ImageEntry {
+                path: vec![bin.clone()],
+                env: aws_env.clone(),
+                files: BTreeMap::from([
+                    (sources.join("leaderboard"), "/src/leaderboard".to_string()),
+                    (
+                        sources.join("scenario_runner"),
+                        "/src/scenario_runner".to_string(),
+                    ),
+                    (sources.join("CARLA"), "/src/CARLA".to_string()),
+                ]),
+                ..ImageEntry::default()
+            },
+        )?;
+    }
+    let mut participant_env = BTreeMap::from([
+        (
+            "FAKE_EVALUATOR_ROUTE_SECONDS".to_string(),
+            behaviour.route_seconds.to_string(),
+        ),
+        (
+            "TEAM_AGENT".to_string(),
+            "/workspace/team_code/agent.py".to_string(),
+        ),
+        (
+            "TEAM_CONFIG".to_string(),
+            "/workspace/team_code/config.txt".to_string(),
+        ),
+    ]);
+    participant_env.extend(behaviour.evaluator_env.clone());
+    for image in unpullable {
+        insert(
+            &mut map,
+            image,
+            ImageEntry {
+                pull: Pull::Fail,
+                ..ImageEntry::default()
+            },
+        )?;
+    }
+    insert(
+        &mut map,
+        participant_glob,
+        ImageEntry {
+            path: vec![shims],
+            env: participant_env,
+            ..ImageEntry::default()
+        },
+    )?;
+    Ok(map)
+}

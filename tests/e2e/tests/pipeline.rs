@@ -1,0 +1,392 @@
+//! The pipeline's handlers driven in the state machine's order (Intake, Launch, Monitor
+//! rounds, Finalize) against the local stack: moto, the fake EvalAI, and the local Kubernetes
+//! API running the rendered Jobs with the real sidecar, fake CARLA and fake evaluator.
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use aws_sdk_dynamodb::types::AttributeValue;
+use fake_evalai::Fixture;
+use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use lb_localstack::workloads::{image_map, Behaviour, Binaries};
+use lb_localstack::{EvalAi, Stack};
+use lb_pipeline::cluster::Clusters;
+use lb_pipeline::payload::{Action, IntakeInput, RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::FunctionConfig;
+use serde_json::json;
+
+const PARTICIPANT_IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v1";
+
+/// Local Jobs share the host's network, so two runs would fight over CARLA's ports 2000+:
+/// the tests of this file take turns.
+static ONE_RUN_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+struct Harness {
+    _turn: tokio::sync::MutexGuard<'static, ()>,
+    stack: Stack,
+    intake: intake::Deps,
+    launch: launch::Deps,
+    monitor: monitor::Deps,
+    finalize: finalize::Deps,
+}
+
+fn fast_timers() -> lb_jobs::Timers {
+    lb_jobs::Timers {
+        start_wait_seconds: 60,
+        end_wait_seconds: 30,
+        carla_ready_seconds: 30,
+        poll_seconds: 1,
+        max_idle_seconds: 60,
+        logcopy_period_seconds: 1,
+    }
+}
+
+async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
+    let turn = ONE_RUN_AT_A_TIME.lock().await;
+    let bins = tokio::task::spawn_blocking(Binaries::build)
+        .await
+        .unwrap()
+        .unwrap();
+    let mut stack = Stack::start(EvalAi::Fake(Fixture::default()))
+        .await
+        .unwrap();
+    let settings = stack.provision(LOCAL_SETTINGS).await.unwrap();
+    let scratch = stack.workdir.path().join("images");
+    let images = image_map(
+        &settings,
+        &bins,
+        &stack.moto.endpoint(),
+        &scratch,
+        "*",
+        &behaviour,
+        unpullable,
+    )
+    .unwrap();
+    stack
+        .start_kube(local_kube::Config {
+            images,
+            ..local_kube::Config::default()
+        })
+        .unwrap();
+    let config = FunctionConfig {
+        settings_secret: SETTINGS_SECRET.into(),
+        token_secret: TOKEN_SECRET.into(),
+    };
+    let clusters = || Clusters::Kubeconfig(stack.kubeconfig.clone().unwrap());
+    let intake = intake::Deps::load(&stack.sdk, &config).await.unwrap();
+    let mut launch = launch::Deps::load(&stack.sdk, &config, clusters())
+        .await
+        .unwrap();
+    launch.timers = Some(fast_timers());
+    let monitor = monitor::Deps::load(&stack.sdk, &config, clusters())
+        .await
+        .unwrap();
+    let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters())
+        .await
+        .unwrap();
+    finalize.delete_wait = Duration::from_secs(30);
+    Harness {
+        _turn: turn,
+        stack,
+        intake,
+        launch,
+        monitor,
+        finalize,
+    }
+}
+
+impl Harness {
+    async fn intake(&self, image: &str) -> SubmissionInfo {
+        let message = json!({"challenge_pk": "1", "phase_pk": "1", "submission_pk": 1, "submitted_image_uri": image});
+        let out = intake::handle(
+            IntakeInput {
+                message,
+                execution: "e2e".into(),
+            },
+            &self.intake,
+        )
+        .await
+        .unwrap();
+        assert_eq!(out.action, Action::Run, "{out:?}");
+        out.submission.unwrap()
+    }
+
+    /// Monitor rounds until the run ends, as the Wait/Monitor/Choice loop would (bounded).
+    async fn monitor_until_done(
+        &self,
+        submission: &SubmissionInfo,
+        mut run: RunState,
+        on_round: impl Fn(u64),
+    ) -> RunState {
+        let deadline = Instant::now() + Duration::from_secs(180);
+        while run.monitor.state == RunPhase::Running {
+            assert!(
+                Instant::now() < deadline,
+                "the run did not end in time: {:?}",
+                run.monitor
+            );
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            run = monitor::handle(
+                monitor::MonitorInput {
+                    submission: submission.clone(),
+                    run,
+                },
+                &self.monitor,
+            )
+            .await
+            .unwrap();
+            on_round(run.monitor.rounds);
+        }
+        run
+    }
+
+    async fn finalize(
+        &self,
+        submission: &SubmissionInfo,
+        run: &RunState,
+    ) -> finalize::FinalizeOutput {
+        let state = json!({"intake": {"action": "run", "submission": submission}, "run": run});
+        finalize::handle(finalize::FinalizeInput { state }, &self.finalize)
+            .await
+            .unwrap()
+    }
+
+    async fn record(&self) -> std::collections::HashMap<String, AttributeValue> {
+        aws_sdk_dynamodb::Client::new(&self.stack.sdk)
+            .get_item()
+            .table_name("leaderboard-20-submissions")
+            .key("team_id", AttributeValue::N("1".into()))
+            .key("submission_id", AttributeValue::N("1".into()))
+            .send()
+            .await
+            .unwrap()
+            .item
+            .unwrap()
+    }
+
+    async fn cluster_jobs(&self) -> (Vec<lb_cluster::Job>, Vec<lb_cluster::Pod>) {
+        lb_cluster::Cluster::from_kubeconfig(self.stack.kubeconfig.as_ref().unwrap(), None)
+            .await
+            .unwrap()
+            .list("1")
+            .await
+            .unwrap()
+    }
+
+    fn evalai_writes(&self, path_part: &str) -> usize {
+        self.stack
+            .fake()
+            .requests()
+            .iter()
+            .filter(|r| {
+                !r.admin && r.method == "PUT" && r.path.contains(path_part) && r.status == 200
+            })
+            .count()
+    }
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
+    let h = harness(Behaviour::default(), &[]).await;
+    let submission = h.intake(PARTICIPANT_IMAGE).await;
+    assert_eq!((submission.routes, submission.workers), (20, 4));
+    let record = h.record().await;
+    assert_eq!(
+        record["submission_status"],
+        AttributeValue::S("QUEUED".into())
+    );
+
+    let run = launch::handle(
+        launch::LaunchInput {
+            submission: submission.clone(),
+        },
+        &h.launch,
+    )
+    .await
+    .unwrap();
+    assert_eq!(run.jobs.len(), 1, "4 pairs fit one 4-GPU node");
+    let subsets: Vec<&str> = run.pairs.iter().map(|p| p.routes.as_str()).collect();
+    assert_eq!(subsets, ["0-4", "5-9", "10-14", "15-19"]);
+    assert_eq!(h.stack.fake().submission(1).unwrap().status, "running");
+
+    // The Job as created on the cluster.
+    let (jobs, _) = h.cluster_jobs().await;
+    let job = serde_json::to_value(&jobs[0]).unwrap();
+    assert_eq!(
+        job["metadata"]["labels"]["leaderboard.carla.org/submission-id"],
+        "1"
+    );
+    assert_eq!(
+        job["spec"]["template"]["metadata"]["labels"]["leaderboard.carla.org/submission-id"],
+        "1"
+    );
+    let containers = job["spec"]["template"]["spec"]["containers"]
+        .as_array()
+        .unwrap();
+    let env_of = |name: &str| -> BTreeMap<String, String> {
+        containers.iter().find(|c| c["name"] == name).unwrap()["env"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|e| {
+                (
+                    e["name"].as_str().unwrap().to_string(),
+                    e["value"].as_str().unwrap_or_default().to_string(),
+                )
+            })
+            .collect()
+    };
+    for (i, subset) in subsets.iter().enumerate() {
+        let agent = env_of(&format!("agent-{}", i + 1));
+        assert_eq!(agent["ROUTES_SUBSET"], *subset);
+        assert_eq!(agent["CARLA_PORT"], (2000 + 100 * i).to_string());
+        assert_eq!(agent["CARLA_TM_PORT"], (2010 + 100 * i).to_string());
+        assert!(
+            agent.keys().all(|k| !k.starts_with("AWS_")),
+            "no AWS access for the participant"
+        );
+        let agent_spec = containers
+            .iter()
+            .find(|c| c["name"] == format!("agent-{}", i + 1))
+            .unwrap();
+        assert_eq!(agent_spec["image"], PARTICIPANT_IMAGE);
+    }
+    assert_eq!(
+        job["spec"]["template"]["spec"]["automountServiceAccountToken"],
+        false
+    );
+    let text = job.to_string();
+    assert!(!text.contains("host-token"), "no EvalAI token in the Job");
+
+    let run = h.monitor_until_done(&submission, run, |_| {}).await;
+    assert_eq!(run.monitor.state, RunPhase::Finished, "{:?}", run.monitor);
+    let partial_puts = h.evalai_writes("update_partially_evaluated_submission");
+    assert!(partial_puts >= 1, "partial results reached EvalAI");
+    assert!(
+        (partial_puts as u64) < run.monitor.rounds,
+        "a partial update only when results changed"
+    );
+    // One more round with nothing new sends nothing.
+    let before = h.evalai_writes("update_partially_evaluated_submission");
+    let mut again = run.clone();
+    again.monitor.state = RunPhase::Running;
+    monitor::handle(
+        monitor::MonitorInput {
+            submission: submission.clone(),
+            run: again,
+        },
+        &h.monitor,
+    )
+    .await
+    .unwrap();
+    assert_eq!(
+        h.evalai_writes("update_partially_evaluated_submission"),
+        before
+    );
+
+    let out = h.finalize(&submission, &run).await;
+    assert_eq!(
+        (out.status.as_str(), out.pipeline_error),
+        ("FINISHED", false),
+        "{out:?}"
+    );
+    let evalai = h.stack.fake().submission(1).unwrap();
+    assert_eq!(evalai.status, "finished");
+    let row = &evalai.leaderboard[0].result;
+    assert_eq!(
+        row.as_object().unwrap().len(),
+        15,
+        "the 15 metrics were accepted"
+    );
+    let record = h.record().await;
+    assert_eq!(
+        record["submission_status"],
+        AttributeValue::S("FINISHED".into())
+    );
+    for metric in lb_domain::results::METRICS {
+        assert!(
+            record.contains_key(metric.attribute),
+            "{} in the record",
+            metric.attribute
+        );
+    }
+    let (jobs, pods) = h.cluster_jobs().await;
+    assert!(jobs.is_empty() && pods.is_empty(), "the Jobs were deleted");
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_participant_cancel_ends_cancelled_with_the_jobs_gone() {
+    let slow = Behaviour {
+        route_seconds: 2.0,
+        ..Behaviour::default()
+    };
+    let h = harness(slow, &[]).await;
+    let submission = h.intake(PARTICIPANT_IMAGE).await;
+    let run = launch::handle(
+        launch::LaunchInput {
+            submission: submission.clone(),
+        },
+        &h.launch,
+    )
+    .await
+    .unwrap();
+    let fake = h.stack.fake();
+    let run = h
+        .monitor_until_done(&submission, run, |round| {
+            if round == 2 {
+                fake.cancel(1).unwrap();
+            }
+        })
+        .await;
+    assert_eq!(run.monitor.state, RunPhase::Cancelled);
+    assert!(
+        run.monitor.rounds <= 4,
+        "cancelled within two rounds of the cancel: {}",
+        run.monitor.rounds
+    );
+    let s3 = lb_aws::s3::SubmissionStore::new(
+        lb_aws::s3_client(&h.stack.sdk),
+        "leaderboard-20-results",
+        1,
+    );
+    assert!(s3
+        .markers()
+        .await
+        .unwrap()
+        .iter()
+        .any(|m| m == "simulation.cancel"));
+    let out = h.finalize(&submission, &run).await;
+    assert_eq!(out.status, "CANCELLED");
+    assert_eq!(h.stack.fake().submission(1).unwrap().status, "cancelled");
+    let (jobs, pods) = h.cluster_jobs().await;
+    assert!(jobs.is_empty() && pods.is_empty());
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn an_image_that_cannot_be_pulled_fails_with_a_message_the_participant_can_act_on() {
+    let bad = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:does-not-exist";
+    let h = harness(Behaviour::default(), &[bad]).await;
+    let submission = h.intake(bad).await;
+    let run = launch::handle(
+        launch::LaunchInput {
+            submission: submission.clone(),
+        },
+        &h.launch,
+    )
+    .await
+    .unwrap();
+    let run = h.monitor_until_done(&submission, run, |_| {}).await;
+    assert_eq!(run.monitor.state, RunPhase::Failed);
+    let reason = run.monitor.reason.clone().unwrap();
+    assert!(reason.contains(bad), "{reason}");
+    let out = h.finalize(&submission, &run).await;
+    assert_eq!(out.status, "FAILED");
+    let evalai = h.stack.fake().submission(1).unwrap();
+    assert_eq!(evalai.status, "failed");
+    assert!(evalai.files.stderr.unwrap_or_default().contains(bad));
+    let (jobs, pods) = h.cluster_jobs().await;
+    assert!(jobs.is_empty() && pods.is_empty(), "no orphaned Job");
+}
