@@ -8,10 +8,10 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar
+.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar local bench-stack
 
 help: ## List the targets
-	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
 
 $(VENV_STAMP): tests/requirements.txt
 	$(PYTHON) -m venv $(VENV)
@@ -62,8 +62,27 @@ sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
 bench-sidecar: venv ## logcopy's peak memory uploading a 1 GiB tree to moto (target < 20 MiB)
 	$(CARGO) bench -p sidecar --bench logcopy
 
-build: ## Release build of every binary
-	$(CARGO) build --workspace --release
+# Lambdas: cargo lambda (and its zig) from PyPI into .venv; x86_64 against an old glibc.
+LAMBDA_ARCH ?= x86_64
+LAMBDA_TOOLS := $(VENV)/.lambda-tools
+FUNCTIONS := intake launch monitor finalize
+TARGET_DIR := $(or $(CARGO_TARGET_DIR),target)
+
+$(LAMBDA_TOOLS): functions/build-requirements.txt
+	test -x $(VENV)/bin/pip || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check -r functions/build-requirements.txt
+	touch $@
+
+build: $(LAMBDA_TOOLS) ## Lambda bootstraps (cargo lambda build --release) into $(TARGET_DIR)/lambda/<fn>/
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda build --release --$(LAMBDA_ARCH) $(addprefix -p ,$(FUNCTIONS))
+	@for f in $(FUNCTIONS); do ls -l $(TARGET_DIR)/lambda/$$f/bootstrap; done
+
+local: venv kubectl ## One whole submission on this machine (ARGS="--scenario crash" etc.)
+	$(CARGO) build --quiet -p cli -p sidecar -p fake-workloads --bins
+	$(TARGET_DIR)/debug/lbctl local run $(ARGS)
+
+bench-stack: venv ## Start-up of moto + fake EvalAI + local Kubernetes API (target < 5 s)
+	$(CARGO) bench -p lb-localstack --bench startup
 
 clean: ## Remove build output and the venv
 	$(CARGO) clean

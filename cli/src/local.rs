@@ -1,0 +1,520 @@
+//! `lbctl local run`: one submission from the SQS message to the final scores on this machine,
+//! through the deployed state machine definition, the real handlers, Job templates and sidecar.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use clap::{Args, ValueEnum};
+use fake_evalai::Fixture;
+use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use lb_localstack::workloads::{image_map, Behaviour, Binaries};
+use lb_localstack::{EvalAi, Stack};
+use lb_pipeline::cluster::Clusters;
+use lb_pipeline::{FnError, FunctionConfig};
+use lb_statemachine::{
+    EventType, Executor, HistoryEvent, Options, StateMachine, Status, TaskError, TaskMap,
+};
+use serde_json::{json, Value};
+
+/// The deployed definition, embedded so `lbctl` runs from anywhere.
+const DEFINITION: &str = include_str!("../../statemachine/submission.asl.json");
+
+/// What the run rehearses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Scenario {
+    /// Everything works: FINISHED with scores.
+    Happy,
+    /// CARLA of the first pair is killed mid-route: crash markers, restart, resume, FINISHED.
+    Crash,
+    /// The first pair's evaluator hangs: the idle watchdog ends it, it resumes, FINISHED.
+    Hang,
+    /// The participant cancels on EvalAI: CANCELLED within two monitor rounds, nothing left.
+    Cancel,
+    /// The participant's image cannot be pulled: FAILED with a message naming it.
+    Unpullable,
+}
+
+impl Scenario {
+    fn expected(self) -> &'static str {
+        match self {
+            Scenario::Happy | Scenario::Crash | Scenario::Hang => "finished",
+            Scenario::Cancel => "cancelled",
+            Scenario::Unpullable => "failed",
+        }
+    }
+}
+
+/// `lbctl local run` options.
+#[derive(Debug, Clone, Args)]
+pub struct LocalRun {
+    /// What to rehearse.
+    #[arg(long, value_enum, default_value = "happy")]
+    pub scenario: Scenario,
+    /// Simulator-agent pairs.
+    #[arg(long, default_value_t = 4)]
+    pub workers: u32,
+    /// Routes of the track.
+    #[arg(long, default_value_t = 20)]
+    pub routes: u32,
+    /// Seconds the fake evaluator spends per route.
+    #[arg(long, default_value_t = 0.2)]
+    pub route_seconds: f64,
+    /// Leaderboard of the submission's phase (`1.0` or `2.0`).
+    #[arg(long, default_value = "2.0", value_parser = ["1.0", "2.0"])]
+    pub leaderboard: String,
+    /// Multiplies the state machine's waits and retry intervals (0.05: a 60 s Wait lasts 3 s).
+    #[arg(long, default_value_t = 0.05)]
+    pub time_scale: f64,
+    /// Wall-clock limit of the whole run, in seconds.
+    #[arg(long, default_value_t = 600)]
+    pub timeout: u64,
+    /// An EvalAI to use instead of the fake (needs --evalai-token, --challenge, --phase, --submission).
+    #[arg(long, requires_all = ["evalai_token", "challenge", "phase", "submission"])]
+    pub evalai_url: Option<String>,
+    /// Host token of that EvalAI.
+    #[arg(long)]
+    pub evalai_token: Option<String>,
+    /// Challenge id on that EvalAI.
+    #[arg(long)]
+    pub challenge: Option<u64>,
+    /// Phase id on that EvalAI.
+    #[arg(long)]
+    pub phase: Option<u64>,
+    /// Submission id on that EvalAI.
+    #[arg(long)]
+    pub submission: Option<u64>,
+    /// Keep the stack running after the summary (until Ctrl-C) to look at S3, EvalAI, logs.
+    #[arg(long)]
+    pub keep: bool,
+}
+
+const IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local";
+const UNPULLABLE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:never-pushed";
+
+fn say(started: Instant, text: impl AsRef<str>) {
+    println!(
+        "[{:>6.1}s] {}",
+        started.elapsed().as_secs_f64(),
+        text.as_ref()
+    );
+}
+
+/// Runs one local submission; the exit code is 0 only when it ended as the scenario expects.
+pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
+    if !(args.time_scale > 0.0 && args.time_scale <= 1.0) {
+        bail!("--time-scale must be in (0, 1], got {}", args.time_scale);
+    }
+    if args.routes == 0 || args.workers == 0 {
+        bail!("--routes and --workers must be at least 1");
+    }
+    let started = Instant::now();
+    let bins = Binaries::in_dir(
+        std::env::current_exe()?
+            .parent()
+            .context("lbctl has no directory")?,
+    )
+    .context("the sidecar and the fakes must sit next to lbctl: run `make local`")?;
+
+    // The phase: 1 is Leaderboard 2.0, 2 is 1.0 in the local settings and the fake's fixture.
+    let phase = if args.leaderboard == "1.0" { 2 } else { 1 };
+    let mut settings: Value = serde_json::from_str(LOCAL_SETTINGS)?;
+    let track = &mut settings["leaderboards"][&args.leaderboard]["tracks"]["SENSORS"];
+    track["routes"] = json!(args.routes);
+    track["workers"] = json!(args.workers);
+
+    let external = args.evalai_url.clone().map(|url| EvalAi::External {
+        url,
+        token: args.evalai_token.clone().unwrap_or_default(),
+    });
+    let mut stack = Stack::start(external.unwrap_or(EvalAi::Fake(Fixture::default())))
+        .await
+        .context("starting the local stack (run `make venv` for moto)")?;
+    say(
+        started,
+        format!(
+            "stack up in {:.1}s: moto {}, EvalAI {}",
+            stack.started_in.as_secs_f64(),
+            stack.moto.endpoint(),
+            stack.evalai_url
+        ),
+    );
+    let settings = stack.provision(&settings.to_string()).await?;
+
+    let scratch = stack.workdir.path().join("images");
+    let once = scratch.join("once");
+    std::fs::create_dir_all(&once)?;
+    let mut behaviour = Behaviour {
+        route_seconds: args.route_seconds,
+        ..Behaviour::default()
+    };
+    if args.scenario == Scenario::Hang {
+        behaviour.evaluator_env = BTreeMap::from([
+            ("FAKE_EVALUATOR_HANG_AT_ROUTE".into(), "1".into()),
+            ("FAKE_EVALUATOR_ONCE_DIR".into(), once.display().to_string()),
+        ]);
+    }
+    let unpullable: &[&str] = if args.scenario == Scenario::Unpullable {
+        &[UNPULLABLE]
+    } else {
+        &[]
+    };
+    let images = image_map(
+        &settings,
+        &bins,
+        &stack.moto.endpoint(),
+        &scratch,
+        "*",
+        &behaviour,
+        unpullable,
+    )?;
+    stack
+        .start_kube(local_kube::Config {
+            images,
+            ..local_kube::Config::default()
+        })
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let kubeconfig = stack.kubeconfig.clone().context("no kubeconfig")?;
+    say(
+        started,
+        format!(
+            "local Kubernetes API {} (kubeconfig {})",
+            stack.kube.as_ref().map(|k| k.url()).unwrap_or_default(),
+            kubeconfig.display()
+        ),
+    );
+
+    // The submission on EvalAI and the message EvalAI publishes for it.
+    let image = if args.scenario == Scenario::Unpullable {
+        UNPULLABLE
+    } else {
+        IMAGE
+    };
+    let (challenge, phase, submission) = match (
+        &stack.fake_evalai,
+        args.challenge,
+        args.phase,
+        args.submission,
+    ) {
+        (Some(fake), _, _, _) => {
+            let new = fake
+                .add_submission(fake_evalai::NewSubmission {
+                    challenge_phase: phase,
+                    participant_team: 1,
+                    submitted_image_uri: image.into(),
+                    created_by: None,
+                })
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            (1, phase, new.id)
+        }
+        (None, Some(c), Some(p), Some(s)) => (c, p, s),
+        _ => bail!("an external EvalAI needs --challenge, --phase and --submission"),
+    };
+    let input = sqs_round_trip(&stack, challenge, phase, submission, image).await?;
+    say(
+        started,
+        format!("message for submission {submission} received from SQS; Pipe output {input}"),
+    );
+
+    // The handlers, in-process, each with its clients built once.
+    let config = FunctionConfig {
+        settings_secret: SETTINGS_SECRET.into(),
+        token_secret: TOKEN_SECRET.into(),
+    };
+    let clusters = || Clusters::Kubeconfig(kubeconfig.clone());
+    let intake = Arc::new(intake::Deps::load(&stack.sdk, &config).await?);
+    let mut launch = launch::Deps::load(&stack.sdk, &config, clusters()).await?;
+    launch.timers = Some(lb_jobs::Timers {
+        start_wait_seconds: 120,
+        end_wait_seconds: 60,
+        carla_ready_seconds: 60,
+        poll_seconds: 1,
+        max_idle_seconds: 5,
+        logcopy_period_seconds: 1,
+    });
+    let launch = Arc::new(launch);
+    let monitor = Arc::new(monitor::Deps::load(&stack.sdk, &config, clusters()).await?);
+    let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters()).await?;
+    finalize.delete_wait = Duration::from_secs(60);
+    let finalize = Arc::new(finalize);
+    let tasks = TaskMap::new()
+        .with("IntakeFunctionArn", move |v| {
+            let deps = intake.clone();
+            async move { lambda(intake::handle_json(v, &deps).await) }
+        })
+        .with("LaunchFunctionArn", move |v| {
+            let deps = launch.clone();
+            async move { lambda(launch::handle_json(v, &deps).await) }
+        })
+        .with("MonitorFunctionArn", move |v| {
+            let deps = monitor.clone();
+            async move { lambda(monitor::handle_json(v, &deps).await) }
+        })
+        .with("FinalizeFunctionArn", move |v| {
+            let deps = finalize.clone();
+            async move { lambda(finalize::handle_json(v, &deps).await) }
+        });
+
+    let substitutions: HashMap<String, String> = ["Intake", "Launch", "Monitor", "Finalize"]
+        .iter()
+        .map(|f| {
+            (
+                format!("{f}FunctionArn"),
+                format!(
+                    "arn:aws:lambda:us-east-1:123456789012:function:{}",
+                    f.to_lowercase()
+                ),
+            )
+        })
+        .collect();
+    let machine = StateMachine::load(&serde_json::from_str(DEFINITION)?, &substitutions)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+
+    // Live progress, and the scenario's own act at the right moment.
+    let rounds = Arc::new(AtomicU64::new(0));
+    let acted = Arc::new(AtomicBool::new(true));
+    let fake = stack.fake_evalai.as_ref().map(|f| f.url());
+    let on_event = {
+        let rounds = rounds.clone();
+        let acted = acted.clone();
+        let scenario = args.scenario;
+        Arc::new(move |event: &HistoryEvent| {
+            if event.event_type == EventType::TaskStateEntered {
+                let name = event.state_name().unwrap_or_default();
+                if name == "Monitor" {
+                    let n = rounds.fetch_add(1, Ordering::SeqCst) + 1;
+                    if !act(scenario, n, fake.as_deref(), submission) {
+                        acted.store(false, Ordering::SeqCst);
+                    }
+                } else {
+                    say(started, format!("stage {name}"));
+                }
+            }
+            if event.event_type == EventType::TaskStateExited
+                && event.state_name() == Some("Monitor")
+            {
+                let output = &event.details["output"]["run"]["monitor"];
+                say(
+                    started,
+                    format!(
+                        "monitor round {}: {} routes {}/{}",
+                        output["rounds"],
+                        output["state"],
+                        output["progress"][0],
+                        output["progress"][1]
+                    ),
+                );
+            }
+        }) as lb_statemachine::EventCallback
+    };
+    let executor = Executor::new(
+        tasks,
+        Options {
+            time_scale: args.time_scale,
+            deadline: Some(Duration::from_secs(args.timeout)),
+            on_event: Some(on_event),
+            ..Options::default()
+        },
+    )
+    .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let execution = executor
+        .start(&machine, &format!("local-{submission}"), input)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let result = execution.wait().await;
+
+    // The summary.
+    let status_on_evalai = match &stack.fake_evalai {
+        Some(fake) => fake
+            .submission(submission)
+            .map(|s| s.status)
+            .unwrap_or_default(),
+        None => String::from("(external EvalAI: see its page)"),
+    };
+    println!();
+    println!(
+        "execution      {} ({} history events)",
+        result.status.as_str(),
+        result.history.len()
+    );
+    if let Some(error) = &result.error {
+        println!(
+            "error          {error}: {}",
+            result.cause.clone().unwrap_or_default()
+        );
+    }
+    println!("EvalAI status  {status_on_evalai}");
+    if let Some(row) = stack
+        .fake_evalai
+        .as_ref()
+        .and_then(|f| f.submission(submission))
+        .and_then(|s| s.leaderboard.first().cloned())
+    {
+        println!("scores         {}", row.result);
+    }
+    println!("time per stage");
+    for (stage, seconds) in stage_times(&result.history) {
+        println!("  {stage:<12} {seconds:>7.1}s");
+    }
+    println!(
+        "results        s3://{}/{submission}/ on moto {}",
+        settings_bucket(&settings, &args.leaderboard),
+        stack.moto.endpoint()
+    );
+    println!(
+        "pod logs       {}",
+        stack.workdir.path().join("pods").display()
+    );
+    println!("total          {:.1}s", started.elapsed().as_secs_f64());
+
+    let expected = args.scenario.expected();
+    let ok = acted.load(Ordering::SeqCst)
+        && (status_on_evalai == expected
+            || (stack.fake_evalai.is_none() && result.status == Status::Succeeded));
+    if args.keep {
+        println!(
+            "\nthe stack stays up (kubeconfig {}); Ctrl-C to stop",
+            kubeconfig.display()
+        );
+        let _ = tokio::signal::ctrl_c().await;
+    }
+    if ok {
+        println!(
+            "OK: the {:?} scenario ended {expected} as expected",
+            args.scenario
+        );
+        Ok(0)
+    } else {
+        println!(
+            "UNEXPECTED: the {:?} scenario should end {expected}",
+            args.scenario
+        );
+        Ok(1)
+    }
+}
+
+fn settings_bucket(settings: &lb_domain::settings::Settings, leaderboard: &str) -> String {
+    settings
+        .leaderboards
+        .get(leaderboard)
+        .map(|l| l.bucket.clone())
+        .unwrap_or_default()
+}
+
+/// A handler's result as Lambda reports it to Step Functions.
+fn lambda(result: Result<Value, FnError>) -> Result<Value, TaskError> {
+    result.map_err(|e| TaskError::lambda(e.name(), e.chain()))
+}
+
+/// The scenario's intervention at monitor round `n`; `false` when it could not be done.
+fn act(scenario: Scenario, n: u64, fake: Option<&str>, submission: u64) -> bool {
+    match (scenario, n) {
+        (Scenario::Crash, 1) => {
+            // NB: match CARLA itself (`./CarlaUE4.sh ...`), not the sidecar that wraps it.
+            let killed = std::process::Command::new("pkill")
+                .args([
+                    "-KILL",
+                    "-f",
+                    r"^\./CarlaUE4\.sh .*-carla-rpc-port=2000( |$)",
+                ])
+                .status()
+                .is_ok_and(|s| s.success());
+            println!("           scenario: CARLA of pair 1 killed: {killed}");
+            return killed;
+        }
+        (Scenario::Cancel, 1) => {
+            if let Some(url) = fake {
+                let url = format!("{url}/_admin/submissions/{submission}/cancel");
+                std::thread::spawn(move || {
+                    let status = std::process::Command::new("curl")
+                        .args(["-s", "-o", "/dev/null", "-X", "POST", &url])
+                        .status();
+                    println!("           scenario: the participant cancels ({status:?})");
+                });
+            }
+        }
+        _ => {}
+    }
+    true
+}
+
+/// Seconds spent in each state, summed over its visits.
+fn stage_times(history: &[HistoryEvent]) -> Vec<(String, f64)> {
+    let mut out: Vec<(String, f64)> = Vec::new();
+    let mut entered: Option<(String, f64)> = None;
+    for event in history {
+        if event.event_type.is_state_entered() {
+            entered = event.state_name().map(|n| (n.to_string(), seconds(event)));
+        } else if event.event_type.is_state_exited() {
+            if let Some((name, at)) = entered.take() {
+                let seconds = seconds(event) - at;
+                match out.iter_mut().find(|(n, _)| *n == name) {
+                    Some((_, total)) => *total += seconds,
+                    None => out.push((name, seconds)),
+                }
+            }
+        }
+    }
+    out
+}
+
+fn seconds(event: &HistoryEvent) -> f64 {
+    event.timestamp.unix_timestamp_nanos() as f64 / 1e9
+}
+
+/// Puts EvalAI's message on a moto SQS queue, receives it as the Pipe would and applies the
+/// Pipe's input transformer: `{challenge_pk, phase_pk, submission_pk, submitted_image_uri}`.
+async fn sqs_round_trip(
+    stack: &Stack,
+    challenge: u64,
+    phase: u64,
+    submission: u64,
+    image: &str,
+) -> anyhow::Result<Value> {
+    let sqs = aws_sdk_sqs::Client::new(&stack.sdk);
+    let queue = sqs
+        .create_queue()
+        .queue_name("evalai-submissions")
+        .send()
+        .await?;
+    let url = queue.queue_url().context("no queue url")?.to_string();
+    // As EvalAI publishes a new submission: string challenge and phase ids, int submission id.
+    let body = json!({
+        "challenge_pk": challenge.to_string(),
+        "phase_pk": phase.to_string(),
+        "submission_pk": submission,
+        "is_static_dataset_code_upload_submission": false,
+        "submitted_image_uri": image,
+    });
+    sqs.send_message()
+        .queue_url(&url)
+        .message_body(body.to_string())
+        .send()
+        .await?;
+    let received = sqs
+        .receive_message()
+        .queue_url(&url)
+        .max_number_of_messages(1)
+        .wait_time_seconds(5)
+        .send()
+        .await?;
+    let message = received
+        .messages()
+        .first()
+        .context("the message did not arrive")?;
+    let parsed: Value = serde_json::from_str(message.body().unwrap_or_default())?;
+    if let Some(handle) = message.receipt_handle() {
+        sqs.delete_message()
+            .queue_url(&url)
+            .receipt_handle(handle)
+            .send()
+            .await?;
+    }
+    Ok(json!({
+        "challenge_pk": parsed["challenge_pk"],
+        "phase_pk": parsed["phase_pk"],
+        "submission_pk": parsed["submission_pk"],
+        "submitted_image_uri": parsed["submitted_image_uri"],
+    }))
+}

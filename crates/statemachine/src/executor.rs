@@ -1,0 +1,1236 @@
+//! Runs a loaded state machine: the states' semantics, retries and catchers, the context
+//! object, scaled time, the deadline and cancellation.
+
+use std::collections::BTreeSet;
+use std::fmt;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+
+use lb_asl::{Env, RandomSource};
+use serde_json::{json, Map, Value};
+use time::OffsetDateTime;
+use tokio::sync::watch;
+use tokio::task::{JoinHandle, JoinSet};
+
+use crate::definition::{
+    Catcher, Integration, Jitter, Kind, MapState, Parallel, Retrier, Scope, State, StateMachine,
+    Task, Text, Wait,
+};
+use crate::error::{OptionsError, StartError};
+use crate::history::{EventCallback, EventStream, EventType, FinishGuard, HistoryEvent, Recorder};
+use crate::runtime::{matches, Failure, STATES_TIMEOUT};
+use crate::tasks::{FunctionRef, Tasks};
+use crate::timestamp;
+
+/// How an executor runs executions.
+#[derive(Clone)]
+pub struct Options {
+    /// Multiplies every duration the definition states: Wait times, retry intervals, Task
+    /// `TimeoutSeconds` and the definition's `TimeoutSeconds` (0.01 makes a 60 s Wait last
+    /// 0.6 s). Must be finite and greater than 0.
+    pub time_scale: f64,
+    /// Wall-clock limit of one execution (not scaled); past it the execution ends
+    /// `TIMED_OUT`. `None`: only the definition's own `TimeoutSeconds` applies.
+    pub deadline: Option<Duration>,
+    /// Region in the ARNs (`$$.Execution.Id`, `$$.StateMachine.Id`) and events.
+    pub region: String,
+    /// Account in the ARNs.
+    pub account_id: String,
+    /// `$$.Execution.RoleArn`; `None`: a placeholder role in `account_id`.
+    pub role_arn: Option<String>,
+    /// History events per execution, the final one included (AWS: 25,000). Reaching it fails
+    /// the execution with `States.Runtime`.
+    pub max_history_events: usize,
+    /// Largest state input/output and task result, in bytes of compact JSON (AWS: 256 KiB).
+    /// Beyond it the execution fails with `States.DataLimitExceeded`.
+    pub max_payload_bytes: usize,
+    /// Seed of the random numbers (retry jitter, `States.UUID`, `States.MathRandom`);
+    /// `None`: from entropy.
+    pub random_seed: Option<u64>,
+    /// Called with every history event as it is recorded (live progress).
+    pub on_event: Option<EventCallback>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            time_scale: 1.0,
+            deadline: None,
+            region: "us-east-1".into(),
+            account_id: "123456789012".into(),
+            role_arn: None,
+            max_history_events: 25_000,
+            max_payload_bytes: 256 * 1024,
+            random_seed: None,
+            on_event: None,
+        }
+    }
+}
+
+impl fmt::Debug for Options {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Options")
+            .field("time_scale", &self.time_scale)
+            .field("deadline", &self.deadline)
+            .field("region", &self.region)
+            .field("account_id", &self.account_id)
+            .field("role_arn", &self.role_arn)
+            .field("max_history_events", &self.max_history_events)
+            .field("max_payload_bytes", &self.max_payload_bytes)
+            .field("random_seed", &self.random_seed)
+            .field("on_event", &self.on_event.as_ref().map(|_| "<callback>"))
+            .finish()
+    }
+}
+
+/// How an execution ended, with Step Functions' status names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Status {
+    /// Reached a Succeed state or an `End`.
+    Succeeded,
+    /// An error nothing caught, or a Fail state.
+    Failed,
+    /// Past the deadline or the definition's `TimeoutSeconds`.
+    TimedOut,
+    /// Cancelled through [`Execution::cancel`].
+    Aborted,
+}
+
+impl Status {
+    /// `SUCCEEDED`, `FAILED`, `TIMED_OUT` or `ABORTED`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Status::Succeeded => "SUCCEEDED",
+            Status::Failed => "FAILED",
+            Status::TimedOut => "TIMED_OUT",
+            Status::Aborted => "ABORTED",
+        }
+    }
+}
+
+impl fmt::Display for Status {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// The outcome of an execution.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExecutionResult {
+    /// How it ended.
+    pub status: Status,
+    /// The output (when it succeeded).
+    pub output: Option<Value>,
+    /// The error name (when it failed or timed out).
+    pub error: Option<String>,
+    /// The cause (when it failed and there is one).
+    pub cause: Option<String>,
+    /// Every event, in order.
+    pub history: Vec<HistoryEvent>,
+    /// The execution's ARN.
+    pub execution_arn: String,
+    /// When it started and stopped.
+    pub start_date: OffsetDateTime,
+    /// When it stopped.
+    pub stop_date: OffsetDateTime,
+}
+
+impl ExecutionResult {
+    /// How many events of `event_type` the history holds.
+    pub fn count(&self, event_type: EventType) -> usize {
+        self.history
+            .iter()
+            .filter(|e| e.event_type == event_type)
+            .count()
+    }
+
+    /// The states entered, in order (a CLI's stage list).
+    pub fn states_entered(&self) -> Vec<&str> {
+        self.history
+            .iter()
+            .filter(|e| e.event_type.is_state_entered())
+            .filter_map(HistoryEvent::state_name)
+            .collect()
+    }
+}
+
+/// Runs state machines with in-process task handlers.
+#[derive(Clone)]
+pub struct Executor {
+    tasks: Arc<dyn Tasks>,
+    options: Arc<Options>,
+}
+
+impl fmt::Debug for Executor {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Executor")
+            .field("options", &self.options)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Executor {
+    /// An executor calling `tasks`' handlers.
+    pub fn new(tasks: impl Tasks, options: Options) -> Result<Executor, OptionsError> {
+        if !(options.time_scale.is_finite() && options.time_scale > 0.0) {
+            return Err(OptionsError::InvalidTimeScale(options.time_scale));
+        }
+        if options.max_history_events == 0 {
+            return Err(OptionsError::ZeroLimit("max_history_events"));
+        }
+        if options.max_payload_bytes == 0 {
+            return Err(OptionsError::ZeroLimit("max_payload_bytes"));
+        }
+        Ok(Executor {
+            tasks: Arc::new(tasks),
+            options: Arc::new(options),
+        })
+    }
+
+    /// The functions of `state_machine` no handler is registered for (each would fail with
+    /// `Lambda.ResourceNotFoundException` when reached).
+    pub fn missing_tasks(&self, state_machine: &StateMachine) -> Vec<FunctionRef> {
+        state_machine
+            .functions()
+            .iter()
+            .filter(|f| self.tasks.handler(f).is_none())
+            .cloned()
+            .collect()
+    }
+
+    /// Starts an execution named `name` with `input` on the current Tokio runtime.
+    pub fn start(
+        &self,
+        state_machine: &StateMachine,
+        name: &str,
+        input: Value,
+    ) -> Result<Execution, StartError> {
+        validate_name(name)?;
+        let size = payload_size(&input);
+        if size > self.options.max_payload_bytes {
+            return Err(StartError::InputTooLarge {
+                size,
+                limit: self.options.max_payload_bytes,
+            });
+        }
+        let runtime = tokio::runtime::Handle::try_current().map_err(|_| StartError::NoRuntime)?;
+        let options = &self.options;
+        let state_machine_arn = format!(
+            "arn:aws:states:{}:{}:stateMachine:{}",
+            options.region,
+            options.account_id,
+            state_machine.name()
+        );
+        let execution_arn = format!(
+            "arn:aws:states:{}:{}:execution:{}:{name}",
+            options.region,
+            options.account_id,
+            state_machine.name()
+        );
+        let role_arn = options.role_arn.clone().unwrap_or_else(|| {
+            format!(
+                "arn:aws:iam::{}:role/StepFunctionsExecutionRole",
+                options.account_id
+            )
+        });
+        let start_date = OffsetDateTime::now_utc();
+        let recorder = Arc::new(Recorder::new(
+            options.max_history_events,
+            options.on_event.clone(),
+        ));
+        let random = match options.random_seed {
+            Some(seed) => RandomSource::seeded(seed),
+            None => RandomSource::from_entropy(),
+        };
+        let run = Arc::new(Run {
+            tasks: self.tasks.clone(),
+            options: self.options.clone(),
+            recorder: recorder.clone(),
+            random,
+            execution: json!({
+                "Id": execution_arn,
+                "Input": input,
+                "Name": name,
+                "RoleArn": role_arn,
+                "StartTime": timestamp::format(start_date),
+                "RedriveCount": 0,
+            }),
+            state_machine: json!({"Id": state_machine_arn, "Name": state_machine.name()}),
+        });
+        let (cancel, cancelled) = watch::channel(false);
+        let deadline = [
+            options.deadline,
+            state_machine
+                .timeout_seconds()
+                .map(|s| run.scaled(s as f64)),
+        ]
+        .into_iter()
+        .flatten()
+        .min();
+        let root = state_machine.definition.root.clone();
+        tracing::info!(execution = %name, state_machine = %state_machine.name(), "execution started");
+        let join = runtime.spawn(execute(
+            run,
+            root,
+            input,
+            role_arn,
+            cancelled,
+            deadline,
+            execution_arn.clone(),
+            start_date,
+        ));
+        Ok(Execution {
+            arn: execution_arn,
+            name: name.to_owned(),
+            recorder,
+            cancel,
+            join,
+        })
+    }
+
+    /// Starts an execution and waits for its result.
+    pub async fn run(
+        &self,
+        state_machine: &StateMachine,
+        name: &str,
+        input: Value,
+    ) -> Result<ExecutionResult, StartError> {
+        Ok(self.start(state_machine, name, input)?.wait().await)
+    }
+}
+
+/// A running execution. Dropping the handle leaves it running.
+pub struct Execution {
+    arn: String,
+    name: String,
+    recorder: Arc<Recorder>,
+    cancel: watch::Sender<bool>,
+    join: JoinHandle<ExecutionResult>,
+}
+
+impl fmt::Debug for Execution {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Execution")
+            .field("arn", &self.arn)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Execution {
+    /// The execution's ARN (`$$.Execution.Id`).
+    pub fn arn(&self) -> &str {
+        &self.arn
+    }
+
+    /// The execution's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Every event from the first, then each as it is recorded, until the execution ends.
+    pub fn events(&self) -> EventStream {
+        EventStream::new(self.recorder.clone())
+    }
+
+    /// The events recorded so far.
+    pub fn history(&self) -> Vec<HistoryEvent> {
+        self.recorder.snapshot()
+    }
+
+    /// Stops the execution (status `ABORTED`); running handlers are dropped.
+    pub fn cancel(&self) {
+        self.cancel.send_replace(true);
+    }
+
+    /// Waits for the execution to end.
+    pub async fn wait(self) -> ExecutionResult {
+        let Execution {
+            arn,
+            recorder,
+            join,
+            ..
+        } = self;
+        match join.await {
+            Ok(result) => result,
+            // NB: only a bug in the executor gets here (handler panics are caught per task).
+            Err(e) => {
+                let now = OffsetDateTime::now_utc();
+                ExecutionResult {
+                    status: Status::Failed,
+                    output: None,
+                    error: Some("States.Runtime".into()),
+                    cause: Some(format!("the executor stopped unexpectedly: {e}")),
+                    history: recorder.snapshot(),
+                    execution_arn: arn,
+                    start_date: now,
+                    stop_date: now,
+                }
+            }
+        }
+    }
+}
+
+/// Step Functions' execution name rules.
+fn validate_name(name: &str) -> Result<(), StartError> {
+    let refuse = |reason: &str| {
+        Err(StartError::InvalidName {
+            name: name.to_owned(),
+            reason: reason.to_owned(),
+        })
+    };
+    let length = name.chars().count();
+    if length == 0 || length > 80 {
+        return refuse("must have 1 to 80 characters");
+    }
+    if let Some(c) = name
+        .chars()
+        .find(|c| c.is_whitespace() || c.is_control() || "<>{}[]?*\"#%\\^|~`$&,;:/".contains(*c))
+    {
+        return refuse(&format!("`{}` is not allowed", c.escape_default()));
+    }
+    Ok(())
+}
+
+fn payload_size(value: &Value) -> usize {
+    serde_json::to_vec(value).map_or(usize::MAX, |v| v.len())
+}
+
+/// Aborts a spawned handler when its caller stops waiting (timeout, cancellation, a
+/// sibling branch failing).
+struct AbortOnDrop<T>(JoinHandle<T>);
+
+impl<T> Drop for AbortOnDrop<T> {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// What one execution shares across its states and branches.
+struct Run {
+    tasks: Arc<dyn Tasks>,
+    options: Arc<Options>,
+    recorder: Arc<Recorder>,
+    random: RandomSource,
+    execution: Value,
+    state_machine: Value,
+}
+
+/// The previous event of one line of execution (the machine, a branch, an iteration).
+#[derive(Debug, Clone, Copy)]
+struct Thread {
+    last: u64,
+}
+
+type ScopeFuture = Pin<Box<dyn Future<Output = (Result<Value, Failure>, Thread)> + Send>>;
+
+enum Recovery {
+    Retry,
+    Caught { next: String, output: Value },
+}
+
+enum Invocation {
+    Failed(Failure),
+    TimedOut,
+}
+
+#[allow(clippy::too_many_arguments)]
+async fn execute(
+    run: Arc<Run>,
+    root: Arc<Scope>,
+    input: Value,
+    role_arn: String,
+    mut cancelled: watch::Receiver<bool>,
+    deadline: Option<Duration>,
+    execution_arn: String,
+    start_date: OffsetDateTime,
+) -> ExecutionResult {
+    let recorder = run.recorder.clone();
+    let _finish = FinishGuard(recorder.clone());
+    let started = json!({"input": input, "roleArn": role_arn});
+    let outcome = match recorder.push(0, EventType::ExecutionStarted, started) {
+        Err(failure) => Err((failure, 0)),
+        Ok(_) => {
+            // NB: AWS links the first state to no event (previousEventId 0).
+            let machine = run.clone().run_scope(root, input, Thread { last: 0 });
+            let cancel = async {
+                if cancelled.wait_for(|c| *c).await.is_err() {
+                    // The handle is gone: nobody can cancel any more.
+                    std::future::pending::<()>().await;
+                }
+            };
+            let timeout = async {
+                match deadline {
+                    Some(d) => tokio::time::sleep(d).await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                (result, thread) = machine => result
+                    .map(|v| (v, thread.last))
+                    .map_err(|f| (f, thread.last)),
+                () = cancel => {
+                    let last = recorder.last_id();
+                    recorder.push_final(last, EventType::ExecutionAborted, Value::Null);
+                    return finish(&recorder, Status::Aborted, None, None, None, execution_arn, start_date);
+                }
+                () = timeout => {
+                    let last = recorder.last_id();
+                    recorder.push_final(last, EventType::ExecutionTimedOut, json!({"error": STATES_TIMEOUT}));
+                    return finish(&recorder, Status::TimedOut, None, Some(STATES_TIMEOUT.into()), None, execution_arn, start_date);
+                }
+            }
+        }
+    };
+    match outcome {
+        Ok((output, last)) => {
+            recorder.push_final(
+                last,
+                EventType::ExecutionSucceeded,
+                json!({ "output": output }),
+            );
+            finish(
+                &recorder,
+                Status::Succeeded,
+                Some(output),
+                None,
+                None,
+                execution_arn,
+                start_date,
+            )
+        }
+        Err((failure, last)) => {
+            recorder.push_final(last, EventType::ExecutionFailed, failure_details(&failure));
+            let error = (!failure.error.is_empty()).then_some(failure.error);
+            finish(
+                &recorder,
+                Status::Failed,
+                None,
+                error,
+                failure.cause,
+                execution_arn,
+                start_date,
+            )
+        }
+    }
+}
+
+fn finish(
+    recorder: &Recorder,
+    status: Status,
+    output: Option<Value>,
+    error: Option<String>,
+    cause: Option<String>,
+    execution_arn: String,
+    start_date: OffsetDateTime,
+) -> ExecutionResult {
+    tracing::info!(execution = %execution_arn, status = %status, error = ?error, "execution ended");
+    ExecutionResult {
+        status,
+        output,
+        error,
+        cause,
+        history: recorder.snapshot(),
+        execution_arn,
+        start_date,
+        stop_date: OffsetDateTime::now_utc(),
+    }
+}
+
+fn failure_details(failure: &Failure) -> Value {
+    let mut details = Map::new();
+    if !failure.error.is_empty() {
+        details.insert("error".into(), failure.error.clone().into());
+    }
+    if let Some(cause) = &failure.cause {
+        details.insert("cause".into(), cause.clone().into());
+    }
+    Value::Object(details)
+}
+
+impl Run {
+    fn scaled(&self, seconds: f64) -> Duration {
+        Duration::try_from_secs_f64(seconds * self.options.time_scale).unwrap_or(Duration::MAX)
+    }
+
+    fn record(
+        &self,
+        thread: &mut Thread,
+        event_type: EventType,
+        details: Value,
+    ) -> Result<u64, Failure> {
+        let id = self.recorder.push(thread.last, event_type, details)?;
+        thread.last = id;
+        Ok(id)
+    }
+
+    fn check_size(&self, value: &Value, what: &str, state: &str) -> Result<(), Failure> {
+        let size = payload_size(value);
+        if size > self.options.max_payload_bytes {
+            return Err(Failure::new(
+                crate::runtime::STATES_DATA_LIMIT_EXCEEDED,
+                Some(format!(
+                    "The state/task '{state}' returned a result with a size exceeding the maximum number of bytes service limit ({what}: {size} > {} bytes).",
+                    self.options.max_payload_bytes
+                )),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The context object (`$$`) of a state.
+    fn context(&self, state: &str, entered: &str, retry_count: u64) -> Value {
+        json!({
+            "Execution": self.execution,
+            "State": {"EnteredTime": entered, "Name": state, "RetryCount": retry_count},
+            "StateMachine": self.state_machine,
+        })
+    }
+
+    fn run_scope(
+        self: Arc<Self>,
+        scope: Arc<Scope>,
+        input: Value,
+        mut thread: Thread,
+    ) -> ScopeFuture {
+        Box::pin(async move {
+            let mut current = scope.start_at.clone();
+            let mut input = input;
+            // Ends at a terminal state or a failure; loops in the definition end at the
+            // deadline or when the history is full.
+            loop {
+                let Some(state) = scope.states.get(&current).cloned() else {
+                    let failure = Failure::runtime(format!("no state named `{current}`"));
+                    return (Err(failure), thread);
+                };
+                match self.run_state(&state, input, &mut thread).await {
+                    Ok((Some(next), output)) => {
+                        current = next;
+                        input = output;
+                    }
+                    Ok((None, output)) => return (Ok(output), thread),
+                    Err(failure) => return (Err(failure), thread),
+                }
+            }
+        })
+    }
+
+    /// Runs one state: its transition and output, or the failure it ends its branch with.
+    async fn run_state(
+        self: &Arc<Self>,
+        state: &State,
+        input: Value,
+        thread: &mut Thread,
+    ) -> Result<(Option<String>, Value), Failure> {
+        let prefix = state.kind.event_prefix();
+        let entered = timestamp::format(OffsetDateTime::now_utc());
+        self.record(
+            thread,
+            EventType::entered(prefix),
+            json!({"name": state.name, "input": input}),
+        )?;
+        let (next, output) = match &state.kind {
+            Kind::Pass { result } => {
+                let ctx = self.context(&state.name, &entered, 0);
+                let env = Env::with_context(&ctx).random(&self.random);
+                let effective = state
+                    .flow
+                    .effective_input(&input, &env)
+                    .map_err(Failure::from_asl)?;
+                let result = result.clone().unwrap_or(effective);
+                let output = state
+                    .flow
+                    .output(input, result, &env)
+                    .map_err(Failure::from_asl)?;
+                (state.next.clone(), output)
+            }
+            Kind::Wait(wait) => {
+                let ctx = self.context(&state.name, &entered, 0);
+                let effective = state
+                    .flow
+                    .input_path
+                    .apply(input)
+                    .map_err(Failure::from_asl)?;
+                let seconds = wait_seconds(wait, &effective, &ctx)?;
+                tokio::time::sleep(self.scaled(seconds)).await;
+                let output = state
+                    .flow
+                    .output_path
+                    .apply(effective)
+                    .map_err(Failure::from_asl)?;
+                (state.next.clone(), output)
+            }
+            Kind::Choice(choice) => {
+                let ctx = self.context(&state.name, &entered, 0);
+                let effective = state
+                    .flow
+                    .input_path
+                    .apply(input)
+                    .map_err(Failure::from_asl)?;
+                let mut next = None;
+                for (rule, target) in &choice.rules {
+                    if rule.evaluate(&effective, &ctx)? {
+                        next = Some(target.clone());
+                        break;
+                    }
+                }
+                let next = next.or_else(|| choice.default.clone()).ok_or_else(|| {
+                    Failure::new(
+                        "States.NoChoiceMatched",
+                        Some(format!(
+                            "No Choice matched in the Choice state '{}' and it has no Default.",
+                            state.name
+                        )),
+                    )
+                })?;
+                let output = state
+                    .flow
+                    .output_path
+                    .apply(effective)
+                    .map_err(Failure::from_asl)?;
+                (Some(next), output)
+            }
+            Kind::Succeed => {
+                let effective = state
+                    .flow
+                    .input_path
+                    .apply(input)
+                    .map_err(Failure::from_asl)?;
+                let output = state
+                    .flow
+                    .output_path
+                    .apply(effective)
+                    .map_err(Failure::from_asl)?;
+                (None, output)
+            }
+            Kind::Fail(fail) => {
+                let ctx = self.context(&state.name, &entered, 0);
+                let env = Env::with_context(&ctx).random(&self.random);
+                let error = fail_text(&fail.error, &input, &env)?;
+                let cause = fail_text(&fail.cause, &input, &env)?;
+                return Err(Failure::new(error.unwrap_or_default(), cause));
+            }
+            Kind::Task(_) | Kind::Parallel(_) | Kind::Map(_) => {
+                return self.run_with_retries(state, input, thread, &entered).await;
+            }
+        };
+        self.check_size(&output, "output", &state.name)?;
+        self.record(
+            thread,
+            EventType::exited(prefix),
+            json!({"name": state.name, "output": output}),
+        )?;
+        Ok((next, output))
+    }
+
+    /// Task, Parallel and Map: attempts, retriers, catchers.
+    async fn run_with_retries(
+        self: &Arc<Self>,
+        state: &State,
+        input: Value,
+        thread: &mut Thread,
+        entered: &str,
+    ) -> Result<(Option<String>, Value), Failure> {
+        let (retry, catch) = match &state.kind {
+            Kind::Task(t) => (&t.retry, &t.catch),
+            Kind::Parallel(p) => (&p.retry, &p.catch),
+            Kind::Map(m) => (&m.retry, &m.catch),
+            // NB: run_state only sends Task, Parallel and Map states here.
+            _ => return Err(Failure::runtime("only Task, Parallel and Map states retry")),
+        };
+        let mut counts = vec![0u64; retry.len()];
+        let mut retry_count = 0u64;
+        // Ends: every retry uses up one of a retrier's finite `MaxAttempts`.
+        loop {
+            let ctx = self.context(&state.name, entered, retry_count);
+            let attempt = match &state.kind {
+                Kind::Task(task) => self.attempt_task(state, task, &input, &ctx, thread).await,
+                Kind::Parallel(parallel) => {
+                    self.attempt_parallel(state, parallel, &input, &ctx, thread)
+                        .await
+                }
+                Kind::Map(map) => self.attempt_map(state, map, &input, &ctx, thread).await,
+                _ => Err(Failure::runtime("only Task, Parallel and Map states retry")),
+            };
+            let (next, output) = match attempt {
+                Ok(output) => (state.next.clone(), output),
+                Err(failure) => {
+                    match self
+                        .recover(retry, catch, &mut counts, &input, failure, &state.name)
+                        .await?
+                    {
+                        Recovery::Retry => {
+                            retry_count += 1;
+                            continue;
+                        }
+                        Recovery::Caught { next, output } => (Some(next), output),
+                    }
+                }
+            };
+            self.record(
+                thread,
+                EventType::exited(state.kind.event_prefix()),
+                json!({"name": state.name, "output": output}),
+            )?;
+            return Ok((next, output));
+        }
+    }
+
+    /// Applies the first matching retrier (waiting its delay) or else the first matching
+    /// catcher; a failure neither handles is returned.
+    async fn recover(
+        &self,
+        retry: &[Retrier],
+        catch: &[Catcher],
+        counts: &mut [u64],
+        input: &Value,
+        failure: Failure,
+        state: &str,
+    ) -> Result<Recovery, Failure> {
+        if failure.is_terminal() {
+            return Err(failure);
+        }
+        // NB: only the first matching retrier counts; once it is exhausted the error goes
+        // to the catchers, even if a later retrier also matches (the developer guide's
+        // "complex retry scenario").
+        if let Some(i) = retry
+            .iter()
+            .position(|r| matches(&r.error_equals, &failure))
+        {
+            let retrier = &retry[i];
+            if counts[i] < retrier.max_attempts {
+                let base = retrier.base_delay(counts[i]);
+                let delay = match retrier.jitter {
+                    Jitter::None => base,
+                    // Uniform in [0, base]: a draw over 2^53 steps.
+                    Jitter::Full => {
+                        base * (self.random.below(1 << 53) as f64 / (1u64 << 53) as f64)
+                    }
+                };
+                counts[i] += 1;
+                tracing::debug!(state, error = %failure.error, attempt = counts[i], delay, "retrying");
+                tokio::time::sleep(self.scaled(delay)).await;
+                return Ok(Recovery::Retry);
+            }
+        }
+        if let Some(catcher) = catch.iter().find(|c| matches(&c.error_equals, &failure)) {
+            tracing::debug!(state, error = %failure.error, next = %catcher.next, "caught");
+            let output = catcher
+                .result_path
+                .apply(input.clone(), failure.output())
+                .map_err(Failure::from_asl)?;
+            self.check_size(&output, "output", state)?;
+            return Ok(Recovery::Caught {
+                next: catcher.next.clone(),
+                output,
+            });
+        }
+        Err(failure)
+    }
+
+    async fn attempt_task(
+        &self,
+        state: &State,
+        task: &Task,
+        input: &Value,
+        ctx: &Value,
+        thread: &mut Thread,
+    ) -> Result<Value, Failure> {
+        let env = Env::with_context(ctx).random(&self.random);
+        let effective = state
+            .flow
+            .effective_input(input, &env)
+            .map_err(Failure::from_asl)?;
+        self.check_size(&effective, "input", &state.name)?;
+        let resource = |extra: Value| {
+            let mut details = json!({"resourceType": "lambda", "resource": "invoke"});
+            if let (Value::Object(d), Value::Object(e)) = (&mut details, extra) {
+                d.extend(e);
+            }
+            details
+        };
+        let timeout = task.timeout_seconds;
+        let payload = match task.integration {
+            Integration::LambdaArn => {
+                let mut details = json!({"resource": task.function.function, "input": effective});
+                if let Some(t) = timeout {
+                    details["timeoutInSeconds"] = t.into();
+                }
+                self.record(thread, EventType::LambdaFunctionScheduled, details)?;
+                self.record(thread, EventType::LambdaFunctionStarted, Value::Null)?;
+                effective
+            }
+            Integration::LambdaInvoke => {
+                let mut details =
+                    resource(json!({"region": self.options.region, "parameters": effective}));
+                if let Some(t) = timeout {
+                    details["timeoutInSeconds"] = t.into();
+                }
+                self.record(thread, EventType::TaskScheduled, details)?;
+                self.record(thread, EventType::TaskStarted, resource(json!({})))?;
+                // NB: Lambda hands an empty payload to the function as `{}`.
+                effective
+                    .get("Payload")
+                    .cloned()
+                    .unwrap_or_else(|| json!({}))
+            }
+        };
+        let lambda = task.integration == Integration::LambdaArn;
+        match self.invoke(task, payload).await {
+            Ok(raw) => {
+                let result = if lambda {
+                    raw
+                } else {
+                    json!({
+                        "ExecutedVersion": "$LATEST",
+                        "Payload": raw,
+                        "SdkHttpMetadata": {"HttpStatusCode": 200},
+                        "SdkResponseMetadata": {"RequestId": self.random.uuid_v4()},
+                        "StatusCode": 200,
+                    })
+                };
+                if lambda {
+                    self.record(
+                        thread,
+                        EventType::LambdaFunctionSucceeded,
+                        json!({ "output": result }),
+                    )?;
+                } else {
+                    self.record(
+                        thread,
+                        EventType::TaskSucceeded,
+                        resource(json!({ "output": result })),
+                    )?;
+                }
+                self.check_size(&result, "result", &state.name)?;
+                let output = state
+                    .flow
+                    .output(input.clone(), result, &env)
+                    .map_err(Failure::from_asl)?;
+                self.check_size(&output, "output", &state.name)?;
+                Ok(output)
+            }
+            Err(Invocation::Failed(failure)) => {
+                let details = failure_details(&failure);
+                if lambda {
+                    self.record(thread, EventType::LambdaFunctionFailed, details)?;
+                } else {
+                    self.record(thread, EventType::TaskFailed, resource(details))?;
+                }
+                Err(failure)
+            }
+            Err(Invocation::TimedOut) => {
+                let failure = Failure::new(STATES_TIMEOUT, None);
+                let details = failure_details(&failure);
+                if lambda {
+                    self.record(thread, EventType::LambdaFunctionTimedOut, details)?;
+                } else {
+                    self.record(thread, EventType::TaskTimedOut, resource(details))?;
+                }
+                Err(failure)
+            }
+        }
+    }
+
+    async fn invoke(&self, task: &Task, payload: Value) -> Result<Value, Invocation> {
+        let Some(handler) = self.tasks.handler(&task.function) else {
+            return Err(Invocation::Failed(Failure::new(
+                "Lambda.ResourceNotFoundException",
+                Some(format!(
+                    "Function not found: {} (Service: AWSLambda; Status Code: 404; Error Code: ResourceNotFoundException; no handler is registered with the embedded executor)",
+                    task.function
+                )),
+            )));
+        };
+        let mut call = AbortOnDrop(tokio::spawn(handler(payload)));
+        let joined = match task.timeout_seconds {
+            Some(seconds) => {
+                match tokio::time::timeout(self.scaled(seconds as f64), &mut call.0).await {
+                    Ok(joined) => joined,
+                    Err(_) => return Err(Invocation::TimedOut),
+                }
+            }
+            None => (&mut call.0).await,
+        };
+        match joined {
+            Ok(Ok(value)) => Ok(value),
+            Ok(Err(e)) => Err(Invocation::Failed(Failure::new(e.error, Some(e.cause)))),
+            // A panicking handler is an unhandled function error, as Lambda reports it.
+            Err(e) => Err(Invocation::Failed(Failure::new(
+                "Lambda.Unknown",
+                Some(format!(
+                    "The function {} did not return: {e}",
+                    task.function.name
+                )),
+            ))),
+        }
+    }
+
+    async fn attempt_parallel(
+        self: &Arc<Self>,
+        state: &State,
+        parallel: &Parallel,
+        input: &Value,
+        ctx: &Value,
+        thread: &mut Thread,
+    ) -> Result<Value, Failure> {
+        let env = Env::with_context(ctx).random(&self.random);
+        let effective = state
+            .flow
+            .effective_input(input, &env)
+            .map_err(Failure::from_asl)?;
+        let started = self.record(thread, EventType::ParallelStateStarted, Value::Null)?;
+        let mut set = JoinSet::new();
+        for (i, branch) in parallel.branches.iter().enumerate() {
+            let branch =
+                self.clone()
+                    .run_scope(branch.clone(), effective.clone(), Thread { last: started });
+            set.spawn(async move { (i, branch.await) });
+        }
+        let mut outputs = vec![Value::Null; parallel.branches.len()];
+        let mut last = started;
+        let mut failed = None;
+        while let Some(joined) = set.join_next().await {
+            match joined {
+                Ok((i, (Ok(output), branch))) => {
+                    outputs[i] = output;
+                    last = last.max(branch.last);
+                }
+                Ok((_, (Err(failure), branch))) => {
+                    failed = Some((failure, branch.last));
+                    break;
+                }
+                Err(e) => {
+                    failed = Some((Failure::runtime(format!("a branch stopped: {e}")), last));
+                    break;
+                }
+            }
+        }
+        // The other branches stop with the first failure.
+        set.abort_all();
+        if let Some((failure, at)) = failed {
+            thread.last = at;
+            self.record(
+                thread,
+                EventType::ParallelStateFailed,
+                failure_details(&failure),
+            )?;
+            return Err(failure);
+        }
+        thread.last = last;
+        self.record(thread, EventType::ParallelStateSucceeded, Value::Null)?;
+        let output = state
+            .flow
+            .output(input.clone(), Value::Array(outputs), &env)
+            .map_err(Failure::from_asl)?;
+        self.check_size(&output, "output", &state.name)?;
+        Ok(output)
+    }
+
+    async fn attempt_map(
+        self: &Arc<Self>,
+        state: &State,
+        map: &MapState,
+        input: &Value,
+        ctx: &Value,
+        thread: &mut Thread,
+    ) -> Result<Value, Failure> {
+        let env = Env::with_context(ctx).random(&self.random);
+        let effective = state
+            .flow
+            .input_path
+            .apply(input.clone())
+            .map_err(Failure::from_asl)?;
+        let items = match &map.items_path {
+            None => effective.clone(),
+            Some(path) => path.get(&effective, ctx).cloned().ok_or_else(|| {
+                Failure::runtime(format!(
+                    "Invalid path '{}': the ItemsPath of Map state '{}' selects nothing",
+                    path.text(),
+                    state.name
+                ))
+            })?,
+        };
+        let Value::Array(items) = items else {
+            return Err(Failure::runtime(format!(
+                "The ItemsPath of Map state '{}' must select a JSON array, not {}",
+                state.name,
+                kind_of(&items)
+            )));
+        };
+        let started = self.record(
+            thread,
+            EventType::MapStateStarted,
+            json!({"length": items.len()}),
+        )?;
+        let limit = match map.max_concurrency {
+            0 => usize::MAX,
+            n => usize::try_from(n).unwrap_or(usize::MAX),
+        };
+        let mut set = JoinSet::new();
+        let mut running = BTreeSet::new();
+        let mut outputs = vec![Value::Null; items.len()];
+        let mut next_index = 0;
+        let mut last = started;
+        let iteration = |index: usize| json!({"name": state.name, "index": index});
+        let outcome: Result<(), (Failure, u64)> = loop {
+            // Start iterations in item order, up to MaxConcurrency at a time.
+            let mut start_failed = None;
+            while running.len() < limit && next_index < items.len() {
+                let index = next_index;
+                next_index += 1;
+                let item_input = match &map.item_selector {
+                    None => Ok(items[index].clone()),
+                    Some(selector) => {
+                        let mut item_ctx = ctx.clone();
+                        item_ctx["Map"] = json!({"Item": {"Index": index, "Value": items[index]}});
+                        let item_env = Env::with_context(&item_ctx).random(&self.random);
+                        selector
+                            .render(&effective, &item_env)
+                            .map_err(Failure::from_asl)
+                    }
+                };
+                let item_input = match item_input {
+                    Ok(v) => v,
+                    Err(f) => {
+                        start_failed = Some(f);
+                        break;
+                    }
+                };
+                let id = self.recorder.push(
+                    started,
+                    EventType::MapIterationStarted,
+                    iteration(index),
+                )?;
+                let body =
+                    self.clone()
+                        .run_scope(map.processor.clone(), item_input, Thread { last: id });
+                set.spawn(async move { (index, body.await) });
+                running.insert(index);
+            }
+            if let Some(failure) = start_failed {
+                break Err((failure, last));
+            }
+            let Some(joined) = set.join_next().await else {
+                break Ok(());
+            };
+            match joined {
+                Ok((index, (Ok(output), body))) => {
+                    running.remove(&index);
+                    outputs[index] = output;
+                    last = self.recorder.push(
+                        body.last,
+                        EventType::MapIterationSucceeded,
+                        iteration(index),
+                    )?;
+                }
+                Ok((index, (Err(failure), body))) => {
+                    running.remove(&index);
+                    let id = self.recorder.push(
+                        body.last,
+                        EventType::MapIterationFailed,
+                        iteration(index),
+                    )?;
+                    break Err((failure, id));
+                }
+                Err(e) => {
+                    break Err((Failure::runtime(format!("an iteration stopped: {e}")), last))
+                }
+            }
+        };
+        set.abort_all();
+        if let Err((failure, at)) = outcome {
+            for index in running {
+                self.recorder
+                    .push(at, EventType::MapIterationAborted, iteration(index))?;
+            }
+            thread.last = at;
+            self.record(thread, EventType::MapStateFailed, failure_details(&failure))?;
+            return Err(failure);
+        }
+        thread.last = last;
+        self.record(thread, EventType::MapStateSucceeded, Value::Null)?;
+        let output = state
+            .flow
+            .output(input.clone(), Value::Array(outputs), &env)
+            .map_err(Failure::from_asl)?;
+        self.check_size(&output, "output", &state.name)?;
+        Ok(output)
+    }
+}
+
+fn kind_of(value: &Value) -> &'static str {
+    match value {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+}
+
+/// A Wait state's duration in (unscaled) seconds.
+fn wait_seconds(wait: &Wait, input: &Value, ctx: &Value) -> Result<f64, Failure> {
+    let until = |at: OffsetDateTime| (at - OffsetDateTime::now_utc()).as_seconds_f64().max(0.0);
+    Ok(match wait {
+        Wait::Seconds(s) => *s as f64,
+        Wait::Timestamp(at) => until(*at),
+        Wait::SecondsPath(path) => {
+            let value = path.get(input, ctx).ok_or_else(|| {
+                Failure::runtime(format!(
+                    "Invalid path '{}': the SecondsPath of the Wait state selects nothing",
+                    path.text()
+                ))
+            })?;
+            match value.as_u64() {
+                Some(s) if s <= 99_999_999 => s as f64,
+                _ => {
+                    return Err(Failure::runtime(format!(
+                    "The SecondsPath '{}' must select an integer from 0 to 99999999, got {value}",
+                    path.text()
+                )))
+                }
+            }
+        }
+        Wait::TimestampPath(path) => {
+            let value = path.get(input, ctx).ok_or_else(|| {
+                Failure::runtime(format!(
+                    "Invalid path '{}': the TimestampPath of the Wait state selects nothing",
+                    path.text()
+                ))
+            })?;
+            let at = value.as_str().and_then(timestamp::parse).ok_or_else(|| {
+                Failure::runtime(format!(
+                    "The TimestampPath '{}' must select an RFC 3339 timestamp, got {value}",
+                    path.text()
+                ))
+            })?;
+            until(at)
+        }
+    })
+}
+
+/// A Fail state's `Error`/`Cause` (literal, path or intrinsic function).
+fn fail_text(text: &Text, input: &Value, env: &Env<'_>) -> Result<Option<String>, Failure> {
+    let value = match text {
+        Text::None => return Ok(None),
+        Text::Literal(s) => return Ok(Some(s.clone())),
+        Text::Path(path) => path.select(input, env.context).ok_or_else(|| {
+            Failure::runtime(format!(
+                "Invalid path '{}': the Fail state's path selects nothing",
+                path.text()
+            ))
+        })?,
+        Text::Call { field, call } => call
+            .evaluate(field, input, env)
+            .map_err(Failure::from_asl)?,
+    };
+    match value {
+        Value::String(s) => Ok(Some(s)),
+        other => Err(Failure::runtime(format!(
+            "The Fail state's ErrorPath/CausePath must select a string, got {other}"
+        ))),
+    }
+}
