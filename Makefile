@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar local bench-stack
+.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar local bench-stack bench-functions
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -80,6 +80,9 @@ build: $(LAMBDA_TOOLS) ## Lambda bootstraps (cargo lambda build --release) into 
 local: venv kubectl ## One whole submission on this machine (ARGS="--scenario crash" etc.)
 	$(CARGO) build --quiet -p cli -p sidecar -p fake-workloads --bins
 	$(TARGET_DIR)/debug/lbctl local run $(ARGS)
+
+bench-functions: build ## Cold start + one invocation of each Lambda as a process, with peak memory
+	$(CARGO) bench -p e2e --bench cold_start
 
 bench-stack: venv ## Start-up of moto + fake EvalAI + local Kubernetes API (target < 5 s)
 	$(CARGO) bench -p lb-localstack --bench startup

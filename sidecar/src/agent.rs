@@ -235,6 +235,12 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
     }
     // Also when it exited by itself: whatever it left behind goes too.
     child.stop(p.stop_grace).await;
+    // NB: on a cancel the simulator may stop CARLA first, and the evaluator then dies before
+    // this loop sees the marker: that is a cancel, not a crash.
+    if agent_step(&pair::view(&status, id, attempt), true) == AgentStep::Cancel {
+        child.note("submission cancelled: the evaluator stopped");
+        return Ok(PairOutcome::Cancelled);
+    }
 
     let outcome = match judge(cfg, &paths.checkpoint) {
         Verdict::Finished => {

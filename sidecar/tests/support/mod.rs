@@ -39,13 +39,21 @@ pub fn fake(name: &str) -> PathBuf {
     path
 }
 
-/// A free loopback port (nobody listens on it right now).
+/// A loopback port that is free together with the next one (CARLA listens on N and N+1).
+/// Taken from 20000-29999, below Linux's ephemeral range, so no outgoing connection of a
+/// parallel test can grab N+1 between this check and fake-carla's bind.
 pub fn free_port() -> u16 {
-    TcpListener::bind(("127.0.0.1", 0))
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let offset = std::process::id() % 1000 * 10;
+    for _ in 0..5000 {
+        let step = NEXT.fetch_add(2, std::sync::atomic::Ordering::SeqCst);
+        let port = 20000 + ((offset + step) % 10000) as u16;
+        let free = |p: u16| TcpListener::bind(("127.0.0.1", p)).is_ok();
+        if free(port) && free(port + 1) {
+            return port;
+        }
+    }
+    panic!("no free pair of loopback ports in 20000-29999");
 }
 
 /// One Job's `logs` volume: `containers-status`, `agent`, `logs` under a temp root.

@@ -1,0 +1,273 @@
+//! Cold start + one invocation of each Lambda as a whole process, against the local stack
+//! (moto, the fake EvalAI, the local Kubernetes API), with its peak memory.
+//!
+//! Each bootstrap is started as Lambda starts it: environment only, the Runtime API on
+//! `AWS_LAMBDA_RUNTIME_API` (served here), one event; the clock stops when its response
+//! arrives and the peak resident set (VmHWM) is read from /proc before the process is stopped.
+//! `make bench-functions` builds the bootstraps with `cargo lambda build --release` first;
+//! without `--bench` (as `cargo test` runs benches) it uses the debug binaries once.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use fake_evalai::Fixture;
+use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use lb_localstack::workloads::{image_map, Behaviour, Binaries};
+use lb_localstack::{EvalAi, Stack};
+use serde_json::{json, Value};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpListener;
+use tokio::sync::oneshot;
+
+/// One invocation served by the fake Runtime API: the event out, the answer back.
+struct Invocation {
+    event: Value,
+    answer: Mutex<Option<oneshot::Sender<(String, Value)>>>,
+    served: Mutex<bool>,
+}
+
+/// A minimal Lambda Runtime API: `next` hands out the event once (later calls hang, as the
+/// real one does between invocations), `response`/`error` carry the result back.
+async fn runtime_api(invocation: Arc<Invocation>) -> SocketAddr {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(async move {
+        loop {
+            let Ok((mut socket, _)) = listener.accept().await else {
+                return;
+            };
+            let invocation = invocation.clone();
+            tokio::spawn(async move {
+                let mut buf = Vec::new();
+                let mut chunk = [0u8; 8192];
+                // Read the head, then Content-Length bytes of body.
+                let (head, mut body) = loop {
+                    let n = socket.read(&mut chunk).await.unwrap_or(0);
+                    if n == 0 {
+                        return;
+                    }
+                    buf.extend_from_slice(&chunk[..n]);
+                    if let Some(end) = buf.windows(4).position(|w| w == b"\r\n\r\n") {
+                        let head = String::from_utf8_lossy(&buf[..end]).to_string();
+                        break (head, buf[end + 4..].to_vec());
+                    }
+                };
+                let length = head
+                    .lines()
+                    .find_map(|l| {
+                        l.to_ascii_lowercase()
+                            .strip_prefix("content-length:")
+                            .map(|v| v.trim().parse::<usize>().unwrap_or(0))
+                    })
+                    .unwrap_or(0);
+                while body.len() < length {
+                    let n = socket.read(&mut chunk).await.unwrap_or(0);
+                    if n == 0 {
+                        break;
+                    }
+                    body.extend_from_slice(&chunk[..n]);
+                }
+                let path = head
+                    .split_whitespace()
+                    .nth(1)
+                    .unwrap_or_default()
+                    .to_string();
+                if path.ends_with("/invocation/next") {
+                    let first = !std::mem::replace(&mut *invocation.served.lock().unwrap(), true);
+                    if !first {
+                        std::future::pending::<()>().await;
+                    }
+                    let payload = invocation.event.to_string();
+                    let deadline = std::time::SystemTime::now()
+                        .duration_since(std::time::UNIX_EPOCH)
+                        .unwrap()
+                        .as_millis()
+                        + 300_000;
+                    let response = format!(
+                        "HTTP/1.1 200 OK\r\nconnection: close\r\ncontent-type: application/json\r\nlambda-runtime-aws-request-id: bench-1\r\n\
+                         lambda-runtime-deadline-ms: {deadline}\r\nlambda-runtime-invoked-function-arn: arn:aws:lambda:us-east-1:123456789012:function:bench\r\n\
+                         lambda-runtime-trace-id: Root=1-00000000-000000000000000000000000\r\ncontent-length: {}\r\n\r\n{payload}",
+                        payload.len()
+                    );
+                    let _ = socket.write_all(response.as_bytes()).await;
+                } else {
+                    let kind = if path.ends_with("/response") {
+                        "response"
+                    } else {
+                        "error"
+                    };
+                    let value = serde_json::from_slice(&body).unwrap_or(Value::Null);
+                    let _ = socket
+                        .write_all(b"HTTP/1.1 202 Accepted\r\nconnection: close\r\ncontent-length: 2\r\n\r\n{}")
+                        .await;
+                    if let Some(tx) = invocation.answer.lock().unwrap().take() {
+                        let _ = tx.send((kind.to_string(), value));
+                    }
+                }
+            });
+        }
+    });
+    addr
+}
+
+fn peak_rss_kib(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap_or_default()
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("VmHWM:")
+                .map(|v| v.trim().trim_end_matches(" kB").trim().parse().unwrap_or(0))
+        })
+        .unwrap_or(0)
+}
+
+struct Measured {
+    function: &'static str,
+    elapsed: Duration,
+    peak_kib: u64,
+    outcome: String,
+    output: Value,
+}
+
+async fn invoke(
+    function: &'static str,
+    binary: &Path,
+    env: &HashMap<String, String>,
+    event: Value,
+) -> Measured {
+    let (tx, rx) = oneshot::channel();
+    let invocation = Arc::new(Invocation {
+        event,
+        answer: Mutex::new(Some(tx)),
+        served: Mutex::new(false),
+    });
+    let api = runtime_api(invocation).await;
+    let started = Instant::now();
+    let mut child: Child = Command::new(binary)
+        .env_clear()
+        .envs(env)
+        .env("PATH", std::env::var("PATH").unwrap_or_default())
+        .env("AWS_LAMBDA_RUNTIME_API", api.to_string())
+        .env("AWS_LAMBDA_FUNCTION_NAME", function)
+        .env("AWS_LAMBDA_FUNCTION_MEMORY_SIZE", "512")
+        .env("AWS_LAMBDA_FUNCTION_VERSION", "$LATEST")
+        .env("AWS_LAMBDA_LOG_FORMAT", "JSON")
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap_or_else(|e| panic!("start {}: {e}", binary.display()));
+    let answer = tokio::time::timeout(Duration::from_secs(300), rx).await;
+    let elapsed = started.elapsed();
+    // The runtime now waits for its next event (served never): still alive, peak readable.
+    let peak_kib = peak_rss_kib(child.id());
+    assert!(peak_kib > 0, "{function} exited after its invocation");
+    let _ = child.kill();
+    let _ = child.wait();
+    let (outcome, output) = match answer {
+        Ok(Ok(answer)) => answer,
+        _ => ("timeout".into(), Value::Null),
+    };
+    Measured {
+        function,
+        elapsed,
+        peak_kib,
+        outcome,
+        output,
+    }
+}
+
+fn binaries(target: &Path, release: bool) -> Vec<(&'static str, PathBuf)> {
+    ["intake", "launch", "monitor", "finalize"]
+        .into_iter()
+        .map(|f| {
+            let lambda = target.join("lambda").join(f).join("bootstrap");
+            let path = if release && lambda.is_file() {
+                lambda
+            } else if release {
+                target.join("release").join(f)
+            } else {
+                target.join("debug").join(f)
+            };
+            assert!(
+                path.is_file(),
+                "{} missing: run `make build` (or cargo build -p {f})",
+                path.display()
+            );
+            (f, path)
+        })
+        .collect()
+}
+
+fn main() {
+    let release = std::env::args().any(|a| a == "--bench");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let target = std::env::var_os("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root.join("target"));
+    if !release {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let status = Command::new(cargo)
+            .current_dir(&root)
+            .args([
+                "build", "--quiet", "-p", "intake", "-p", "launch", "-p", "monitor", "-p",
+                "finalize",
+            ])
+            .status()
+            .unwrap();
+        assert!(status.success());
+    }
+    let functions = binaries(&target, release);
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(async {
+        let bins = tokio::task::spawn_blocking(Binaries::build).await.unwrap().unwrap();
+        let mut stack = Stack::start(EvalAi::Fake(Fixture::default())).await.expect("the stack (make venv)");
+        let settings = stack.provision(LOCAL_SETTINGS).await.unwrap();
+        let scratch = stack.workdir.path().join("images");
+        let images = image_map(&settings, &bins, &stack.moto.endpoint(), &scratch, "*", &Behaviour::default(), &[]).unwrap();
+        stack.start_kube(local_kube::Config { images, ..local_kube::Config::default() }).unwrap();
+        let env: HashMap<String, String> = stack
+            .moto
+            .sdk_env()
+            .into_iter()
+            .map(|(k, v)| (k.to_string(), v))
+            .chain([
+                ("LB_SETTINGS_SECRET".to_string(), SETTINGS_SECRET.to_string()),
+                ("LB_EVALAI_TOKEN_SECRET".to_string(), TOKEN_SECRET.to_string()),
+                ("LB_KUBECONFIG".to_string(), stack.kubeconfig.as_ref().unwrap().display().to_string()),
+            ])
+            .collect();
+
+        let mut results = Vec::new();
+        let message = json!({"challenge_pk": "1", "phase_pk": "1", "submission_pk": 1,
+                             "submitted_image_uri": "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v1"});
+        let mut state = json!({});
+        for (function, binary) in &functions {
+            let event = match *function {
+                "intake" => json!({"message": message, "execution": "bench"}),
+                "launch" => json!({"submission": state["intake"]["submission"]}),
+                "monitor" => json!({"submission": state["intake"]["submission"], "run": state["run"]}),
+                _ => json!({"state": state}),
+            };
+            let measured = invoke(function, binary, &env, event).await;
+            assert_eq!(measured.outcome, "response", "{function}: {}", measured.output);
+            match *function {
+                "intake" => state["intake"] = measured.output.clone(),
+                "launch" | "monitor" => state["run"] = measured.output.clone(),
+                _ => {}
+            }
+            results.push(measured);
+        }
+        println!(
+            "cold start + one invocation as a process, {} binaries, against moto + fake EvalAI + local Kubernetes API:",
+            if release { "release (cargo lambda)" } else { "debug" }
+        );
+        for m in &results {
+            println!("  {:<9} {:>8.1} ms  peak RSS {:>6.1} MiB  ({})", m.function, m.elapsed.as_secs_f64() * 1000.0, m.peak_kib as f64 / 1024.0, m.outcome);
+        }
+    });
+}
