@@ -1,14 +1,33 @@
-//! `lbctl`: the operators' tool. `lbctl local run` rehearses a whole submission on one machine.
+//! `lbctl`: the operators' tool. `lbctl local run` rehearses a whole submission on one machine;
+//! `invoke` runs one function in-process; `status`, `list`, `cancel`, `submit` and `resume`
+//! work on a real deployment (AWS configuration from the environment).
 
+mod deployment;
+mod error;
+mod executions;
+mod invoke;
 mod local;
+mod ops;
 
 use clap::{Parser, Subcommand};
 
+pub use deployment::{DeploymentArgs, MAX_SCAN_PAGES};
+pub use error::CliError;
+pub use executions::{execution_name, pipe_input, Resume, StateMachineArgs, Submit};
+pub use invoke::{error_object, Function, Invoke};
 pub use local::{LocalRun, Scenario};
+pub use ops::{Cancel, List, Status};
 
-/// Operate the CARLA Leaderboard evaluation backend.
+const EXIT_CODES: &str = "\
+Exit codes: 0 ok, 1 failure (a function error, an AWS error, a refused operation),
+2 usage (bad arguments, or a required setting missing).
+
+AWS credentials, region and endpoint (AWS_ENDPOINT_URL) come from the standard environment.";
+
+/// Operate the CARLA Leaderboard evaluation backend: inspect, cancel, submit and resume
+/// submissions of a deployment, run one function in-process, rehearse a submission locally.
 #[derive(Debug, Parser)]
-#[command(name = "lbctl", version, about)]
+#[command(name = "lbctl", version, after_help = EXIT_CODES)]
 pub struct Cli {
     /// What to do.
     #[command(subcommand)]
@@ -21,6 +40,23 @@ pub enum Command {
     /// Work with the local stack (no AWS account needed).
     #[command(subcommand)]
     Local(LocalCommand),
+    /// Run one function's handler in this process, as its Lambda would: configured from
+    /// LB_SETTINGS_SECRET, LB_EVALAI_TOKEN_SECRET, AWS_* and LB_KUBECONFIG; prints its JSON
+    /// result, or `{"errorType", "errorMessage"}` and exits 1.
+    Invoke(Invoke),
+    /// Show a submission: its DynamoDB record(s) in every leaderboard and its S3 markers.
+    Status(Status),
+    /// List submissions from the DynamoDB tables, newest (highest id) first, one line each.
+    List(List),
+    /// Cancel a running submission: write the S3 cancel marker its Jobs mirror; Finalize then
+    /// reports CANCELLED.
+    Cancel(Cancel),
+    /// Start a state machine execution for a submission, with the input the EventBridge Pipe
+    /// gives it.
+    Submit(Submit),
+    /// Evaluate a FAILED or CANCELLED submission again: remove its cancel marker and start a
+    /// new execution with its record's phase and image. EvalAI must report it `resuming`.
+    Resume(Resume),
 }
 
 /// `lbctl local ...`.
@@ -31,11 +67,43 @@ pub enum LocalCommand {
     Run(LocalRun),
 }
 
-/// Runs a parsed command line; returns the process exit code.
+/// Runs a parsed command line; returns the process exit code. Errors of the operator commands
+/// are [`CliError`]s ([`exit_code`] tells their code).
 pub async fn run(cli: Cli) -> anyhow::Result<u8> {
-    match cli.command {
-        Command::Local(LocalCommand::Run(args)) => local::run(args).await,
+    let code = match cli.command {
+        Command::Local(LocalCommand::Run(args)) => return local::run(args).await,
+        Command::Invoke(args) => invoke::run(args).await?,
+        Command::Status(args) => ops::status(args).await?,
+        Command::List(args) => ops::list(args).await?,
+        Command::Cancel(args) => ops::cancel(args).await?,
+        Command::Submit(args) => executions::submit(args).await?,
+        Command::Resume(args) => executions::resume(args).await?,
+    };
+    Ok(code)
+}
+
+/// The exit code of an error [`run`] returned: 2 for usage errors, else 1.
+pub fn exit_code(error: &anyhow::Error) -> u8 {
+    error
+        .downcast_ref::<CliError>()
+        .map_or(1, CliError::exit_code)
+}
+
+/// The error and its causes on one line, each said once (an SDK error repeats its message in
+/// its sources).
+pub fn describe(error: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in error.chain() {
+        let part = cause.to_string();
+        if part.is_empty() || text.contains(&part) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&part);
     }
+    text
 }
 
 /// JSON logs on stderr at `RUST_LOG` (default: warnings), so the progress on stdout stays readable.
@@ -47,4 +115,28 @@ pub fn telemetry() {
         .with_writer(std::io::stderr)
         .with_env_filter(filter)
         .try_init();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_cause_repeated_by_its_source_is_said_once() {
+        let inner = std::io::Error::other("NotFound: no such secret");
+        let error = anyhow::Error::new(inner)
+            .context("service error: NotFound: no such secret")
+            .context("reading `x`");
+        assert_eq!(
+            describe(&error),
+            "reading `x`: service error: NotFound: no such secret"
+        );
+    }
+
+    #[test]
+    fn usage_errors_keep_their_exit_code_through_anyhow() {
+        let error = anyhow::Error::from(CliError::Usage("bad".into()));
+        assert_eq!(exit_code(&error), 2);
+        assert_eq!(exit_code(&anyhow::anyhow!("other")), 1);
+    }
 }

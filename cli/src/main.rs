@@ -7,14 +7,14 @@ fn main() -> std::process::ExitCode {
         Ok(runtime) => runtime,
         Err(e) => {
             eprintln!("lbctl: cannot start the async runtime: {e}");
-            return std::process::ExitCode::from(2);
+            return std::process::ExitCode::from(1);
         }
     };
     match runtime.block_on(cli::run(args)) {
         Ok(code) => std::process::ExitCode::from(code),
         Err(e) => {
-            eprintln!("lbctl: {e:#}");
-            std::process::ExitCode::from(1)
+            eprintln!("lbctl: {}", cli::describe(&e));
+            std::process::ExitCode::from(cli::exit_code(&e))
         }
     }
 }

@@ -1,0 +1,393 @@
+//! A real deployment as the operator commands see it: the settings secret and the submissions
+//! tables and buckets it names, reached with the standard AWS environment.
+
+use std::collections::{BTreeSet, HashMap};
+
+use aws_config::SdkConfig;
+use aws_sdk_dynamodb::types::AttributeValue;
+use clap::Args;
+use lb_aws::dynamo::RecordStatus;
+use lb_domain::settings::{LeaderboardSettings, Settings};
+use serde_json::{json, Map, Value};
+
+use crate::error::{CliError, Result};
+
+/// Most Scan pages read per table (a page is at most 1 MB, about a thousand records): the
+/// commands stay bounded on a table that grew beyond what a person reads anyway.
+pub const MAX_SCAN_PAGES: usize = 100;
+
+/// The statuses after which nothing runs any more.
+pub const FINAL_STATUSES: [RecordStatus; 3] = [
+    RecordStatus::Finished,
+    RecordStatus::Failed,
+    RecordStatus::Cancelled,
+];
+
+/// Where the deployment's configuration is.
+#[derive(Debug, Clone, Args)]
+pub struct DeploymentArgs {
+    /// Id of the settings secret (Secrets Manager) naming each leaderboard's bucket and tables.
+    #[arg(
+        long,
+        value_name = "ID",
+        env = "LB_SETTINGS_SECRET",
+        default_value = "leaderboard/settings"
+    )]
+    pub settings_secret: String,
+}
+
+/// The loaded deployment: settings and clients.
+#[derive(Debug, Clone)]
+pub struct Deployment {
+    /// The SDK configuration (region, credentials, `AWS_ENDPOINT_URL`).
+    pub sdk: SdkConfig,
+    /// The settings secret's id.
+    pub settings_secret: String,
+    /// The checked settings.
+    pub settings: Settings,
+    /// DynamoDB.
+    pub dynamo: aws_sdk_dynamodb::Client,
+    /// S3 (path-style under an endpoint override).
+    pub s3: aws_sdk_s3::Client,
+}
+
+/// One submission record and where it was found.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Record {
+    /// The leaderboard whose table holds it.
+    pub leaderboard: String,
+    /// The table.
+    pub table: String,
+    /// The item as stored.
+    pub item: HashMap<String, AttributeValue>,
+}
+
+/// What to keep of a Scan.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ScanFilter {
+    /// Every record.
+    All,
+    /// The records of one submission id (any team).
+    Submission(u64),
+    /// Records still queued or running.
+    InFlight,
+}
+
+/// The records found, and the tables whose Scan stopped at [`MAX_SCAN_PAGES`].
+#[derive(Debug, Clone, Default)]
+pub struct Found {
+    /// Records, in table order.
+    pub records: Vec<Record>,
+    /// Tables not read to the end.
+    pub truncated: Vec<String>,
+}
+
+impl Deployment {
+    /// Reads the settings secret through the standard AWS configuration.
+    pub async fn load(args: &DeploymentArgs) -> Result<Deployment> {
+        if args.settings_secret.trim().is_empty() {
+            return Err(CliError::Usage(
+                "`--settings-secret` (or LB_SETTINGS_SECRET) is empty".into(),
+            ));
+        }
+        let sdk = lb_aws::sdk_config().await;
+        let secrets = aws_sdk_secretsmanager::Client::new(&sdk);
+        let settings = lb_aws::secrets::load_settings(&secrets, &args.settings_secret)
+            .await
+            .map_err(|e| {
+                CliError::aws(
+                    format!(
+                        "reading the settings secret `{}` (set --settings-secret or LB_SETTINGS_SECRET)",
+                        args.settings_secret
+                    ),
+                    e,
+                )
+            })?;
+        Ok(Deployment {
+            dynamo: aws_sdk_dynamodb::Client::new(&sdk),
+            s3: lb_aws::s3_client(&sdk),
+            settings_secret: args.settings_secret.clone(),
+            settings,
+            sdk,
+        })
+    }
+
+    /// The leaderboards to look at: all, or the one named (which must exist).
+    pub fn leaderboards(&self, only: Option<&str>) -> Result<Vec<(&str, &LeaderboardSettings)>> {
+        let all: Vec<(&str, &LeaderboardSettings)> = self
+            .settings
+            .leaderboards
+            .iter()
+            .map(|(name, lb)| (name.as_str(), lb))
+            .collect();
+        match only {
+            None => Ok(all),
+            Some(name) => {
+                let chosen: Vec<_> = all.iter().copied().filter(|(n, _)| *n == name).collect();
+                if chosen.is_empty() {
+                    let known: Vec<&str> = all.iter().map(|(n, _)| *n).collect();
+                    return Err(CliError::Usage(format!(
+                        "leaderboard `{}` is not in the settings secret `{}` (it has: {})",
+                        name.escape_debug(),
+                        self.settings_secret,
+                        known.join(", ")
+                    )));
+                }
+                Ok(chosen)
+            }
+        }
+    }
+
+    /// The settings of one leaderboard.
+    pub fn leaderboard(&self, name: &str) -> Result<&LeaderboardSettings> {
+        Ok(self.leaderboards(Some(name))?[0].1)
+    }
+
+    /// Scans the submissions tables of `leaderboards` (each table once), newest submission
+    /// first.
+    pub async fn records(&self, only: Option<&str>, filter: ScanFilter) -> Result<Found> {
+        let mut found = Found::default();
+        let mut seen = BTreeSet::new();
+        for (name, lb) in self.leaderboards(only)? {
+            // NB: two leaderboards may share a table; reading it twice would list records twice.
+            if !seen.insert(lb.submissions_table.as_str()) {
+                continue;
+            }
+            let (items, complete) = self.scan(&lb.submissions_table, filter).await?;
+            if !complete {
+                found.truncated.push(lb.submissions_table.clone());
+            }
+            found.records.extend(items.into_iter().map(|item| Record {
+                leaderboard: name.to_string(),
+                table: lb.submissions_table.clone(),
+                item,
+            }));
+        }
+        found
+            .records
+            .sort_by_key(|r| std::cmp::Reverse(r.submission_id().unwrap_or(0)));
+        Ok(found)
+    }
+
+    /// One table's Scan, paginated, at most [`MAX_SCAN_PAGES`] pages; `false` when cut short.
+    async fn scan(
+        &self,
+        table: &str,
+        filter: ScanFilter,
+    ) -> Result<(Vec<HashMap<String, AttributeValue>>, bool)> {
+        let mut items = Vec::new();
+        let mut start: Option<HashMap<String, AttributeValue>> = None;
+        for _ in 0..MAX_SCAN_PAGES {
+            let mut request = self
+                .dynamo
+                .scan()
+                .table_name(table)
+                .consistent_read(true)
+                .set_exclusive_start_key(start.take());
+            request = match filter {
+                ScanFilter::All => request,
+                ScanFilter::Submission(id) => request
+                    .filter_expression("submission_id = :id")
+                    .expression_attribute_values(":id", AttributeValue::N(id.to_string())),
+                ScanFilter::InFlight => request
+                    .filter_expression("submission_status IN (:queued, :running)")
+                    .expression_attribute_values(
+                        ":queued",
+                        AttributeValue::S(RecordStatus::Queued.as_str().into()),
+                    )
+                    .expression_attribute_values(
+                        ":running",
+                        AttributeValue::S(RecordStatus::Running.as_str().into()),
+                    ),
+            };
+            let page = request
+                .send()
+                .await
+                .map_err(|e| CliError::sdk(format!("dynamodb `Scan` of `{table}`"), e))?;
+            items.extend(page.items.unwrap_or_default());
+            match page.last_evaluated_key {
+                Some(key) if !key.is_empty() => start = Some(key),
+                _ => return Ok((items, true)),
+            }
+        }
+        Ok((items, false))
+    }
+}
+
+impl Record {
+    /// A string attribute.
+    pub fn text(&self, key: &str) -> Option<&str> {
+        self.item
+            .get(key)
+            .and_then(|v| v.as_s().ok())
+            .map(String::as_str)
+    }
+
+    /// A non-negative integer attribute.
+    pub fn number(&self, key: &str) -> Option<u64> {
+        self.item
+            .get(key)
+            .and_then(|v| v.as_n().ok())
+            .and_then(|n| n.parse().ok())
+    }
+
+    /// `submission_id`.
+    pub fn submission_id(&self) -> Option<u64> {
+        self.number("submission_id")
+    }
+
+    /// `team_id`.
+    pub fn team_id(&self) -> Option<u64> {
+        self.number("team_id")
+    }
+
+    /// `submission_status` as stored.
+    pub fn status(&self) -> &str {
+        self.text("submission_status").unwrap_or("")
+    }
+
+    /// FINISHED, FAILED or CANCELLED.
+    pub fn is_final(&self) -> bool {
+        FINAL_STATUSES.iter().any(|s| s.as_str() == self.status())
+    }
+
+    /// The record as JSON, with where it was found.
+    pub fn to_json(&self) -> Value {
+        let mut keys: Vec<&String> = self.item.keys().collect();
+        keys.sort();
+        let record: Map<String, Value> = keys
+            .into_iter()
+            .map(|k| (k.clone(), attribute_json(&self.item[k])))
+            .collect();
+        json!({"leaderboard": self.leaderboard, "table": self.table, "record": record})
+    }
+
+    /// Attributes that are not part of the record's fixed layout (the metrics, mostly).
+    pub fn extra_attributes(&self) -> Vec<(&str, String)> {
+        let mut out: Vec<(&str, String)> = self
+            .item
+            .iter()
+            .filter(|(k, _)| !KNOWN_ATTRIBUTES.contains(&k.as_str()))
+            .map(|(k, v)| (k.as_str(), clean(&attribute_json(v).to_string())))
+            .collect();
+        out.sort();
+        out
+    }
+}
+
+/// Attributes Intake, Monitor and Finalize write besides the metrics.
+const KNOWN_ATTRIBUTES: &[&str] = &[
+    "team_id",
+    "submission_id",
+    "submission_status",
+    "team_name",
+    "track_id",
+    "track_name",
+    "submitted_image_uri",
+    "parallelization_workers",
+    "submitted_time",
+    "start_time",
+    "end_time",
+    "routes_done",
+    "routes_total",
+    "results",
+    "error",
+    "claimed_by",
+];
+
+/// A DynamoDB value as plain JSON (numbers as numbers when they fit).
+pub fn attribute_json(value: &AttributeValue) -> Value {
+    let number = |n: &str| -> Value {
+        if let Ok(i) = n.parse::<i64>() {
+            json!(i)
+        } else if let Some(f) = n.parse::<f64>().ok().filter(|f| f.is_finite()) {
+            json!(f)
+        } else {
+            json!(n)
+        }
+    };
+    match value {
+        AttributeValue::S(s) => json!(s),
+        AttributeValue::N(n) => number(n),
+        AttributeValue::Bool(b) => json!(b),
+        AttributeValue::Null(_) => Value::Null,
+        AttributeValue::Ss(items) => json!(items),
+        AttributeValue::Ns(items) => Value::Array(items.iter().map(|n| number(n)).collect()),
+        AttributeValue::L(items) => Value::Array(items.iter().map(attribute_json).collect()),
+        AttributeValue::M(map) => {
+            let mut keys: Vec<&String> = map.keys().collect();
+            keys.sort();
+            Value::Object(
+                keys.into_iter()
+                    .map(|k| (k.clone(), attribute_json(&map[k])))
+                    .collect(),
+            )
+        }
+        AttributeValue::B(blob) => json!(format!("<{} bytes>", blob.as_ref().len())),
+        AttributeValue::Bs(blobs) => json!(format!("<{} binary values>", blobs.len())),
+        _ => json!("<unknown type>"),
+    }
+}
+
+/// Text from records (team names are the participant's free text) made safe for a terminal.
+pub fn clean(text: &str) -> String {
+    text.chars()
+        .flat_map(|c| {
+            if c.is_control() {
+                c.escape_default().collect::<Vec<_>>()
+            } else {
+                vec![c]
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(pairs: &[(&str, AttributeValue)]) -> Record {
+        Record {
+            leaderboard: "2.0".into(),
+            table: "t".into(),
+            item: pairs
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.clone()))
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn a_record_becomes_plain_json_with_numbers_as_numbers() {
+        let r = record(&[
+            ("team_id", AttributeValue::N("3".into())),
+            ("submission_id", AttributeValue::N("7".into())),
+            ("driving_score", AttributeValue::N("41.25".into())),
+            ("submission_status", AttributeValue::S("FAILED".into())),
+        ]);
+        assert_eq!(
+            r.to_json(),
+            json!({"leaderboard": "2.0", "table": "t", "record": {
+                "driving_score": 41.25, "submission_id": 7,
+                "submission_status": "FAILED", "team_id": 3}})
+        );
+        assert!(r.is_final());
+        assert_eq!(
+            r.extra_attributes(),
+            vec![("driving_score", "41.25".into())]
+        );
+    }
+
+    #[test]
+    fn a_malformed_record_reads_as_missing_values_not_a_panic() {
+        let r = record(&[("submission_id", AttributeValue::S("seven".into()))]);
+        assert_eq!(r.submission_id(), None);
+        assert_eq!(r.status(), "");
+        assert!(!r.is_final());
+    }
+
+    #[test]
+    fn control_characters_in_team_names_are_escaped() {
+        assert_eq!(clean("Team\u{1b}[31m One\n"), "Team\\u{1b}[31m One\\n");
+    }
+}

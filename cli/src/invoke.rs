@@ -1,0 +1,168 @@
+//! `lbctl invoke`: one function's handler in-process, configured from the environment exactly
+//! as its Lambda is, with the Lambda's JSON result or error object on stdout.
+
+use std::io::{IsTerminal, Read};
+use std::path::{Path, PathBuf};
+
+use clap::{Args, ValueEnum};
+use lb_pipeline::FnError;
+use serde_json::{json, Value};
+
+use crate::error::{CliError, Result};
+
+/// Biggest event accepted: Step Functions passes at most 256 KiB between states.
+const MAX_EVENT_BYTES: u64 = 256 * 1024;
+
+/// The functions of the state machine, each with the event its Task's `Parameters` build.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Function {
+    /// Stage 1: validate, read EvalAI, gate, claim. Event: `{"message": <the Pipe's output>,
+    /// "execution": "<execution name>"}`.
+    Intake,
+    /// Stages 2-3: plan, render and create the Jobs. Event: `{"submission": <$.intake.submission>}`.
+    Launch,
+    /// Stage 4: one monitor round. Event: `{"submission": <$.intake.submission>, "run": <$.run>}`.
+    Monitor,
+    /// Stage 5 and the failure path: delete the Jobs, final merge, EvalAI, DynamoDB. Event:
+    /// `{"state": <the whole execution state>}`.
+    Finalize,
+}
+
+impl Function {
+    fn as_str(self) -> &'static str {
+        match self {
+            Function::Intake => "intake",
+            Function::Launch => "launch",
+            Function::Monitor => "monitor",
+            Function::Finalize => "finalize",
+        }
+    }
+}
+
+/// `lbctl invoke` options.
+#[derive(Debug, Clone, Args)]
+pub struct Invoke {
+    /// The function whose handler runs.
+    #[arg(value_enum)]
+    pub function: Function,
+    /// JSON file with the event the state machine would pass (`-` or absent: stdin).
+    #[arg(long, value_name = "FILE")]
+    pub event: Option<PathBuf>,
+}
+
+/// Reads and parses the event; errors name the file.
+fn read_event(path: Option<&Path>) -> Result<Value> {
+    let stdin = path.is_none_or(|p| p == Path::new("-"));
+    let shown = path.map_or_else(|| PathBuf::from("-"), Path::to_path_buf);
+    let mut text = Vec::new();
+    let read = if stdin {
+        if std::io::stdin().is_terminal() {
+            return Err(CliError::Usage(
+                "no event: pass `--event FILE` or pipe the event's JSON on stdin".into(),
+            ));
+        }
+        std::io::stdin()
+            .take(MAX_EVENT_BYTES + 1)
+            .read_to_end(&mut text)
+    } else {
+        std::fs::File::open(&shown).and_then(|f| f.take(MAX_EVENT_BYTES + 1).read_to_end(&mut text))
+    };
+    read.map_err(|source| CliError::EventUnreadable {
+        path: shown.clone(),
+        source,
+    })?;
+    if text.len() as u64 > MAX_EVENT_BYTES {
+        return Err(CliError::EventUnreadable {
+            path: shown,
+            source: std::io::Error::other(format!(
+                "it is over {MAX_EVENT_BYTES} bytes, more than Step Functions passes to a task"
+            )),
+        });
+    }
+    serde_json::from_slice(&text).map_err(|source| CliError::InvalidEvent {
+        path: shown,
+        source,
+    })
+}
+
+/// The object Lambda returns for a function error: what the state machine's `ErrorEquals`
+/// and `Catch` see.
+pub fn error_object(error: &FnError) -> Value {
+    json!({ "errorType": error.name(), "errorMessage": error.chain() })
+}
+
+/// Runs the handler; prints its result (exit 0) or its error object (exit 1) on stdout.
+pub async fn run(args: Invoke) -> Result<u8> {
+    let event = read_event(args.event.as_deref())?;
+    let name = args.function.as_str();
+    let result = match args.function {
+        Function::Intake => match intake::Deps::from_env().await {
+            Ok(deps) => intake::handle_json(event, &deps).await,
+            Err(e) => Err(e),
+        },
+        Function::Launch => match launch::Deps::from_env().await {
+            Ok(deps) => launch::handle_json(event, &deps).await,
+            Err(e) => Err(e),
+        },
+        Function::Monitor => match monitor::Deps::from_env().await {
+            Ok(deps) => monitor::handle_json(event, &deps).await,
+            Err(e) => Err(e),
+        },
+        Function::Finalize => match finalize::Deps::from_env().await {
+            Ok(deps) => finalize::handle_json(event, &deps).await,
+            Err(e) => Err(e),
+        },
+    };
+    match result {
+        Ok(output) => {
+            println!("{}", pretty(&output));
+            Ok(0)
+        }
+        Err(error) => {
+            println!("{}", pretty(&error_object(&error)));
+            eprintln!("lbctl: {name} raised `{}`", error.name());
+            Ok(1)
+        }
+    }
+}
+
+fn pretty(value: &Value) -> String {
+    serde_json::to_string_pretty(value).unwrap_or_else(|_| value.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_error_object_has_the_name_the_state_machine_matches() {
+        let error = FnError::Input("intake input: missing field `execution`".into());
+        assert_eq!(
+            error_object(&error),
+            json!({"errorType": "InvalidInput",
+                   "errorMessage": "invalid input: intake input: missing field `execution`"})
+        );
+    }
+
+    #[test]
+    fn an_event_that_is_not_json_is_named_with_its_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("event.json");
+        std::fs::write(&path, "{\"message\": ").unwrap();
+        let err = read_event(Some(&path)).unwrap_err();
+        assert_eq!(err.name(), "InvalidEvent");
+        assert!(err.to_string().contains("event.json"), "{err}");
+        let err = read_event(Some(&dir.path().join("missing.json"))).unwrap_err();
+        assert_eq!(err.name(), "EventUnreadable");
+        assert!(err.to_string().contains("missing.json"), "{err}");
+    }
+
+    #[test]
+    fn an_oversized_event_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("big.json");
+        std::fs::write(&path, vec![b' '; MAX_EVENT_BYTES as usize + 10]).unwrap();
+        let err = read_event(Some(&path)).unwrap_err();
+        assert!(err.to_string().contains("over"), "{err}");
+    }
+}

@@ -1,0 +1,441 @@
+//! `lbctl status`, `lbctl list` and `lbctl cancel`: the submissions of a real deployment as
+//! its DynamoDB records and S3 markers show them, and the operator's cancel.
+
+use clap::Args;
+use lb_aws::s3::{SubmissionStore, CANCEL_MARKER, STATUS_DIR};
+use serde_json::{json, Value};
+
+use crate::deployment::{clean, Deployment, DeploymentArgs, Found, Record, ScanFilter};
+use crate::error::{CliError, Result};
+
+/// Parses an EvalAI id: EvalAI's primary keys are positive Postgres integers.
+pub(crate) fn evalai_id() -> impl clap::builder::TypedValueParser<Value = u64> {
+    clap::value_parser!(u64).range(1..=lb_domain::submission::MAX_ID)
+}
+
+/// `lbctl status` options.
+#[derive(Debug, Clone, Args)]
+pub struct Status {
+    /// EvalAI submission id.
+    #[arg(value_parser = evalai_id())]
+    pub submission: u64,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub deployment: DeploymentArgs,
+}
+
+/// `lbctl list` options.
+#[derive(Debug, Clone, Args)]
+pub struct List {
+    /// Only submissions still queued or running (`QUEUED`, `RUNNING`).
+    #[arg(long)]
+    pub running: bool,
+    /// Only this leaderboard's table (a key of the settings' `leaderboards`, e.g. `2.0`).
+    #[arg(long, value_name = "LEADERBOARD")]
+    pub leaderboard: Option<String>,
+    /// Most submissions shown (the newest).
+    #[arg(long, default_value_t = 50, value_parser = clap::value_parser!(u64).range(1..=100_000))]
+    pub limit: u64,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub deployment: DeploymentArgs,
+}
+
+/// `lbctl cancel` options.
+#[derive(Debug, Clone, Args)]
+pub struct Cancel {
+    /// EvalAI submission id.
+    #[arg(value_parser = evalai_id())]
+    pub submission: u64,
+    /// Write the marker even when the record is missing or already final.
+    #[arg(long)]
+    pub force: bool,
+    /// Only this leaderboard (needed with --force when the submission has no record).
+    #[arg(long, value_name = "LEADERBOARD")]
+    pub leaderboard: Option<String>,
+    #[command(flatten)]
+    pub deployment: DeploymentArgs,
+}
+
+/// The markers of one submission in one leaderboard's bucket.
+#[derive(Debug, Clone)]
+struct Markers {
+    leaderboard: String,
+    location: String,
+    names: Vec<String>,
+    /// Why the bucket could not be listed (one unreadable bucket does not hide the rest).
+    error: Option<String>,
+}
+
+impl Markers {
+    fn cancel_requested(&self) -> bool {
+        self.names.iter().any(|n| n == CANCEL_MARKER)
+    }
+}
+
+fn marker_location(bucket: &str, submission: u64) -> String {
+    format!("s3://{bucket}/{submission}/{STATUS_DIR}/")
+}
+
+/// The markers in every bucket of the settings (each bucket once).
+async fn markers(deployment: &Deployment, submission: u64) -> Result<Vec<Markers>> {
+    let mut out: Vec<Markers> = Vec::new();
+    for (name, lb) in deployment.leaderboards(None)? {
+        let location = marker_location(&lb.bucket, submission);
+        if out.iter().any(|m| m.location == location) {
+            continue;
+        }
+        let store = SubmissionStore::new(deployment.s3.clone(), &lb.bucket, submission);
+        let (names, error) = match store.markers().await {
+            Ok(mut names) => {
+                names.sort();
+                (names, None)
+            }
+            Err(e) => {
+                let error = crate::describe(&anyhow::Error::new(e));
+                eprintln!("lbctl: warning: listing the markers under `{location}` failed: {error}");
+                (Vec::new(), Some(error))
+            }
+        };
+        out.push(Markers {
+            leaderboard: name.to_string(),
+            location,
+            names,
+            error,
+        });
+    }
+    Ok(out)
+}
+
+fn warn_truncated(found: &Found) {
+    for table in &found.truncated {
+        eprintln!(
+            "lbctl: warning: stopped reading `{table}` after {} pages; the answer may be incomplete",
+            crate::deployment::MAX_SCAN_PAGES
+        );
+    }
+}
+
+fn tables(deployment: &Deployment, only: Option<&str>) -> String {
+    deployment
+        .leaderboards(only)
+        .map(|lbs| {
+            lbs.iter()
+                .map(|(_, lb)| format!("`{}`", lb.submissions_table))
+                .collect::<Vec<_>>()
+                .join(", ")
+        })
+        .unwrap_or_default()
+}
+
+/// `lbctl status`: the records and markers of one submission.
+pub async fn status(args: Status) -> Result<u8> {
+    let deployment = Deployment::load(&args.deployment).await?;
+    let id = args.submission;
+    let found = deployment.records(None, ScanFilter::Submission(id)).await?;
+    warn_truncated(&found);
+    let markers: Vec<Markers> = markers(&deployment, id)
+        .await?
+        .into_iter()
+        .filter(|m| {
+            !m.names.is_empty()
+                || m.error.is_some()
+                || found.records.iter().any(|r| r.leaderboard == m.leaderboard)
+        })
+        .collect();
+    if found.records.is_empty() && markers.iter().all(|m| m.names.is_empty()) {
+        let unreadable = markers.iter().filter(|m| m.error.is_some()).count();
+        let buckets = if unreadable == 0 {
+            "the buckets".to_string()
+        } else {
+            format!("the buckets ({unreadable} unreadable)")
+        };
+        return Err(CliError::NotFound(format!(
+            "submission `{id}` has no record in {} and no markers in {buckets}",
+            tables(&deployment, None)
+        )));
+    }
+    if args.json {
+        let out = json!({
+            "submission_id": id,
+            "records": found.records.iter().map(Record::to_json).collect::<Vec<_>>(),
+            "markers": markers.iter().map(|m| json!({
+                "leaderboard": m.leaderboard,
+                "location": m.location,
+                "names": m.names,
+                "cancel_requested": m.cancel_requested(),
+                "error": m.error,
+            })).collect::<Vec<_>>(),
+            "incomplete_scans": found.truncated,
+        });
+        println!("{}", pretty(&out));
+        return Ok(0);
+    }
+    println!("submission {id}");
+    if found.records.is_empty() {
+        println!(
+            "no record in {} (never claimed, or claimed elsewhere)",
+            tables(&deployment, None)
+        );
+    }
+    for record in &found.records {
+        print_record(record);
+    }
+    for m in &markers {
+        println!("markers in {} (leaderboard {})", m.location, m.leaderboard);
+        if let Some(error) = &m.error {
+            println!("  (unreadable: {error})");
+        } else if m.names.is_empty() {
+            println!("  (none)");
+        }
+        for name in &m.names {
+            let note = if name == CANCEL_MARKER {
+                "  <- cancel requested"
+            } else {
+                ""
+            };
+            println!("  {}{note}", clean(name));
+        }
+    }
+    Ok(0)
+}
+
+fn print_record(record: &Record) {
+    let text = |key: &str| record.text(key).map(clean).unwrap_or_else(|| "-".into());
+    let number = |key: &str| {
+        record
+            .number(key)
+            .map_or_else(|| "-".to_string(), |n| n.to_string())
+    };
+    println!(
+        "record in `{}` (leaderboard {})",
+        record.table, record.leaderboard
+    );
+    let rows = [
+        ("status", text("submission_status")),
+        (
+            "team",
+            format!("{} (id {})", text("team_name"), number("team_id")),
+        ),
+        (
+            "track",
+            format!("{} (phase {})", text("track_name"), number("track_id")),
+        ),
+        ("image", text("submitted_image_uri")),
+        ("workers", number("parallelization_workers")),
+        (
+            "routes",
+            format!("{}/{}", number("routes_done"), number("routes_total")),
+        ),
+        ("submitted", text("submitted_time")),
+        ("started", text("start_time")),
+        ("ended", text("end_time")),
+        ("results", text("results")),
+        ("claimed by", text("claimed_by")),
+    ];
+    for (label, value) in rows {
+        println!("  {label:<12} {value}");
+    }
+    if let Some(error) = record.text("error") {
+        println!("  {:<12} {}", "error", clean(error));
+    }
+    for (key, value) in record.extra_attributes() {
+        println!("  {:<12} {value}", clean(key));
+    }
+}
+
+/// `lbctl list`: submissions, newest first, one line each.
+pub async fn list(args: List) -> Result<u8> {
+    let deployment = Deployment::load(&args.deployment).await?;
+    let filter = if args.running {
+        ScanFilter::InFlight
+    } else {
+        ScanFilter::All
+    };
+    let found = deployment
+        .records(args.leaderboard.as_deref(), filter)
+        .await?;
+    warn_truncated(&found);
+    let limit = usize::try_from(args.limit).unwrap_or(usize::MAX);
+    let shown = &found.records[..found.records.len().min(limit)];
+    if args.json {
+        let out: Vec<Value> = shown.iter().map(Record::to_json).collect();
+        println!("{}", pretty(&Value::Array(out)));
+        return Ok(0);
+    }
+    if shown.is_empty() {
+        let what = if args.running {
+            "no submission is queued or running"
+        } else {
+            "no submissions"
+        };
+        println!(
+            "{what} ({})",
+            tables(&deployment, args.leaderboard.as_deref())
+        );
+        return Ok(0);
+    }
+    println!(
+        "{:<10} {:<4} {:<9} {:<28} {:<18} {:>7}  {:<20} ENDED",
+        "SUBMISSION", "LB", "STATUS", "TEAM", "TRACK", "ROUTES", "SUBMITTED"
+    );
+    for record in shown {
+        println!("{}", list_line(record));
+    }
+    if found.records.len() > shown.len() {
+        println!(
+            "... {} more (raise --limit)",
+            found.records.len() - shown.len()
+        );
+    }
+    Ok(0)
+}
+
+fn list_line(record: &Record) -> String {
+    let text = |key: &str| record.text(key).map(clean).unwrap_or_else(|| "-".into());
+    let number = |key: &str| {
+        record
+            .number(key)
+            .map_or_else(|| "-".to_string(), |n| n.to_string())
+    };
+    let team = format!("{} ({})", text("team_name"), number("team_id"));
+    let line = format!(
+        "{:<10} {:<4} {:<9} {:<28} {:<18} {:>7}  {:<20} {}",
+        number("submission_id"),
+        clean(&record.leaderboard),
+        text("submission_status"),
+        shorten(&team, 28),
+        shorten(&text("track_name"), 18),
+        format!("{}/{}", number("routes_done"), number("routes_total")),
+        text("submitted_time"),
+        text("end_time"),
+    );
+    line.trim_end().to_string()
+}
+
+fn shorten(text: &str, width: usize) -> String {
+    if text.chars().count() <= width {
+        return text.to_string();
+    }
+    let mut out: String = text.chars().take(width.saturating_sub(1)).collect();
+    out.push('~');
+    out
+}
+
+/// `lbctl cancel`: the S3 cancel marker of a submission's leaderboard.
+pub async fn cancel(args: Cancel) -> Result<u8> {
+    let deployment = Deployment::load(&args.deployment).await?;
+    let id = args.submission;
+    let only = args.leaderboard.as_deref();
+    let found = deployment.records(only, ScanFilter::Submission(id)).await?;
+    warn_truncated(&found);
+
+    // The leaderboards whose bucket gets the marker, with the record status that justifies it.
+    let mut targets: Vec<(String, String)> = Vec::new();
+    if found.records.is_empty() {
+        if !args.force {
+            return Err(CliError::NotFound(format!(
+                "submission `{id}` has no record in {}: it was never claimed, so nothing of it runs \
+                 (with --force --leaderboard L the marker is written anyway)",
+                tables(&deployment, only)
+            )));
+        }
+        let Some(name) = only else {
+            return Err(CliError::Usage(format!(
+                "submission `{id}` has no record: name the bucket's leaderboard with --leaderboard"
+            )));
+        };
+        targets.push((name.to_string(), "no record".into()));
+    } else {
+        let running: Vec<&Record> = found.records.iter().filter(|r| !r.is_final()).collect();
+        if running.is_empty() && !args.force {
+            let statuses: Vec<String> = found
+                .records
+                .iter()
+                .map(|r| format!("{} in `{}`", clean(r.status()), r.table))
+                .collect();
+            return Err(CliError::Refused(format!(
+                "submission `{id}` is already final ({}): nothing runs to cancel (--force writes the marker anyway)",
+                statuses.join(", ")
+            )));
+        }
+        let chosen = if args.force {
+            found.records.iter().collect()
+        } else {
+            running
+        };
+        for record in chosen {
+            if !targets.iter().any(|(lb, _)| *lb == record.leaderboard) {
+                targets.push((
+                    record.leaderboard.clone(),
+                    format!("record {}", clean(record.status())),
+                ));
+            }
+        }
+    }
+
+    for (leaderboard, status) in &targets {
+        let bucket = &deployment.leaderboard(leaderboard)?.bucket;
+        let store = SubmissionStore::new(deployment.s3.clone(), bucket, id);
+        store.put_cancel_marker().await.map_err(|e| {
+            CliError::aws(
+                format!("writing the cancel marker of submission `{id}` in `{bucket}`"),
+                e,
+            )
+        })?;
+        println!(
+            "cancel marker written: {}{CANCEL_MARKER} (leaderboard {leaderboard}, {status})",
+            marker_location(bucket, id)
+        );
+    }
+    println!(
+        "The Jobs' logcopy mirrors it into the pods within its period; the simulators and agents \
+         stop, the Jobs end, and Finalize reports CANCELLED to EvalAI and in the record \
+         (`lbctl status {id}` shows it)."
+    );
+    Ok(0)
+}
+
+fn pretty(value: &Value) -> String {
+    serde_json::to_string_pretty(value).unwrap_or_else(|_| value.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use aws_sdk_dynamodb::types::AttributeValue;
+
+    #[test]
+    fn a_list_line_shows_the_record_and_never_a_raw_control_character() {
+        let record = Record {
+            leaderboard: "2.0".into(),
+            table: "t".into(),
+            item: [
+                ("submission_id", AttributeValue::N("12".into())),
+                ("team_id", AttributeValue::N("3".into())),
+                ("team_name", AttributeValue::S("Evil\u{1b}[2J Team".into())),
+                ("submission_status", AttributeValue::S("RUNNING".into())),
+                ("track_name", AttributeValue::S("SENSORS".into())),
+                ("routes_done", AttributeValue::N("5".into())),
+                ("routes_total", AttributeValue::N("20".into())),
+            ]
+            .into_iter()
+            .map(|(k, v)| (k.to_string(), v))
+            .collect(),
+        };
+        let line = list_line(&record);
+        assert!(line.starts_with("12         2.0  RUNNING"), "{line}");
+        assert!(line.contains("5/20"), "{line}");
+        assert!(!line.contains('\u{1b}'), "{line}");
+    }
+
+    #[test]
+    fn long_names_are_shortened_to_their_column() {
+        assert_eq!(shorten("abcdef", 4), "abc~");
+        assert_eq!(shorten("abc", 4), "abc");
+    }
+}

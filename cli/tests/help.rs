@@ -1,0 +1,167 @@
+//! What an operator sees without any AWS: help texts, usage errors and their exit codes, and
+//! `invoke`'s errors that happen before any call.
+
+mod common;
+
+use common::{lbctl, show, stderr, stdout};
+
+const SUBCOMMANDS: &[&str] = &[
+    "local", "invoke", "status", "list", "cancel", "submit", "resume",
+];
+
+#[test]
+fn the_help_lists_every_subcommand_and_the_exit_codes() {
+    let out = lbctl(&["--help"], &[], None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let text = stdout(&out);
+    for sub in SUBCOMMANDS {
+        assert!(
+            text.lines().any(|l| l.trim_start().starts_with(sub)),
+            "`{sub}` missing from\n{text}"
+        );
+    }
+    assert!(text.contains("Exit codes: 0 ok, 1 failure"), "{text}");
+    assert!(text.contains("2 usage"), "{text}");
+}
+
+#[test]
+fn every_subcommand_documents_its_arguments() {
+    let expected: &[(&[&str], &[&str])] = &[
+        (&["local", "run"], &["--scenario", "--workers", "--keep"]),
+        (
+            &["invoke"],
+            &["intake", "launch", "monitor", "finalize", "--event"],
+        ),
+        (
+            &["status"],
+            &[
+                "<SUBMISSION>",
+                "--json",
+                "--settings-secret",
+                "LB_SETTINGS_SECRET",
+            ],
+        ),
+        (
+            &["list"],
+            &["--running", "--leaderboard", "--limit", "--json"],
+        ),
+        (&["cancel"], &["<SUBMISSION>", "--force", "--leaderboard"]),
+        (
+            &["submit"],
+            &[
+                "--challenge",
+                "--phase",
+                "--submission",
+                "--image",
+                "--state-machine",
+                "LB_STATE_MACHINE_ARN",
+            ],
+        ),
+        (
+            &["resume"],
+            &[
+                "<SUBMISSION>",
+                "--challenge",
+                "--force",
+                "--token-secret",
+                "--state-machine",
+                "resuming",
+            ],
+        ),
+    ];
+    for (command, words) in expected {
+        let mut args = command.to_vec();
+        args.push("--help");
+        let out = lbctl(&args, &[], None);
+        assert_eq!(out.status.code(), Some(0), "{command:?}: {}", show(&out));
+        let text = stdout(&out);
+        for word in *words {
+            assert!(
+                text.contains(word),
+                "{command:?} --help lacks `{word}`:\n{text}"
+            );
+        }
+    }
+}
+
+#[test]
+fn submit_without_a_state_machine_is_a_usage_error_naming_both_sources() {
+    let out = lbctl(
+        &[
+            "submit",
+            "--challenge",
+            "1",
+            "--phase",
+            "1",
+            "--submission",
+            "1",
+        ],
+        &[],
+        None,
+    );
+    assert_eq!(out.status.code(), Some(2), "{}", show(&out));
+    let err = stderr(&out);
+    assert!(
+        err.contains("--state-machine") && err.contains("LB_STATE_MACHINE_ARN"),
+        "{err}"
+    );
+}
+
+#[test]
+fn ids_that_are_not_evalai_ids_are_usage_errors() {
+    for args in [
+        &["status", "0"][..],
+        &["cancel", "-3"],
+        &["resume", "2147483648"],
+        &["list", "--limit", "0"],
+    ] {
+        let out = lbctl(args, &[], None);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {}", show(&out));
+    }
+}
+
+#[test]
+fn invoke_names_an_event_file_that_is_not_json() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("broken-event.json");
+    std::fs::write(&path, "{\"message\": {\"challenge_pk\": 1,").unwrap();
+    let out = lbctl(
+        &["invoke", "intake", "--event", path.to_str().unwrap()],
+        &[],
+        None,
+    );
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    let err = stderr(&out);
+    assert!(
+        err.contains("broken-event.json") && err.contains("not valid JSON"),
+        "{err}"
+    );
+    assert!(stdout(&out).is_empty(), "{}", show(&out));
+
+    let out = lbctl(&["invoke", "intake", "--event", "-"], &[], Some("not json"));
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(stderr(&out).contains("`-`"), "{}", show(&out));
+}
+
+#[test]
+fn invoke_without_its_environment_prints_the_lambda_error_object() {
+    let event =
+        r#"{"message": {"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1}, "execution": "x"}"#;
+    for function in ["intake", "launch", "monitor", "finalize"] {
+        let out = lbctl(&["invoke", function], &[], Some(event));
+        assert_eq!(out.status.code(), Some(1), "{function}: {}", show(&out));
+        let error: serde_json::Value = serde_json::from_slice(&out.stdout)
+            .unwrap_or_else(|e| panic!("{function}: {e}: {}", show(&out)));
+        assert_eq!(
+            error["errorType"], "InvalidConfiguration",
+            "{function}: {error}"
+        );
+        assert!(
+            error["errorMessage"]
+                .as_str()
+                .unwrap()
+                .contains("LB_SETTINGS_SECRET"),
+            "{function}: {error}"
+        );
+    }
+}

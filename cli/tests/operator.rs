@@ -1,0 +1,489 @@
+//! `status`, `list`, `cancel`, `submit` and `resume` against moto (DynamoDB, S3, Secrets
+//! Manager, Step Functions) and the fake EvalAI, through the `lbctl` binary.
+
+mod common;
+
+use std::collections::HashMap;
+
+use aws_sdk_dynamodb::types::AttributeValue;
+use common::{lbctl, show, stderr, stdout};
+use fake_evalai::Fixture;
+use serde_json::{json, Value};
+
+const TABLE_20: &str = "leaderboard-20-submissions";
+const TABLE_10: &str = "leaderboard-10-submissions";
+const BUCKET_20: &str = "leaderboard-20-results";
+const IMAGE: &str = "342236305043.dkr.ecr.us-west-2.amazonaws.com/team-one:agent-v1";
+
+/// A record as Intake, Monitor and Finalize leave it.
+async fn put_record(
+    sdk: &aws_config::SdkConfig,
+    table: &str,
+    team: u64,
+    submission: u64,
+    status: &str,
+    extra: &[(&str, AttributeValue)],
+) {
+    let mut item: HashMap<String, AttributeValue> = [
+        ("team_id", AttributeValue::N(team.to_string())),
+        ("submission_id", AttributeValue::N(submission.to_string())),
+        ("submission_status", AttributeValue::S(status.into())),
+        ("team_name", AttributeValue::S(format!("Team {team}"))),
+        ("track_id", AttributeValue::N("1".into())),
+        ("track_name", AttributeValue::S("SENSORS".into())),
+        ("submitted_image_uri", AttributeValue::S(IMAGE.into())),
+        ("parallelization_workers", AttributeValue::N("4".into())),
+        (
+            "submitted_time",
+            AttributeValue::S("2026-01-01T00:00:00Z".into()),
+        ),
+        ("routes_done", AttributeValue::N("5".into())),
+        ("routes_total", AttributeValue::N("20".into())),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect();
+    item.extend(extra.iter().map(|(k, v)| (k.to_string(), v.clone())));
+    aws_sdk_dynamodb::Client::new(sdk)
+        .put_item()
+        .table_name(table)
+        .set_item(Some(item))
+        .send()
+        .await
+        .unwrap();
+}
+
+async fn put_object(sdk: &aws_config::SdkConfig, bucket: &str, key: &str) {
+    lb_aws::s3_client(sdk)
+        .put_object()
+        .bucket(bucket)
+        .key(key)
+        .body(Vec::new().into())
+        .send()
+        .await
+        .unwrap();
+}
+
+async fn exists(sdk: &aws_config::SdkConfig, bucket: &str, key: &str) -> bool {
+    lb_aws::s3_client(sdk)
+        .head_object()
+        .bucket(bucket)
+        .key(key)
+        .send()
+        .await
+        .is_ok()
+}
+
+fn cancel_key(submission: u64) -> String {
+    format!("{submission}/containers-status/simulation.cancel")
+}
+
+/// A state machine in moto's Step Functions; its ARN.
+async fn state_machine(sdk: &aws_config::SdkConfig) -> String {
+    let definition = json!({"StartAt": "Done", "States": {"Done": {"Type": "Succeed"}}});
+    aws_sdk_sfn::Client::new(sdk)
+        .create_state_machine()
+        .name("submission")
+        .definition(definition.to_string())
+        .role_arn("arn:aws:iam::123456789012:role/leaderboard-states")
+        .send()
+        .await
+        .unwrap()
+        .state_machine_arn
+}
+
+/// The execution ARN `lbctl submit`/`resume` printed, and its input as moto stored it.
+async fn started_execution(sdk: &aws_config::SdkConfig, out: &str) -> (String, Value) {
+    let arn = out
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("arn"))
+        .map(|a| a.trim().to_string())
+        .unwrap_or_else(|| panic!("no execution ARN in\n{out}"));
+    let described = aws_sdk_sfn::Client::new(sdk)
+        .describe_execution()
+        .execution_arn(&arn)
+        .send()
+        .await
+        .unwrap();
+    let input = serde_json::from_str(described.input().unwrap()).unwrap();
+    (arn, input)
+}
+
+fn list_ids(text: &str) -> Vec<u64> {
+    text.lines()
+        .skip(1)
+        .filter_map(|l| l.split_whitespace().next()?.parse().ok())
+        .collect()
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
+    let (stack, env) = common::stack(Fixture::default()).await;
+    let sdk = &stack.sdk;
+    put_record(sdk, TABLE_20, 1, 101, "RUNNING", &[]).await;
+    put_record(
+        sdk,
+        TABLE_20,
+        2,
+        102,
+        "FINISHED",
+        &[
+            ("driving_score", AttributeValue::N("41.25".into())),
+            ("end_time", AttributeValue::S("2026-01-02T00:00:00Z".into())),
+        ],
+    )
+    .await;
+    put_record(sdk, TABLE_10, 1, 103, "QUEUED", &[]).await;
+    put_object(sdk, BUCKET_20, "101/containers-status/agent-1.start0").await;
+    put_object(sdk, BUCKET_20, "101/containers-status/simulator-1.start0").await;
+
+    let out = lbctl(&["status", "101"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let text = stdout(&out);
+    for expected in [
+        "submission 101",
+        "leaderboard-20-submissions",
+        "RUNNING",
+        "Team 1 (id 1)",
+        "SENSORS (phase 1)",
+        "5/20",
+        IMAGE,
+        "s3://leaderboard-20-results/101/containers-status/",
+        "agent-1.start0",
+        "simulator-1.start0",
+    ] {
+        assert!(text.contains(expected), "`{expected}` missing:\n{text}");
+    }
+
+    let out = lbctl(&["status", "102", "--json"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let status: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(status["submission_id"], 102);
+    assert_eq!(status["records"][0]["leaderboard"], "2.0");
+    assert_eq!(
+        status["records"][0]["record"]["submission_status"],
+        "FINISHED"
+    );
+    assert_eq!(status["records"][0]["record"]["driving_score"], 41.25);
+    assert_eq!(status["markers"][0]["names"], json!([]));
+    assert_eq!(status["markers"][0]["cancel_requested"], false);
+
+    let out = lbctl(&["status", "999"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("`999` has no record"),
+        "{}",
+        show(&out)
+    );
+
+    let out = lbctl(&["list"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert_eq!(list_ids(&stdout(&out)), [103, 102, 101], "{}", show(&out));
+    assert!(stdout(&out).starts_with("SUBMISSION"), "{}", show(&out));
+
+    let out = lbctl(&["list", "--running"], &env, None);
+    assert_eq!(list_ids(&stdout(&out)), [103, 101], "{}", show(&out));
+
+    let out = lbctl(
+        &["list", "--leaderboard", "2.0", "--limit", "1"],
+        &env,
+        None,
+    );
+    assert_eq!(list_ids(&stdout(&out)), [102], "{}", show(&out));
+    assert!(stdout(&out).contains("1 more"), "{}", show(&out));
+
+    let out = lbctl(&["list", "--leaderboard", "1.0", "--json"], &env, None);
+    let listed: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(listed.as_array().unwrap().len(), 1, "{listed}");
+    assert_eq!(listed[0]["record"]["submission_id"], 103);
+
+    let out = lbctl(&["list", "--leaderboard", "3.0"], &env, None);
+    assert_eq!(out.status.code(), Some(2), "{}", show(&out));
+    assert!(stderr(&out).contains("1.0, 2.0"), "{}", show(&out));
+
+    // One unreadable bucket is reported, and does not hide the rest.
+    lb_aws::s3_client(sdk)
+        .delete_bucket()
+        .bucket("leaderboard-10-results")
+        .send()
+        .await
+        .unwrap();
+    let out = lbctl(&["status", "101"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert!(stdout(&out).contains("agent-1.start0"), "{}", show(&out));
+    assert!(stdout(&out).contains("(unreadable: "), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("warning: listing the markers under `s3://leaderboard-10-results/101/containers-status/`"),
+        "{}",
+        show(&out)
+    );
+
+    // A settings secret that is not there is named.
+    let out = lbctl(&["list", "--settings-secret", "nope/settings"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(stderr(&out).contains("`nope/settings`"), "{}", show(&out));
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn cancel_writes_the_marker_and_refuses_a_final_or_unknown_submission() {
+    let (stack, env) = common::stack(Fixture::default()).await;
+    let sdk = &stack.sdk;
+    put_record(sdk, TABLE_20, 1, 201, "RUNNING", &[]).await;
+    put_record(sdk, TABLE_20, 1, 202, "FINISHED", &[]).await;
+
+    let out = lbctl(&["cancel", "201"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert!(exists(sdk, BUCKET_20, &cancel_key(201)).await);
+    assert!(
+        stdout(&out)
+            .contains("s3://leaderboard-20-results/201/containers-status/simulation.cancel"),
+        "{}",
+        show(&out)
+    );
+    let out = lbctl(&["status", "201", "--json"], &env, None);
+    let status: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(status["markers"][0]["cancel_requested"], true, "{status}");
+    let out = lbctl(&["status", "201"], &env, None);
+    assert!(
+        stdout(&out).contains("simulation.cancel  <- cancel requested"),
+        "{}",
+        show(&out)
+    );
+
+    let out = lbctl(&["cancel", "202"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("already final (FINISHED"),
+        "{}",
+        show(&out)
+    );
+    assert!(!exists(sdk, BUCKET_20, &cancel_key(202)).await);
+    let out = lbctl(&["cancel", "202", "--force"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert!(exists(sdk, BUCKET_20, &cancel_key(202)).await);
+
+    let out = lbctl(&["cancel", "203"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("`203` has no record"),
+        "{}",
+        show(&out)
+    );
+    let out = lbctl(&["cancel", "203", "--force"], &env, None);
+    assert_eq!(out.status.code(), Some(2), "{}", show(&out));
+    assert!(stderr(&out).contains("--leaderboard"), "{}", show(&out));
+    assert!(!exists(sdk, BUCKET_20, &cancel_key(203)).await);
+    let out = lbctl(
+        &["cancel", "203", "--force", "--leaderboard", "2.0"],
+        &env,
+        None,
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert!(exists(sdk, BUCKET_20, &cancel_key(203)).await);
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn submit_starts_an_execution_with_exactly_the_pipes_input() {
+    let (stack, mut env) = common::stack(Fixture::default()).await;
+    let arn = state_machine(&stack.sdk).await;
+
+    let args = [
+        "submit",
+        "--challenge",
+        "1",
+        "--phase",
+        "1",
+        "--submission",
+        "7",
+        "--image",
+        IMAGE,
+        "--state-machine",
+        &arn,
+    ];
+    let out = lbctl(&args, &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let (execution, input) = started_execution(&stack.sdk, &stdout(&out)).await;
+    assert!(
+        execution.contains(":execution:submission:submission-7-"),
+        "{execution}"
+    );
+    assert_eq!(
+        input,
+        json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 7, "submitted_image_uri": IMAGE})
+    );
+
+    // The ARN from the environment, and no image: the key is left out.
+    env.push(("LB_STATE_MACHINE_ARN", arn.clone()));
+    let out = lbctl(
+        &[
+            "submit",
+            "--challenge",
+            "1",
+            "--phase",
+            "2",
+            "--submission",
+            "8",
+        ],
+        &env,
+        None,
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let (_, input) = started_execution(&stack.sdk, &stdout(&out)).await;
+    assert_eq!(
+        input,
+        json!({"challenge_pk": 1, "phase_pk": 2, "submission_pk": 8})
+    );
+
+    // A state machine that does not exist: the call and the ARN are named.
+    let missing = arn.replace(":submission", ":nope");
+    let out = lbctl(
+        &[
+            "submit",
+            "--challenge",
+            "1",
+            "--phase",
+            "1",
+            "--submission",
+            "9",
+            "--state-machine",
+            &missing,
+        ],
+        &env,
+        None,
+    );
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("StartExecution") && stderr(&out).contains(&missing),
+        "{}",
+        show(&out)
+    );
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn resume_clears_the_cancel_marker_and_starts_the_records_phase_and_image_again() {
+    // EvalAI: submission 1 was set to `resuming` by the host; submission 2 is `submitted`.
+    let mut fixture = Fixture::default();
+    fixture.submissions[0].status = "resuming".into();
+    let (stack, mut env) = common::stack(fixture).await;
+    let sdk = &stack.sdk;
+    let arn = state_machine(sdk).await;
+    env.push(("LB_STATE_MACHINE_ARN", arn.clone()));
+
+    // The first run: the Pipe's execution claimed it, and it was cancelled.
+    let out = lbctl(
+        &[
+            "submit",
+            "--challenge",
+            "1",
+            "--phase",
+            "1",
+            "--submission",
+            "1",
+            "--image",
+            IMAGE,
+        ],
+        &env,
+        None,
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let (first, _) = started_execution(sdk, &stdout(&out)).await;
+    let first_name = first.rsplit(':').next().unwrap().to_string();
+    put_record(
+        sdk,
+        TABLE_20,
+        1,
+        1,
+        "CANCELLED",
+        &[("claimed_by", AttributeValue::S(first_name))],
+    )
+    .await;
+    put_object(sdk, BUCKET_20, &cancel_key(1)).await;
+
+    // One second later at least, so the new execution's name differs from the first's.
+    tokio::time::sleep(std::time::Duration::from_millis(1100)).await;
+    let out = lbctl(&["resume", "1"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert!(
+        !exists(sdk, BUCKET_20, &cancel_key(1)).await,
+        "{}",
+        show(&out)
+    );
+    assert!(
+        stdout(&out).contains("cancel marker removed"),
+        "{}",
+        show(&out)
+    );
+    assert!(stdout(&out).contains("resuming"), "{}", show(&out));
+    let (second, input) = started_execution(sdk, &stdout(&out)).await;
+    assert_ne!(first, second);
+    assert_eq!(
+        input,
+        json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1, "submitted_image_uri": IMAGE})
+    );
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn resume_refuses_what_intake_would_skip_unless_forced() {
+    let mut fixture = Fixture::default();
+    fixture.submissions[1].status = "failed".into();
+    let (stack, mut env) = common::stack(fixture).await;
+    let sdk = &stack.sdk;
+    let arn = state_machine(sdk).await;
+    env.push(("LB_STATE_MACHINE_ARN", arn));
+
+    // Still running: an execution holds it.
+    put_record(sdk, TABLE_20, 1, 1, "RUNNING", &[]).await;
+    let out = lbctl(&["resume", "1", "--challenge", "1"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(stderr(&out).contains("lbctl cancel 1"), "{}", show(&out));
+
+    // FAILED here and on EvalAI: EvalAI's resume endpoint is named; nothing is started.
+    put_record(sdk, TABLE_20, 2, 2, "FAILED", &[]).await;
+    let out = lbctl(&["resume", "2", "--challenge", "1"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(stderr(&out).contains("as `failed`"), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("/api/jobs/submissions/2/resume/"),
+        "{}",
+        show(&out)
+    );
+    let executions = aws_sdk_sfn::Client::new(sdk)
+        .list_executions()
+        .state_machine_arn(
+            env.iter()
+                .find(|(k, _)| *k == "LB_STATE_MACHINE_ARN")
+                .unwrap()
+                .1
+                .clone(),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert!(executions.executions().is_empty());
+
+    // No claiming execution and no --challenge: the flag is named.
+    let out = lbctl(&["resume", "2"], &env, None);
+    assert_eq!(out.status.code(), Some(2), "{}", show(&out));
+    assert!(stderr(&out).contains("--challenge"), "{}", show(&out));
+
+    // Forced: started anyway, with a note.
+    let out = lbctl(&["resume", "2", "--challenge", "1", "--force"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert!(stdout(&out).contains("not checked"), "{}", show(&out));
+    let (_, input) = started_execution(sdk, &stdout(&out)).await;
+    assert_eq!(input["submission_pk"], 2);
+
+    // Never ran here.
+    let out = lbctl(&["resume", "77", "--challenge", "1"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("`77` has no record"),
+        "{}",
+        show(&out)
+    );
+}
