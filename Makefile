@@ -62,8 +62,8 @@ sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
 bench-sidecar: venv ## logcopy's peak memory uploading a 1 GiB tree to moto (target < 20 MiB)
 	$(CARGO) bench -p sidecar --bench logcopy
 
-# Lambdas: cargo lambda (and its zig) from PyPI into .venv; x86_64 against an old glibc.
-LAMBDA_ARCH ?= x86_64
+# Lambdas: cargo lambda (and its zig) from PyPI into .venv; x86-64 against an old glibc (arm64: LAMBDA_ARCH=arm64).
+LAMBDA_ARCH ?= x86-64
 LAMBDA_TOOLS := $(VENV)/.lambda-tools
 FUNCTIONS := intake launch monitor finalize
 TARGET_DIR := $(or $(CARGO_TARGET_DIR),target)
@@ -81,11 +81,13 @@ local: venv kubectl ## One whole submission on this machine (ARGS="--scenario cr
 	$(CARGO) build --quiet -p cli -p sidecar -p fake-workloads --bins
 	$(TARGET_DIR)/debug/lbctl local run $(ARGS)
 
+# The harness only starts processes and servers: its own profile does not matter, so it is
+# not rebuilt with LTO; the functions measured are the release bootstraps from `make build`.
 bench-functions: build ## Cold start + one invocation of each Lambda as a process, with peak memory
-	$(CARGO) bench -p e2e --bench cold_start
+	$(CARGO) test --quiet -p e2e --bench cold_start -- --bench
 
 bench-stack: venv ## Start-up of moto + fake EvalAI + local Kubernetes API (target < 5 s)
-	$(CARGO) bench -p lb-localstack --bench startup
+	$(CARGO) test --quiet -p lb-localstack --bench startup -- --bench
 
 clean: ## Remove build output and the venv
 	$(CARGO) clean
