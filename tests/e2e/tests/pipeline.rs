@@ -264,8 +264,8 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
     let partial_puts = h.evalai_writes("update_partially_evaluated_submission");
     assert!(partial_puts >= 1, "partial results reached EvalAI");
     assert!(
-        (partial_puts as u64) < run.monitor.rounds,
-        "a partial update only when results changed"
+        partial_puts as u64 <= run.monitor.rounds,
+        "at most one partial update a round"
     );
     // One more round with nothing new sends nothing.
     let before = h.evalai_writes("update_partially_evaluated_submission");
