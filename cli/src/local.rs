@@ -366,6 +366,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         "pod logs       {}",
         stack.workdir.path().join("pods").display()
     );
+    if !args.keep {
+        println!("               (the stack and these go away on exit: --keep to look at them)");
+    }
     println!("total          {:.1}s", started.elapsed().as_secs_f64());
 
     let expected = args.scenario.expected();
