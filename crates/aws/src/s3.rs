@@ -6,10 +6,8 @@ use aws_sdk_s3::Client;
 
 use crate::{AwsError, Result};
 
-/// Where the status markers live, under the submission prefix.
-pub const STATUS_DIR: &str = "containers-status";
-/// The cancel marker's file name (the seeds' `SIMULATION_CANCEL_FILE`).
-pub const CANCEL_MARKER: &str = "simulation.cancel";
+// The marker folder and the cancel marker are the in-Job protocol's names.
+pub use lb_domain::protocol::{CANCEL_MARKER, STATUS_DIR};
 /// Biggest worker results file we read (the results engine refuses more anyway).
 pub const MAX_PARTIAL_BYTES: u64 = 64 << 20;
 

@@ -2,18 +2,11 @@
 
 use crate::error::{ClusterError, Result};
 
-/// Every Job and Pod of a submission: its EvalAI submission id.
-pub const SUBMISSION_ID: &str = "leaderboard.carla.org/submission-id";
-/// The Job's 0-based index within the submission.
-pub const JOB_INDEX: &str = "leaderboard.carla.org/job-index";
-/// The EvalAI participant team id.
-pub const TEAM_ID: &str = "leaderboard.carla.org/team-id";
-/// `1.0` or `2.0`.
-pub const LEADERBOARD: &str = "leaderboard.carla.org/leaderboard";
-/// Who manages the object.
-pub const MANAGED_BY: &str = "app.kubernetes.io/managed-by";
-/// Value of [`MANAGED_BY`] on everything this project creates.
-pub const MANAGED_BY_VALUE: &str = "leaderboard-cloud";
+// NB: the keys are the plan's, the ones the Job templates put on every Job and Pod.
+pub use lb_domain::plan::{
+    JOB_INDEX_LABEL as JOB_INDEX, LEADERBOARD_LABEL as LEADERBOARD, MANAGED_BY as MANAGED_BY_VALUE,
+    MANAGED_BY_LABEL as MANAGED_BY, SUBMISSION_LABEL as SUBMISSION_ID, TEAM_ID_LABEL as TEAM_ID,
+};
 
 /// Labels the Job controller itself puts on a Job's Pods (the first is the current one).
 pub(crate) const JOB_NAME_LABELS: [&str; 2] = ["batch.kubernetes.io/job-name", "job-name"];
