@@ -1,7 +1,7 @@
 //! The submission's results as the workers left them in S3: fingerprinted cheaply, merged with
 //! the Leaderboard's rules, turned into the EvalAI files and stored next to them.
 
-use lb_aws::s3::{EvalAiObjects, SubmissionStore, MAX_PARTIAL_BYTES};
+use lb_aws::s3::{EvalAiObjects, PartialObject, SubmissionStore, MAX_PARTIAL_BYTES};
 use lb_domain::results::{
     self, read_worker_files, EvalAiFiles, Leaderboard, MergeOptions, ResultsFile, RouteSubset,
     WorkerFile, WorkerInput,
@@ -28,12 +28,29 @@ pub struct Snapshot {
     pub metrics: Vec<(&'static str, f64)>,
 }
 
-/// Identifies the workers' files as they are now (keys and ETags), from one listing.
-pub async fn fingerprint(store: &SubmissionStore) -> Result<String, FnError> {
-    Ok(fingerprint_of(&store.partials().await?))
+/// The workers' files as one listing found them.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Listing {
+    /// Identifies them (pair IDs and ETags): unchanged means nothing new to send.
+    pub fingerprint: String,
+    partials: Vec<PartialObject>,
 }
 
-fn fingerprint_of(partials: &[lb_aws::s3::PartialObject]) -> String {
+/// Lists the workers' files once.
+pub async fn list(store: &SubmissionStore) -> Result<Listing, FnError> {
+    let partials = store.partials().await?;
+    Ok(Listing {
+        fingerprint: fingerprint_of(&partials),
+        partials,
+    })
+}
+
+/// Identifies the workers' files as they are now (keys and ETags), from one listing.
+pub async fn fingerprint(store: &SubmissionStore) -> Result<String, FnError> {
+    Ok(list(store).await?.fingerprint)
+}
+
+fn fingerprint_of(partials: &[PartialObject]) -> String {
     partials
         .iter()
         .map(|p| format!("{}:{}", p.pair_id, p.etag.trim_matches('"')))
@@ -51,8 +68,22 @@ pub async fn collect(
     pairs: &[PairRoutes],
     repetitions: u32,
 ) -> Result<Snapshot, FnError> {
-    let partials = store.partials().await?;
-    let fingerprint = fingerprint_of(&partials);
+    let listing = list(store).await?;
+    collect_listed(store, listing, leaderboard, pairs, repetitions).await
+}
+
+/// [`collect`] from a listing already made (the Monitor lists once to compare fingerprints).
+pub async fn collect_listed(
+    store: &SubmissionStore,
+    listing: Listing,
+    leaderboard: Leaderboard,
+    pairs: &[PairRoutes],
+    repetitions: u32,
+) -> Result<Snapshot, FnError> {
+    let Listing {
+        fingerprint,
+        partials,
+    } = listing;
     let mut sources = Vec::new();
     let mut contents = Vec::new();
     let mut subsets = Vec::new();

@@ -15,29 +15,21 @@ use lb_aws::s3::SubmissionStore;
 use lb_cluster::{Verdict, VerdictPolicy};
 use lb_domain::results::Leaderboard;
 use lb_domain::schedule::{monitor_interval, MAX_EVALUATION};
-use lb_domain::settings::Settings;
 use lb_domain::submission::SubmissionStatus;
-use lb_evalai::{EvalAiClient, PartialUpdate, SubmissionRef, WriteOutcome};
+use lb_evalai::{PartialUpdate, SubmissionRef, WriteOutcome};
+use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::{cluster_error, Clusters};
 use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
-use lb_pipeline::results::{collect, fingerprint};
-use lb_pipeline::{clients, FnError, FunctionConfig, Result};
+use lb_pipeline::results::{collect_listed, list};
+use lb_pipeline::{FnError, FunctionConfig, Result};
 use serde::Deserialize;
 use tracing::{info, warn};
 
 /// What the Monitor needs: settings, clusters, EvalAI, S3, the submissions table.
 #[derive(Debug)]
 pub struct Deps {
-    /// The operator's configuration.
-    pub settings: Settings,
-    /// EvalAI, as the host.
-    pub evalai: EvalAiClient,
-    /// The Job clusters.
-    pub clusters: Clusters,
-    /// S3.
-    pub s3: aws_sdk_s3::Client,
-    /// DynamoDB.
-    pub dynamo: aws_sdk_dynamodb::Client,
+    /// Settings, EvalAI, clusters, S3, DynamoDB.
+    pub clients: RunClients,
     /// How long an unschedulable pod is waited for.
     pub policy: VerdictPolicy,
 }
@@ -45,10 +37,7 @@ pub struct Deps {
 impl Deps {
     /// Cold start: environment, secrets, clients.
     pub async fn from_env() -> Result<Deps> {
-        let config = FunctionConfig::from_env()?;
-        let sdk = lb_aws::sdk_config().await;
-        let clusters = Clusters::from_env(&sdk);
-        Self::load(&sdk, &config, clusters).await
+        Ok(Self::with(RunClients::from_env().await?))
     }
 
     /// The same from an explicit SDK configuration and cluster access (local mode, tests).
@@ -57,16 +46,14 @@ impl Deps {
         config: &FunctionConfig,
         clusters: Clusters,
     ) -> Result<Deps> {
-        let settings = clients::settings(sdk, config).await?;
-        let evalai = clients::evalai(sdk, config, &settings).await?;
-        Ok(Deps {
-            settings,
-            evalai,
-            clusters,
-            s3: lb_aws::s3_client(sdk),
-            dynamo: aws_sdk_dynamodb::Client::new(sdk),
+        Ok(Self::with(RunClients::load(sdk, config, clusters).await?))
+    }
+
+    fn with(clients: RunClients) -> Deps {
+        Deps {
+            clients,
             policy: VerdictPolicy::default(),
-        })
+        }
     }
 }
 
@@ -101,13 +88,14 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         mut run,
     } = input;
     let id = submission.submission_id;
-    let target = deps.settings.target(submission.phase_id)?;
+    let target = deps.clients.settings.target(submission.phase_id)?;
     let leaderboard: Leaderboard = target.leaderboard;
     let elapsed = Duration::from_secs(now_secs().saturating_sub(run.launched_at));
     run.monitor.rounds += 1;
     run.monitor.wait_seconds = monitor_interval(elapsed).as_secs();
 
     let cluster = deps
+        .clients
         .clusters
         .connect(target.deployment)
         .await?
@@ -117,7 +105,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         .await
         .map_err(cluster_error)?
         .expect_jobs(run.jobs.len() as u32);
-    let store = SubmissionStore::new(deps.s3.clone(), &target.deployment.bucket, id);
+    let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
     let at = SubmissionRef {
         challenge: submission.challenge_id,
         phase: submission.phase_id,
@@ -127,11 +115,13 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     // Results first: a changed set is merged and sent (the PUT's own GET reads the status);
     // an unchanged one costs one listing and one GET.
     let mut evalai_status = None;
-    match fingerprint(&store).await {
-        Ok(current)
-            if Some(&current) != run.monitor.fingerprint.as_ref() && !current.is_empty() =>
+    match list(&store).await {
+        Ok(listing)
+            if Some(&listing.fingerprint) != run.monitor.fingerprint.as_ref()
+                && !listing.fingerprint.is_empty() =>
         {
-            match collect(&store, leaderboard, &run.pairs, run.repetitions).await {
+            let current = listing.fingerprint.clone();
+            match collect_listed(&store, listing, leaderboard, &run.pairs, run.repetitions).await {
                 Ok(snapshot) => {
                     run.monitor.progress = snapshot.progress;
                     let update = PartialUpdate {
@@ -143,7 +133,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
                             .clone()
                             .unwrap_or_else(|| "{}".into()),
                     };
-                    match deps.evalai.post_partial(at, &update).await {
+                    match deps.clients.evalai.post_partial(at, &update).await {
                         Ok(WriteOutcome::Written) => {
                             run.monitor.fingerprint = Some(snapshot.fingerprint);
                             evalai_status = Some(SubmissionStatus::PartiallyEvaluated);
@@ -175,7 +165,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         Err(e) => return Err(e),
     }
     if evalai_status.is_none() {
-        match deps.evalai.submission(id).await {
+        match deps.clients.evalai.submission(id).await {
             Ok(current) => evalai_status = Some(current.status),
             Err(e) if e.is_transient() => {
                 warn!(submission_id = id, error = %e, "status not read this round")
@@ -202,8 +192,10 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             ));
         }
         Verdict::Running => {
-            let table =
-                SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table);
+            let table = SubmissionsTable::new(
+                deps.clients.dynamo.clone(),
+                &target.deployment.submissions_table,
+            );
             if let Err(e) = table
                 .mark_running(
                     submission.team_id,
