@@ -4,6 +4,7 @@ use aws_config::SdkConfig;
 use lb_domain::settings::Settings;
 use lb_evalai::{AuthScheme, EvalAiClient, RetryPolicy};
 
+use crate::cluster::Clusters;
 use crate::{FnError, FunctionConfig};
 
 /// The settings secret, read and checked.
@@ -39,4 +40,52 @@ pub fn now_rfc3339() -> String {
         .unwrap_or_else(|_| time::OffsetDateTime::now_utc())
         .format(&time::format_description::well_known::Rfc3339)
         .unwrap_or_default()
+}
+
+/// A Lambda's cold start: its environment read once and the SDK configuration built once.
+pub async fn cold_start() -> Result<(FunctionConfig, SdkConfig), FnError> {
+    let config = FunctionConfig::from_env()?;
+    Ok((config, lb_aws::sdk_config().await))
+}
+
+/// What the stages that watch and end a run share (Monitor, Finalize): settings, EvalAI, the
+/// Job clusters, S3 and DynamoDB, built once per cold start.
+#[derive(Debug)]
+pub struct RunClients {
+    /// The operator's configuration.
+    pub settings: Settings,
+    /// EvalAI, as the host.
+    pub evalai: EvalAiClient,
+    /// The Job clusters.
+    pub clusters: Clusters,
+    /// S3.
+    pub s3: aws_sdk_s3::Client,
+    /// DynamoDB.
+    pub dynamo: aws_sdk_dynamodb::Client,
+}
+
+impl RunClients {
+    /// Cold start from the environment (EKS unless `LB_KUBECONFIG` is set).
+    pub async fn from_env() -> Result<RunClients, FnError> {
+        let (config, sdk) = cold_start().await?;
+        let clusters = Clusters::from_env(&sdk);
+        Self::load(&sdk, &config, clusters).await
+    }
+
+    /// The same from an explicit SDK configuration and cluster access (local mode, tests).
+    pub async fn load(
+        sdk: &SdkConfig,
+        config: &FunctionConfig,
+        clusters: Clusters,
+    ) -> Result<RunClients, FnError> {
+        let settings = settings(sdk, config).await?;
+        let evalai = evalai(sdk, config, &settings).await?;
+        Ok(RunClients {
+            settings,
+            evalai,
+            clusters,
+            s3: lb_aws::s3_client(sdk),
+            dynamo: aws_sdk_dynamodb::Client::new(sdk),
+        })
+    }
 }

@@ -11,13 +11,13 @@ use std::time::Duration;
 use aws_config::SdkConfig;
 use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable};
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
-use lb_domain::settings::Settings;
 use lb_domain::submission::SubmissionStatus;
-use lb_evalai::{EvalAiClient, FinalUpdate, SubmissionRef, WriteOutcome};
+use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
+use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::{cluster_error, Clusters};
 use lb_pipeline::payload::{Action, IntakeOutput, RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::results::{collect, Snapshot};
-use lb_pipeline::{clients, FnError, FunctionConfig, Result};
+use lb_pipeline::{FnError, FunctionConfig, Result};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use tracing::{info, warn};
@@ -28,16 +28,8 @@ pub const DELETE_WAIT: Duration = Duration::from_secs(120);
 /// What Finalize needs: everything the pipeline touches.
 #[derive(Debug)]
 pub struct Deps {
-    /// The operator's configuration.
-    pub settings: Settings,
-    /// EvalAI, as the host.
-    pub evalai: EvalAiClient,
-    /// The Job clusters.
-    pub clusters: Clusters,
-    /// S3.
-    pub s3: aws_sdk_s3::Client,
-    /// DynamoDB.
-    pub dynamo: aws_sdk_dynamodb::Client,
+    /// Settings, EvalAI, clusters, S3, DynamoDB.
+    pub clients: RunClients,
     /// How long to wait for deleted pods.
     pub delete_wait: Duration,
 }
@@ -45,10 +37,7 @@ pub struct Deps {
 impl Deps {
     /// Cold start: environment, secrets, clients.
     pub async fn from_env() -> Result<Deps> {
-        let config = FunctionConfig::from_env()?;
-        let sdk = lb_aws::sdk_config().await;
-        let clusters = Clusters::from_env(&sdk);
-        Self::load(&sdk, &config, clusters).await
+        Ok(Self::with(RunClients::from_env().await?))
     }
 
     /// The same from an explicit SDK configuration and cluster access (local mode, tests).
@@ -57,16 +46,14 @@ impl Deps {
         config: &FunctionConfig,
         clusters: Clusters,
     ) -> Result<Deps> {
-        let settings = clients::settings(sdk, config).await?;
-        let evalai = clients::evalai(sdk, config, &settings).await?;
-        Ok(Deps {
-            settings,
-            evalai,
-            clusters,
-            s3: lb_aws::s3_client(sdk),
-            dynamo: aws_sdk_dynamodb::Client::new(sdk),
+        Ok(Self::with(RunClients::load(sdk, config, clusters).await?))
+    }
+
+    fn with(clients: RunClients) -> Deps {
+        Deps {
+            clients,
             delete_wait: DELETE_WAIT,
-        })
+        }
     }
 }
 
@@ -197,11 +184,11 @@ async fn finish_run(
     error: Option<String>,
 ) -> Result<FinalizeOutput> {
     let id = submission.submission_id;
-    let target = deps.settings.target(submission.phase_id)?;
-    let store = SubmissionStore::new(deps.s3.clone(), &target.deployment.bucket, id);
+    let target = deps.clients.settings.target(submission.phase_id)?;
+    let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
 
     // Stop the Jobs first: GPUs cost money, and their logcopy makes its last upload on the way out.
-    let cluster = deps.clusters.connect(target.deployment).await?;
+    let cluster = deps.clients.clusters.connect(target.deployment).await?;
     let deleted = cluster
         .delete_all(&id.to_string())
         .await
@@ -279,9 +266,12 @@ async fn finish_run(
         .unwrap_or_default();
     if status == SubmissionStatus::Finished && target.track_settings.qualifier {
         let (passed, verdict) = target.deployment.qualifier.verdict(&metrics);
-        QualifierTable::new(deps.dynamo.clone(), &target.deployment.qualifier_table)
-            .record(submission.team_id, &submission.track, id, passed, &metrics)
-            .await?;
+        QualifierTable::new(
+            deps.clients.dynamo.clone(),
+            &target.deployment.qualifier_table,
+        )
+        .record(submission.team_id, &submission.track, id, passed, &metrics)
+        .await?;
         stdout = format!("{verdict}\n\n{stdout}");
     }
     let outcome = post(
@@ -306,20 +296,23 @@ async fn finish_run(
         SubmissionStatus::Cancelled => RecordStatus::Cancelled,
         _ => RecordStatus::Failed,
     };
-    SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table)
-        .finish(
-            submission.team_id,
-            id,
-            &FinalRecord {
-                status: record_status,
-                end_time: clients::now_rfc3339(),
-                results: store.location(),
-                metrics,
-                progress: snapshot.as_ref().map_or((0, 0), |s| s.progress),
-                error: reason.clone(),
-            },
-        )
-        .await?;
+    SubmissionsTable::new(
+        deps.clients.dynamo.clone(),
+        &target.deployment.submissions_table,
+    )
+    .finish(
+        submission.team_id,
+        id,
+        &FinalRecord {
+            status: record_status,
+            end_time: clients::now_rfc3339(),
+            results: store.location(),
+            metrics,
+            progress: snapshot.as_ref().map_or((0, 0), |s| s.progress),
+            error: reason.clone(),
+        },
+    )
+    .await?;
     info!(
         submission_id = id,
         status = record_status.as_str(),
@@ -351,7 +344,7 @@ async fn post(
             .and_then(|s| s.files.metadata.clone())
             .unwrap_or_else(|| "{}".into()),
     };
-    Ok(deps.evalai.post_final(at, &update).await?)
+    Ok(deps.clients.evalai.post_final(at, &update).await?)
 }
 
 #[cfg(test)]

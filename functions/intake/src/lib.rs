@@ -27,8 +27,7 @@ pub struct Deps {
 impl Deps {
     /// Cold start: environment, secrets, clients.
     pub async fn from_env() -> Result<Deps> {
-        let config = FunctionConfig::from_env()?;
-        let sdk = lb_aws::sdk_config().await;
+        let (config, sdk) = clients::cold_start().await?;
         Self::load(&sdk, &config).await
     }
 
