@@ -10,7 +10,7 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use fake_evalai::Fixture;
 use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
-use lb_localstack::workloads::{image_map, Behaviour, Binaries};
+use lb_localstack::workloads::{Behaviour, Binaries};
 use lb_localstack::{EvalAi, Stack};
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::{FnError, FunctionConfig};
@@ -161,20 +161,8 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     } else {
         &[]
     };
-    let images = image_map(
-        &settings,
-        &bins,
-        &stack.moto.endpoint(),
-        &scratch,
-        "*",
-        &behaviour,
-        unpullable,
-    )?;
     stack
-        .start_kube(local_kube::Config {
-            images,
-            ..local_kube::Config::default()
-        })
+        .start_workloads(&settings, &bins, &behaviour, unpullable)
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     let kubeconfig = stack.kubeconfig.clone().context("no kubeconfig")?;
     say(

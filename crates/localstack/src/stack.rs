@@ -12,6 +12,7 @@ use lb_domain::settings::Settings;
 use local_kube::LocalKube;
 
 use crate::moto::{MotoError, MotoServer};
+use crate::workloads::{image_map, Behaviour, Binaries};
 
 /// The region the local stack uses.
 pub const REGION: &str = "us-east-1";
@@ -136,16 +137,8 @@ impl Stack {
             EvalAi::External { url, token } => (None, url, token),
         };
         let (kube, kubeconfig) = match kube {
-            Some(mut config) => {
-                if config.state_dir.is_none() {
-                    config.state_dir = Some(workdir.path().join("pods"));
-                }
-                let server =
-                    LocalKube::spawn(config).map_err(|e| StackError::Kube(e.to_string()))?;
-                let path = workdir.path().join("kubeconfig");
-                server
-                    .write_kubeconfig(&path)
-                    .map_err(|e| StackError::Kube(e.to_string()))?;
+            Some(config) => {
+                let (server, path) = spawn_kube(workdir.path(), config)?;
                 (Some(server), Some(path))
             }
             None => (None, None),
@@ -168,18 +161,37 @@ impl Stack {
     }
 
     /// Starts the local Kubernetes API now (when its image map needs moto's endpoint).
-    pub fn start_kube(&mut self, mut config: local_kube::Config) -> Result<(), StackError> {
-        if config.state_dir.is_none() {
-            config.state_dir = Some(self.workdir.path().join("pods"));
-        }
-        let server = LocalKube::spawn(config).map_err(|e| StackError::Kube(e.to_string()))?;
-        let path = self.workdir.path().join("kubeconfig");
-        server
-            .write_kubeconfig(&path)
-            .map_err(|e| StackError::Kube(e.to_string()))?;
+    pub fn start_kube(&mut self, config: local_kube::Config) -> Result<(), StackError> {
+        let (server, path) = spawn_kube(self.workdir.path(), config)?;
         self.kube = Some(server);
         self.kubeconfig = Some(path);
         Ok(())
+    }
+
+    /// Starts the local Kubernetes API with the image map of a local run: the rendered Jobs run
+    /// the real sidecar, the fake CARLA and the fake evaluator, S3 on this stack's moto.
+    pub fn start_workloads(
+        &mut self,
+        settings: &Settings,
+        bins: &Binaries,
+        behaviour: &Behaviour,
+        unpullable: &[&str],
+    ) -> Result<(), StackError> {
+        let scratch = self.workdir.path().join("images");
+        let images = image_map(
+            settings,
+            bins,
+            &self.moto.endpoint(),
+            &scratch,
+            "*",
+            behaviour,
+            unpullable,
+        )
+        .map_err(|e| StackError::Kube(format!("image map: {e}")))?;
+        self.start_kube(local_kube::Config {
+            images,
+            ..local_kube::Config::default()
+        })
     }
 
     /// The fake EvalAI (panics if the stack uses an external one: a test bug).
@@ -243,6 +255,22 @@ impl Stack {
         }
         Ok(settings)
     }
+}
+
+/// The local Kubernetes API with its pods and kubeconfig under `workdir`.
+fn spawn_kube(
+    workdir: &std::path::Path,
+    mut config: local_kube::Config,
+) -> Result<(LocalKube, std::path::PathBuf), StackError> {
+    if config.state_dir.is_none() {
+        config.state_dir = Some(workdir.join("pods"));
+    }
+    let server = LocalKube::spawn(config).map_err(|e| StackError::Kube(e.to_string()))?;
+    let path = workdir.join("kubeconfig");
+    server
+        .write_kubeconfig(&path)
+        .map_err(|e| StackError::Kube(e.to_string()))?;
+    Ok((server, path))
 }
 
 fn provision<E>(what: &str, source: E) -> StackError

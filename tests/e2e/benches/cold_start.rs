@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use fake_evalai::Fixture;
 use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
-use lb_localstack::workloads::{image_map, Behaviour, Binaries};
+use lb_localstack::workloads::{Behaviour, Binaries};
 use lb_localstack::{EvalAi, Stack};
 use serde_json::{json, Value};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -227,9 +227,7 @@ fn main() {
         let bins = tokio::task::spawn_blocking(Binaries::build).await.unwrap().unwrap();
         let mut stack = Stack::start(EvalAi::Fake(Fixture::default())).await.expect("the stack (make venv)");
         let settings = stack.provision(LOCAL_SETTINGS).await.unwrap();
-        let scratch = stack.workdir.path().join("images");
-        let images = image_map(&settings, &bins, &stack.moto.endpoint(), &scratch, "*", &Behaviour::default(), &[]).unwrap();
-        stack.start_kube(local_kube::Config { images, ..local_kube::Config::default() }).unwrap();
+        stack.start_workloads(&settings, &bins, &Behaviour::default(), &[]).unwrap();
         let env: HashMap<String, String> = stack
             .moto
             .sdk_env()

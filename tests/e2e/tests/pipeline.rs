@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use aws_sdk_dynamodb::types::AttributeValue;
 use fake_evalai::Fixture;
 use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
-use lb_localstack::workloads::{image_map, Behaviour, Binaries};
+use lb_localstack::workloads::{Behaviour, Binaries};
 use lb_localstack::{EvalAi, Stack};
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{Action, IntakeInput, RunPhase, RunState, SubmissionInfo};
@@ -51,22 +51,8 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
         .await
         .unwrap();
     let settings = stack.provision(LOCAL_SETTINGS).await.unwrap();
-    let scratch = stack.workdir.path().join("images");
-    let images = image_map(
-        &settings,
-        &bins,
-        &stack.moto.endpoint(),
-        &scratch,
-        "*",
-        &behaviour,
-        unpullable,
-    )
-    .unwrap();
     stack
-        .start_kube(local_kube::Config {
-            images,
-            ..local_kube::Config::default()
-        })
+        .start_workloads(&settings, &bins, &behaviour, unpullable)
         .unwrap();
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
