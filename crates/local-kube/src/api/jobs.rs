@@ -5,48 +5,16 @@ use std::time::Duration;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode};
-use axum::response::{IntoResponse, Response};
+use axum::response::Response;
 use k8s_openapi::api::batch::v1::Job;
 use serde_json::Value;
 
-use super::objects::{get_one as get_object, list as list_objects, to_json};
+use super::objects::{into_response, to_json};
 use super::{decode_body, int_param, json, truthy, valid_namespace, AppState, Params};
 use crate::objects::job::prepare_create;
 use crate::runtime::{Deleted, Propagation};
 use crate::status::{go_quote, ApiError, JOBS};
 use crate::store::ObjKey;
-
-fn into_response(r: Result<Response, ApiError>) -> Response {
-    r.unwrap_or_else(IntoResponse::into_response)
-}
-
-/// GET /apis/batch/v1/namespaces/{ns}/jobs
-pub async fn list(
-    State(state): State<AppState>,
-    Path(ns): Path<String>,
-    headers: HeaderMap,
-    Query(p): Query<Params>,
-) -> Response {
-    into_response(list_objects::<Job>(&state, &headers, Some(&ns), p).await)
-}
-
-/// GET /apis/batch/v1/jobs
-pub async fn list_all(
-    State(state): State<AppState>,
-    headers: HeaderMap,
-    Query(p): Query<Params>,
-) -> Response {
-    into_response(list_objects::<Job>(&state, &headers, None, p).await)
-}
-
-/// GET /apis/batch/v1/namespaces/{ns}/jobs/{name}
-pub async fn get_one(
-    State(state): State<AppState>,
-    Path((ns, name)): Path<(String, String)>,
-    headers: HeaderMap,
-) -> Response {
-    into_response(get_object::<Job>(&state, &headers, &ns, &name))
-}
 
 /// Paths of fields the typed object dropped: unknown to the schema.
 pub fn unknown_fields(input: &Value, typed: &Value, path: &str, out: &mut Vec<String>) {

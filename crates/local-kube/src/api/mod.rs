@@ -18,6 +18,8 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
+use k8s_openapi::api::batch::v1::Job;
+use k8s_openapi::api::core::v1::Pod;
 use serde::Deserialize;
 use serde_json::Value;
 
@@ -227,29 +229,29 @@ pub fn router(state: AppState) -> Router {
             "/api/v1/namespaces/{ns}/events",
             get(discovery::list_events),
         )
-        .route("/api/v1/pods", get(pods::list_all))
-        .route("/api/v1/namespaces/{ns}/pods", get(pods::list))
+        .route("/api/v1/pods", get(objects::list_everywhere::<Pod>))
+        .route("/api/v1/namespaces/{ns}/pods", get(objects::list_in::<Pod>))
         .route(
             "/api/v1/namespaces/{ns}/pods/{name}",
-            get(pods::get_one).delete(pods::delete),
+            get(objects::get_named::<Pod>).delete(pods::delete),
         )
         .route(
             "/api/v1/namespaces/{ns}/pods/{name}/status",
-            get(pods::get_one),
+            get(objects::get_named::<Pod>),
         )
         .route("/api/v1/namespaces/{ns}/pods/{name}/log", get(pods::log))
-        .route("/apis/batch/v1/jobs", get(jobs::list_all))
+        .route("/apis/batch/v1/jobs", get(objects::list_everywhere::<Job>))
         .route(
             "/apis/batch/v1/namespaces/{ns}/jobs",
-            get(jobs::list).post(jobs::create),
+            get(objects::list_in::<Job>).post(jobs::create),
         )
         .route(
             "/apis/batch/v1/namespaces/{ns}/jobs/{name}",
-            get(jobs::get_one).delete(jobs::delete),
+            get(objects::get_named::<Job>).delete(jobs::delete),
         )
         .route(
             "/apis/batch/v1/namespaces/{ns}/jobs/{name}/status",
-            get(jobs::get_one),
+            get(objects::get_named::<Job>),
         )
         .fallback(not_found)
         .method_not_allowed_fallback(not_allowed)

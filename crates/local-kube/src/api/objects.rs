@@ -1,6 +1,7 @@
 //! Shared read paths for stored kinds: list (selectors, paging, tables), get, and list items in
 //! the real wire form.
 
+use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde_json::{json, Map, Value};
@@ -158,6 +159,39 @@ pub fn text(body: Vec<u8>) -> Response {
         header::HeaderValue::from_static("text/plain"),
     );
     resp
+}
+
+/// A handler's result as a response (errors as `Status` objects).
+pub fn into_response(r: Result<Response, ApiError>) -> Response {
+    r.unwrap_or_else(IntoResponse::into_response)
+}
+
+/// GET `.../namespaces/{ns}/<resource>`, for every resource kind.
+pub async fn list_in<T: Stored + Tabular>(
+    State(state): State<AppState>,
+    Path(ns): Path<String>,
+    headers: HeaderMap,
+    Query(p): Query<Params>,
+) -> Response {
+    into_response(list::<T>(&state, &headers, Some(&ns), p).await)
+}
+
+/// GET `.../<resource>` across namespaces.
+pub async fn list_everywhere<T: Stored + Tabular>(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    Query(p): Query<Params>,
+) -> Response {
+    into_response(list::<T>(&state, &headers, None, p).await)
+}
+
+/// GET `.../namespaces/{ns}/<resource>/{name}`.
+pub async fn get_named<T: Stored + Tabular>(
+    State(state): State<AppState>,
+    Path((ns, name)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Response {
+    into_response(get_one::<T>(&state, &headers, &ns, &name))
 }
 
 #[cfg(test)]

@@ -7,48 +7,16 @@ use std::time::Duration;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::http::HeaderMap;
-use axum::response::{IntoResponse, Response};
+use axum::response::Response;
 use k8s_openapi::api::core::v1::{ContainerStatus, Pod};
 use tokio::sync::mpsc;
 
 use super::jobs::delete_options;
-use super::objects::{get_one as get_object, list as list_objects, text, to_json};
+use super::objects::{into_response, text, to_json};
 use super::watch::stream_response;
 use super::{int_param, json, truthy, AppState, Params};
 use crate::status::{go_quote, ApiError, PODS};
 use crate::store::ObjKey;
-
-fn into_response(r: Result<Response, ApiError>) -> Response {
-    r.unwrap_or_else(IntoResponse::into_response)
-}
-
-/// GET /api/v1/namespaces/{ns}/pods
-pub async fn list(
-    State(state): State<AppState>,
-    Path(ns): Path<String>,
-    headers: HeaderMap,
-    Query(p): Query<Params>,
-) -> Response {
-    into_response(list_objects::<Pod>(&state, &headers, Some(&ns), p).await)
-}
-
-/// GET /api/v1/pods
-pub async fn list_all(
-    State(state): State<AppState>,
-    headers: HeaderMap,
-    Query(p): Query<Params>,
-) -> Response {
-    into_response(list_objects::<Pod>(&state, &headers, None, p).await)
-}
-
-/// GET /api/v1/namespaces/{ns}/pods/{name}
-pub async fn get_one(
-    State(state): State<AppState>,
-    Path((ns, name)): Path<(String, String)>,
-    headers: HeaderMap,
-) -> Response {
-    into_response(get_object::<Pod>(&state, &headers, &ns, &name))
-}
 
 /// DELETE /api/v1/namespaces/{ns}/pods/{name}: marks the pod, terminates it in the background.
 pub async fn delete(
