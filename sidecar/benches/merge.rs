@@ -11,8 +11,8 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use lb_domain::results::{
-    merge, read_worker_file, read_worker_files, EvalAiFiles, Leaderboard, MergeOptions, WorkerFile,
-    WorkerInput,
+    merge, read_worker_file, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions,
+    WorkerFile, WorkerInput,
 };
 
 const CASE: &str = "j_big_16workers_1024routes";
@@ -79,7 +79,10 @@ fn main() {
     );
     let opts = MergeOptions {
         leaderboard: Leaderboard::V2,
-        expected_records: Some(1024),
+        expected: Some(Expected {
+            routes: 1024,
+            repetitions: 1,
+        }),
     };
     let names: Vec<String> = (1..=bytes.len())
         .map(|i| format!("worker{i}.json"))
@@ -175,7 +178,10 @@ fn main() {
 fn breakdown(bytes: &[Vec<u8>]) {
     let opts = MergeOptions {
         leaderboard: Leaderboard::V2,
-        expected_records: Some(1024),
+        expected: Some(Expected {
+            routes: 1024,
+            repetitions: 1,
+        }),
     };
     let parse = || -> Vec<_> {
         bytes

@@ -5,8 +5,8 @@ use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 
 use lb_domain::results::{
-    self, read_worker_files, EvalAiFiles, MergeOptions, MergeOutcome, ResultsError, ResultsFile,
-    WorkerFile, WorkerInput, MAX_FILE_BYTES,
+    self, read_worker_files, EvalAiFiles, Expected, MergeOptions, MergeOutcome, ResultsError,
+    ResultsFile, WorkerFile, WorkerInput, MAX_FILE_BYTES,
 };
 use tracing::{info, warn};
 
@@ -143,9 +143,10 @@ pub fn merge_files(args: &MergeArgs) -> Result<(MergeOutcome, usize), MergeError
     }
     let opts = MergeOptions {
         leaderboard: args.leaderboard,
-        expected_records: args
-            .expect_routes
-            .map(|n| n.saturating_mul(args.repetitions)),
+        expected: args.expect_routes.map(|routes| Expected {
+            routes,
+            repetitions: args.repetitions,
+        }),
     };
     let contributed = present.len();
     let outcome = results::merge(present, opts)?;

@@ -6,7 +6,8 @@
 use std::path::{Path, PathBuf};
 
 use lb_domain::results::{
-    merge, read_worker_file, EvalAiFiles, Leaderboard, MergeOptions, ResultsFile, WorkerFile,
+    merge, read_worker_file, EvalAiFiles, Expected, Leaderboard, MergeOptions, ResultsFile,
+    WorkerFile,
 };
 use lb_domain::testutil::results_fixtures_dir;
 use serde_json::Value;
@@ -60,10 +61,14 @@ fn case(prefix: &str) -> Case {
         .unwrap_or_else(|| panic!("no fixture case `{prefix}*`"))
 }
 
-fn options(case: &Case, expected_records: Option<u64>) -> MergeOptions {
+/// Options for a case; `planned` is `(routes, repetitions)` when the plan is known.
+fn options(case: &Case, planned: Option<(u64, u64)>) -> MergeOptions {
     MergeOptions {
         leaderboard: case.leaderboard,
-        expected_records,
+        expected: planned.map(|(routes, repetitions)| Expected {
+            routes,
+            repetitions,
+        }),
     }
 }
 
@@ -215,7 +220,7 @@ fn a_missing_worker_keeps_the_result_partial_when_the_plan_is_known() {
         merge(files.clone(), opts).unwrap().complete,
         "upstream rule: 15 == 15 is complete"
     );
-    let opts = options(&case, Some(20));
+    let opts = options(&case, Some((20, 1)));
     let outcome = merge(files.clone(), opts).unwrap();
     assert!(!outcome.complete);
     assert_eq!(outcome.merged.progress, (15, 20));
@@ -233,7 +238,83 @@ fn a_missing_worker_keeps_the_result_partial_when_the_plan_is_known() {
 #[test]
 fn more_records_than_planned_is_an_error() {
     let case = case("a_");
-    let opts = options(&case, Some(19));
+    let opts = options(&case, Some((19, 1)));
     let err = merge(load(&case), opts).unwrap_err();
     assert_eq!(err.name(), "UnexpectedRecords");
+}
+
+#[test]
+fn a_leaderboard_1_result_with_five_repetitions_per_route_is_final_with_the_plan_known() {
+    let case = case("p1_");
+    let files = load(&case);
+    // 3 workers x 2 routes x 5 repetitions, every repetition under the same route id.
+    let outcome = merge(files.clone(), options(&case, Some((6, 5)))).unwrap();
+    assert!(outcome.complete);
+    assert_eq!(outcome.merged.records.len(), 30);
+    let want = std::fs::read_to_string(case.dir.join("expected/merged.json")).unwrap();
+    assert_eq!(outcome.merged.to_json(), want);
+}
+
+#[test]
+fn a_leaderboard_1_route_short_of_its_repetitions_is_partial() {
+    let case = case("p1_");
+    let mut files = load(&case);
+    // The last repetition of the last route of the last worker is not written yet.
+    let last = files.last_mut().unwrap();
+    last.records.pop();
+    last.progress.0 -= 1;
+    let outcome = merge(files, options(&case, Some((6, 5)))).unwrap();
+    assert!(!outcome.complete);
+    assert_eq!(outcome.merged.progress, (29, 30));
+    assert!(outcome.merged.global.is_none());
+}
+
+#[test]
+fn a_leaderboard_1_route_run_more_often_than_planned_is_refused_by_name() {
+    let case = case("p1_");
+    let mut files = load(&case);
+    // As many records as planned, but one route has six and its neighbour four.
+    let first = &mut files[0];
+    let moved = first
+        .records
+        .iter()
+        .position(|r| r.route_id.route != first.records[0].route_id.route)
+        .unwrap();
+    first.records[moved].route_id = first.records[0].route_id.clone();
+    let err = merge(files, options(&case, Some((6, 5)))).unwrap_err();
+    assert_eq!(err.name(), "RepetitionMismatch");
+    assert!(
+        err.to_string()
+            .contains("has 6 records but the plan runs it 5 times"),
+        "{err}"
+    );
+}
+
+#[test]
+fn leaderboard_1_rates_skip_a_route_that_never_moved_and_stay_int_only_when_all_are_skipped() {
+    let case = case("q1_");
+    let files = load(&case);
+    let merged = merge(files.clone(), options(&case, None)).unwrap().merged;
+    let global = merged.global.unwrap();
+    // Route 5 has two vehicle collisions and 0 % completion: it adds nothing.
+    assert!(matches!(
+        global.infraction("collisions_vehicle"),
+        Some(lb_domain::py::Num::Float(_))
+    ));
+    // Every route of a worker that drove nothing: the rates keep upstream's int 0.
+    let mut still = files;
+    for f in &mut still {
+        for r in &mut f.records {
+            r.scores.score_route = lb_domain::py::Num::Float(0.0);
+        }
+    }
+    let global = merge(still, options(&case, None))
+        .unwrap()
+        .merged
+        .global
+        .unwrap();
+    assert!(global
+        .infractions
+        .iter()
+        .all(|(_, v)| *v == lb_domain::py::Num::Int(0)));
 }

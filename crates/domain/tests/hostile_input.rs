@@ -2,8 +2,8 @@
 //! field, or a documented "treated as empty"; never a panic.
 
 use lb_domain::results::{
-    merge, read_worker_file, EmptyReason, EvalAiFiles, Leaderboard, MergeOptions, ResultsError,
-    RouteSubset, WorkerFile, MAX_FILE_BYTES,
+    merge, read_worker_file, EmptyReason, EvalAiFiles, Expected, Leaderboard, MergeOptions,
+    ResultsError, RouteSubset, WorkerFile, MAX_FILE_BYTES,
 };
 use lb_domain::testutil::results_fixtures_dir;
 use proptest::prelude::*;
@@ -269,8 +269,8 @@ proptest! {
                 _ => None,
             })
             .collect();
-        for expected in [None, Some(10)] {
-            if let Ok(outcome) = merge(files.clone(), MergeOptions { leaderboard: Leaderboard::V2, expected_records: expected }) {
+        for expected in [None, Some(Expected { routes: 10, repetitions: 1 })] {
+            if let Ok(outcome) = merge(files.clone(), MergeOptions { leaderboard: Leaderboard::V2, expected }) {
                 let evalai = EvalAiFiles::generate(Some(&outcome.merged), Leaderboard::V2);
                 // Whatever went in, every metric posted is a finite number.
                 prop_assert!(evalai.accuracies().iter().all(|(_, v)| v.as_f64().is_finite()));

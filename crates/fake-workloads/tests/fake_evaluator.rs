@@ -27,7 +27,7 @@ fn merge_files(paths: &[std::path::PathBuf], lb: Leaderboard) -> String {
         files,
         MergeOptions {
             leaderboard: lb,
-            expected_records: None,
+            expected: None,
         },
     )
     .expect("merge")

@@ -139,6 +139,7 @@ pub const ERROR_NAMES: &[&str] = &[
     "DuplicateRoute",
     "MissingRouteData",
     "UnexpectedRecords",
+    "RepetitionMismatch",
 ];
 
 #[cfg(test)]

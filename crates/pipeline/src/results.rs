@@ -3,8 +3,8 @@
 
 use lb_aws::s3::{EvalAiObjects, PartialObject, SubmissionStore, MAX_PARTIAL_BYTES};
 use lb_domain::results::{
-    self, read_worker_files, EvalAiFiles, Leaderboard, MergeOptions, ResultsFile, RouteSubset,
-    WorkerFile, WorkerInput,
+    self, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions, ResultsFile,
+    RouteSubset, WorkerFile, WorkerInput,
 };
 use tracing::warn;
 
@@ -116,12 +116,15 @@ pub async fn collect_listed(
             WorkerFile::Empty(reason) => warn!(%reason, "a results file counts as empty"),
         }
     }
-    let planned: u64 = pairs
-        .iter()
-        .filter_map(|p| p.routes.parse::<RouteSubset>().ok())
-        .map(|s| s.last - s.first + 1)
-        .sum::<u64>()
-        * u64::from(repetitions);
+    let expected = Expected {
+        routes: pairs
+            .iter()
+            .filter_map(|p| p.routes.parse::<RouteSubset>().ok())
+            .map(|s| s.last - s.first + 1)
+            .sum::<u64>(),
+        repetitions: u64::from(repetitions),
+    };
+    let planned = expected.records();
     let (merged, complete) = if present.is_empty() {
         (None, false)
     } else {
@@ -129,7 +132,7 @@ pub async fn collect_listed(
             present,
             MergeOptions {
                 leaderboard,
-                expected_records: Some(planned),
+                expected: Some(expected),
             },
         )
         .map_err(results_error)?;

@@ -17,9 +17,25 @@ const ROUND_DIGITS: usize = 3;
 pub struct MergeOptions {
     /// Which evaluator wrote the files.
     pub leaderboard: Leaderboard,
-    /// Records the plan assigned (routes x repetitions). With it, a result with fewer records
-    /// is partial and never final, whatever the workers' own progress says.
-    pub expected_records: Option<u64>,
+    /// What the plan assigned. With it, a result with fewer records is partial and never
+    /// final, whatever the workers' own progress says.
+    pub expected: Option<Expected>,
+}
+
+/// What the plan assigned to the workers whose files are merged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Expected {
+    /// Routes over every worker.
+    pub routes: u64,
+    /// Times each route runs (Leaderboard 1.0: 5 by default, every one under the same id).
+    pub repetitions: u64,
+}
+
+impl Expected {
+    /// Records a complete result holds.
+    pub fn records(self) -> u64 {
+        self.routes.saturating_mul(self.repetitions)
+    }
 }
 
 /// The merged result and what the caller needs to know about it.
@@ -113,7 +129,7 @@ impl GlobalRecord {
 /// Merges the workers' validated files.
 ///
 /// Files that were missing or unreadable are simply not passed in, as the official merge
-/// skips them; `opts.expected_records` is what keeps such a result from counting as final.
+/// skips them; `opts.expected` is what keeps such a result from counting as final.
 pub fn merge(files: Vec<ResultsFile>, opts: MergeOptions) -> Result<MergeOutcome, ResultsError> {
     let lb = opts.leaderboard;
 
@@ -137,7 +153,7 @@ pub fn merge(files: Vec<ResultsFile>, opts: MergeOptions) -> Result<MergeOutcome
             }
         }
     }
-    if let Some(expected) = opts.expected_records {
+    if let Some(expected) = opts.expected.map(Expected::records) {
         if total_records > expected {
             return Err(ResultsError::UnexpectedRecords {
                 found: total_records as usize,
@@ -159,8 +175,14 @@ pub fn merge(files: Vec<ResultsFile>, opts: MergeOptions) -> Result<MergeOutcome
 
     let global_statistics = total_progress != 0 && total_records == total_progress;
     if global_statistics {
-        check_duplicates(&records)?;
-        check_missing_data(&records)?;
+        // NB: the official 1.0 merge has neither check: its repetitions share one route id.
+        if lb == Leaderboard::V2 {
+            check_duplicates(&records)?;
+            check_missing_data(&records)?;
+        }
+        if let Some(expected) = opts.expected {
+            check_repetitions(&records, expected.repetitions)?;
+        }
     }
 
     let mut merged = Merged {
@@ -209,6 +231,22 @@ fn check_duplicates(records: &[RouteRecord]) -> Result<(), ResultsError> {
         if pair[0].route_id.key() == pair[1].route_id.key() {
             return Err(ResultsError::DuplicateRoute {
                 route_id: pair[0].route_id.raw.clone(),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Our completeness rule on top of the official merge: with as many records as planned,
+/// every route must have exactly its planned repetitions (else some route ran too often).
+fn check_repetitions(records: &[RouteRecord], repetitions: u64) -> Result<(), ResultsError> {
+    // Sorted by (route, repetition): a route's records are neighbours.
+    for group in records.chunk_by(|a, b| a.route_id.route == b.route_id.route) {
+        if group.len() as u64 != repetitions {
+            return Err(ResultsError::RepetitionMismatch {
+                route_id: group[0].route_id.raw.clone(),
+                found: group.len() as u64,
+                expected: repetitions,
             });
         }
     }
@@ -428,18 +466,21 @@ fn global_v1(merged: &mut Merged, total_routes: u64) {
     let records = &merged.records;
     let kinds = Leaderboard::V1.infraction_kinds();
     let mut sums = [Num::Int(0); 3];
-    let mut rates: Vec<f64> = vec![0.0; kinds.len()];
+    // A rate starts as the int 0 and becomes a float with the first route that counts.
+    let mut rates: Vec<Num> = vec![Num::Int(0); kinds.len()];
     let mut exceptions = Vec::with_capacity(records.len());
-    for (i, r) in records.iter().enumerate() {
+    for r in records {
         for (sum, key) in sums.iter_mut().zip(SCORE_KEYS) {
             *sum = *sum + score_of(r, key);
         }
-        let km = (r.scores.score_route.as_f64() / 100.0 * r.meta.route_length.as_f64() / 1000.0)
-            .max(0.001);
-        for (rate, kind) in rates.iter_mut().zip(kinds) {
-            let value = r.infraction(kind).len() as f64 / km;
-            // The first route replaces the initial empty list; later routes add to it.
-            *rate = if i == 0 { value } else { *rate + value };
+        // The global rate is the sum of each route's own rate over the km it drove. A route
+        // that drove nothing is skipped (upstream: no 0.001 km floor in 1.0); a zero length
+        // with a positive score, which upstream would divide by, is skipped too.
+        let km = r.scores.score_route.as_f64() / 100.0 * r.meta.route_length.as_f64() / 1000.0;
+        if r.scores.score_route.as_f64() > 0.0 && km > 0.0 {
+            for (rate, kind) in rates.iter_mut().zip(kinds) {
+                *rate = *rate + Num::Float(r.infraction(kind).len() as f64 / km);
+            }
         }
         // NB: upstream compares with `is not 'Completed'`, which is always true for strings
         // read from JSON: every route is an "exception" and the status is always Failed.
@@ -462,11 +503,7 @@ fn global_v1(merged: &mut Merged, total_routes: u64) {
     let (total_length, duration_game, duration_system) = totals(records);
     let global = GlobalRecord {
         status: "Failed".to_owned(),
-        infractions: kinds
-            .iter()
-            .copied()
-            .zip(rates.into_iter().map(Num::Float))
-            .collect(),
+        infractions: kinds.iter().copied().zip(rates).collect(),
         scores: [
             ("score_composed", Num::Float(means[0])),
             ("score_route", Num::Float(means[1])),

@@ -9,7 +9,7 @@ mod merge;
 mod model;
 
 pub use evalai::{EvalAiFiles, METADATA_MISSING_MESSAGE};
-pub use merge::{merge, GlobalRecord, MergeOptions, MergeOutcome, Merged, StdDev};
+pub use merge::{merge, Expected, GlobalRecord, MergeOptions, MergeOutcome, Merged, StdDev};
 pub use model::{
     read_worker_file, read_worker_files, EmptyReason, Kind, Meta, ResultsFile, RouteId,
     RouteRecord, RouteSubset, Scores, WorkerFile, WorkerInput, MAX_FILE_BYTES, MAX_NUMBER,
@@ -310,6 +310,16 @@ pub enum ResultsError {
         /// Records planned.
         expected: u64,
     },
+    /// As many records as planned, but a route has more or fewer than its repetitions.
+    #[error("route `{route_id}` has {found} records but the plan runs it {expected} times")]
+    RepetitionMismatch {
+        /// The route id.
+        route_id: String,
+        /// Its records.
+        found: u64,
+        /// Repetitions planned.
+        expected: u64,
+    },
 }
 
 impl ResultsError {
@@ -324,6 +334,7 @@ impl ResultsError {
             ResultsError::DuplicateRoute { .. } => "DuplicateRoute",
             ResultsError::MissingRouteData { .. } => "MissingRouteData",
             ResultsError::UnexpectedRecords { .. } => "UnexpectedRecords",
+            ResultsError::RepetitionMismatch { .. } => "RepetitionMismatch",
         }
     }
 }
