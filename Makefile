@@ -87,7 +87,7 @@ bench-functions: build ## Cold start + one invocation of each Lambda as a proces
 	$(CARGO) test --quiet -p e2e --bench cold_start -- --bench
 
 bench-stack: venv ## Start-up of moto + fake EvalAI + local Kubernetes API (target < 5 s)
-	$(CARGO) test --quiet -p lb-localstack --bench startup -- --bench
+	$(CARGO) test --quiet -p local-stack --bench startup -- --bench
 
 clean: ## Remove build output and the venv
 	$(CARGO) clean

@@ -9,12 +9,12 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use fake_evalai::Fixture;
-use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
-use lb_localstack::workloads::{Behaviour, Binaries};
-use lb_localstack::{EvalAi, Stack};
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::{FnError, FunctionConfig};
-use lb_statemachine::{
+use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use local_stack::workloads::{Behaviour, Binaries};
+use local_stack::{EvalAi, Stack};
+use local_stepfunctions::{
     EventType, Executor, HistoryEvent, Options, StateMachine, Status, TaskError, TaskMap,
 };
 use serde_json::{json, Value};
@@ -295,7 +295,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                     ),
                 );
             }
-        }) as lb_statemachine::EventCallback
+        }) as local_stepfunctions::EventCallback
     };
     let executor = Executor::new(
         tasks,

@@ -7,7 +7,7 @@ use std::time::Instant;
 #[ignore = "needs moto"]
 fn every_scenario_ends_as_expected() {
     // lbctl finds the sidecar and the fakes next to itself.
-    lb_localstack::workloads::Binaries::build().expect("the workloads build");
+    local_stack::workloads::Binaries::build().expect("the workloads build");
     // One at a time: local Jobs share the host's CARLA ports.
     for (scenario, expected) in [
         ("happy", "FINISHED"),

@@ -11,7 +11,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use lb_localstack::moto::MotoServer;
+use local_stack::moto::MotoServer;
 
 const LIMIT_KIB: u64 = 20 * 1024;
 const BUCKET: &str = "lb-bench-bucket";

@@ -109,11 +109,11 @@ pub fn stderr(out: &Output) -> String {
 /// settings, and the environment that points `lbctl` at it.
 pub async fn stack(
     fixture: fake_evalai::Fixture,
-) -> (lb_localstack::Stack, Vec<(&'static str, String)>) {
-    use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+) -> (local_stack::Stack, Vec<(&'static str, String)>) {
+    use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
     let stack = tokio::time::timeout(
         Duration::from_secs(60),
-        lb_localstack::Stack::start(lb_localstack::EvalAi::Fake(fixture)),
+        local_stack::Stack::start(local_stack::EvalAi::Fake(fixture)),
     )
     .await
     .expect("the stack starts in time")

@@ -8,7 +8,7 @@ use lb_aws::dynamo::{
     Claim, FinalRecord, NewRecord, QualifierTable, RecordStatus, SubmissionsTable,
 };
 use lb_aws::s3::{EvalAiObjects, SubmissionStore};
-use lb_localstack::moto::MotoServer;
+use local_stack::moto::MotoServer;
 
 async fn config(moto: &MotoServer) -> aws_config::SdkConfig {
     lb_aws::sdk_config_at(&moto.endpoint(), "us-west-2").await

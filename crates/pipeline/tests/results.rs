@@ -3,9 +3,9 @@
 use lb_aws::s3::SubmissionStore;
 use lb_domain::results::Leaderboard;
 use lb_domain::testutil::results_fixtures_dir;
-use lb_localstack::moto::MotoServer;
 use lb_pipeline::payload::PairRoutes;
 use lb_pipeline::results::{collect, fingerprint};
+use local_stack::moto::MotoServer;
 
 fn pairs(subsets: &[&str]) -> Vec<PairRoutes> {
     subsets

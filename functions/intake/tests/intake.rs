@@ -3,10 +3,10 @@
 use aws_sdk_dynamodb::types::AttributeValue;
 use fake_evalai::{Faults, Fixture};
 use intake::{handle, Deps};
-use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
-use lb_localstack::{EvalAi, Stack};
 use lb_pipeline::payload::{Action, IntakeInput};
 use lb_pipeline::FunctionConfig;
+use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use local_stack::{EvalAi, Stack};
 use serde_json::json;
 
 async fn stack(settings: &str) -> (Stack, Deps) {

@@ -361,13 +361,13 @@ pub fn finished(bytes: &[u8], subset: &str) -> bool {
 
 /// A moto server, a bucket, and an S3 client for checks.
 pub struct Moto {
-    pub server: lb_localstack::moto::MotoServer,
+    pub server: local_stack::moto::MotoServer,
     pub bucket: String,
 }
 
 impl Moto {
     pub fn start() -> Moto {
-        let server = lb_localstack::moto::MotoServer::start().expect("moto (run `make venv`)");
+        let server = local_stack::moto::MotoServer::start().expect("moto (run `make venv`)");
         let moto = Moto {
             server,
             bucket: "lb-test-bucket".to_owned(),

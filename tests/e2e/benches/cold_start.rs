@@ -15,9 +15,9 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use fake_evalai::Fixture;
-use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
-use lb_localstack::workloads::{Behaviour, Binaries};
-use lb_localstack::{EvalAi, Stack};
+use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use local_stack::workloads::{Behaviour, Binaries};
+use local_stack::{EvalAi, Stack};
 use serde_json::{json, Value};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;

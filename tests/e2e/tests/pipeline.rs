@@ -7,12 +7,12 @@ use std::time::{Duration, Instant};
 
 use aws_sdk_dynamodb::types::AttributeValue;
 use fake_evalai::Fixture;
-use lb_localstack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
-use lb_localstack::workloads::{Behaviour, Binaries};
-use lb_localstack::{EvalAi, Stack};
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{Action, IntakeInput, RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::FunctionConfig;
+use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use local_stack::workloads::{Behaviour, Binaries};
+use local_stack::{EvalAi, Stack};
 use serde_json::json;
 
 const PARTICIPANT_IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v1";

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use lb_statemachine::{
+use local_stepfunctions::{
     EventType, ExecutionResult, Executor, Options, StateMachine, TaskError, TaskMap,
 };
 use serde_json::Value;

@@ -1,6 +1,6 @@
 //! Its own test binary: it changes the environment.
 
-use lb_localstack::moto::MotoServer;
+use local_stack::moto::MotoServer;
 
 #[test]
 fn a_missing_moto_is_reported_with_the_fix() {

@@ -4,7 +4,7 @@
 use std::time::{Duration, Instant};
 
 use fake_evalai::Fixture;
-use lb_localstack::{EvalAi, Stack};
+use local_stack::{EvalAi, Stack};
 
 fn main() {
     let timed = std::env::args().any(|a| a == "--bench");

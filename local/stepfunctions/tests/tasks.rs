@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::*;
-use lb_statemachine::{EventType, Executor, Options, Status, TaskError, TaskMap};
+use local_stepfunctions::{EventType, Executor, Options, Status, TaskError, TaskMap};
 use serde_json::{json, Value};
 
 fn retry_machine(retry: Value, catch: Value) -> Value {

@@ -8,7 +8,7 @@
 //!
 //! ```
 //! use std::collections::HashMap;
-//! use lb_statemachine::{Executor, Options, StateMachine, Status, TaskError, TaskMap};
+//! use local_stepfunctions::{Executor, Options, StateMachine, Status, TaskError, TaskMap};
 //! use serde_json::json;
 //!
 //! # tokio::runtime::Runtime::new().unwrap().block_on(async {

@@ -5,7 +5,7 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::*;
-use lb_statemachine::{EventType, Status, TaskError, TaskMap};
+use local_stepfunctions::{EventType, Status, TaskError, TaskMap};
 use serde_json::{json, Value};
 
 #[tokio::test]

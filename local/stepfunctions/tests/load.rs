@@ -2,7 +2,7 @@
 
 use std::collections::HashMap;
 
-use lb_statemachine::StateMachine;
+use local_stepfunctions::StateMachine;
 use serde_json::{json, Value};
 
 const FN: &str = "arn:aws:lambda:us-east-1:123456789012:function:f";

@@ -1,6 +1,6 @@
 //! The moto harness against a real `moto_server` from the project venv.
 
-use lb_localstack::moto::{http, MotoServer};
+use local_stack::moto::{http, MotoServer};
 
 #[test]
 #[ignore = "needs moto"]

@@ -163,6 +163,6 @@ pub fn http(addr: SocketAddr, method: &str, path: &str) -> std::io::Result<(u16,
 }
 
 fn workspace_root() -> PathBuf {
-    // crates/localstack -> workspace root
+    // local/stack -> workspace root
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }

@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use common::{options, run_with, Calls};
-use lb_statemachine::{
+use local_stepfunctions::{
     EventType, ExecutionResult, Executor, StateMachine, Status, TaskError, TaskMap,
 };
 use serde_json::{json, Value};
