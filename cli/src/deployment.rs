@@ -188,17 +188,17 @@ impl Deployment {
                 ScanFilter::All => request,
                 ScanFilter::Submission(id) => request
                     .filter_expression("submission_id = :id")
-                    .expression_attribute_values(":id", AttributeValue::N(id.to_string())),
-                ScanFilter::InFlight => request
-                    .filter_expression("submission_status IN (:queued, :running)")
-                    .expression_attribute_values(
-                        ":queued",
-                        AttributeValue::S(RecordStatus::Queued.as_str().into()),
-                    )
-                    .expression_attribute_values(
-                        ":running",
-                        AttributeValue::S(RecordStatus::Running.as_str().into()),
-                    ),
+                    // The original layout: ids are strings.
+                    .expression_attribute_values(":id", AttributeValue::S(id.to_string())),
+                ScanFilter::InFlight => {
+                    let [a, b, c] =
+                        RecordStatus::IN_FLIGHT.map(|s| AttributeValue::S(s.as_str().into()));
+                    request
+                        .filter_expression("submission_status IN (:a, :b, :c)")
+                        .expression_attribute_values(":a", a)
+                        .expression_attribute_values(":b", b)
+                        .expression_attribute_values(":c", c)
+                }
             };
             let page = request
                 .send()
@@ -223,12 +223,12 @@ impl Record {
             .map(String::as_str)
     }
 
-    /// A non-negative integer attribute.
+    /// A non-negative integer attribute, stored as a string (the original layout) or a number.
     pub fn number(&self, key: &str) -> Option<u64> {
-        self.item
-            .get(key)
-            .and_then(|v| v.as_n().ok())
-            .and_then(|n| n.parse().ok())
+        match self.item.get(key)? {
+            AttributeValue::S(v) | AttributeValue::N(v) => v.trim().parse().ok(),
+            _ => None,
+        }
     }
 
     /// `submission_id`.

@@ -1,13 +1,15 @@
 //! `lbctl submit` and `lbctl resume`: Step Functions executions started as the EventBridge
-//! Pipe starts them, with the Pipe's input `{challenge_pk, phase_pk, submission_pk,
-//! submitted_image_uri}`.
+//! Pipe starts them: EvalAI's message through the Pipe's input template, as a one-element
+//! batch `[{challenge_pk, phase_pk, submission_pk, submitted_image_uri}]`.
 
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use clap::Args;
+use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::{CANCEL_MARKER, STATUS_DIR};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
 use lb_pipeline::FunctionConfig;
+use local_stack::pipe;
 use serde_json::{json, Map, Value};
 
 use crate::deployment::{clean, Deployment, DeploymentArgs, ScanFilter};
@@ -98,17 +100,21 @@ pub struct Resume {
     pub deployment: DeploymentArgs,
 }
 
-/// The EventBridge Pipe's output for a submission, as its input transformer shapes EvalAI's
-/// message (ids as numbers, as EvalAI sends them on resume; Intake accepts strings too).
+/// What the EventBridge Pipe starts an execution with for this submission: EvalAI's message
+/// (ids as numbers, as EvalAI sends them on resume; no image key when there is none) through
+/// the deployed input template, as the Pipe's one-element batch.
 pub fn pipe_input(challenge: u64, phase: u64, submission: u64, image: Option<&str>) -> Value {
-    let mut input = Map::new();
-    input.insert("challenge_pk".into(), json!(challenge));
-    input.insert("phase_pk".into(), json!(phase));
-    input.insert("submission_pk".into(), json!(submission));
+    let mut body = Map::new();
+    body.insert("challenge_pk".into(), json!(challenge));
+    body.insert("phase_pk".into(), json!(phase));
+    body.insert("submission_pk".into(), json!(submission));
     if let Some(image) = image {
-        input.insert("submitted_image_uri".into(), json!(image));
+        body.insert("submitted_image_uri".into(), json!(image));
     }
-    Value::Object(input)
+    let record = pipe::record_of_body(&Value::Object(body).to_string());
+    // NB: the deployed template has only `<$.body.*>` placeholders; it cannot fail on a body
+    // built here (a test holds it to that).
+    pipe::batch(pipe::INPUT_TEMPLATE, &[record]).unwrap_or_else(|_| json!([]))
 }
 
 /// A name unique per submission and second: `submission-<id>-<unix time>`.
@@ -213,7 +219,7 @@ async fn claimed_challenge(
         })?;
     let input: Value = serde_json::from_str(out.input().unwrap_or_default())
         .map_err(|e| format!("the input of `{arn}` is not JSON: {e}"))?;
-    SubmissionMessage::from_value(&input)
+    SubmissionMessage::from_pipe(&input)
         .map(|m| m.challenge_id)
         .map_err(|e| format!("the input of `{arn}`: {e}"))
 }
@@ -269,7 +275,7 @@ pub async fn resume(args: Resume) -> Result<u8> {
     let resumable =
         matches!(status, "FAILED" | "CANCELLED") || (args.force && status == "FINISHED");
     if !resumable {
-        let why = if matches!(status, "QUEUED" | "RUNNING") {
+        let why = if RecordStatus::is_in_flight(status) {
             format!(
                 "it is `{}`: an execution still holds it and Intake would skip a new one as a \
                  duplicate; `lbctl cancel {id}` first and wait for Finalize",
@@ -364,17 +370,17 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_input_is_the_pipes_and_leaves_out_a_missing_image() {
+    fn the_input_is_the_pipes_one_element_batch_with_a_missing_image_null() {
         assert_eq!(
             pipe_input(1, 2, 3, Some("img:1")),
-            json!({"challenge_pk": 1, "phase_pk": 2, "submission_pk": 3, "submitted_image_uri": "img:1"})
+            json!([{"challenge_pk": 1, "phase_pk": 2, "submission_pk": 3, "submitted_image_uri": "img:1"}])
         );
         assert_eq!(
             pipe_input(1, 2, 3, None),
-            json!({"challenge_pk": 1, "phase_pk": 2, "submission_pk": 3})
+            json!([{"challenge_pk": 1, "phase_pk": 2, "submission_pk": 3, "submitted_image_uri": null}])
         );
         // What Intake accepts.
-        let message = SubmissionMessage::from_value(&pipe_input(1, 2, 3, Some("i"))).unwrap();
+        let message = SubmissionMessage::from_pipe(&pipe_input(1, 2, 3, Some("i"))).unwrap();
         assert_eq!((message.challenge_id, message.submission_id), (1, 3));
     }
 

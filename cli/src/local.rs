@@ -35,6 +35,9 @@ pub enum Scenario {
     Cancel,
     /// The participant's image cannot be pulled: FAILED with a message naming it.
     Unpullable,
+    /// The first pair's evaluator crashes at every attempt: out of retries, FAILED, and the
+    /// participant's stderr shows the reason and the end of that agent's output.
+    CrashLoop,
 }
 
 impl Scenario {
@@ -42,7 +45,7 @@ impl Scenario {
         match self {
             Scenario::Happy | Scenario::Crash | Scenario::Hang => "finished",
             Scenario::Cancel => "cancelled",
-            Scenario::Unpullable => "failed",
+            Scenario::Unpullable | Scenario::CrashLoop => "failed",
         }
     }
 }
@@ -74,8 +77,8 @@ pub struct LocalRun {
     /// An EvalAI to use instead of the fake (needs --evalai-token, --challenge, --phase, --submission).
     #[arg(long, requires_all = ["evalai_token", "challenge", "phase", "submission"])]
     pub evalai_url: Option<String>,
-    /// Host token of that EvalAI.
-    #[arg(long)]
+    /// Host token of that EvalAI (better from the environment: a flag shows in `ps`).
+    #[arg(long, env = "LB_EVALAI_TOKEN", hide_env_values = true)]
     pub evalai_token: Option<String>,
     /// Challenge id on that EvalAI.
     #[arg(long)]
@@ -124,6 +127,11 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let track = &mut settings["leaderboards"][&args.leaderboard]["tracks"]["SENSORS"];
     track["routes"] = json!(args.routes);
     track["workers"] = json!(args.workers);
+    // Another EvalAI has its own phase ids: its phase runs the chosen leaderboard's track.
+    if let (Some(_), Some(p)) = (&args.evalai_url, args.phase) {
+        settings["phases"][p.to_string()] =
+            json!({"leaderboard": args.leaderboard, "track": "SENSORS"});
+    }
 
     let external = args.evalai_url.clone().map(|url| EvalAi::External {
         url,
@@ -155,6 +163,11 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             ("FAKE_EVALUATOR_HANG_AT_ROUTE".into(), "1".into()),
             ("FAKE_EVALUATOR_ONCE_DIR".into(), once.display().to_string()),
         ]);
+    }
+    if args.scenario == Scenario::CrashLoop {
+        // No once-dir: every attempt of the pair that runs route 1 crashes there.
+        behaviour.evaluator_env =
+            BTreeMap::from([("FAKE_EVALUATOR_CRASH_AT_ROUTE".into(), "1".into())]);
     }
     let unpullable: &[&str] = if args.scenario == Scenario::Unpullable {
         &[UNPULLABLE]
@@ -313,12 +326,14 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let result = execution.wait().await;
 
     // The summary.
-    let status_on_evalai = match &stack.fake_evalai {
-        Some(fake) => fake
-            .submission(submission)
-            .map(|s| s.status)
-            .unwrap_or_default(),
-        None => String::from("(external EvalAI: see its page)"),
+    let on_fake = stack
+        .fake_evalai
+        .as_ref()
+        .and_then(|fake| fake.submission(submission));
+    let status_on_evalai = match (&stack.fake_evalai, &on_fake) {
+        (Some(_), Some(s)) => s.status.clone(),
+        (Some(_), None) => String::new(),
+        (None, _) => String::from("(external EvalAI: see its page)"),
     };
     println!();
     println!(
@@ -333,6 +348,17 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         );
     }
     println!("EvalAI status  {status_on_evalai}");
+    // What the participant reads on a failure: the reason and the end of their agent's output.
+    if let Some(stderr) = on_fake
+        .as_ref()
+        .and_then(|s| s.files.stderr.as_deref())
+        .filter(|e| !e.trim().is_empty())
+    {
+        println!("EvalAI stderr");
+        for line in stderr.lines() {
+            println!("  | {line}");
+        }
+    }
     if let Some(row) = stack
         .fake_evalai
         .as_ref()
@@ -341,13 +367,16 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     {
         println!("scores         {}", row.result);
     }
+    let bucket = settings_bucket(&settings, &args.leaderboard);
+    if let Some(line) = merged_summary(&stack.sdk, &bucket, submission).await {
+        println!("merged         {line}");
+    }
     println!("time per stage");
     for (stage, seconds) in stage_times(&result.history) {
         println!("  {stage:<12} {seconds:>7.1}s");
     }
     println!(
-        "results        s3://{}/{submission}/ on moto {}",
-        settings_bucket(&settings, &args.leaderboard),
+        "results        s3://{bucket}/{submission}/ on moto {}",
         stack.moto.endpoint()
     );
     println!(
@@ -383,6 +412,41 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         );
         Ok(1)
     }
+}
+
+/// `agent_results.json` in a line: its records and how many each route has (Leaderboard 1.0
+/// runs every route 5 times under one id).
+async fn merged_summary(
+    sdk: &aws_config::SdkConfig,
+    bucket: &str,
+    submission: u64,
+) -> Option<String> {
+    let object = lb_aws::s3_client(sdk)
+        .get_object()
+        .bucket(bucket)
+        .key(format!("{submission}/agent_results.json"))
+        .send()
+        .await
+        .ok()?;
+    let bytes = object.body.collect().await.ok()?.into_bytes();
+    let merged: Value = serde_json::from_slice(&bytes).ok()?;
+    let records = merged["_checkpoint"]["records"].as_array()?;
+    let mut per_route: BTreeMap<&str, usize> = BTreeMap::new();
+    for record in records {
+        *per_route
+            .entry(record["route_id"].as_str().unwrap_or_default())
+            .or_default() += 1;
+    }
+    let counts: std::collections::BTreeSet<usize> = per_route.values().copied().collect();
+    let each = match counts.len() {
+        1 => format!("{} per route", counts.first().copied().unwrap_or_default()),
+        _ => format!("{counts:?} per route"),
+    };
+    Some(format!(
+        "{} records over {} routes, {each}",
+        records.len(),
+        per_route.len()
+    ))
 }
 
 fn settings_bucket(settings: &lb_domain::settings::Settings, leaderboard: &str) -> String {
@@ -454,8 +518,8 @@ fn seconds(event: &HistoryEvent) -> f64 {
     event.timestamp.unix_timestamp_nanos() as f64 / 1e9
 }
 
-/// Puts EvalAI's message on a moto SQS queue, receives it as the Pipe would and applies the
-/// Pipe's input transformer: `{challenge_pk, phase_pk, submission_pk, submitted_image_uri}`.
+/// Puts EvalAI's message on a moto SQS queue and takes it off as the EventBridge Pipe does:
+/// the deployed input template applied to the record, handed over as a one-element batch.
 async fn sqs_round_trip(
     stack: &Stack,
     challenge: u64,
@@ -483,29 +547,7 @@ async fn sqs_round_trip(
         .message_body(body.to_string())
         .send()
         .await?;
-    let received = sqs
-        .receive_message()
-        .queue_url(&url)
-        .max_number_of_messages(1)
-        .wait_time_seconds(5)
-        .send()
-        .await?;
-    let message = received
-        .messages()
-        .first()
-        .context("the message did not arrive")?;
-    let parsed: Value = serde_json::from_str(message.body().unwrap_or_default())?;
-    if let Some(handle) = message.receipt_handle() {
-        sqs.delete_message()
-            .queue_url(&url)
-            .receipt_handle(handle)
-            .send()
-            .await?;
-    }
-    Ok(json!({
-        "challenge_pk": parsed["challenge_pk"],
-        "phase_pk": parsed["phase_pk"],
-        "submission_pk": parsed["submission_pk"],
-        "submitted_image_uri": parsed["submitted_image_uri"],
-    }))
+    local_stack::pipe::poll(&sqs, &url, 1, 5)
+        .await?
+        .context("the message did not arrive")
 }

@@ -14,14 +14,14 @@ async fn invoke_intake_claims_a_submission_and_reports_errors_as_lambda_does() {
     let (stack, env) = common::stack(Fixture::default()).await;
     let image = "342236305043.dkr.ecr.us-west-2.amazonaws.com/team-one:agent-v1";
 
-    // The happy run, from a file: the Pipe's output as EvalAI sends a new submission.
+    // The happy run, from a file: the Pipe's batch of one, as EvalAI sends a new submission.
     let dir = tempfile::tempdir().unwrap();
     let event = dir.path().join("intake.json");
     std::fs::write(
         &event,
         json!({
-            "message": {"challenge_pk": "1", "phase_pk": "1", "submission_pk": 1,
-                        "submitted_image_uri": image},
+            "message": [{"challenge_pk": "1", "phase_pk": "1", "submission_pk": 1,
+                         "submitted_image_uri": image}],
             "execution": "invoke-test-1",
         })
         .to_string(),
@@ -41,8 +41,8 @@ async fn invoke_intake_claims_a_submission_and_reports_errors_as_lambda_does() {
     let record = aws_sdk_dynamodb::Client::new(&stack.sdk)
         .get_item()
         .table_name("leaderboard-20-submissions")
-        .key("team_id", AttributeValue::N("1".into()))
-        .key("submission_id", AttributeValue::N("1".into()))
+        .key("team_id", AttributeValue::S("1".into()))
+        .key("submission_id", AttributeValue::S("1".into()))
         .send()
         .await
         .unwrap()
@@ -54,7 +54,7 @@ async fn invoke_intake_claims_a_submission_and_reports_errors_as_lambda_does() {
     );
     assert_eq!(
         record["submission_status"],
-        AttributeValue::S("QUEUED".into())
+        AttributeValue::S("SUBMITTED".into())
     );
 
     // Function errors, from stdin: the name the state machine matches, a non-zero exit.
@@ -73,6 +73,14 @@ async fn invoke_intake_claims_a_submission_and_reports_errors_as_lambda_does() {
             json!({"challenge_pk": true, "phase_pk": 1, "submission_pk": 2}),
             "InvalidMessage",
             "`challenge_pk`",
+        ),
+        // A Pipe whose batch is empty, or whose batch size is not 1.
+        (json!([]), "InvalidBatch", "holds 0 messages"),
+        (
+            json!([{"challenge_pk": 1, "phase_pk": 1, "submission_pk": 2},
+                   {"challenge_pk": 1, "phase_pk": 1, "submission_pk": 3}]),
+            "InvalidBatch",
+            "batch size to 1",
         ),
     ] {
         let event = json!({"message": message, "execution": "invoke-test-2"}).to_string();

@@ -1,11 +1,22 @@
 //! `lbctl local run` as a maintainer runs it: each scenario ends as it should, with exit 0.
 
 use std::process::Command;
+use std::sync::Mutex;
 use std::time::Instant;
+
+/// Local Jobs share the host's network (CARLA ports 2000+): one local run at a time.
+static ONE_RUN_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    ONE_RUN_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
 
 #[test]
 #[ignore = "needs moto"]
 fn every_scenario_ends_as_expected() {
+    let _one = one_at_a_time();
     // lbctl finds the sidecar and the fakes next to itself.
     local_stack::workloads::Binaries::build().expect("the workloads build");
     // One at a time: local Jobs share the host's CARLA ports.
@@ -15,6 +26,7 @@ fn every_scenario_ends_as_expected() {
         ("hang", "FINISHED"),
         ("cancel", "CANCELLED"),
         ("unpullable", "FAILED"),
+        ("crash-loop", "FAILED"),
     ] {
         let started = Instant::now();
         let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
@@ -32,12 +44,66 @@ fn every_scenario_ends_as_expected() {
             "{scenario}: {stdout}"
         );
         assert!(stdout.contains("OK: the"), "{scenario}: {stdout}");
+        // A failure tells the participant why, and shows their agent's own last words.
+        match scenario {
+            "unpullable" => assert!(
+                stdout.contains("EvalAI stderr") && stdout.contains("never-pushed"),
+                "{stdout}"
+            ),
+            "crash-loop" => {
+                assert!(stdout.contains("EvalAI stderr"), "{stdout}");
+                assert!(
+                    stdout.contains("The last lines of agent 1's output:"),
+                    "{stdout}"
+                );
+                assert!(
+                    stdout.contains("Traceback (most recent call last)"),
+                    "{stdout}"
+                );
+            }
+            _ => assert!(!stdout.contains("EvalAI stderr"), "{scenario}: {stdout}"),
+        }
         assert!(
             started.elapsed().as_secs() < 60,
             "{scenario} took {:?}",
             started.elapsed()
         );
     }
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
+    let _one = one_at_a_time();
+    local_stack::workloads::Binaries::build().expect("the workloads build");
+    let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
+        .args([
+            "local",
+            "run",
+            "--leaderboard",
+            "1.0",
+            "--routes",
+            "8",
+            "--workers",
+            "2",
+            "--route-seconds",
+            "0.05",
+            "--timeout",
+            "240",
+        ])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("EvalAI status  finished"), "{stdout}");
+    assert!(
+        stdout.contains("merged         40 records over 8 routes, 5 per route"),
+        "{stdout}"
+    );
 }
 
 #[test]
@@ -54,4 +120,70 @@ fn bad_arguments_are_named() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--time-scale"));
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard() {
+    let _one = one_at_a_time();
+    local_stack::workloads::Binaries::build().expect("the workloads build");
+    // A separately started EvalAI whose ids are nothing like the local settings': challenge 7,
+    // phase 4321 (a 2.0 phase), submission 55.
+    let mut fixture: serde_json::Value =
+        serde_json::from_str(fake_evalai::fixture::DEFAULT_FIXTURE_JSON).unwrap();
+    fixture["challenges"][0]["id"] = 7.into();
+    fixture["challenges"][0]["phases"][0]["id"] = 4321.into();
+    fixture["host_teams"][0]["challenges"] = serde_json::json!([7]);
+    for team in fixture["participant_teams"].as_array_mut().unwrap() {
+        team["challenges"] = serde_json::json!([7]);
+    }
+    fixture["submissions"] = serde_json::json!([{
+        "id": 55, "challenge_phase": 4321, "participant_team": 1, "created_by": 2,
+        "status": "submitted", "submitted_at": "2026-11-24T00:00:00Z",
+        "submitted_image_uri": "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local"
+    }]);
+    let fake = fake_evalai::FakeEvalAi::spawn(
+        fake_evalai::Fixture::from_json(&fixture.to_string()).unwrap(),
+    )
+    .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
+        .args([
+            "local",
+            "run",
+            "--leaderboard",
+            "2.0",
+            "--routes",
+            "4",
+            "--workers",
+            "2",
+            "--route-seconds",
+            "0.05",
+            "--timeout",
+            "240",
+            "--evalai-url",
+            &fake.url(),
+            "--challenge",
+            "7",
+            "--phase",
+            "4321",
+            "--submission",
+            "55",
+        ])
+        // The token from the environment, not the command line.
+        .env("LB_EVALAI_TOKEN", "host-token")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let on_evalai = fake.submission(55).unwrap();
+    assert_eq!(on_evalai.status, "finished", "{stdout}");
+    assert_eq!(
+        on_evalai.leaderboard.len(),
+        1,
+        "the scores reached its leaderboard"
+    );
 }

@@ -63,6 +63,10 @@ fn a_job_with_init_a_pair_and_logcopy_completes_and_leaves_its_results_in_s3() {
         std::fs::create_dir_all(sources.path().join(name)).unwrap();
         std::fs::write(sources.path().join(name).join("README"), name).unwrap();
     }
+    // The CARLA egg the evaluator imports (the fake checks it is on PYTHONPATH).
+    let dist = sources.path().join("carla/PythonAPI/carla/dist");
+    std::fs::create_dir_all(&dist).unwrap();
+    std::fs::write(dist.join("carla-0.9.15-py3.7-linux-x86_64.egg"), "egg").unwrap();
     let port = free_port();
     let common = [
         ("LB_SUBMISSION_ID", SUBMISSION.to_owned()),
@@ -95,6 +99,12 @@ fn a_job_with_init_a_pair_and_logcopy_completes_and_leaves_its_results_in_s3() {
             "/workspace/scenario_runner".to_owned(),
         ),
         ("CARLA_ROOT", "/workspace/CARLA".to_owned()),
+        (
+            "PYTHONPATH",
+            "/workspace/CARLA/PythonAPI/carla/dist/carla-0.9.15-py3.7-linux-x86_64.egg:\
+             /workspace/scenario_runner:/workspace/leaderboard"
+                .to_owned(),
+        ),
         ("FAKE_EVALUATOR_ROUTE_SECONDS", "0.2".to_owned()),
     ];
     let mut init_env: Vec<(&str, String)> = common.to_vec();

@@ -1,8 +1,12 @@
 //! DynamoDB: the claim that makes a duplicate SQS delivery harmless, the submission record,
-//! and the qualifier table.
+//! and the qualifier table, in the layout the original system left operators
+//! (`shared/reference/original-system.md`), so they switch without a migration.
 //!
-//! Submissions table: partition key `team_id` (N), sort key `submission_id` (N). Qualifier
-//! table: partition key `team_id` (N), sort key `track_codename` (S).
+//! Submissions table: partition key `team_id` (S), sort key `submission_id` (S); the original
+//! attributes are strings, `-` for a value not known yet, times as `2024-03-07 10:31:02 UTC`.
+//! Attributes of ours (`claimed_by`, `error`, `routes_done`, `routes_total`) may be typed.
+//! Qualifier table: partition key `team_id` (S), sort key `track_codename` (S): an item admits
+//! the team to the track it names (the target track, not the qualifier).
 
 use std::collections::HashMap;
 
@@ -14,8 +18,10 @@ use crate::{AwsError, Result};
 /// `submission_status` values of the record.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum RecordStatus {
-    /// Claimed, Jobs not yet running.
-    Queued,
+    /// Claimed for a new submission (EvalAI's `submitted`, upper-cased as the original).
+    Submitted,
+    /// Claimed for a resume (EvalAI's `resuming`).
+    Resuming,
     /// Jobs running.
     Running,
     /// Final scores posted.
@@ -27,10 +33,23 @@ pub enum RecordStatus {
 }
 
 impl RecordStatus {
+    /// The statuses of a submission an execution still holds (claimed or running).
+    pub const IN_FLIGHT: [RecordStatus; 3] = [
+        RecordStatus::Submitted,
+        RecordStatus::Resuming,
+        RecordStatus::Running,
+    ];
+
+    /// Whether a stored status is one of [`IN_FLIGHT`](Self::IN_FLIGHT).
+    pub fn is_in_flight(stored: &str) -> bool {
+        Self::IN_FLIGHT.iter().any(|s| s.as_str() == stored)
+    }
+
     /// As stored.
     pub fn as_str(self) -> &'static str {
         match self {
-            RecordStatus::Queued => "QUEUED",
+            RecordStatus::Submitted => "SUBMITTED",
+            RecordStatus::Resuming => "RESUMING",
             RecordStatus::Running => "RUNNING",
             RecordStatus::Finished => "FINISHED",
             RecordStatus::Failed => "FAILED",
@@ -56,7 +75,7 @@ pub struct NewRecord {
     pub image: String,
     /// Simulator-agent pairs this evaluation uses.
     pub workers: u32,
-    /// When the claim happened (RFC 3339).
+    /// When the claim happened ([`record_time`]).
     pub submitted_time: String,
     /// Who claimed it (the state machine execution), to tell a duplicate from ourselves.
     pub claimed_by: String,
@@ -83,12 +102,13 @@ pub enum Claim {
 pub struct FinalRecord {
     /// Final status.
     pub status: RecordStatus,
-    /// RFC 3339.
+    /// [`record_time`].
     pub end_time: String,
-    /// `s3://bucket/id/` of the results.
+    /// `s3://bucket/id` of the results.
     pub results: String,
-    /// (attribute, value) per metric, e.g. (`driving_score`, 41.2).
-    pub metrics: Vec<(&'static str, f64)>,
+    /// (attribute, value as EvalAI got it) per metric of the leaderboard, e.g.
+    /// (`driving_score`, `Some("41.2")`); `None` is stored as `-`.
+    pub metrics: Vec<(&'static str, Option<String>)>,
     /// Routes done / planned.
     pub progress: (u64, u64),
     /// Why it failed, readable.
@@ -106,6 +126,23 @@ fn n(v: impl ToString) -> AttributeValue {
     AttributeValue::N(v.to_string())
 }
 
+/// What the original writes for a value not known yet.
+pub const UNKNOWN: &str = "-";
+
+/// A time as the original records it: `2024-03-07 10:31:02 UTC`.
+pub fn record_time(at: time::OffsetDateTime) -> String {
+    let at = at.to_offset(time::UtcOffset::UTC);
+    format!(
+        "{:04}-{:02}-{:02} {:02}:{:02}:{:02} UTC",
+        at.year(),
+        u8::from(at.month()),
+        at.day(),
+        at.hour(),
+        at.minute(),
+        at.second()
+    )
+}
+
 fn s(v: impl Into<String>) -> AttributeValue {
     AttributeValue::S(v.into())
 }
@@ -121,8 +158,8 @@ impl SubmissionsTable {
 
     fn key(team_id: u64, submission_id: u64) -> HashMap<String, AttributeValue> {
         HashMap::from([
-            ("team_id".to_string(), n(team_id)),
-            ("submission_id".to_string(), n(submission_id)),
+            ("team_id".to_string(), s(team_id.to_string())),
+            ("submission_id".to_string(), s(submission_id.to_string())),
         ])
     }
 
@@ -144,45 +181,63 @@ impl SubmissionsTable {
         Ok(out.item)
     }
 
-    /// The operator's per-submission worker count (`parallelization_workers`), if set.
+    /// The operator's per-submission worker count (`parallelization_workers`), if set: a
+    /// string as the original writes it (`-` or empty: not set), or a number.
     pub async fn worker_override(&self, team_id: u64, submission_id: u64) -> Result<Option<u32>> {
         let Some(item) = self.get(team_id, submission_id).await? else {
             return Ok(None);
         };
-        match item.get("parallelization_workers") {
-            None => Ok(None),
-            Some(AttributeValue::N(v)) => v
-                .parse::<u32>()
-                .ok()
-                .filter(|w| *w > 0)
-                .map(Some)
-                .ok_or_else(|| AwsError::Malformed {
-                    what: format!("team {team_id} submission {submission_id}"),
-                    problem: format!("`parallelization_workers` is `{v}`, not a positive integer"),
-                }),
-            Some(_) => Err(AwsError::Malformed {
-                what: format!("team {team_id} submission {submission_id}"),
-                problem: "`parallelization_workers` is not a number".into(),
-            }),
-        }
+        let malformed = |problem: String| AwsError::Malformed {
+            what: format!("team {team_id} submission {submission_id}"),
+            problem,
+        };
+        let text = match item.get("parallelization_workers") {
+            None => return Ok(None),
+            Some(AttributeValue::S(v)) if v.trim().is_empty() || v.trim() == UNKNOWN => {
+                return Ok(None)
+            }
+            Some(AttributeValue::S(v) | AttributeValue::N(v)) => v.trim(),
+            Some(_) => {
+                return Err(malformed(
+                    "`parallelization_workers` is neither a string nor a number".into(),
+                ))
+            }
+        };
+        text.parse::<u32>()
+            .ok()
+            .filter(|w| *w > 0)
+            .map(Some)
+            .ok_or_else(|| {
+                malformed(format!(
+                    "`parallelization_workers` is `{}`, not a positive integer",
+                    text.escape_debug()
+                ))
+            })
     }
 
     /// Claims the submission with one conditional write. A new submission needs no record;
     /// a resume needs a record that is no longer being evaluated. Anything else is a
     /// duplicate delivery.
     pub async fn claim(&self, record: &NewRecord) -> Result<Claim> {
+        let status = if record.resuming {
+            RecordStatus::Resuming
+        } else {
+            RecordStatus::Submitted
+        };
         let mut item = Self::key(record.team_id, record.submission_id);
         item.extend([
-            (
-                "submission_status".to_string(),
-                s(RecordStatus::Queued.as_str()),
-            ),
+            ("submission_status".to_string(), s(status.as_str())),
             ("team_name".to_string(), s(&record.team_name)),
-            ("track_id".to_string(), n(record.track_id)),
+            ("track_id".to_string(), s(record.track_id.to_string())),
             ("track_name".to_string(), s(&record.track_name)),
             ("submitted_image_uri".to_string(), s(&record.image)),
-            ("parallelization_workers".to_string(), n(record.workers)),
+            (
+                "parallelization_workers".to_string(),
+                s(record.workers.to_string()),
+            ),
             ("submitted_time".to_string(), s(&record.submitted_time)),
+            ("start_time".to_string(), s(UNKNOWN)),
+            ("end_time".to_string(), s(UNKNOWN)),
             ("claimed_by".to_string(), s(&record.claimed_by)),
         ]);
         let mut request = self
@@ -228,30 +283,57 @@ impl SubmissionsTable {
         }
     }
 
-    /// RUNNING, with the first start time kept and the progress updated.
+    /// RUNNING, with the results location, the progress, and the first start time kept (the
+    /// original writes `-` until then). One write when the run had started before, two on the
+    /// round that starts it.
     pub async fn mark_running(
         &self,
         team_id: u64,
         submission_id: u64,
         start_time: &str,
+        results: &str,
         progress: (u64, u64),
     ) -> Result<()> {
-        self.client
-            .update_item()
-            .table_name(&self.table)
-            .set_key(Some(Self::key(team_id, submission_id)))
-            .update_expression(
-                "SET submission_status = :running, start_time = if_not_exists(start_time, :start), routes_done = :done, routes_total = :total",
-            )
-            .condition_expression("attribute_exists(submission_id)")
-            .expression_attribute_values(":running", s(RecordStatus::Running.as_str()))
-            .expression_attribute_values(":start", s(start_time))
-            .expression_attribute_values(":done", n(progress.0))
-            .expression_attribute_values(":total", n(progress.1))
-            .send()
-            .await
-            .map_err(|e| AwsError::sdk("dynamodb", "UpdateItem", e))?;
-        Ok(())
+        let update = |first: bool| {
+            let mut expression = "SET submission_status = :running, results = :results, routes_done = :done, routes_total = :total".to_string();
+            let mut request = self
+                .client
+                .update_item()
+                .table_name(&self.table)
+                .set_key(Some(Self::key(team_id, submission_id)))
+                .expression_attribute_values(":running", s(RecordStatus::Running.as_str()))
+                .expression_attribute_values(":results", s(results))
+                .expression_attribute_values(":done", n(progress.0))
+                .expression_attribute_values(":total", n(progress.1));
+            if first {
+                expression.push_str(", start_time = :start");
+                request = request
+                    .condition_expression("attribute_exists(submission_id)")
+                    .expression_attribute_values(":start", s(start_time));
+            } else {
+                // Fails (and the caller writes the start time) while it is `-` or absent.
+                request = request
+                    .condition_expression(
+                        "attribute_exists(submission_id) AND start_time <> :unknown",
+                    )
+                    .expression_attribute_values(":unknown", s(UNKNOWN));
+            }
+            request.update_expression(expression)
+        };
+        match update(false).send().await {
+            Ok(_) => Ok(()),
+            Err(e)
+                if e.as_service_error()
+                    .is_some_and(|e| e.is_conditional_check_failed_exception()) =>
+            {
+                update(true)
+                    .send()
+                    .await
+                    .map_err(|e| AwsError::sdk("dynamodb", "UpdateItem", e))?;
+                Ok(())
+            }
+            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
+        }
     }
 
     /// The final record, every metric as its own attribute.
@@ -277,12 +359,9 @@ impl SubmissionsTable {
         ]);
         let mut names = HashMap::new();
         for (i, (attribute, value)) in record.metrics.iter().enumerate() {
-            if !value.is_finite() {
-                continue;
-            }
             set.push(format!("#m{i} = :m{i}"));
             names.insert(format!("#m{i}"), attribute.to_string());
-            values.insert(format!(":m{i}"), n(value));
+            values.insert(format!(":m{i}"), s(value.as_deref().unwrap_or(UNKNOWN)));
         }
         let mut expression = format!("SET {}", set.join(", "));
         names.insert("#error".into(), "error".into());
@@ -324,53 +403,34 @@ impl QualifierTable {
         }
     }
 
-    /// Whether the team passed `track` (a qualifier track codename).
-    pub async fn passed(&self, team_id: u64, track: &str) -> Result<bool> {
+    /// Whether the team may submit to `track` (a main track): the item `(team, track)` the
+    /// original system, or we, put when the team passed the track's qualifier.
+    pub async fn admitted(&self, team_id: u64, track: &str) -> Result<bool> {
         let out = self
             .client
             .get_item()
             .table_name(&self.table)
-            .key("team_id", n(team_id))
+            .key("team_id", s(team_id.to_string()))
             .key("track_codename", s(track))
             .consistent_read(true)
             .send()
             .await
             .map_err(|e| AwsError::sdk("dynamodb", "GetItem", e))?;
-        Ok(out
-            .item
-            .and_then(|item| item.get("passed").and_then(|v| v.as_bool().ok()).copied())
-            .unwrap_or(false))
+        Ok(out.item.is_some())
     }
 
-    /// Records a qualifier outcome. A pass is never overwritten by a later fail.
-    pub async fn record(
-        &self,
-        team_id: u64,
-        track: &str,
-        submission_id: u64,
-        passed: bool,
-        metrics: &[(&'static str, f64)],
-    ) -> Result<()> {
-        let mut item = HashMap::from([
-            ("team_id".to_string(), n(team_id)),
-            ("track_codename".to_string(), s(track)),
-            ("submission_id".to_string(), n(submission_id)),
-            ("passed".to_string(), AttributeValue::Bool(passed)),
-        ]);
-        for (attribute, value) in metrics.iter().filter(|(_, v)| v.is_finite()) {
-            item.insert(attribute.to_string(), n(value));
-        }
+    /// Admits the team to `track` (the target of the qualifier it passed), as the original
+    /// does: the item `(team_id, track_codename)` with the qualifying `submission_id`. The
+    /// first pass stays; a later one changes nothing.
+    pub async fn admit(&self, team_id: u64, track: &str, submission_id: u64) -> Result<()> {
         let result = self
             .client
             .put_item()
             .table_name(&self.table)
-            .set_item(Some(item))
-            .condition_expression(
-                "attribute_not_exists(team_id) OR passed = :false OR :passed = :true",
-            )
-            .expression_attribute_values(":false", AttributeValue::Bool(false))
-            .expression_attribute_values(":true", AttributeValue::Bool(true))
-            .expression_attribute_values(":passed", AttributeValue::Bool(passed))
+            .item("team_id", s(team_id.to_string()))
+            .item("track_codename", s(track))
+            .item("submission_id", s(submission_id.to_string()))
+            .condition_expression("attribute_not_exists(team_id)")
             .send()
             .await;
         match result {

@@ -55,9 +55,14 @@ impl SubmissionStore {
         }
     }
 
-    /// `s3://bucket/<id>/`, for records and messages.
+    /// `s3://bucket/<id>`, for records (the original's `results`) and messages.
     pub fn location(&self) -> String {
-        format!("s3://{}/{}", self.bucket, self.prefix)
+        format!("s3://{}/{}", self.bucket, self.prefix.trim_end_matches('/'))
+    }
+
+    /// [`location`](Self::location) without a client.
+    pub fn location_of(bucket: &str, submission_id: u64) -> String {
+        format!("s3://{bucket}/{submission_id}")
     }
 
     /// Keys (relative to the submission) under `dir`, with size and ETag; paginated.
@@ -109,6 +114,63 @@ impl SubmissionStore {
             .collect();
         out.sort_by_key(|p| p.pair_id);
         Ok(out)
+    }
+
+    /// The last `bytes` bytes of `key` (relative to the submission's folder; all of it when
+    /// shorter), `None` when it does not exist: one ranged GET, whatever the object's size.
+    pub async fn get_tail(&self, key: &str, bytes: u64) -> Result<Option<Vec<u8>>> {
+        let body = self.ranged(key, format!("bytes=-{bytes}")).await?;
+        // NB: a server that ignores the range sends everything; keep the tail anyway.
+        Ok(body.map(|b| b[b.len().saturating_sub(bytes as usize)..].to_vec()))
+    }
+
+    /// `key` (relative to the submission's folder) from byte `offset` on: empty when it has no
+    /// more, `None` when it does not exist. What `lbctl logs --follow` reads of a grown log.
+    pub async fn get_from(&self, key: &str, offset: u64) -> Result<Option<Vec<u8>>> {
+        self.ranged(key, format!("bytes={offset}-")).await
+    }
+
+    /// The files under `logs/`, relative to the submission's folder, with their sizes.
+    pub async fn logs(&self) -> Result<Vec<(String, u64)>> {
+        let mut out: Vec<(String, u64)> = self
+            .list(&format!("{}/", lb_domain::protocol::LOGS_DIR))
+            .await?
+            .into_iter()
+            .map(|(relative, size, _)| (relative, size))
+            .collect();
+        out.sort();
+        Ok(out)
+    }
+
+    async fn ranged(&self, key: &str, range: String) -> Result<Option<Vec<u8>>> {
+        let out = self
+            .client
+            .get_object()
+            .bucket(&self.bucket)
+            .key(format!("{}{key}", self.prefix))
+            .range(range)
+            .send()
+            .await;
+        let out = match out {
+            Ok(out) => out,
+            Err(e) if e.as_service_error().is_some_and(|e| e.is_no_such_key()) => return Ok(None),
+            // No byte in the range (an empty object, nothing past the offset): 416 InvalidRange.
+            Err(e) if e.raw_response().is_some_and(|r| r.status().as_u16() == 416) => {
+                return Ok(Some(Vec::new()))
+            }
+            Err(e) => return Err(AwsError::sdk("s3", "GetObject", e)),
+        };
+        let body = out
+            .body
+            .collect()
+            .await
+            .map_err(|e| AwsError::Transient {
+                service: "s3",
+                operation: "GetObject",
+                source: Box::new(e),
+            })?
+            .into_bytes();
+        Ok(Some(body.to_vec()))
     }
 
     /// Reads an object, refusing more than `limit` bytes (it may come from the participant).

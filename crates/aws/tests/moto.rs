@@ -14,43 +14,30 @@ async fn config(moto: &MotoServer) -> aws_config::SdkConfig {
     lb_aws::sdk_config_at(&moto.endpoint(), "us-west-2").await
 }
 
-async fn create_table(
-    client: &aws_sdk_dynamodb::Client,
-    name: &str,
-    sort: (&str, ScalarAttributeType),
-) {
+/// A table in the original system's key schema: `team_id` (S) and `sort` (S).
+async fn create_table(client: &aws_sdk_dynamodb::Client, name: &str, sort: &str) {
+    let attribute = |name: &str| {
+        AttributeDefinition::builder()
+            .attribute_name(name)
+            .attribute_type(ScalarAttributeType::S)
+            .build()
+            .unwrap()
+    };
+    let key = |name: &str, kind| {
+        KeySchemaElement::builder()
+            .attribute_name(name)
+            .key_type(kind)
+            .build()
+            .unwrap()
+    };
     client
         .create_table()
         .table_name(name)
         .billing_mode(BillingMode::PayPerRequest)
-        .attribute_definitions(
-            AttributeDefinition::builder()
-                .attribute_name("team_id")
-                .attribute_type(ScalarAttributeType::N)
-                .build()
-                .unwrap(),
-        )
-        .attribute_definitions(
-            AttributeDefinition::builder()
-                .attribute_name(sort.0)
-                .attribute_type(sort.1)
-                .build()
-                .unwrap(),
-        )
-        .key_schema(
-            KeySchemaElement::builder()
-                .attribute_name("team_id")
-                .key_type(KeyType::Hash)
-                .build()
-                .unwrap(),
-        )
-        .key_schema(
-            KeySchemaElement::builder()
-                .attribute_name(sort.0)
-                .key_type(KeyType::Range)
-                .build()
-                .unwrap(),
-        )
+        .attribute_definitions(attribute("team_id"))
+        .attribute_definitions(attribute(sort))
+        .key_schema(key("team_id", KeyType::Hash))
+        .key_schema(key(sort, KeyType::Range))
         .send()
         .await
         .unwrap();
@@ -65,10 +52,25 @@ fn record(claimed_by: &str, resuming: bool) -> NewRecord {
         track_name: "SENSORS".into(),
         image: "123.dkr.ecr.us-west-2.amazonaws.com/team:1".into(),
         workers: 4,
-        submitted_time: "2026-11-21T05:00:00Z".into(),
+        submitted_time: "2026-11-21 05:00:00 UTC".into(),
         claimed_by: claimed_by.into(),
         resuming,
     }
+}
+
+fn text(v: &str) -> AttributeValue {
+    AttributeValue::S(v.into())
+}
+
+#[test]
+fn record_times_are_written_as_the_original_writes_them() {
+    let at = time::macros::datetime!(2024-03-07 10:31:02.75 UTC);
+    assert_eq!(lb_aws::dynamo::record_time(at), "2024-03-07 10:31:02 UTC");
+    let elsewhere = time::macros::datetime!(2024-03-07 12:31:02 +02:00);
+    assert_eq!(
+        lb_aws::dynamo::record_time(elsewhere),
+        "2024-03-07 10:31:02 UTC"
+    );
 }
 
 #[tokio::test]
@@ -76,13 +78,29 @@ fn record(claimed_by: &str, resuming: bool) -> NewRecord {
 async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ended() {
     let moto = MotoServer::start().unwrap();
     let client = aws_sdk_dynamodb::Client::new(&config(&moto).await);
-    create_table(&client, "subs", ("submission_id", ScalarAttributeType::N)).await;
+    create_table(&client, "subs", "submission_id").await;
     let table = SubmissionsTable::new(client.clone(), "subs");
 
     assert_eq!(
         table.claim(&record("exec-1", false)).await.unwrap(),
         Claim::Claimed
     );
+    // Written at intake in the original layout: string keys and values, `-` for the times
+    // not known yet, EvalAI's status upper-cased.
+    let item = table.get(7, 42).await.unwrap().unwrap();
+    for (attribute, value) in [
+        ("team_id", "7"),
+        ("submission_id", "42"),
+        ("submission_status", "SUBMITTED"),
+        ("track_id", "1234"),
+        ("track_name", "SENSORS"),
+        ("parallelization_workers", "4"),
+        ("submitted_time", "2026-11-21 05:00:00 UTC"),
+        ("start_time", "-"),
+        ("end_time", "-"),
+    ] {
+        assert_eq!(item[attribute], text(value), "{attribute}");
+    }
     // The same execution retrying its Lambda keeps its claim.
     assert_eq!(
         table.claim(&record("exec-1", false)).await.unwrap(),
@@ -92,15 +110,27 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(
         table.claim(&record("exec-2", false)).await.unwrap(),
         Claim::Duplicate {
-            status: Some("QUEUED".into()),
+            status: Some("SUBMITTED".into()),
             claimed_by: Some("exec-1".into())
         }
     );
     // A resume while the first run is still going: refused too.
     table
-        .mark_running(7, 42, "2026-11-21T05:01:00Z", (0, 20))
+        .mark_running(7, 42, "2026-11-21 05:01:00 UTC", "s3://b/42", (0, 20))
         .await
         .unwrap();
+    let item = table.get(7, 42).await.unwrap().unwrap();
+    assert_eq!(item["submission_status"], text("RUNNING"));
+    assert_eq!(item["start_time"], text("2026-11-21 05:01:00 UTC"));
+    assert_eq!(item["results"], text("s3://b/42"));
+    // Later rounds keep the first start time.
+    table
+        .mark_running(7, 42, "2026-11-21 05:30:00 UTC", "s3://b/42", (4, 20))
+        .await
+        .unwrap();
+    let item = table.get(7, 42).await.unwrap().unwrap();
+    assert_eq!(item["start_time"], text("2026-11-21 05:01:00 UTC"));
+    assert_eq!(item["routes_done"], AttributeValue::N("4".into()));
     assert!(matches!(
         table.claim(&record("exec-3", true)).await.unwrap(),
         Claim::Duplicate { .. }
@@ -112,28 +142,37 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
             42,
             &FinalRecord {
                 status: RecordStatus::Failed,
-                end_time: "2026-11-21T06:00:00Z".into(),
-                results: "s3://b/42/".into(),
-                metrics: vec![],
+                end_time: "2026-11-21 06:00:00 UTC".into(),
+                results: "s3://b/42".into(),
+                metrics: vec![("driving_score", None)],
                 progress: (5, 20),
                 error: Some("CARLA crashed too often".into()),
             },
         )
         .await
         .unwrap();
+    let item = table.get(7, 42).await.unwrap().unwrap();
+    assert_eq!(
+        item["driving_score"],
+        text("-"),
+        "a metric EvalAI never got"
+    );
     // Now a resume may claim it, and its finish clears the old error and stores every metric.
     assert_eq!(
         table.claim(&record("exec-4", true)).await.unwrap(),
         Claim::Claimed
     );
+    let item = table.get(7, 42).await.unwrap().unwrap();
+    assert_eq!(item["submission_status"], text("RESUMING"));
+    assert_eq!(item["start_time"], text("-"), "the resume starts afresh");
     table
-        .mark_running(7, 42, "2026-11-21T07:00:00Z", (3, 20))
+        .mark_running(7, 42, "2026-11-21 07:00:00 UTC", "s3://b/42", (3, 20))
         .await
         .unwrap();
-    let metrics: Vec<(&'static str, f64)> = lb_domain::results::METRICS
+    let metrics: Vec<(&'static str, Option<String>)> = lb_domain::results::METRICS
         .iter()
         .enumerate()
-        .map(|(i, m)| (m.attribute, i as f64 + 0.5))
+        .map(|(i, m)| (m.attribute, Some(format!("{}.5", i))))
         .collect();
     table
         .finish(
@@ -141,8 +180,8 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
             42,
             &FinalRecord {
                 status: RecordStatus::Finished,
-                end_time: "2026-11-21T08:00:00Z".into(),
-                results: "s3://b/42/".into(),
+                end_time: "2026-11-21 08:00:00 UTC".into(),
+                results: "s3://b/42".into(),
                 metrics: metrics.clone(),
                 progress: (20, 20),
                 error: None,
@@ -151,48 +190,51 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         .await
         .unwrap();
     let item = table.get(7, 42).await.unwrap().unwrap();
-    assert_eq!(
-        item["submission_status"],
-        AttributeValue::S("FINISHED".into())
-    );
+    assert_eq!(item["submission_status"], text("FINISHED"));
     assert_eq!(
         item["start_time"],
-        AttributeValue::S("2026-11-21T07:00:00Z".into()),
+        text("2026-11-21 07:00:00 UTC"),
         "the resume's start"
     );
-    assert_eq!(item["team_name"], AttributeValue::S("Team 🚗 One".into()));
+    assert_eq!(item["end_time"], text("2026-11-21 08:00:00 UTC"));
+    assert_eq!(item["team_name"], text("Team 🚗 One"));
     assert!(!item.contains_key("error"));
     for (attribute, value) in metrics {
-        assert_eq!(
-            item[attribute],
-            AttributeValue::N(value.to_string()),
-            "{attribute}"
-        );
+        assert_eq!(item[attribute], text(&value.unwrap()), "{attribute}");
     }
+    assert_eq!(
+        item["agent_blocked"],
+        text("11.5"),
+        "the key the original missed"
+    );
     assert_eq!(item["routes_done"], AttributeValue::N("20".into()));
 }
 
 #[tokio::test]
 #[ignore = "needs moto"]
-async fn the_worker_override_and_the_qualifier_table_are_read_as_stored() {
+async fn the_worker_override_and_the_qualifier_table_are_read_as_the_original_wrote_them() {
     let moto = MotoServer::start().unwrap();
     let client = aws_sdk_dynamodb::Client::new(&config(&moto).await);
-    create_table(&client, "subs", ("submission_id", ScalarAttributeType::N)).await;
-    create_table(&client, "quals", ("track_codename", ScalarAttributeType::S)).await;
+    create_table(&client, "subs", "submission_id").await;
+    create_table(&client, "quals", "track_codename").await;
     let table = SubmissionsTable::new(client.clone(), "subs");
     assert_eq!(table.worker_override(7, 42).await.unwrap(), None);
-    // DynamoDB itself refuses a non-numeric N, so the last case is stored as a string.
+    // The original writes a string; a number typed by hand works too.
     let cases = [
-        (AttributeValue::N("8".into()), Ok(Some(8))),
-        (AttributeValue::N("0".into()), Err("MalformedRecord")),
-        (AttributeValue::S("x".into()), Err("MalformedRecord")),
+        (text("8"), Ok(Some(8))),
+        (text(" 2 "), Ok(Some(2))),
+        (text("-"), Ok(None)),
+        (AttributeValue::N("3".into()), Ok(Some(3))),
+        (text("0"), Err("MalformedRecord")),
+        (text("x"), Err("MalformedRecord")),
+        (AttributeValue::Bool(true), Err("MalformedRecord")),
     ];
     for (value, expected) in cases {
         client
             .put_item()
             .table_name("subs")
-            .item("team_id", AttributeValue::N("7".into()))
-            .item("submission_id", AttributeValue::N("42".into()))
+            .item("team_id", text("7"))
+            .item("submission_id", text("42"))
             .item("parallelization_workers", value.clone())
             .send()
             .await
@@ -201,20 +243,36 @@ async fn the_worker_override_and_the_qualifier_table_are_read_as_stored() {
         assert_eq!(got, expected, "{value:?}");
     }
 
-    let quals = QualifierTable::new(client, "quals");
-    assert!(!quals.passed(7, "SENSORS_QUALIFIER").await.unwrap());
-    quals
-        .record(7, "SENSORS_QUALIFIER", 40, true, &[("driving_score", 55.0)])
+    let quals = QualifierTable::new(client.clone(), "quals");
+    assert!(!quals.admitted(7, "SENSORS").await.unwrap());
+    // A pass the original system recorded: the target track, string keys.
+    client
+        .put_item()
+        .table_name("quals")
+        .item("team_id", text("9"))
+        .item("track_codename", text("SENSORS"))
+        .item("submission_id", text("301"))
+        .send()
         .await
         .unwrap();
-    assert!(quals.passed(7, "SENSORS_QUALIFIER").await.unwrap());
-    // A later failed attempt does not take the pass away.
-    quals
-        .record(7, "SENSORS_QUALIFIER", 41, false, &[("driving_score", 1.0)])
+    assert!(quals.admitted(9, "SENSORS").await.unwrap());
+    assert!(!quals.admitted(9, "MAP").await.unwrap());
+    // Ours, written so the original reads it the same way; the first pass stays.
+    quals.admit(7, "SENSORS", 40).await.unwrap();
+    quals.admit(7, "SENSORS", 41).await.unwrap();
+    assert!(quals.admitted(7, "SENSORS").await.unwrap());
+    let item = client
+        .get_item()
+        .table_name("quals")
+        .key("team_id", text("7"))
+        .key("track_codename", text("SENSORS"))
+        .send()
         .await
+        .unwrap()
+        .item
         .unwrap();
-    assert!(quals.passed(7, "SENSORS_QUALIFIER").await.unwrap());
-    assert!(!quals.passed(8, "SENSORS_QUALIFIER").await.unwrap());
+    assert_eq!(item["submission_id"], text("40"));
+    assert!(!quals.admitted(8, "SENSORS").await.unwrap());
 }
 
 #[tokio::test]
@@ -305,7 +363,8 @@ async fn the_submission_folder_lists_partials_and_markers_and_refuses_huge_objec
         store.get_bounded("42/evalai/stdout.txt", 10).await.unwrap(),
         b"out"
     );
-    assert_eq!(store.location(), "s3://results/42/");
+    // The original's `results` attribute: no trailing slash.
+    assert_eq!(store.location(), "s3://results/42");
 }
 
 #[tokio::test]

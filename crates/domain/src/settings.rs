@@ -7,6 +7,8 @@ use std::collections::BTreeMap;
 
 use serde::Deserialize;
 
+use crate::py::Num;
+
 use crate::results::Leaderboard;
 
 /// The whole configuration.
@@ -121,24 +123,57 @@ pub struct QualifierSettings {
 }
 
 impl QualifierSettings {
-    /// Whether `metrics` ((attribute, value) pairs) pass every threshold, and the verdict
-    /// line shown first in the participant's stdout. A missing metric fails its threshold.
-    pub fn verdict(&self, metrics: &[(&str, f64)]) -> (bool, String) {
+    /// The main tracks a pass of qualifier track `qualifier` admits to (the original's
+    /// qualifier -> target map, read backwards from ours).
+    pub fn targets_of(&self, qualifier: &str) -> Vec<&str> {
+        self.tracks
+            .iter()
+            .filter(|(_, q)| q.as_str() == qualifier)
+            .map(|(target, _)| target.as_str())
+            .collect()
+    }
+
+    /// Whether `metrics` ((attribute, EvalAI value) pairs) pass every threshold, as the
+    /// original judges it (every metric **strictly greater** than its threshold; a missing
+    /// metric fails), and the text the original puts in front of the participant's stdout.
+    pub fn verdict(&self, target_track: &str, metrics: &[(&str, Num)]) -> (bool, String) {
         let mut passed = true;
-        let mut parts = Vec::new();
-        for (attribute, min) in &self.thresholds {
+        let mut lines = String::new();
+        for (attribute, threshold) in &self.thresholds {
             let value = metrics
                 .iter()
                 .find(|(a, _)| a == attribute)
                 .map(|(_, v)| *v);
-            let ok = value.is_some_and(|v| v >= *min);
-            passed &= ok;
-            let shown = value.map_or("missing".to_string(), |v| format!("{v}"));
-            parts.push(format!("{attribute} {shown} (needs {min})"));
+            passed &= value.is_some_and(|v| v.as_f64() > *threshold);
+            let shown = value.map_or_else(|| "-".to_string(), Num::py_str);
+            lines.push_str(&format!(
+                "- {}: {shown} / {}\n",
+                capitalised(attribute),
+                Num::Float(*threshold).py_str()
+            ));
         }
-        let word = if passed { "PASSED" } else { "NOT PASSED" };
-        (passed, format!("Qualifier {word}: {}", parts.join(", ")))
+        let head = if passed {
+            format!("CONGRATULATIONS! You have qualified for the {target_track} track:")
+        } else {
+            format!(
+                "Unfortunately, you haven't scored high enough to qualify for the {target_track} track:"
+            )
+        };
+        (
+            passed,
+            format!("{head}\n\nFind below the relevant qualifying scores:\n{lines}\n"),
+        )
     }
+}
+
+/// `driving_score` -> `Driving score`, as Python's `.replace('_', ' ').capitalize()`.
+fn capitalised(attribute: &str) -> String {
+    let spaced = attribute.replace('_', " ").to_lowercase();
+    let mut chars = spaced.chars();
+    chars
+        .next()
+        .map(|c| c.to_uppercase().chain(chars).collect())
+        .unwrap_or_default()
 }
 
 /// Why the configuration is unusable.
@@ -344,22 +379,36 @@ mod tests {
     }
 
     #[test]
-    fn the_qualifier_verdict_needs_every_threshold() {
+    fn the_qualifier_verdict_needs_every_metric_strictly_above_its_threshold() {
         let q = Settings::from_json(EXAMPLE).unwrap().leaderboards["2.0"]
             .qualifier
             .clone();
+        assert_eq!(q.targets_of("SENSORS_QUALIFIER"), ["SENSORS"]);
         assert_eq!(
-            q.verdict(&[("driving_score", 12.5)]),
+            q.verdict("SENSORS", &[("driving_score", Num::Float(12.5))]),
             (
                 true,
-                "Qualifier PASSED: driving_score 12.5 (needs 10)".to_string()
+                "CONGRATULATIONS! You have qualified for the SENSORS track:\n\n\
+                 Find below the relevant qualifying scores:\n\
+                 - Driving score: 12.5 / 10.0\n\n"
+                    .to_string()
             )
         );
-        assert!(!q.verdict(&[("driving_score", 9.99)]).0);
-        assert_eq!(
-            q.verdict(&[]).1,
-            "Qualifier NOT PASSED: driving_score missing (needs 10)"
+        // Equal is not enough, as in the original.
+        assert!(
+            !q.verdict("SENSORS", &[("driving_score", Num::Float(10.0))])
+                .0
         );
+        let (passed, text) = q.verdict("SENSORS", &[("driving_score", Num::Int(0))]);
+        assert!(!passed);
+        assert!(text.starts_with(
+            "Unfortunately, you haven't scored high enough to qualify for the SENSORS track:\n"
+        ));
+        assert!(text.contains("- Driving score: 0 / 10.0\n"), "{text}");
+        assert!(q
+            .verdict("SENSORS", &[])
+            .1
+            .contains("- Driving score: - / 10.0\n"));
     }
 
     #[test]

@@ -41,12 +41,18 @@ pub enum MessageError {
         /// What is wrong with it.
         problem: String,
     },
+    /// The Pipe's batch does not hold exactly one message.
+    #[error("the Pipe's batch holds {0} messages, not 1: set the Pipe's batch size to 1")]
+    Batch(usize),
 }
 
 impl MessageError {
     /// The stable name the state machine matches.
     pub fn name(&self) -> &'static str {
-        "InvalidMessage"
+        match self {
+            MessageError::Batch(_) => "InvalidBatch",
+            _ => "InvalidMessage",
+        }
     }
 }
 
@@ -56,6 +62,16 @@ impl SubmissionMessage {
         let value: Value = serde_json::from_str(body)
             .map_err(|e| MessageError::NotAnObject(format!("invalid JSON ({e})")))?;
         Self::from_value(&value)
+    }
+
+    /// Validates what the state machine's Intake gets: the Pipe's batch (a JSON array, even
+    /// for one message) or its single element (the definition unwraps it with `$[0]`).
+    pub fn from_pipe(value: &Value) -> Result<Self, MessageError> {
+        match value {
+            Value::Array(batch) if batch.len() == 1 => Self::from_value(&batch[0]),
+            Value::Array(batch) => Err(MessageError::Batch(batch.len())),
+            one => Self::from_value(one),
+        }
     }
 
     /// Validates an already-parsed message.
@@ -285,6 +301,24 @@ mod tests {
         assert!(problem(with("submitted_image_uri", json!(5))).contains("must be a string"));
         assert!(problem(json!([1, 2])).contains("not a JSON object"));
         assert!(SubmissionMessage::parse("{not json").is_err());
+    }
+
+    #[test]
+    fn the_pipes_batch_of_one_is_unwrapped_and_any_other_size_is_invalid_batch() {
+        let one = serde_json::json!({"challenge_pk": 1, "phase_pk": 2, "submission_pk": 3});
+        let batch = serde_json::json!([one.clone()]);
+        assert_eq!(
+            SubmissionMessage::from_pipe(&batch).unwrap(),
+            SubmissionMessage::from_pipe(&one).unwrap()
+        );
+        for size in [0, 2] {
+            let batch = serde_json::Value::Array(vec![one.clone(); size]);
+            let err = SubmissionMessage::from_pipe(&batch).unwrap_err();
+            assert_eq!(err.name(), "InvalidBatch");
+            assert!(err.to_string().contains(&format!("holds {size} messages")));
+        }
+        let err = SubmissionMessage::from_pipe(&serde_json::json!([5])).unwrap_err();
+        assert_eq!(err.name(), "InvalidMessage");
     }
 
     #[test]

@@ -221,7 +221,6 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_one_job_of_four_pairs() {
         );
         assert_eq!(e["LB_MAX_IDLE_SECONDS"], "800");
         assert_eq!(e["LEADERBOARD_ROOT"], "/workspace/leaderboard");
-        assert!(e["PYTHONPATH"].contains("carla-0.9.15"));
         assert!(!e.contains_key("SCENARIOS"));
         let cmd = command(agent);
         assert_eq!(cmd[1..5], ["agent", "--", "bash", "-c"]);
@@ -414,14 +413,116 @@ fn a_12_route_3_worker_leaderboard_1_submission_runs_three_pairs_five_times() {
             e["SCENARIOS"],
             "/workspace/leaderboard/data/all_towns_traffic_scenarios_private.json"
         );
-        assert!(e["PYTHONPATH"].contains("carla-0.9.10"));
         let cmd = &command(agent)[5];
         assert!(cmd.contains("--scenarios=\"${SCENARIOS}\""));
         assert!(!cmd.contains("traffic-manager-port"));
+        // Every 1.0 pair shares the pod's network: each has its own traffic-manager port.
+        assert!(cmd.contains("--trafficManagerPort=\"${CARLA_TM_PORT}\""));
         assert!(!cmd.contains("debug-checkpoint"));
         assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], i.to_string());
     }
     assert_eq!(env(container(job, "logcopy"))["LB_PAIRS"], "1,2,3");
+    let tm_ports: std::collections::BTreeSet<String> = (1..=3)
+        .map(|i| env(container(job, &format!("agent-{i}")))["CARLA_TM_PORT"].clone())
+        .collect();
+    assert_eq!(tm_ports.len(), 3, "{tm_ports:?}");
+}
+
+/// Runs an agent container's shell script as the pod would, with `python3` a stub that prints
+/// what the evaluator would see, `HOME` holding the image's dotfiles.
+fn run_agent_script(job: &Job, image_python_path: Option<&str>, egg: &str) -> Vec<String> {
+    let agent = container(job, "agent-1");
+    let script = command(agent)[5].clone();
+    let dir = tempfile::tempdir().unwrap();
+    let home = dir.path().join("home");
+    let carla = dir.path().join("CARLA");
+    let bin = dir.path().join("bin");
+    for d in [&home, &carla.join("PythonAPI/carla/dist"), &bin] {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    std::fs::write(carla.join("PythonAPI/carla/dist").join(egg), "egg").unwrap();
+    std::fs::write(home.join(".bashrc"), "echo sourced:bashrc\n").unwrap();
+    std::fs::write(
+        home.join("agent_sources.sh"),
+        "echo sourced:agent_sources\n",
+    )
+    .unwrap();
+    let python = bin.join("python3");
+    std::fs::write(&python, "#!/bin/sh\necho \"PYTHONPATH=$PYTHONPATH\"\n").unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&python, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let mut cmd = std::process::Command::new("bash");
+    cmd.arg("-c").arg(&script).env_clear();
+    // The container's env as rendered (Kubernetes sets these), then the image's own.
+    for (k, v) in env(agent) {
+        cmd.env(k, v);
+    }
+    cmd.env("CARLA_ROOT", &carla)
+        .env("HOME", &home)
+        .env("PATH", format!("{}:/usr/bin:/bin", bin.display()));
+    if let Some(p) = image_python_path {
+        cmd.env("PYTHONPATH", p);
+    }
+    let out = cmd.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(str::to_owned)
+        .collect()
+}
+
+#[test]
+fn the_agent_prepends_the_official_code_to_the_images_pythonpath_after_its_dotfiles() {
+    for leaderboard in [Leaderboard::V1, Leaderboard::V2] {
+        let jobs = jobs(leaderboard, 4, 1, "team");
+        let agent = container(&jobs[0], "agent-1");
+        assert!(
+            !env(agent).contains_key("PYTHONPATH"),
+            "{leaderboard}: a container PYTHONPATH would replace the image's"
+        );
+        let lines = run_agent_script(
+            &jobs[0],
+            Some("/opt/team_code:/opt/lib"),
+            "carla-leaderboard-py3x.egg",
+        );
+        assert_eq!(lines[0], "sourced:bashrc", "{leaderboard}: {lines:?}");
+        assert_eq!(
+            lines[1], "sourced:agent_sources",
+            "{leaderboard}: {lines:?}"
+        );
+        let path: Vec<&str> = lines[2]
+            .strip_prefix("PYTHONPATH=")
+            .unwrap()
+            .split(':')
+            .collect();
+        assert!(
+            path[0].ends_with("/PythonAPI/carla/dist/carla-leaderboard-py3x.egg"),
+            "{path:?}"
+        );
+        assert_eq!(
+            path[2..],
+            [
+                "/workspace/scenario_runner",
+                "/workspace/leaderboard",
+                "/opt/team_code",
+                "/opt/lib"
+            ],
+            "{leaderboard}"
+        );
+        // An image without PYTHONPATH gets no empty entry; the egg keeps its versioned name.
+        let lines = run_agent_script(&jobs[0], None, "carla-0.9.15-py3.7-linux-x86_64.egg");
+        let path = lines[2].strip_prefix("PYTHONPATH=").unwrap();
+        assert!(path.ends_with("/workspace/leaderboard"), "{path}");
+        assert!(
+            path.contains("carla-0.9.15-py3.7-linux-x86_64.egg"),
+            "{path}"
+        );
+    }
 }
 
 #[test]

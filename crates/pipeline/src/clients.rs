@@ -33,13 +33,9 @@ pub async fn evalai(
     )?)
 }
 
-/// Now, as RFC 3339 UTC (the records' time format).
-pub fn now_rfc3339() -> String {
-    time::OffsetDateTime::now_utc()
-        .replace_nanosecond(0)
-        .unwrap_or_else(|_| time::OffsetDateTime::now_utc())
-        .format(&time::format_description::well_known::Rfc3339)
-        .unwrap_or_default()
+/// Now, in the records' time format (the original's `2024-03-07 10:31:02 UTC`).
+pub fn now_record_time() -> String {
+    lb_aws::dynamo::record_time(time::OffsetDateTime::now_utc())
 }
 
 /// A Lambda's cold start: its environment read once and the SDK configuration built once.

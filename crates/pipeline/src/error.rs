@@ -94,6 +94,7 @@ impl From<FnError> for lambda_runtime::Diagnostic {
 /// Every name our functions raise; the state machine test checks `ErrorEquals` against it.
 pub const ERROR_NAMES: &[&str] = &[
     "InvalidMessage",
+    "InvalidBatch",
     "InvalidSettings",
     "UnknownPhase",
     "EvalAiConfig",

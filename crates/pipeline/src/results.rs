@@ -2,6 +2,7 @@
 //! the Leaderboard's rules, turned into the EvalAI files and stored next to them.
 
 use lb_aws::s3::{EvalAiObjects, PartialObject, SubmissionStore, MAX_PARTIAL_BYTES};
+use lb_domain::py::Num;
 use lb_domain::results::{
     self, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions, ResultsFile,
     RouteSubset, WorkerFile, WorkerInput,
@@ -25,7 +26,7 @@ pub struct Snapshot {
     /// Every planned route has a record and the global statistics exist.
     pub complete: bool,
     /// (DynamoDB attribute, value) per metric.
-    pub metrics: Vec<(&'static str, f64)>,
+    pub metrics: Vec<(&'static str, Num)>,
 }
 
 /// The workers' files as one listing found them.
@@ -161,7 +162,7 @@ pub async fn collect_listed(
 }
 
 /// (DynamoDB attribute, value) for each metric EvalAI gets.
-fn metrics(files: &EvalAiFiles, leaderboard: Leaderboard) -> Vec<(&'static str, f64)> {
+fn metrics(files: &EvalAiFiles, leaderboard: Leaderboard) -> Vec<(&'static str, Num)> {
     let accuracies = files.accuracies();
     leaderboard
         .metrics()
@@ -170,7 +171,7 @@ fn metrics(files: &EvalAiFiles, leaderboard: Leaderboard) -> Vec<(&'static str, 
             accuracies
                 .iter()
                 .find(|(label, _)| *label == m.label)
-                .map(|(_, value)| (m.attribute, value.as_f64()))
+                .map(|(_, value)| (m.attribute, *value))
         })
         .collect()
 }

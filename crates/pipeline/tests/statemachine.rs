@@ -141,13 +141,14 @@ fn every_state_is_reachable_and_every_transition_lands() {
         .collect();
     assert!(unreachable.is_empty(), "unreachable: {unreachable:?}");
     // Every Choice branch is reachable too: its rules' targets were visited above; each Choice
-    // must itself be the target of some state.
+    // must itself be the start or the target of some state.
     for (name, state) in states {
         if state["Type"] == "Choice" {
             assert!(
-                states
-                    .values()
-                    .any(|s| successors(s).contains(&name.as_str())),
+                def["StartAt"] == name.as_str()
+                    || states
+                        .values()
+                        .any(|s| successors(s).contains(&name.as_str())),
                 "{name}"
             );
         }
@@ -170,7 +171,7 @@ fn a_72_hour_evaluation_stays_under_5000_history_events() {
     let per_round: u64 = ["Wait", "Monitor", "Done?"].iter().map(|s| events(s)).sum();
     assert_eq!(per_round, 9);
     let once: u64 = 2 /* ExecutionStarted, ExecutionSucceeded */
-        + ["Intake", "Eligible?", "Launch", "Finalize", "Failed?", "Done"].iter().map(|s| events(s)).sum::<u64>();
+        + ["OneSubmission?", "Unbatch", "Intake", "Eligible?", "Launch", "Finalize", "Failed?", "Done"].iter().map(|s| events(s)).sum::<u64>();
     // A retried Lambda adds LambdaFunctionScheduled/Started/Failed: allow 20 retries a run.
     let retries = 20 * 3;
     let rounds = rounds_for(MAX_EVALUATION);

@@ -11,6 +11,9 @@ use std::time::Duration;
 use aws_config::SdkConfig;
 use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable};
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
+use lb_domain::logtail::{participant_tail, MAX_TAIL_CHARS};
+use lb_domain::protocol::{self, Marker, Role, LOGS_DIR};
+use lb_domain::py::Num;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
@@ -205,10 +208,11 @@ async fn finish_run(
         );
     }
 
+    let markers = store.markers().await?;
     let cancelled = run
         .as_ref()
         .is_some_and(|r| r.monitor.state == RunPhase::Cancelled)
-        || store.markers().await?.iter().any(|m| m == CANCEL_MARKER);
+        || markers.iter().any(|m| m == CANCEL_MARKER);
     let snapshot: Option<std::result::Result<Snapshot, FnError>> = match &run {
         Some(run) => Some(collect(&store, target.leaderboard, &run.pairs, run.repetitions).await),
         None => None,
@@ -255,7 +259,7 @@ async fn finish_run(
         ),
     };
     let snapshot = snapshot.and_then(|s| s.ok());
-    let metrics: Vec<(&'static str, f64)> = snapshot
+    let metrics: Vec<(&'static str, Num)> = snapshot
         .as_ref()
         .map(|s| s.metrics.clone())
         .unwrap_or_default();
@@ -265,14 +269,31 @@ async fn finish_run(
         .map(|s| s.files.stdout.clone())
         .unwrap_or_default();
     if status == SubmissionStatus::Finished && target.track_settings.qualifier {
-        let (passed, verdict) = target.deployment.qualifier.verdict(&metrics);
-        QualifierTable::new(
-            deps.clients.dynamo.clone(),
-            &target.deployment.qualifier_table,
-        )
-        .record(submission.team_id, &submission.track, id, passed, &metrics)
-        .await?;
-        stdout = format!("{verdict}\n\n{stdout}");
+        // As the original: a pass admits the team to the qualifier's target track(s).
+        let qualifier = &target.deployment.qualifier;
+        let targets = qualifier.targets_of(&submission.track);
+        if let Some(first) = targets.first() {
+            let (passed, verdict) = qualifier.verdict(first, &metrics);
+            if passed {
+                let table = QualifierTable::new(
+                    deps.clients.dynamo.clone(),
+                    &target.deployment.qualifier_table,
+                );
+                for track in &targets {
+                    table.admit(submission.team_id, track, id).await?;
+                }
+            }
+            stdout = format!("{verdict}{stdout}");
+        }
+    }
+    // The participant learns why: the reason, then the end of the agent's own output.
+    let mut stderr = reason.clone().unwrap_or_default();
+    if status == SubmissionStatus::Failed {
+        if let Some((pair, tail)) = agent_log_tail(&store, &markers).await {
+            stderr.push_str(&format!(
+                "\n\nThe last lines of agent {pair}'s output:\n{tail}\n"
+            ));
+        }
     }
     let outcome = post(
         deps,
@@ -284,7 +305,7 @@ async fn finish_run(
         status,
         snapshot.as_ref(),
         stdout,
-        reason.clone().unwrap_or_default(),
+        stderr,
     )
     .await?;
     if outcome == WriteOutcome::Cancelled {
@@ -305,9 +326,18 @@ async fn finish_run(
         id,
         &FinalRecord {
             status: record_status,
-            end_time: clients::now_rfc3339(),
+            end_time: clients::now_record_time(),
             results: store.location(),
-            metrics,
+            // Every metric of the leaderboard, as EvalAI got it, `-` where it got none.
+            metrics: target
+                .leaderboard
+                .metrics()
+                .iter()
+                .map(|m| {
+                    let value = metrics.iter().find(|(a, _)| *a == m.attribute);
+                    (m.attribute, value.map(|(_, v)| v.py_str()))
+                })
+                .collect(),
             progress: snapshot.as_ref().map_or((0, 0), |s| s.progress),
             error: reason.clone(),
         },
@@ -323,6 +353,44 @@ async fn finish_run(
         pipeline_error: error.is_some(),
         reason,
     })
+}
+
+/// Bytes read from the end of an agent's log: enough for [`MAX_TAIL_CHARS`] characters of
+/// multi-byte text and the escapes that are stripped from it.
+const TAIL_BYTES: u64 = 64 * 1024;
+
+/// The agent that crashed most often (the lowest pair on a tie) and the end of its output,
+/// cleaned for the participant's page. Its container holds no secret (no AWS credentials, no
+/// token), so its own output has none of ours to leak. `None` when no agent crashed or its log
+/// cannot be read (the reason alone is posted then).
+async fn agent_log_tail(store: &SubmissionStore, markers: &[String]) -> Option<(u32, String)> {
+    let mut crashes: std::collections::BTreeMap<u32, u32> = Default::default();
+    for name in markers {
+        if let Some(Marker::Crash {
+            role: Role::Agent,
+            pair,
+            ..
+        }) = Marker::parse(name)
+        {
+            *crashes.entry(pair).or_default() += 1;
+        }
+    }
+    let pair = crashes
+        .iter()
+        .max_by_key(|(pair, n)| (**n, std::cmp::Reverse(**pair)))
+        .map(|(pair, _)| *pair)?;
+    let key = format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair));
+    match store.get_tail(&key, TAIL_BYTES).await {
+        Ok(Some(bytes)) => {
+            let tail = participant_tail(&bytes, MAX_TAIL_CHARS);
+            (!tail.is_empty()).then_some((pair, tail))
+        }
+        Ok(None) => None,
+        Err(e) => {
+            warn!(%key, error = %e, "the agent's log could not be read");
+            None
+        }
+    }
 }
 
 /// The final EvalAI update: scores for a finished run; for a failed one, the partial summary

@@ -37,8 +37,8 @@ async fn record(
     aws_sdk_dynamodb::Client::new(&stack.sdk)
         .get_item()
         .table_name("leaderboard-20-submissions")
-        .key("team_id", AttributeValue::N(team.to_string()))
-        .key("submission_id", AttributeValue::N(submission.to_string()))
+        .key("team_id", AttributeValue::S(team.to_string()))
+        .key("submission_id", AttributeValue::S(submission.to_string()))
         .send()
         .await
         .unwrap()
@@ -68,7 +68,7 @@ async fn a_new_submission_is_claimed_once_and_a_duplicate_delivery_skipped() {
     let item = record(&stack, 1, 1).await.expect("claimed");
     assert_eq!(
         item["submission_status"],
-        AttributeValue::S("QUEUED".into())
+        AttributeValue::S("SUBMITTED".into())
     );
     assert_eq!(item["claimed_by"], AttributeValue::S("exec-1".into()));
 
@@ -88,9 +88,10 @@ async fn a_message_without_image_uses_the_input_file_and_the_override_sets_worke
     aws_sdk_dynamodb::Client::new(&stack.sdk)
         .put_item()
         .table_name("leaderboard-20-submissions")
-        .item("team_id", AttributeValue::N("1".into()))
-        .item("submission_id", AttributeValue::N("1".into()))
-        .item("parallelization_workers", AttributeValue::N("2".into()))
+        .item("team_id", AttributeValue::S("1".into()))
+        .item("submission_id", AttributeValue::S("1".into()))
+        // The original system's (and operators') override: a string.
+        .item("parallelization_workers", AttributeValue::S("2".into()))
         .item("submission_status", AttributeValue::S("FAILED".into()))
         .send()
         .await
@@ -175,13 +176,16 @@ async fn an_ineligible_status_is_skipped_and_an_unqualified_team_rejected() {
         .contains("qualifier track `SENSORS_QUALIFIER`"));
     assert!(record(&stack, 1, 1).await.is_none());
 
-    lb_aws::dynamo::QualifierTable::new(
-        aws_sdk_dynamodb::Client::new(&stack.sdk),
-        "leaderboard-20-qualifier",
-    )
-    .record(1, "SENSORS_QUALIFIER", 9, true, &[])
-    .await
-    .unwrap();
+    // The pass as the original system recorded it: the team may now enter `SENSORS`.
+    aws_sdk_dynamodb::Client::new(&stack.sdk)
+        .put_item()
+        .table_name("leaderboard-20-qualifier")
+        .item("team_id", AttributeValue::S("1".into()))
+        .item("track_codename", AttributeValue::S("SENSORS".into()))
+        .item("submission_id", AttributeValue::S("9".into()))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(
         handle(input(message.clone(), "exec"), &deps)
             .await

@@ -6,6 +6,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use aws_config::SdkConfig;
 use lb_aws::dynamo::SubmissionsTable;
+use lb_aws::s3::SubmissionStore;
 use lb_domain::plan::{plan, PlanInput};
 use lb_domain::schedule::FIRST_WAIT;
 use lb_domain::settings::Settings;
@@ -150,7 +151,8 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         .mark_running(
             submission.team_id,
             submission.submission_id,
-            &clients::now_rfc3339(),
+            &clients::now_record_time(),
+            &SubmissionStore::location_of(&target.deployment.bucket, submission.submission_id),
             (0, total),
         )
         .await?;

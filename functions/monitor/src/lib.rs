@@ -200,7 +200,8 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
                 .mark_running(
                     submission.team_id,
                     id,
-                    &clients::now_rfc3339(),
+                    &clients::now_record_time(),
+                    &store.location(),
                     run.monitor.progress,
                 )
                 .await

@@ -1,6 +1,7 @@
 //! Local stand-ins for the systems the backend talks to, for tests and local mode.
 
 pub mod moto;
+pub mod pipe;
 pub mod stack;
 pub mod workloads;
 

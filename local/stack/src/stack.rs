@@ -238,20 +238,9 @@ impl Stack {
                 .send()
                 .await
                 .map_err(|e| provision(&lb.bucket, e))?;
-            create_table(
-                &dynamo,
-                &lb.submissions_table,
-                "submission_id",
-                ScalarAttributeType::N,
-            )
-            .await?;
-            create_table(
-                &dynamo,
-                &lb.qualifier_table,
-                "track_codename",
-                ScalarAttributeType::S,
-            )
-            .await?;
+            // The original system's key schemas (reference original-system.md): all strings.
+            create_table(&dynamo, &lb.submissions_table, "submission_id").await?;
+            create_table(&dynamo, &lb.qualifier_table, "track_codename").await?;
         }
         Ok(settings)
     }
@@ -283,11 +272,11 @@ where
     }
 }
 
+/// A table keyed by `team_id` (S) and `sort_key` (S).
 async fn create_table(
     client: &aws_sdk_dynamodb::Client,
     name: &str,
     sort_key: &str,
-    sort_type: ScalarAttributeType,
 ) -> Result<(), StackError> {
     let attribute = |name: &str, kind: ScalarAttributeType| {
         AttributeDefinition::builder()
@@ -307,8 +296,8 @@ async fn create_table(
         .create_table()
         .table_name(name)
         .billing_mode(BillingMode::PayPerRequest)
-        .attribute_definitions(attribute("team_id", ScalarAttributeType::N))
-        .attribute_definitions(attribute(sort_key, sort_type))
+        .attribute_definitions(attribute("team_id", ScalarAttributeType::S))
+        .attribute_definitions(attribute(sort_key, ScalarAttributeType::S))
         .key_schema(key("team_id", KeyType::Hash))
         .key_schema(key(sort_key, KeyType::Range))
         .send()

@@ -44,6 +44,43 @@ impl Binaries {
         })
     }
 
+    /// The binaries beside the running program (where `cargo build` and `make local` put
+    /// them), else on `PATH`; the error names every place looked at.
+    pub fn find() -> std::io::Result<Binaries> {
+        let mut dirs: Vec<PathBuf> = Vec::new();
+        if let Some(dir) = std::env::current_exe()
+            .ok()
+            .and_then(|e| e.parent().map(Path::to_owned))
+        {
+            dirs.push(dir);
+        }
+        if let Some(path) = std::env::var_os("PATH") {
+            dirs.extend(std::env::split_paths(&path));
+        }
+        let find = |name: &str| {
+            dirs.iter()
+                .map(|d| d.join(name))
+                .find(|p| p.is_file())
+                .ok_or_else(|| {
+                    let looked: Vec<String> =
+                        dirs.iter().map(|d| format!("`{}`", d.display())).collect();
+                    std::io::Error::new(
+                        std::io::ErrorKind::NotFound,
+                        format!(
+                            "`{name}` not found beside this program or on PATH (looked in {}): \
+                             run `make local`, or `cargo build -p sidecar -p fake-workloads --bins`",
+                            looked.join(", ")
+                        ),
+                    )
+                })
+        };
+        Ok(Binaries {
+            sidecar: find("lb-sidecar")?,
+            fake_carla: find("fake-carla")?,
+            fake_evaluator: find("fake-evaluator")?,
+        })
+    }
+
     /// Builds them with cargo (debug profile) and returns where they are.
     pub fn build() -> std::io::Result<Binaries> {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
@@ -71,6 +108,9 @@ impl Binaries {
         Self::in_dir(&target.join("debug"))
     }
 }
+
+/// Where the local participant image keeps its own code (on its `PYTHONPATH`).
+pub const PARTICIPANT_CODE_ROOT: &str = "/opt/team_code";
 
 /// How the fake programs behave in a local run.
 #[derive(Debug, Clone, PartialEq)]
@@ -131,6 +171,8 @@ pub fn image_map(
         ("leaderboard/data", "routes_testing.xml"),
         ("scenario_runner", "README"),
         ("CARLA/PythonAPI", "README"),
+        // Named as the original images rename it; the agent finds it by pattern.
+        ("CARLA/PythonAPI/carla/dist", "carla-leaderboard-py3x.egg"),
     ] {
         std::fs::create_dir_all(sources.join(dir))?;
         std::fs::write(
@@ -182,7 +224,16 @@ pub fn image_map(
             },
         )?;
     }
+    // The participant image's own home: the agent sources its `.bashrc`, which must not be
+    // the host's (a host `.bashrc` may put another python3 first on PATH).
+    let home = scratch.join("participant-home");
+    std::fs::create_dir_all(&home)?;
+    std::fs::write(
+        home.join(".bashrc"),
+        "# the participant image's ~/.bashrc, sourced before agent_sources.sh\nexport TEAM_BASHRC=sourced\n",
+    )?;
     let mut participant_env = BTreeMap::from([
+        ("HOME".to_string(), home.display().to_string()),
         (
             "FAKE_EVALUATOR_ROUTE_SECONDS".to_string(),
             behaviour.route_seconds.to_string(),
@@ -194,6 +245,13 @@ pub fn image_map(
         (
             "TEAM_CONFIG".to_string(),
             "/workspace/team_code/config.txt".to_string(),
+        ),
+        // The participant's image puts its code root on PYTHONPATH, and its agent imports
+        // from there: a Job that replaced the image's PYTHONPATH fails as it would on EKS.
+        ("PYTHONPATH".to_string(), PARTICIPANT_CODE_ROOT.to_string()),
+        (
+            "FAKE_EVALUATOR_TEAM_CODE".to_string(),
+            PARTICIPANT_CODE_ROOT.to_string(),
         ),
     ]);
     participant_env.extend(behaviour.evaluator_env.clone());

@@ -41,6 +41,11 @@ fn message() -> Value {
     json!({"challenge_pk": 1, "phase_pk": 1234, "submission_pk": 99, "submitted_image_uri": "repo/agent:1"})
 }
 
+/// What the EventBridge Pipe starts the execution with: its batch, a JSON array even for one.
+fn pipe_batch() -> Value {
+    json!([message()])
+}
+
 /// How the fake stages behave.
 #[derive(Clone)]
 struct Script {
@@ -139,7 +144,7 @@ fn tasks(script: Script) -> (TaskMap, Stages) {
 
 async fn submit(script: Script, scale: f64) -> (ExecutionResult, Stages) {
     let (tasks, stages) = tasks(script);
-    let result = run_with(&machine(), tasks, options(scale), message()).await;
+    let result = run_with(&machine(), tasks, options(scale), pipe_batch()).await;
     (result, stages)
 }
 
@@ -173,8 +178,8 @@ fn the_definition_loads_with_its_four_substitutions() {
             Some(format!("{}{}FunctionArn", s[..1].to_uppercase(), &s[1..]))
         ))
     );
-    assert_eq!(sm.start_at(), "Intake");
-    assert_eq!(sm.state_names().len(), 12);
+    assert_eq!(sm.start_at(), "OneSubmission?");
+    assert_eq!(sm.state_names().len(), 15);
     let (all, _) = tasks(Script::default());
     let executor = Executor::new(all, options(1.0)).unwrap();
     assert!(executor.missing_tasks(&sm).is_empty());
@@ -197,6 +202,8 @@ async fn a_submission_runs_intake_launch_three_monitor_rounds_finalize_done() {
     assert_eq!(
         r.states_entered(),
         [
+            "OneSubmission?",
+            "Unbatch",
             "Intake",
             "Eligible?",
             "Launch",
@@ -215,7 +222,7 @@ async fn a_submission_runs_intake_launch_three_monitor_rounds_finalize_done() {
         ]
     );
     assert_eq!(stages.monitor.count(), 3);
-    // Intake gets the Pipe's message and the execution's name.
+    // Intake gets the Pipe's one message, unwrapped, and the execution's name.
     assert_eq!(
         stages.intake.inputs()[0],
         json!({"message": message(), "execution": "test-run"})
@@ -255,14 +262,14 @@ async fn a_submission_runs_intake_launch_three_monitor_rounds_finalize_done() {
             assert_eq!(waits[k + 1] - start, 9);
         }
     }
-    // 1 start + Intake 5 + Eligible? 2 + Launch 5 + 3 rounds of 9 + Finalize 5 + Failed? 2
-    // + Done 2 + 1 end.
-    assert_eq!(r.history.len(), 50);
+    // 1 start + OneSubmission? 2 + Unbatch 2 + Intake 5 + Eligible? 2 + Launch 5 + 3 rounds
+    // of 9 + Finalize 5 + Failed? 2 + Done 2 + 1 end.
+    assert_eq!(r.history.len(), 54);
     // The budget this implies: 25,000 events allow 2,775 rounds, so a 72-hour run fits when
     // the Monitor's intervals average at least 94 s.
     let per_round = waits[1] - waits[0];
     let rounds = (25_000 - (r.history.len() - 3 * per_round)) / per_round;
-    assert_eq!(rounds, 2_775);
+    assert_eq!(rounds, 2_774);
     assert!(rounds * 94 >= 72 * 3600);
 }
 
@@ -278,6 +285,8 @@ async fn a_failing_launch_is_caught_into_finalize_and_ends_pipeline_failed() {
     assert_eq!(
         r.states_entered(),
         [
+            "OneSubmission?",
+            "Unbatch",
             "Intake",
             "Eligible?",
             "Launch",
@@ -309,9 +318,9 @@ async fn a_failing_launch_is_caught_into_finalize_and_ends_pipeline_failed() {
             .collect::<Vec<_>>(),
         [EventType::ExecutionFailed, EventType::FailStateEntered]
     );
-    // 1 + Intake 5 + Eligible? 2 + Launch 5 (failed, caught, exited) + Finalize 5 + Failed? 2
-    // + PipelineFailed 1 + 1.
-    assert_eq!(r.history.len(), 22);
+    // 1 + OneSubmission? 2 + Unbatch 2 + Intake 5 + Eligible? 2 + Launch 5 (failed, caught,
+    // exited) + Finalize 5 + Failed? 2 + PipelineFailed 1 + 1.
+    assert_eq!(r.history.len(), 26);
     assert_eq!(r.count(EventType::LambdaFunctionFailed), 1);
 }
 
@@ -337,9 +346,18 @@ async fn a_skipped_submission_ends_at_skipped_without_launching() {
     };
     let (r, stages) = submit(script, 0.001).await;
     assert_eq!(r.status, Status::Succeeded);
-    assert_eq!(r.states_entered(), ["Intake", "Eligible?", "Skipped"]);
+    assert_eq!(
+        r.states_entered(),
+        [
+            "OneSubmission?",
+            "Unbatch",
+            "Intake",
+            "Eligible?",
+            "Skipped"
+        ]
+    );
     assert_eq!(stages.launch.count() + stages.finalize.count(), 0);
-    assert_eq!(r.history.len(), 11);
+    assert_eq!(r.history.len(), 15);
     assert_eq!(
         r.history[r.history.len() - 3].event_type,
         EventType::SucceedStateEntered
@@ -356,6 +374,8 @@ async fn a_rejected_submission_goes_straight_to_finalize() {
     assert_eq!(
         r.states_entered(),
         [
+            "OneSubmission?",
+            "Unbatch",
             "Intake",
             "Eligible?",
             "Finalize",
@@ -386,7 +406,7 @@ async fn a_cli_can_follow_the_stages_live() {
     let seen = Arc::new(AtomicUsize::new(0));
     let (tasks, _) = tasks(Script::default());
     let executor = Executor::new(tasks, options(0.001)).unwrap();
-    let execution = executor.start(&machine(), "live", message()).unwrap();
+    let execution = executor.start(&machine(), "live", pipe_batch()).unwrap();
     let mut events = execution.events();
     let mut stages = Vec::new();
     let follow = async {
@@ -401,4 +421,22 @@ async fn a_cli_can_follow_the_stages_live() {
     let r = execution.wait().await;
     assert_eq!(seen.load(Ordering::SeqCst), r.history.len());
     assert_eq!(stages, r.states_entered());
+}
+
+#[tokio::test]
+async fn a_batch_of_any_size_but_one_fails_as_invalid_batch_before_intake() {
+    let not_a_batch = message();
+    for input in [json!([]), json!([message(), message()]), not_a_batch] {
+        let (tasks, stages) = tasks(Script::default());
+        let r = run_with(&machine(), tasks, options(0.001), input.clone()).await;
+        assert_eq!(r.status, Status::Failed, "{input}");
+        assert_eq!(r.error.as_deref(), Some("InvalidBatch"), "{input}");
+        assert!(r.cause.as_deref().unwrap().contains("batch size to 1"));
+        assert_eq!(r.states_entered(), ["OneSubmission?", "InvalidBatch"]);
+        let called = stages.intake.count()
+            + stages.launch.count()
+            + stages.monitor.count()
+            + stages.finalize.count();
+        assert_eq!(called, 0, "nothing is claimed or launched for {input}");
+    }
 }

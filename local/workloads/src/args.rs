@@ -549,6 +549,8 @@ pub struct EvaluatorConfig {
     pub records: Option<PathBuf>,
     /// The failure modes asked for.
     pub faults: EvaluatorFaults,
+    /// What `PYTHONPATH` lets it import.
+    pub imports: crate::imports::Imports,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -902,6 +904,7 @@ pub fn parse_evaluator(args: &[String], env: &Env) -> Result<Parsed<EvaluatorCon
         connect_seconds,
         records,
         faults: EvaluatorFaults::from_env(env)?,
+        imports: crate::imports::Imports::from_env(env),
     }))
 }
 

@@ -119,6 +119,12 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
     };
     run.setup_failure = run.cfg.faults.setup_failure && run.once.armed("setup-failure");
 
+    // The module-level imports and the agent's, before anything talks to CARLA.
+    if let Err(failure) = run.cfg.imports.check() {
+        run.traceback(&[failure.frame], &failure.error);
+        return Exit::Traceback;
+    }
+
     // `LeaderboardEvaluator.__init__`: no simulator, no checkpoint.
     let deadline = run.cfg.connect_seconds.unwrap_or(run.cfg.args.timeout);
     let mut carla = tokio::select! {

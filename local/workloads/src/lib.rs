@@ -9,6 +9,7 @@ pub mod args;
 pub mod carla;
 pub mod evaluator;
 pub mod faults;
+pub mod imports;
 pub mod records;
 pub mod signals;
 

@@ -141,8 +141,8 @@ impl Harness {
         aws_sdk_dynamodb::Client::new(&self.stack.sdk)
             .get_item()
             .table_name("leaderboard-20-submissions")
-            .key("team_id", AttributeValue::N("1".into()))
-            .key("submission_id", AttributeValue::N("1".into()))
+            .key("team_id", AttributeValue::S("1".into()))
+            .key("submission_id", AttributeValue::S("1".into()))
             .send()
             .await
             .unwrap()
@@ -180,7 +180,7 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
     let record = h.record().await;
     assert_eq!(
         record["submission_status"],
-        AttributeValue::S("QUEUED".into())
+        AttributeValue::S("SUBMITTED".into())
     );
 
     let run = launch::handle(

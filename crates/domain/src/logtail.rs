@@ -1,0 +1,126 @@
+//! The tail of a participant's log, made fit for EvalAI's `stderr`.
+//!
+//! The log is written by the participant's code (untrusted): terminal escapes, control and
+//! bidirectional characters are removed so it cannot forge lines or reorder text on the
+//! participant's page. EvalAI's own code-upload worker likewise shows the tail of the
+//! submission's output when it fails.
+
+/// What a participant sees at most of their agent's output.
+pub const MAX_TAIL_CHARS: usize = 10_000;
+
+/// The last `max_chars` characters of `log` worth showing: ANSI escape sequences, control
+/// characters (but newlines and tabs), bidirectional and zero-width format characters
+/// removed; a tail that starts mid-line starts at the next line.
+pub fn participant_tail(log: &[u8], max_chars: usize) -> String {
+    let text = String::from_utf8_lossy(log);
+    let clean = strip(&text);
+    let total = clean.chars().count();
+    if total <= max_chars {
+        return clean.trim_end().to_owned();
+    }
+    let start = clean
+        .char_indices()
+        .nth(total - max_chars)
+        .map_or(0, |(i, _)| i);
+    let tail = &clean[start..];
+    // NB: drop the partial first line, unless the tail is one long line.
+    let tail = match tail.find('\n') {
+        Some(i) if i + 1 < tail.len() => &tail[i + 1..],
+        _ => tail,
+    };
+    tail.trim_end().to_owned()
+}
+
+/// `text` without terminal escapes, control characters (but newlines and tabs) and
+/// bidirectional or zero-width format characters: safe to print on an operator's terminal.
+pub fn printable(text: &str) -> String {
+    strip(text)
+}
+
+fn strip(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut chars = text.chars().peekable();
+    while let Some(c) = chars.next() {
+        match c {
+            '\u{1b}' => skip_escape(&mut chars),
+            '\n' | '\t' => out.push(c),
+            // A carriage return redraws a line (progress bars): keep what replaced it.
+            '\r' if chars.peek() != Some(&'\n') => {
+                let line_start = out.rfind('\n').map_or(0, |i| i + 1);
+                out.truncate(line_start);
+            }
+            c if c.is_control() || is_invisible_format(c) => {}
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// `ESC [ ... final`, `ESC ] ... BEL|ESC \`, or `ESC x`.
+fn skip_escape(chars: &mut std::iter::Peekable<std::str::Chars<'_>>) {
+    match chars.next() {
+        Some('[') => {
+            for c in chars.by_ref() {
+                if ('\u{40}'..='\u{7e}').contains(&c) {
+                    break;
+                }
+            }
+        }
+        Some(']') => {
+            while let Some(c) = chars.next() {
+                if c == '\u{7}' || (c == '\u{1b}' && chars.next_if_eq(&'\\').is_some()) {
+                    break;
+                }
+            }
+        }
+        _ => {}
+    }
+}
+
+/// Bidirectional controls and zero-width characters: they reorder or hide text.
+fn is_invisible_format(c: char) -> bool {
+    matches!(c,
+        '\u{200b}'..='\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2060}'..='\u{2064}'
+        | '\u{2066}'..='\u{2069}' | '\u{feff}' | '\u{061c}')
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_short_log_is_kept_whole_without_its_escapes() {
+        let log =
+            b"\x1b[1m========= Preparing RouteScenario_0 =========\x1b[0m\nTraceback:\n  boom\n";
+        assert_eq!(
+            participant_tail(log, MAX_TAIL_CHARS),
+            "========= Preparing RouteScenario_0 =========\nTraceback:\n  boom"
+        );
+    }
+
+    #[test]
+    fn a_long_log_keeps_its_last_whole_lines_within_the_limit() {
+        let log: String = (0..5000).map(|i| format!("line {i}\n")).collect();
+        let tail = participant_tail(log.as_bytes(), 100);
+        assert!(tail.chars().count() <= 100);
+        assert!(tail.starts_with("line "), "{tail}");
+        assert!(tail.ends_with("line 4999"));
+    }
+
+    #[test]
+    fn control_bidi_and_zero_width_characters_cannot_forge_text() {
+        let log = "ok\u{7}\u{0}\u{202e}evil\u{2066}\u{200b}\n\x1b]0;title\x07done\r\nprogress 10%\rprogress 100%\n";
+        assert_eq!(
+            participant_tail(log.as_bytes(), MAX_TAIL_CHARS),
+            "okevil\ndone\nprogress 100%"
+        );
+    }
+
+    #[test]
+    fn invalid_utf8_and_a_multibyte_cut_do_not_panic() {
+        let mut log = vec![0xff, 0xfe];
+        log.extend("é".repeat(50).as_bytes());
+        let tail = participant_tail(&log, 7);
+        assert_eq!(tail.chars().count(), 7);
+    }
+}
