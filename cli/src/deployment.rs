@@ -90,7 +90,7 @@ impl Deployment {
                 "`--settings-secret` (or LB_SETTINGS_SECRET) is empty".into(),
             ));
         }
-        let sdk = lb_aws::sdk_config().await;
+        let sdk = crate::aws::config().await?;
         let secrets = aws_sdk_secretsmanager::Client::new(&sdk);
         let settings = lb_aws::secrets::load_settings(&secrets, &args.settings_secret)
             .await

@@ -61,6 +61,9 @@ pub enum CliError {
     /// The operation would be wrong in the submission's current state.
     #[error("{0}")]
     Refused(String),
+    /// No AWS region or no credentials: what was looked for and how to provide it.
+    #[error("{0}")]
+    AwsNotConfigured(String),
 }
 
 impl CliError {
@@ -75,6 +78,7 @@ impl CliError {
             CliError::EvalAi { source, .. } => source.name(),
             CliError::NotFound(_) => "NotFound",
             CliError::Refused(_) => "Refused",
+            CliError::AwsNotConfigured(_) => "AwsNotConfigured",
         }
     }
 

@@ -189,7 +189,7 @@ pub async fn submit(args: Submit) -> Result<u8> {
         args.submission,
         args.image.as_deref(),
     );
-    let sdk = lb_aws::sdk_config().await;
+    let sdk = crate::aws::config().await?;
     let (name, arn) = start(&sdk, state_machine, args.submission, &input).await?;
     report(&name, &arn, &input);
     Ok(0)

@@ -2,12 +2,15 @@
 //! `invoke` runs one function in-process; `status`, `list`, `cancel`, `submit` and `resume`
 //! work on a real deployment (AWS configuration from the environment).
 
+mod aws;
 mod deployment;
 mod error;
 mod executions;
 mod invoke;
 mod local;
+mod logs;
 mod ops;
+mod rescore;
 
 use clap::{Parser, Subcommand};
 
@@ -16,7 +19,9 @@ pub use error::CliError;
 pub use executions::{execution_name, pipe_input, Resume, StateMachineArgs, Submit};
 pub use invoke::{error_object, Function, Invoke};
 pub use local::{LocalRun, Scenario};
+pub use logs::Logs;
 pub use ops::{Cancel, List, Status};
+pub use rescore::Rescore;
 
 const EXIT_CODES: &str = "\
 Exit codes: 0 ok, 1 failure (a function error, an AWS error, a refused operation),
@@ -32,6 +37,27 @@ pub struct Cli {
     /// What to do.
     #[command(subcommand)]
     pub command: Command,
+    /// Log lines on stderr: `text` for people, `json` for machines.
+    #[arg(
+        long,
+        global = true,
+        value_enum,
+        env = "LB_LOG_FORMAT",
+        default_value = "text"
+    )]
+    pub log_format: LogFormat,
+    /// More log lines: `-v` info, `-vv` debug (RUST_LOG, when set, decides instead).
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    pub verbose: u8,
+}
+
+/// How log lines are written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    /// `WARN message key=value`, one line each.
+    Text,
+    /// One JSON object per line.
+    Json,
 }
 
 /// Subcommands.
@@ -57,6 +83,12 @@ pub enum Command {
     /// Evaluate a FAILED or CANCELLED submission again: remove its cancel marker and start a
     /// new execution with its record's phase and image. EvalAI must report it `resuming`.
     Resume(Resume),
+    /// Merge a submission's workers' results from S3 again, with the library the functions
+    /// use; show the EvalAI files, write them with --out, send them with --post.
+    Rescore(Rescore),
+    /// Print a submission's logs from S3: each worker's agent and simulator output and the
+    /// logcopy logs (recordings with --recorder); --follow until it ends.
+    Logs(Logs),
 }
 
 /// `lbctl local ...`.
@@ -78,6 +110,8 @@ pub async fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Cancel(args) => ops::cancel(args).await?,
         Command::Submit(args) => executions::submit(args).await?,
         Command::Resume(args) => executions::resume(args).await?,
+        Command::Rescore(args) => rescore::rescore(args).await?,
+        Command::Logs(args) => logs::logs(args).await?,
     };
     Ok(code)
 }
@@ -106,15 +140,32 @@ pub fn describe(error: &anyhow::Error) -> String {
     text
 }
 
-/// JSON logs on stderr at `RUST_LOG` (default: warnings), so the progress on stdout stays readable.
-pub fn telemetry() {
+/// Log lines on stderr, warnings only unless asked (`-v`, `RUST_LOG`), so stdout stays the
+/// command's output. The SDK's credential chain, which logs every provider it tries, stays
+/// quiet unless `RUST_LOG` asks for it: a missing credential is one error line of our own.
+pub fn telemetry(format: LogFormat, verbose: u8) {
+    use std::io::IsTerminal;
     use tracing_subscriber::{fmt, EnvFilter};
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("warn"));
-    let _ = fmt()
-        .json()
-        .with_writer(std::io::stderr)
-        .with_env_filter(filter)
-        .try_init();
+    let level = match verbose {
+        0 => "warn",
+        1 => "info",
+        _ => "debug",
+    };
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+        EnvFilter::new(format!(
+            "{level},aws_config=off,aws_smithy_runtime=error,aws_smithy_runtime_api=error"
+        ))
+    });
+    let builder = fmt().with_writer(std::io::stderr).with_env_filter(filter);
+    let _ = match format {
+        LogFormat::Json => builder.json().try_init(),
+        LogFormat::Text => builder
+            .compact()
+            .with_target(false)
+            .without_time()
+            .with_ansi(std::io::stderr().is_terminal())
+            .try_init(),
+    };
 }
 
 #[cfg(test)]

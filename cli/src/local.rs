@@ -114,12 +114,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         bail!("--routes and --workers must be at least 1");
     }
     let started = Instant::now();
-    let bins = Binaries::in_dir(
-        std::env::current_exe()?
-            .parent()
-            .context("lbctl has no directory")?,
-    )
-    .context("the sidecar and the fakes must sit next to lbctl: run `make local`")?;
+    let bins = Binaries::find()?;
 
     // The phase: 1 is Leaderboard 2.0, 2 is 1.0 in the local settings and the fake's fixture.
     let phase = if args.leaderboard == "1.0" { 2 } else { 1 };

@@ -29,12 +29,19 @@ pub struct Status {
 /// `lbctl list` options.
 #[derive(Debug, Clone, Args)]
 pub struct List {
-    /// Only submissions still queued or running (`QUEUED`, `RUNNING`).
+    /// Only submissions an execution still holds (`SUBMITTED`, `RESUMING`, `RUNNING`).
     #[arg(long)]
     pub running: bool,
     /// Only this leaderboard's table (a key of the settings' `leaderboards`, e.g. `2.0`).
     #[arg(long, value_name = "LEADERBOARD")]
     pub leaderboard: Option<String>,
+    /// Only this team: its EvalAI id or its name (case-insensitive).
+    #[arg(long, value_name = "TEAM")]
+    pub team: Option<String>,
+    /// Only this status (`SUBMITTED`, `RESUMING`, `RUNNING`, `FINISHED`, `FAILED`, `CANCELLED`;
+    /// case-insensitive).
+    #[arg(long, value_name = "STATUS")]
+    pub status: Option<String>,
     /// Most submissions shown (the newest).
     #[arg(long, default_value_t = 50, value_parser = clap::value_parser!(u64).range(1..=100_000))]
     pub limit: u64,
@@ -248,7 +255,8 @@ fn print_record(record: &Record) {
     }
 }
 
-/// `lbctl list`: submissions, newest first, one line each.
+/// `lbctl list`: submissions, newest first, one line each, with each waiting submission's
+/// place in the queue and every submission's age.
 pub async fn list(args: List) -> Result<u8> {
     let deployment = Deployment::load(&args.deployment).await?;
     let filter = if args.running {
@@ -260,10 +268,43 @@ pub async fn list(args: List) -> Result<u8> {
         .records(args.leaderboard.as_deref(), filter)
         .await?;
     warn_truncated(&found);
+    let now = time::OffsetDateTime::now_utc();
+    let queue = queue_positions(&found.records);
+    let wanted = |r: &Record| {
+        let team_ok = args.team.as_deref().is_none_or(|team| {
+            r.number("team_id")
+                .is_some_and(|id| id.to_string() == team.trim())
+                || r.text("team_name")
+                    .is_some_and(|name| name.eq_ignore_ascii_case(team.trim()))
+        });
+        let status_ok = args
+            .status
+            .as_deref()
+            .is_none_or(|s| r.status().eq_ignore_ascii_case(s.trim()));
+        team_ok && status_ok
+    };
+    let matching: Vec<&Record> = found.records.iter().filter(|r| wanted(r)).collect();
     let limit = usize::try_from(args.limit).unwrap_or(usize::MAX);
-    let shown = &found.records[..found.records.len().min(limit)];
+    let shown = &matching[..matching.len().min(limit)];
+    // 1 for the next to start in its leaderboard.
+    let position = |r: &Record| {
+        let id = r.submission_id()?;
+        queue
+            .iter()
+            .filter(|(lb, _)| *lb == r.leaderboard)
+            .position(|(_, q)| *q == id)
+            .map(|i| i + 1)
+    };
     if args.json {
-        let out: Vec<Value> = shown.iter().map(Record::to_json).collect();
+        let out: Vec<Value> = shown
+            .iter()
+            .map(|r| {
+                let mut v = r.to_json();
+                v["queue_position"] = json!(position(r));
+                v["age_seconds"] = json!(age(r, now).map(|d| d.whole_seconds()));
+                v
+            })
+            .collect();
         println!("{}", pretty(&Value::Array(out)));
         return Ok(0);
     }
@@ -273,29 +314,71 @@ pub async fn list(args: List) -> Result<u8> {
         } else {
             "no submissions"
         };
+        let filtered = if args.team.is_some() || args.status.is_some() {
+            " match the filters"
+        } else {
+            ""
+        };
         println!(
-            "{what} ({})",
+            "{what}{filtered} ({})",
             tables(&deployment, args.leaderboard.as_deref())
         );
         return Ok(0);
     }
     println!(
-        "{:<10} {:<4} {:<9} {:<28} {:<18} {:>7}  {:<20} ENDED",
-        "SUBMISSION", "LB", "STATUS", "TEAM", "TRACK", "ROUTES", "SUBMITTED"
+        "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7}  {:<23} ENDED",
+        "SUBMISSION", "LB", "STATUS", "QUEUE", "AGE", "TEAM", "TRACK", "ROUTES", "SUBMITTED"
     );
     for record in shown {
-        println!("{}", list_line(record));
+        println!("{}", list_line(record, position(record), age(record, now)));
     }
-    if found.records.len() > shown.len() {
-        println!(
-            "... {} more (raise --limit)",
-            found.records.len() - shown.len()
-        );
+    if matching.len() > shown.len() {
+        println!("... {} more (raise --limit)", matching.len() - shown.len());
     }
     Ok(0)
 }
 
-fn list_line(record: &Record) -> String {
+/// Claimed submissions whose Jobs do not run yet, per leaderboard, oldest first: the queue.
+fn queue_positions(records: &[Record]) -> Vec<(&str, u64)> {
+    let mut waiting: Vec<(&str, &str, u64)> = records
+        .iter()
+        .filter(|r| matches!(r.status(), "SUBMITTED" | "RESUMING"))
+        .filter_map(|r| {
+            Some((
+                r.leaderboard.as_str(),
+                r.text("submitted_time").unwrap_or_default(),
+                r.submission_id()?,
+            ))
+        })
+        .collect();
+    // NB: `2024-03-07 10:31:02 UTC` sorts as it reads; the id breaks ties (EvalAI's order).
+    waiting.sort();
+    waiting.into_iter().map(|(lb, _, id)| (lb, id)).collect()
+}
+
+/// How long ago the submission was claimed.
+fn age(record: &Record, now: time::OffsetDateTime) -> Option<time::Duration> {
+    let at = record.text("submitted_time")?;
+    let parsed = time::PrimitiveDateTime::parse(
+        at.trim_end_matches(" UTC"),
+        time::macros::format_description!("[year]-[month]-[day] [hour]:[minute]:[second]"),
+    )
+    .map(time::PrimitiveDateTime::assume_utc)
+    .or_else(|_| time::OffsetDateTime::parse(at, &time::format_description::well_known::Rfc3339))
+    .ok()?;
+    Some(now - parsed)
+}
+
+fn short_age(age: time::Duration) -> String {
+    let minutes = age.whole_minutes().max(0);
+    match minutes {
+        m if m < 60 => format!("{m}m"),
+        m if m < 48 * 60 => format!("{}h{:02}m", m / 60, m % 60),
+        m => format!("{}d{:02}h", m / (24 * 60), (m / 60) % 24),
+    }
+}
+
+fn list_line(record: &Record, queue: Option<usize>, age: Option<time::Duration>) -> String {
     let text = |key: &str| record.text(key).map(clean).unwrap_or_else(|| "-".into());
     let number = |key: &str| {
         record
@@ -304,10 +387,12 @@ fn list_line(record: &Record) -> String {
     };
     let team = format!("{} ({})", text("team_name"), number("team_id"));
     let line = format!(
-        "{:<10} {:<4} {:<9} {:<28} {:<18} {:>7}  {:<20} {}",
+        "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7}  {:<23} {}",
         number("submission_id"),
         clean(&record.leaderboard),
         text("submission_status"),
+        queue.map_or_else(|| "-".to_string(), |q| q.to_string()),
+        age.map_or_else(|| "-".to_string(), short_age),
         shorten(&team, 28),
         shorten(&text("track_name"), 18),
         format!("{}/{}", number("routes_done"), number("routes_total")),
@@ -427,10 +512,17 @@ mod tests {
             .map(|(k, v)| (k.to_string(), v))
             .collect(),
         };
-        let line = list_line(&record);
-        assert!(line.starts_with("12         2.0  RUNNING"), "{line}");
+        let line = list_line(&record, None, Some(time::Duration::minutes(135)));
+        assert!(line.starts_with("12         2.0  RUNNING       -  2h15m"), "{line}");
         assert!(line.contains("5/20"), "{line}");
         assert!(!line.contains('\u{1b}'), "{line}");
+    }
+
+    #[test]
+    fn ages_read_in_minutes_hours_then_days() {
+        assert_eq!(short_age(time::Duration::seconds(59)), "0m");
+        assert_eq!(short_age(time::Duration::minutes(47 * 60 + 5)), "47h05m");
+        assert_eq!(short_age(time::Duration::hours(73)), "3d01h");
     }
 
     #[test]

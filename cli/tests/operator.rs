@@ -25,17 +25,18 @@ async fn put_record(
     extra: &[(&str, AttributeValue)],
 ) {
     let mut item: HashMap<String, AttributeValue> = [
-        ("team_id", AttributeValue::N(team.to_string())),
-        ("submission_id", AttributeValue::N(submission.to_string())),
+        // The original layout: keys and its attributes are strings.
+        ("team_id", AttributeValue::S(team.to_string())),
+        ("submission_id", AttributeValue::S(submission.to_string())),
         ("submission_status", AttributeValue::S(status.into())),
         ("team_name", AttributeValue::S(format!("Team {team}"))),
-        ("track_id", AttributeValue::N("1".into())),
+        ("track_id", AttributeValue::S("1".into())),
         ("track_name", AttributeValue::S("SENSORS".into())),
         ("submitted_image_uri", AttributeValue::S(IMAGE.into())),
-        ("parallelization_workers", AttributeValue::N("4".into())),
+        ("parallelization_workers", AttributeValue::S("4".into())),
         (
             "submitted_time",
-            AttributeValue::S("2026-01-01T00:00:00Z".into()),
+            AttributeValue::S("2026-01-01 00:00:00 UTC".into()),
         ),
         ("routes_done", AttributeValue::N("5".into())),
         ("routes_total", AttributeValue::N("20".into())),
@@ -129,12 +130,15 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
         102,
         "FINISHED",
         &[
-            ("driving_score", AttributeValue::N("41.25".into())),
-            ("end_time", AttributeValue::S("2026-01-02T00:00:00Z".into())),
+            ("driving_score", AttributeValue::S("41.25".into())),
+            (
+                "end_time",
+                AttributeValue::S("2026-01-02 00:00:00 UTC".into()),
+            ),
         ],
     )
     .await;
-    put_record(sdk, TABLE_10, 1, 103, "QUEUED", &[]).await;
+    put_record(sdk, TABLE_10, 1, 103, "SUBMITTED", &[]).await;
     put_object(sdk, BUCKET_20, "101/containers-status/agent-1.start0").await;
     put_object(sdk, BUCKET_20, "101/containers-status/simulator-1.start0").await;
 
@@ -165,7 +169,8 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
         status["records"][0]["record"]["submission_status"],
         "FINISHED"
     );
-    assert_eq!(status["records"][0]["record"]["driving_score"], 41.25);
+    // As stored: the original layout keeps metrics as strings.
+    assert_eq!(status["records"][0]["record"]["driving_score"], "41.25");
     assert_eq!(status["markers"][0]["names"], json!([]));
     assert_eq!(status["markers"][0]["cancel_requested"], false);
 
@@ -196,7 +201,60 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
     let out = lbctl(&["list", "--leaderboard", "1.0", "--json"], &env, None);
     let listed: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(listed.as_array().unwrap().len(), 1, "{listed}");
-    assert_eq!(listed[0]["record"]["submission_id"], 103);
+    assert_eq!(listed[0]["record"]["submission_id"], "103");
+    assert_eq!(listed[0]["queue_position"], 1, "{listed}");
+    assert!(listed[0]["age_seconds"].as_i64().unwrap() > 0, "{listed}");
+
+    // Two more waiting in 2.0: the queue follows arrival, per leaderboard.
+    for (id, at) in [
+        (104, "2026-01-01 00:10:00 UTC"),
+        (105, "2026-01-01 00:05:00 UTC"),
+    ] {
+        put_record(
+            sdk,
+            TABLE_20,
+            3,
+            id,
+            "SUBMITTED",
+            &[("submitted_time", AttributeValue::S(at.into()))],
+        )
+        .await;
+    }
+    let out = lbctl(&["list", "--json"], &env, None);
+    let listed: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let queue: Vec<(String, Value)> = listed
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            (
+                r["record"]["submission_id"].as_str().unwrap().to_owned(),
+                r["queue_position"].clone(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        queue,
+        [
+            ("105".to_owned(), json!(1)),
+            ("104".to_owned(), json!(2)),
+            ("103".to_owned(), json!(1)),
+            ("102".to_owned(), Value::Null),
+            ("101".to_owned(), Value::Null),
+        ],
+        "{listed}"
+    );
+    let out = lbctl(&["list"], &env, None);
+    assert!(stdout(&out).contains(" QUEUE    AGE "), "{}", show(&out));
+    // Filters: a team by id or name, a status in any case.
+    let out = lbctl(&["list", "--team", "3"], &env, None);
+    assert_eq!(list_ids(&stdout(&out)), [105, 104], "{}", show(&out));
+    let out = lbctl(&["list", "--team", "team 2"], &env, None);
+    assert_eq!(list_ids(&stdout(&out)), [102], "{}", show(&out));
+    let out = lbctl(&["list", "--status", "finished"], &env, None);
+    assert_eq!(list_ids(&stdout(&out)), [102], "{}", show(&out));
+    let out = lbctl(&["list", "--team", "nobody"], &env, None);
+    assert!(stdout(&out).contains("match the filters"), "{}", show(&out));
 
     let out = lbctl(&["list", "--leaderboard", "3.0"], &env, None);
     assert_eq!(out.status.code(), Some(2), "{}", show(&out));
@@ -312,10 +370,10 @@ async fn submit_starts_an_execution_with_exactly_the_pipes_input() {
     );
     assert_eq!(
         input,
-        json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 7, "submitted_image_uri": IMAGE})
+        json!([{"challenge_pk": 1, "phase_pk": 1, "submission_pk": 7, "submitted_image_uri": IMAGE}])
     );
 
-    // The ARN from the environment, and no image: the key is left out.
+    // The ARN from the environment, and no image: the template gives null.
     env.push(("LB_STATE_MACHINE_ARN", arn.clone()));
     let out = lbctl(
         &[
@@ -334,7 +392,7 @@ async fn submit_starts_an_execution_with_exactly_the_pipes_input() {
     let (_, input) = started_execution(&stack.sdk, &stdout(&out)).await;
     assert_eq!(
         input,
-        json!({"challenge_pk": 1, "phase_pk": 2, "submission_pk": 8})
+        json!([{"challenge_pk": 1, "phase_pk": 2, "submission_pk": 8, "submitted_image_uri": null}])
     );
 
     // A state machine that does not exist: the call and the ARN are named.
@@ -422,7 +480,7 @@ async fn resume_clears_the_cancel_marker_and_starts_the_records_phase_and_image_
     assert_ne!(first, second);
     assert_eq!(
         input,
-        json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1, "submitted_image_uri": IMAGE})
+        json!([{"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1, "submitted_image_uri": IMAGE}])
     );
 }
 
@@ -476,7 +534,7 @@ async fn resume_refuses_what_intake_would_skip_unless_forced() {
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
     assert!(stdout(&out).contains("not checked"), "{}", show(&out));
     let (_, input) = started_execution(sdk, &stdout(&out)).await;
-    assert_eq!(input["submission_pk"], 2);
+    assert_eq!(input[0]["submission_pk"], 2);
 
     // Never ran here.
     let out = lbctl(&["resume", "77", "--challenge", "1"], &env, None);

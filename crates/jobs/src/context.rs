@@ -172,12 +172,12 @@ impl JobSettings {
         region: &str,
         s3_role_arn: &str,
     ) -> JobSettings {
-        let (repetitions, scenarios) = match leaderboard {
-            Leaderboard::V1 => (
-                5,
-                "/workspace/leaderboard/data/all_towns_traffic_scenarios_private.json",
-            ),
-            Leaderboard::V2 => (1, ""),
+        let repetitions = leaderboard.repetitions();
+        let scenarios = match leaderboard {
+            Leaderboard::V1 => {
+                "/workspace/leaderboard/data/all_towns_traffic_scenarios_private.json"
+            }
+            Leaderboard::V2 => "",
         };
         JobSettings {
             namespace: deployment.namespace.clone(),

@@ -16,8 +16,8 @@ pub const START_TIMEOUT: Duration = Duration::from_secs(30);
 #[derive(Debug, thiserror::Error)]
 pub enum MotoError {
     /// No `moto_server` executable where we looked.
-    #[error("`moto_server` not found at `{0}`: run `make venv` (or set LB_MOTO_SERVER)")]
-    NotInstalled(PathBuf),
+    #[error("`moto_server` not found (looked at {}): run `make venv` in the project, put `moto_server` on PATH, or set LB_MOTO_SERVER", looked(.0))]
+    NotInstalled(Vec<PathBuf>),
     /// The process could not be spawned or the port not reserved.
     #[error("cannot start `moto_server`: {0}")]
     Spawn(#[source] std::io::Error),
@@ -42,20 +42,45 @@ pub struct MotoServer {
 }
 
 impl MotoServer {
-    /// Where `moto_server` is: `$LB_MOTO_SERVER`, else the project's `.venv`.
-    pub fn executable() -> PathBuf {
+    /// Where `moto_server` may be, in the order looked at: `$LB_MOTO_SERVER` alone when set;
+    /// else beside this program, in the `.venv` of the current directory or any parent (a
+    /// checkout of the project), in the `.venv` of the checkout this was built from, then
+    /// every `PATH` entry.
+    pub fn candidates() -> Vec<PathBuf> {
         if let Some(path) = std::env::var_os("LB_MOTO_SERVER") {
-            return PathBuf::from(path);
+            return vec![PathBuf::from(path)];
         }
-        workspace_root().join(".venv/bin/moto_server")
+        let mut out = Vec::new();
+        if let Some(dir) = std::env::current_exe()
+            .ok()
+            .and_then(|e| e.parent().map(Path::to_owned))
+        {
+            out.push(dir.join("moto_server"));
+        }
+        if let Ok(cwd) = std::env::current_dir() {
+            out.extend(cwd.ancestors().map(|d| d.join(".venv/bin/moto_server")));
+        }
+        out.push(workspace_root().join(".venv/bin/moto_server"));
+        if let Some(path) = std::env::var_os("PATH") {
+            out.extend(std::env::split_paths(&path).map(|d| d.join("moto_server")));
+        }
+        out.dedup();
+        out
+    }
+
+    /// The first of [`candidates`](Self::candidates) that is a file.
+    pub fn executable() -> Result<PathBuf, MotoError> {
+        let candidates = Self::candidates();
+        candidates
+            .iter()
+            .find(|p| p.is_file())
+            .cloned()
+            .ok_or(MotoError::NotInstalled(candidates))
     }
 
     /// Starts moto on `127.0.0.1` with a free port and waits until it answers.
     pub fn start() -> Result<MotoServer, MotoError> {
-        let exe = Self::executable();
-        if !exe.is_file() {
-            return Err(MotoError::NotInstalled(exe));
-        }
+        let exe = Self::executable()?;
         let port = free_port().map_err(MotoError::Spawn)?;
         let addr = SocketAddr::from(([127, 0, 0, 1], port));
         let child = Command::new(&exe)
@@ -160,6 +185,15 @@ pub fn http(addr: SocketAddr, method: &str, path: &str) -> std::io::Result<(u16,
         .map(|(_, b)| b.to_owned())
         .unwrap_or_default();
     Ok((status, body))
+}
+
+/// The places looked at, for an error message.
+fn looked(places: &[PathBuf]) -> String {
+    places
+        .iter()
+        .map(|p| format!("`{}`", p.display()))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 fn workspace_root() -> PathBuf {

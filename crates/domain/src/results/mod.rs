@@ -67,6 +67,15 @@ impl Leaderboard {
         }
     }
 
+    /// How often the official evaluation runs each route (`--repetitions`): 1.0 five times,
+    /// 2.0 once.
+    pub fn repetitions(self) -> u32 {
+        match self {
+            Leaderboard::V1 => 5,
+            Leaderboard::V2 => 1,
+        }
+    }
+
     /// How this leaderboard writes a route id, for error messages.
     pub fn route_id_form(self) -> &'static str {
         match self {

@@ -1,0 +1,331 @@
+//! `lbctl rescore`: a submission's workers' results merged again from S3 with the library the
+//! functions use, shown (and written with `--out`), and with `--post` sent to EvalAI as the
+//! final update.
+
+use std::io::{BufRead, Write};
+use std::path::PathBuf;
+
+use clap::Args;
+use lb_aws::s3::SubmissionStore;
+use lb_domain::plan::{plan, PlanInput};
+use lb_domain::results::{
+    self, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions, ResultsFile,
+    WorkerFile, WorkerInput, MAX_FILE_BYTES,
+};
+use lb_domain::submission::SubmissionStatus;
+use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
+use lb_pipeline::FunctionConfig;
+
+use crate::deployment::{clean, Deployment, DeploymentArgs, Record, ScanFilter};
+use crate::error::{CliError, Result};
+use crate::ops::evalai_id;
+
+/// `lbctl rescore` options.
+#[derive(Debug, Clone, Args)]
+#[command(after_help = "Examples:
+  lbctl rescore 4242                      # merge the workers' files again, show the EvalAI files
+  lbctl rescore 4242 --out /tmp/4242      # and write them there
+  lbctl rescore 4242 --post --challenge 1 # send them to EvalAI as the final update (asks first)")]
+pub struct Rescore {
+    /// EvalAI submission id.
+    #[arg(value_parser = evalai_id())]
+    pub submission: u64,
+    /// The leaderboard, when the submission has records in several.
+    #[arg(long, value_name = "LEADERBOARD")]
+    pub leaderboard: Option<String>,
+    /// Write `agent_results.json`, `results.json`, `stdout.txt` and `metadata.json` here.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Send the files to EvalAI as the final update (FINISHED when every planned route has
+    /// its records, else FAILED). Refused for a cancelled submission.
+    #[arg(long, requires = "challenge")]
+    pub post: bool,
+    /// EvalAI challenge id (for --post).
+    #[arg(long, value_parser = evalai_id())]
+    pub challenge: Option<u64>,
+    /// Do not ask before posting.
+    #[arg(long)]
+    pub yes: bool,
+    /// Print the merge as JSON (`complete`, `progress`, `accuracies`) instead of the files.
+    #[arg(long)]
+    pub json: bool,
+    /// Id of the EvalAI token secret (for --post).
+    #[arg(
+        long,
+        value_name = "ID",
+        env = "LB_EVALAI_TOKEN_SECRET",
+        default_value = "leaderboard/evalai-token"
+    )]
+    pub token_secret: String,
+    #[command(flatten)]
+    pub deployment: DeploymentArgs,
+}
+
+/// `lbctl rescore`.
+pub async fn rescore(args: Rescore) -> Result<u8> {
+    let deployment = Deployment::load(&args.deployment).await?;
+    let id = args.submission;
+    let record = one_record(&deployment, &args).await?;
+    let phase = record
+        .number("track_id")
+        .ok_or_else(|| CliError::Refused(format!("the record of `{id}` has no `track_id`")))?;
+    let target = deployment
+        .settings
+        .target(phase)
+        .map_err(|e| CliError::Usage(format!("the record's phase: {e}")))?;
+    let leaderboard = target.leaderboard;
+    let workers = record
+        .number("parallelization_workers")
+        .and_then(|w| u32::try_from(w).ok())
+        .unwrap_or(target.track_settings.workers);
+    let team = record.text("team_name").unwrap_or("team").to_owned();
+    let the_plan = plan(PlanInput {
+        submission_id: id,
+        team_name: &team,
+        routes: target.track_settings.routes,
+        workers,
+        gpus_per_node: target.deployment.gpus_per_node,
+    })
+    .map_err(|e| CliError::Refused(format!("the record's plan: {e}")))?;
+
+    let store = SubmissionStore::new(deployment.s3.clone(), &target.deployment.bucket, id);
+    let partials = store
+        .partials()
+        .await
+        .map_err(|e| CliError::aws(format!("listing the results of `{id}`"), e))?;
+    let mut sources = Vec::new();
+    let mut contents = Vec::new();
+    let mut subsets = Vec::new();
+    for partial in &partials {
+        let Some(pair) = the_plan.pairs().find(|p| p.id == partial.pair_id) else {
+            eprintln!(
+                "lbctl: warning: `{}` belongs to no planned worker; left out",
+                clean(&partial.key)
+            );
+            continue;
+        };
+        let bytes = store
+            .get_bounded(&partial.key, MAX_FILE_BYTES as u64)
+            .await
+            .map_err(|e| CliError::aws(format!("reading `{}`", partial.key), e))?;
+        sources.push(partial.key.clone());
+        contents.push(bytes);
+        subsets.push(pair.routes);
+    }
+    let inputs: Vec<WorkerInput<'_>> = sources
+        .iter()
+        .zip(&contents)
+        .zip(&subsets)
+        .map(|((source, bytes), subset)| WorkerInput {
+            source,
+            bytes: Some(bytes),
+            subset: Some(*subset),
+        })
+        .collect();
+    let results_error = |e: results::ResultsError| CliError::Refused(format!("{}: {e}", e.name()));
+    let mut present: Vec<ResultsFile> = Vec::new();
+    for read in read_worker_files(&inputs, leaderboard) {
+        if let WorkerFile::Present(file) = read.map_err(results_error)? {
+            present.push(file);
+        }
+    }
+    let expected = Expected {
+        routes: u64::from(the_plan.routes),
+        repetitions: u64::from(leaderboard.repetitions()),
+    };
+    let outcome = if present.is_empty() {
+        None
+    } else {
+        Some(
+            results::merge(
+                present,
+                MergeOptions {
+                    leaderboard,
+                    expected: Some(expected),
+                },
+            )
+            .map_err(results_error)?,
+        )
+    };
+    let merged = outcome.as_ref().map(|o| &o.merged);
+    let complete = outcome.as_ref().is_some_and(|o| o.complete);
+    let files = EvalAiFiles::generate(merged, leaderboard);
+    let progress = merged.map_or((0, expected.records()), |m| m.progress);
+
+    if let Some(dir) = &args.out {
+        write_files(dir, merged.map(|m| m.to_json()), &files)?;
+    }
+    if args.json {
+        let accuracies: serde_json::Map<String, serde_json::Value> = files
+            .accuracies()
+            .iter()
+            .map(|(label, value)| (label.to_string(), serde_json::json!(value.as_f64())))
+            .collect();
+        let out = serde_json::json!({
+            "submission_id": id,
+            "leaderboard": leaderboard.as_str(),
+            "files": partials.len(),
+            "complete": complete,
+            "progress": [progress.0, progress.1],
+            "accuracies": accuracies,
+        });
+        println!("{}", serde_json::to_string_pretty(&out).unwrap_or_default());
+    } else {
+        println!(
+            "submission {id}: {} worker file(s), {}/{} records, {}",
+            partials.len(),
+            progress.0,
+            progress.1,
+            if complete { "complete" } else { "not complete" }
+        );
+        println!("--- results.json");
+        println!("{}", files.results_json());
+        println!("--- stdout.txt");
+        print!("{}", files.stdout);
+    }
+    if !args.post {
+        return Ok(0);
+    }
+    post(
+        &deployment,
+        &args,
+        &record,
+        phase,
+        complete,
+        &files,
+        leaderboard,
+    )
+    .await
+}
+
+async fn one_record(deployment: &Deployment, args: &Rescore) -> Result<Record> {
+    let id = args.submission;
+    let found = deployment
+        .records(args.leaderboard.as_deref(), ScanFilter::Submission(id))
+        .await?;
+    let mut records = found.records;
+    match records.len() {
+        0 => Err(CliError::NotFound(format!(
+            "submission `{id}` has no record: nothing says which leaderboard, track and workers it ran with"
+        ))),
+        1 => Ok(records.remove(0)),
+        _ => Err(CliError::Usage(format!(
+            "submission `{id}` has records in several leaderboards ({}): choose one with --leaderboard",
+            records
+                .iter()
+                .map(|r| r.leaderboard.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ))),
+    }
+}
+
+fn write_files(dir: &std::path::Path, merged: Option<String>, files: &EvalAiFiles) -> Result<()> {
+    let io = |path: PathBuf| {
+        move |e: std::io::Error| {
+            CliError::Refused(format!("cannot write `{}`: {e}", path.display()))
+        }
+    };
+    std::fs::create_dir_all(dir).map_err(io(dir.to_owned()))?;
+    let mut outputs = vec![
+        ("results.json", Some(files.results_json())),
+        ("stdout.txt", Some(files.stdout.clone())),
+        ("metadata.json", files.metadata.clone()),
+        ("agent_results.json", merged),
+    ];
+    for (name, text) in outputs.drain(..) {
+        let path = dir.join(name);
+        match text {
+            Some(text) => std::fs::write(&path, text).map_err(io(path.clone()))?,
+            None => {
+                let _ = std::fs::remove_file(&path);
+            }
+        }
+    }
+    Ok(())
+}
+
+async fn post(
+    deployment: &Deployment,
+    args: &Rescore,
+    record: &Record,
+    phase: u64,
+    complete: bool,
+    files: &EvalAiFiles,
+    leaderboard: Leaderboard,
+) -> Result<u8> {
+    let id = args.submission;
+    if record.status() == "CANCELLED" {
+        return Err(CliError::Refused(format!(
+            "submission `{id}` was cancelled: its participant's word is final, nothing is posted"
+        )));
+    }
+    let status = if complete {
+        SubmissionStatus::Finished
+    } else {
+        SubmissionStatus::Failed
+    };
+    if !args.yes && !confirm(id, status)? {
+        println!("nothing posted");
+        return Ok(1);
+    }
+    let config = FunctionConfig {
+        settings_secret: args.deployment.settings_secret.clone(),
+        token_secret: args.token_secret.clone(),
+    };
+    let evalai = lb_pipeline::clients::evalai(&deployment.sdk, &config, &deployment.settings)
+        .await
+        .map_err(|source| CliError::EvalAi {
+            submission: id,
+            source,
+        })?;
+    let update = FinalUpdate {
+        status,
+        result: files.results_json(),
+        stdout: files.stdout.clone(),
+        stderr: if complete {
+            String::new()
+        } else {
+            format!(
+                "rescored by the operators: not every planned route of leaderboard {leaderboard} has its records"
+            )
+        },
+        metadata: files.metadata.clone().unwrap_or_else(|| "{}".into()),
+    };
+    let at = SubmissionRef {
+        challenge: args.challenge.unwrap_or_default(),
+        phase,
+        submission: id,
+    };
+    let outcome = evalai
+        .post_final(at, &update)
+        .await
+        .map_err(|e| CliError::EvalAi {
+            submission: id,
+            source: e.into(),
+        })?;
+    match outcome {
+        WriteOutcome::Written => {
+            println!("posted: EvalAI reports `{status}` for submission {id}");
+            Ok(0)
+        }
+        WriteOutcome::Cancelled => Err(CliError::Refused(format!(
+            "submission `{id}` is cancelled on EvalAI: nothing was posted"
+        ))),
+        WriteOutcome::AlreadyFinal(current) => Err(CliError::Refused(format!(
+            "EvalAI keeps submission `{id}` as `{current}`: a final status is not replaced by `{status}`"
+        ))),
+    }
+}
+
+/// Asks on the terminal; anything but the submission id typed back is a no.
+fn confirm(id: u64, status: SubmissionStatus) -> Result<bool> {
+    print!("send these files to EvalAI as the final `{status}` update of submission {id}? type its id to confirm: ");
+    let _ = std::io::stdout().flush();
+    let mut line = String::new();
+    std::io::stdin()
+        .lock()
+        .read_line(&mut line)
+        .map_err(|e| CliError::Usage(format!("no confirmation could be read ({e}); pass --yes")))?;
+    Ok(line.trim() == id.to_string())
+}
