@@ -513,7 +513,10 @@ mod tests {
             .collect(),
         };
         let line = list_line(&record, None, Some(time::Duration::minutes(135)));
-        assert!(line.starts_with("12         2.0  RUNNING       -  2h15m"), "{line}");
+        assert!(
+            line.starts_with("12         2.0  RUNNING       -  2h15m"),
+            "{line}"
+        );
         assert!(line.contains("5/20"), "{line}");
         assert!(!line.contains('\u{1b}'), "{line}");
     }
