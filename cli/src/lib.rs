@@ -11,6 +11,7 @@ mod local;
 mod logs;
 mod ops;
 mod rescore;
+mod watch;
 
 use clap::{Parser, Subcommand};
 
@@ -22,6 +23,7 @@ pub use local::{LocalRun, Scenario};
 pub use logs::Logs;
 pub use ops::{Cancel, List, Status};
 pub use rescore::Rescore;
+pub use watch::Watch;
 
 const EXIT_CODES: &str = "\
 Exit codes: 0 ok, 1 failure (a function error, an AWS error, a refused operation),
@@ -89,6 +91,9 @@ pub enum Command {
     /// Print a submission's logs from S3: each worker's agent and simulator output and the
     /// logcopy logs (recordings with --recorder); --follow until it ends.
     Logs(Logs),
+    /// Follow one submission until it ends: stage and queue position, pods and restarts,
+    /// routes per worker, the last partial scores, EvalAI's status; then a summary.
+    Watch(Watch),
 }
 
 /// `lbctl local ...`.
@@ -112,6 +117,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Resume(args) => executions::resume(args).await?,
         Command::Rescore(args) => rescore::rescore(args).await?,
         Command::Logs(args) => logs::logs(args).await?,
+        Command::Watch(args) => watch::watch(args).await?,
     };
     Ok(code)
 }

@@ -339,7 +339,7 @@ pub async fn list(args: List) -> Result<u8> {
 }
 
 /// Claimed submissions whose Jobs do not run yet, per leaderboard, oldest first: the queue.
-fn queue_positions(records: &[Record]) -> Vec<(&str, u64)> {
+pub(crate) fn queue_positions(records: &[Record]) -> Vec<(&str, u64)> {
     let mut waiting: Vec<(&str, &str, u64)> = records
         .iter()
         .filter(|r| matches!(r.status(), "SUBMITTED" | "RESUMING"))
