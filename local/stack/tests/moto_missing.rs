@@ -3,7 +3,7 @@
 use local_stack::moto::MotoServer;
 
 #[test]
-fn a_missing_moto_is_reported_with_the_fix() {
+fn a_missing_moto_is_reported_with_every_place_looked_at_and_the_fix() {
     // Runs in its own test binary, so changing the environment is safe here.
     std::env::set_var("LB_MOTO_SERVER", "/nonexistent/moto_server");
     let err = MotoServer::start().unwrap_err();
@@ -12,10 +12,9 @@ fn a_missing_moto_is_reported_with_the_fix() {
         err.to_string().contains("`/nonexistent/moto_server`"),
         "{err}"
     );
-}
 
-#[test]
-fn without_the_variable_it_looks_beside_itself_in_venvs_and_on_path_and_says_where() {
+    // NB: one test, not two: both halves change the process environment.
+    // Without the variable: beside this program, in the venvs, on PATH, in that order.
     std::env::remove_var("LB_MOTO_SERVER");
     let dir = tempfile::tempdir().unwrap();
     let bin = dir.path().join("bin");
