@@ -15,6 +15,9 @@ pub(crate) fn evalai_id() -> impl clap::builder::TypedValueParser<Value = u64> {
 
 /// `lbctl status` options.
 #[derive(Debug, Clone, Args)]
+#[command(after_help = "Examples:
+  lbctl status 4242          # its record(s) and S3 markers, as text
+  lbctl status 4242 --json   # the same for a script")]
 pub struct Status {
     /// EvalAI submission id.
     #[arg(value_parser = evalai_id())]
@@ -28,6 +31,10 @@ pub struct Status {
 
 /// `lbctl list` options.
 #[derive(Debug, Clone, Args)]
+#[command(after_help = "Examples:
+  lbctl list --running                  # what runs or waits, with queue positions and ages
+  lbctl list --team 'Team One'          # one team's submissions (its name or EvalAI id)
+  lbctl list --status failed --json     # for a script")]
 pub struct List {
     /// Only submissions an execution still holds (`SUBMITTED`, `RESUMING`, `RUNNING`).
     #[arg(long)]

@@ -6,7 +6,7 @@ mod common;
 use common::{lbctl, show, stderr, stdout};
 
 const SUBCOMMANDS: &[&str] = &[
-    "local", "invoke", "status", "list", "cancel", "submit", "resume",
+    "local", "invoke", "status", "list", "watch", "logs", "rescore", "cancel", "submit", "resume",
 ];
 
 #[test]
@@ -43,8 +43,48 @@ fn every_subcommand_documents_its_arguments() {
         ),
         (
             &["list"],
-            &["--running", "--leaderboard", "--limit", "--json"],
+            &[
+                "--running",
+                "--team",
+                "--status",
+                "--leaderboard",
+                "--limit",
+                "--json",
+                "Examples:",
+            ],
         ),
+        (
+            &["watch"],
+            &[
+                "<SUBMISSION>",
+                "--interval",
+                "--once",
+                "--json",
+                "Examples:",
+            ],
+        ),
+        (
+            &["logs"],
+            &[
+                "<SUBMISSION>",
+                "--worker",
+                "--follow",
+                "--recorder",
+                "Examples:",
+            ],
+        ),
+        (
+            &["rescore"],
+            &[
+                "<SUBMISSION>",
+                "--out",
+                "--post",
+                "--challenge",
+                "--yes",
+                "Examples:",
+            ],
+        ),
+        (&["local", "run"], &["crash-loop", "LB_EVALAI_TOKEN"]),
         (&["cancel"], &["<SUBMISSION>", "--force", "--leaderboard"]),
         (
             &["submit"],
