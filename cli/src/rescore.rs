@@ -8,15 +8,13 @@ use std::path::PathBuf;
 use clap::Args;
 use lb_aws::s3::SubmissionStore;
 use lb_domain::plan::{plan, PlanInput};
-use lb_domain::results::{
-    self, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions, ResultsFile,
-    WorkerFile, WorkerInput, MAX_FILE_BYTES,
-};
+use lb_domain::results::{EvalAiFiles, Leaderboard, RouteSubset};
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
+use lb_pipeline::results::merge_partials;
 use lb_pipeline::FunctionConfig;
 
-use crate::deployment::{clean, Deployment, DeploymentArgs, Record, ScanFilter};
+use crate::deployment::{Deployment, DeploymentArgs, Record, ScanFilter};
 use crate::error::{CliError, Result};
 use crate::ops::evalai_id;
 
@@ -93,64 +91,20 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
         .partials()
         .await
         .map_err(|e| CliError::aws(format!("listing the results of `{id}`"), e))?;
-    let mut sources = Vec::new();
-    let mut contents = Vec::new();
-    let mut subsets = Vec::new();
-    for partial in &partials {
-        let Some(pair) = the_plan.pairs().find(|p| p.id == partial.pair_id) else {
-            eprintln!(
-                "lbctl: warning: `{}` belongs to no planned worker; left out",
-                clean(&partial.key)
-            );
-            continue;
-        };
-        let bytes = store
-            .get_bounded(&partial.key, MAX_FILE_BYTES as u64)
-            .await
-            .map_err(|e| CliError::aws(format!("reading `{}`", partial.key), e))?;
-        sources.push(partial.key.clone());
-        contents.push(bytes);
-        subsets.push(pair.routes);
-    }
-    let inputs: Vec<WorkerInput<'_>> = sources
-        .iter()
-        .zip(&contents)
-        .zip(&subsets)
-        .map(|((source, bytes), subset)| WorkerInput {
-            source,
-            bytes: Some(bytes),
-            subset: Some(*subset),
-        })
-        .collect();
-    let results_error = |e: results::ResultsError| CliError::Refused(format!("{}: {e}", e.name()));
-    let mut present: Vec<ResultsFile> = Vec::new();
-    for read in read_worker_files(&inputs, leaderboard) {
-        if let WorkerFile::Present(file) = read.map_err(results_error)? {
-            present.push(file);
-        }
-    }
-    let expected = Expected {
-        routes: u64::from(the_plan.routes),
-        repetitions: u64::from(leaderboard.repetitions()),
-    };
-    let outcome = if present.is_empty() {
-        None
-    } else {
-        Some(
-            results::merge(
-                present,
-                MergeOptions {
-                    leaderboard,
-                    expected: Some(expected),
-                },
-            )
-            .map_err(results_error)?,
-        )
-    };
-    let merged = outcome.as_ref().map(|o| &o.merged);
-    let complete = outcome.as_ref().is_some_and(|o| o.complete);
+    let pairs: Vec<(u32, RouteSubset)> = the_plan.pairs().map(|p| (p.id, p.routes)).collect();
+    let merge = merge_partials(
+        &store,
+        &partials,
+        leaderboard,
+        &pairs,
+        leaderboard.repetitions(),
+    )
+    .await
+    .map_err(|e| CliError::Refused(format!("{}: {}", e.name(), e.chain())))?;
+    let merged = merge.merged.as_ref();
+    let complete = merge.complete;
+    let progress = merge.progress;
     let files = EvalAiFiles::generate(merged, leaderboard);
-    let progress = merged.map_or((0, expected.records()), |m| m.progress);
 
     if let Some(dir) = &args.out {
         write_files(dir, merged.map(|m| m.to_json()), &files)?;

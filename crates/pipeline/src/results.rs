@@ -4,7 +4,7 @@
 use lb_aws::s3::{EvalAiObjects, PartialObject, SubmissionStore, MAX_PARTIAL_BYTES};
 use lb_domain::py::Num;
 use lb_domain::results::{
-    self, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions, ResultsFile,
+    self, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions, Merged, ResultsFile,
     RouteSubset, WorkerFile, WorkerInput,
 };
 use tracing::warn;
@@ -85,20 +85,76 @@ pub async fn collect_listed(
         fingerprint,
         partials,
     } = listing;
+    let pairs = pairs
+        .iter()
+        .map(|pair| {
+            pair.routes
+                .parse::<RouteSubset>()
+                .map(|s| (pair.id, s))
+                .map_err(|e| {
+                    FnError::Input(format!("pair {} routes `{}`: {e}", pair.id, pair.routes))
+                })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let Merge {
+        merged,
+        complete,
+        progress,
+    } = merge_partials(store, &partials, leaderboard, &pairs, repetitions).await?;
+    let files = EvalAiFiles::generate(merged.as_ref(), leaderboard);
+    let merged_json = merged.as_ref().map(|m| m.to_json());
+    let metrics = metrics(&files, leaderboard);
+    store
+        .put_evalai_files(&EvalAiObjects {
+            merged: merged_json.as_deref(),
+            results: &files.results_json(),
+            stdout: &files.stdout,
+            metadata: files.metadata.as_deref(),
+        })
+        .await?;
+    Ok(Snapshot {
+        fingerprint,
+        files,
+        merged_json,
+        progress,
+        complete,
+        metrics,
+    })
+}
+
+/// The workers' files merged.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Merge {
+    /// The merged document, when any worker wrote results.
+    pub merged: Option<Merged>,
+    /// Every planned route has its records and the global statistics exist.
+    pub complete: bool,
+    /// Records found and planned.
+    pub progress: (u64, u64),
+}
+
+/// The planned workers' files read from S3 and merged with the leaderboard's rules: what the
+/// Monitor, Finalize and `lbctl rescore` compute alike. `pairs` are (pair id, its routes); a
+/// file of no planned pair is left out. A worker file is the participant's container's output:
+/// its errors (`ResultsInvalid`, ...) are raised with their names.
+pub async fn merge_partials(
+    store: &SubmissionStore,
+    partials: &[PartialObject],
+    leaderboard: Leaderboard,
+    pairs: &[(u32, RouteSubset)],
+    repetitions: u32,
+) -> Result<Merge, FnError> {
     let mut sources = Vec::new();
     let mut contents = Vec::new();
     let mut subsets = Vec::new();
-    for partial in &partials {
-        let Some(pair) = pairs.iter().find(|p| p.id == partial.pair_id) else {
+    for partial in partials {
+        let Some((_, subset)) = pairs.iter().find(|(id, _)| *id == partial.pair_id) else {
             warn!(key = %partial.key, "results file of no planned worker, ignored");
             continue;
         };
-        let subset: RouteSubset = pair.routes.parse().map_err(|e| {
-            FnError::Input(format!("pair {} routes `{}`: {e}", pair.id, pair.routes))
-        })?;
         sources.push(partial.key.clone());
         contents.push(store.get_bounded(&partial.key, MAX_PARTIAL_BYTES).await?);
-        subsets.push(subset);
+        subsets.push(*subset);
     }
     let inputs: Vec<WorkerInput<'_>> = sources
         .iter()
@@ -118,46 +174,28 @@ pub async fn collect_listed(
         }
     }
     let expected = Expected {
-        routes: pairs
-            .iter()
-            .filter_map(|p| p.routes.parse::<RouteSubset>().ok())
-            .map(|s| s.last - s.first + 1)
-            .sum::<u64>(),
+        routes: pairs.iter().map(|(_, s)| s.last - s.first + 1).sum(),
         repetitions: u64::from(repetitions),
     };
-    let planned = expected.records();
-    let (merged, complete) = if present.is_empty() {
-        (None, false)
-    } else {
-        let outcome = results::merge(
-            present,
-            MergeOptions {
-                leaderboard,
-                expected: Some(expected),
-            },
-        )
-        .map_err(results_error)?;
-        (Some(outcome.merged), outcome.complete)
-    };
-    let files = EvalAiFiles::generate(merged.as_ref(), leaderboard);
-    let merged_json = merged.as_ref().map(|m| m.to_json());
-    let progress = merged.as_ref().map_or((0, planned), |m| m.progress);
-    let metrics = metrics(&files, leaderboard);
-    store
-        .put_evalai_files(&EvalAiObjects {
-            merged: merged_json.as_deref(),
-            results: &files.results_json(),
-            stdout: &files.stdout,
-            metadata: files.metadata.as_deref(),
-        })
-        .await?;
-    Ok(Snapshot {
-        fingerprint,
-        files,
-        merged_json,
-        progress,
-        complete,
-        metrics,
+    if present.is_empty() {
+        return Ok(Merge {
+            merged: None,
+            complete: false,
+            progress: (0, expected.records()),
+        });
+    }
+    let outcome = results::merge(
+        present,
+        MergeOptions {
+            leaderboard,
+            expected: Some(expected),
+        },
+    )
+    .map_err(results_error)?;
+    Ok(Merge {
+        progress: outcome.merged.progress,
+        complete: outcome.complete,
+        merged: Some(outcome.merged),
     })
 }
 
