@@ -23,6 +23,11 @@ pub const FINAL_STATUSES: [RecordStatus; 3] = [
     RecordStatus::Cancelled,
 ];
 
+/// Whether a stored `submission_status` is one of [`FINAL_STATUSES`].
+pub fn is_final_status(status: &str) -> bool {
+    FINAL_STATUSES.iter().any(|s| s.as_str() == status)
+}
+
 /// Where the deployment's configuration is.
 #[derive(Debug, Clone, Args)]
 pub struct DeploymentArgs {
@@ -248,7 +253,7 @@ impl Record {
 
     /// FINISHED, FAILED or CANCELLED.
     pub fn is_final(&self) -> bool {
-        FINAL_STATUSES.iter().any(|s| s.as_str() == self.status())
+        is_final_status(self.status())
     }
 
     /// The record as JSON, with where it was found.

@@ -52,7 +52,7 @@ fn wanted(key: &str, worker: Option<u32>, recorder: bool) -> bool {
     let Some(rel) = key.strip_prefix("logs/") else {
         return false;
     };
-    if rel.contains("/recorder/") || rel.ends_with(".log.rec") {
+    if is_recording(rel) {
         return recorder;
     }
     match worker {

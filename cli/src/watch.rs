@@ -12,7 +12,7 @@ use lb_domain::results::{read_worker_file, Leaderboard, WorkerFile, MAX_FILE_BYT
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::FunctionConfig;
 
-use crate::deployment::{clean, Deployment, DeploymentArgs, ScanFilter};
+use crate::deployment::{clean, is_final_status, Deployment, DeploymentArgs, ScanFilter};
 use crate::error::{CliError, Result};
 use crate::ops::{evalai_id, queue_positions};
 
@@ -113,7 +113,7 @@ pub async fn watch(args: Watch) -> Result<u8> {
     let mut last: Option<Screen> = None;
     while started.elapsed() < MAX_WATCH {
         let screen = look(&deployment, &args, &evalai, &clusters).await?;
-        let ended = is_final(&screen.status) && is_final_on_evalai(&screen.evalai_status);
+        let ended = is_final_status(&screen.status) && is_final_on_evalai(&screen.evalai_status);
         if args.json {
             println!("{}", serde_json::to_string(&screen).unwrap_or_default());
         } else {
@@ -138,10 +138,6 @@ pub async fn watch(args: Watch) -> Result<u8> {
         print!("{}", summary(&last, started.elapsed()));
     }
     Ok(0)
-}
-
-fn is_final(status: &str) -> bool {
-    matches!(status, "FINISHED" | "FAILED" | "CANCELLED")
 }
 
 fn is_final_on_evalai(status: &str) -> bool {
@@ -196,7 +192,7 @@ async fn look(
     screen.stage = match screen.status.as_str() {
         "SUBMITTED" | "RESUMING" => "claimed, waiting for its Jobs to run".into(),
         "RUNNING" => "running".into(),
-        s if is_final(s) => format!("ended {}", s.to_lowercase()),
+        s if is_final_status(s) => format!("ended {}", s.to_lowercase()),
         other => format!("`{}`", clean(other)),
     };
     // The queue: claimed submissions of this leaderboard that do not run yet.
@@ -218,7 +214,7 @@ async fn look(
     let store = SubmissionStore::new(deployment.s3.clone(), &lb.bucket, id);
     screen.workers = workers(&store, leaderboard).await;
     screen.scores = scores(&store, id).await;
-    if !is_final(&screen.status) {
+    if !is_final_status(&screen.status) {
         match clusters.connect(lb).await {
             Ok(cluster) => match cluster.observe(&id.to_string()).await {
                 Ok(observation) => screen.pods = pods(&observation),

@@ -2,7 +2,6 @@
 
 mod common;
 
-use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use aws_sdk_dynamodb::types::AttributeValue;
@@ -99,16 +98,12 @@ async fn logs_prints_each_workers_logs_and_follows_them_until_the_end() {
     assert!(stderr(&out).contains("`2` has no logs"), "{}", show(&out));
 
     // --follow: what logcopy adds is printed once, and it stops when the record is final.
-    let mut follow = Command::new(env!("CARGO_BIN_EXE_lbctl"));
-    follow
-        .args(["logs", "1", "--worker", "1", "--follow", "--interval", "1"])
-        .env("AWS_CONFIG_FILE", "/dev/null")
-        .env("AWS_SHARED_CREDENTIALS_FILE", "/dev/null")
-        .env("AWS_EC2_METADATA_DISABLED", "true")
-        .envs(env.iter().map(|(k, v)| (*k, v.as_str())))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped());
-    let child = follow.spawn().unwrap();
+    let child = common::lbctl_command(
+        &["logs", "1", "--worker", "1", "--follow", "--interval", "1"],
+        &env,
+    )
+    .spawn()
+    .unwrap();
     tokio::time::sleep(Duration::from_secs(2)).await;
     put_log(
         sdk,

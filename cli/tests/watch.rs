@@ -3,7 +3,6 @@
 
 mod common;
 
-use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use aws_sdk_dynamodb::types::AttributeValue;
@@ -94,17 +93,10 @@ async fn watch_follows_a_submission_from_the_queue_to_its_scores() {
     )
     .await;
 
-    let mut watch = Command::new(env!("CARGO_BIN_EXE_lbctl"));
-    watch
-        .args(["watch", "1", "--interval", "1"])
-        .env("AWS_CONFIG_FILE", "/dev/null")
-        .env("AWS_SHARED_CREDENTIALS_FILE", "/dev/null")
-        .env("AWS_EC2_METADATA_DISABLED", "true")
+    let child = common::lbctl_command(&["watch", "1", "--interval", "1"], &env)
         .env("LB_KUBECONFIG", &kubeconfig)
-        .envs(env.iter().map(|(k, v)| (*k, v.as_str())))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped());
-    let child = watch.spawn().unwrap();
+        .spawn()
+        .unwrap();
     tokio::time::sleep(Duration::from_secs(3)).await;
 
     // Running: a worker's results and the partial scores arrive; EvalAI says running.

@@ -25,8 +25,9 @@ const SCRUBBED: &[&str] = &[
     "AWS_DEFAULT_REGION",
 ];
 
-/// `lbctl args...` with `env` (nothing else of AWS or LB_* inherited) and `stdin`.
-pub fn lbctl(args: &[&str], env: &[(&str, String)], stdin: Option<&str>) -> Output {
+/// `lbctl args...` with `env` and nothing else of AWS or LB_* inherited, its output piped:
+/// for a test that runs it in the background.
+pub fn lbctl_command(args: &[&str], env: &[(&str, String)]) -> Command {
     let mut command = Command::new(env!("CARGO_BIN_EXE_lbctl"));
     command.args(args);
     for name in SCRUBBED {
@@ -37,13 +38,19 @@ pub fn lbctl(args: &[&str], env: &[(&str, String)], stdin: Option<&str>) -> Outp
         .env("AWS_SHARED_CREDENTIALS_FILE", "/dev/null")
         .env("AWS_EC2_METADATA_DISABLED", "true")
         .envs(env.iter().map(|(k, v)| (*k, v.as_str())))
-        .stdin(if stdin.is_some() {
-            Stdio::piped()
-        } else {
-            Stdio::null()
-        })
         .stdout(Stdio::piped())
         .stderr(Stdio::piped());
+    command
+}
+
+/// `lbctl args...` with `env` (nothing else of AWS or LB_* inherited) and `stdin`.
+pub fn lbctl(args: &[&str], env: &[(&str, String)], stdin: Option<&str>) -> Output {
+    let mut command = lbctl_command(args, env);
+    command.stdin(if stdin.is_some() {
+        Stdio::piped()
+    } else {
+        Stdio::null()
+    });
     let mut child = command.spawn().expect("lbctl starts");
     if let Some(text) = stdin {
         let mut pipe = child.stdin.take().unwrap();

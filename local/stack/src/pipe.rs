@@ -58,7 +58,7 @@ pub fn sqs_record(message: &Message, queue_arn: &str, region: &str) -> Value {
         .attributes()
         .map(|a| {
             a.iter()
-                .map(|(k, v)| (system_attribute_name(k), json!(v)))
+                .map(|(k, v)| (k.as_str().to_owned(), json!(v)))
                 .collect()
         })
         .unwrap_or_default();
@@ -73,10 +73,6 @@ pub fn sqs_record(message: &Message, queue_arn: &str, region: &str) -> Value {
         "eventSourceARN": queue_arn,
         "awsRegion": region,
     })
-}
-
-fn system_attribute_name(name: &MessageSystemAttributeName) -> String {
-    name.as_str().to_owned()
 }
 
 /// One poll of the queue as the Pipe makes it: receive up to `batch_size` messages (waiting
