@@ -104,7 +104,7 @@ spec:
         volumeMounts: [{name: logs, mountPath: /tmp/status, subPath: containers-status}]
       - name: side
         image: busybox
-        command: [sh, -c, 'i=0; while [ ! -f /tmp/status/main.done ] && [ $$i -lt 200 ]; do sleep 0.05; i=$$((i+1)); done; echo "side saw $$(cat /tmp/status/main.done)"']
+        command: [sh, -c, 'i=0; while [ ! -s /tmp/status/main.done ] && [ $$i -lt 200 ]; do sleep 0.05; i=$$((i+1)); done; echo "side saw $$(cat /tmp/status/main.done)"']
         volumeMounts: [{name: logs, mountPath: /tmp/status, subPath: containers-status}]
 ---
 apiVersion: batch/v1
