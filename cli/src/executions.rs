@@ -114,7 +114,7 @@ pub fn pipe_input(challenge: u64, phase: u64, submission: u64, image: Option<&st
     let record = pipe::record_of_body(&Value::Object(body).to_string());
     // NB: the deployed template has only `<$.body.*>` placeholders; it cannot fail on a body
     // built here (a test holds it to that).
-    pipe::batch(pipe::INPUT_TEMPLATE, &[record]).unwrap_or_else(|_| json!([]))
+    pipe::batch(&pipe::INPUT_TEMPLATE, &[record]).unwrap_or_else(|_| json!([]))
 }
 
 /// A name unique per submission and second: `submission-<id>-<unix time>`.

@@ -523,9 +523,10 @@ async fn sqs_round_trip(
     image: &str,
 ) -> anyhow::Result<Value> {
     let sqs = aws_sdk_sqs::Client::new(&stack.sdk);
+    // The queue `infra/app.yaml` declares, which the stack provisioned.
     let queue = sqs
-        .create_queue()
-        .queue_name("evalai-submissions")
+        .get_queue_url()
+        .queue_name(local_stack::stack::submissions_queue())
         .send()
         .await?;
     let url = queue.queue_url().context("no queue url")?.to_string();

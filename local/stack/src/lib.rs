@@ -2,7 +2,9 @@
 
 pub mod moto;
 pub mod pipe;
+pub mod privilege;
 pub mod stack;
+pub mod template;
 pub mod workloads;
 
 pub use stack::{EvalAi, Stack, StackError};

@@ -16,14 +16,16 @@
 //! (Intake then names the missing field), and a template whose output is not JSON is an error
 //! (the real Pipe would fail the delivery).
 //!
-//! The template itself is `statemachine/pipe-input-template.txt`: the one source that local
-//! mode, `lbctl submit` and the deployment use.
+//! The template itself is the Pipe's `InputTemplate` in `infra/app.yaml`: the one source that
+//! the deployment, local mode and `lbctl submit` use.
 
 use aws_sdk_sqs::types::{Message, MessageSystemAttributeName};
 use serde_json::{json, Map, Value};
 
-/// The Pipe's `InputTemplate`, exactly as deployed.
-pub const INPUT_TEMPLATE: &str = include_str!("../../../statemachine/pipe-input-template.txt");
+/// The Pipe's `InputTemplate`, exactly as deployed (read from `infra/app.yaml`).
+pub static INPUT_TEMPLATE: std::sync::LazyLock<String> = std::sync::LazyLock::new(|| {
+    crate::template::pipe_input_template().expect("infra/app.yaml declares the Pipe's template")
+});
 
 /// Why a record could not be transformed.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -116,7 +118,7 @@ pub async fn poll(
         .iter()
         .map(|m| sqs_record(m, &arn, &region))
         .collect();
-    let out = batch(INPUT_TEMPLATE, &records)?;
+    let out = batch(&INPUT_TEMPLATE, &records)?;
     for handle in messages.iter().filter_map(Message::receipt_handle) {
         sqs.delete_message()
             .queue_url(queue_url)
@@ -266,7 +268,7 @@ mod tests {
 
     #[test]
     fn the_deployed_template_gives_the_four_fields_with_their_json_types_kept() {
-        let out = transform(INPUT_TEMPLATE, &record_of_body(&evalai_body())).unwrap();
+        let out = transform(&INPUT_TEMPLATE, &record_of_body(&evalai_body())).unwrap();
         assert_eq!(
             out,
             json!({"challenge_pk": "12", "phase_pk": "1234", "submission_pk": 77,
@@ -276,7 +278,7 @@ mod tests {
 
     #[test]
     fn a_batch_of_one_is_a_one_element_array() {
-        let out = batch(INPUT_TEMPLATE, &[record_of_body(&evalai_body())]).unwrap();
+        let out = batch(&INPUT_TEMPLATE, &[record_of_body(&evalai_body())]).unwrap();
         assert!(out.is_array());
         assert_eq!(out.as_array().unwrap().len(), 1);
         assert_eq!(out[0]["submission_pk"], 77);
@@ -287,7 +289,7 @@ mod tests {
         let records: Vec<Value> = (1..=3)
             .map(|i| record_of_body(&json!({"submission_pk": i}).to_string()))
             .collect();
-        let out = batch(INPUT_TEMPLATE, &records).unwrap();
+        let out = batch(&INPUT_TEMPLATE, &records).unwrap();
         let ids: Vec<&Value> = out
             .as_array()
             .unwrap()
@@ -300,13 +302,13 @@ mod tests {
     #[test]
     fn a_field_missing_from_the_body_becomes_null() {
         let body = json!({"challenge_pk": 1, "phase_pk": 2, "submission_pk": 3}).to_string();
-        let out = transform(INPUT_TEMPLATE, &record_of_body(&body)).unwrap();
+        let out = transform(&INPUT_TEMPLATE, &record_of_body(&body)).unwrap();
         assert_eq!(out["submitted_image_uri"], Value::Null);
     }
 
     #[test]
     fn a_body_that_is_not_json_cannot_be_addressed_and_every_field_is_null() {
-        let out = transform(INPUT_TEMPLATE, &record_of_body("not json")).unwrap();
+        let out = transform(&INPUT_TEMPLATE, &record_of_body("not json")).unwrap();
         assert_eq!(out["submission_pk"], Value::Null);
     }
 

@@ -7,11 +7,13 @@ use aws_config::SdkConfig;
 use aws_sdk_dynamodb::types::{
     AttributeDefinition, BillingMode, KeySchemaElement, KeyType, ScalarAttributeType,
 };
+use aws_sdk_sqs::types::QueueAttributeName;
 use fake_evalai::{FakeEvalAi, Fixture};
 use lb_domain::settings::Settings;
 use local_kube::LocalKube;
 
 use crate::moto::{MotoError, MotoServer};
+use crate::template::{Template, TemplateError, APP};
 use crate::workloads::{image_map, Behaviour, Binaries};
 
 /// The region the local stack uses.
@@ -201,8 +203,10 @@ impl Stack {
             .expect("this stack runs the fake EvalAI")
     }
 
-    /// Creates what `settings` names (secrets, buckets, tables), with EvalAI pointed at this
-    /// stack's. `settings_json` is the settings text; its `evalai.api_server` is replaced.
+    /// Creates the queues, secrets, buckets and tables `infra/app.yaml` declares, with the
+    /// names `settings` gives them (as an operator's parameter overrides would), and puts the
+    /// settings (EvalAI pointed at this stack's) and the token in the secrets. `settings_json`
+    /// is the settings text; its `evalai.api_server` is replaced.
     pub async fn provision(&self, settings_json: &str) -> Result<Settings, StackError> {
         let invalid = |source: Box<dyn std::error::Error + Send + Sync>| StackError::Provision {
             what: "settings".into(),
@@ -213,37 +217,184 @@ impl Stack {
         value["evalai"]["api_server"] = serde_json::Value::String(self.evalai_url.clone());
         let text = value.to_string();
         let settings = Settings::from_json(&text).map_err(|e| invalid(e.into()))?;
-
-        let secrets = aws_sdk_secretsmanager::Client::new(&self.sdk);
-        for (name, secret) in [
-            (SETTINGS_SECRET, text.clone()),
-            (
-                TOKEN_SECRET,
-                serde_json::json!({ "token": self.evalai_token }).to_string(),
-            ),
-        ] {
-            secrets
-                .create_secret()
-                .name(name)
-                .secret_string(secret)
-                .send()
-                .await
-                .map_err(|e| provision(name, e))?;
-        }
-        let s3 = lb_aws::s3_client(&self.sdk);
-        let dynamo = aws_sdk_dynamodb::Client::new(&self.sdk);
-        for lb in settings.leaderboards.values() {
-            s3.create_bucket()
-                .bucket(&lb.bucket)
-                .send()
-                .await
-                .map_err(|e| provision(&lb.bucket, e))?;
-            // The original system's key schemas (reference original-system.md): all strings.
-            create_table(&dynamo, &lb.submissions_table, "submission_id").await?;
-            create_table(&dynamo, &lb.qualifier_table, "track_codename").await?;
-        }
+        let template = app_template(&settings);
+        let token = serde_json::json!({ "token": self.evalai_token }).to_string();
+        let provisioner = Provisioner {
+            template: &template,
+            sdk: &self.sdk,
+        };
+        provisioner.secrets(&[("SettingsSecret", &text), ("EvalAiTokenSecret", &token)]).await?;
+        provisioner.buckets().await?;
+        provisioner.tables().await?;
+        provisioner.queues().await?;
         Ok(settings)
     }
+}
+
+/// `infra/app.yaml` as local mode deploys it: stack `leaderboard` (so the secrets are
+/// [`SETTINGS_SECRET`] and [`TOKEN_SECRET`]), moto's account, this region, and each
+/// leaderboard's names from `settings`.
+pub fn app_template(settings: &Settings) -> Template {
+    let mut template = APP
+        .clone()
+        .in_stack("leaderboard", REGION, MOTO_ACCOUNT);
+    for (key, lb) in &settings.leaderboards {
+        let prefix = format!("Leaderboard{}", key.replace('.', ""));
+        for (suffix, value) in [
+            ("Bucket", &lb.bucket),
+            ("SubmissionsTable", &lb.submissions_table),
+            ("QualifierTable", &lb.qualifier_table),
+            ("Cluster", &lb.cluster),
+        ] {
+            template = template.with_parameter(&format!("{prefix}{suffix}"), value.clone());
+        }
+    }
+    template
+}
+
+/// The account moto reports.
+pub const MOTO_ACCOUNT: &str = "123456789012";
+
+/// Creates a template's resources of the types local mode needs, through the SDK.
+struct Provisioner<'a> {
+    template: &'a Template,
+    sdk: &'a SdkConfig,
+}
+
+impl Provisioner<'_> {
+    fn name(&self, id: &str) -> Result<String, StackError> {
+        self.template
+            .physical_name(id)
+            .map_err(|e| provision(id, e))
+    }
+
+    /// Each declared secret, with the value given for its logical id.
+    async fn secrets(&self, values: &[(&str, &str)]) -> Result<(), StackError> {
+        let client = aws_sdk_secretsmanager::Client::new(self.sdk);
+        for id in self.template.resources_of("AWS::SecretsManager::Secret") {
+            let name = self.name(&id)?;
+            let mut create = client.create_secret().name(&name);
+            if let Some((_, value)) = values.iter().find(|(i, _)| *i == id) {
+                create = create.secret_string(*value);
+            }
+            create.send().await.map_err(|e| provision(&name, e))?;
+        }
+        for (expected, id) in [(SETTINGS_SECRET, "SettingsSecret"), (TOKEN_SECRET, "EvalAiTokenSecret")] {
+            let name = self.name(id)?;
+            if name != expected {
+                return Err(provision(id, TemplateError::Invalid(format!(
+                    "secret `{id}` is named `{name}`, local mode configures `{expected}`"
+                ))));
+            }
+        }
+        Ok(())
+    }
+
+    async fn buckets(&self) -> Result<(), StackError> {
+        let s3 = lb_aws::s3_client(self.sdk);
+        for id in self.template.resources_of("AWS::S3::Bucket") {
+            let name = self.name(&id)?;
+            s3.create_bucket()
+                .bucket(&name)
+                .send()
+                .await
+                .map_err(|e| provision(&name, e))?;
+        }
+        Ok(())
+    }
+
+    /// Tables with the template's key schema and attribute types.
+    async fn tables(&self) -> Result<(), StackError> {
+        let client = aws_sdk_dynamodb::Client::new(self.sdk);
+        for id in self.template.resources_of("AWS::DynamoDB::Table") {
+            let name = self.name(&id)?;
+            let root = self.template.root();
+            let props = &root["Resources"][id.as_str()]["Properties"];
+            let mut create = client
+                .create_table()
+                .table_name(&name)
+                .billing_mode(BillingMode::PayPerRequest);
+            for a in props["AttributeDefinitions"].as_sequence().into_iter().flatten() {
+                let kind = ScalarAttributeType::from(a["AttributeType"].as_str().unwrap_or_default());
+                create = create.attribute_definitions(
+                    AttributeDefinition::builder()
+                        .attribute_name(a["AttributeName"].as_str().unwrap_or_default())
+                        .attribute_type(kind)
+                        .build()
+                        .map_err(|e| provision(&name, e))?,
+                );
+            }
+            for k in props["KeySchema"].as_sequence().into_iter().flatten() {
+                let kind = KeyType::from(k["KeyType"].as_str().unwrap_or_default());
+                create = create.key_schema(
+                    KeySchemaElement::builder()
+                        .attribute_name(k["AttributeName"].as_str().unwrap_or_default())
+                        .key_type(kind)
+                        .build()
+                        .map_err(|e| provision(&name, e))?,
+                );
+            }
+            create.send().await.map_err(|e| provision(&name, e))?;
+        }
+        Ok(())
+    }
+
+    /// Queues with their attributes; a redrive target is created before the queue naming it.
+    async fn queues(&self) -> Result<(), StackError> {
+        let client = aws_sdk_sqs::Client::new(self.sdk);
+        let root = self.template.root();
+        let mut ids = self.template.resources_of("AWS::SQS::Queue");
+        ids.sort_by_key(|id| !root["Resources"][id.as_str()]["Properties"]["RedrivePolicy"].is_null());
+        let mut arns = std::collections::BTreeMap::new();
+        for id in ids {
+            let name = self.name(&id)?;
+            let props = &root["Resources"][id.as_str()]["Properties"];
+            let mut create = client.create_queue().queue_name(&name);
+            for (key, attribute) in [
+                ("VisibilityTimeout", QueueAttributeName::VisibilityTimeout),
+                ("MessageRetentionPeriod", QueueAttributeName::MessageRetentionPeriod),
+            ] {
+                if let Some(value) = self.template.eval(&props[key]) {
+                    create = create.attributes(attribute, value);
+                }
+            }
+            let redrive = &props["RedrivePolicy"];
+            if !redrive.is_null() {
+                let target = self.template.eval(&redrive["deadLetterTargetArn"]).unwrap_or_default();
+                let arn = arns.get(&target).cloned().ok_or_else(|| {
+                    provision(&name, TemplateError::Missing(format!("redrive target {target}")))
+                })?;
+                let policy = serde_json::json!({
+                    "deadLetterTargetArn": arn,
+                    "maxReceiveCount": self.template.eval(&redrive["maxReceiveCount"]),
+                });
+                create = create.attributes(QueueAttributeName::RedrivePolicy, policy.to_string());
+            }
+            let url = create
+                .send()
+                .await
+                .map_err(|e| provision(&name, e))?
+                .queue_url
+                .unwrap_or_default();
+            let attributes = client
+                .get_queue_attributes()
+                .queue_url(&url)
+                .attribute_names(QueueAttributeName::QueueArn)
+                .send()
+                .await
+                .map_err(|e| provision(&name, e))?;
+            if let Some(arn) = attributes.attributes().and_then(|a| a.get(&QueueAttributeName::QueueArn)) {
+                arns.insert(format!("<{id}.Arn>"), arn.clone());
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The name of EvalAI's queue in local mode.
+pub fn submissions_queue() -> String {
+    APP.physical_name("SubmissionsQueue")
+        .expect("infra/app.yaml declares SubmissionsQueue")
 }
 
 /// The local Kubernetes API with its pods and kubeconfig under `workdir`.
@@ -270,38 +421,4 @@ where
         what: what.to_string(),
         source: Box::new(source),
     }
-}
-
-/// A table keyed by `team_id` (S) and `sort_key` (S).
-async fn create_table(
-    client: &aws_sdk_dynamodb::Client,
-    name: &str,
-    sort_key: &str,
-) -> Result<(), StackError> {
-    let attribute = |name: &str, kind: ScalarAttributeType| {
-        AttributeDefinition::builder()
-            .attribute_name(name)
-            .attribute_type(kind)
-            .build()
-            .expect("name and type are set")
-    };
-    let key = |name: &str, kind: KeyType| {
-        KeySchemaElement::builder()
-            .attribute_name(name)
-            .key_type(kind)
-            .build()
-            .expect("name and type are set")
-    };
-    client
-        .create_table()
-        .table_name(name)
-        .billing_mode(BillingMode::PayPerRequest)
-        .attribute_definitions(attribute("team_id", ScalarAttributeType::S))
-        .attribute_definitions(attribute(sort_key, ScalarAttributeType::S))
-        .key_schema(key("team_id", KeyType::Hash))
-        .key_schema(key(sort_key, KeyType::Range))
-        .send()
-        .await
-        .map_err(|e| provision(name, e))?;
-    Ok(())
 }
