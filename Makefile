@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar local bench-stack bench-functions
+.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar local bench-stack bench-functions deploy cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -76,6 +76,38 @@ $(LAMBDA_TOOLS): functions/build-requirements.txt
 build: $(LAMBDA_TOOLS) ## Lambda bootstraps (cargo lambda build --release) into $(TARGET_DIR)/lambda/<fn>/
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda build --release --$(LAMBDA_ARCH) $(addprefix -p ,$(FUNCTIONS))
 	@for f in $(FUNCTIONS); do ls -l $(TARGET_DIR)/lambda/$$f/bootstrap; done
+
+# Deployment (infra/README.md): SAM CLI and the AWS CLI, pinned, in a venv of their own (their
+# pins would fight moto's in .venv). Nothing here runs in `make test`.
+DEPLOY_VENV := .venv-deploy
+DEPLOY_TOOLS := $(DEPLOY_VENV)/.installed
+LEADERBOARD ?= 20
+CLUSTER_STACK ?= leaderboard-$(LEADERBOARD)-cluster
+AWS_CLI = $(DEPLOY_VENV)/bin/aws
+
+$(DEPLOY_TOOLS): infra/requirements.txt
+	$(PYTHON) -m venv $(DEPLOY_VENV)
+	$(DEPLOY_VENV)/bin/pip install --quiet --disable-pip-version-check -r infra/requirements.txt
+	touch $@
+
+deploy: build $(DEPLOY_TOOLS) ## Build the bootstraps and deploy infra/app.yaml (AWS credentials; PARAMS="K=V ..." overrides)
+	rm -rf infra/.build
+	for f in $(FUNCTIONS); do mkdir -p infra/.build/$$f && cp $(TARGET_DIR)/lambda/$$f/bootstrap infra/.build/$$f/; done
+	cd infra && SAM_CLI_TELEMETRY=0 ../$(DEPLOY_VENV)/bin/sam deploy --config-file samconfig.toml \
+		--parameter-overrides Architecture=$(if $(filter arm64,$(LAMBDA_ARCH)),arm64,x86_64) $(PARAMS)
+
+cluster: $(DEPLOY_TOOLS) ## Deploy infra/cluster.yaml for LEADERBOARD=10|20 (PARAMS="K=V ..." overrides)
+	$(AWS_CLI) cloudformation deploy --template-file infra/cluster.yaml --stack-name $(CLUSTER_STACK) \
+		--capabilities CAPABILITY_IAM --no-fail-on-empty-changeset \
+		--parameter-overrides ClusterName=leaderboard-$(LEADERBOARD) Bucket=leaderboard-$(LEADERBOARD)-results $(PARAMS)
+
+cluster-manifests: $(DEPLOY_TOOLS) ## Apply infra/k8s/ to LEADERBOARD's cluster (kubeconfig via the AWS CLI)
+	$(AWS_CLI) eks update-kubeconfig --name leaderboard-$(LEADERBOARD)
+	role=$$($(AWS_CLI) cloudformation describe-stacks --stack-name $(CLUSTER_STACK) \
+		--query "Stacks[0].Outputs[?OutputKey=='AutoscalerRoleArn'].OutputValue" --output text); \
+	for f in namespace rbac network-policy nvidia-device-plugin cluster-autoscaler; do \
+		sed -e "s|\$${CLUSTER_NAME}|leaderboard-$(LEADERBOARD)|g" -e "s|\$${AUTOSCALER_ROLE_ARN}|$$role|g" \
+			infra/k8s/$$f.yaml | kubectl apply -f -; done
 
 local: venv kubectl ## One whole submission on this machine (ARGS="--scenario crash" etc.)
 	$(CARGO) build --quiet -p cli -p sidecar -p fake-workloads --bins

@@ -22,6 +22,10 @@ use crate::image::parse_image;
 /// How much of the team name the `team-name` annotation keeps.
 pub const MAX_TEAM_NAME_ANNOTATION: usize = 256;
 
+/// The service account submission pods run as (created un-annotated by `infra/k8s/rbac.yaml`;
+/// the IRSA role of `infra/cluster.yaml` trusts its tokens).
+pub const SERVICE_ACCOUNT: &str = "submission-worker";
+
 /// Where the projected service-account token for IRSA is mounted in init and logcopy.
 pub const AWS_TOKEN_DIR: &str = "/var/run/secrets/eks.amazonaws.com/serviceaccount";
 
@@ -181,7 +185,7 @@ impl JobSettings {
         };
         JobSettings {
             namespace: deployment.namespace.clone(),
-            service_account: "submission-worker".into(),
+            service_account: SERVICE_ACCOUNT.into(),
             s3_role_arn: s3_role_arn.into(),
             region: region.into(),
             bucket: deployment.bucket.clone(),

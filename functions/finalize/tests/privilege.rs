@@ -4,7 +4,10 @@
 #[test]
 fn the_role_allows_exactly_what_the_code_calls() {
     let binary = std::path::Path::new(env!("CARGO_BIN_EXE_finalize"));
-    let problems =
-        local_stack::privilege::check_function(&local_stack::template::APP, "FinalizeFunction", binary);
+    let problems = local_stack::privilege::check_function(
+        &local_stack::template::APP,
+        "FinalizeFunction",
+        binary,
+    );
     assert!(problems.is_empty(), "{}", problems.join("\n"));
 }

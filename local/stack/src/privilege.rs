@@ -160,14 +160,24 @@ pub fn compare(
 ) -> Vec<String> {
     let mut problems = Vec::new();
     for action in needed.iter().filter(|a| !allowed.contains_key(*a)) {
-        problems.push(format!("{who}'s code calls `{action}`, which its role does not allow"));
+        problems.push(format!(
+            "{who}'s code calls `{action}`, which its role does not allow"
+        ));
     }
     for action in allowed.keys().filter(|a| !needed.contains(*a)) {
-        problems.push(format!("{who}'s role allows `{action}`, which its code never calls"));
+        problems.push(format!(
+            "{who}'s role allows `{action}`, which its code never calls"
+        ));
     }
     for (action, resources) in allowed {
-        if resources.is_empty() || resources.iter().any(|r| r.contains('*') && !r.ends_with("/*")) {
-            problems.push(format!("{who}'s role allows `{action}` on {resources:?}: name the resources"));
+        if resources.is_empty()
+            || resources
+                .iter()
+                .any(|r| r.contains('*') && !r.ends_with("/*"))
+        {
+            problems.push(format!(
+                "{who}'s role allows `{action}` on {resources:?}: name the resources"
+            ));
         }
     }
     problems
@@ -182,7 +192,10 @@ pub fn check_function(template: &Template, function: &str, binary: &Path) -> Vec
         Err(e) => return vec![e.to_string()],
     };
     let role = match template.text(function, &["Role"]) {
-        Ok(r) => r.trim_start_matches('<').trim_end_matches(".Arn>").to_string(),
+        Ok(r) => r
+            .trim_start_matches('<')
+            .trim_end_matches(".Arn>")
+            .to_string(),
         Err(e) => return vec![e.to_string()],
     };
     let code = match template.role_statements(&role, Some("code")) {
@@ -200,18 +213,28 @@ pub fn check_function(template: &Template, function: &str, binary: &Path) -> Vec
         .flat_map(|(_, r)| r.iter())
         .filter_map(|arn| {
             let name = arn.rsplit("table/").next()?;
-            ["Submissions", "Qualifier"]
-                .into_iter()
-                .find(|kind| template.parameter_names_with_value(name).iter().any(|p| p.ends_with(&format!("{kind}Table"))))
+            ["Submissions", "Qualifier"].into_iter().find(|kind| {
+                template
+                    .parameter_names_with_value(name)
+                    .iter()
+                    .any(|p| p.ends_with(&format!("{kind}Table")))
+            })
         })
         .collect();
-    for (kind, type_name) in [("Submissions", "SubmissionsTable"), ("Qualifier", "QualifierTable")] {
+    for (kind, type_name) in [
+        ("Submissions", "SubmissionsTable"),
+        ("Qualifier", "QualifierTable"),
+    ] {
         let used = has_type(&symbols, "dynamo", type_name);
         if used != table_kinds.contains(kind) {
             problems.push(format!(
                 "{function}: the code {} `{type_name}` but the role {} {kind} tables",
                 if used { "uses" } else { "never uses" },
-                if table_kinds.contains(kind) { "names" } else { "does not name" },
+                if table_kinds.contains(kind) {
+                    "names"
+                } else {
+                    "does not name"
+                },
             ));
         }
     }
@@ -220,10 +243,16 @@ pub fn check_function(template: &Template, function: &str, binary: &Path) -> Vec
         .text(function, &["LoggingConfig", "LogGroup"])
         .unwrap_or_default();
     let logs = allowed_or_empty(template, &role, "logs");
-    let expected: BTreeMap<String, BTreeSet<String>> = ["logs:CreateLogStream", "logs:PutLogEvents"]
-        .into_iter()
-        .map(|a| (a.to_string(), BTreeSet::from([format!("{}.Arn>", log_group.trim_end_matches('>'))])))
-        .collect();
+    let expected: BTreeMap<String, BTreeSet<String>> =
+        ["logs:CreateLogStream", "logs:PutLogEvents"]
+            .into_iter()
+            .map(|a| {
+                (
+                    a.to_string(),
+                    BTreeSet::from([format!("{}.Arn>", log_group.trim_end_matches('>'))]),
+                )
+            })
+            .collect();
     if logs != expected {
         problems.push(format!(
             "{function}: its `logs` policy must allow exactly writing to its own log group {log_group}, found {logs:?}"
@@ -232,7 +261,9 @@ pub fn check_function(template: &Template, function: &str, binary: &Path) -> Vec
     let root = template.root();
     let props = &root["Resources"][role.as_str()]["Properties"];
     if !props["ManagedPolicyArns"].is_null() {
-        problems.push(format!("{function}: its role has managed policies, which no test can hold to the code"));
+        problems.push(format!(
+            "{function}: its role has managed policies, which no test can hold to the code"
+        ));
     }
     let policies: Vec<_> = props["Policies"]
         .as_sequence()
@@ -241,12 +272,18 @@ pub fn check_function(template: &Template, function: &str, binary: &Path) -> Vec
         .filter_map(|p| p["PolicyName"].as_str())
         .collect();
     if policies != ["logs", "code"] {
-        problems.push(format!("{function}: its role's policies are {policies:?}, expected [logs, code]"));
+        problems.push(format!(
+            "{function}: its role's policies are {policies:?}, expected [logs, code]"
+        ));
     }
     problems
 }
 
-fn allowed_or_empty(template: &Template, role: &str, policy: &str) -> BTreeMap<String, BTreeSet<String>> {
+fn allowed_or_empty(
+    template: &Template,
+    role: &str,
+    policy: &str,
+) -> BTreeMap<String, BTreeSet<String>> {
     template
         .role_statements(role, Some(policy))
         .map(|s| allowed(&s))

@@ -223,7 +223,9 @@ impl Stack {
             template: &template,
             sdk: &self.sdk,
         };
-        provisioner.secrets(&[("SettingsSecret", &text), ("EvalAiTokenSecret", &token)]).await?;
+        provisioner
+            .secrets(&[("SettingsSecret", &text), ("EvalAiTokenSecret", &token)])
+            .await?;
         provisioner.buckets().await?;
         provisioner.tables().await?;
         provisioner.queues().await?;
@@ -235,9 +237,7 @@ impl Stack {
 /// [`SETTINGS_SECRET`] and [`TOKEN_SECRET`]), moto's account, this region, and each
 /// leaderboard's names from `settings`.
 pub fn app_template(settings: &Settings) -> Template {
-    let mut template = APP
-        .clone()
-        .in_stack("leaderboard", REGION, MOTO_ACCOUNT);
+    let mut template = APP.clone().in_stack("leaderboard", REGION, MOTO_ACCOUNT);
     for (key, lb) in &settings.leaderboards {
         let prefix = format!("Leaderboard{}", key.replace('.', ""));
         for (suffix, value) in [
@@ -279,12 +279,18 @@ impl Provisioner<'_> {
             }
             create.send().await.map_err(|e| provision(&name, e))?;
         }
-        for (expected, id) in [(SETTINGS_SECRET, "SettingsSecret"), (TOKEN_SECRET, "EvalAiTokenSecret")] {
+        for (expected, id) in [
+            (SETTINGS_SECRET, "SettingsSecret"),
+            (TOKEN_SECRET, "EvalAiTokenSecret"),
+        ] {
             let name = self.name(id)?;
             if name != expected {
-                return Err(provision(id, TemplateError::Invalid(format!(
-                    "secret `{id}` is named `{name}`, local mode configures `{expected}`"
-                ))));
+                return Err(provision(
+                    id,
+                    TemplateError::Invalid(format!(
+                        "secret `{id}` is named `{name}`, local mode configures `{expected}`"
+                    )),
+                ));
             }
         }
         Ok(())
@@ -314,8 +320,13 @@ impl Provisioner<'_> {
                 .create_table()
                 .table_name(&name)
                 .billing_mode(BillingMode::PayPerRequest);
-            for a in props["AttributeDefinitions"].as_sequence().into_iter().flatten() {
-                let kind = ScalarAttributeType::from(a["AttributeType"].as_str().unwrap_or_default());
+            for a in props["AttributeDefinitions"]
+                .as_sequence()
+                .into_iter()
+                .flatten()
+            {
+                let kind =
+                    ScalarAttributeType::from(a["AttributeType"].as_str().unwrap_or_default());
                 create = create.attribute_definitions(
                     AttributeDefinition::builder()
                         .attribute_name(a["AttributeName"].as_str().unwrap_or_default())
@@ -344,7 +355,9 @@ impl Provisioner<'_> {
         let client = aws_sdk_sqs::Client::new(self.sdk);
         let root = self.template.root();
         let mut ids = self.template.resources_of("AWS::SQS::Queue");
-        ids.sort_by_key(|id| !root["Resources"][id.as_str()]["Properties"]["RedrivePolicy"].is_null());
+        ids.sort_by_key(|id| {
+            !root["Resources"][id.as_str()]["Properties"]["RedrivePolicy"].is_null()
+        });
         let mut arns = std::collections::BTreeMap::new();
         for id in ids {
             let name = self.name(&id)?;
@@ -352,7 +365,10 @@ impl Provisioner<'_> {
             let mut create = client.create_queue().queue_name(&name);
             for (key, attribute) in [
                 ("VisibilityTimeout", QueueAttributeName::VisibilityTimeout),
-                ("MessageRetentionPeriod", QueueAttributeName::MessageRetentionPeriod),
+                (
+                    "MessageRetentionPeriod",
+                    QueueAttributeName::MessageRetentionPeriod,
+                ),
             ] {
                 if let Some(value) = self.template.eval(&props[key]) {
                     create = create.attributes(attribute, value);
@@ -360,9 +376,15 @@ impl Provisioner<'_> {
             }
             let redrive = &props["RedrivePolicy"];
             if !redrive.is_null() {
-                let target = self.template.eval(&redrive["deadLetterTargetArn"]).unwrap_or_default();
+                let target = self
+                    .template
+                    .eval(&redrive["deadLetterTargetArn"])
+                    .unwrap_or_default();
                 let arn = arns.get(&target).cloned().ok_or_else(|| {
-                    provision(&name, TemplateError::Missing(format!("redrive target {target}")))
+                    provision(
+                        &name,
+                        TemplateError::Missing(format!("redrive target {target}")),
+                    )
                 })?;
                 let policy = serde_json::json!({
                     "deadLetterTargetArn": arn,
@@ -383,7 +405,10 @@ impl Provisioner<'_> {
                 .send()
                 .await
                 .map_err(|e| provision(&name, e))?;
-            if let Some(arn) = attributes.attributes().and_then(|a| a.get(&QueueAttributeName::QueueArn)) {
+            if let Some(arn) = attributes
+                .attributes()
+                .and_then(|a| a.get(&QueueAttributeName::QueueArn))
+            {
                 arns.insert(format!("<{id}.Arn>"), arn.clone());
             }
         }

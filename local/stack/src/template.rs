@@ -15,6 +15,13 @@ use serde_yaml::Value;
 /// The application stack's template, as deployed.
 pub const APP_TEMPLATE: &str = include_str!("../../../infra/app.yaml");
 
+/// One leaderboard's cluster stack, as deployed.
+pub const CLUSTER_TEMPLATE: &str = include_str!("../../../infra/cluster.yaml");
+
+/// The parsed cluster template.
+pub static CLUSTER: LazyLock<Template> =
+    LazyLock::new(|| Template::parse(CLUSTER_TEMPLATE).expect("infra/cluster.yaml parses"));
+
 /// The parsed template (it is part of this build: a parse failure is a build defect, and the
 /// tests say so first).
 pub static APP: LazyLock<Template> =
@@ -89,7 +96,8 @@ impl Template {
 
     /// With the stack's pseudo parameters.
     pub fn in_stack(mut self, stack: &str, region: &str, account: &str) -> Template {
-        (self.stack_name, self.region, self.account) = (stack.into(), region.into(), account.into());
+        (self.stack_name, self.region, self.account) =
+            (stack.into(), region.into(), account.into());
         self
     }
 
@@ -147,9 +155,8 @@ impl Template {
     /// A resource's property evaluated to text.
     pub fn text(&self, id: &str, path: &[&str]) -> Result<String, TemplateError> {
         let value = self.property(id, path)?;
-        self.eval(value).ok_or_else(|| {
-            TemplateError::Invalid(format!("`{id}.{}` is not text", path.join(".")))
-        })
+        self.eval(value)
+            .ok_or_else(|| TemplateError::Invalid(format!("`{id}.{}` is not text", path.join("."))))
     }
 
     /// Whether the named condition holds.
@@ -174,8 +181,21 @@ impl Template {
         }
     }
 
-    /// Evaluates a scalar, `!Ref`, `!Sub` or `!GetAtt` to text.
+    /// Evaluates a scalar, `!Ref`, `!Sub`, `!GetAtt` or `!ImportValue` (short or long form)
+    /// to text.
     pub fn eval(&self, v: &Value) -> Option<String> {
+        if let Some(map) = v.as_mapping().filter(|m| m.len() == 1) {
+            let (key, inner) = map.iter().next()?;
+            let tag = match key.as_str()? {
+                "Ref" => "!Ref".to_string(),
+                long => format!("!{}", long.strip_prefix("Fn::")?),
+            };
+            let short = Value::Tagged(Box::new(serde_yaml::value::TaggedValue {
+                tag: serde_yaml::value::Tag::new(tag),
+                value: inner.clone(),
+            }));
+            return self.eval(&short);
+        }
         match v {
             Value::Tagged(t) if t.tag == "!Ref" => Some(self.reference(t.value.as_str()?)),
             Value::Tagged(t) if t.tag == "!GetAtt" => Some(format!("<{}>", t.value.as_str()?)),
@@ -196,6 +216,9 @@ impl Template {
                 }
                 out.push_str(rest);
                 Some(out)
+            }
+            Value::Tagged(t) if t.tag == "!ImportValue" => {
+                Some(format!("<import {}>", self.eval(&t.value)?))
             }
             other => scalar(other),
         }
@@ -304,7 +327,9 @@ mod tests {
             .iter()
             .find(|s| s.actions.contains(&"s3:GetObject".to_string()))
             .unwrap();
-        assert!(objects.resources.contains(&"arn:aws:s3:::b20/*".to_string()));
+        assert!(objects
+            .resources
+            .contains(&"arn:aws:s3:::b20/*".to_string()));
         assert!(t.condition("CreateDataStores"));
         let t = t.with_parameter("CreateDataStores", "false");
         assert!(!t.condition("CreateDataStores"));

@@ -29,11 +29,19 @@ async fn the_tables_queues_buckets_and_secrets_are_the_templates() {
             let keys: Vec<_> = t
                 .key_schema()
                 .iter()
-                .map(|k| (k.attribute_name().to_string(), k.key_type().as_str().to_string()))
+                .map(|k| {
+                    (
+                        k.attribute_name().to_string(),
+                        k.key_type().as_str().to_string(),
+                    )
+                })
                 .collect();
             assert_eq!(
                 keys,
-                [("team_id".into(), "HASH".into()), (sort.to_string(), "RANGE".to_string())],
+                [
+                    ("team_id".into(), "HASH".into()),
+                    (sort.to_string(), "RANGE".to_string())
+                ],
                 "{table}"
             );
             assert!(
@@ -44,7 +52,11 @@ async fn the_tables_queues_buckets_and_secrets_are_the_templates() {
             );
         }
         let s3 = lb_aws::s3_client(&stack.sdk);
-        s3.head_bucket().bucket(&lb.bucket).send().await.expect("bucket");
+        s3.head_bucket()
+            .bucket(&lb.bucket)
+            .send()
+            .await
+            .expect("bucket");
     }
 
     let sqs = aws_sdk_sqs::Client::new(&stack.sdk);
@@ -73,7 +85,10 @@ async fn the_tables_queues_buckets_and_secrets_are_the_templates() {
             .ends_with(&format!("{}-dlq", submissions_queue())),
         "{redrive}"
     );
-    assert_eq!(redrive["maxReceiveCount"].to_string().trim_matches('"'), "5");
+    assert_eq!(
+        redrive["maxReceiveCount"].to_string().trim_matches('"'),
+        "5"
+    );
     assert_eq!(attributes[&QueueAttributeName::VisibilityTimeout], "300");
 
     let secrets = aws_sdk_secretsmanager::Client::new(&stack.sdk);

@@ -1,0 +1,45 @@
+//! The IRSA role of the init and logcopy containers (`JobsRole` in `infra/cluster.yaml`)
+//! allows exactly the S3 calls `lb-sidecar` can make (read from its symbols), on this
+//! leaderboard's bucket under the prefixes the sidecar writes, and nothing else.
+
+use local_stack::privilege;
+use local_stack::template::CLUSTER;
+
+#[test]
+fn the_jobs_role_allows_exactly_what_the_sidecar_calls() {
+    let binary = std::path::Path::new(env!("CARGO_BIN_EXE_lb-sidecar"));
+    let symbols = privilege::symbols(binary).unwrap();
+    let needed = privilege::needed_actions(&symbols);
+    assert!(
+        needed.iter().all(|a| a.starts_with("s3:")),
+        "the sidecar calls only S3: {needed:?}"
+    );
+    let statements = CLUSTER.role_statements("JobsRole", None).unwrap();
+    let allowed = privilege::allowed(&statements);
+    let problems = privilege::compare("lb-sidecar (JobsRole)", &needed, &allowed);
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+
+    let bucket = "arn:aws:s3:::leaderboard-20-results";
+    for (action, resources) in &allowed {
+        for r in resources {
+            let scoped = if action == "s3:ListBucket" {
+                r == bucket
+            } else {
+                ["agent", "logs", "containers-status"]
+                    .iter()
+                    .any(|prefix| r == &format!("{bucket}/*/{prefix}/*"))
+            };
+            assert!(
+                scoped,
+                "`{action}` on `{r}` reaches beyond the sidecar's prefixes"
+            );
+        }
+    }
+    // Not the merged results nor the EvalAI files: those are the functions' to write.
+    assert!(!allowed
+        .values()
+        .flatten()
+        .any(|r| r == &format!("{bucket}/*")));
+    let root = CLUSTER.root();
+    assert!(root["Resources"]["JobsRole"]["Properties"]["ManagedPolicyArns"].is_null());
+}
