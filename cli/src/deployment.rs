@@ -334,11 +334,12 @@ pub fn attribute_json(value: &AttributeValue) -> Value {
     }
 }
 
-/// Text from records (team names are the participant's free text) made safe for a terminal.
+/// Text from records (team names are the participant's free text) made safe for a terminal:
+/// control, bidirectional and zero-width characters shown as escapes.
 pub fn clean(text: &str) -> String {
     text.chars()
         .flat_map(|c| {
-            if c.is_control() {
+            if c.is_control() || lb_domain::logtail::is_invisible_format(c) {
                 c.escape_default().collect::<Vec<_>>()
             } else {
                 vec![c]
@@ -394,5 +395,9 @@ mod tests {
     #[test]
     fn control_characters_in_team_names_are_escaped() {
         assert_eq!(clean("Team\u{1b}[31m One\n"), "Team\\u{1b}[31m One\\n");
+        assert_eq!(
+            clean("Team \u{202e}evil\u{200b}"),
+            "Team \\u{202e}evil\\u{200b}"
+        );
     }
 }

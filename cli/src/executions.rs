@@ -172,9 +172,9 @@ async fn start(
 }
 
 fn report(name: &str, arn: &str, input: &Value) {
-    println!("execution started: {name}");
-    println!("  arn    {arn}");
-    println!("  input  {input}");
+    outln!("execution started: {name}");
+    outln!("  arn    {arn}");
+    outln!("  input  {input}");
 }
 
 /// `lbctl submit`: one execution with the Pipe's input.
@@ -312,7 +312,7 @@ pub async fn resume(args: Resume) -> Result<u8> {
     };
 
     if args.force {
-        println!("note: --force: EvalAI's status is not checked");
+        outln!("note: --force: EvalAI's status is not checked");
     } else {
         let config = FunctionConfig {
             settings_secret: deployment.settings_secret.clone(),
@@ -351,13 +351,13 @@ pub async fn resume(args: Resume) -> Result<u8> {
             .send()
             .await
             .map_err(|e| CliError::sdk(format!("s3 `DeleteObject` of `s3://{bucket}/{key}`"), e))?;
-        println!("cancel marker removed: s3://{bucket}/{key}");
+        outln!("cancel marker removed: s3://{bucket}/{key}");
     }
 
     let input = pipe_input(challenge, phase, id, image);
     let (name, arn) = start(&deployment.sdk, state_machine, id, &input).await?;
     report(&name, &arn, &input);
-    println!(
+    outln!(
         "note: Intake runs it only while EvalAI reports `resuming` (its claim takes a FAILED or \
          CANCELLED record back only then); otherwise the execution ends skipped. EvalAI's own \
          resume endpoint also publishes a message: if both arrive, the claim lets one run."

@@ -115,11 +115,11 @@ pub async fn run(args: Invoke) -> Result<u8> {
     };
     match result {
         Ok(output) => {
-            println!("{}", pretty(&output));
+            outln!("{}", pretty(&output));
             Ok(0)
         }
         Err(error) => {
-            println!("{}", pretty(&error_object(&error)));
+            outln!("{}", pretty(&error_object(&error)));
             eprintln!("lbctl: {name} raised `{}`", error.name());
             Ok(1)
         }

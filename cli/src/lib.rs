@@ -2,6 +2,8 @@
 //! `invoke` runs one function in-process; `status`, `list`, `cancel`, `submit` and `resume`
 //! work on a real deployment (AWS configuration from the environment).
 
+#[macro_use]
+pub mod output;
 mod aws;
 mod deployment;
 mod error;

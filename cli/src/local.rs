@@ -14,8 +14,10 @@ use lb_pipeline::{FnError, FunctionConfig};
 use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
 use local_stack::workloads::{Behaviour, Binaries};
 use local_stack::{EvalAi, Stack};
+
+use crate::deployment;
 use local_stepfunctions::{
-    EventType, Executor, HistoryEvent, Options, StateMachine, Status, TaskError, TaskMap,
+    EventType, Executor, HistoryEvent, Options, StateMachine, TaskError, TaskMap,
 };
 use serde_json::{json, Value};
 
@@ -98,7 +100,7 @@ const IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local
 const UNPULLABLE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:never-pushed";
 
 fn say(started: Instant, text: impl AsRef<str>) {
-    println!(
+    outln!(
         "[{:>6.1}s] {}",
         started.elapsed().as_secs_f64(),
         text.as_ref()
@@ -328,30 +330,37 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let status_on_evalai = match (&stack.fake_evalai, &on_fake) {
         (Some(_), Some(s)) => s.status.clone(),
         (Some(_), None) => String::new(),
-        (None, _) => String::from("(external EvalAI: see its page)"),
+        // Another EvalAI: ask it, as the participant's page would show it.
+        (None, _) => external_status(&stack, submission)
+            .await
+            .unwrap_or_else(|e| format!("(unknown: {e})")),
     };
-    println!();
-    println!(
+    outln!();
+    outln!(
         "execution      {} ({} history events)",
         result.status.as_str(),
         result.history.len()
     );
     if let Some(error) = &result.error {
-        println!(
+        outln!(
             "error          {error}: {}",
             result.cause.clone().unwrap_or_default()
         );
     }
-    println!("EvalAI status  {status_on_evalai}");
+    // An error a Catch routed to Finalize: the execution succeeds, the submission failed.
+    if let Some(caught) = result.output.as_ref().and_then(finalize::caught_error) {
+        outln!("caught error   {}", deployment::clean(&caught));
+    }
+    outln!("EvalAI status  {status_on_evalai}");
     // What the participant reads on a failure: the reason and the end of their agent's output.
     if let Some(stderr) = on_fake
         .as_ref()
         .and_then(|s| s.files.stderr.as_deref())
         .filter(|e| !e.trim().is_empty())
     {
-        println!("EvalAI stderr");
+        outln!("EvalAI stderr");
         for line in stderr.lines() {
-            println!("  | {line}");
+            outln!("  | {line}");
         }
     }
     if let Some(row) = stack
@@ -360,53 +369,67 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         .and_then(|f| f.submission(submission))
         .and_then(|s| s.leaderboard.first().cloned())
     {
-        println!("scores         {}", row.result);
+        outln!("scores         {}", row.result);
     }
     let bucket = settings_bucket(&settings, &args.leaderboard);
     if let Some(line) = merged_summary(&stack.sdk, &bucket, submission).await {
-        println!("merged         {line}");
+        outln!("merged         {line}");
     }
-    println!("time per stage");
+    outln!("time per stage");
     for (stage, seconds) in stage_times(&result.history) {
-        println!("  {stage:<12} {seconds:>7.1}s");
+        outln!("  {stage:<12} {seconds:>7.1}s");
     }
-    println!(
+    outln!(
         "results        s3://{bucket}/{submission}/ on moto {}",
         stack.moto.endpoint()
     );
-    println!(
+    outln!(
         "pod logs       {}",
         stack.workdir.path().join("pods").display()
     );
     if !args.keep {
-        println!("               (the stack and these go away on exit: --keep to look at them)");
+        outln!("               (the stack and these go away on exit: --keep to look at them)");
     }
-    println!("total          {:.1}s", started.elapsed().as_secs_f64());
+    outln!("total          {:.1}s", started.elapsed().as_secs_f64());
 
     let expected = args.scenario.expected();
-    let ok = acted.load(Ordering::SeqCst)
-        && (status_on_evalai == expected
-            || (stack.fake_evalai.is_none() && result.status == Status::Succeeded));
+    let ok = acted.load(Ordering::SeqCst) && status_on_evalai == expected;
     if args.keep {
-        println!(
+        outln!(
             "\nthe stack stays up (kubeconfig {}); Ctrl-C to stop",
             kubeconfig.display()
         );
         let _ = tokio::signal::ctrl_c().await;
     }
     if ok {
-        println!(
+        outln!(
             "OK: the {:?} scenario ended {expected} as expected",
             args.scenario
         );
         Ok(0)
     } else {
-        println!(
+        outln!(
             "UNEXPECTED: the {:?} scenario should end {expected}",
             args.scenario
         );
         Ok(1)
     }
+}
+
+/// The submission's status on an external EvalAI (one GET, the host token of the stack).
+async fn external_status(stack: &Stack, submission: u64) -> anyhow::Result<String> {
+    let client = lb_evalai::EvalAiClient::new(
+        &stack.evalai_url,
+        &lb_evalai::HostToken::new(stack.evalai_token.clone()),
+        lb_evalai::AuthScheme::Bearer,
+        lb_evalai::RetryPolicy::default(),
+    )?;
+    Ok(client
+        .submission(submission)
+        .await?
+        .status
+        .as_str()
+        .to_string())
 }
 
 /// `agent_results.json` in a line: its records and how many each route has (Leaderboard 1.0
@@ -470,7 +493,7 @@ fn act(scenario: Scenario, n: u64, fake: Option<&str>, submission: u64) -> bool 
                 ])
                 .status()
                 .is_ok_and(|s| s.success());
-            println!("           scenario: CARLA of pair 1 killed: {killed}");
+            outln!("           scenario: CARLA of pair 1 killed: {killed}");
             return killed;
         }
         (Scenario::Cancel, 1) => {
@@ -480,7 +503,7 @@ fn act(scenario: Scenario, n: u64, fake: Option<&str>, submission: u64) -> bool 
                     let status = std::process::Command::new("curl")
                         .args(["-s", "-o", "/dev/null", "-X", "POST", &url])
                         .status();
-                    println!("           scenario: the participant cancels ({status:?})");
+                    outln!("           scenario: the participant cancels ({status:?})");
                 });
             }
         }

@@ -186,12 +186,12 @@ pub async fn status(args: Status) -> Result<u8> {
             })).collect::<Vec<_>>(),
             "incomplete_scans": found.truncated,
         });
-        println!("{}", pretty(&out));
+        outln!("{}", pretty(&out));
         return Ok(0);
     }
-    println!("submission {id}");
+    outln!("submission {id}");
     if found.records.is_empty() {
-        println!(
+        outln!(
             "no record in {} (never claimed, or claimed elsewhere)",
             tables(&deployment, None)
         );
@@ -200,11 +200,11 @@ pub async fn status(args: Status) -> Result<u8> {
         print_record(record);
     }
     for m in &markers {
-        println!("markers in {} (leaderboard {})", m.location, m.leaderboard);
+        outln!("markers in {} (leaderboard {})", m.location, m.leaderboard);
         if let Some(error) = &m.error {
-            println!("  (unreadable: {error})");
+            outln!("  (unreadable: {error})");
         } else if m.names.is_empty() {
-            println!("  (none)");
+            outln!("  (none)");
         }
         for name in &m.names {
             let note = if name == CANCEL_MARKER {
@@ -212,7 +212,7 @@ pub async fn status(args: Status) -> Result<u8> {
             } else {
                 ""
             };
-            println!("  {}{note}", clean(name));
+            outln!("  {}{note}", clean(name));
         }
     }
     Ok(0)
@@ -225,9 +225,10 @@ fn print_record(record: &Record) {
             .number(key)
             .map_or_else(|| "-".to_string(), |n| n.to_string())
     };
-    println!(
+    outln!(
         "record in `{}` (leaderboard {})",
-        record.table, record.leaderboard
+        record.table,
+        record.leaderboard
     );
     let rows = [
         ("status", text("submission_status")),
@@ -252,13 +253,13 @@ fn print_record(record: &Record) {
         ("claimed by", text("claimed_by")),
     ];
     for (label, value) in rows {
-        println!("  {label:<12} {value}");
+        outln!("  {label:<12} {value}");
     }
     if let Some(error) = record.text("error") {
-        println!("  {:<12} {}", "error", clean(error));
+        outln!("  {:<12} {}", "error", clean(error));
     }
     for (key, value) in record.extra_attributes() {
-        println!("  {:<12} {value}", clean(key));
+        outln!("  {:<12} {value}", clean(key));
     }
 }
 
@@ -312,7 +313,7 @@ pub async fn list(args: List) -> Result<u8> {
                 v
             })
             .collect();
-        println!("{}", pretty(&Value::Array(out)));
+        outln!("{}", pretty(&Value::Array(out)));
         return Ok(0);
     }
     if shown.is_empty() {
@@ -326,21 +327,29 @@ pub async fn list(args: List) -> Result<u8> {
         } else {
             ""
         };
-        println!(
+        outln!(
             "{what}{filtered} ({})",
             tables(&deployment, args.leaderboard.as_deref())
         );
         return Ok(0);
     }
-    println!(
+    outln!(
         "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7}  {:<23} ENDED",
-        "SUBMISSION", "LB", "STATUS", "QUEUE", "AGE", "TEAM", "TRACK", "ROUTES", "SUBMITTED"
+        "SUBMISSION",
+        "LB",
+        "STATUS",
+        "QUEUE",
+        "AGE",
+        "TEAM",
+        "TRACK",
+        "ROUTES",
+        "SUBMITTED"
     );
     for record in shown {
-        println!("{}", list_line(record, position(record), age(record, now)));
+        outln!("{}", list_line(record, position(record), age(record, now)));
     }
     if matching.len() > shown.len() {
-        println!("... {} more (raise --limit)", matching.len() - shown.len());
+        outln!("... {} more (raise --limit)", matching.len() - shown.len());
     }
     Ok(0)
 }
@@ -479,12 +488,12 @@ pub async fn cancel(args: Cancel) -> Result<u8> {
                 e,
             )
         })?;
-        println!(
+        outln!(
             "cancel marker written: {}{CANCEL_MARKER} (leaderboard {leaderboard}, {status})",
             marker_location(bucket, id)
         );
     }
-    println!(
+    outln!(
         "The Jobs' logcopy mirrors it into the pods within its period; the simulators and agents \
          stop, the Jobs end, and Finalize reports CANCELLED to EvalAI and in the record \
          (`lbctl status {id}` shows it)."
@@ -509,7 +518,10 @@ mod tests {
             item: [
                 ("submission_id", AttributeValue::N("12".into())),
                 ("team_id", AttributeValue::N("3".into())),
-                ("team_name", AttributeValue::S("Evil\u{1b}[2J Team".into())),
+                (
+                    "team_name",
+                    AttributeValue::S("Evil\u{1b}[2J \u{202e}Team".into()),
+                ),
                 ("submission_status", AttributeValue::S("RUNNING".into())),
                 ("track_name", AttributeValue::S("SENSORS".into())),
                 ("routes_done", AttributeValue::N("5".into())),
@@ -526,6 +538,7 @@ mod tests {
         );
         assert!(line.contains("5/20"), "{line}");
         assert!(!line.contains('\u{1b}'), "{line}");
+        assert!(!line.contains('\u{202e}'), "{line}");
     }
 
     #[test]

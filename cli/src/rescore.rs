@@ -123,19 +123,19 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
             "progress": [progress.0, progress.1],
             "accuracies": accuracies,
         });
-        println!("{}", serde_json::to_string_pretty(&out).unwrap_or_default());
+        outln!("{}", serde_json::to_string_pretty(&out).unwrap_or_default());
     } else {
-        println!(
+        outln!(
             "submission {id}: {} worker file(s), {}/{} records, {}",
             partials.len(),
             progress.0,
             progress.1,
             if complete { "complete" } else { "not complete" }
         );
-        println!("--- results.json");
-        println!("{}", files.results_json());
-        println!("--- stdout.txt");
-        print!("{}", files.stdout);
+        outln!("--- results.json");
+        outln!("{}", files.results_json());
+        outln!("--- stdout.txt");
+        out!("{}", files.stdout);
     }
     if !args.post {
         return Ok(0);
@@ -220,7 +220,7 @@ async fn post(
         SubmissionStatus::Failed
     };
     if !args.yes && !confirm(id, status)? {
-        println!("nothing posted");
+        outln!("nothing posted");
         return Ok(1);
     }
     let config = FunctionConfig {
@@ -260,7 +260,7 @@ async fn post(
         })?;
     match outcome {
         WriteOutcome::Written => {
-            println!("posted: EvalAI reports `{status}` for submission {id}");
+            outln!("posted: EvalAI reports `{status}` for submission {id}");
             Ok(0)
         }
         WriteOutcome::Cancelled => Err(CliError::Refused(format!(
@@ -274,7 +274,7 @@ async fn post(
 
 /// Asks on the terminal; anything but the submission id typed back is a no.
 fn confirm(id: u64, status: SubmissionStatus) -> Result<bool> {
-    print!("send these files to EvalAI as the final `{status}` update of submission {id}? type its id to confirm: ");
+    out!("send these files to EvalAI as the final `{status}` update of submission {id}? type its id to confirm: ");
     let _ = std::io::stdout().flush();
     let mut line = String::new();
     std::io::stdin()

@@ -115,14 +115,14 @@ pub async fn watch(args: Watch) -> Result<u8> {
         let screen = look(&deployment, &args, &evalai, &clusters).await?;
         let ended = is_final_status(&screen.status) && is_final_on_evalai(&screen.evalai_status);
         if args.json {
-            println!("{}", serde_json::to_string(&screen).unwrap_or_default());
+            outln!("{}", serde_json::to_string(&screen).unwrap_or_default());
         } else {
             if tty {
-                print!("\x1b[2J\x1b[H");
+                out!("\x1b[2J\x1b[H");
             }
-            print!("{}", render(&screen, tty));
+            out!("{}", render(&screen, tty));
             if !tty {
-                println!("--");
+                outln!("--");
             }
         }
         let _ = std::io::stdout().flush();
@@ -134,8 +134,8 @@ pub async fn watch(args: Watch) -> Result<u8> {
     }
     let Some(last) = last else { return Ok(1) };
     if !args.once && !args.json {
-        println!("summary");
-        print!("{}", summary(&last, started.elapsed()));
+        outln!("summary");
+        out!("{}", summary(&last, started.elapsed()));
     }
     Ok(0)
 }

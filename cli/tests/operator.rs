@@ -545,3 +545,33 @@ async fn resume_refuses_what_intake_would_skip_unless_forced() {
         show(&out)
     );
 }
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_reader_that_stops_early_ends_the_output_not_the_command_with_a_panic() {
+    // `lbctl status 7 | head -1` once panicked on the closed pipe (exit 101).
+    let (stack, env) = common::stack(Fixture::default()).await;
+    put_record(&stack.sdk, TABLE_20, 1, 101, "RUNNING", &[]).await;
+    for args in [&["status", "101"][..], &["list"][..]] {
+        let mut child = common::lbctl_command(args, &env)
+            .stdin(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        drop(child.stdout.take()); // the reader is gone before the first line
+        let deadline = std::time::Instant::now() + common::CALL_TIMEOUT;
+        let status = loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                break status;
+            }
+            if std::time::Instant::now() > deadline {
+                let _ = child.kill();
+                panic!("lbctl {args:?} did not end");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        };
+        let mut stderr = String::new();
+        std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut stderr).unwrap();
+        assert_eq!(status.code(), Some(0), "{args:?}: {stderr}");
+        assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
+    }
+}

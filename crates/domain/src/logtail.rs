@@ -78,7 +78,9 @@ fn skip_escape(chars: &mut std::iter::Peekable<std::str::Chars<'_>>) {
 }
 
 /// Bidirectional controls and zero-width characters: they reorder or hide text.
-fn is_invisible_format(c: char) -> bool {
+/// A bidirectional control or a zero-width character: invisible, yet it can reorder or hide
+/// what a terminal shows.
+pub fn is_invisible_format(c: char) -> bool {
     matches!(c,
         '\u{200b}'..='\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2060}'..='\u{2064}'
         | '\u{2066}'..='\u{2069}' | '\u{feff}' | '\u{061c}')

@@ -96,6 +96,34 @@ fn huge_numbers_are_rejected() {
 }
 
 #[test]
+fn scores_outside_their_ranges_are_rejected() {
+    // A per-route score of 1e12 was once published as a driving score of 50,000,000,021.
+    for (key, value, max) in [
+        ("score_route", json!(1e12), "100"),
+        ("score_composed", json!(100.5), "100"),
+        ("score_penalty", json!(1.5), "1"),
+    ] {
+        let mut doc = worker1();
+        doc["_checkpoint"]["records"][3]["scores"][key] = value;
+        let (field, problem) = invalid_field(read(&doc));
+        assert_eq!(field, format!("_checkpoint.records[3].scores.{key}"));
+        assert!(
+            problem.contains(&format!("over its maximum of {max}")),
+            "{problem}"
+        );
+    }
+    // The edges are scores the evaluator writes.
+    let mut doc = worker1();
+    let scores = &mut doc["_checkpoint"]["records"][3]["scores"];
+    (
+        scores["score_route"],
+        scores["score_composed"],
+        scores["score_penalty"],
+    ) = (json!(100.0), json!(100), json!(1.0));
+    assert!(matches!(read(&doc), Ok(WorkerFile::Present(_))));
+}
+
+#[test]
 fn malformed_route_ids_are_rejected() {
     for bad in [
         "RouteScenario_4",

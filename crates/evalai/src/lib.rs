@@ -171,6 +171,56 @@ pub struct PartialUpdate {
     pub metadata: String,
 }
 
+/// The most of a participant-facing text (stdout, stderr) one update carries. EvalAI keeps
+/// them as files, but the proxy in front of it refuses large bodies (413) and the page shows
+/// the start anyway; the complete files stay in S3 with the submission's results.
+pub const MAX_TEXT_BYTES: usize = 256 * 1024;
+
+/// The most of the host-only metadata one update carries; a larger one is replaced by a note.
+pub const MAX_METADATA_BYTES: usize = 256 * 1024;
+
+/// The largest response we read from EvalAI (a page of a submissions list is far smaller).
+pub const MAX_RESPONSE_BYTES: usize = 8 * 1024 * 1024;
+
+/// What replaces stdout when EvalAI refused even the bounded final update.
+pub const MINIMAL_STDOUT: &str = "The evaluation's output was too large for EvalAI to accept; \
+the scores above are complete, and the challenge hosts keep the full output.";
+
+/// `text` cut to at most `max` bytes, keeping its start (verdict and scores come first), with
+/// a visible note saying so.
+pub fn bounded_text(text: &str, max: usize) -> std::borrow::Cow<'_, str> {
+    if text.len() <= max {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    let note = format!(
+        "\n\n[... cut here: the first {max} of {} bytes are shown; the complete output is kept \
+         with the submission's results]\n",
+        text.len()
+    );
+    let mut keep = max.saturating_sub(note.len());
+    while !text.is_char_boundary(keep) {
+        keep -= 1;
+    }
+    std::borrow::Cow::Owned(format!("{}{note}", &text[..keep]))
+}
+
+/// The metadata JSON text, or a small JSON note in its place when it is over `max` bytes.
+pub fn bounded_metadata(text: &str, max: usize) -> std::borrow::Cow<'_, str> {
+    if text.len() <= max {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    std::borrow::Cow::Owned(
+        json!({
+            "cut": format!(
+                "the metadata ({} bytes) is over the {max} bytes sent to EvalAI; the complete \
+                 file is kept with the submission's results",
+                text.len()
+            )
+        })
+        .to_string(),
+    )
+}
+
 /// Where the submission lives on EvalAI (the server cross-checks none of these: we must).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SubmissionRef {
@@ -269,11 +319,9 @@ impl EvalAiClient {
                 response.status()
             )));
         }
-        let bytes = response
-            .bytes()
-            .await
-            .map_err(|e| EvalAiError::InvalidResponse(e.without_url().to_string()))?;
-        model::image_from_input_file(&bytes)
+        // The input file is a few hundred bytes of JSON naming the image.
+        let text = read_bounded(response, 64 * 1024).await?;
+        model::image_from_input_file(text.as_bytes())
     }
 
     /// PATCH `running` with our Job name, unless the submission was cancelled meanwhile.
@@ -315,9 +363,9 @@ impl EvalAiClient {
             "submission_status": "partially_evaluated",
             "challenge_phase": at.phase,
             "result": update.result,
-            "stdout": update.stdout,
+            "stdout": bounded_text(&update.stdout, MAX_TEXT_BYTES),
             "stderr": "",
-            "metadata": update.metadata,
+            "metadata": bounded_metadata(&update.metadata, MAX_METADATA_BYTES),
         });
         self.write(
             Method::PUT,
@@ -361,18 +409,43 @@ impl EvalAiClient {
         } else {
             "[]"
         };
-        let body = json!({
-            "submission": at.submission,
-            "submission_status": update.status.as_str(),
-            "challenge_phase": at.phase,
-            "result": result,
-            "stdout": update.stdout,
-            "stderr": update.stderr,
-            "metadata": update.metadata,
-        });
-        let outcome = self
-            .write(Method::PUT, &url, body, at, update.status)
-            .await?;
+        let body = |stdout: &str, stderr: &str, metadata: &str| {
+            json!({
+                "submission": at.submission,
+                "submission_status": update.status.as_str(),
+                "challenge_phase": at.phase,
+                "result": result,
+                "stdout": stdout,
+                "stderr": stderr,
+                "metadata": metadata,
+            })
+        };
+        let full = body(
+            &bounded_text(&update.stdout, MAX_TEXT_BYTES),
+            &bounded_text(&update.stderr, MAX_TEXT_BYTES),
+            &bounded_metadata(&update.metadata, MAX_METADATA_BYTES),
+        );
+        let outcome = match self.write(Method::PUT, &url, full, at, update.status).await {
+            // The final status must reach EvalAI: a refused body (413 from the proxy, a 400
+            // from the view) gets one more try with only the status, the result and the
+            // reason, which EvalAI accepts whatever the participant's output was.
+            Err(EvalAiError::Rejected { status, message }) => {
+                warn!(
+                    submission_id = at.submission,
+                    status,
+                    %message,
+                    "evalai refused the final update; sending the minimal one"
+                );
+                let minimal = body(
+                    MINIMAL_STDOUT,
+                    &bounded_text(&update.stderr, 4 * 1024),
+                    "{}",
+                );
+                self.write(Method::PUT, &url, minimal, at, update.status)
+                    .await?
+            }
+            other => other?,
+        };
         if outcome == WriteOutcome::Written {
             let after = self.submission(at.submission).await?;
             if after.status != update.status {
@@ -475,7 +548,10 @@ impl EvalAiClient {
             .get(reqwest::header::LOCATION)
             .and_then(|v| v.to_str().ok())
             .map(str::to_owned);
-        let text = response.text().await.unwrap_or_default();
+        let text = match read_bounded(response, MAX_RESPONSE_BYTES).await {
+            Ok(text) => text,
+            Err(e) => return Err(Failure::Final(e)),
+        };
         if status.is_success() {
             return serde_json::from_str(&text).map_err(|e| {
                 Failure::Final(EvalAiError::InvalidResponse(format!(
@@ -512,6 +588,26 @@ impl EvalAiClient {
                 message,
             }),
         })
+    }
+}
+
+/// The response body, refused past `max` bytes (EvalAI's answers are untrusted input too).
+async fn read_bounded(mut response: reqwest::Response, max: usize) -> Result<String> {
+    let mut body = Vec::new();
+    loop {
+        match response.chunk().await {
+            Ok(Some(chunk)) => {
+                if body.len() + chunk.len() > max {
+                    return Err(EvalAiError::InvalidResponse(format!(
+                        "a response body over {max} bytes"
+                    )));
+                }
+                body.extend_from_slice(&chunk);
+            }
+            Ok(None) => return Ok(String::from_utf8_lossy(&body).into_owned()),
+            // A body cut short reads as what arrived; the JSON parse then says what is wrong.
+            Err(_) => return Ok(String::from_utf8_lossy(&body).into_owned()),
+        }
     }
 }
 

@@ -287,3 +287,97 @@ async fn garbage_results_are_refused_before_any_request() {
     );
     assert!(server.requests().is_empty());
 }
+
+#[tokio::test]
+async fn a_20_mb_output_is_cut_so_the_proxy_takes_the_partial_and_the_final_update() {
+    // Behind a proxy refusing bodies over 1 MiB (413), as the real server's nginx does.
+    let server = FakeEvalAi::start(Fixture {
+        max_request_bytes: 1024 * 1024,
+        ..Fixture::default()
+    })
+    .await
+    .unwrap();
+    let evalai = client(&server, "host-token");
+    let huge = format!("Scores first\n{}", "x".repeat(20 * 1024 * 1024));
+    let huge_metadata = format!("{{\"routes\": \"{}\"}}", "y".repeat(20 * 1024 * 1024));
+    let partial = PartialUpdate {
+        result: full_result(10.0),
+        stdout: huge.clone(),
+        metadata: huge_metadata.clone(),
+    };
+    assert_eq!(
+        evalai.post_partial(AT, &partial).await.unwrap(),
+        WriteOutcome::Written
+    );
+    let final_update = FinalUpdate {
+        status: SubmissionStatus::Finished,
+        result: full_result(42.5),
+        stdout: huge,
+        stderr: String::new(),
+        metadata: huge_metadata,
+    };
+    assert_eq!(
+        evalai.post_final(AT, &final_update).await.unwrap(),
+        WriteOutcome::Written
+    );
+    let after = server.submission(1).unwrap();
+    assert_eq!(after.status, "finished");
+    assert_eq!(
+        after.leaderboard[0].result["Driving score"],
+        serde_json::json!(42.5)
+    );
+    let stdout = after.files.stdout.unwrap();
+    assert!(stdout.starts_with("Scores first\n"));
+    assert!(stdout.len() <= lb_evalai::MAX_TEXT_BYTES);
+    assert!(
+        stdout.contains("[... cut here: the first"),
+        "a visible note"
+    );
+    // No request was refused: each body was bounded before it was sent.
+    assert!(server.requests().iter().all(|r| r.status != 413));
+}
+
+#[tokio::test]
+async fn a_final_update_the_proxy_still_refuses_is_replaced_by_the_minimal_one() {
+    // A proxy stricter than our bounds: the full final update gets 413.
+    let server = FakeEvalAi::start(Fixture {
+        max_request_bytes: 64 * 1024,
+        ..Fixture::default()
+    })
+    .await
+    .unwrap();
+    let evalai = client(&server, "host-token");
+    let final_update = FinalUpdate {
+        status: SubmissionStatus::Failed,
+        result: "[]".into(),
+        stdout: "z".repeat(200 * 1024),
+        stderr: format!(
+            "Your agent crashed: ModuleNotFoundError\n{}",
+            "trace\n".repeat(40_000)
+        ),
+        metadata: "{}".into(),
+    };
+    assert_eq!(
+        evalai.post_final(AT, &final_update).await.unwrap(),
+        WriteOutcome::Written
+    );
+    let after = server.submission(1).unwrap();
+    assert_eq!(after.status, "failed", "EvalAI was told");
+    assert_eq!(
+        after.files.stdout.as_deref(),
+        Some(lb_evalai::MINIMAL_STDOUT)
+    );
+    let stderr = after.files.stderr.unwrap();
+    assert!(
+        stderr.starts_with("Your agent crashed: ModuleNotFoundError"),
+        "{stderr:.200}"
+    );
+    assert!(stderr.len() <= 4 * 1024);
+    let statuses: Vec<u16> = server
+        .requests()
+        .iter()
+        .filter(|r| r.method == "PUT")
+        .map(|r| r.status)
+        .collect();
+    assert_eq!(statuses, [413, 200]);
+}

@@ -534,8 +534,12 @@ fn check_settings(s: &JobSettings) -> Result<(), ContextError> {
     Ok(())
 }
 
+/// One line of text safe on an operator's terminal (`kubectl describe`): no control
+/// characters, terminal escapes, or bidirectional and zero-width format characters (which can
+/// make a name read as another).
 fn printable(text: &str, max_chars: usize) -> String {
-    text.chars()
+    lb_domain::logtail::printable(text)
+        .chars()
         .filter(|c| !c.is_control())
         .take(max_chars)
         .collect()

@@ -18,6 +18,10 @@ use std::fmt;
 /// The longest name (domain and path) the grammar allows.
 pub const MAX_NAME_LEN: usize = 255;
 
+/// The longest whole reference: a 255-character name, a 128-character tag and a sha512 digest
+/// fit, with room to spare.
+pub const MAX_REFERENCE_LEN: usize = 1024;
+
 /// A parsed image reference.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ImageRef {
@@ -127,6 +131,13 @@ fn digest(s: &str) -> bool {
 pub fn parse_image(reference: &str) -> Result<ImageRef, String> {
     if reference.is_empty() {
         return Err("the image reference is empty".into());
+    }
+    // Checked first, so no message below can echo an oversized part.
+    if reference.len() > MAX_REFERENCE_LEN {
+        return Err(format!(
+            "the image reference is {} bytes long, over the limit of {MAX_REFERENCE_LEN}",
+            reference.len()
+        ));
     }
     if let Some(c) = reference
         .chars()

@@ -339,6 +339,19 @@ fn every_job_and_its_pods_carry_the_submission_labels() {
 }
 
 #[test]
+fn the_team_name_annotation_has_no_bidirectional_zero_width_or_control_characters() {
+    // U+202E turns "Team evil" into "Team live" on a terminal; U+200B hides inside a name.
+    let jobs = jobs(
+        Leaderboard::V2,
+        20,
+        4,
+        "Team \u{202e}live\u{200b}\u{1b}[31m\nX",
+    );
+    let annotations = jobs[0].metadata.annotations.as_ref().unwrap();
+    assert_eq!(annotations["leaderboard.carla.org/team-name"], "Team liveX");
+}
+
+#[test]
 fn no_aws_variable_or_token_reaches_the_simulators_and_agents() {
     for leaderboard in [Leaderboard::V1, Leaderboard::V2] {
         let jobs = jobs(leaderboard, 20, 4, "t");

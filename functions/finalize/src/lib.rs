@@ -116,6 +116,36 @@ pub fn caught_error(state: &Value) -> Option<String> {
     })
 }
 
+/// Errors about the participant's own results files: their messages name the file, field or
+/// route, which is what the participant needs to fix their agent.
+const PARTICIPANT_ERRORS: &[&str] = &[
+    "ResultsTooLarge",
+    "ResultsNonFinite",
+    "ResultsInvalid",
+    "ResultsOutsideSubset",
+    "SensorMismatch",
+    "DuplicateRoute",
+    "MissingRouteData",
+    "UnexpectedRecords",
+    "RepetitionMismatch",
+];
+
+/// What the participant reads for a caught error (`Name: message`, from [`caught_error`]): a
+/// problem with their results in full; anything on our side as a plain sentence with the
+/// error's stable name, its chain (ARNs, table names, endpoints) staying in our logs and in the
+/// submission's record.
+pub fn participant_reason(error: &str) -> String {
+    let name = error.split_once(": ").map_or(error, |(name, _)| name);
+    if PARTICIPANT_ERRORS.contains(&name) {
+        format!("the evaluation failed: {error}")
+    } else {
+        format!(
+            "the evaluation failed because of an error on the evaluation service's side \
+             ({name}), not because of your agent; the organisers have been alerted"
+        )
+    }
+}
+
 /// Ends one execution.
 pub async fn handle(input: FinalizeInput, deps: &Deps) -> Result<FinalizeOutput> {
     let state = input.state;
@@ -219,10 +249,10 @@ async fn finish_run(
     };
     let (mut status, mut reason) = match (&error, &run, &snapshot) {
         _ if cancelled => (SubmissionStatus::Cancelled, None),
-        (Some(error), _, _) => (
-            SubmissionStatus::Failed,
-            Some(format!("the evaluation failed: {error}")),
-        ),
+        (Some(error), _, _) => {
+            warn!(submission_id = id, error = %error, "the run failed");
+            (SubmissionStatus::Failed, Some(participant_reason(error)))
+        }
         (None, _, Some(Err(e))) if !e.is_transient() => (
             SubmissionStatus::Failed,
             Some(format!("the results cannot be used: {}", e.chain())),
@@ -339,7 +369,8 @@ async fn finish_run(
                 })
                 .collect(),
             progress: snapshot.as_ref().map_or((0, 0), |s| s.progress),
-            error: reason.clone(),
+            // Operators get the whole chain; the participant got `reason`.
+            error: error.clone().or_else(|| reason.clone()),
         },
     )
     .await?;
@@ -431,5 +462,25 @@ mod tests {
         let timeout = json!({"error": {"Error": "States.Timeout", "Cause": ""}});
         assert_eq!(caught_error(&timeout).unwrap(), "States.Timeout");
         assert_eq!(caught_error(&json!({})), None);
+    }
+
+    #[test]
+    fn participants_read_their_results_problems_but_never_our_internals() {
+        let ours = "AwsTransient: dynamodb UpdateItem on `leaderboard-20-submissions` \
+                    (arn:aws:iam::123456789012:role/leaderboard-FinalizeRole-X): timed out";
+        let reason = participant_reason(ours);
+        assert!(reason.contains("(AwsTransient)"), "{reason}");
+        for secret in ["arn:aws", "leaderboard-20-submissions", "UpdateItem"] {
+            assert!(!reason.contains(secret), "{reason}");
+        }
+        assert_eq!(
+            participant_reason("States.Timeout"),
+            participant_reason("States.Timeout: ")
+        );
+        let theirs = "ResultsInvalid: `worker1.json` field `_checkpoint.records[3].scores.score_route` is negative";
+        assert_eq!(
+            participant_reason(theirs),
+            format!("the evaluation failed: {theirs}")
+        );
     }
 }

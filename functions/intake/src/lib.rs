@@ -121,6 +121,26 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
         },
     };
 
+    // Before anything is claimed: an image no cluster can pull would hold the claim for a run
+    // that cannot start, and an oversized one would grow every state's payload.
+    if let Err(problem) = lb_jobs::parse_image(&info.image) {
+        let shown: String = info.image.chars().take(120).collect();
+        let cut = if shown.len() < info.image.len() {
+            "..."
+        } else {
+            ""
+        };
+        info.image = String::new();
+        return reject(
+            format!(
+                "the docker image URI `{}{cut}` is not a valid image reference: {problem}; push \
+                 the image again with `evalai push`",
+                shown.escape_debug()
+            ),
+            info,
+        );
+    }
+
     if let Some(qualifier) = target.required_qualifier() {
         let table = QualifierTable::new(deps.dynamo.clone(), &target.deployment.qualifier_table);
         // The item `(team, track)` admits: a pass recorded by the original system counts.

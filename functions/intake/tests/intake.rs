@@ -217,3 +217,36 @@ async fn evalai_failures_are_transient_errors_the_state_machine_retries() {
     assert!(err.is_transient());
     assert!(record(&stack, 1, 1).await.is_none());
 }
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn an_invalid_or_oversized_image_is_rejected_before_anything_is_claimed() {
+    let (stack, deps) = stack(LOCAL_SETTINGS).await;
+    // A 300 KB image string was once claimed, and grew every payload after it past AWS's
+    // 256 KiB limit.
+    for image in [
+        format!(
+            "123.dkr.ecr.us-west-2.amazonaws.com/team:{}",
+            "a".repeat(300_000)
+        ),
+        "Team Image With Spaces".to_string(),
+    ] {
+        let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1,
+                             "submitted_image_uri": image});
+        let out = handle(input(message, "exec"), &deps).await.unwrap();
+        assert_eq!(out.action, Action::Reject, "{:.300}", format!("{out:?}"));
+        let reason = out.reason.clone().unwrap();
+        assert!(
+            reason.contains("is not a valid image reference"),
+            "{reason:.300}"
+        );
+        assert!(
+            reason.len() < 1024,
+            "the reason is bounded: {} bytes",
+            reason.len()
+        );
+        assert!(out.submission.as_ref().unwrap().image.is_empty());
+        assert!(serde_json::to_string(&out).unwrap().len() < 8 * 1024);
+        assert!(record(&stack, 1, 1).await.is_none(), "nothing was claimed");
+    }
+}

@@ -34,6 +34,14 @@ pub struct Fixture {
     /// Length of the throttle's sliding window in seconds (EvalAI: 60). Tests may shorten it.
     #[serde(default = "default_window")]
     pub throttle_window_secs: u64,
+    /// The largest request body the proxy in front of EvalAI passes (nginx's
+    /// `client_max_body_size`); above it: 413 with nginx's HTML page, the view never runs.
+    #[serde(default = "default_max_request")]
+    pub max_request_bytes: usize,
+}
+
+fn default_max_request() -> usize {
+    16 * 1024 * 1024
 }
 
 fn default_throttle() -> u32 {

@@ -124,6 +124,8 @@ pub(crate) struct World {
     pub throttle: Throttle,
     pub faults: FaultState,
     pub log: RequestLog,
+    /// The proxy's body limit (`Fixture::max_request_bytes`).
+    pub max_request_bytes: usize,
 }
 
 /// A submission to add through the admin API (a participant pushing an image).
@@ -380,6 +382,7 @@ impl World {
             throttle: Throttle::new(fixture.throttle_per_minute, fixture.throttle_window_secs),
             faults: FaultState::default(),
             log: RequestLog::default(),
+            max_request_bytes: fixture.max_request_bytes,
         }
     }
 

@@ -2,7 +2,8 @@
 //!
 //! The file is written inside the participant's container, so anything may be in it. Parsing
 //! is typed (serde, with the JSON path of a bad field kept), then every value is checked
-//! against what the official evaluator can produce: finite, non-negative, bounded numbers,
+//! against what the official evaluator can produce: finite, non-negative, bounded numbers
+//! (scores within their ranges: 0-100, penalties 0-1),
 //! route ids of the form `RouteScenario_<n>[_rep<r>]`, routes inside the worker's subset and
 //! text without control characters (the text ends up in the participant-facing stdout).
 
@@ -622,6 +623,16 @@ fn validate(
         ] {
             non_negative(value).map_err(|p| invalid(field(name), p))?;
         }
+        // The official evaluator's ranges: completion and the composed score are percentages,
+        // the penalty a product of factors in (0, 1]. A score outside them would be published
+        // as the participant wrote it.
+        for (name, value, max) in [
+            ("scores.score_route", r.scores.score_route, 100.0),
+            ("scores.score_composed", r.scores.score_composed, 100.0),
+            ("scores.score_penalty", r.scores.score_penalty, 1.0),
+        ] {
+            within(value, max).map_err(|p| invalid(field(name), p))?;
+        }
         records.push(RouteRecord {
             index,
             route_id,
@@ -663,6 +674,15 @@ fn non_negative(n: Num) -> Result<(), String> {
             "is `{}`, over the limit of {MAX_NUMBER:e}",
             n.py_str()
         ))
+    } else {
+        Ok(())
+    }
+}
+
+/// At most `max`, with room for the rounding of a float printed by Python.
+fn within(n: Num, max: f64) -> Result<(), String> {
+    if n.as_f64() > max + 1e-9 {
+        Err(format!("is `{}`, over its maximum of {max}", n.py_str()))
     } else {
         Ok(())
     }

@@ -24,8 +24,12 @@ use crate::timefmt;
 use reply::Reply;
 use views::Ctx;
 
-/// Bodies beyond this are refused (EvalAI's uploads go to S3, not through these views).
-const MAX_BODY: usize = 16 * 1024 * 1024;
+/// nginx's page for a body over `client_max_body_size` (EvalAI runs behind nginx): the request
+/// never reaches Django, so the answer is HTML, not DRF's JSON.
+const TOO_LARGE_PAGE: &str =
+    "<html>\r\n<head><title>413 Request Entity Too Large</title></head>\r\n\
+<body>\r\n<center><h1>413 Request Entity Too Large</h1></center>\r\n<hr><center>nginx</center>\r\n\
+</body>\r\n</html>\r\n";
 
 /// A resolved `jobs` URL.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -255,10 +259,31 @@ fn record_body(headers: &HeaderMap, body: &[u8]) -> (Option<serde_json::Value>, 
 pub(crate) async fn entry(State(shared): State<Arc<Shared>>, req: Request) -> Response {
     let time = timefmt::format(timefmt::now());
     let (parts, body) = req.into_parts();
-    let bytes: Bytes = match axum::body::to_bytes(body, MAX_BODY).await {
+    let limit = shared.lock().max_request_bytes;
+    let bytes: Bytes = match axum::body::to_bytes(body, limit).await {
         Ok(b) => b,
         Err(_) => {
-            return (StatusCode::PAYLOAD_TOO_LARGE, "request body too large").into_response();
+            // The proxy's refusal is still a request a test may look for.
+            shared.lock().log.push(RequestRecord {
+                seq: 0,
+                time,
+                method: parts.method.to_string(),
+                path: parts.uri.path().to_owned(),
+                query: parts.uri.query().map(str::to_owned),
+                status: StatusCode::PAYLOAD_TOO_LARGE.as_u16(),
+                user_id: None,
+                admin: false,
+                body: None,
+                raw_body: None,
+                fault: None,
+                error: Some(format!("body over the proxy's {limit} bytes")),
+            });
+            return (
+                StatusCode::PAYLOAD_TOO_LARGE,
+                [(header::CONTENT_TYPE, "text/html")],
+                TOO_LARGE_PAGE,
+            )
+                .into_response();
         }
     };
     let path = parts.uri.path().to_owned();
