@@ -252,7 +252,8 @@ impl<'a> Logcopy<'a> {
             path: path.clone(),
             source,
         };
-        let (mut file, meta) = tree::open_checked(&entry.path, self.dev).map_err(read_err)?;
+        let (mut file, meta) =
+            tree::open_checked(&self.cfg.logs_root, &entry.rel, self.dev).map_err(read_err)?;
         if meta.size > MAX_OBJECT_BYTES {
             return Err(read_err(io::Error::other(format!(
                 "{} bytes is over the {MAX_OBJECT_BYTES}-byte upload limit",

@@ -1,9 +1,9 @@
 //! The logs tree as logcopy sees it: a bounded walk, and what changed since the last upload.
 //!
 //! The tree holds files the participant's code wrote, so it is hostile: symbolic links are
-//! never followed, files are opened with `O_NOFOLLOW` and must be regular files on the logs
-//! volume itself (same device as the root), which keeps a planted link to a token or another
-//! mount from being uploaded. Counts, depth and key lengths are bounded.
+//! never followed, files are opened component by component with `O_NOFOLLOW` and must be
+//! regular files on the logs volume itself (same device as the root), which keeps a planted
+//! link to a token or another mount from being uploaded. Counts, depth and key lengths are bounded.
 
 use std::collections::HashMap;
 use std::fs::{self, File, OpenOptions};
@@ -163,13 +163,43 @@ pub fn rel_path_ok(rel: &str) -> bool {
     rel.len() <= MAX_KEY_BYTES && !rel.starts_with('/') && rel.split('/').all(key_ok)
 }
 
-/// Opens a file found by the walk, refusing links, non-regular files and other devices.
-/// Returns the open file and its metadata now.
-pub fn open_checked(path: &Path, dev: u64) -> io::Result<(File, FileMeta)> {
-    let file = OpenOptions::new()
+/// Opens the file at `rel` (a walk's relative path) under `root`, one component at a time:
+/// each directory with `openat(O_DIRECTORY | O_NOFOLLOW)` from the one before, the file with
+/// `O_NOFOLLOW`. A directory swapped for a symbolic link between the walk and this open (the
+/// participant's code runs meanwhile) fails the open instead of leading outside the tree, as a
+/// path opened whole would. Non-regular files and other devices are refused too. Returns the
+/// open file and its metadata now.
+pub fn open_checked(root: &Path, rel: &str, dev: u64) -> io::Result<(File, FileMeta)> {
+    use nix::sys::stat::Mode;
+    use std::os::fd::OwnedFd;
+
+    if !rel_path_ok(rel) {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "not a clean relative path",
+        ));
+    }
+    let open_dir = OFlag::O_RDONLY | OFlag::O_DIRECTORY | OFlag::O_NOFOLLOW | OFlag::O_CLOEXEC;
+    // The root is ours (the configured logs volume), not the participant's.
+    let mut dir: OwnedFd = OpenOptions::new()
         .read(true)
-        .custom_flags((OFlag::O_NOFOLLOW | OFlag::O_NONBLOCK | OFlag::O_CLOEXEC).bits())
-        .open(path)?;
+        .custom_flags((OFlag::O_DIRECTORY | OFlag::O_CLOEXEC).bits())
+        .open(root)?
+        .into();
+    let mut components = rel.split('/').peekable();
+    let mut file = None;
+    while let Some(name) = components.next() {
+        if components.peek().is_some() {
+            dir =
+                nix::fcntl::openat(&dir, name, open_dir, Mode::empty()).map_err(io::Error::from)?;
+        } else {
+            let flags = OFlag::O_RDONLY | OFlag::O_NOFOLLOW | OFlag::O_NONBLOCK | OFlag::O_CLOEXEC;
+            file = Some(File::from(
+                nix::fcntl::openat(&dir, name, flags, Mode::empty()).map_err(io::Error::from)?,
+            ));
+        }
+    }
+    let file = file.ok_or_else(|| io::Error::new(io::ErrorKind::InvalidInput, "empty path"))?;
     let meta = file.metadata()?;
     if !meta.is_file() || meta.dev() != dev {
         return Err(io::Error::new(
@@ -316,7 +346,39 @@ mod tests {
             ]
         );
         assert_eq!(skipped.not_regular, 2);
-        assert!(open_checked(&root.join("logs/agent/agent1/secret"), dev).is_err());
+        assert!(open_checked(root, "logs/agent/agent1/secret", dev).is_err());
+        assert!(open_checked(root, "logs/agent/agent1/agent.log", dev).is_ok());
+    }
+
+    #[test]
+    fn a_directory_swapped_for_a_link_after_the_walk_leads_nowhere() {
+        // The participant's code replaces `logs/agent` with a link to a tree outside the logs
+        // (on the same device) between logcopy's walk and its open.
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("root");
+        let outside = dir.path().join("outside");
+        fs::create_dir_all(root.join("logs/agent/agent1")).unwrap();
+        fs::create_dir_all(outside.join("agent1")).unwrap();
+        fs::write(root.join("logs/agent/agent1/agent.log"), "mine").unwrap();
+        fs::write(outside.join("agent1/agent.log"), "the secret routes").unwrap();
+        let dev = fs::metadata(&root).unwrap().dev();
+        let (entries, _) = scan(&root, dev).unwrap();
+        assert_eq!(entries[0].rel, "logs/agent/agent1/agent.log");
+
+        fs::rename(root.join("logs/agent"), dir.path().join("moved")).unwrap();
+        symlink(&outside, root.join("logs/agent")).unwrap();
+        // Opening the path whole would follow the link and read "the secret routes".
+        assert_eq!(
+            fs::read_to_string(root.join(&entries[0].rel)).unwrap(),
+            "the secret routes"
+        );
+        let err = open_checked(&root, &entries[0].rel, dev).unwrap_err();
+        let code = err.raw_os_error();
+        assert!(
+            code == Some(nix::errno::Errno::ELOOP as i32)
+                || code == Some(nix::errno::Errno::ENOTDIR as i32),
+            "{err}"
+        );
     }
 
     #[test]
