@@ -336,13 +336,29 @@ impl SubmissionsTable {
         }
     }
 
-    /// The final record, every metric as its own attribute.
+    /// Who holds the submission and in which status, as stored (`None`: no record).
+    pub async fn standing(&self, team_id: u64, submission_id: u64) -> Result<Option<Standing>> {
+        let item = self.get(team_id, submission_id).await?;
+        Ok(item.map(|item| {
+            let text = |k: &str| item.get(k).and_then(|v| v.as_s().ok()).cloned();
+            Standing {
+                claimed_by: text("claimed_by"),
+                status: text("submission_status"),
+                error: text("error"),
+            }
+        }))
+    }
+
+    /// The final record, every metric as its own attribute, written only while execution
+    /// `claimed_by` holds the submission and it is still in flight: a stale execution (one a
+    /// resume superseded) or a second Finalize changes nothing. `false` when it did not write.
     pub async fn finish(
         &self,
         team_id: u64,
         submission_id: u64,
+        claimed_by: &str,
         record: &FinalRecord,
-    ) -> Result<()> {
+    ) -> Result<bool> {
         let mut set = vec![
             "submission_status = :status".to_string(),
             "end_time = :end".to_string(),
@@ -373,18 +389,53 @@ impl SubmissionsTable {
             // A resumed submission that now finishes must not keep the old run's error.
             None => expression.push_str(" REMOVE #error"),
         }
-        self.client
+        names.insert("#claimed_by".into(), "claimed_by".into());
+        names.insert("#status".into(), "submission_status".into());
+        values.insert(":me".into(), s(claimed_by));
+        let in_flight: Vec<String> = RecordStatus::IN_FLIGHT
+            .iter()
+            .enumerate()
+            .map(|(i, status)| {
+                values.insert(format!(":f{i}"), s(status.as_str()));
+                format!(":f{i}")
+            })
+            .collect();
+        let result = self
+            .client
             .update_item()
             .table_name(&self.table)
             .set_key(Some(Self::key(team_id, submission_id)))
             .update_expression(expression)
+            .condition_expression(format!(
+                "#claimed_by = :me AND #status IN ({})",
+                in_flight.join(", ")
+            ))
             .set_expression_attribute_names(Some(names))
             .set_expression_attribute_values(Some(values))
             .send()
-            .await
-            .map_err(|e| AwsError::sdk("dynamodb", "UpdateItem", e))?;
-        Ok(())
+            .await;
+        match result {
+            Ok(_) => Ok(true),
+            Err(e)
+                if e.as_service_error()
+                    .is_some_and(|e| e.is_conditional_check_failed_exception()) =>
+            {
+                Ok(false)
+            }
+            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
+        }
     }
+}
+
+/// Who holds a submission's record, and how it stands.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Standing {
+    /// The execution that claimed it last.
+    pub claimed_by: Option<String>,
+    /// `submission_status` as stored.
+    pub status: Option<String>,
+    /// The stored failure reason.
+    pub error: Option<String>,
 }
 
 /// The qualifier table: which team passed which qualifier track.

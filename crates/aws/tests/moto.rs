@@ -136,21 +136,26 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         Claim::Duplicate { .. }
     ));
 
-    table
-        .finish(
-            7,
-            42,
-            &FinalRecord {
-                status: RecordStatus::Failed,
-                end_time: "2026-11-21 06:00:00 UTC".into(),
-                results: "s3://b/42".into(),
-                metrics: vec![("driving_score", None)],
-                progress: (5, 20),
-                error: Some("CARLA crashed too often".into()),
-            },
-        )
-        .await
-        .unwrap();
+    let failed = FinalRecord {
+        status: RecordStatus::Failed,
+        end_time: "2026-11-21 06:00:00 UTC".into(),
+        results: "s3://b/42".into(),
+        metrics: vec![("driving_score", None)],
+        progress: (5, 20),
+        error: Some("CARLA crashed too often".into()),
+    };
+    // Only the execution holding the claim writes the final record, and only once.
+    assert!(!table.finish(7, 42, "exec-2", &failed).await.unwrap());
+    assert_eq!(
+        table.get(7, 42).await.unwrap().unwrap()["submission_status"],
+        text("RUNNING")
+    );
+    assert!(table.finish(7, 42, "exec-1", &failed).await.unwrap());
+    assert!(!table.finish(7, 42, "exec-1", &failed).await.unwrap());
+    let standing = table.standing(7, 42).await.unwrap().unwrap();
+    assert_eq!(standing.claimed_by.as_deref(), Some("exec-1"));
+    assert_eq!(standing.status.as_deref(), Some("FAILED"));
+    assert_eq!(standing.error.as_deref(), Some("CARLA crashed too often"));
     let item = table.get(7, 42).await.unwrap().unwrap();
     assert_eq!(
         item["driving_score"],
@@ -174,10 +179,11 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         .enumerate()
         .map(|(i, m)| (m.attribute, Some(format!("{}.5", i))))
         .collect();
-    table
+    let finished = table
         .finish(
             7,
             42,
+            "exec-4",
             &FinalRecord {
                 status: RecordStatus::Finished,
                 end_time: "2026-11-21 08:00:00 UTC".into(),
@@ -189,6 +195,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         )
         .await
         .unwrap();
+    assert!(finished, "the resume's execution holds the claim");
     let item = table.get(7, 42).await.unwrap().unwrap();
     assert_eq!(item["submission_status"], text("FINISHED"));
     assert_eq!(

@@ -327,7 +327,7 @@ impl EvalAiClient {
     /// PATCH `running` with our Job name, unless the submission was cancelled meanwhile.
     pub async fn mark_running(&self, at: SubmissionRef, job_name: &str) -> Result<WriteOutcome> {
         let current = self.submission(at.submission).await?;
-        if let Some(refused) = refuse_write(current.status, SubmissionStatus::Running) {
+        if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
         }
         let url = format!(
@@ -351,7 +351,7 @@ impl EvalAiClient {
     ) -> Result<WriteOutcome> {
         validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
         let current = self.submission(at.submission).await?;
-        if let Some(refused) = refuse_write(current.status, SubmissionStatus::PartiallyEvaluated) {
+        if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
         }
         let url = format!(
@@ -397,7 +397,7 @@ impl EvalAiClient {
             validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
         }
         let current = self.submission(at.submission).await?;
-        if let Some(refused) = refuse_write(current.status, update.status) {
+        if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
         }
         let url = format!(
@@ -486,7 +486,7 @@ impl EvalAiClient {
                     if current.status == target && target.is_final() {
                         return Ok(WriteOutcome::Written);
                     }
-                    if let Some(refused) = refuse_write(current.status, target) {
+                    if let Some(refused) = refuse_write(current.status) {
                         return Ok(refused);
                     }
                 }
@@ -620,17 +620,17 @@ enum Failure {
     },
 }
 
-/// The write policy: `cancelled` is final for everybody; a final status is not undone by a
-/// progress update (`running`, `partially_evaluated`).
-fn refuse_write(current: SubmissionStatus, target: SubmissionStatus) -> Option<WriteOutcome> {
+/// The write policy: `cancelled` is final for everybody; a final status stands, undone
+/// neither by a progress update (`running`, `partially_evaluated`) nor replaced by another
+/// final update (a late or repeated Finalize must not turn `finished` into `failed`, nor send
+/// the same update twice). A resume goes through EvalAI's own `resuming` first.
+fn refuse_write(current: SubmissionStatus) -> Option<WriteOutcome> {
     if current == SubmissionStatus::Cancelled {
         return Some(WriteOutcome::Cancelled);
     }
-    let progress = matches!(
-        target,
-        SubmissionStatus::Running | SubmissionStatus::PartiallyEvaluated
-    );
-    (progress && current.is_final()).then_some(WriteOutcome::AlreadyFinal(current))
+    current
+        .is_final()
+        .then_some(WriteOutcome::AlreadyFinal(current))
 }
 
 #[cfg(test)]
@@ -638,25 +638,18 @@ mod tests {
     use super::*;
 
     #[test]
-    fn cancelled_is_never_overwritten_and_progress_never_undoes_a_final_status() {
+    fn cancelled_is_never_overwritten_and_a_final_status_stands() {
         use SubmissionStatus::*;
-        for target in [Running, PartiallyEvaluated, Finished, Failed] {
+        assert_eq!(refuse_write(Cancelled), Some(WriteOutcome::Cancelled));
+        for stands in [Finished, Failed, Archived] {
             assert_eq!(
-                refuse_write(Cancelled, target),
-                Some(WriteOutcome::Cancelled)
+                refuse_write(stands),
+                Some(WriteOutcome::AlreadyFinal(stands))
             );
         }
-        assert_eq!(
-            refuse_write(Finished, PartiallyEvaluated),
-            Some(WriteOutcome::AlreadyFinal(Finished))
-        );
-        assert_eq!(
-            refuse_write(Failed, Running),
-            Some(WriteOutcome::AlreadyFinal(Failed))
-        );
-        assert_eq!(refuse_write(Running, Finished), None);
-        assert_eq!(refuse_write(PartiallyEvaluated, Failed), None);
-        assert_eq!(refuse_write(Submitted, Running), None);
+        for open in [Submitted, Queued, Running, Resuming, PartiallyEvaluated] {
+            assert_eq!(refuse_write(open), None, "{open}");
+        }
     }
 
     #[test]

@@ -381,3 +381,43 @@ async fn a_final_update_the_proxy_still_refuses_is_replaced_by_the_minimal_one()
         .collect();
     assert_eq!(statuses, [413, 200]);
 }
+
+#[tokio::test]
+async fn a_final_status_is_never_replaced_nor_sent_twice() {
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let evalai = client(&server, "host-token");
+    let finished = FinalUpdate {
+        status: SubmissionStatus::Finished,
+        result: full_result(42.5),
+        stdout: "done".into(),
+        stderr: String::new(),
+        metadata: "{}".into(),
+    };
+    assert_eq!(
+        evalai.post_final(AT, &finished).await.unwrap(),
+        WriteOutcome::Written
+    );
+    let puts = || writes(&server).len();
+    let before = puts();
+    // A late Finalize carrying an error: once it turned `finished` into `failed`.
+    let failed = FinalUpdate {
+        status: SubmissionStatus::Failed,
+        result: "[]".into(),
+        stdout: String::new(),
+        stderr: "the evaluation failed".into(),
+        metadata: "{}".into(),
+    };
+    assert_eq!(
+        evalai.post_final(AT, &failed).await.unwrap(),
+        WriteOutcome::AlreadyFinal(SubmissionStatus::Finished)
+    );
+    // A repeated Finalize: nothing re-sent.
+    assert_eq!(
+        evalai.post_final(AT, &finished).await.unwrap(),
+        WriteOutcome::AlreadyFinal(SubmissionStatus::Finished)
+    );
+    assert_eq!(puts(), before, "no write after the first final update");
+    let after = server.submission(1).unwrap();
+    assert_eq!(after.status, "finished");
+    assert_eq!(after.files.stdout.as_deref(), Some("done"));
+}

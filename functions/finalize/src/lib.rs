@@ -71,8 +71,9 @@ pub struct FinalizeInput {
 /// What Finalize did (`$.final`; the Choice after it reads `pipeline_error`).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FinalizeOutput {
-    /// The submission's final status on our side (`FINISHED`, `FAILED`, `CANCELLED`), or
-    /// `UNCLAIMED` when this execution never owned it.
+    /// The submission's final status on our side (`FINISHED`, `FAILED`, `CANCELLED`; for a
+    /// repeated Finalize, the one that stands), `UNCLAIMED` when this execution never owned
+    /// it, or `SUPERSEDED` when another execution (a resume) holds it now.
     pub status: String,
     /// A stage failed: the execution ends as failed so operators see it.
     pub pipeline_error: bool,
@@ -219,6 +220,43 @@ async fn finish_run(
     let id = submission.submission_id;
     let target = deps.clients.settings.target(submission.phase_id)?;
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
+    let table = SubmissionsTable::new(
+        deps.clients.dynamo.clone(),
+        &target.deployment.submissions_table,
+    );
+
+    // Only the execution that holds the claim ends the run, once: a stale execution (one a
+    // resume superseded) must not delete the new run's Jobs or post its own status, and a
+    // repeated Finalize reports what stands instead of doing it again.
+    let standing = table.standing(submission.team_id, id).await?;
+    let holder = standing.as_ref().and_then(|s| s.claimed_by.clone());
+    if holder.as_deref() != Some(submission.execution.as_str()) {
+        warn!(
+            submission_id = id,
+            holder = holder.as_deref().unwrap_or("nobody"),
+            "another execution holds the submission; nothing done"
+        );
+        return Ok(FinalizeOutput {
+            status: "SUPERSEDED".into(),
+            pipeline_error: error.is_some(),
+            reason: Some(format!(
+                "execution `{}` holds the submission now",
+                holder.unwrap_or_default()
+            )),
+        });
+    }
+    if let Some(stored) = standing
+        .as_ref()
+        .and_then(|s| s.status.clone())
+        .filter(|s| !RecordStatus::is_in_flight(s))
+    {
+        info!(submission_id = id, status = %stored, "already finalized; nothing done");
+        return Ok(FinalizeOutput {
+            status: stored,
+            pipeline_error: error.is_some(),
+            reason: standing.and_then(|s| s.error),
+        });
+    }
 
     // Stop the Jobs first: GPUs cost money, and their logcopy makes its last upload on the way out.
     let cluster = deps.clients.clusters.connect(target.deployment).await?;
@@ -338,42 +376,60 @@ async fn finish_run(
         stderr,
     )
     .await?;
-    if outcome == WriteOutcome::Cancelled {
-        status = SubmissionStatus::Cancelled;
-        reason = None;
+    match outcome {
+        WriteOutcome::Cancelled => {
+            status = SubmissionStatus::Cancelled;
+            reason = None;
+        }
+        // EvalAI already holds a final status (an earlier attempt of this Finalize posted it
+        // before failing): that is what stands, and what the record says.
+        WriteOutcome::AlreadyFinal(stands) if stands != status => {
+            warn!(submission_id = id, %stands, computed = %status, "EvalAI's final status stands");
+            if stands == SubmissionStatus::Finished {
+                reason = None;
+            }
+            status = stands;
+        }
+        _ => {}
     }
     let record_status = match status {
         SubmissionStatus::Finished => RecordStatus::Finished,
         SubmissionStatus::Cancelled => RecordStatus::Cancelled,
         _ => RecordStatus::Failed,
     };
-    SubmissionsTable::new(
-        deps.clients.dynamo.clone(),
-        &target.deployment.submissions_table,
-    )
-    .finish(
-        submission.team_id,
-        id,
-        &FinalRecord {
-            status: record_status,
-            end_time: clients::now_record_time(),
-            results: store.location(),
-            // Every metric of the leaderboard, as EvalAI got it, `-` where it got none.
-            metrics: target
-                .leaderboard
-                .metrics()
-                .iter()
-                .map(|m| {
-                    let value = metrics.iter().find(|(a, _)| *a == m.attribute);
-                    (m.attribute, value.map(|(_, v)| v.py_str()))
-                })
-                .collect(),
-            progress: snapshot.as_ref().map_or((0, 0), |s| s.progress),
-            // Operators get the whole chain; the participant got `reason`.
-            error: error.clone().or_else(|| reason.clone()),
-        },
-    )
-    .await?;
+    let written = table
+        .finish(
+            submission.team_id,
+            id,
+            &submission.execution,
+            &FinalRecord {
+                status: record_status,
+                end_time: clients::now_record_time(),
+                results: store.location(),
+                // Every metric of the leaderboard, as EvalAI got it, `-` where it got none.
+                metrics: target
+                    .leaderboard
+                    .metrics()
+                    .iter()
+                    .map(|m| {
+                        let value = metrics.iter().find(|(a, _)| *a == m.attribute);
+                        (m.attribute, value.map(|(_, v)| v.py_str()))
+                    })
+                    .collect(),
+                progress: snapshot.as_ref().map_or((0, 0), |s| s.progress),
+                // Operators get the whole chain; the participant got `reason`.
+                error: error.clone().or_else(|| reason.clone()),
+            },
+        )
+        .await?;
+    if !written {
+        // Lost the claim while this ran (a resume claimed it anew): EvalAI had the final word
+        // before that; the new execution owns the record.
+        warn!(
+            submission_id = id,
+            "the claim moved on; the record is the new execution's"
+        );
+    }
     info!(
         submission_id = id,
         status = record_status.as_str(),

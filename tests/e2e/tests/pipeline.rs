@@ -83,11 +83,15 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
 
 impl Harness {
     async fn intake(&self, image: &str) -> SubmissionInfo {
+        self.intake_as(image, "e2e").await
+    }
+
+    async fn intake_as(&self, image: &str, execution: &str) -> SubmissionInfo {
         let message = json!({"challenge_pk": "1", "phase_pk": "1", "submission_pk": 1, "submitted_image_uri": image});
         let out = intake::handle(
             IntakeInput {
                 message,
-                execution: "e2e".into(),
+                execution: execution.into(),
             },
             &self.intake,
         )
@@ -135,6 +139,28 @@ impl Harness {
         finalize::handle(finalize::FinalizeInput { state }, &self.finalize)
             .await
             .unwrap()
+    }
+
+    /// Finalize in failure mode: a Catch put `error` in the state.
+    async fn finalize_after_error(
+        &self,
+        submission: &SubmissionInfo,
+        run: &RunState,
+    ) -> finalize::FinalizeOutput {
+        let state = json!({"intake": {"action": "run", "submission": submission}, "run": run,
+            "error": {"Error": "States.Timeout", "Cause": ""}});
+        finalize::handle(finalize::FinalizeInput { state }, &self.finalize)
+            .await
+            .unwrap()
+    }
+
+    fn evalai_puts(&self) -> usize {
+        self.stack
+            .fake()
+            .requests()
+            .iter()
+            .filter(|r| !r.admin && r.method == "PUT")
+            .count()
     }
 
     async fn record(&self) -> std::collections::HashMap<String, AttributeValue> {
@@ -375,4 +401,81 @@ async fn an_image_that_cannot_be_pulled_fails_with_a_message_the_participant_can
     assert!(evalai.files.stderr.unwrap_or_default().contains(bad));
     let (jobs, pods) = h.cluster_jobs().await;
     assert!(jobs.is_empty() && pods.is_empty(), "no orphaned Job");
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn finalize_acts_once_and_only_for_the_execution_holding_the_claim() {
+    let h = harness(Behaviour::default(), &[]).await;
+    let submission = h.intake_as(PARTICIPANT_IMAGE, "exec-1").await;
+    let run = launch::handle(
+        launch::LaunchInput {
+            submission: submission.clone(),
+        },
+        &h.launch,
+    )
+    .await
+    .unwrap();
+    let run = h.monitor_until_done(&submission, run, |_| {}).await;
+    // The run ended in failure mode (a Catch), so the participant may resume it.
+    assert_eq!(
+        h.finalize_after_error(&submission, &run).await.status,
+        "FAILED"
+    );
+    let record = h.record().await;
+    let puts = h.evalai_puts();
+
+    // A second Finalize, even one whose own reading says FINISHED, reports what stands and
+    // sends nothing: a final status is never replaced (lb-evalai's tests cover `finished` ->
+    // `failed` on EvalAI itself).
+    for again in [
+        h.finalize(&submission, &run).await,
+        h.finalize_after_error(&submission, &run).await,
+    ] {
+        assert_eq!(again.status, "FAILED");
+    }
+    assert_eq!(h.evalai_puts(), puts, "nothing re-sent to EvalAI");
+    assert_eq!(h.stack.fake().submission(1).unwrap().status, "failed");
+    assert_eq!(h.record().await, record, "the record unchanged");
+
+    // The participant resumes; a new execution claims the submission and launches its Job.
+    h.stack.fake().resume(1).unwrap();
+    let resumed = h.intake_as(PARTICIPANT_IMAGE, "exec-2").await;
+    let new_run = launch::handle(
+        launch::LaunchInput {
+            submission: resumed.clone(),
+        },
+        &h.launch,
+    )
+    .await
+    .unwrap();
+    let (jobs, _) = h.cluster_jobs().await;
+    assert!(!jobs.is_empty(), "the resume's Job runs");
+    let puts = h.evalai_puts();
+    let status = h.stack.fake().submission(1).unwrap().status;
+
+    // The first execution's Finalize, late (a retry after the resume): it touches nothing.
+    let stale = h.finalize_after_error(&submission, &run).await;
+    assert_eq!(stale.status, "SUPERSEDED", "{stale:?}");
+    let (jobs_after, _) = h.cluster_jobs().await;
+    assert_eq!(
+        jobs_after
+            .iter()
+            .map(|j| &j.metadata.uid)
+            .collect::<Vec<_>>(),
+        jobs.iter().map(|j| &j.metadata.uid).collect::<Vec<_>>(),
+        "the resume's Job was not deleted"
+    );
+    assert_eq!(h.evalai_puts(), puts, "nothing posted");
+    assert_eq!(h.stack.fake().submission(1).unwrap().status, status);
+    let record = h.record().await;
+    assert_eq!(record["claimed_by"], AttributeValue::S("exec-2".into()));
+    assert_ne!(
+        record["submission_status"],
+        AttributeValue::S("FAILED".into())
+    );
+
+    // The resume's own Finalize ends it.
+    let out = h.finalize(&resumed, &new_run).await;
+    assert_ne!(out.status, "SUPERSEDED");
 }
