@@ -82,11 +82,26 @@ impl FnError {
     }
 }
 
+/// The most of an error's message a function raises. The message becomes the Catch's `Cause`
+/// in the state, and untrusted input (a results file, an EvalAI answer) can be quoted in it:
+/// unbounded, it could push a payload past Step Functions' 256 KiB (`States.DataLimitExceeded`,
+/// which no Catch handles).
+pub const MAX_ERROR_MESSAGE_BYTES: usize = 4 * 1024;
+
 impl From<FnError> for lambda_runtime::Diagnostic {
     fn from(error: FnError) -> Self {
+        let mut message = error.chain();
+        if message.len() > MAX_ERROR_MESSAGE_BYTES {
+            let mut keep = MAX_ERROR_MESSAGE_BYTES - 32;
+            while !message.is_char_boundary(keep) {
+                keep -= 1;
+            }
+            message.truncate(keep);
+            message.push_str(" [... message cut]");
+        }
         lambda_runtime::Diagnostic {
             error_type: error.name().to_string(),
-            error_message: error.chain(),
+            error_message: message,
         }
     }
 }
@@ -146,6 +161,18 @@ pub const ERROR_NAMES: &[&str] = &[
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_huge_message_is_cut_at_the_bound() {
+        let error = FnError::from(MessageError::Field {
+            field: "phase_pk",
+            problem: "é".repeat(100_000),
+        });
+        let diagnostic = lambda_runtime::Diagnostic::from(error);
+        assert!(diagnostic.error_message.len() <= MAX_ERROR_MESSAGE_BYTES);
+        assert!(diagnostic.error_message.ends_with("[... message cut]"));
+        assert_eq!(diagnostic.error_type, "InvalidMessage");
+    }
 
     #[test]
     fn the_diagnostic_carries_the_stable_name_and_the_causes() {

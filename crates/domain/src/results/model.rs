@@ -572,7 +572,7 @@ fn validate(
                 field("route_id"),
                 format!(
                     "`{}` is not of the form `{}`",
-                    r.route_id,
+                    shown(&r.route_id),
                     leaderboard.route_id_form()
                 ),
             )
@@ -677,6 +677,20 @@ fn non_negative(n: Num) -> Result<(), String> {
     } else {
         Ok(())
     }
+}
+
+/// Untrusted text quoted in an error message: at most 100 characters, escaped.
+fn shown(text: &str) -> String {
+    let mut out: String = text
+        .chars()
+        .take(100)
+        .collect::<String>()
+        .escape_debug()
+        .to_string();
+    if text.chars().count() > 100 {
+        out.push_str("...");
+    }
+    out
 }
 
 /// At most `max`, with room for the rounding of a float printed by Python.
