@@ -9,7 +9,7 @@ mod model;
 mod retry;
 
 pub use model::{validate_result, Submission};
-pub use retry::RetryPolicy;
+pub use retry::{within, RetryPolicy};
 
 use std::time::Duration;
 
@@ -526,6 +526,15 @@ impl EvalAiClient {
             .header(reqwest::header::ACCEPT, "application/json");
         if let Some(body) = body {
             request = request.json(body);
+        }
+        if let Some(left) = retry::remaining() {
+            if left.is_zero() {
+                return Err(Failure::Final(EvalAiError::Unavailable {
+                    attempts: 0,
+                    last: "no time left before the function's deadline".into(),
+                }));
+            }
+            request = request.timeout(left.min(self.policy.request_timeout));
         }
         let response = match request.send().await {
             Ok(response) => response,

@@ -51,6 +51,26 @@ impl std::fmt::Display for Reason {
     }
 }
 
+tokio::task_local! {
+    /// When the invocation running this task must be done (a Lambda's deadline, less the time
+    /// its handler needs to report).
+    static DEADLINE: Instant;
+}
+
+/// Runs `work` with every EvalAI call inside it bounded by `deadline`: retries stop, and a
+/// request's timeout shrinks, so that a client's own budget never outlasts the Lambda that
+/// runs it (whose timeout would then be raised as `States.Timeout`, not as our error).
+pub async fn within<F: std::future::Future>(deadline: Instant, work: F) -> F::Output {
+    DEADLINE.scope(deadline, work).await
+}
+
+/// Time left before the task's deadline, if it has one.
+pub(crate) fn remaining() -> Option<Duration> {
+    DEADLINE
+        .try_with(|d| d.saturating_duration_since(Instant::now()))
+        .ok()
+}
+
 /// The attempts of one call.
 pub(crate) struct Attempts {
     policy: RetryPolicy,
@@ -60,8 +80,12 @@ pub(crate) struct Attempts {
 
 impl Attempts {
     pub(crate) fn new(policy: &RetryPolicy) -> Self {
+        let mut policy = *policy;
+        if let Some(left) = remaining() {
+            policy.budget = policy.budget.min(left);
+        }
         Attempts {
-            policy: *policy,
+            policy,
             started: Instant::now(),
             made: 1,
         }

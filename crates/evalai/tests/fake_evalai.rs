@@ -421,3 +421,39 @@ async fn a_final_status_is_never_replaced_nor_sent_twice() {
     assert_eq!(after.status, "finished");
     assert_eq!(after.files.stdout.as_deref(), Some("done"));
 }
+
+#[tokio::test]
+async fn retries_stop_at_the_invocations_deadline_not_at_the_clients_budget() {
+    // A client whose own budget is generous (60 s) inside an invocation with 2 s left: an
+    // EvalAI that keeps failing must end the call in time for the handler to report, not let
+    // the Lambda time out (States.Timeout, which the state machine never retried).
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let evalai = EvalAiClient::new(
+        &server.url(),
+        &HostToken::new("host-token"),
+        AuthScheme::Bearer,
+        RetryPolicy {
+            max_attempts: 100,
+            initial_backoff: Duration::from_millis(200),
+            max_backoff: Duration::from_millis(400),
+            budget: Duration::from_secs(60),
+            ..RetryPolicy::default()
+        },
+    )
+    .unwrap();
+    server
+        .set_faults(Faults {
+            error_500_rate: 1.0,
+            ..Faults::default()
+        })
+        .unwrap();
+    let started = std::time::Instant::now();
+    let deadline = started + Duration::from_secs(2);
+    let err = lb_evalai::within(deadline, evalai.mark_running(AT, "job"))
+        .await
+        .unwrap_err();
+    let took = started.elapsed();
+    assert_eq!(err.name(), "EvalAiUnavailable", "{err}");
+    assert!(err.is_transient());
+    assert!(took < Duration::from_millis(2600), "took {took:?}");
+}

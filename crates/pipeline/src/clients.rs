@@ -85,3 +85,47 @@ impl RunClients {
         })
     }
 }
+
+/// What a handler keeps for itself after its last EvalAI call: raising its error or writing
+/// its record.
+pub const REPORT_MARGIN: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// The instant a Lambda invocation's EvalAI calls must be done by: its deadline (from the
+/// runtime's context, milliseconds since the epoch) less [`REPORT_MARGIN`].
+pub fn invocation_deadline(context: &lambda_runtime::Context) -> std::time::Instant {
+    let left = context
+        .deadline()
+        .duration_since(std::time::SystemTime::now())
+        .unwrap_or_default()
+        .saturating_sub(REPORT_MARGIN);
+    std::time::Instant::now() + left
+}
+
+/// Runs one invocation's work with its EvalAI calls bounded by the invocation's deadline.
+pub async fn within_deadline<F: std::future::Future>(
+    context: &lambda_runtime::Context,
+    work: F,
+) -> F::Output {
+    lb_evalai::within(invocation_deadline(context), work).await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+    #[test]
+    fn the_evalai_deadline_leaves_the_handler_its_margin() {
+        let mut context = lambda_runtime::Context::default();
+        let in_30s = SystemTime::now() + Duration::from_secs(30);
+        context.deadline = in_30s.duration_since(UNIX_EPOCH).unwrap().as_millis() as u64;
+        let left = invocation_deadline(&context).saturating_duration_since(Instant::now());
+        assert!(
+            left > Duration::from_secs(19) && left <= Duration::from_secs(20),
+            "{left:?}"
+        );
+        // A deadline already past gives no time at all, not a panic.
+        context.deadline = 1;
+        assert!(invocation_deadline(&context) <= Instant::now());
+    }
+}

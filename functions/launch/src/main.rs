@@ -7,7 +7,12 @@ async fn main() -> Result<(), lambda_runtime::Error> {
     let deps = &deps;
     run(service_fn(
         move |event: LambdaEvent<serde_json::Value>| async move {
-            launch::handle_json(event.payload, deps).await
+            // Every EvalAI retry stops in time for the handler to report (crates/evalai).
+            lb_pipeline::clients::within_deadline(
+                &event.context,
+                launch::handle_json(event.payload, deps),
+            )
+            .await
         },
     ))
     .await
