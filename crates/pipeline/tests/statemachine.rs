@@ -212,3 +212,24 @@ fn statelint_accepts_the_definition_with_its_substitutions_filled() {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+#[test]
+fn a_task_that_times_out_is_retried_before_the_failure_path() {
+    // A Lambda that outlives its Task (a slow EvalAI, a cluster API stalling) raises
+    // States.Timeout; every Task is idempotent, so that is a transient error like ours, not the
+    // end of a healthy run.
+    for (name, state) in states(&definition()) {
+        if state["Type"] != "Task" {
+            continue;
+        }
+        let retried = state["Retry"].as_array().into_iter().flatten().any(|r| {
+            r["MaxAttempts"].as_u64().unwrap_or(3) > 0
+                && r["ErrorEquals"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|e| e == "States.Timeout" || e == "States.ALL")
+        });
+        assert!(retried, "{name} does not retry States.Timeout");
+    }
+}
