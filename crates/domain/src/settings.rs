@@ -78,10 +78,19 @@ pub struct LeaderboardSettings {
     /// where credentials come otherwise (local mode).
     #[serde(default)]
     pub job_role_arn: String,
+    /// How long the cluster's API may stay unreachable before a run is failed for it (hours).
+    /// Shorter outages skip Monitor rounds, as an unreachable S3 or EvalAI does: the Jobs run
+    /// on without the API, and their own deadline is the last safety net.
+    #[serde(default = "default_outage_hours")]
+    pub max_cluster_outage_hours: u64,
 }
 
 fn default_namespace() -> String {
     "default".into()
+}
+
+fn default_outage_hours() -> u64 {
+    6
 }
 
 /// Images of the Job containers (the participant's comes with the submission).

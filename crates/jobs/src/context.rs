@@ -696,6 +696,7 @@ impl JobContext {
             tracks: BTreeMap::new(),
             qualifier: Default::default(),
             job_role_arn: String::new(),
+            max_cluster_outage_hours: 6,
         };
         let settings = JobSettings::from_deployment(
             leaderboard,

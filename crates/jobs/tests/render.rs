@@ -44,6 +44,7 @@ fn settings(leaderboard: Leaderboard) -> JobSettings {
         tracks: BTreeMap::new(),
         qualifier: Default::default(),
         job_role_arn: String::new(),
+        max_cluster_outage_hours: 6,
     };
     JobSettings::from_deployment(
         leaderboard,

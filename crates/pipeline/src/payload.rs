@@ -116,6 +116,10 @@ pub struct MonitorState {
     /// Why it ended, for the participant (failed runs).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
+    /// Since when (epoch seconds) the cluster's API could not be reached; a round that
+    /// reaches it clears this.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unreachable_since: Option<u64>,
 }
 
 /// The run's phase.

@@ -177,6 +177,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
             fingerprint: None,
             progress: (0, total),
             reason: None,
+            unreachable_since: None,
         },
     })
 }

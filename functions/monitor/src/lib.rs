@@ -81,6 +81,24 @@ fn now_secs() -> u64 {
         .map_or(0, |d| d.as_secs())
 }
 
+/// The submission's Jobs and pods as the cluster reports them now.
+async fn observe(
+    deps: &Deps,
+    deployment: &lb_domain::settings::LeaderboardSettings,
+    id: u64,
+) -> Result<lb_cluster::Observation> {
+    let cluster = deps
+        .clients
+        .clusters
+        .connect(deployment)
+        .await?
+        .with_policy(deps.policy);
+    cluster
+        .observe(&id.to_string())
+        .await
+        .map_err(cluster_error)
+}
+
 /// One monitor round.
 pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     let MonitorInput {
@@ -94,17 +112,37 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     run.monitor.rounds += 1;
     run.monitor.wait_seconds = monitor_interval(elapsed).as_secs();
 
-    let cluster = deps
-        .clients
-        .clusters
-        .connect(target.deployment)
-        .await?
-        .with_policy(deps.policy);
-    let observation = cluster
-        .observe(&id.to_string())
-        .await
-        .map_err(cluster_error)?
-        .expect_jobs(run.jobs.len() as u32);
+    // The cluster's API out of reach (a 500, a timeout, DescribeCluster failing) skips the
+    // verdict this round, as an unreachable S3 or EvalAI skips their part: the Jobs run on
+    // without it. Only an outage longer than the setting ends the run.
+    let observation = match observe(deps, target.deployment, id).await {
+        Ok(observation) => {
+            run.monitor.unreachable_since = None;
+            Some(observation.expect_jobs(run.jobs.len() as u32))
+        }
+        Err(e) if e.is_transient() => {
+            let since = *run.monitor.unreachable_since.get_or_insert(now_secs());
+            let outage = Duration::from_secs(now_secs().saturating_sub(since));
+            let bound = Duration::from_secs(target.deployment.max_cluster_outage_hours * 3600);
+            warn!(
+                submission_id = id,
+                error = %e.chain(),
+                outage_seconds = outage.as_secs(),
+                "cluster not reached this round"
+            );
+            if outage >= bound {
+                run.monitor.state = RunPhase::Failed;
+                run.monitor.reason = Some(format!(
+                    "the evaluation cluster could not be reached for {} minutes ({})",
+                    outage.as_secs() / 60,
+                    e.name()
+                ));
+                return Ok(run);
+            }
+            None
+        }
+        Err(e) => return Err(e),
+    };
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
     let at = SubmissionRef {
         challenge: submission.challenge_id,
@@ -183,6 +221,9 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         run.monitor.state = RunPhase::Cancelled;
         return Ok(run);
     }
+    let Some(observation) = observation else {
+        return Ok(run);
+    };
     match observation.verdict {
         Verdict::Running if elapsed > MAX_EVALUATION => {
             run.monitor.state = RunPhase::Failed;

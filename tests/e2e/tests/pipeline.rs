@@ -479,3 +479,83 @@ async fn finalize_acts_once_and_only_for_the_execution_holding_the_claim() {
     let out = h.finalize(&resumed, &new_run).await;
     assert_ne!(out.status, "SUPERSEDED");
 }
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() {
+    let slow = Behaviour {
+        route_seconds: 1.0,
+        ..Behaviour::default()
+    };
+    let h = harness(slow, &[]).await;
+    let submission = h.intake(PARTICIPANT_IMAGE).await;
+    let run = launch::handle(
+        launch::LaunchInput {
+            submission: submission.clone(),
+        },
+        &h.launch,
+    )
+    .await
+    .unwrap();
+
+    // The same Monitor, but the cluster's API refuses connections (a kubeconfig pointing at a
+    // closed port): once, the round raised and the run went to Finalize, which needs the same
+    // API, and ended FinalizeFailed with the Jobs left behind.
+    let kubeconfig = h.stack.kubeconfig.clone().unwrap();
+    let text = std::fs::read_to_string(&kubeconfig).unwrap();
+    let server = text
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("server: "))
+        .unwrap()
+        .to_string();
+    let down = kubeconfig.with_file_name("kubeconfig-down");
+    std::fs::write(&down, text.replace(&server, "http://127.0.0.1:9")).unwrap();
+    let config = FunctionConfig {
+        settings_secret: SETTINGS_SECRET.into(),
+        token_secret: TOKEN_SECRET.into(),
+    };
+    let unreachable = monitor::Deps::load(&h.stack.sdk, &config, Clusters::Kubeconfig(down))
+        .await
+        .unwrap();
+    let mut run = run;
+    for _ in 0..3 {
+        run = monitor::handle(
+            monitor::MonitorInput {
+                submission: submission.clone(),
+                run,
+            },
+            &unreachable,
+        )
+        .await
+        .expect("an unreachable cluster skips the round");
+        assert_eq!(run.monitor.state, RunPhase::Running);
+        assert!(run.monitor.unreachable_since.is_some());
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    // The API is back: the run goes on and finishes.
+    let run = h.monitor_until_done(&submission, run, |_| {}).await;
+    assert_eq!(run.monitor.state, RunPhase::Finished, "{:?}", run.monitor);
+    assert_eq!(run.monitor.unreachable_since, None);
+    assert_eq!(h.finalize(&submission, &run).await.status, "FINISHED");
+
+    // An outage longer than the setting ends a run, saying why (0 hours: the first round).
+    let mut settings: serde_json::Value = serde_json::from_str(LOCAL_SETTINGS).unwrap();
+    settings["leaderboards"]["2.0"]["max_cluster_outage_hours"] = json!(0);
+    let mut deps = unreachable;
+    deps.clients.settings =
+        lb_domain::settings::Settings::from_json(&settings.to_string()).unwrap();
+    let mut fresh = run.clone();
+    fresh.monitor.state = RunPhase::Running;
+    let ended = monitor::handle(
+        monitor::MonitorInput {
+            submission: submission.clone(),
+            run: fresh,
+        },
+        &deps,
+    )
+    .await
+    .unwrap();
+    assert_eq!(ended.monitor.state, RunPhase::Failed);
+    let reason = ended.monitor.reason.unwrap();
+    assert!(reason.contains("could not be reached"), "{reason}");
+}
