@@ -163,6 +163,13 @@ mod tests {
     use super::*;
 
     #[test]
+    fn every_results_error_name_is_raised_to_the_state_machine() {
+        for name in lb_domain::results::ResultsError::NAMES {
+            assert!(ERROR_NAMES.contains(&name), "{name}");
+        }
+    }
+
+    #[test]
     fn a_huge_message_is_cut_at_the_bound() {
         let error = FnError::from(MessageError::Field {
             field: "phase_pk",

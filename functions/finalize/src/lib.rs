@@ -117,27 +117,14 @@ pub fn caught_error(state: &Value) -> Option<String> {
     })
 }
 
-/// Errors about the participant's own results files: their messages name the file, field or
-/// route, which is what the participant needs to fix their agent.
-const PARTICIPANT_ERRORS: &[&str] = &[
-    "ResultsTooLarge",
-    "ResultsNonFinite",
-    "ResultsInvalid",
-    "ResultsOutsideSubset",
-    "SensorMismatch",
-    "DuplicateRoute",
-    "MissingRouteData",
-    "UnexpectedRecords",
-    "RepetitionMismatch",
-];
-
 /// What the participant reads for a caught error (`Name: message`, from [`caught_error`]): a
 /// problem with their results in full; anything on our side as a plain sentence with the
 /// error's stable name, its chain (ARNs, table names, endpoints) staying in our logs and in the
 /// submission's record.
 pub fn participant_reason(error: &str) -> String {
     let name = error.split_once(": ").map_or(error, |(name, _)| name);
-    if PARTICIPANT_ERRORS.contains(&name) {
+    // The participant's own results: the message names the file, field or route to fix.
+    if lb_domain::results::ResultsError::NAMES.contains(&name) {
         format!("the evaluation failed: {error}")
     } else {
         format!(

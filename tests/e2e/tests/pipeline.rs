@@ -101,6 +101,17 @@ impl Harness {
         out.submission.unwrap()
     }
 
+    async fn launch(&self, submission: &SubmissionInfo) -> RunState {
+        launch::handle(
+            launch::LaunchInput {
+                submission: submission.clone(),
+            },
+            &self.launch,
+        )
+        .await
+        .unwrap()
+    }
+
     /// Monitor rounds until the run ends, as the Wait/Monitor/Choice loop would (bounded).
     async fn monitor_until_done(
         &self,
@@ -209,14 +220,7 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
         AttributeValue::S("SUBMITTED".into())
     );
 
-    let run = launch::handle(
-        launch::LaunchInput {
-            submission: submission.clone(),
-        },
-        &h.launch,
-    )
-    .await
-    .unwrap();
+    let run = h.launch(&submission).await;
     assert_eq!(run.jobs.len(), 1, "4 pairs fit one 4-GPU node");
     let subsets: Vec<&str> = run.pairs.iter().map(|p| p.routes.as_str()).collect();
     assert_eq!(subsets, ["0-4", "5-9", "10-14", "15-19"]);
@@ -336,14 +340,7 @@ async fn a_participant_cancel_ends_cancelled_with_the_jobs_gone() {
     };
     let h = harness(slow, &[]).await;
     let submission = h.intake(PARTICIPANT_IMAGE).await;
-    let run = launch::handle(
-        launch::LaunchInput {
-            submission: submission.clone(),
-        },
-        &h.launch,
-    )
-    .await
-    .unwrap();
+    let run = h.launch(&submission).await;
     let fake = h.stack.fake();
     let run = h
         .monitor_until_done(&submission, run, |round| {
@@ -382,14 +379,7 @@ async fn an_image_that_cannot_be_pulled_fails_with_a_message_the_participant_can
     let bad = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:does-not-exist";
     let h = harness(Behaviour::default(), &[bad]).await;
     let submission = h.intake(bad).await;
-    let run = launch::handle(
-        launch::LaunchInput {
-            submission: submission.clone(),
-        },
-        &h.launch,
-    )
-    .await
-    .unwrap();
+    let run = h.launch(&submission).await;
     let run = h.monitor_until_done(&submission, run, |_| {}).await;
     assert_eq!(run.monitor.state, RunPhase::Failed);
     let reason = run.monitor.reason.clone().unwrap();
@@ -408,14 +398,7 @@ async fn an_image_that_cannot_be_pulled_fails_with_a_message_the_participant_can
 async fn finalize_acts_once_and_only_for_the_execution_holding_the_claim() {
     let h = harness(Behaviour::default(), &[]).await;
     let submission = h.intake_as(PARTICIPANT_IMAGE, "exec-1").await;
-    let run = launch::handle(
-        launch::LaunchInput {
-            submission: submission.clone(),
-        },
-        &h.launch,
-    )
-    .await
-    .unwrap();
+    let run = h.launch(&submission).await;
     let run = h.monitor_until_done(&submission, run, |_| {}).await;
     // The run ended in failure mode (a Catch), so the participant may resume it.
     assert_eq!(
@@ -441,14 +424,7 @@ async fn finalize_acts_once_and_only_for_the_execution_holding_the_claim() {
     // The participant resumes; a new execution claims the submission and launches its Job.
     h.stack.fake().resume(1).unwrap();
     let resumed = h.intake_as(PARTICIPANT_IMAGE, "exec-2").await;
-    let new_run = launch::handle(
-        launch::LaunchInput {
-            submission: resumed.clone(),
-        },
-        &h.launch,
-    )
-    .await
-    .unwrap();
+    let new_run = h.launch(&resumed).await;
     let (jobs, _) = h.cluster_jobs().await;
     assert!(!jobs.is_empty(), "the resume's Job runs");
     let puts = h.evalai_puts();
@@ -489,14 +465,7 @@ async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() 
     };
     let h = harness(slow, &[]).await;
     let submission = h.intake(PARTICIPANT_IMAGE).await;
-    let run = launch::handle(
-        launch::LaunchInput {
-            submission: submission.clone(),
-        },
-        &h.launch,
-    )
-    .await
-    .unwrap();
+    let run = h.launch(&submission).await;
 
     // The same Monitor, but the cluster's API refuses connections (a kubeconfig pointing at a
     // closed port): once, the round raised and the run went to Finalize, which needs the same

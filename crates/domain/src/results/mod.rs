@@ -332,6 +332,19 @@ pub enum ResultsError {
 }
 
 impl ResultsError {
+    /// Every name [`name`](Self::name) gives: the problems of a participant's own results.
+    pub const NAMES: [&'static str; 9] = [
+        "ResultsTooLarge",
+        "ResultsNonFinite",
+        "ResultsInvalid",
+        "ResultsOutsideSubset",
+        "SensorMismatch",
+        "DuplicateRoute",
+        "MissingRouteData",
+        "UnexpectedRecords",
+        "RepetitionMismatch",
+    ];
+
     /// The stable PascalCase name that state machines and callers match on.
     pub fn name(&self) -> &'static str {
         match self {
