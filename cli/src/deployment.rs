@@ -41,6 +41,19 @@ pub struct DeploymentArgs {
     pub settings_secret: String,
 }
 
+/// Where the EvalAI host token is, for the commands that talk to EvalAI.
+#[derive(Debug, Clone, Args)]
+pub struct EvalAiTokenArgs {
+    /// Id of the EvalAI host token secret (Secrets Manager).
+    #[arg(
+        long,
+        value_name = "ID",
+        env = "LB_EVALAI_TOKEN_SECRET",
+        default_value = "leaderboard/evalai-token"
+    )]
+    pub token_secret: String,
+}
+
 /// The loaded deployment: settings and clients.
 #[derive(Debug, Clone)]
 pub struct Deployment {
@@ -115,6 +128,18 @@ impl Deployment {
             settings,
             sdk,
         })
+    }
+
+    /// EvalAI as the functions reach it: the settings' server, the token from its secret.
+    pub async fn evalai(
+        &self,
+        token: &EvalAiTokenArgs,
+    ) -> std::result::Result<lb_evalai::EvalAiClient, lb_pipeline::FnError> {
+        let config = lb_pipeline::FunctionConfig {
+            settings_secret: self.settings_secret.clone(),
+            token_secret: token.token_secret.clone(),
+        };
+        lb_pipeline::clients::evalai(&self.sdk, &config, &self.settings).await
     }
 
     /// The leaderboards to look at: all, or the one named (which must exist).

@@ -8,11 +8,10 @@ use clap::Args;
 use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::{CANCEL_MARKER, STATUS_DIR};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
-use lb_pipeline::FunctionConfig;
 use local_stack::pipe;
 use serde_json::{json, Map, Value};
 
-use crate::deployment::{clean, Deployment, DeploymentArgs, ScanFilter};
+use crate::deployment::{clean, Deployment, DeploymentArgs, EvalAiTokenArgs, ScanFilter};
 use crate::error::{CliError, Result};
 use crate::ops::evalai_id;
 
@@ -86,14 +85,8 @@ pub struct Resume {
     /// Skip the checks: resume a FINISHED record too, and do not ask EvalAI for `resuming`.
     #[arg(long)]
     pub force: bool,
-    /// Id of the EvalAI host token secret, to read the submission's status on EvalAI.
-    #[arg(
-        long,
-        value_name = "ID",
-        env = "LB_EVALAI_TOKEN_SECRET",
-        default_value = "leaderboard/evalai-token"
-    )]
-    pub token_secret: String,
+    #[command(flatten)]
+    pub token: EvalAiTokenArgs,
     #[command(flatten)]
     pub machine: StateMachineArgs,
     #[command(flatten)]
@@ -314,11 +307,8 @@ pub async fn resume(args: Resume) -> Result<u8> {
     if args.force {
         outln!("note: --force: EvalAI's status is not checked");
     } else {
-        let config = FunctionConfig {
-            settings_secret: deployment.settings_secret.clone(),
-            token_secret: args.token_secret.clone(),
-        };
-        let evalai = lb_pipeline::clients::evalai(&deployment.sdk, &config, &deployment.settings)
+        let evalai = deployment
+            .evalai(&args.token)
             .await
             .map_err(|source| CliError::EvalAi {
                 submission: id,

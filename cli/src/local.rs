@@ -237,6 +237,8 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters()).await?;
     finalize.delete_wait = Duration::from_secs(60);
     let finalize = Arc::new(finalize);
+    // The summary reads the outcome from EvalAI with the functions' own client.
+    let evalai = intake.evalai.clone();
     let tasks = TaskMap::new()
         .with("IntakeFunctionArn", move |v| {
             let deps = intake.clone();
@@ -330,10 +332,11 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let status_on_evalai = match (&stack.fake_evalai, &on_fake) {
         (Some(_), Some(s)) => s.status.clone(),
         (Some(_), None) => String::new(),
-        // Another EvalAI: ask it, as the participant's page would show it.
-        (None, _) => external_status(&stack, submission)
-            .await
-            .unwrap_or_else(|e| format!("(unknown: {e})")),
+        // Another EvalAI: ask it, with the client the functions use.
+        (None, _) => match evalai.submission(submission).await {
+            Ok(s) => s.status.as_str().to_string(),
+            Err(e) => format!("(unknown: {e})"),
+        },
     };
     outln!();
     outln!(
@@ -414,22 +417,6 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         );
         Ok(1)
     }
-}
-
-/// The submission's status on an external EvalAI (one GET, the host token of the stack).
-async fn external_status(stack: &Stack, submission: u64) -> anyhow::Result<String> {
-    let client = lb_evalai::EvalAiClient::new(
-        &stack.evalai_url,
-        &lb_evalai::HostToken::new(stack.evalai_token.clone()),
-        lb_evalai::AuthScheme::Bearer,
-        lb_evalai::RetryPolicy::default(),
-    )?;
-    Ok(client
-        .submission(submission)
-        .await?
-        .status
-        .as_str()
-        .to_string())
 }
 
 /// `agent_results.json` in a line: its records and how many each route has (Leaderboard 1.0

@@ -12,9 +12,8 @@ use lb_domain::results::{EvalAiFiles, Leaderboard, RouteSubset};
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::results::merge_partials;
-use lb_pipeline::FunctionConfig;
 
-use crate::deployment::{Deployment, DeploymentArgs, Record, ScanFilter};
+use crate::deployment::{Deployment, DeploymentArgs, EvalAiTokenArgs, Record, ScanFilter};
 use crate::error::{CliError, Result};
 use crate::ops::evalai_id;
 
@@ -47,14 +46,8 @@ pub struct Rescore {
     /// Print the merge as JSON (`complete`, `progress`, `accuracies`) instead of the files.
     #[arg(long)]
     pub json: bool,
-    /// Id of the EvalAI token secret (for --post).
-    #[arg(
-        long,
-        value_name = "ID",
-        env = "LB_EVALAI_TOKEN_SECRET",
-        default_value = "leaderboard/evalai-token"
-    )]
-    pub token_secret: String,
+    #[command(flatten)]
+    pub token: EvalAiTokenArgs,
     #[command(flatten)]
     pub deployment: DeploymentArgs,
 }
@@ -223,11 +216,8 @@ async fn post(
         outln!("nothing posted");
         return Ok(1);
     }
-    let config = FunctionConfig {
-        settings_secret: args.deployment.settings_secret.clone(),
-        token_secret: args.token_secret.clone(),
-    };
-    let evalai = lb_pipeline::clients::evalai(&deployment.sdk, &config, &deployment.settings)
+    let evalai = deployment
+        .evalai(&args.token)
         .await
         .map_err(|source| CliError::EvalAi {
             submission: id,

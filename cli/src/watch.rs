@@ -10,9 +10,10 @@ use clap::Args;
 use lb_aws::s3::SubmissionStore;
 use lb_domain::results::{read_worker_file, Leaderboard, WorkerFile, MAX_FILE_BYTES};
 use lb_pipeline::cluster::Clusters;
-use lb_pipeline::FunctionConfig;
 
-use crate::deployment::{clean, is_final_status, Deployment, DeploymentArgs, ScanFilter};
+use crate::deployment::{
+    clean, is_final_status, Deployment, DeploymentArgs, EvalAiTokenArgs, ScanFilter,
+};
 use crate::error::{CliError, Result};
 use crate::ops::{evalai_id, queue_positions};
 
@@ -46,14 +47,8 @@ pub struct Watch {
     /// Only this leaderboard (when the submission has records in several).
     #[arg(long, value_name = "LEADERBOARD")]
     pub leaderboard: Option<String>,
-    /// Id of the EvalAI token secret.
-    #[arg(
-        long,
-        value_name = "ID",
-        env = "LB_EVALAI_TOKEN_SECRET",
-        default_value = "leaderboard/evalai-token"
-    )]
-    pub token_secret: String,
+    #[command(flatten)]
+    pub token: EvalAiTokenArgs,
     #[command(flatten)]
     pub deployment: DeploymentArgs,
 }
@@ -99,14 +94,8 @@ struct PodLine {
 /// `lbctl watch`.
 pub async fn watch(args: Watch) -> Result<u8> {
     let deployment = Deployment::load(&args.deployment).await?;
-    let config = FunctionConfig {
-        settings_secret: args.deployment.settings_secret.clone(),
-        token_secret: args.token_secret.clone(),
-    };
     // EvalAI and the cluster are optional: the screen says when they cannot be reached.
-    let evalai = lb_pipeline::clients::evalai(&deployment.sdk, &config, &deployment.settings)
-        .await
-        .map_err(|e| e.chain());
+    let evalai = deployment.evalai(&args.token).await.map_err(|e| e.chain());
     let clusters = Clusters::from_env(&deployment.sdk);
     let tty = std::io::stdout().is_terminal() && !args.json;
     let started = Instant::now();

@@ -13,6 +13,23 @@ fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
         .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
+/// `lbctl local run <args>` with `env`, which must succeed: its stdout.
+fn local_run(args: &[&str], env: &[(&str, &str)]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
+        .args(["local", "run"])
+        .args(args)
+        .envs(env.iter().copied())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{args:?}: {stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
 #[test]
 #[ignore = "needs moto"]
 fn every_scenario_ends_as_expected() {
@@ -29,16 +46,7 @@ fn every_scenario_ends_as_expected() {
         ("crash-loop", "FAILED"),
     ] {
         let started = Instant::now();
-        let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
-            .args(["local", "run", "--scenario", scenario, "--timeout", "240"])
-            .output()
-            .unwrap();
-        let stdout = String::from_utf8_lossy(&out.stdout);
-        assert!(
-            out.status.success(),
-            "{scenario}: {stdout}\n{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let stdout = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
         assert!(
             stdout.contains(&format!("EvalAI status  {}", expected.to_lowercase())),
             "{scenario}: {stdout}"
@@ -76,10 +84,8 @@ fn every_scenario_ends_as_expected() {
 fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
     let _one = one_at_a_time();
     local_stack::workloads::Binaries::build().expect("the workloads build");
-    let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
-        .args([
-            "local",
-            "run",
+    let stdout = local_run(
+        &[
             "--leaderboard",
             "1.0",
             "--routes",
@@ -90,14 +96,8 @@ fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
             "0.05",
             "--timeout",
             "240",
-        ])
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
+        ],
+        &[],
     );
     assert!(stdout.contains("EvalAI status  finished"), "{stdout}");
     assert!(
@@ -146,10 +146,9 @@ fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard()
         fake_evalai::Fixture::from_json(&fixture.to_string()).unwrap(),
     )
     .unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
-        .args([
-            "local",
-            "run",
+    let url = fake.url();
+    let stdout = local_run(
+        &[
             "--leaderboard",
             "2.0",
             "--routes",
@@ -161,23 +160,16 @@ fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard()
             "--timeout",
             "240",
             "--evalai-url",
-            &fake.url(),
+            &url,
             "--challenge",
             "7",
             "--phase",
             "4321",
             "--submission",
             "55",
-        ])
+        ],
         // The token from the environment, not the command line.
-        .env("LB_EVALAI_TOKEN", "host-token")
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
+        &[("LB_EVALAI_TOKEN", "host-token")],
     );
     let on_evalai = fake.submission(55).unwrap();
     assert_eq!(on_evalai.status, "finished", "{stdout}");

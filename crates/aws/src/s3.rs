@@ -160,17 +160,7 @@ impl SubmissionStore {
             }
             Err(e) => return Err(AwsError::sdk("s3", "GetObject", e)),
         };
-        let body = out
-            .body
-            .collect()
-            .await
-            .map_err(|e| AwsError::Transient {
-                service: "s3",
-                operation: "GetObject",
-                source: Box::new(e),
-            })?
-            .into_bytes();
-        Ok(Some(body.to_vec()))
+        Ok(Some(read_body(out.body).await?))
     }
 
     /// Reads an object, refusing more than `limit` bytes (it may come from the participant).
@@ -192,16 +182,7 @@ impl SubmissionStore {
                 limit,
             });
         }
-        let bytes = out
-            .body
-            .collect()
-            .await
-            .map_err(|e| AwsError::Transient {
-                service: "s3",
-                operation: "GetObject",
-                source: Box::new(e),
-            })?
-            .into_bytes();
+        let bytes = read_body(out.body).await?;
         if bytes.len() as u64 > limit {
             return Err(AwsError::TooLarge {
                 bucket: self.bucket.clone(),
@@ -210,7 +191,7 @@ impl SubmissionStore {
                 limit,
             });
         }
-        Ok(bytes.to_vec())
+        Ok(bytes)
     }
 
     /// The marker file names under `containers-status/`.
@@ -281,4 +262,15 @@ impl SubmissionStore {
             .map_err(|e| AwsError::sdk("s3", "PutObject", e))?;
         Ok(())
     }
+}
+
+/// A GetObject body, read whole; a stream broken midway is transient (the next round reads
+/// again).
+async fn read_body(body: aws_sdk_s3::primitives::ByteStream) -> Result<Vec<u8>> {
+    let bytes = body.collect().await.map_err(|e| AwsError::Transient {
+        service: "s3",
+        operation: "GetObject",
+        source: Box::new(e),
+    })?;
+    Ok(bytes.into_bytes().to_vec())
 }

@@ -1,4 +1,5 @@
-//! The tail of a participant's log, made fit for EvalAI's `stderr`.
+//! Participant text made fit to show: the tail of a log for EvalAI's `stderr`, text safe on a
+//! terminal, a start cut at a character boundary.
 //!
 //! The log is written by the participant's code (untrusted): terminal escapes, control and
 //! bidirectional characters are removed so it cannot forge lines or reorder text on the
@@ -78,6 +79,15 @@ fn skip_escape(chars: &mut std::iter::Peekable<std::str::Chars<'_>>) {
 }
 
 /// Bidirectional controls and zero-width characters: they reorder or hide text.
+/// The longest start of `text` that fits in `max_bytes` without splitting a character.
+pub fn head(text: &str, max_bytes: usize) -> &str {
+    let mut end = max_bytes.min(text.len());
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    &text[..end]
+}
+
 /// A bidirectional control or a zero-width character: invisible, yet it can reorder or hide
 /// what a terminal shows.
 pub fn is_invisible_format(c: char) -> bool {
@@ -89,6 +99,13 @@ pub fn is_invisible_format(c: char) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_head_never_splits_a_character() {
+        assert_eq!(head("héllo", 2), "h");
+        assert_eq!(head("héllo", 3), "hé");
+        assert_eq!(head("hi", 10), "hi");
+    }
 
     #[test]
     fn a_short_log_is_kept_whole_without_its_escapes() {

@@ -197,11 +197,8 @@ pub fn bounded_text(text: &str, max: usize) -> std::borrow::Cow<'_, str> {
          with the submission's results]\n",
         text.len()
     );
-    let mut keep = max.saturating_sub(note.len());
-    while !text.is_char_boundary(keep) {
-        keep -= 1;
-    }
-    std::borrow::Cow::Owned(format!("{}{note}", &text[..keep]))
+    let kept = lb_domain::logtail::head(text, max.saturating_sub(note.len()));
+    std::borrow::Cow::Owned(format!("{kept}{note}"))
 }
 
 /// The metadata JSON text, or a small JSON note in its place when it is over `max` bytes.

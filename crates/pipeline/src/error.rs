@@ -92,10 +92,7 @@ impl From<FnError> for lambda_runtime::Diagnostic {
     fn from(error: FnError) -> Self {
         let mut message = error.chain();
         if message.len() > MAX_ERROR_MESSAGE_BYTES {
-            let mut keep = MAX_ERROR_MESSAGE_BYTES - 32;
-            while !message.is_char_boundary(keep) {
-                keep -= 1;
-            }
+            let keep = lb_domain::logtail::head(&message, MAX_ERROR_MESSAGE_BYTES - 32).len();
             message.truncate(keep);
             message.push_str(" [... message cut]");
         }

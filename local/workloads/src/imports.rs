@@ -84,26 +84,21 @@ impl Imports {
         if self.carla_root.is_some() && !self.has_carla_egg() {
             return missing(MODULE, "carla");
         }
-        if let Some(root) = &self.scenario_runner_root {
-            if !self.on_path(root) {
-                return missing(
-                    (
-                        "<module>",
-                        "from srunner.scenariomanager.carla_data_provider import *",
-                    ),
-                    "srunner",
-                );
-            }
-        }
-        if let Some(root) = &self.leaderboard_root {
-            if !self.on_path(root) {
-                return missing(
-                    (
-                        "<module>",
-                        "from leaderboard.scenarios.scenario_manager import ScenarioManager",
-                    ),
-                    "leaderboard",
-                );
+        // The evaluator's own imports, in its order: ScenarioRunner, then the Leaderboard.
+        for (root, line, module) in [
+            (
+                &self.scenario_runner_root,
+                "from srunner.scenariomanager.carla_data_provider import *",
+                "srunner",
+            ),
+            (
+                &self.leaderboard_root,
+                "from leaderboard.scenarios.scenario_manager import ScenarioManager",
+                "leaderboard",
+            ),
+        ] {
+            if root.as_ref().is_some_and(|r| !self.on_path(r)) {
+                return missing(("<module>", line), module);
             }
         }
         if let Some(root) = &self.team_code {

@@ -445,12 +445,8 @@ fn cluster_calls() -> BTreeSet<(String, String, String)> {
 fn k8s_docs(file: &str) -> Vec<Value> {
     let text = std::fs::read_to_string(root().join("infra/k8s").join(file)).unwrap();
     text.split("\n---\n")
-        .map(|doc| serde_json::to_value(serde_yaml_doc(doc)).unwrap())
+        .map(|doc| serde_yaml::from_str(doc).unwrap())
         .collect()
-}
-
-fn serde_yaml_doc(doc: &str) -> serde_yaml::Value {
-    serde_yaml::from_str(doc).unwrap()
 }
 
 #[test]
