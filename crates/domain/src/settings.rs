@@ -8,6 +8,7 @@ use std::collections::BTreeMap;
 use serde::Deserialize;
 
 use crate::py::Num;
+use crate::resources::{self, PairShare};
 
 use crate::results::Leaderboard;
 
@@ -83,6 +84,43 @@ pub struct LeaderboardSettings {
     /// on without the API, and their own deadline is the last safety net.
     #[serde(default = "default_outage_hours")]
     pub max_cluster_outage_hours: u64,
+    /// CPU, memory and `/dev/shm` of each simulator-agent pair; by default derived from
+    /// `instance_type` (required for a type `lb_domain::resources` does not know).
+    #[serde(default)]
+    pub pair_resources: Option<PairShare>,
+}
+
+impl LeaderboardSettings {
+    /// What each pair gets: the operator's `pair_resources`, checked against the node, or
+    /// the instance type's default share.
+    pub fn pair_share(&self) -> Result<PairShare, (&'static str, String)> {
+        let node = resources::capacity(&self.instance_type);
+        if let Some(node) = node {
+            if self.gpus_per_node > node.gpus {
+                return Err((
+                    "gpus_per_node",
+                    format!("{} has {} GPU(s)", self.instance_type, node.gpus),
+                ));
+            }
+        }
+        let share = match (self.pair_resources, node) {
+            (Some(share), _) => share,
+            (None, Some(node)) => PairShare::derive(node, self.gpus_per_node),
+            (None, None) => {
+                return Err((
+                    "instance_type",
+                    format!(
+                        "`{}` is not a GPU instance type the defaults know: set `pair_resources`",
+                        self.instance_type
+                    ),
+                ))
+            }
+        };
+        share
+            .check(self.gpus_per_node, node)
+            .map_err(|e| ("pair_resources", e))?;
+        Ok(share)
+    }
 }
 
 fn default_namespace() -> String {
@@ -287,6 +325,9 @@ impl Settings {
             if !(1..=16).contains(&lb.gpus_per_node) {
                 return invalid(at("gpus_per_node"), "must be between 1 and 16");
             }
+            if let Err((field, problem)) = lb.pair_share() {
+                return invalid(at(field), &problem);
+            }
             for (track, t) in &lb.tracks {
                 if t.routes == 0 || t.workers == 0 {
                     return invalid(
@@ -421,6 +462,24 @@ mod tests {
     }
 
     #[test]
+    fn pair_resources_default_from_the_instance_type_or_come_from_the_operator() {
+        let settings = Settings::from_json(EXAMPLE).unwrap();
+        let share = settings.leaderboards["2.0"].pair_share().unwrap();
+        assert_eq!((share.simulator.cpu, share.agent.memory_gib), (4.0, 24.0));
+        let own = EXAMPLE.replace(
+            r#""instance_type": "g5.12xlarge", "gpus_per_node": 4,"#,
+            r#""instance_type": "x9.large", "gpus_per_node": 2, "pair_resources": {
+                "simulator": {"cpu": 3, "memory_gib": 12},
+                "agent": {"cpu": 5.5, "memory_gib": 20}, "shm_gib": 2},"#,
+        );
+        let share = Settings::from_json(&own).unwrap().leaderboards["2.0"]
+            .pair_share()
+            .unwrap();
+        assert_eq!(share.allotment().agent.cpu_millis, 5500);
+        assert_eq!(share.allotment().shm_mib, 2048);
+    }
+
+    #[test]
     fn gating_off_requires_no_qualifier() {
         let settings =
             Settings::from_json(&EXAMPLE.replace(r#""enabled": true"#, r#""enabled": false"#))
@@ -465,6 +524,23 @@ mod tests {
                     r#""SENSORS": "SENSORS""#,
                 ),
                 "leaderboards.2.0.qualifier.tracks.SENSORS",
+            ),
+            (
+                EXAMPLE.replace("g5.12xlarge", "x9.large"),
+                "leaderboards.2.0.instance_type",
+            ),
+            (
+                EXAMPLE.replace("g5.12xlarge", "g5.2xlarge"),
+                "leaderboards.2.0.gpus_per_node",
+            ),
+            (
+                EXAMPLE.replace(
+                    r#""gpus_per_node": 4,"#,
+                    r#""gpus_per_node": 4, "pair_resources": {
+                        "simulator": {"cpu": 8, "memory_gib": 16},
+                        "agent": {"cpu": 8, "memory_gib": 24}, "shm_gib": 4},"#,
+                ),
+                "leaderboards.2.0.pair_resources",
             ),
         ];
         for (text, path) in cases {

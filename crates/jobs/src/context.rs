@@ -13,6 +13,7 @@ use lb_domain::plan::{
     JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY, MANAGED_BY_LABEL, SUBMISSION_LABEL,
     TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
 };
+use lb_domain::resources::{Allotment, PairAllotment};
 use lb_domain::results::Leaderboard;
 use lb_domain::settings::LeaderboardSettings;
 use serde::{Deserialize, Serialize};
@@ -165,6 +166,8 @@ pub struct JobSettings {
     pub sources: Sources,
     /// The sidecar's timers.
     pub timers: Timers,
+    /// CPU, memory and `/dev/shm` of each pair (requests equal limits).
+    pub resources: PairAllotment,
 }
 
 impl JobSettings {
@@ -175,7 +178,19 @@ impl JobSettings {
         deployment: &LeaderboardSettings,
         region: &str,
         s3_role_arn: &str,
-    ) -> JobSettings {
+    ) -> Result<JobSettings, ContextError> {
+        let resources = deployment
+            .pair_share()
+            .map_err(|(field, reason)| ContextError::InvalidSetting {
+                field: if field == "instance_type" {
+                    "instance_type"
+                } else {
+                    "pair_resources"
+                },
+                value: deployment.instance_type.clone(),
+                reason,
+            })?
+            .allotment();
         let repetitions = leaderboard.repetitions();
         let scenarios = match leaderboard {
             Leaderboard::V1 => {
@@ -183,7 +198,7 @@ impl JobSettings {
             }
             Leaderboard::V2 => "",
         };
-        JobSettings {
+        Ok(JobSettings {
             namespace: deployment.namespace.clone(),
             service_account: SERVICE_ACCOUNT.into(),
             s3_role_arn: s3_role_arn.into(),
@@ -206,7 +221,8 @@ impl JobSettings {
                 carla_api: "/src/CARLA".into(),
             },
             timers: Timers::default(),
-        }
+            resources,
+        })
     }
 }
 
@@ -298,6 +314,50 @@ pub struct KubernetesContext {
     pub termination_grace_seconds: u32,
 }
 
+/// Requests and limits of one container, in the shape of Kubernetes' `resources`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ContainerResources {
+    /// What the scheduler reserves.
+    pub requests: Quantities,
+    /// The same: a container cannot take more than it reserved.
+    pub limits: Quantities,
+}
+
+/// CPU and memory quantities (`6000m`, `24576Mi`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct Quantities {
+    /// CPU, millicores.
+    pub cpu: String,
+    /// Memory, MiB.
+    pub memory: String,
+}
+
+impl From<Allotment> for ContainerResources {
+    fn from(a: Allotment) -> Self {
+        let q = Quantities {
+            cpu: format!("{}m", a.cpu_millis),
+            memory: format!("{}Mi", a.memory_mib),
+        };
+        ContainerResources {
+            requests: q.clone(),
+            limits: q,
+        }
+    }
+}
+
+/// What the Job's containers may use.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ResourcesContext {
+    /// Each `simulator-<ID>`.
+    pub simulator: ContainerResources,
+    /// Each `agent-<ID>`.
+    pub agent: ContainerResources,
+    /// `private-contents` and `logcopy`.
+    pub sidecar: ContainerResources,
+    /// `sizeLimit` of the Pod's `/dev/shm`: the per-pair size times the Job's pairs.
+    pub shm: String,
+}
+
 /// This Job within the submission.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct JobInfo {
@@ -355,6 +415,8 @@ pub struct JobContext {
     pub aws: AwsContext,
     /// Job and Pod settings.
     pub kubernetes: KubernetesContext,
+    /// Requests and limits.
+    pub resources: ResourcesContext,
     /// Sidecar timers.
     pub timers: Timers,
     /// Official code in the private-contents image.
@@ -653,6 +715,12 @@ impl JobContext {
                 ttl_seconds_after_finished: settings.ttl_seconds_after_finished,
                 termination_grace_seconds: settings.termination_grace_seconds,
             },
+            resources: ResourcesContext {
+                simulator: settings.resources.simulator.into(),
+                agent: settings.resources.agent.into(),
+                sidecar: Allotment::SIDECAR.into(),
+                shm: format!("{}Mi", settings.resources.shm_mib * job.pairs.len() as u32),
+            },
             timers: settings.timers.clone(),
             sources: settings.sources.clone(),
             job: JobInfo {
@@ -697,13 +765,15 @@ impl JobContext {
             qualifier: Default::default(),
             job_role_arn: String::new(),
             max_cluster_outage_hours: 6,
+            pair_resources: None,
         };
         let settings = JobSettings::from_deployment(
             leaderboard,
             &deployment,
             "us-west-2",
             "arn:aws:iam::123456789012:role/leaderboard-s3",
-        );
+        )
+        .expect("the sample deployment is valid");
         let plan = lb_domain::plan::plan(lb_domain::plan::PlanInput {
             submission_id: 1,
             team_name: "sample",

@@ -15,6 +15,7 @@
 
 pub mod context;
 pub mod image;
+pub mod security;
 pub mod template;
 pub mod validate;
 

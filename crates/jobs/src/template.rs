@@ -215,6 +215,8 @@ impl JobTemplate {
     /// Renders the Job and checks it against the Kubernetes schema and the Job rules
     /// ([`crate::validate`]).
     pub fn render(&self, context: &JobContext) -> Result<Job, RenderError> {
-        crate::validate::check_job(&self.render_value(context)?)
+        let job = crate::validate::check_job(&self.render_value(context)?)?;
+        crate::security::check(&job, context)?;
+        Ok(job)
     }
 }

@@ -266,16 +266,6 @@ fn check_container(
             ),
         ));
     }
-    if isolated
-        && c.security_context
-            .as_ref()
-            .is_some_and(|s| s.privileged == Some(true))
-    {
-        return Err(spec_error(
-            format!("{at}.securityContext.privileged"),
-            format!("`{}` must not be privileged", c.name),
-        ));
-    }
     let mut paths = HashSet::new();
     for (j, mount) in c.volume_mounts.iter().flatten().enumerate() {
         let here = format!("{at}.volumeMounts[{j}]");
@@ -483,13 +473,6 @@ mod tests {
                         .as_array_mut()
                         .unwrap()
                         .push(c);
-                }),
-            ),
-            (
-                "spec.template.spec.containers[0].securityContext.privileged",
-                Box::new(|d| {
-                    d["spec"]["template"]["spec"]["containers"][0]["securityContext"] =
-                        json!({"privileged": true})
                 }),
             ),
             (

@@ -45,6 +45,7 @@ fn settings(leaderboard: Leaderboard) -> JobSettings {
         qualifier: Default::default(),
         job_role_arn: String::new(),
         max_cluster_outage_hours: 6,
+        pair_resources: None,
     };
     JobSettings::from_deployment(
         leaderboard,
@@ -52,6 +53,7 @@ fn settings(leaderboard: Leaderboard) -> JobSettings {
         "us-west-2",
         "arn:aws:iam::342236305043:role/leaderboard-20-submission-s3",
     )
+    .unwrap()
 }
 
 fn submission(team: &str, image: &str) -> SubmissionInfo {
@@ -789,6 +791,164 @@ fn a_misplaced_or_unknown_kubernetes_field_fails_to_load_with_its_path() {
     assert!(msg.contains("restartPolicy"), "{msg}");
 }
 
+/// A container's resources as (kind, name) -> quantity.
+fn resources(c: &Container) -> BTreeMap<String, String> {
+    let r = c.resources.as_ref().unwrap();
+    [("requests", &r.requests), ("limits", &r.limits)]
+        .into_iter()
+        .flat_map(|(kind, map)| {
+            map.iter()
+                .flatten()
+                .map(move |(k, v)| (format!("{kind}.{k}"), v.0.clone()))
+        })
+        .collect()
+}
+
+#[test]
+fn every_container_is_confined_and_sized_from_the_settings() {
+    for (leaderboard, workers) in [(Leaderboard::V2, 6), (Leaderboard::V1, 3)] {
+        for job in jobs(leaderboard, 20, workers, "team") {
+            let pod = pod(&job);
+            let pod_seccomp = pod
+                .security_context
+                .as_ref()
+                .unwrap()
+                .seccomp_profile
+                .as_ref();
+            assert_eq!(pod_seccomp.unwrap().type_, "RuntimeDefault");
+            let pairs = (pod.containers.len() as u32 - 1) / 2;
+            let shm = pod
+                .volumes
+                .iter()
+                .flatten()
+                .find(|v| v.name == "dshm")
+                .unwrap();
+            let dir = shm.empty_dir.as_ref().unwrap();
+            assert_eq!(dir.medium.as_deref(), Some("Memory"));
+            // g5.12xlarge, 4 pairs a node: 6 GiB of /dev/shm per pair.
+            assert_eq!(
+                dir.size_limit.as_ref().unwrap().0,
+                format!("{}Mi", 6144 * pairs)
+            );
+            for c in pod
+                .containers
+                .iter()
+                .chain(pod.init_containers.iter().flatten())
+            {
+                let sc = c.security_context.as_ref().unwrap();
+                assert_eq!(sc.allow_privilege_escalation, Some(false), "{}", c.name);
+                assert_eq!(sc.privileged, None, "{}", c.name);
+                let caps = sc.capabilities.as_ref().unwrap();
+                assert_eq!(caps.drop.as_deref(), Some(&["ALL".to_string()][..]));
+                assert_eq!(caps.add, None);
+                let agent = c.name.starts_with("agent-");
+                // Participants' images run as root; everything else is CARLA's user.
+                assert_eq!(sc.run_as_non_root, (!agent).then_some(true), "{}", c.name);
+                assert_eq!(sc.run_as_user, (!agent).then_some(1000), "{}", c.name);
+                let (cpu, memory) = match c.name.split('-').next().unwrap() {
+                    "simulator" => ("4000m", "16384Mi"),
+                    "agent" => ("6000m", "24576Mi"),
+                    _ => ("500m", "512Mi"),
+                };
+                let expected: BTreeMap<String, String> = [
+                    ("limits.cpu", cpu),
+                    ("limits.memory", memory),
+                    ("requests.cpu", cpu),
+                    ("requests.memory", memory),
+                ]
+                .into_iter()
+                .map(|(k, v)| (k.to_owned(), v.to_owned()))
+                .collect();
+                assert_eq!(resources(c), expected, "{}", c.name);
+            }
+        }
+    }
+}
+
+#[test]
+fn an_operators_pair_resources_reach_the_containers() {
+    let mut s = settings(Leaderboard::V2);
+    s.resources = lb_domain::resources::PairShare {
+        simulator: lb_domain::resources::ContainerShare {
+            cpu: 3.5,
+            memory_gib: 12.0,
+        },
+        agent: lb_domain::resources::ContainerShare {
+            cpu: 7.0,
+            memory_gib: 30.5,
+        },
+        shm_gib: 2.0,
+    }
+    .allotment();
+    let p = plan(PlanInput {
+        submission_id: 4242,
+        team_name: "team",
+        routes: 20,
+        workers: 2,
+        gpus_per_node: 4,
+    })
+    .unwrap();
+    let job = render_plan(Leaderboard::V2, &p, &submission("team", AGENT), &s)
+        .unwrap()
+        .remove(0);
+    assert_eq!(
+        resources(container(&job, "simulator-2"))["limits.cpu"],
+        "3500m"
+    );
+    assert_eq!(
+        resources(container(&job, "agent-1"))["requests.memory"],
+        "31232Mi"
+    );
+    let shm = pod(&job)
+        .volumes
+        .iter()
+        .flatten()
+        .find(|v| v.name == "dshm")
+        .unwrap();
+    assert_eq!(
+        shm.empty_dir
+            .as_ref()
+            .unwrap()
+            .size_limit
+            .as_ref()
+            .unwrap()
+            .0,
+        "4096Mi"
+    );
+}
+
+#[test]
+fn a_template_that_loosens_the_confinement_does_not_load() {
+    const AGENT_CAPS: &str =
+        "    # Root, as participants' images expect, but without a single capability.
+    securityContext:
+      allowPrivilegeEscalation: false
+      capabilities: {drop: [ALL]}";
+    let cases: [(&str, &str, &str); 12] = [
+        (AGENT_CAPS, "    securityContext:\n      allowPrivilegeEscalation: false", "containers[1].securityContext.capabilities.drop"),
+        ("capabilities: {drop: [ALL]}\n    resources.$: $.resources.agent", "capabilities: {drop: [ALL], add: [NET_RAW]}\n    resources.$: $.resources.agent", "containers[1].securityContext.capabilities.add"),
+        ("      runAsNonRoot: true\n", "      runAsNonRoot: false\n", ".securityContext.runAsNonRoot"),
+        ("      runAsUser: 1000\n", "      runAsUser: 0\n", ".securityContext.runAsUser"),
+        ("      allowPrivilegeEscalation: false\n      capabilities: {drop: [ALL]}\n    resources.$: $.resources.simulator", "      allowPrivilegeEscalation: true\n      capabilities: {drop: [ALL]}\n    resources.$: $.resources.simulator", ".securityContext.allowPrivilegeEscalation"),
+        ("      capabilities: {drop: [ALL]}\n    resources.$: $.resources.agent", "      capabilities: {drop: [ALL]}\n      privileged: true\n    resources.$: $.resources.agent", "containers[1].securityContext.privileged"),
+        ("seccompProfile: {type: RuntimeDefault}", "seccompProfile: {type: Unconfined}", "spec.template.spec.securityContext.seccompProfile.type"),
+        (", sizeLimit.$: $.resources.shm", "", "volumes[5].emptyDir.sizeLimit"),
+        ("resources.$: $.resources.agent", "resources: {limits: {cpu: '64', memory: 512Gi}}", "containers[1].resources.requests.cpu"),
+        ("resources.$: $.resources.agent", "resources.$: $.resources.simulator", "containers[1].resources.requests.cpu"),
+        ("        automountServiceAccountToken: false\n", "        automountServiceAccountToken: false\n        hostPID: true\n", "spec.template.spec.hostPID"),
+        ("          - {name: logs, emptyDir: {}}", "          - {name: logs, hostPath: {path: /var/log}}", "volumes[0].hostPath"),
+    ];
+    for (from, to, path) in cases {
+        for template in [LEADERBOARD_20, LEADERBOARD_10] {
+            assert!(template.contains(from), "{from:?} is not in the template");
+            let msg = JobTemplate::parse("loosened", &template.replacen(from, to, 1))
+                .unwrap_err()
+                .to_string();
+            assert!(msg.contains(path), "{to:?}: expected `{path}` in {msg}");
+        }
+    }
+}
+
 #[test]
 fn malformed_template_files_are_refused() {
     for (text, needle) in [
@@ -851,6 +1011,20 @@ fn the_golden_files_match_the_rendered_jobs() {
     );
 }
 
+/// The cluster's Kubernetes version: `KubernetesVersion`'s default in `infra/cluster.yaml`.
+fn cluster_version(root: &std::path::Path) -> String {
+    let text = std::fs::read_to_string(root.join("infra/cluster.yaml")).unwrap();
+    let after = text.split_once("\n  KubernetesVersion:").unwrap().1;
+    let default = after.split_once("Default:").unwrap().1;
+    let version = default
+        .lines()
+        .next()
+        .unwrap()
+        .trim()
+        .trim_matches(['"', '\'']);
+    format!("{version}.0")
+}
+
 /// Runs the pinned `kubernetes-validate` (tests/requirements.txt) on every rendered template.
 #[test]
 #[ignore = "needs venv"]
@@ -873,8 +1047,12 @@ fn kubernetes_validate_accepts_every_rendered_job() {
         files.push(path);
     }
     let output = std::process::Command::new(&tool)
-        .arg("--strict")
-        .arg("--quiet")
+        .args([
+            "--strict",
+            "--quiet",
+            "--kubernetes-version",
+            &cluster_version(&root),
+        ])
         .args(&files)
         .output()
         .unwrap();

@@ -103,7 +103,8 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         target.deployment,
         &deps.region,
         &target.deployment.job_role_arn,
-    );
+    )
+    .map_err(|e| stage(e.name(), e.to_string()))?;
     if let Some(timers) = &deps.timers {
         job_settings.timers = timers.clone();
     }
