@@ -8,7 +8,7 @@
 mod model;
 mod retry;
 
-pub use model::{validate_result, Submission};
+pub use model::{validate_result, Submission, MAX_TEAM_NAME};
 pub use retry::{within, RetryPolicy};
 
 use std::time::Duration;

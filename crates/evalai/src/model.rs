@@ -25,7 +25,7 @@ pub struct Submission {
 }
 
 /// Longest team name we carry around; EvalAI allows long names, Kubernetes labels do not.
-const MAX_TEAM_NAME: usize = 1000;
+pub const MAX_TEAM_NAME: usize = 1000;
 
 impl Submission {
     /// Reads GET `/api/jobs/submission/<id>`'s body.

@@ -90,15 +90,9 @@ pub const MAX_ERROR_MESSAGE_BYTES: usize = 4 * 1024;
 
 impl From<FnError> for lambda_runtime::Diagnostic {
     fn from(error: FnError) -> Self {
-        let mut message = error.chain();
-        if message.len() > MAX_ERROR_MESSAGE_BYTES {
-            let keep = lb_domain::logtail::head(&message, MAX_ERROR_MESSAGE_BYTES - 32).len();
-            message.truncate(keep);
-            message.push_str(" [... message cut]");
-        }
         lambda_runtime::Diagnostic {
             error_type: error.name().to_string(),
-            error_message: message,
+            error_message: crate::payload::bounded_text(&error.chain(), MAX_ERROR_MESSAGE_BYTES),
         }
     }
 }
@@ -174,7 +168,7 @@ mod tests {
         });
         let diagnostic = lambda_runtime::Diagnostic::from(error);
         assert!(diagnostic.error_message.len() <= MAX_ERROR_MESSAGE_BYTES);
-        assert!(diagnostic.error_message.ends_with("[... message cut]"));
+        assert!(diagnostic.error_message.ends_with("[... cut]"));
         assert_eq!(diagnostic.error_type, "InvalidMessage");
     }
 

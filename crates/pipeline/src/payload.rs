@@ -3,7 +3,52 @@
 //!
 //! No secret ever goes in here: payloads are visible in the execution history.
 
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Serialize, Serializer};
+
+/// The largest submission message the queue accepts (its `MaximumMessageSize` in
+/// `infra/app.yaml`). The message stays in the execution's state to the end.
+pub const MAX_MESSAGE_BYTES: usize = 16 * 1024;
+
+/// The longest reason a payload carries; a longer one is cut with a note. Reasons can quote
+/// untrusted text (a pod's message, EvalAI's answer) and stay in the state to the end.
+pub const MAX_REASON_BYTES: usize = 4 * 1024;
+
+/// `text` printable (no control characters, which JSON writes six bytes long) and cut to
+/// `max` bytes with a note.
+pub fn bounded_text(text: &str, max: usize) -> String {
+    const NOTE: &str = " [... cut]";
+    let text = lb_domain::logtail::printable(text);
+    if text.len() <= max {
+        return text;
+    }
+    format!(
+        "{}{NOTE}",
+        lb_domain::logtail::head(&text, max - NOTE.len())
+    )
+}
+
+/// Serializes a reason printable and cut to [`MAX_REASON_BYTES`], whoever built it.
+pub fn bounded_reason<S: Serializer>(reason: &Option<String>, s: S) -> Result<S::Ok, S::Error> {
+    match reason {
+        Some(text) => s.serialize_some(&bounded_text(text, MAX_REASON_BYTES)),
+        None => s.serialize_none(),
+    }
+}
+
+/// The Job count, also from the list of names earlier versions carried (an execution started
+/// before a deployment goes on after it).
+fn job_count<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u32, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Jobs {
+        Count(u32),
+        Names(Vec<serde::de::IgnoredAny>),
+    }
+    Ok(match Jobs::deserialize(d)? {
+        Jobs::Count(n) => n,
+        Jobs::Names(names) => names.len() as u32,
+    })
+}
 
 /// Intake's input: the Pipe's message and the execution's name (who claims).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -22,7 +67,11 @@ pub struct IntakeOutput {
     /// The Choice after Intake branches on it.
     pub action: Action,
     /// Why, in words (skip and reject).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "bounded_reason"
+    )]
     pub reason: Option<String>,
     /// The submission, once known (absent when skipped before the EvalAI read).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -75,8 +124,11 @@ pub struct SubmissionInfo {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RunState {
-    /// The Jobs, by name.
-    pub jobs: Vec<String>,
+    /// How many Jobs the run has (their names are in the history's Launch logs and on the
+    /// cluster under the submission's label; a list of 1,024 names would take 68 KB of the
+    /// state's 256 KiB).
+    #[serde(deserialize_with = "job_count")]
+    pub jobs: u32,
     /// The workers' route subsets, by pair ID (1-based), for the merge.
     pub pairs: Vec<PairRoutes>,
     /// Evaluator repetitions (1.0: 5, 2.0: 1).
@@ -114,7 +166,11 @@ pub struct MonitorState {
     #[serde(default)]
     pub progress: (u64, u64),
     /// Why it ended, for the participant (failed runs).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "bounded_reason"
+    )]
     pub reason: Option<String>,
     /// Since when (epoch seconds) the cluster's API could not be reached; a round that
     /// reaches it clears this.
@@ -134,4 +190,46 @@ pub enum RunPhase {
     Failed,
     /// The participant cancelled.
     Cancelled,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_reason_is_cut_to_its_bound_whoever_built_it() {
+        let mut monitor = MonitorState {
+            state: RunPhase::Failed,
+            wait_seconds: 0,
+            rounds: 1,
+            fingerprint: None,
+            progress: (0, 1),
+            reason: Some("é".repeat(100_000)),
+            unreachable_since: None,
+        };
+        let text = serde_json::to_value(&monitor).unwrap()["reason"]
+            .as_str()
+            .unwrap()
+            .to_owned();
+        assert!(text.len() <= MAX_REASON_BYTES, "{}", text.len());
+        assert!(text.ends_with(" [... cut]"));
+        monitor.reason = Some("a \u{1b}[31mred\u{1} line".into());
+        let text = serde_json::to_value(&monitor).unwrap()["reason"].clone();
+        assert_eq!(text, "a red line");
+        monitor.reason = Some("short".into());
+        let back: MonitorState =
+            serde_json::from_value(serde_json::to_value(&monitor).unwrap()).unwrap();
+        assert_eq!(back, monitor);
+    }
+
+    #[test]
+    fn the_job_count_reads_the_names_earlier_versions_carried() {
+        let run = serde_json::json!({
+            "jobs": ["lb-1-a-0", "lb-1-a-1"], "pairs": [], "repetitions": 1, "launched_at": 0,
+            "monitor": {"state": "running", "wait_seconds": 60, "rounds": 0}
+        });
+        let run: RunState = serde_json::from_value(run).unwrap();
+        assert_eq!(run.jobs, 2);
+        assert_eq!(serde_json::to_value(&run).unwrap()["jobs"], 2);
+    }
 }

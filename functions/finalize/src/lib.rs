@@ -78,7 +78,11 @@ pub struct FinalizeOutput {
     /// A stage failed: the execution ends as failed so operators see it.
     pub pipeline_error: bool,
     /// Why, for failed submissions.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "lb_pipeline::payload::bounded_reason"
+    )]
     pub reason: Option<String>,
 }
 

@@ -159,7 +159,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         .await?;
 
     Ok(RunState {
-        jobs: names,
+        jobs: names.len() as u32,
         pairs: plan
             .pairs()
             .map(|p| PairRoutes {

@@ -118,7 +118,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     let observation = match observe(deps, target.deployment, id).await {
         Ok(observation) => {
             run.monitor.unreachable_since = None;
-            Some(observation.expect_jobs(run.jobs.len() as u32))
+            Some(observation.expect_jobs(run.jobs))
         }
         Err(e) if e.is_transient() => {
             let since = *run.monitor.unreachable_since.get_or_insert(now_secs());

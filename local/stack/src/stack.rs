@@ -369,6 +369,7 @@ impl Provisioner<'_> {
                     "MessageRetentionPeriod",
                     QueueAttributeName::MessageRetentionPeriod,
                 ),
+                ("MaximumMessageSize", QueueAttributeName::MaximumMessageSize),
             ] {
                 if let Some(value) = self.template.eval(&props[key]) {
                     create = create.attributes(attribute, value);

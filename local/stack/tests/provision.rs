@@ -90,6 +90,15 @@ async fn the_tables_queues_buckets_and_secrets_are_the_templates() {
         "5"
     );
     assert_eq!(attributes[&QueueAttributeName::VisibilityTimeout], "300");
+    assert_eq!(attributes[&QueueAttributeName::MaximumMessageSize], "16384");
+    // As SQS documents MaximumMessageSize: a larger message is refused at the sender.
+    let refused = sqs
+        .send_message()
+        .queue_url(&url)
+        .message_body("x".repeat(16385))
+        .send()
+        .await;
+    assert!(refused.is_err(), "a 16 KiB + 1 message was accepted");
 
     let secrets = aws_sdk_secretsmanager::Client::new(&stack.sdk);
     let settings_text = secrets

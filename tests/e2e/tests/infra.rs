@@ -366,6 +366,13 @@ fn the_pipe_reads_the_queue_in_batches_of_one_and_starts_the_state_machine() {
         .parse()
         .unwrap();
     assert!((1..=10).contains(&receives));
+    // The message rides in every state: the queue refuses one larger than the bound the
+    // payload test (tests/payloads.rs) computes the states with.
+    assert_eq!(
+        APP.text("SubmissionsQueue", &["MaximumMessageSize"])
+            .unwrap(),
+        lb_pipeline::payload::MAX_MESSAGE_BYTES.to_string()
+    );
 }
 
 #[test]

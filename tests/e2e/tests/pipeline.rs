@@ -221,7 +221,7 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
     );
 
     let run = h.launch(&submission).await;
-    assert_eq!(run.jobs.len(), 1, "4 pairs fit one 4-GPU node");
+    assert_eq!(run.jobs, 1, "4 pairs fit one 4-GPU node");
     let subsets: Vec<&str> = run.pairs.iter().map(|p| p.routes.as_str()).collect();
     assert_eq!(subsets, ["0-4", "5-9", "10-14", "15-19"]);
     assert_eq!(h.stack.fake().submission(1).unwrap().status, "running");
