@@ -101,12 +101,35 @@ pub fn invocation_deadline(context: &lambda_runtime::Context) -> std::time::Inst
     std::time::Instant::now() + left
 }
 
-/// Runs one invocation's work with its EvalAI calls bounded by the invocation's deadline.
-pub async fn within_deadline<F: std::future::Future>(
+/// Runs one invocation's work with its EvalAI calls bounded by the invocation's deadline,
+/// and the whole of it (AWS SDK and Kubernetes calls included) cut at half the margin after
+/// it: a transient `DeadlineExceeded` the state machine retries (every handler is
+/// idempotent), rather than Lambda's own timeout, which no Retry names.
+pub async fn within_deadline<T>(
     context: &lambda_runtime::Context,
-    work: F,
-) -> F::Output {
-    lb_evalai::within(invocation_deadline(context), work).await
+    work: impl std::future::Future<Output = Result<T, FnError>>,
+) -> Result<T, FnError> {
+    let deadline = invocation_deadline(context);
+    bounded(deadline, deadline + REPORT_MARGIN / 2, work).await
+}
+
+async fn bounded<T>(
+    evalai_deadline: std::time::Instant,
+    cutoff: std::time::Instant,
+    work: impl std::future::Future<Output = Result<T, FnError>>,
+) -> Result<T, FnError> {
+    let work = lb_evalai::within(evalai_deadline, work);
+    match tokio::time::timeout_at(tokio::time::Instant::from_std(cutoff), work).await {
+        Ok(done) => done,
+        Err(_) => {
+            tracing::warn!("the invocation's time ran out; the state machine retries it");
+            Err(FnError::Stage {
+                name: "DeadlineExceeded",
+                message: "the invocation's time ran out before its calls ended".into(),
+                transient: true,
+            })
+        }
+    }
 }
 
 #[cfg(test)]
@@ -127,5 +150,26 @@ mod tests {
         // A deadline already past gives no time at all, not a panic.
         context.deadline = 1;
         assert!(invocation_deadline(&context) <= Instant::now());
+    }
+
+    #[tokio::test]
+    async fn work_that_outlasts_the_invocation_ends_as_a_transient_deadline_error() {
+        let now = Instant::now();
+        let stuck = async {
+            // An SDK or Kubernetes call that hangs (no EvalAI deadline applies to it).
+            tokio::time::sleep(Duration::from_secs(3600)).await;
+            Ok::<_, FnError>(())
+        };
+        let err = bounded(now, now + Duration::from_millis(50), stuck)
+            .await
+            .unwrap_err();
+        assert_eq!(err.name(), "DeadlineExceeded");
+        assert!(err.is_transient());
+        assert!(crate::error::TRANSIENT_NAMES.contains(&err.name()));
+        assert!(now.elapsed() < Duration::from_secs(5));
+        let quick = bounded(now, now + Duration::from_secs(5), async {
+            Ok::<_, FnError>(7)
+        });
+        assert_eq!(quick.await.unwrap(), 7);
     }
 }

@@ -97,8 +97,23 @@ impl From<FnError> for lambda_runtime::Diagnostic {
     }
 }
 
+/// The names of the transient errors (`FnError::is_transient`): every Task retries them all
+/// (the state machine test checks it).
+pub const TRANSIENT_NAMES: &[&str] = &[
+    "EvalAiThrottled",
+    "EvalAiUnavailable",
+    "EvalAiNotConfirmed",
+    "AwsTransient",
+    "KubeTransient",
+    "KubeUnavailable",
+    "KubeTimeout",
+    "JobTerminating",
+    "DeadlineExceeded",
+];
+
 /// Every name our functions raise; the state machine test checks `ErrorEquals` against it.
 pub const ERROR_NAMES: &[&str] = &[
+    "DeadlineExceeded",
     "InvalidMessage",
     "InvalidBatch",
     "InvalidSettings",

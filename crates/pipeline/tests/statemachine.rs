@@ -6,7 +6,7 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::PathBuf;
 
 use lb_domain::schedule::{rounds_for, MAX_EVALUATION};
-use lb_pipeline::error::ERROR_NAMES;
+use lb_pipeline::error::{ERROR_NAMES, TRANSIENT_NAMES};
 use serde_json::{Map, Value};
 
 fn root() -> PathBuf {
@@ -73,6 +73,26 @@ fn every_error_name_is_built_in_or_raised_by_our_functions() {
                     assert!(!ERROR_NAMES.contains(&error) || !error.starts_with("States."));
                 }
             }
+        }
+    }
+}
+
+#[test]
+fn every_task_retries_every_transient_error_and_its_own_timeout() {
+    for (name, state) in states(&definition()) {
+        if state["Type"] != "Task" {
+            continue;
+        }
+        let retried: BTreeSet<&str> = state["Retry"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter(|r| r["MaxAttempts"].as_u64().unwrap_or(3) > 0)
+            .flat_map(|r| r["ErrorEquals"].as_array().unwrap())
+            .filter_map(Value::as_str)
+            .collect();
+        for error in TRANSIENT_NAMES.iter().chain(&["States.Timeout"]) {
+            assert!(retried.contains(error), "{name} does not retry {error}");
         }
     }
 }

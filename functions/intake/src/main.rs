@@ -7,7 +7,8 @@ async fn main() -> Result<(), lambda_runtime::Error> {
     let deps = &deps;
     run(service_fn(
         move |event: LambdaEvent<serde_json::Value>| async move {
-            // Every EvalAI retry stops in time for the handler to report (crates/evalai).
+            // Every EvalAI retry stops in time for the handler to report (crates/evalai), and
+            // nothing runs past the invocation's deadline.
             lb_pipeline::clients::within_deadline(
                 &event.context,
                 intake::handle_json(event.payload, deps),
