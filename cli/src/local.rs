@@ -73,6 +73,10 @@ pub struct LocalRun {
     /// Multiplies the state machine's waits and retry intervals (0.05: a 60 s Wait lasts 3 s).
     #[arg(long, default_value_t = 0.05)]
     pub time_scale: f64,
+    /// From the first Monitor round, the local cluster's API answers every request with 500
+    /// `InternalError` for this many minutes (scaled by --time-scale); the Jobs run on.
+    #[arg(long, default_value_t = 0.0)]
+    pub kube_outage_minutes: f64,
     /// Wall-clock limit of the whole run, in seconds.
     #[arg(long, default_value_t = 600)]
     pub timeout: u64,
@@ -114,6 +118,12 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     }
     if args.routes == 0 || args.workers == 0 {
         bail!("--routes and --workers must be at least 1");
+    }
+    if !(args.kube_outage_minutes >= 0.0 && args.kube_outage_minutes <= 7.0 * 24.0 * 60.0) {
+        bail!(
+            "--kube-outage-minutes must be between 0 and a week, got {}",
+            args.kube_outage_minutes
+        );
     }
     let started = Instant::now();
     let bins = Binaries::find()?;
@@ -276,6 +286,13 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let rounds = Arc::new(AtomicU64::new(0));
     let acted = Arc::new(AtomicBool::new(true));
     let fake = stack.fake_evalai.as_ref().map(|f| f.url());
+    let outage = stack
+        .kube
+        .as_ref()
+        .map(|k| k.outage())
+        .filter(|_| args.kube_outage_minutes > 0.0);
+    let outage_for = Duration::from_secs_f64(args.kube_outage_minutes * 60.0 * args.time_scale);
+    let outage_minutes = args.kube_outage_minutes;
     let on_event = {
         let rounds = rounds.clone();
         let acted = acted.clone();
@@ -285,6 +302,13 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                 let name = event.state_name().unwrap_or_default();
                 if name == "Monitor" {
                     let n = rounds.fetch_add(1, Ordering::SeqCst) + 1;
+                    if let (1, Some(outage)) = (n, &outage) {
+                        outage.fail_for(outage_for);
+                        say(
+                            started,
+                            format!("the cluster's API answers 500 for {outage_minutes} minutes (scaled)"),
+                        );
+                    }
                     if !act(scenario, n, fake.as_deref(), submission) {
                         acted.store(false, Ordering::SeqCst);
                     }
@@ -296,10 +320,15 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                 && event.state_name() == Some("Monitor")
             {
                 let output = &event.details["output"]["run"]["monitor"];
+                let unreachable = if output["unreachable_since"].is_null() {
+                    ""
+                } else {
+                    " (cluster unreachable: verdict skipped)"
+                };
                 say(
                     started,
                     format!(
-                        "monitor round {}: {} routes {}/{}",
+                        "monitor round {}: {} routes {}/{}{unreachable}",
                         output["rounds"],
                         output["state"],
                         output["progress"][0],

@@ -107,6 +107,42 @@ fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
 }
 
 #[test]
+#[ignore = "needs moto"]
+fn a_30_minute_cluster_api_outage_mid_run_skips_rounds_and_the_run_ends_finished() {
+    let _one = one_at_a_time();
+    local_stack::workloads::Binaries::build().expect("the workloads build");
+    // 30 minutes at scale 0.01: 18 s of 500s from the first Monitor round, while the Jobs
+    // (5 s of routes) run on and finish.
+    let stdout = local_run(
+        &[
+            "--time-scale",
+            "0.01",
+            "--route-seconds",
+            "1",
+            "--kube-outage-minutes",
+            "30",
+            "--timeout",
+            "240",
+        ],
+        &[],
+    );
+    assert!(
+        stdout.contains("the cluster's API answers 500 for 30 minutes (scaled)"),
+        "{stdout}"
+    );
+    let skipped = stdout
+        .lines()
+        .filter(|l| l.contains("(cluster unreachable: verdict skipped)"))
+        .count();
+    assert!(skipped >= 10, "{skipped} rounds skipped: {stdout}");
+    assert!(stdout.contains("EvalAI status  finished"), "{stdout}");
+    assert!(
+        stdout.contains("merged         20 records over 20 routes"),
+        "{stdout}"
+    );
+}
+
+#[test]
 fn bad_arguments_are_named() {
     let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
         .args(["local", "run", "--scenario", "nope"])

@@ -13,6 +13,7 @@ mod server;
 pub mod status;
 mod store;
 
+pub use api::Outage;
 pub use config::{Config, Isolation, Timing};
 pub use error::{Error, Result};
 pub use imagemap::{ImageEntry, ImageMap, ImageMapError, Pull};

@@ -11,7 +11,7 @@ use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 use tracing::info;
 
-use crate::api::{router, AppState};
+use crate::api::{router, AppState, Outage};
 use crate::config::{Config, Isolation};
 use crate::error::{Error, Result};
 use crate::kubeconfig::kubeconfig_yaml;
@@ -33,6 +33,7 @@ enum Serving {
 pub struct LocalKube {
     addr: SocketAddr,
     token: Option<String>,
+    outage: Arc<Outage>,
     rt: Arc<Runtime>,
     state_dir: Option<tempfile::TempDir>,
     stop_server: Option<oneshot::Sender<()>>,
@@ -42,6 +43,7 @@ pub struct LocalKube {
 struct Prepared {
     addr: SocketAddr,
     token: Option<String>,
+    outage: Arc<Outage>,
     rt: Arc<Runtime>,
     state_dir: Option<tempfile::TempDir>,
     listener: TcpListener,
@@ -92,6 +94,7 @@ async fn prepare(addr: SocketAddr, config: Config) -> Result<Prepared> {
                 source,
             }
         })?;
+    let outage = Arc::new(Outage::default());
     let state = AppState {
         rt: rt.clone(),
         token: config.token.as_deref().map(Arc::from),
@@ -104,11 +107,13 @@ async fn prepare(addr: SocketAddr, config: Config) -> Result<Prepared> {
         ),
         address: Arc::from(addr.to_string()),
         started: time_now(),
+        outage: outage.clone(),
     };
     info!(%addr, state_dir = %state_dir.display(), isolation = ?rt.ns, "local-kube listening");
     Ok(Prepared {
         addr,
         token: config.token,
+        outage,
         rt,
         state_dir: owned,
         listener,
@@ -130,6 +135,7 @@ fn serve(p: Prepared) -> (LocalKubeParts, impl std::future::Future<Output = ()>)
         LocalKubeParts {
             addr: p.addr,
             token: p.token,
+            outage: p.outage,
             rt: p.rt,
             state_dir: p.state_dir,
             stop_server: tx,
@@ -141,6 +147,7 @@ fn serve(p: Prepared) -> (LocalKubeParts, impl std::future::Future<Output = ()>)
 struct LocalKubeParts {
     addr: SocketAddr,
     token: Option<String>,
+    outage: Arc<Outage>,
     rt: Arc<Runtime>,
     state_dir: Option<tempfile::TempDir>,
     stop_server: oneshot::Sender<()>,
@@ -216,11 +223,24 @@ impl LocalKube {
         Self {
             addr: parts.addr,
             token: parts.token,
+            outage: parts.outage,
             rt: parts.rt,
             state_dir: parts.state_dir,
             stop_server: Some(parts.stop_server),
             serving,
         }
+    }
+
+    /// Answers every API request with 500 `InternalError` for `duration` from now (the Jobs
+    /// run on: only the API is down). Health endpoints keep answering.
+    pub fn fail_requests_for(&self, duration: Duration) {
+        tracing::warn!(?duration, "injected API outage");
+        self.outage.fail_for(duration);
+    }
+
+    /// The outage switch, to inject one from elsewhere (a scenario's own task).
+    pub fn outage(&self) -> Arc<Outage> {
+        self.outage.clone()
     }
 
     /// `http://127.0.0.1:<port>`.

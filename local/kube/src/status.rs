@@ -430,6 +430,17 @@ impl ApiError {
         }
     }
 
+    /// 500 `Internal error occurred: <cause>` with the cause, as the apiserver's
+    /// `NewInternalError` writes it (its storage failing, say).
+    pub fn internal_error_occurred(cause: &str) -> Self {
+        let mut details = Map::new();
+        details.insert("causes".into(), serde_json::json!([{ "message": cause }]));
+        Self {
+            details: Some(details),
+            ..Self::internal(format!("Internal error occurred: {cause}"))
+        }
+    }
+
     /// 503 while the server shuts down.
     pub fn unavailable(message: impl Into<String>) -> Self {
         Self {

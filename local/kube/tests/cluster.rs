@@ -1415,3 +1415,44 @@ spec:
     assert_eq!(reason, "CreateContainerConfigError");
     assert!(message.contains("without mount namespaces"), "{message}");
 }
+
+/// The apiserver answers 500 `InternalError` (`Internal error occurred: ...`, its cause in
+/// `details.causes`) when its storage fails; health endpoints and the running Jobs are not
+/// the API and go on.
+#[tokio::test]
+async fn an_injected_outage_answers_500_internal_error_then_ends() {
+    let (lk, client) = start(Config::default()).await;
+    let jobs: Api<Job> = Api::namespaced(client, "default");
+    jobs.list(&ListParams::default()).await.expect("up before");
+    lk.fail_requests_for(Duration::from_millis(400));
+    let (code, body) = raw(
+        &lk,
+        reqwest::Method::GET,
+        "/apis/batch/v1/namespaces/default/jobs",
+        None,
+        None,
+    )
+    .await;
+    assert_eq!(code, 500);
+    assert_eq!(body["kind"], "Status");
+    assert_eq!(body["reason"], "InternalError");
+    assert_eq!(body["code"], 500);
+    assert_eq!(
+        body["message"],
+        "Internal error occurred: etcdserver: request timed out"
+    );
+    assert_eq!(
+        body["details"]["causes"][0]["message"],
+        "etcdserver: request timed out"
+    );
+    match jobs.list(&ListParams::default()).await {
+        Err(kube::Error::Api(status)) => assert_eq!(status.code, 500),
+        other => panic!("expected a 500, got {other:?}"),
+    }
+    let (code, _) = raw(&lk, reqwest::Method::GET, "/healthz", None, None).await;
+    assert_eq!(code, 200);
+    eventually("the outage to end", || async {
+        jobs.list(&ListParams::default()).await.ok()
+    })
+    .await;
+}

@@ -43,6 +43,30 @@ pub struct AppState {
     pub address: Arc<str>,
     /// When the server started (namespaces' creationTimestamp).
     pub started: k8s_openapi::apimachinery::pkg::apis::meta::v1::Time,
+    /// An injected outage: every API request is answered 500 until then.
+    pub outage: Arc<Outage>,
+}
+
+/// Fault injection: the API server failing every request with 500 `InternalError` (as an
+/// apiserver whose etcd is unreachable does) for a while; health endpoints keep answering.
+#[derive(Debug, Default)]
+pub struct Outage {
+    until: std::sync::Mutex<Option<std::time::Instant>>,
+}
+
+impl Outage {
+    /// Fails every API request for `duration` from now.
+    pub fn fail_for(&self, duration: std::time::Duration) {
+        let until = std::time::Instant::now() + duration;
+        *self.until.lock().unwrap_or_else(|e| e.into_inner()) = Some(until);
+    }
+
+    fn active(&self) -> bool {
+        self.until
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .is_some_and(|until| std::time::Instant::now() < until)
+    }
 }
 
 impl AppState {
@@ -187,6 +211,10 @@ async fn auth(State(state): State<AppState>, req: Request, next: Next) -> Respon
     }
     let method = req.method().clone();
     let uri = req.uri().clone();
+    if !open && state.outage.active() {
+        tracing::debug!(%method, %uri, "injected outage: 500");
+        return ApiError::internal_error_occurred("etcdserver: request timed out").into_response();
+    }
     let resp = next.run(req).await;
     tracing::debug!(%method, %uri, status = resp.status().as_u16(), "request");
     resp
