@@ -274,6 +274,37 @@ impl Cluster {
                 submission_id,
             });
         }
+        let ours = labels::execution_of(job.metadata.labels.as_ref());
+        let theirs = labels::execution_of(existing.metadata.labels.as_ref());
+        if let (Some(ours), Some(theirs)) = (ours, theirs) {
+            if ours != theirs {
+                // An earlier execution's Job (the submission was resumed, and the claim moved
+                // to us): it is replaced, never adopted, so that our Finalize, which deletes
+                // only our execution's Jobs, leaves nothing behind.
+                warn!(
+                    execution = theirs,
+                    "job of an earlier execution; deleting it to launch ours"
+                );
+                match self
+                    .call("delete job", api.delete(&name, &DeleteParams::foreground()))
+                    .await?
+                {
+                    Ok(_) => {}
+                    Err(kube::Error::Api(s)) if s.is_not_found() => {}
+                    Err(e) => {
+                        return Err(ClusterError::from_kube(
+                            "delete job",
+                            &format!("Job `{name}`"),
+                            e,
+                        ))
+                    }
+                }
+                return Err(ClusterError::JobTerminating {
+                    job: name,
+                    submission_id,
+                });
+            }
+        }
         let uid = existing.metadata.uid.clone();
         let already_ended = matches!(
             observe::job_state(&existing),
@@ -376,16 +407,29 @@ impl Cluster {
 
     /// Deletes every Job of the submission with foreground propagation (their pods go first),
     /// then any pod of the submission no Job owns. Idempotent: what is already gone is fine.
+    ///
+    /// With `execution` (its label-safe form), only that execution's objects and those without
+    /// an execution label go: a stale execution never deletes the Jobs of the one holding the
+    /// submission now.
     #[instrument(skip(self))]
-    pub async fn delete_all(&self, submission_id: &str) -> Result<Deleted> {
+    pub async fn delete_all(
+        &self,
+        submission_id: &str,
+        execution: Option<&str>,
+    ) -> Result<Deleted> {
         let params = ListParams::default().labels(&labels::submission_selector(submission_id)?);
+        let ours = |labels| labels::belongs_to(execution, labels);
         let jobs = self
             .call("list jobs", self.jobs().list(&params))
             .await?
             .map_err(|e| ClusterError::from_kube("list jobs", "", e))?;
         let mut deleted = Deleted::default();
         let foreground = DeleteParams::foreground();
-        for job in &jobs.items {
+        for job in jobs
+            .items
+            .iter()
+            .filter(|j| ours(j.metadata.labels.as_ref()))
+        {
             let Some(name) = job.metadata.name.clone() else {
                 continue;
             };
@@ -415,7 +459,11 @@ impl Cluster {
                 .flatten()
                 .any(|o| o.kind == "Job")
         };
-        for pod in pods.items.iter().filter(|p| !owned(p)) {
+        for pod in pods
+            .items
+            .iter()
+            .filter(|p| !owned(p) && ours(p.metadata.labels.as_ref()))
+        {
             let Some(name) = pod.metadata.name.clone() else {
                 continue;
             };
@@ -447,18 +495,21 @@ impl Cluster {
     }
 
     /// Polls (every `poll`, at most until `timeout`) until the submission has no Job and no
-    /// Pod left. `Ok(true)` when gone, `Ok(false)` when time ran out first.
+    /// Pod left (of `execution`, as [`Cluster::delete_all`] selects them). `Ok(true)` when gone, `Ok(false)` when time ran out first.
     #[instrument(skip(self))]
     pub async fn wait_gone(
         &self,
         submission_id: &str,
+        execution: Option<&str>,
         timeout: Duration,
         poll: Duration,
     ) -> Result<bool> {
         let deadline = tokio::time::Instant::now() + timeout;
         let poll = poll.max(Duration::from_millis(10));
         loop {
-            let (jobs, pods) = self.list(submission_id).await?;
+            let (mut jobs, mut pods) = self.list(submission_id).await?;
+            jobs.retain(|j| labels::belongs_to(execution, j.metadata.labels.as_ref()));
+            pods.retain(|p| labels::belongs_to(execution, p.metadata.labels.as_ref()));
             if jobs.is_empty() && pods.is_empty() {
                 return Ok(true);
             }

@@ -4,8 +4,9 @@ use crate::error::{ClusterError, Result};
 
 // NB: the keys are the plan's, the ones the Job templates put on every Job and Pod.
 pub use lb_domain::plan::{
-    JOB_INDEX_LABEL as JOB_INDEX, LEADERBOARD_LABEL as LEADERBOARD, MANAGED_BY as MANAGED_BY_VALUE,
-    MANAGED_BY_LABEL as MANAGED_BY, SUBMISSION_LABEL as SUBMISSION_ID, TEAM_ID_LABEL as TEAM_ID,
+    EXECUTION_LABEL as EXECUTION, JOB_INDEX_LABEL as JOB_INDEX, LEADERBOARD_LABEL as LEADERBOARD,
+    MANAGED_BY as MANAGED_BY_VALUE, MANAGED_BY_LABEL as MANAGED_BY,
+    SUBMISSION_LABEL as SUBMISSION_ID, TEAM_ID_LABEL as TEAM_ID,
 };
 
 /// Labels the Job controller itself puts on a Job's Pods (the first is the current one).
@@ -28,6 +29,27 @@ pub fn validate_submission_id(id: &str) -> Result<()> {
         Err(ClusterError::InvalidSubmissionId {
             id: id.chars().take(80).collect(),
         })
+    }
+}
+
+/// The execution label of an object's labels, `None` when absent or empty (Jobs launched
+/// before the label existed belong to whichever execution holds the submission).
+pub fn execution_of(labels: Option<&std::collections::BTreeMap<String, String>>) -> Option<&str> {
+    labels
+        .and_then(|l| l.get(EXECUTION))
+        .map(String::as_str)
+        .filter(|e| !e.is_empty())
+}
+
+/// Whether an object with `labels` is `execution`'s (any execution's when `None`): its
+/// label says so, or it has none.
+pub fn belongs_to(
+    execution: Option<&str>,
+    labels: Option<&std::collections::BTreeMap<String, String>>,
+) -> bool {
+    match (execution, execution_of(labels)) {
+        (Some(mine), Some(theirs)) => mine == theirs,
+        _ => true,
     }
 }
 

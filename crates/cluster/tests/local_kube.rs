@@ -201,7 +201,7 @@ async fn an_unpullable_participant_image_is_observed_failed_naming_the_image() {
         }
         other => panic!("{other:?}"),
     }
-    let deleted = bounded(cluster.delete_all("5003")).await.unwrap();
+    let deleted = bounded(cluster.delete_all("5003", None)).await.unwrap();
     assert_eq!(deleted.jobs, ["lb-5003-team-77-0"]);
 }
 
@@ -232,21 +232,26 @@ async fn delete_all_leaves_nothing_and_is_idempotent() {
     })
     .await;
 
-    let deleted = bounded(cluster.delete_all("5004")).await.unwrap();
+    let deleted = bounded(cluster.delete_all("5004", None)).await.unwrap();
     assert_eq!(deleted.jobs, ["lb-5004-team-77-0", "lb-5004-team-77-1"]);
     let gone = cluster
-        .wait_gone("5004", Duration::from_secs(10), Duration::from_millis(100))
+        .wait_gone(
+            "5004",
+            None,
+            Duration::from_secs(10),
+            Duration::from_millis(100),
+        )
         .await
         .unwrap();
     assert!(gone, "the Jobs and their pods are gone");
     let (jobs, pods) = cluster.list("5004").await.unwrap();
     assert!(jobs.is_empty() && pods.is_empty());
-    let again = bounded(cluster.delete_all("5004")).await.unwrap();
+    let again = bounded(cluster.delete_all("5004", None)).await.unwrap();
     assert_eq!(again, lb_cluster::Deleted::default());
 
     let (jobs, _) = cluster.list("5005").await.unwrap();
     assert_eq!(jobs.len(), 1, "the other submission is untouched");
-    bounded(cluster.delete_all("5005")).await.unwrap();
+    bounded(cluster.delete_all("5005", None)).await.unwrap();
 }
 
 #[tokio::test]
@@ -272,7 +277,7 @@ async fn a_same_named_job_of_another_submission_is_refused() {
     let err = bounded(cluster.create_or_adopt(&theirs)).await.unwrap_err();
     assert_eq!(err.name(), "JobNameTaken", "{err}");
     assert!(err.to_string().contains("`5006`"), "{err}");
-    bounded(cluster.delete_all("5006")).await.unwrap();
+    bounded(cluster.delete_all("5006", None)).await.unwrap();
 }
 
 #[tokio::test]
@@ -343,4 +348,103 @@ async fn zero_hopeless_limits_do_not_fail_a_healthy_job() {
     bounded(cluster.create_or_adopt(&j)).await.unwrap();
     let obs = observe_until(&cluster, "5009", "Finished", |o| o.verdict.is_terminal()).await;
     assert_eq!(obs.verdict, Verdict::Finished);
+}
+
+/// `job` labelled as launched by `execution`, Job and Pods alike.
+fn job_of(execution: &str, sub: &str, index: u32) -> Job {
+    let mut j = job(
+        sub,
+        index,
+        "OnFailure",
+        2,
+        &[("simulator-1", "busybox", "sleep 60")],
+    );
+    for labels in [
+        j.metadata.labels.as_mut(),
+        j.spec
+            .as_mut()
+            .and_then(|s| s.template.metadata.as_mut())
+            .and_then(|m| m.labels.as_mut()),
+    ] {
+        labels
+            .unwrap()
+            .insert(lb_cluster::labels::EXECUTION.into(), execution.into());
+    }
+    j
+}
+
+#[tokio::test]
+async fn an_execution_deletes_and_waits_for_its_own_jobs_only() {
+    let (_lk, cluster, _dir) = start(Config::default()).await;
+    bounded(cluster.create_or_adopt(&job_of("exec-new", "5007", 0)))
+        .await
+        .unwrap();
+    // A Job of another execution of the same submission (left by a race).
+    bounded(cluster.create_or_adopt(&job_of("exec-old", "5007", 1)))
+        .await
+        .unwrap();
+    observe_until(&cluster, "5007", "two Jobs", |o| o.jobs.len() == 2).await;
+
+    let deleted = bounded(cluster.delete_all("5007", Some("exec-new")))
+        .await
+        .unwrap();
+    assert_eq!(deleted.jobs, ["lb-5007-team-77-0"]);
+    let gone = cluster
+        .wait_gone(
+            "5007",
+            Some("exec-new"),
+            Duration::from_secs(10),
+            Duration::from_millis(100),
+        )
+        .await
+        .unwrap();
+    assert!(gone, "exec-new's Job and pods are gone");
+    let (jobs, _) = cluster.list("5007").await.unwrap();
+    let left: Vec<_> = jobs
+        .iter()
+        .filter_map(|j| j.metadata.name.clone())
+        .collect();
+    assert_eq!(
+        left,
+        ["lb-5007-team-77-1"],
+        "exec-old's Job is not exec-new's to delete"
+    );
+    bounded(cluster.delete_all("5007", None)).await.unwrap();
+}
+
+#[tokio::test]
+async fn a_resume_replaces_an_earlier_executions_job_instead_of_adopting_it() {
+    let (_lk, cluster, _dir) = start(Config::default()).await;
+    let first = bounded(cluster.create_or_adopt(&job_of("exec-1", "5008", 0)))
+        .await
+        .unwrap();
+    // The same execution retrying its Launch adopts its own Job.
+    let again = bounded(cluster.create_or_adopt(&job_of("exec-1", "5008", 0)))
+        .await
+        .unwrap();
+    assert!(again.adopted);
+    assert_eq!(again.uid, first.uid);
+    // A resume's execution: the old Job is deleted and the Launch retried until it is gone.
+    let err = bounded(cluster.create_or_adopt(&job_of("exec-2", "5008", 0)))
+        .await
+        .unwrap_err();
+    assert_eq!(err.name(), "JobTerminating");
+    assert!(err.is_transient());
+    let mut launched = None;
+    for _ in 0..100 {
+        match bounded(cluster.create_or_adopt(&job_of("exec-2", "5008", 0))).await {
+            Ok(l) => {
+                launched = Some(l);
+                break;
+            }
+            Err(e) => {
+                assert_eq!(e.name(), "JobTerminating", "{e}");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+    }
+    let launched = launched.expect("the new execution's Job is created");
+    assert!(!launched.adopted);
+    assert_ne!(launched.uid, first.uid);
+    bounded(cluster.delete_all("5008", None)).await.unwrap();
 }

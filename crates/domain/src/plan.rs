@@ -44,6 +44,10 @@ pub const JOB_INDEX_LABEL: &str = "leaderboard.carla.org/job-index";
 pub const LEADERBOARD_LABEL: &str = "leaderboard.carla.org/leaderboard";
 /// Label: the track codename (`SENSORS`, `MAP`, ...).
 pub const TRACK_LABEL: &str = "leaderboard.carla.org/track";
+/// Label: the Step Functions execution that launched the Job (label-safe form of its name).
+/// Finalize deletes only its own execution's Jobs, and a resume replaces an earlier
+/// execution's Jobs instead of adopting them.
+pub const EXECUTION_LABEL: &str = "leaderboard.carla.org/execution";
 /// Label: what the object is (`submission`), for anti-affinity and cleanup.
 pub const COMPONENT_LABEL: &str = "app.kubernetes.io/component";
 /// Value of [`COMPONENT_LABEL`] on submission Jobs and Pods.

@@ -10,8 +10,8 @@ use std::collections::BTreeMap;
 
 use lb_domain::plan::{
     is_dns_label, is_label_value, label_value, Plan, COMPONENT_LABEL, COMPONENT_SUBMISSION,
-    JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY, MANAGED_BY_LABEL, SUBMISSION_LABEL,
-    TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
+    EXECUTION_LABEL, JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY, MANAGED_BY_LABEL,
+    SUBMISSION_LABEL, TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
 };
 use lb_domain::resources::{Allotment, PairAllotment};
 use lb_domain::results::Leaderboard;
@@ -247,6 +247,8 @@ pub struct SubmissionInfo {
     pub participant_image: String,
     /// EvalAI said `resuming`: init removes the cancel marker.
     pub participant_resume: bool,
+    /// The Step Functions execution launching the Jobs (their execution label).
+    pub execution: String,
 }
 
 /// The team, as the Job may show it.
@@ -669,6 +671,7 @@ impl JobContext {
             (JOB_INDEX_LABEL, job.index.to_string()),
             (LEADERBOARD_LABEL, leaderboard.as_str().to_owned()),
             (TRACK_LABEL, label_value(&submission.track)),
+            (EXECUTION_LABEL, label_value(&submission.execution)),
         ]
         .into_iter()
         .map(|(k, v)| (k.to_owned(), v))
@@ -792,6 +795,7 @@ impl JobContext {
             qualifier: false,
             participant_image: "registry.example.com/team/agent:1".into(),
             participant_resume: false,
+            execution: "sample".into(),
         };
         JobContext::build(leaderboard, &plan, 0, &submission, &settings)
             .expect("the sample context is valid")

@@ -67,6 +67,7 @@ fn submission(team: &str, image: &str) -> SubmissionInfo {
         qualifier: false,
         participant_image: image.into(),
         participant_resume: false,
+        execution: "5f0c9e3a-6b1e-4c41-9d0e-2a7d3c1b8e44".into(),
     }
 }
 
@@ -315,6 +316,10 @@ fn every_job_and_its_pods_carry_the_submission_labels() {
     let expected: BTreeMap<String, String> = [
         ("app.kubernetes.io/component", "submission"),
         ("app.kubernetes.io/managed-by", "leaderboard-cloud"),
+        (
+            "leaderboard.carla.org/execution",
+            "5f0c9e3a-6b1e-4c41-9d0e-2a7d3c1b8e44",
+        ),
         ("leaderboard.carla.org/job-index", "0"),
         ("leaderboard.carla.org/leaderboard", "2.0"),
         ("leaderboard.carla.org/submission-id", "4242"),

@@ -121,6 +121,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
             qualifier: target.track_settings.qualifier,
             participant_image: submission.image.clone(),
             participant_resume: submission.resuming,
+            execution: submission.execution.clone(),
         },
         &job_settings,
     )
