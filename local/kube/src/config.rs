@@ -60,4 +60,7 @@ pub struct Config {
     pub isolation: Isolation,
     /// Runtime delays.
     pub timing: Timing,
+    /// The node's `nvidia.com/gpu` capacity: pods wait `Pending` (`Unschedulable`) until
+    /// their GPU request fits. `None`: GPUs are not modelled and every pod fits.
+    pub gpus: Option<u32>,
 }

@@ -39,6 +39,10 @@ struct Args {
     /// Container isolation.
     #[arg(long, value_enum, default_value_t = IsolationArg::Auto)]
     isolation: IsolationArg,
+    /// The node's `nvidia.com/gpu` capacity: pods wait Pending (Unschedulable) until their GPU
+    /// request fits (default: GPUs not modelled, every pod fits).
+    #[arg(long)]
+    gpus: Option<u32>,
 }
 
 #[tokio::main]
@@ -75,6 +79,7 @@ async fn main() -> anyhow::Result<()> {
             IsolationArg::Mount => Isolation::MountNamespace,
             IsolationArg::None => Isolation::None,
         },
+        gpus: args.gpus,
         ..Config::default()
     };
     let mut server = LocalKube::bind(SocketAddr::from(([127, 0, 0, 1], args.port)), config).await?;

@@ -1456,3 +1456,106 @@ async fn an_injected_outage_answers_500_internal_error_then_ends() {
     })
     .await;
 }
+
+/// A Job of one container that requests `gpus` and runs `script`.
+fn gpu_job(name: &str, gpus: u32, script: &str) -> Job {
+    job(&format!(
+        r#"
+apiVersion: batch/v1
+kind: Job
+metadata: {{name: {name}}}
+spec:
+  backoffLimit: 0
+  template:
+    spec:
+      restartPolicy: Never
+      terminationGracePeriodSeconds: 1
+      containers:
+      - name: work
+        image: busybox
+        command: [sh, -c, "{script}"]
+        resources: {{limits: {{nvidia.com/gpu: {gpus}}}}}
+"#
+    ))
+}
+
+fn scheduled(pod: &Pod) -> Option<k8s_openapi::api::core::v1::PodCondition> {
+    pod.status
+        .as_ref()?
+        .conditions
+        .as_ref()?
+        .iter()
+        .find(|c| c.type_ == "PodScheduled")
+        .cloned()
+}
+
+/// As the real scheduler: a pod whose `nvidia.com/gpu` does not fit the node's free GPUs stays
+/// Pending, unbound, with `PodScheduled=False`, reason `Unschedulable` and its message, and
+/// is bound when room frees; one larger than the node waits for good.
+#[tokio::test]
+async fn pods_wait_pending_unschedulable_until_the_nodes_gpus_free() {
+    let (_lk, client) = start(Config {
+        gpus: Some(2),
+        ..Config::default()
+    })
+    .await;
+    let jobs: Api<Job> = Api::namespaced(client.clone(), "default");
+    let pods: Api<Pod> = Api::namespaced(client, "default");
+    let pp = PostParams::default();
+    jobs.create(&pp, &gpu_job("first", 2, "sleep 1"))
+        .await
+        .unwrap();
+    jobs.create(&pp, &gpu_job("second", 1, "true"))
+        .await
+        .unwrap();
+    jobs.create(&pp, &gpu_job("too-big", 3, "true"))
+        .await
+        .unwrap();
+
+    let first = one_pod(&pods, "first").await;
+    assert_eq!(
+        first.spec.as_ref().unwrap().node_name.as_deref(),
+        Some("local-kube")
+    );
+    assert_eq!(scheduled(&first).unwrap().status, "True");
+    for name in ["second", "too-big"] {
+        let pod = one_pod(&pods, name).await;
+        assert_eq!(pod.spec.as_ref().unwrap().node_name, None, "{name}");
+        assert_eq!(
+            pod.status.as_ref().unwrap().phase.as_deref(),
+            Some("Pending")
+        );
+        let c = scheduled(&pod).unwrap();
+        assert_eq!(
+            (c.status.as_str(), c.reason.as_deref(), c.message.as_deref()),
+            (
+                "False",
+                Some("Unschedulable"),
+                Some("0/1 nodes are available: 1 Insufficient nvidia.com/gpu.")
+            ),
+            "{name}"
+        );
+        assert!(pod.status.as_ref().unwrap().container_statuses.is_none());
+    }
+
+    // `first` ends: its 2 GPUs go to `second`, which runs and completes.
+    wait_condition(&jobs, "first", "Complete").await;
+    wait_condition(&jobs, "second", "Complete").await;
+    let second = one_pod(&pods, "second").await;
+    assert_eq!(scheduled(&second).unwrap().status, "True");
+    // No node could ever hold 3: still waiting.
+    let big = one_pod(&pods, "too-big").await;
+    assert_eq!(big.spec.as_ref().unwrap().node_name, None);
+    assert_eq!(
+        scheduled(&big).unwrap().reason.as_deref(),
+        Some("Unschedulable")
+    );
+    // Deleting a pending pod's Job is clean.
+    jobs.delete("too-big", &DeleteParams::foreground())
+        .await
+        .unwrap();
+    eventually("too-big gone", || async {
+        pods_of(&pods, "too-big").await.is_empty().then_some(())
+    })
+    .await;
+}

@@ -15,8 +15,9 @@ use super::names::{generate_name, new_uid};
 use super::JOB_TRACKING_FINALIZER;
 use crate::store::time_now;
 
-/// The pod the controller creates for a Job (`<job>-<5 random>`), owned by the Job.
-pub fn pod_for_job(job: &Job, node: &str) -> Pod {
+/// The pod the controller creates for a Job (`<job>-<5 random>`), owned by the Job, not yet
+/// bound to the node (the scheduler binds it).
+pub fn pod_for_job(job: &Job) -> Pod {
     let job_name = job.metadata.name.clone().unwrap_or_default();
     let template = job
         .spec
@@ -26,7 +27,6 @@ pub fn pod_for_job(job: &Job, node: &str) -> Pod {
     let tmeta = template.metadata.unwrap_or_default();
     let mut spec = template.spec.unwrap_or_default();
     pod_spec(&mut spec);
-    spec.node_name = Some(node.to_owned());
     spec.service_account_name
         .get_or_insert_with(|| "default".into());
     spec.service_account = spec.service_account_name.clone();

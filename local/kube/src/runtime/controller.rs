@@ -305,7 +305,7 @@ impl Controller {
         }
         self.next_pod_at = None;
         for _ in occupied..want {
-            let pod = pod_for_job(job, &self.rt.node);
+            let pod = pod_for_job(job);
             match self.rt.create_pod(pod) {
                 Ok(p) => {
                     info!(job = %self.key.name, pod = p.metadata.name.as_deref().unwrap_or_default(), "pod created")

@@ -6,6 +6,7 @@ pub mod expand;
 pub mod kubelet;
 pub mod mounts;
 pub mod process;
+pub mod scheduler;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -78,6 +79,9 @@ pub struct Runtime {
     pub home: String,
     /// Live process groups.
     pub procs: Processes,
+    /// The node's `nvidia.com/gpu` (`None`: GPUs not modelled, every pod fits).
+    pub gpus: Option<u32>,
+    allocations: Mutex<scheduler::Allocations>,
     jobs: Mutex<HashMap<String, JobHandle>>,
     pods: Mutex<HashMap<String, PodHandle>>,
     shutting_down: AtomicBool,
@@ -96,6 +100,7 @@ impl Runtime {
         timing: Timing,
         ns: Namespaces,
         state_dir: &Path,
+        gpus: Option<u32>,
     ) -> std::io::Result<Arc<Self>> {
         let pods_dir = state_dir.join("pods");
         std::fs::create_dir_all(&pods_dir)?;
@@ -112,6 +117,8 @@ impl Runtime {
             }),
             home: std::env::var("HOME").unwrap_or_else(|_| "/root".into()),
             procs: Processes::default(),
+            gpus,
+            allocations: Mutex::new(Default::default()),
             jobs: Mutex::new(HashMap::new()),
             pods: Mutex::new(HashMap::new()),
             shutting_down: AtomicBool::new(false),
@@ -186,12 +193,62 @@ impl Runtime {
         }
     }
 
-    /// Stores a pod and starts its kubelet.
+    /// Stores a pod (unbound) and schedules it.
     pub fn create_pod(self: &Arc<Self>, pod: Pod) -> Result<Pod, ApiError> {
         if self.is_shutting_down() {
             return Err(ApiError::unavailable("local-kube is shutting down"));
         }
         let pod = self.store.create(pod)?;
+        self.schedule();
+        Ok(self
+            .store
+            .get::<Pod>(&ObjKey::of(&pod.metadata))
+            .unwrap_or(pod))
+    }
+
+    /// One scheduling pass over the unbound pods, oldest first: each that fits the node's
+    /// free GPUs is bound and started; the others are marked unschedulable and wait for the
+    /// next pass (a pod ending or going away starts one).
+    pub fn schedule(self: &Arc<Self>) {
+        // NB: held for the whole pass: one scheduler, no GPU handed out twice.
+        let mut allocations = lock(&self.allocations);
+        let (mut pending, _) = self.store.list::<Pod>(None, |p| {
+            p.metadata.deletion_timestamp.is_none()
+                && p.spec.as_ref().is_some_and(|s| s.node_name.is_none())
+        });
+        pending.sort_by(|a, b| {
+            (&a.metadata.creation_timestamp, &a.metadata.name)
+                .cmp(&(&b.metadata.creation_timestamp, &b.metadata.name))
+        });
+        for pod in pending {
+            let key = ObjKey::of(&pod.metadata);
+            let uid = pod.metadata.uid.clone().unwrap_or_default();
+            let need = pod.spec.as_ref().map_or(0, scheduler::gpu_request);
+            if !scheduler::fits(self.gpus, allocations.in_use(), need) {
+                self.store
+                    .update::<Pod>(&key, scheduler::mark_unschedulable);
+                continue;
+            }
+            let Some(bound) = self
+                .store
+                .update::<Pod>(&key, |p| scheduler::bind(p, &self.node))
+            else {
+                continue;
+            };
+            allocations.bind(&uid, need);
+            info!(pod = %key.name, gpus = need, "pod scheduled");
+            self.start_kubelet(bound);
+        }
+    }
+
+    /// Frees a pod's GPUs once its kubelet is done, and schedules what waited for them.
+    fn release(self: &Arc<Self>, uid: &str) {
+        lock(&self.allocations).release(uid);
+        self.schedule();
+    }
+
+    /// Starts the kubelet of a bound pod.
+    fn start_kubelet(self: &Arc<Self>, pod: Pod) {
         let uid = pod.metadata.uid.clone().unwrap_or_default();
         let grace = pod
             .spec
@@ -202,11 +259,12 @@ impl Runtime {
             .min(self.timing.max_grace_period);
         let (stop, stop_rx) = watch::channel(None);
         let (done_tx, done) = watch::channel(false);
-        lock(&self.pods).insert(uid, PodHandle { stop, done, grace });
+        lock(&self.pods).insert(uid.clone(), PodHandle { stop, done, grace });
         let rt = self.clone();
-        let p = pod.clone();
-        tokio::spawn(async move { kubelet::run_pod(rt, p, stop_rx, done_tx).await });
-        Ok(pod)
+        tokio::spawn(async move {
+            kubelet::run_pod(rt.clone(), pod, stop_rx, done_tx).await;
+            rt.release(&uid);
+        });
     }
 
     /// Marks a pod deleted (so it shows as terminating) and returns it.

@@ -1,0 +1,170 @@
+//! The scheduler of the one node: pods are bound in creation order while the node's
+//! `nvidia.com/gpu` has room; the others stay `Pending` with the real scheduler's
+//! `PodScheduled=False`, reason `Unschedulable` condition and message until room frees.
+
+use std::collections::HashMap;
+
+use k8s_openapi::api::core::v1::{Pod, PodCondition, PodSpec};
+use k8s_openapi::apimachinery::pkg::api::resource::Quantity;
+
+use crate::store::time_now;
+
+/// The extended resource the NVIDIA device plugin advertises.
+pub const GPU: &str = "nvidia.com/gpu";
+
+/// What the real scheduler writes on a pod no node has GPUs for (kube-scheduler's
+/// `NodeResourcesFit` plugin, one node).
+pub const INSUFFICIENT_GPU: &str = "0/1 nodes are available: 1 Insufficient nvidia.com/gpu.";
+
+/// GPUs in use, by pod uid.
+#[derive(Debug, Default)]
+pub struct Allocations {
+    used: HashMap<String, u32>,
+}
+
+impl Allocations {
+    /// GPUs bound to pods now.
+    pub fn in_use(&self) -> u32 {
+        self.used.values().sum()
+    }
+
+    /// Records `gpus` bound to pod `uid`.
+    pub fn bind(&mut self, uid: &str, gpus: u32) {
+        self.used.insert(uid.to_owned(), gpus);
+    }
+
+    /// Frees pod `uid`'s GPUs (idempotent).
+    pub fn release(&mut self, uid: &str) {
+        self.used.remove(uid);
+    }
+}
+
+fn gpus_of(q: Option<&Quantity>) -> u32 {
+    q.and_then(|q| q.0.trim().parse::<u32>().ok()).unwrap_or(0)
+}
+
+/// The pod's `nvidia.com/gpu` request, as the scheduler counts it: the larger of the sum
+/// over the app containers and the largest init container (an extended resource's request
+/// defaults to its limit and must equal it).
+pub fn gpu_request(spec: &PodSpec) -> u32 {
+    let of = |c: &k8s_openapi::api::core::v1::Container| {
+        let r = c.resources.as_ref();
+        let request = r.and_then(|r| r.requests.as_ref()).and_then(|m| m.get(GPU));
+        let limit = r.and_then(|r| r.limits.as_ref()).and_then(|m| m.get(GPU));
+        gpus_of(request.or(limit))
+    };
+    let apps: u32 = spec.containers.iter().map(of).sum();
+    let inits = spec
+        .init_containers
+        .iter()
+        .flatten()
+        .map(of)
+        .max()
+        .unwrap_or(0);
+    apps.max(inits)
+}
+
+/// Whether a pod needing `need` GPUs fits a node of `capacity` (`None`: GPUs not modelled,
+/// everything fits) with `in_use` bound.
+pub fn fits(capacity: Option<u32>, in_use: u32, need: u32) -> bool {
+    match capacity {
+        None => true,
+        Some(total) => in_use.saturating_add(need) <= total,
+    }
+}
+
+/// Marks `pod` scheduled on `node`.
+pub fn bind(pod: &mut Pod, node: &str) {
+    pod.spec.get_or_insert_with(Default::default).node_name = Some(node.to_owned());
+    set_scheduled(pod, None);
+}
+
+/// Marks `pod` unschedulable (keeping the transition time while it stays so).
+pub fn mark_unschedulable(pod: &mut Pod) {
+    set_scheduled(pod, Some(INSUFFICIENT_GPU));
+}
+
+fn set_scheduled(pod: &mut Pod, unschedulable: Option<&str>) {
+    let status = pod.status.get_or_insert_with(Default::default);
+    let conditions = status.conditions.get_or_insert_with(Vec::new);
+    let value = if unschedulable.is_some() {
+        "False"
+    } else {
+        "True"
+    };
+    if let Some(c) = conditions.iter().find(|c| c.type_ == "PodScheduled") {
+        if c.status == value && c.message.as_deref() == unschedulable {
+            return;
+        }
+    }
+    conditions.retain(|c| c.type_ != "PodScheduled");
+    conditions.push(PodCondition {
+        type_: "PodScheduled".into(),
+        status: value.into(),
+        reason: unschedulable.map(|_| "Unschedulable".into()),
+        message: unschedulable.map(Into::into),
+        last_transition_time: Some(time_now()),
+        ..Default::default()
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(yaml: &str) -> PodSpec {
+        serde_yaml::from_str(yaml).unwrap()
+    }
+
+    #[test]
+    fn the_request_sums_app_containers_and_takes_the_largest_init_container() {
+        let s = spec(
+            r#"{"containers": [
+                 {"name": "a", "resources": {"limits": {"nvidia.com/gpu": 1}}},
+                 {"name": "b", "resources": {"requests": {"nvidia.com/gpu": "2"},
+                                             "limits": {"nvidia.com/gpu": "2"}}},
+                 {"name": "c"}],
+               "initContainers": [{"name": "i", "resources": {"limits": {"nvidia.com/gpu": 1}}}]}"#,
+        );
+        assert_eq!(gpu_request(&s), 3);
+        let s = spec(
+            r#"{"containers": [{"name": "a"}],
+               "initContainers": [{"name": "i", "resources": {"limits": {"nvidia.com/gpu": 4}}}]}"#,
+        );
+        assert_eq!(gpu_request(&s), 4);
+        assert_eq!(gpu_request(&spec("containers: [{name: a}]")), 0);
+    }
+
+    #[test]
+    fn a_pod_fits_while_the_node_has_room() {
+        assert!(fits(Some(4), 2, 2));
+        assert!(!fits(Some(4), 3, 2));
+        assert!(!fits(Some(1), 0, 2));
+        assert!(fits(None, 100, 8));
+        let mut a = Allocations::default();
+        a.bind("x", 2);
+        a.bind("y", 1);
+        a.release("x");
+        a.release("x");
+        assert_eq!(a.in_use(), 1);
+    }
+
+    #[test]
+    fn the_conditions_are_the_real_schedulers() {
+        let mut pod = Pod::default();
+        mark_unschedulable(&mut pod);
+        let c = &pod.status.as_ref().unwrap().conditions.as_ref().unwrap()[0];
+        assert_eq!(
+            (c.type_.as_str(), c.status.as_str(), c.reason.as_deref()),
+            ("PodScheduled", "False", Some("Unschedulable"))
+        );
+        assert_eq!(c.message.as_deref(), Some(INSUFFICIENT_GPU));
+        bind(&mut pod, "local-kube");
+        assert_eq!(
+            pod.spec.as_ref().unwrap().node_name.as_deref(),
+            Some("local-kube")
+        );
+        let c = &pod.status.as_ref().unwrap().conditions.as_ref().unwrap()[0];
+        assert_eq!((c.status.as_str(), c.reason.as_deref()), ("True", None));
+    }
+}
