@@ -23,8 +23,7 @@ const MAX_STATE_NAME: usize = 80;
 
 /// Fields of the language this executor knows but does not run; refused with this note.
 const UNSUPPORTED_FIELDS: &[(&str, &str)] = &[
-    ("HeartbeatSeconds", "heartbeats need callback tasks"),
-    ("HeartbeatSecondsPath", "heartbeats need callback tasks"),
+    ("HeartbeatSecondsPath", "use a fixed `HeartbeatSeconds`"),
     ("TimeoutSecondsPath", "use a fixed `TimeoutSeconds`"),
     ("Credentials", "cross-account task credentials"),
     ("Arguments", "JSONata is not supported"),
@@ -114,18 +113,24 @@ impl Kind {
     }
 }
 
-/// How a Task reaches its function: a plain function ARN (`LambdaFunction*` events) or the
-/// optimized integration `arn:aws:states:::lambda:invoke` (`Task*` events, wrapped result).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// How a Task reaches its function: a plain function ARN (`LambdaFunction*` events), the
+/// optimized integration `arn:aws:states:::lambda:invoke` (`Task*` events, wrapped result),
+/// or another service's integration `arn:aws:states:::<service>:<action>` (`Task*` events; a
+/// handler registered as `<service>:<action>` plays the service).
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub(crate) enum Integration {
     LambdaArn,
     LambdaInvoke,
+    Service { service: String, action: String },
 }
 
 #[derive(Debug)]
 pub(crate) struct Task {
     pub integration: Integration,
     pub function: FunctionRef,
+    /// `.waitForTaskToken`: the result is what `SendTaskSuccess` reports for `$$.Task.Token`.
+    pub callback: bool,
+    pub heartbeat_seconds: Option<u64>,
     pub timeout_seconds: Option<u64>,
     pub retry: Vec<Retrier>,
     pub catch: Vec<Catcher>,
@@ -474,7 +479,7 @@ impl Loader {
         let (kind, flow) = match state_type {
             "Task" => {
                 obj.only(
-                    &fields(&[COMMON, IO, TRANSITION, RESULT, ERRORS, &["Resource", "TimeoutSeconds"]]),
+                    &fields(&[COMMON, IO, TRANSITION, RESULT, ERRORS, &["Resource", "TimeoutSeconds", "HeartbeatSeconds"]]),
                     "a Task state",
                 )?;
                 let task = self.task(&obj)?;
@@ -588,17 +593,46 @@ impl Loader {
     fn task(&mut self, obj: &Obj<'_>) -> Result<Task, LoadError> {
         let resource = obj.required_string("Resource")?;
         let resource_at = obj.loc("Resource");
+        let mut callback = false;
         let (integration, function) = if let Some(rest) = states_integration(resource) {
+            let rest = match rest.strip_suffix(".waitForTaskToken") {
+                Some(base) => {
+                    callback = true;
+                    base
+                }
+                None => rest,
+            };
+            if rest.ends_with(".sync") || rest.contains(".sync:") {
+                return Err(LoadError::unsupported(
+                    resource_at,
+                    "the run-a-job pattern (`.sync`) is not supported",
+                ));
+            }
             if rest != "lambda:invoke" {
-                let why = if rest.starts_with("lambda:invoke.") {
-                    "the callback (`.waitForTaskToken`) pattern is not supported; use `arn:aws:states:::lambda:invoke`"
-                        .to_owned()
-                } else {
-                    format!(
-                        "the service integration `{rest}` is not supported; only `arn:aws:states:::lambda:invoke` and Lambda function ARNs are"
-                    )
+                let (service, action) = rest
+                    .split_once(':')
+                    .filter(|(s, a)| {
+                        !s.is_empty()
+                            && !a.is_empty()
+                            && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-')
+                            && a.bytes().all(|b| b.is_ascii_alphanumeric())
+                    })
+                    .ok_or_else(|| {
+                        LoadError::invalid(
+                            &resource_at,
+                            format!("`{resource}` is not a service integration (`arn:aws:states:::<service>:<action>`)"),
+                        )
+                    })?;
+                let function = FunctionRef {
+                    function: format!("arn:aws:states:::{rest}"),
+                    name: rest.to_owned(),
+                    substitution: None,
                 };
-                return Err(LoadError::unsupported(resource_at, why));
+                let integration = Integration::Service {
+                    service: service.to_owned(),
+                    action: action.to_owned(),
+                };
+                return self.finish_task(obj, integration, function, callback);
             }
             let params_at = obj.loc("Parameters");
             let params = obj.object("Parameters")?.ok_or_else(|| {
@@ -677,13 +711,41 @@ impl Loader {
                 ),
             ));
         };
+        self.finish_task(obj, integration, function, callback)
+    }
+
+    fn finish_task(
+        &mut self,
+        obj: &Obj<'_>,
+        integration: Integration,
+        function: FunctionRef,
+        callback: bool,
+    ) -> Result<Task, LoadError> {
         if !self.functions.contains(&function) {
             self.functions.push(function.clone());
+        }
+        let timeout_seconds = obj.integer("TimeoutSeconds", 1, MAX_SECONDS)?;
+        let heartbeat_seconds = obj.integer("HeartbeatSeconds", 1, MAX_SECONDS)?;
+        if let (Some(h), Some(t)) = (heartbeat_seconds, timeout_seconds) {
+            if h >= t {
+                return Err(LoadError::invalid(
+                    obj.loc("HeartbeatSeconds"),
+                    "must be smaller than `TimeoutSeconds`",
+                ));
+            }
+        }
+        if heartbeat_seconds.is_some() && !callback {
+            return Err(LoadError::unsupported(
+                obj.loc("HeartbeatSeconds"),
+                "heartbeats are not supported outside `.waitForTaskToken` tasks",
+            ));
         }
         Ok(Task {
             integration,
             function,
-            timeout_seconds: obj.integer("TimeoutSeconds", 1, MAX_SECONDS)?,
+            callback,
+            heartbeat_seconds,
+            timeout_seconds,
             retry: retriers(obj)?,
             catch: catchers(obj)?,
         })

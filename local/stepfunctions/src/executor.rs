@@ -14,13 +14,14 @@ use time::OffsetDateTime;
 use tokio::sync::watch;
 use tokio::task::{JoinHandle, JoinSet};
 
+use crate::callback::{CallbackError, Callbacks, Outcome, Pending};
 use crate::definition::{
     Catcher, Integration, Jitter, Kind, MapState, Parallel, Retrier, Scope, State, StateMachine,
     Task, Text, Wait,
 };
 use crate::error::{OptionsError, StartError};
 use crate::history::{EventCallback, EventStream, EventType, FinishGuard, HistoryEvent, Recorder};
-use crate::runtime::{matches, Failure, STATES_TIMEOUT};
+use crate::runtime::{matches, Failure, STATES_HEARTBEAT_TIMEOUT, STATES_TIMEOUT};
 use crate::tasks::{FunctionRef, Tasks};
 use crate::timestamp;
 
@@ -161,6 +162,7 @@ impl ExecutionResult {
 pub struct Executor {
     tasks: Arc<dyn Tasks>,
     options: Arc<Options>,
+    callbacks: Arc<Callbacks>,
 }
 
 impl fmt::Debug for Executor {
@@ -186,7 +188,31 @@ impl Executor {
         Ok(Executor {
             tasks: Arc::new(tasks),
             options: Arc::new(options),
+            callbacks: Arc::new(Callbacks::default()),
         })
+    }
+
+    /// `SendTaskSuccess`: the waiting `.waitForTaskToken` task of `token` succeeds with
+    /// `output` as its result.
+    pub fn send_task_success(&self, token: &str, output: Value) -> Result<(), CallbackError> {
+        self.callbacks
+            .success(token, output, self.options.max_payload_bytes)
+    }
+
+    /// `SendTaskFailure`: the waiting task of `token` fails with `error` and `cause`
+    /// (retried and caught like any task error).
+    pub fn send_task_failure(
+        &self,
+        token: &str,
+        error: &str,
+        cause: &str,
+    ) -> Result<(), CallbackError> {
+        self.callbacks.failure(token, error, cause)
+    }
+
+    /// `SendTaskHeartbeat`: restarts the waiting task's `HeartbeatSeconds`.
+    pub fn send_task_heartbeat(&self, token: &str) -> Result<(), CallbackError> {
+        self.callbacks.heartbeat(token)
     }
 
     /// The functions of `state_machine` no handler is registered for (each would fail with
@@ -247,6 +273,7 @@ impl Executor {
         let run = Arc::new(Run {
             tasks: self.tasks.clone(),
             options: self.options.clone(),
+            callbacks: self.callbacks.clone(),
             recorder: recorder.clone(),
             random,
             execution: json!({
@@ -411,6 +438,7 @@ impl<T> Drop for AbortOnDrop<T> {
 struct Run {
     tasks: Arc<dyn Tasks>,
     options: Arc<Options>,
+    callbacks: Arc<Callbacks>,
     recorder: Arc<Recorder>,
     random: RandomSource,
     execution: Value,
@@ -434,6 +462,24 @@ enum Invocation {
     Failed(Failure),
     TimedOut,
 }
+
+/// How a callback task's wait ended.
+enum CallbackEnd {
+    Reported(Outcome),
+    TimedOut(&'static str),
+}
+
+/// Closes a task token however its attempt ends (a result, a timeout, an abort).
+struct CloseOnDrop(Arc<Callbacks>, String);
+
+impl Drop for CloseOnDrop {
+    fn drop(&mut self) {
+        self.0.close(&self.1);
+    }
+}
+
+/// Tokens are unique across the executions of one executor, seeded or not.
+static TOKENS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
 #[allow(clippy::too_many_arguments)]
 async fn execute(
@@ -837,20 +883,51 @@ impl Run {
         ctx: &Value,
         thread: &mut Thread,
     ) -> Result<Value, Failure> {
-        let env = Env::with_context(ctx).random(&self.random);
+        // A callback task's token: one per attempt, at `$$.Task.Token`, open before the
+        // integration runs (its worker may answer before it returns).
+        let token = task.callback.then(|| {
+            let n = TOKENS.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            format!("AQ{}{n:016x}", self.random.uuid_v4().replace('-', ""))
+        });
+        let mut ctx = ctx.clone();
+        if let Some(t) = &token {
+            ctx["Task"] = json!({ "Token": t });
+        }
+        let wait = token.as_ref().map(|t| self.callbacks.open(t));
+        let _closing = token
+            .as_ref()
+            .map(|t| CloseOnDrop(self.callbacks.clone(), t.clone()));
+        let env = Env::with_context(&ctx).random(&self.random);
         let effective = state
             .flow
             .effective_input(input, &env)
             .map_err(Failure::from_asl)?;
         self.check_size(&effective, "input", &state.name)?;
+        let (resource_type, action) = match &task.integration {
+            Integration::Service { service, action } => (service.as_str(), action.as_str()),
+            _ => ("lambda", "invoke"),
+        };
+        let resource_name = if task.callback {
+            format!("{action}.waitForTaskToken")
+        } else {
+            action.to_owned()
+        };
         let resource = |extra: Value| {
-            let mut details = json!({"resourceType": "lambda", "resource": "invoke"});
+            let mut details = json!({"resourceType": resource_type, "resource": resource_name});
             if let (Value::Object(d), Value::Object(e)) = (&mut details, extra) {
                 d.extend(e);
             }
             details
         };
         let timeout = task.timeout_seconds;
+        let mut scheduled =
+            resource(json!({"region": self.options.region, "parameters": effective}));
+        if let Some(t) = timeout {
+            scheduled["timeoutInSeconds"] = t.into();
+        }
+        if let Some(h) = task.heartbeat_seconds {
+            scheduled["heartbeatInSeconds"] = h.into();
+        }
         let payload = match task.integration {
             Integration::LambdaArn => {
                 let mut details = json!({"resource": task.function.function, "input": effective});
@@ -862,12 +939,7 @@ impl Run {
                 effective
             }
             Integration::LambdaInvoke => {
-                let mut details =
-                    resource(json!({"region": self.options.region, "parameters": effective}));
-                if let Some(t) = timeout {
-                    details["timeoutInSeconds"] = t.into();
-                }
-                self.record(thread, EventType::TaskScheduled, details)?;
+                self.record(thread, EventType::TaskScheduled, scheduled)?;
                 self.record(thread, EventType::TaskStarted, resource(json!({})))?;
                 // NB: Lambda hands an empty payload to the function as `{}`.
                 effective
@@ -875,20 +947,50 @@ impl Run {
                     .cloned()
                     .unwrap_or_else(|| json!({}))
             }
+            Integration::Service { .. } => {
+                self.record(thread, EventType::TaskScheduled, scheduled)?;
+                self.record(thread, EventType::TaskStarted, resource(json!({})))?;
+                effective
+            }
         };
+        let started = tokio::time::Instant::now();
         let lambda = task.integration == Integration::LambdaArn;
         match self.invoke(task, payload).await {
             Ok(raw) => {
-                let result = if lambda {
-                    raw
-                } else {
-                    json!({
+                let result = match task.integration {
+                    Integration::LambdaInvoke => json!({
                         "ExecutedVersion": "$LATEST",
                         "Payload": raw,
                         "SdkHttpMetadata": {"HttpStatusCode": 200},
                         "SdkResponseMetadata": {"RequestId": self.random.uuid_v4()},
                         "StatusCode": 200,
-                    })
+                    }),
+                    _ => raw,
+                };
+                let result = match wait {
+                    None => result,
+                    Some(wait) => {
+                        self.record(
+                            thread,
+                            EventType::TaskSubmitted,
+                            resource(json!({ "output": result })),
+                        )?;
+                        match self.await_callback(task, wait, started).await {
+                            CallbackEnd::Reported(Outcome::Success(output)) => output,
+                            CallbackEnd::Reported(Outcome::Failure { error, cause }) => {
+                                let failure = Failure::new(error, Some(cause));
+                                let details = failure_details(&failure);
+                                self.record(thread, EventType::TaskFailed, resource(details))?;
+                                return Err(failure);
+                            }
+                            CallbackEnd::TimedOut(error) => {
+                                let failure = Failure::new(error, None);
+                                let details = failure_details(&failure);
+                                self.record(thread, EventType::TaskTimedOut, resource(details))?;
+                                return Err(failure);
+                            }
+                        }
+                    }
                 };
                 if lambda {
                     self.record(
@@ -933,8 +1035,57 @@ impl Run {
         }
     }
 
+    /// Waits for the token's report: `TimeoutSeconds` counts from the task's start,
+    /// `HeartbeatSeconds` from the last heartbeat (or the start).
+    async fn await_callback(
+        &self,
+        task: &Task,
+        mut wait: Pending,
+        started: tokio::time::Instant,
+    ) -> CallbackEnd {
+        let deadline = task
+            .timeout_seconds
+            .map(|s| started + self.scaled(s as f64));
+        let beat = task.heartbeat_seconds.map(|s| self.scaled(s as f64));
+        // Ends: each heartbeat restarts a bounded timer; the deadline (when set) is fixed.
+        loop {
+            let timeout = async {
+                match deadline {
+                    Some(d) => tokio::time::sleep_until(d).await,
+                    None => std::future::pending().await,
+                }
+            };
+            let heartbeat = async {
+                match beat {
+                    Some(b) => tokio::time::sleep(b).await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                reported = &mut wait.done => {
+                    return match reported {
+                        Ok(outcome) => CallbackEnd::Reported(outcome),
+                        Err(_) => CallbackEnd::TimedOut(STATES_TIMEOUT),
+                    };
+                }
+                _ = wait.heartbeat.notified() => continue,
+                _ = timeout => return CallbackEnd::TimedOut(STATES_TIMEOUT),
+                _ = heartbeat => return CallbackEnd::TimedOut(STATES_HEARTBEAT_TIMEOUT),
+            }
+        }
+    }
+
     async fn invoke(&self, task: &Task, payload: Value) -> Result<Value, Invocation> {
         let Some(handler) = self.tasks.handler(&task.function) else {
+            if let Integration::Service { .. } = task.integration {
+                return Err(Invocation::Failed(Failure::new(
+                    crate::runtime::STATES_TASK_FAILED,
+                    Some(format!(
+                        "no handler plays `{}` in the embedded executor (register one under that key)",
+                        task.function.name
+                    )),
+                )));
+            }
             return Err(Invocation::Failed(Failure::new(
                 "Lambda.ResourceNotFoundException",
                 Some(format!(

@@ -43,6 +43,7 @@ event_types!(
     TaskStateExited,
     TaskScheduled,
     TaskStarted,
+    TaskSubmitted,
     TaskSucceeded,
     TaskFailed,
     TaskTimedOut,

@@ -42,6 +42,7 @@
 //! # });
 //! ```
 
+mod callback;
 mod choice;
 mod definition;
 mod error;
@@ -52,11 +53,13 @@ mod substitute;
 mod tasks;
 mod timestamp;
 
+pub use callback::CallbackError;
 pub use definition::StateMachine;
 pub use error::{LoadError, OptionsError, StartError};
 pub use executor::{Execution, ExecutionResult, Executor, Options, Status};
 pub use history::{EventCallback, EventStream, EventType, HistoryEvent};
 pub use runtime::{
-    STATES_ALL, STATES_DATA_LIMIT_EXCEEDED, STATES_RUNTIME, STATES_TASK_FAILED, STATES_TIMEOUT,
+    STATES_ALL, STATES_DATA_LIMIT_EXCEEDED, STATES_HEARTBEAT_TIMEOUT, STATES_RUNTIME,
+    STATES_TASK_FAILED, STATES_TIMEOUT,
 };
 pub use tasks::{handler, FunctionRef, Handler, TaskError, TaskFuture, TaskMap, Tasks};

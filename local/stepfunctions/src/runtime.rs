@@ -9,6 +9,8 @@ pub const STATES_ALL: &str = "States.ALL";
 pub const STATES_TASK_FAILED: &str = "States.TaskFailed";
 /// A Task ran longer than its `TimeoutSeconds`.
 pub const STATES_TIMEOUT: &str = "States.Timeout";
+/// A callback task heard no heartbeat for its `HeartbeatSeconds`.
+pub const STATES_HEARTBEAT_TIMEOUT: &str = "States.HeartbeatTimeout";
 /// An evaluation failure the service cannot process; never retried, never caught.
 pub const STATES_RUNTIME: &str = "States.Runtime";
 /// A payload over the size quota; never retried, never caught.

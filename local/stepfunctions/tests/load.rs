@@ -302,16 +302,31 @@ fn retriers_and_catchers_are_checked_field_by_field() {
 }
 
 #[test]
-fn only_lambda_resources_are_supported() {
+fn lambda_resources_service_integrations_and_callbacks_are_checked() {
     let resource = |r: &str| task(json!({"Resource": r}));
+    // A service integration is played by a handler registered under `<service>:<action>`.
+    let machine = StateMachine::load(
+        &resource("arn:aws:states:::sqs:sendMessage"),
+        &HashMap::new(),
+    )
+    .unwrap();
+    assert_eq!(machine.functions()[0].name, "sqs:sendMessage");
+    StateMachine::load(
+        &task(
+            json!({"Resource": "arn:aws:states:::lambda:invoke.waitForTaskToken",
+                     "Parameters": {"FunctionName": "f", "Payload": {"t.$": "$$.Task.Token"}}}),
+        ),
+        &HashMap::new(),
+    )
+    .unwrap();
     refused(
-        resource("arn:aws:states:::sqs:sendMessage"),
+        resource("arn:aws:states:::ecs:runTask.sync"),
         "UnsupportedFeature",
         "States.A.Resource",
     );
     refused(
-        resource("arn:aws:states:::lambda:invoke.waitForTaskToken"),
-        "UnsupportedFeature",
+        resource("arn:aws:states:::nothing"),
+        "InvalidDefinition",
         "States.A.Resource",
     );
     refused(
