@@ -292,6 +292,33 @@ impl EvalAiClient {
         Submission::from_json(&body)
     }
 
+    /// GET `/api/jobs/challenge/<challenge>/submission/?status=<status>` (host API reference,
+    /// 7.3): every submission of the challenge in that status, in one request (a plain list,
+    /// not paginated), so one read a minute can find the cancels of every submission in
+    /// flight. A 404 (no such challenge) is a configuration error.
+    pub async fn submissions_with_status(
+        &self,
+        challenge: u64,
+        status: SubmissionStatus,
+    ) -> Result<Vec<Submission>> {
+        let url = format!(
+            "{}/api/jobs/challenge/{challenge}/submission/?status={status}",
+            self.base
+        );
+        let body = match self.send(Method::GET, &url, None, challenge).await {
+            Err(EvalAiError::NotFound(_)) => {
+                return Err(EvalAiError::Config(format!(
+                    "EvalAI has no challenge `{challenge}`"
+                )))
+            }
+            other => other?,
+        };
+        let items = body.as_array().ok_or_else(|| {
+            EvalAiError::InvalidResponse("the submission list is not a JSON list".into())
+        })?;
+        items.iter().map(Submission::from_json).collect()
+    }
+
     /// The image of a submission whose message had none: the docker `input_file` JSON.
     /// The file may be on another host (S3): the token is sent only to EvalAI itself.
     pub async fn submitted_image(&self, submission: &Submission) -> Result<String> {

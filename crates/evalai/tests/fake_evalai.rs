@@ -457,3 +457,47 @@ async fn retries_stop_at_the_invocations_deadline_not_at_the_clients_budget() {
     assert!(err.is_transient());
     assert!(took < Duration::from_millis(2600), "took {took:?}");
 }
+
+#[tokio::test]
+async fn one_request_lists_a_challenges_submissions_in_a_status() {
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let host = client(&server, "host-token");
+    let submitted = host
+        .submissions_with_status(1, SubmissionStatus::Submitted)
+        .await
+        .unwrap();
+    assert!(submitted.iter().any(|s| s.id == 1), "{submitted:?}");
+    assert!(submitted
+        .iter()
+        .all(|s| s.status == SubmissionStatus::Submitted));
+    assert!(host
+        .submissions_with_status(1, SubmissionStatus::Cancelled)
+        .await
+        .unwrap()
+        .is_empty());
+    // A participant's cancel shows in the next listing.
+    server.cancel(1).unwrap();
+    let cancelled = host
+        .submissions_with_status(1, SubmissionStatus::Cancelled)
+        .await
+        .unwrap();
+    assert_eq!(cancelled.iter().map(|s| s.id).collect::<Vec<_>>(), [1]);
+    let before = server.requests().len();
+    host.submissions_with_status(1, SubmissionStatus::Running)
+        .await
+        .unwrap();
+    assert_eq!(server.requests().len(), before + 1, "one request");
+    // No such challenge: a configuration error, not a missing submission.
+    let err = host
+        .submissions_with_status(999, SubmissionStatus::Cancelled)
+        .await
+        .unwrap_err();
+    assert_eq!(err.name(), "EvalAiConfig");
+    assert!(err.to_string().contains("999"), "{err}");
+    // Not the host: the view answers 400 (reference 7.3).
+    let err = client(&server, "participant-token")
+        .submissions_with_status(1, SubmissionStatus::Cancelled)
+        .await
+        .unwrap_err();
+    assert_eq!(err.name(), "EvalAiRejected", "{err}");
+}
