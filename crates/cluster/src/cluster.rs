@@ -408,9 +408,9 @@ impl Cluster {
     /// Deletes every Job of the submission with foreground propagation (their pods go first),
     /// then any pod of the submission no Job owns. Idempotent: what is already gone is fine.
     ///
-    /// With `execution` (its label-safe form), only that execution's objects and those without
-    /// an execution label go: a stale execution never deletes the Jobs of the one holding the
-    /// submission now.
+    /// With `execution` (the Step Functions execution's name), only that execution's objects
+    /// and those without an execution label go: a stale execution never deletes the Jobs of the
+    /// one holding the submission now.
     #[instrument(skip(self))]
     pub async fn delete_all(
         &self,
@@ -418,7 +418,8 @@ impl Cluster {
         execution: Option<&str>,
     ) -> Result<Deleted> {
         let params = ListParams::default().labels(&labels::submission_selector(submission_id)?);
-        let ours = |labels| labels::belongs_to(execution, labels);
+        let execution = execution.map(labels::execution_value);
+        let ours = |labels| labels::belongs_to(execution.as_deref(), labels);
         let jobs = self
             .call("list jobs", self.jobs().list(&params))
             .await?
@@ -506,6 +507,8 @@ impl Cluster {
     ) -> Result<bool> {
         let deadline = tokio::time::Instant::now() + timeout;
         let poll = poll.max(Duration::from_millis(10));
+        let execution = execution.map(labels::execution_value);
+        let execution = execution.as_deref();
         loop {
             let (mut jobs, mut pods) = self.list(submission_id).await?;
             jobs.retain(|j| labels::belongs_to(execution, j.metadata.labels.as_ref()));

@@ -32,6 +32,12 @@ pub fn validate_submission_id(id: &str) -> Result<()> {
     }
 }
 
+/// The execution label's value for an execution name (the label-safe form the Job templates
+/// put on Jobs and Pods).
+pub fn execution_value(execution: &str) -> String {
+    lb_domain::plan::label_value(execution)
+}
+
 /// The execution label of an object's labels, `None` when absent or empty (Jobs launched
 /// before the label existed belong to whichever execution holds the submission).
 pub fn execution_of(labels: Option<&std::collections::BTreeMap<String, String>>) -> Option<&str> {
@@ -41,8 +47,8 @@ pub fn execution_of(labels: Option<&std::collections::BTreeMap<String, String>>)
         .filter(|e| !e.is_empty())
 }
 
-/// Whether an object with `labels` is `execution`'s (any execution's when `None`): its
-/// label says so, or it has none.
+/// Whether an object with `labels` is `execution`'s (its [`execution_value`]; any
+/// execution's when `None`): its label says so, or it has none.
 pub fn belongs_to(
     execution: Option<&str>,
     labels: Option<&std::collections::BTreeMap<String, String>>,

@@ -78,7 +78,6 @@ fn skip_escape(chars: &mut std::iter::Peekable<std::str::Chars<'_>>) {
     }
 }
 
-/// Bidirectional controls and zero-width characters: they reorder or hide text.
 /// The longest start of `text` that fits in `max_bytes` without splitting a character.
 pub fn head(text: &str, max_bytes: usize) -> &str {
     let mut end = max_bytes.min(text.len());
@@ -86,6 +85,21 @@ pub fn head(text: &str, max_bytes: usize) -> &str {
         end -= 1;
     }
     &text[..end]
+}
+
+/// `text` as it is when it fits in `max_bytes`; else its start, ending with `note()`, in
+/// `max_bytes` altogether (the note is built only when needed).
+pub fn cut_with_note(
+    text: &str,
+    max_bytes: usize,
+    note: impl FnOnce() -> String,
+) -> std::borrow::Cow<'_, str> {
+    if text.len() <= max_bytes {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    let note = note();
+    let kept = head(text, max_bytes.saturating_sub(note.len()));
+    std::borrow::Cow::Owned(format!("{kept}{note}"))
 }
 
 /// A bidirectional control or a zero-width character: invisible, yet it can reorder or hide
@@ -99,6 +113,14 @@ pub fn is_invisible_format(c: char) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_cut_keeps_the_start_and_the_note_within_the_bound() {
+        assert_eq!(cut_with_note("short", 5, || unreachable!()), "short");
+        let cut = cut_with_note("ééééé", 7, || "[.]".into());
+        assert_eq!(cut, "éé[.]");
+        assert!(cut.len() <= 7);
+    }
 
     #[test]
     fn a_head_never_splits_a_character() {

@@ -150,8 +150,8 @@ impl PairShare {
         }
     }
 
-    /// Checks the share (`at` names it in errors) and, if the instance type is known, that
-    /// `pairs` of them fit a node with what is kept for the system.
+    /// Checks the share's ranges and, if the instance type is known, that `pairs` of them fit
+    /// a node with what is kept for the system.
     pub fn check(&self, pairs: u32, capacity: Option<NodeCapacity>) -> Result<(), String> {
         for (name, share) in [("simulator", self.simulator), ("agent", self.agent)] {
             if !(share.cpu >= 0.1 && share.cpu <= 512.0) {

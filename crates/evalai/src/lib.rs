@@ -189,16 +189,13 @@ the scores above are complete, and the challenge hosts keep the full output.";
 /// `text` cut to at most `max` bytes, keeping its start (verdict and scores come first), with
 /// a visible note saying so.
 pub fn bounded_text(text: &str, max: usize) -> std::borrow::Cow<'_, str> {
-    if text.len() <= max {
-        return std::borrow::Cow::Borrowed(text);
-    }
-    let note = format!(
-        "\n\n[... cut here: the first {max} of {} bytes are shown; the complete output is kept \
-         with the submission's results]\n",
-        text.len()
-    );
-    let kept = lb_domain::logtail::head(text, max.saturating_sub(note.len()));
-    std::borrow::Cow::Owned(format!("{kept}{note}"))
+    lb_domain::logtail::cut_with_note(text, max, || {
+        format!(
+            "\n\n[... cut here: the first {max} of {} bytes are shown; the complete output is \
+             kept with the submission's results]\n",
+            text.len()
+        )
+    })
 }
 
 /// The metadata JSON text, or a small JSON note in its place when it is over `max` bytes.

@@ -61,6 +61,19 @@ fn writes(server: &FakeEvalAi) -> Vec<(String, String)> {
         .collect()
 }
 
+/// The fake behind a proxy refusing bodies over `limit` bytes (413), as the real server's
+/// nginx does, and the host's client.
+async fn behind_proxy(limit: usize) -> (FakeEvalAi, EvalAiClient) {
+    let server = FakeEvalAi::start(Fixture {
+        max_request_bytes: limit,
+        ..Fixture::default()
+    })
+    .await
+    .unwrap();
+    let evalai = client(&server, "host-token");
+    (server, evalai)
+}
+
 #[tokio::test]
 async fn reads_the_submission_and_names_404_and_bad_tokens() {
     let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
@@ -291,13 +304,7 @@ async fn garbage_results_are_refused_before_any_request() {
 #[tokio::test]
 async fn a_20_mb_output_is_cut_so_the_proxy_takes_the_partial_and_the_final_update() {
     // Behind a proxy refusing bodies over 1 MiB (413), as the real server's nginx does.
-    let server = FakeEvalAi::start(Fixture {
-        max_request_bytes: 1024 * 1024,
-        ..Fixture::default()
-    })
-    .await
-    .unwrap();
-    let evalai = client(&server, "host-token");
+    let (server, evalai) = behind_proxy(1024 * 1024).await;
     let huge = format!("Scores first\n{}", "x".repeat(20 * 1024 * 1024));
     let huge_metadata = format!("{{\"routes\": \"{}\"}}", "y".repeat(20 * 1024 * 1024));
     let partial = PartialUpdate {
@@ -340,13 +347,7 @@ async fn a_20_mb_output_is_cut_so_the_proxy_takes_the_partial_and_the_final_upda
 #[tokio::test]
 async fn a_final_update_the_proxy_still_refuses_is_replaced_by_the_minimal_one() {
     // A proxy stricter than our bounds: the full final update gets 413.
-    let server = FakeEvalAi::start(Fixture {
-        max_request_bytes: 64 * 1024,
-        ..Fixture::default()
-    })
-    .await
-    .unwrap();
-    let evalai = client(&server, "host-token");
+    let (server, evalai) = behind_proxy(64 * 1024).await;
     let final_update = FinalUpdate {
         status: SubmissionStatus::Failed,
         result: "[]".into(),

@@ -182,11 +182,7 @@ impl JobSettings {
         let resources = deployment
             .pair_share()
             .map_err(|(field, reason)| ContextError::InvalidSetting {
-                field: if field == "instance_type" {
-                    "instance_type"
-                } else {
-                    "pair_resources"
-                },
+                field,
                 value: deployment.instance_type.clone(),
                 reason,
             })?

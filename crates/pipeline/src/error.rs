@@ -92,7 +92,10 @@ impl From<FnError> for lambda_runtime::Diagnostic {
     fn from(error: FnError) -> Self {
         lambda_runtime::Diagnostic {
             error_type: error.name().to_string(),
-            error_message: crate::payload::bounded_text(&error.chain(), MAX_ERROR_MESSAGE_BYTES),
+            error_message: crate::payload::printable_bounded(
+                &error.chain(),
+                MAX_ERROR_MESSAGE_BYTES,
+            ),
         }
     }
 }

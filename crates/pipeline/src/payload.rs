@@ -14,23 +14,16 @@ pub const MAX_MESSAGE_BYTES: usize = 16 * 1024;
 pub const MAX_REASON_BYTES: usize = 4 * 1024;
 
 /// `text` printable (no control characters, which JSON writes six bytes long) and cut to
-/// `max` bytes with a note.
-pub fn bounded_text(text: &str, max: usize) -> String {
-    const NOTE: &str = " [... cut]";
+/// `max` bytes with a note: what a payload may carry of a reason or an error message.
+pub fn printable_bounded(text: &str, max: usize) -> String {
     let text = lb_domain::logtail::printable(text);
-    if text.len() <= max {
-        return text;
-    }
-    format!(
-        "{}{NOTE}",
-        lb_domain::logtail::head(&text, max - NOTE.len())
-    )
+    lb_domain::logtail::cut_with_note(&text, max, || " [... cut]".into()).into_owned()
 }
 
 /// Serializes a reason printable and cut to [`MAX_REASON_BYTES`], whoever built it.
 pub fn bounded_reason<S: Serializer>(reason: &Option<String>, s: S) -> Result<S::Ok, S::Error> {
     match reason {
-        Some(text) => s.serialize_some(&bounded_text(text, MAX_REASON_BYTES)),
+        Some(text) => s.serialize_some(&printable_bounded(text, MAX_REASON_BYTES)),
         None => s.serialize_none(),
     }
 }

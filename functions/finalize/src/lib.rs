@@ -252,17 +252,17 @@ async fn finish_run(
     // Stop the Jobs first: GPUs cost money, and their logcopy makes its last upload on the way out.
     // Only this execution's Jobs (and unlabelled ones from before the label): a superseded
     // execution never reaches here (the claim check above), and this is the second guard.
-    let execution = lb_domain::plan::label_value(&submission.execution);
+    let execution = submission.execution.as_str();
     let cluster = deps.clients.clusters.connect(target.deployment).await?;
     let deleted = cluster
-        .delete_all(&id.to_string(), Some(&execution))
+        .delete_all(&id.to_string(), Some(execution))
         .await
         .map_err(cluster_error)?;
     info!(submission_id = id, ?deleted, "jobs deleted");
     if !cluster
         .wait_gone(
             &id.to_string(),
-            Some(&execution),
+            Some(execution),
             deps.delete_wait,
             Duration::from_secs(2),
         )

@@ -64,6 +64,8 @@ struct Waiting {
 struct Inner {
     open: HashMap<String, Waiting>,
     closed: HashSet<String>,
+    /// Tokens issued: part of each, so that two executions seeded alike never share one.
+    issued: u64,
 }
 
 /// The tokens of one executor's waiting tasks (tokens are account-wide on AWS).
@@ -83,21 +85,25 @@ impl Callbacks {
         self.inner.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Opens `token` for reports.
-    pub fn open(&self, token: &str) -> Pending {
+    /// Issues a new token (from `random`, a UUID, and a count) open for reports.
+    pub fn issue(&self, random: &str) -> (String, Pending) {
         let (tx, rx) = oneshot::channel();
         let heartbeat = Arc::new(Notify::new());
-        self.lock().open.insert(
-            token.to_owned(),
+        let mut inner = self.lock();
+        inner.issued += 1;
+        let token = format!("AQ{}{:016x}", random.replace('-', ""), inner.issued);
+        inner.open.insert(
+            token.clone(),
             Waiting {
                 done: tx,
                 heartbeat: heartbeat.clone(),
             },
         );
-        Pending {
+        let pending = Pending {
             done: rx,
             heartbeat,
-        }
+        };
+        (token, pending)
     }
 
     /// Closes `token`: later reports are `TaskTimedOut`.

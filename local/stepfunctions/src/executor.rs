@@ -478,9 +478,6 @@ impl Drop for CloseOnDrop {
     }
 }
 
-/// Tokens are unique across the executions of one executor, seeded or not.
-static TOKENS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-
 #[allow(clippy::too_many_arguments)]
 async fn execute(
     run: Arc<Run>,
@@ -885,18 +882,15 @@ impl Run {
     ) -> Result<Value, Failure> {
         // A callback task's token: one per attempt, at `$$.Task.Token`, open before the
         // integration runs (its worker may answer before it returns).
-        let token = task.callback.then(|| {
-            let n = TOKENS.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-            format!("AQ{}{n:016x}", self.random.uuid_v4().replace('-', ""))
-        });
         let mut ctx = ctx.clone();
-        if let Some(t) = &token {
-            ctx["Task"] = json!({ "Token": t });
+        let mut wait = None;
+        let mut _closing = None;
+        if task.callback {
+            let (token, pending) = self.callbacks.issue(&self.random.uuid_v4());
+            ctx["Task"] = json!({ "Token": token });
+            wait = Some(pending);
+            _closing = Some(CloseOnDrop(self.callbacks.clone(), token));
         }
-        let wait = token.as_ref().map(|t| self.callbacks.open(t));
-        let _closing = token
-            .as_ref()
-            .map(|t| CloseOnDrop(self.callbacks.clone(), t.clone()));
         let env = Env::with_context(&ctx).random(&self.random);
         let effective = state
             .flow
