@@ -16,6 +16,21 @@ use crate::timestamp;
 
 /// The largest `Seconds`, `TimeoutSeconds`, `IntervalSeconds` and `MaxAttempts` AWS accepts.
 const MAX_SECONDS: u64 = 99_999_999;
+/// Optimized integrations without the callback pattern (developer guide, "Service integration
+/// patterns", the table of optimized integrations); their AWS SDK integrations have it.
+const NO_CALLBACK: &[&str] = &[
+    "athena",
+    "batch",
+    "codebuild",
+    "dynamodb",
+    "elasticmapreduce",
+    "emr-containers",
+    "emr-serverless",
+    "glue",
+    "databrew",
+    "sagemaker",
+    "http",
+];
 /// The largest `MaxDelaySeconds` (one year and a day).
 const MAX_DELAY_SECONDS: u64 = 31_622_400;
 /// Step Functions' limit on state name length.
@@ -24,7 +39,6 @@ const MAX_STATE_NAME: usize = 80;
 /// Fields of the language this executor knows but does not run; refused with this note.
 const UNSUPPORTED_FIELDS: &[(&str, &str)] = &[
     ("HeartbeatSecondsPath", "use a fixed `HeartbeatSeconds`"),
-    ("TimeoutSecondsPath", "use a fixed `TimeoutSeconds`"),
     ("Credentials", "cross-account task credentials"),
     ("Arguments", "JSONata is not supported"),
     ("Output", "JSONata is not supported"),
@@ -132,6 +146,8 @@ pub(crate) struct Task {
     pub callback: bool,
     pub heartbeat_seconds: Option<u64>,
     pub timeout_seconds: Option<u64>,
+    /// `TimeoutSecondsPath`: the timeout read from the state's input at each attempt.
+    pub timeout_path: Option<ReferencePath>,
     pub retry: Vec<Retrier>,
     pub catch: Vec<Catcher>,
 }
@@ -479,7 +495,7 @@ impl Loader {
         let (kind, flow) = match state_type {
             "Task" => {
                 obj.only(
-                    &fields(&[COMMON, IO, TRANSITION, RESULT, ERRORS, &["Resource", "TimeoutSeconds", "HeartbeatSeconds"]]),
+                    &fields(&[COMMON, IO, TRANSITION, RESULT, ERRORS, &["Resource", "TimeoutSeconds", "TimeoutSecondsPath", "HeartbeatSeconds"]]),
                     "a Task state",
                 )?;
                 let task = self.task(&obj)?;
@@ -609,7 +625,13 @@ impl Loader {
                 ));
             }
             if rest != "lambda:invoke" {
-                let (service, action) = rest
+                // NB: `aws-sdk:<service>:<action>` is the SDK integration; its history shows
+                // `aws-sdk:<service>` as the resource type.
+                let (sdk, plain) = match rest.strip_prefix("aws-sdk:") {
+                    Some(plain) => (true, plain),
+                    None => (false, rest),
+                };
+                let (service, action) = plain
                     .split_once(':')
                     .filter(|(s, a)| {
                         !s.is_empty()
@@ -623,13 +645,25 @@ impl Loader {
                             format!("`{resource}` is not a service integration (`arn:aws:states:::<service>:<action>`)"),
                         )
                     })?;
+                if callback && !sdk && NO_CALLBACK.contains(&service) {
+                    return Err(LoadError::invalid(
+                        resource_at,
+                        format!(
+                            "the optimized `{service}` integration does not support `.waitForTaskToken` (developer guide, \"Service integration patterns\"); the AWS SDK integration `arn:aws:states:::aws-sdk:{service}:<action>.waitForTaskToken` does"
+                        ),
+                    ));
+                }
                 let function = FunctionRef {
                     function: format!("arn:aws:states:::{rest}"),
                     name: rest.to_owned(),
                     substitution: None,
                 };
                 let integration = Integration::Service {
-                    service: service.to_owned(),
+                    service: if sdk {
+                        format!("aws-sdk:{service}")
+                    } else {
+                        service.to_owned()
+                    },
                     action: action.to_owned(),
                 };
                 return self.finish_task(obj, integration, function, callback);
@@ -725,6 +759,26 @@ impl Loader {
             self.functions.push(function.clone());
         }
         let timeout_seconds = obj.integer("TimeoutSeconds", 1, MAX_SECONDS)?;
+        let timeout_path = match obj.map.get("TimeoutSecondsPath") {
+            None => None,
+            Some(_) if timeout_seconds.is_some() => {
+                return Err(LoadError::invalid(
+                    obj.loc("TimeoutSecondsPath"),
+                    "`TimeoutSeconds` and `TimeoutSecondsPath` are exclusive",
+                ))
+            }
+            Some(_) => {
+                let text = obj.required_string("TimeoutSecondsPath")?;
+                Some(
+                    ReferencePath::parse_at(text, "TimeoutSecondsPath").map_err(|source| {
+                        LoadError::DataFlow {
+                            location: obj.at.clone(),
+                            source,
+                        }
+                    })?,
+                )
+            }
+        };
         let heartbeat_seconds = obj.integer("HeartbeatSeconds", 1, MAX_SECONDS)?;
         if let (Some(h), Some(t)) = (heartbeat_seconds, timeout_seconds) {
             if h >= t {
@@ -746,6 +800,7 @@ impl Loader {
             callback,
             heartbeat_seconds,
             timeout_seconds,
+            timeout_path,
             retry: retriers(obj)?,
             catch: catchers(obj)?,
         })

@@ -8,7 +8,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
-use lb_asl::{Env, RandomSource};
+use lb_asl::{Env, RandomSource, ReferencePath};
 use serde_json::{json, Map, Value};
 use time::OffsetDateTime;
 use tokio::sync::watch;
@@ -913,7 +913,10 @@ impl Run {
             }
             details
         };
-        let timeout = task.timeout_seconds;
+        let timeout = match &task.timeout_path {
+            None => task.timeout_seconds,
+            Some(path) => Some(timeout_from_path(path, input, &ctx)?),
+        };
         let mut scheduled =
             resource(json!({"region": self.options.region, "parameters": effective}));
         if let Some(t) = timeout {
@@ -949,7 +952,7 @@ impl Run {
         };
         let started = tokio::time::Instant::now();
         let lambda = task.integration == Integration::LambdaArn;
-        match self.invoke(task, payload).await {
+        match self.invoke(task, payload, timeout).await {
             Ok(raw) => {
                 let result = match task.integration {
                     Integration::LambdaInvoke => json!({
@@ -969,7 +972,7 @@ impl Run {
                             EventType::TaskSubmitted,
                             resource(json!({ "output": result })),
                         )?;
-                        match self.await_callback(task, wait, started).await {
+                        match self.await_callback(task, wait, started, timeout).await {
                             CallbackEnd::Reported(Outcome::Success(output)) => output,
                             CallbackEnd::Reported(Outcome::Failure { error, cause }) => {
                                 let failure = Failure::new(error, Some(cause));
@@ -1036,10 +1039,9 @@ impl Run {
         task: &Task,
         mut wait: Pending,
         started: tokio::time::Instant,
+        timeout: Option<u64>,
     ) -> CallbackEnd {
-        let deadline = task
-            .timeout_seconds
-            .map(|s| started + self.scaled(s as f64));
+        let deadline = timeout.map(|s| started + self.scaled(s as f64));
         let beat = task.heartbeat_seconds.map(|s| self.scaled(s as f64));
         // Ends: each heartbeat restarts a bounded timer; the deadline (when set) is fixed.
         loop {
@@ -1069,7 +1071,12 @@ impl Run {
         }
     }
 
-    async fn invoke(&self, task: &Task, payload: Value) -> Result<Value, Invocation> {
+    async fn invoke(
+        &self,
+        task: &Task,
+        payload: Value,
+        timeout: Option<u64>,
+    ) -> Result<Value, Invocation> {
         let Some(handler) = self.tasks.handler(&task.function) else {
             if let Integration::Service { .. } = task.integration {
                 return Err(Invocation::Failed(Failure::new(
@@ -1089,7 +1096,7 @@ impl Run {
             )));
         };
         let mut call = AbortOnDrop(tokio::spawn(handler(payload)));
-        let joined = match task.timeout_seconds {
+        let joined = match timeout {
             Some(seconds) => {
                 match tokio::time::timeout(self.scaled(seconds as f64), &mut call.0).await {
                     Ok(joined) => joined,
@@ -1313,6 +1320,23 @@ fn kind_of(value: &Value) -> &'static str {
         Value::String(_) => "a string",
         Value::Array(_) => "an array",
         Value::Object(_) => "an object",
+    }
+}
+
+/// A Task's `TimeoutSecondsPath` read from its input: a positive integer, as `TimeoutSeconds`.
+fn timeout_from_path(path: &ReferencePath, input: &Value, ctx: &Value) -> Result<u64, Failure> {
+    let value = path.get(input, ctx).ok_or_else(|| {
+        Failure::runtime(format!(
+            "Invalid path '{}': the TimeoutSecondsPath of the Task state selects nothing",
+            path.text()
+        ))
+    })?;
+    match value.as_u64() {
+        Some(s) if (1..=99_999_999).contains(&s) => Ok(s),
+        _ => Err(Failure::runtime(format!(
+            "The TimeoutSecondsPath '{}' must select an integer from 1 to 99999999, got {value}",
+            path.text()
+        ))),
     }
 }
 

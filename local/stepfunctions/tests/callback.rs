@@ -268,4 +268,85 @@ fn callback_definitions_are_checked_at_load() {
                             "Parameters": {"FunctionName": "arn:aws:lambda:us-east-1:123456789012:function:f"}}),
     );
     assert!(e.to_string().contains("HeartbeatSeconds"), "{e}");
+    // The optimized DynamoDB integration is request-response only (the guide's table of
+    // optimized integrations); its AWS SDK integration has the callback pattern.
+    let e = load_err(json!({"Resource": "arn:aws:states:::dynamodb:updateItem.waitForTaskToken"}));
+    assert!(e.to_string().contains("aws-sdk:dynamodb"), "{e}");
+    let e = load_err(json!({"TimeoutSeconds": 60, "TimeoutSecondsPath": "$.wait"}));
+    assert!(e.to_string().contains("exclusive"), "{e}");
+    let e = load_err(json!({"TimeoutSecondsPath": "wait"}));
+    assert!(e.to_string().contains("TimeoutSecondsPath"), "{e}");
+}
+
+/// The AWS SDK integration for DynamoDB's `UpdateItem` with a token (the guide's syntax
+/// `arn:aws:states:::aws-sdk:<service>:<action>.waitForTaskToken`), played by a handler
+/// registered as `aws-sdk:dynamodb:updateItem`; the timeout read from the input.
+#[tokio::test]
+async fn an_sdk_integration_waits_for_its_token_with_the_timeout_its_input_names() {
+    let (tx, mut rx) = mpsc::unbounded_channel();
+    let tasks = TaskMap::new().with("aws-sdk:dynamodb:updateItem", move |params: Value| {
+        let tx = tx.clone();
+        async move {
+            let _ = tx.send(params);
+            Ok(json!({}))
+        }
+    });
+    let definition = json!({"StartAt": "Wait", "States": {"Wait": {
+        "Type": "Task",
+        "Resource": "arn:aws:states:::aws-sdk:dynamodb:updateItem.waitForTaskToken",
+        "Parameters": {
+            "TableName": "wakes",
+            "Key": {"submission_id": {"S": "42"}},
+            "UpdateExpression": "SET #t = :t",
+            "ExpressionAttributeNames": {"#t": "token"},
+            "ExpressionAttributeValues": {":t": {"S.$": "$$.Task.Token"}}
+        },
+        "TimeoutSecondsPath": "$.wait",
+        "ResultPath": "$.woken",
+        "End": true
+    }}});
+    let machine = load(definition);
+    let executor = Executor::new(tasks, options(0.01)).unwrap();
+    // Woken before the timeout.
+    let execution = executor
+        .start(&machine, "woken", json!({"wait": 3600}))
+        .unwrap();
+    let params = tokio::time::timeout(BOUND, rx.recv())
+        .await
+        .unwrap()
+        .unwrap();
+    let token = params["ExpressionAttributeValues"][":t"]["S"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    executor
+        .send_task_success(&token, json!({"by": "results"}))
+        .unwrap();
+    let result = tokio::time::timeout(BOUND, execution.wait()).await.unwrap();
+    assert_eq!(result.status, Status::Succeeded);
+    assert_eq!(result.output.unwrap()["woken"], json!({"by": "results"}));
+    let scheduled = &result.history[2].details;
+    assert_eq!(scheduled["resourceType"], "aws-sdk:dynamodb");
+    assert_eq!(scheduled["resource"], "updateItem.waitForTaskToken");
+    assert_eq!(scheduled["timeoutInSeconds"], 3600);
+    // Not woken: the input's 30 s (0.3 s at this scale) end it.
+    let started = std::time::Instant::now();
+    let result = executor
+        .run(&machine, "quiet", json!({"wait": 30}))
+        .await
+        .unwrap();
+    assert_eq!(result.error.as_deref(), Some(STATES_TIMEOUT));
+    assert!(started.elapsed() < Duration::from_secs(5));
+    assert_eq!(result.history[2].details["timeoutInSeconds"], 30);
+    // A path that selects no positive integer is a runtime error, not a wait without end.
+    for (i, bad) in [json!({"wait": 0}), json!({"wait": "60"}), json!({})]
+        .into_iter()
+        .enumerate()
+    {
+        let result = executor
+            .run(&machine, &format!("bad-{i}"), bad.clone())
+            .await
+            .unwrap();
+        assert_eq!(result.error.as_deref(), Some("States.Runtime"), "{bad}");
+    }
 }

@@ -45,9 +45,9 @@ fn unknown_and_unsupported_state_types_and_fields_are_refused() {
     );
     assert!(m.contains("not supported"), "{m}");
     refused(
-        task(json!({"TimeoutSecondsPath": "$.t"})),
+        task(json!({"HeartbeatSecondsPath": "$.t"})),
         "UnsupportedFeature",
-        "States.A.TimeoutSecondsPath",
+        "States.A.HeartbeatSecondsPath",
     );
     refused(
         task(json!({"Credentials": {}})),
