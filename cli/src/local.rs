@@ -11,7 +11,7 @@ use clap::{Args, ValueEnum};
 use fake_evalai::Fixture;
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::{FnError, FunctionConfig};
-use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET, WAKE_TABLE};
 use local_stack::workloads::{Behaviour, Binaries};
 use local_stack::{EvalAi, Stack};
 
@@ -230,6 +230,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
+        wake_table: WAKE_TABLE.into(),
     };
     let clusters = || Clusters::Kubeconfig(kubeconfig.clone());
     let intake = Arc::new(intake::Deps::load(&stack.sdk, &config).await?);
@@ -266,8 +267,10 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             let deps = finalize.clone();
             async move { lambda(finalize::handle_json(v, &deps).await) }
         });
+    // The wake table's wait, on moto's DynamoDB.
+    let tasks = local_stack::integrations::with_services(tasks, &stack.sdk);
 
-    let substitutions: HashMap<String, String> = ["Intake", "Launch", "Monitor", "Finalize"]
+    let mut substitutions: HashMap<String, String> = ["Intake", "Launch", "Monitor", "Finalize"]
         .iter()
         .map(|f| {
             (
@@ -279,6 +282,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             )
         })
         .collect();
+    substitutions.insert("WakeTable".into(), WAKE_TABLE.into());
     let machine = StateMachine::load(&serde_json::from_str(DEFINITION)?, &substitutions)
         .map_err(|e| anyhow::anyhow!("{e}"))?;
 

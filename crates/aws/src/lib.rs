@@ -9,6 +9,7 @@ pub mod eks;
 mod error;
 pub mod s3;
 pub mod secrets;
+pub mod wake;
 
 pub use error::{AwsError, Result};
 

@@ -206,6 +206,36 @@ impl SubmissionStore {
             .collect())
     }
 
+    /// The marker file names under `containers-status/` written at or after `since` (epoch
+    /// seconds): a run's own, not those an earlier run of the submission left until its
+    /// Jobs' init removes them.
+    pub async fn markers_since(&self, since: u64) -> Result<Vec<String>> {
+        let dir = format!("{}{STATUS_DIR}/", self.prefix);
+        let mut out = Vec::new();
+        let mut pages = self
+            .client
+            .list_objects_v2()
+            .bucket(&self.bucket)
+            .prefix(&dir)
+            .into_paginator()
+            .send();
+        while let Some(page) = pages.next().await {
+            let page = page.map_err(|e| AwsError::sdk("s3", "ListObjectsV2", e))?;
+            for object in page.contents() {
+                let fresh = object
+                    .last_modified()
+                    .is_some_and(|t| t.secs() >= i64::try_from(since).unwrap_or(i64::MAX));
+                let name = object.key().and_then(|k| k.strip_prefix(&dir));
+                if let (true, Some(name)) = (fresh, name) {
+                    if !name.is_empty() && !name.contains('/') {
+                        out.push(name.to_owned());
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+
     /// Writes the cancel marker the Jobs' logcopy mirrors into the pods.
     pub async fn put_cancel_marker(&self) -> Result<()> {
         self.put(

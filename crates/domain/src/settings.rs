@@ -88,6 +88,10 @@ pub struct LeaderboardSettings {
     /// `instance_type` (required for a type `lb_domain::resources` does not know).
     #[serde(default)]
     pub pair_resources: Option<PairShare>,
+    /// The least interval between two partial updates of one submission on EvalAI, seconds
+    /// (changes meanwhile are sent together at its end).
+    #[serde(default = "default_partial_update_seconds")]
+    pub partial_update_seconds: u64,
 }
 
 impl LeaderboardSettings {
@@ -129,6 +133,10 @@ fn default_namespace() -> String {
 
 fn default_outage_hours() -> u64 {
     6
+}
+
+fn default_partial_update_seconds() -> u64 {
+    crate::schedule::PARTIAL_UPDATE_INTERVAL.as_secs()
 }
 
 /// Images of the Job containers (the participant's comes with the submission).
@@ -321,6 +329,9 @@ impl Settings {
                 if value.trim().is_empty() {
                     return invalid(at(field), "must not be empty");
                 }
+            }
+            if !(5..=3600).contains(&lb.partial_update_seconds) {
+                return invalid(at("partial_update_seconds"), "must be between 5 and 3600");
             }
             if !(1..=16).contains(&lb.gpus_per_node) {
                 return invalid(at("gpus_per_node"), "must be between 1 and 16");

@@ -765,6 +765,7 @@ impl JobContext {
             job_role_arn: String::new(),
             max_cluster_outage_hours: 6,
             pair_resources: None,
+            partial_update_seconds: 30,
         };
         let settings = JobSettings::from_deployment(
             leaderboard,

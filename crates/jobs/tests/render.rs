@@ -46,6 +46,7 @@ fn settings(leaderboard: Leaderboard) -> JobSettings {
         job_role_arn: String::new(),
         max_cluster_outage_hours: 6,
         pair_resources: None,
+        partial_update_seconds: 30,
     };
     JobSettings::from_deployment(
         leaderboard,

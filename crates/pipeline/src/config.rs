@@ -10,6 +10,9 @@ pub struct FunctionConfig {
     pub settings_secret: String,
     /// `LB_EVALAI_TOKEN_SECRET`: id of the EvalAI host token secret.
     pub token_secret: String,
+    /// `LB_WAKE_TABLE`: the wake table (`lb_aws::wake`), read by the Monitor and written by
+    /// the wake and sweep functions.
+    pub wake_table: String,
 }
 
 impl FunctionConfig {
@@ -28,6 +31,7 @@ impl FunctionConfig {
         Ok(FunctionConfig {
             settings_secret: get("LB_SETTINGS_SECRET")?,
             token_secret: get("LB_EVALAI_TOKEN_SECRET")?,
+            wake_table: get("LB_WAKE_TABLE")?,
         })
     }
 }

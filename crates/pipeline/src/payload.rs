@@ -148,8 +148,27 @@ pub struct PairRoutes {
 pub struct MonitorState {
     /// `running`, or how it ended: `finished`, `failed`, `cancelled`.
     pub state: RunPhase,
-    /// The next Wait, in seconds.
+    /// The next wait's timeout (the safety net), in seconds: a change wakes it earlier.
     pub wait_seconds: u64,
+    /// A pause before that wait (EvalAI was just updated), in seconds; 0 for none.
+    #[serde(default)]
+    pub hold_seconds: u64,
+    /// The wake count this round read before looking at S3: the next wait stores its token
+    /// only while the count is still this (`lb_aws::wake`).
+    #[serde(default)]
+    pub seen: u64,
+    /// The wake count could not be read: poll after `wait_seconds` instead of waiting.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub poll: bool,
+    /// When the wake item may go (DynamoDB TTL, epoch seconds).
+    #[serde(default)]
+    pub expires_at: u64,
+    /// When EvalAI last got a partial update (epoch seconds).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub updated_at: Option<u64>,
+    /// When the status on EvalAI was last read (epoch seconds).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub status_read_at: Option<u64>,
     /// Monitor rounds so far.
     pub rounds: u64,
     /// The partial results last sent to EvalAI (object ETags); unchanged means no update.
@@ -194,6 +213,12 @@ mod tests {
         let mut monitor = MonitorState {
             state: RunPhase::Failed,
             wait_seconds: 0,
+            hold_seconds: 0,
+            seen: 0,
+            poll: false,
+            expires_at: 0,
+            updated_at: None,
+            status_read_at: None,
             rounds: 1,
             fingerprint: None,
             progress: (0, 1),

@@ -5,7 +5,7 @@ use fake_evalai::{Faults, Fixture};
 use intake::{handle, Deps};
 use lb_pipeline::payload::{Action, IntakeInput};
 use lb_pipeline::FunctionConfig;
-use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET, WAKE_TABLE};
 use local_stack::{EvalAi, Stack};
 use serde_json::json;
 
@@ -17,6 +17,7 @@ async fn stack(settings: &str) -> (Stack, Deps) {
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
+        wake_table: WAKE_TABLE.into(),
     };
     let deps = Deps::load(&stack.sdk, &config).await.unwrap();
     (stack, deps)

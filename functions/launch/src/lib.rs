@@ -159,6 +159,9 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         )
         .await?;
 
+    let now = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
     Ok(RunState {
         jobs: names.len() as u32,
         pairs: plan
@@ -169,12 +172,16 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
             })
             .collect(),
         repetitions: job_settings.repetitions,
-        launched_at: SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs()),
+        launched_at: now,
         monitor: MonitorState {
             state: RunPhase::Running,
             wait_seconds: FIRST_WAIT.as_secs(),
+            hold_seconds: 0,
+            seen: 0,
+            poll: false,
+            expires_at: now + lb_aws::wake::RETENTION_SECONDS,
+            updated_at: None,
+            status_read_at: None,
             rounds: 0,
             fingerprint: None,
             progress: (0, total),

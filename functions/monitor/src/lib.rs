@@ -1,20 +1,27 @@
-//! Monitor (stage 4): one round of the Wait -> Monitor -> Choice loop.
+//! Monitor (stage 4): one round of the wait -> Monitor -> Choice loop.
 //!
-//! Per round it reads the Jobs, the workers' results in S3 and the EvalAI status: one GET
-//! always, one partial PUT only when the results changed (EvalAI allows 60 requests a minute
-//! for every submission in flight together). A participant's cancel becomes the S3 cancel
-//! marker; a hopeless run (image that cannot be pulled, unschedulable, out of retries) ends
-//! with a reason the participant can act on. Transient trouble with EvalAI or S3 skips this
-//! round's update instead of failing a run that may last three days.
+//! A round runs when something changed (a results file or marker landed in S3, the cancel
+//! sweep found a cancel: both wake the waiting execution) or when the safety net's timeout
+//! ends the wait. It reads the wake count first (the next wait is conditional on it), then the
+//! Jobs and the workers' results in S3, and sends EvalAI a partial update only when the results
+//! changed and the last update is `partial_update_seconds` old (EvalAI allows 60 requests a
+//! minute for every submission in flight together); the status on EvalAI is read only to
+//! confirm a cancel the sweep found, or every [`STATUS_FALLBACK`] in case the sweep is down. A
+//! participant's cancel becomes the S3 cancel marker; a hopeless run (image that cannot be
+//! pulled, unschedulable, out of retries) ends with a reason the participant can act on.
+//! Transient trouble with EvalAI or S3 skips this round's part instead of failing a run that
+//! may last three days.
 
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use aws_config::SdkConfig;
 use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
+use lb_aws::wake::{WakeState, WakeTable, RETENTION_SECONDS};
 use lb_cluster::{Verdict, VerdictPolicy};
+use lb_domain::protocol::Marker;
 use lb_domain::results::Leaderboard;
-use lb_domain::schedule::{monitor_interval, MAX_EVALUATION};
+use lb_domain::schedule::{safety_net, MAX_EVALUATION, POLL_WITHOUT_WAKE, STATUS_FALLBACK};
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{PartialUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
@@ -32,12 +39,16 @@ pub struct Deps {
     pub clients: RunClients,
     /// How long an unschedulable pod is waited for.
     pub policy: VerdictPolicy,
+    /// The wake table.
+    pub wake: WakeTable,
 }
 
 impl Deps {
     /// Cold start: environment, secrets, clients.
     pub async fn from_env() -> Result<Deps> {
-        Ok(Self::with(RunClients::from_env().await?))
+        let (config, sdk) = clients::cold_start().await?;
+        let clusters = Clusters::from_env(&sdk);
+        Self::load(&sdk, &config, clusters).await
     }
 
     /// The same from an explicit SDK configuration and cluster access (local mode, tests).
@@ -46,14 +57,13 @@ impl Deps {
         config: &FunctionConfig,
         clusters: Clusters,
     ) -> Result<Deps> {
-        Ok(Self::with(RunClients::load(sdk, config, clusters).await?))
-    }
-
-    fn with(clients: RunClients) -> Deps {
-        Deps {
+        let clients = RunClients::load(sdk, config, clusters).await?;
+        let wake = WakeTable::new(clients.dynamo.clone(), &config.wake_table);
+        Ok(Deps {
             clients,
             policy: VerdictPolicy::default(),
-        }
+            wake,
+        })
     }
 }
 
@@ -108,9 +118,31 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     let id = submission.submission_id;
     let target = deps.clients.settings.target(submission.phase_id)?;
     let leaderboard: Leaderboard = target.leaderboard;
-    let elapsed = Duration::from_secs(now_secs().saturating_sub(run.launched_at));
-    run.monitor.rounds += 1;
-    run.monitor.wait_seconds = monitor_interval(elapsed).as_secs();
+    let now = now_secs();
+    let elapsed = Duration::from_secs(now.saturating_sub(run.launched_at));
+    let monitor = &mut run.monitor;
+    monitor.rounds += 1;
+    monitor.wait_seconds = safety_net(elapsed).as_secs();
+    monitor.hold_seconds = 0;
+    monitor.poll = false;
+    monitor.expires_at = now + RETENTION_SECONDS;
+
+    // The wake count before anything else: a change after this read makes the next wait end
+    // at once. Unreadable, the next wait is a plain poll (a wait conditional on a count we do
+    // not know could end at once every time).
+    let wake = match deps.wake.state(id).await {
+        Ok(wake) => {
+            monitor.seen = wake.changes;
+            wake
+        }
+        Err(e) if e.name() == "AwsTransient" => {
+            warn!(submission_id = id, error = %e, "wake count not read: polling this time");
+            monitor.poll = true;
+            monitor.wait_seconds = POLL_WITHOUT_WAKE.as_secs();
+            WakeState::default()
+        }
+        Err(e) => return Err(e.into()),
+    };
 
     // The cluster's API out of reach (a 500, a timeout, DescribeCluster failing) skips the
     // verdict this round, as an unreachable S3 or EvalAI skips their part: the Jobs run on
@@ -121,8 +153,8 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             Some(observation.expect_jobs(run.jobs))
         }
         Err(e) if e.is_transient() => {
-            let since = *run.monitor.unreachable_since.get_or_insert(now_secs());
-            let outage = Duration::from_secs(now_secs().saturating_sub(since));
+            let since = *run.monitor.unreachable_since.get_or_insert(now);
+            let outage = Duration::from_secs(now.saturating_sub(since));
             let bound = Duration::from_secs(target.deployment.max_cluster_outage_hours * 3600);
             warn!(
                 submission_id = id,
@@ -139,6 +171,11 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
                 ));
                 return Ok(run);
             }
+            // Its recovery writes nothing to S3: look again at the first outage's pace.
+            run.monitor.wait_seconds = run
+                .monitor
+                .wait_seconds
+                .min(safety_net(Duration::ZERO).as_secs());
             None
         }
         Err(e) => return Err(e),
@@ -150,61 +187,85 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         submission: id,
     };
 
-    // Results first: a changed set is merged and sent (the PUT's own GET reads the status);
-    // an unchanged one costs one listing and one GET.
+    // Results: a changed set is merged and sent (the PUT's own GET reads the status), at most
+    // once per `partial_update_seconds`; an unchanged one costs one listing.
+    let interval = target.deployment.partial_update_seconds;
     let mut evalai_status = None;
     match list(&store).await {
         Ok(listing)
             if Some(&listing.fingerprint) != run.monitor.fingerprint.as_ref()
                 && !listing.fingerprint.is_empty() =>
         {
-            let current = listing.fingerprint.clone();
-            match collect_listed(&store, listing, leaderboard, &run.pairs, run.repetitions).await {
-                Ok(snapshot) => {
-                    run.monitor.progress = snapshot.progress;
-                    let update = PartialUpdate {
-                        result: snapshot.files.results_json(),
-                        stdout: snapshot.files.stdout.clone(),
-                        metadata: snapshot
-                            .files
-                            .metadata
-                            .clone()
-                            .unwrap_or_else(|| "{}".into()),
-                    };
-                    match deps.clients.evalai.post_partial(at, &update).await {
-                        Ok(WriteOutcome::Written) => {
-                            run.monitor.fingerprint = Some(snapshot.fingerprint);
-                            evalai_status = Some(SubmissionStatus::PartiallyEvaluated);
+            let since_update = run.monitor.updated_at.map(|t| now.saturating_sub(t));
+            if let Some(since) = since_update.filter(|&since| since < interval) {
+                // Too soon (a round the hold did not cover): the wait ends when it may go.
+                run.monitor.wait_seconds = run.monitor.wait_seconds.min((interval - since).max(1));
+            } else {
+                let current = listing.fingerprint.clone();
+                match collect_listed(&store, listing, leaderboard, &run.pairs, run.repetitions)
+                    .await
+                {
+                    Ok(snapshot) => {
+                        run.monitor.progress = snapshot.progress;
+                        let update = PartialUpdate {
+                            result: snapshot.files.results_json(),
+                            stdout: snapshot.files.stdout.clone(),
+                            metadata: snapshot
+                                .files
+                                .metadata
+                                .clone()
+                                .unwrap_or_else(|| "{}".into()),
+                        };
+                        match deps.clients.evalai.post_partial(at, &update).await {
+                            Ok(WriteOutcome::Written) => {
+                                run.monitor.fingerprint = Some(snapshot.fingerprint);
+                                run.monitor.updated_at = Some(now);
+                                run.monitor.hold_seconds = interval;
+                                evalai_status = Some(SubmissionStatus::PartiallyEvaluated);
+                            }
+                            Ok(WriteOutcome::Cancelled) => {
+                                evalai_status = Some(SubmissionStatus::Cancelled)
+                            }
+                            Ok(WriteOutcome::AlreadyFinal(status)) => evalai_status = Some(status),
+                            Err(e) if e.is_transient() => {
+                                warn!(submission_id = id, error = %e, "partial update skipped this round");
+                                // Nothing in S3 will change for it: try again soon.
+                                run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
+                            }
+                            Err(e) => return Err(e.into()),
                         }
-                        Ok(WriteOutcome::Cancelled) => {
-                            evalai_status = Some(SubmissionStatus::Cancelled)
-                        }
-                        Ok(WriteOutcome::AlreadyFinal(status)) => evalai_status = Some(status),
-                        Err(e) if e.is_transient() => {
-                            warn!(submission_id = id, error = %e, "partial update skipped this round")
-                        }
-                        Err(e) => return Err(e.into()),
                     }
-                }
-                Err(e) if e.is_transient() => {
-                    warn!(submission_id = id, error = %e.chain(), "results not read this round")
-                }
-                Err(e) => {
-                    // The participant's own files are broken; the sidecar marks that pair crashed.
-                    warn!(submission_id = id, error = %e.chain(), "results unusable this round");
-                    run.monitor.fingerprint = Some(current);
+                    Err(e) if e.is_transient() => {
+                        warn!(submission_id = id, error = %e.chain(), "results not read this round");
+                        run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
+                    }
+                    Err(e) => {
+                        // The participant's own files are broken; the sidecar marks that pair crashed.
+                        warn!(submission_id = id, error = %e.chain(), "results unusable this round");
+                        run.monitor.fingerprint = Some(current);
+                    }
                 }
             }
         }
         Ok(_) => {}
         Err(e) if e.is_transient() => {
-            warn!(submission_id = id, error = %e.chain(), "results not listed this round")
+            warn!(submission_id = id, error = %e.chain(), "results not listed this round");
+            run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
         }
         Err(e) => return Err(e),
     }
-    if evalai_status.is_none() {
+    // The status itself: to confirm a cancel the sweep found (a flag an earlier run left is
+    // not believed without it), or now and then in case the sweep is not running.
+    let fallback_due = run
+        .monitor
+        .status_read_at
+        .is_none_or(|t| now.saturating_sub(t) >= STATUS_FALLBACK.as_secs());
+    if evalai_status.is_none() && (wake.cancel || fallback_due) {
         match deps.clients.evalai.submission(id).await {
-            Ok(current) => evalai_status = Some(current.status),
+            Ok(current) => {
+                evalai_status = Some(current.status);
+                run.monitor.status_read_at = Some(now);
+            }
             Err(e) if e.is_transient() => {
                 warn!(submission_id = id, error = %e, "status not read this round")
             }
@@ -249,6 +310,11 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             {
                 warn!(submission_id = id, error = %e, "progress not recorded this round");
             }
+            // Every Job's logcopy is done (its last upload is in): the Jobs complete within
+            // seconds, and nothing more will land in S3 to wake us.
+            if ending(&store, run.jobs, run.launched_at).await {
+                run.monitor.wait_seconds = run.monitor.wait_seconds.min(ENDING_POLL.as_secs());
+            }
         }
         Verdict::Finished => run.monitor.state = RunPhase::Finished,
         Verdict::Failed { kind, message, .. } => {
@@ -258,4 +324,21 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         }
     }
     Ok(run)
+}
+
+/// How soon to look again once every Job's logcopy is done.
+const ENDING_POLL: Duration = Duration::from_secs(5);
+
+/// Whether every Job of this run has written `logcopy-<J>.done` (since the launch).
+async fn ending(store: &SubmissionStore, jobs: u32, launched_at: u64) -> bool {
+    match store.markers_since(launched_at).await {
+        Ok(names) => (0..jobs).all(|job| {
+            let marker = Marker::LogcopyDone { job }.to_string();
+            names.contains(&marker)
+        }),
+        Err(e) => {
+            warn!(error = %e, "markers not listed this round");
+            false
+        }
+    }
 }

@@ -22,6 +22,8 @@ pub const REGION: &str = "us-east-1";
 pub const SETTINGS_SECRET: &str = "leaderboard/settings";
 /// The EvalAI token's secret id.
 pub const TOKEN_SECRET: &str = "leaderboard/evalai-token";
+/// The wake table's name in local mode (`${AWS::StackName}-wakes`).
+pub const WAKE_TABLE: &str = "leaderboard-wakes";
 /// The settings of local runs and tests: phase 1 is Leaderboard 2.0 SENSORS (20 routes, 4
 /// workers), phase 2 Leaderboard 1.0 SENSORS (12 routes, 3 workers), phase 3 the 2.0
 /// qualifier; gating off. Matches the fake EvalAI's default fixture.

@@ -114,7 +114,11 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
         6,
         "four functions, the state machine, the Pipe"
     );
-    assert_eq!(count("AWS::DynamoDB::Table"), 4);
+    assert_eq!(
+        count("AWS::DynamoDB::Table"),
+        5,
+        "two per leaderboard, the wake table"
+    );
     assert_eq!(count("AWS::S3::Bucket"), 2);
     assert_eq!(count("AWS::SQS::Queue"), 2);
     assert_eq!(count("AWS::StepFunctions::StateMachine"), 1);
@@ -151,7 +155,8 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
         "{queues}"
     );
 
-    // An operator switching from the original keeps their tables and buckets: none created.
+    // An operator switching from the original keeps their tables and buckets: none created
+    // but the wake table, which is ours alone.
     let switch = deploy(
         &moto,
         "switch",
@@ -165,8 +170,9 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     let created = types(&switch["created"]);
     assert!(
         !created
-            .values()
-            .any(|k| k == "AWS::DynamoDB::Table" || k == "AWS::S3::Bucket"),
+            .iter()
+            .any(|(id, k)| (k == "AWS::DynamoDB::Table" && id != "WakeTable")
+                || k == "AWS::S3::Bucket"),
         "{created:?}"
     );
 }
@@ -214,9 +220,19 @@ fn every_state_machine_placeholder_has_a_substitution_and_every_substitution_is_
         .collect();
     assert!(!placeholders.is_empty());
     assert_eq!(placeholders, substituted);
-    // Each is the ARN of the function its name says.
+    // Each is the ARN of the function its name says, or the wake table's name.
     for name in &substituted {
         let value = APP.eval(&subs[name.as_str()]).unwrap();
+        if name == "WakeTable" {
+            assert_eq!(value, "<WakeTable>");
+            assert_eq!(
+                APP.text("WakeTable", &["TimeToLiveSpecification", "AttributeName"])
+                    .unwrap(),
+                "expires_at",
+                "lb_aws::wake writes expires_at"
+            );
+            continue;
+        }
         let function = name.strip_suffix("Arn").unwrap();
         assert_eq!(value, format!("<{function}.Arn>"));
         assert!(APP

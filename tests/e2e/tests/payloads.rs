@@ -37,6 +37,7 @@ fn machine() -> StateMachine {
                 format!("arn:aws:lambda:us-west-2:123456789012:function:{s}"),
             )
         })
+        .chain([("WakeTable".to_owned(), "leaderboard-wakes".to_owned())])
         .collect();
     StateMachine::load(&definition, &substitutions).unwrap()
 }
@@ -85,6 +86,13 @@ fn run(phase: RunPhase) -> RunState {
         monitor: MonitorState {
             state: phase,
             wait_seconds: 1,
+            // NB: the wait and the hold are real time here; the wait below is never woken.
+            hold_seconds: 1,
+            seen: u64::MAX,
+            poll: false,
+            expires_at: u64::MAX,
+            updated_at: Some(u64::MAX),
+            status_read_at: Some(u64::MAX),
             rounds: u64::MAX,
             fingerprint: Some(lb_pipeline::results::fingerprint_of_pairs(
                 (1..=MAX_WORKERS).map(|id| (id, format!("{}-10000", "f".repeat(32)))),
@@ -124,6 +132,10 @@ fn tasks(failing: Failing) -> TaskMap {
         fails("Finalize"),
     );
     TaskMap::new()
+        // The wake table's write succeeds; nothing wakes the wait, its timeout ends it.
+        .with("aws-sdk:dynamodb:updateItem", |_| async {
+            Ok(serde_json::json!({}))
+        })
         .with("IntakeFunctionArn", move |_| async move {
             if i {
                 return Err(error());

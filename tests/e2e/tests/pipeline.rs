@@ -10,7 +10,7 @@ use fake_evalai::Fixture;
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{Action, IntakeInput, RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::FunctionConfig;
-use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET, WAKE_TABLE};
 use local_stack::workloads::{Behaviour, Binaries};
 use local_stack::{EvalAi, Stack};
 use serde_json::json;
@@ -57,6 +57,7 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
+        wake_table: WAKE_TABLE.into(),
     };
     let clusters = || Clusters::Kubeconfig(stack.kubeconfig.clone().unwrap());
     let intake = intake::Deps::load(&stack.sdk, &config).await.unwrap();
@@ -482,6 +483,7 @@ async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() 
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
+        wake_table: WAKE_TABLE.into(),
     };
     let unreachable = monitor::Deps::load(&h.stack.sdk, &config, Clusters::Kubeconfig(down))
         .await

@@ -1,0 +1,166 @@
+//! The AWS service integrations the state machine calls directly, played for the embedded
+//! executor by moto: the Task's Parameters go to the API as written, its errors come back
+//! under the names Step Functions gives them.
+//!
+//! Followed: the developer guide's "AWS SDK integrations" (parameters are the API's, in
+//! PascalCase; an error is `<Service>.<Error>` in PascalCase with the `Exception` suffix, so
+//! DynamoDB's `ConditionalCheckFailedException` is `DynamoDb.ConditionalCheckFailedException`;
+//! the result is the API's response) and DynamoDB's JSON wire format for attribute values.
+
+use std::collections::HashMap;
+
+use aws_config::SdkConfig;
+use aws_sdk_dynamodb::error::ProvideErrorMetadata;
+use aws_sdk_dynamodb::types::{AttributeValue, ReturnValue};
+use local_stepfunctions::{TaskError, TaskMap};
+use serde_json::{json, Map, Value};
+
+/// The handler key of the wake table's wait.
+pub const DYNAMODB_UPDATE_ITEM: &str = "aws-sdk:dynamodb:updateItem";
+
+/// `tasks` with the integrations the deployed definition uses, against `sdk` (moto).
+pub fn with_services(tasks: TaskMap, sdk: &SdkConfig) -> TaskMap {
+    let client = aws_sdk_dynamodb::Client::new(sdk);
+    tasks.with(DYNAMODB_UPDATE_ITEM, move |params: Value| {
+        let client = client.clone();
+        async move { update_item(&client, params).await }
+    })
+}
+
+fn invalid(problem: impl Into<String>) -> TaskError {
+    // What the SDK integration reports for parameters the API refuses before sending.
+    TaskError::new("DynamoDb.ValidationException", problem.into())
+}
+
+/// DynamoDB `UpdateItem` with the Task's parameters.
+pub async fn update_item(
+    client: &aws_sdk_dynamodb::Client,
+    params: Value,
+) -> Result<Value, TaskError> {
+    let Value::Object(params) = params else {
+        return Err(invalid("the parameters must be an object"));
+    };
+    let mut request = client.update_item();
+    for (key, value) in &params {
+        request = match key.as_str() {
+            "TableName" => request.table_name(text(key, value)?),
+            "Key" => request.set_key(Some(item(key, value)?)),
+            "UpdateExpression" => request.update_expression(text(key, value)?),
+            "ConditionExpression" => request.condition_expression(text(key, value)?),
+            "ExpressionAttributeNames" => {
+                let Value::Object(names) = value else {
+                    return Err(invalid(format!("`{key}` must be an object")));
+                };
+                names.iter().try_fold(request, |r, (k, v)| {
+                    Ok::<_, TaskError>(r.expression_attribute_names(k, text(key, v)?))
+                })?
+            }
+            "ExpressionAttributeValues" => {
+                request.set_expression_attribute_values(Some(item(key, value)?))
+            }
+            "ReturnValues" => request.return_values(ReturnValue::from(text(key, value)?)),
+            other => {
+                return Err(invalid(format!(
+                    "`{other}` is not a parameter this local integration passes on"
+                )))
+            }
+        };
+    }
+    match request.send().await {
+        Ok(out) => {
+            let mut result = Map::new();
+            if let Some(attributes) = out.attributes() {
+                result.insert("Attributes".into(), to_json_item(attributes));
+            }
+            Ok(Value::Object(result))
+        }
+        Err(e) => {
+            let code = e.code().unwrap_or("DynamoDbException").to_owned();
+            let message = e.message().unwrap_or_default().to_owned();
+            let code = if code.ends_with("Exception") {
+                code
+            } else {
+                format!("{code}Exception")
+            };
+            Err(TaskError::new(
+                format!("DynamoDb.{code}"),
+                format!("{message} (Service: DynamoDb, Status Code: 400, Error Code: {code})"),
+            ))
+        }
+    }
+}
+
+fn text<'a>(key: &str, value: &'a Value) -> Result<&'a str, TaskError> {
+    value
+        .as_str()
+        .ok_or_else(|| invalid(format!("`{key}` must be a string")))
+}
+
+fn item(key: &str, value: &Value) -> Result<HashMap<String, AttributeValue>, TaskError> {
+    let Value::Object(map) = value else {
+        return Err(invalid(format!("`{key}` must be an object")));
+    };
+    map.iter()
+        .map(|(k, v)| Ok((k.clone(), attribute(&format!("{key}.{k}"), v)?)))
+        .collect()
+}
+
+/// One attribute value in DynamoDB's JSON form (`{"S": "..."}`, `{"N": "1"}`, ...).
+fn attribute(at: &str, value: &Value) -> Result<AttributeValue, TaskError> {
+    let bad = || invalid(format!("`{at}` is not a DynamoDB attribute value"));
+    let Value::Object(map) = value else {
+        return Err(bad());
+    };
+    let [(kind, inner)] = map.iter().collect::<Vec<_>>()[..] else {
+        return Err(bad());
+    };
+    let strings = |v: &Value| -> Result<Vec<String>, TaskError> {
+        v.as_array()
+            .ok_or_else(bad)?
+            .iter()
+            .map(|s| s.as_str().map(str::to_owned).ok_or_else(bad))
+            .collect()
+    };
+    Ok(match kind.as_str() {
+        "S" => AttributeValue::S(inner.as_str().ok_or_else(bad)?.to_owned()),
+        "N" => {
+            let n = inner.as_str().ok_or_else(bad)?;
+            if n.parse::<f64>().is_err() {
+                return Err(invalid(format!("`{at}`: `{n}` is not a number")));
+            }
+            AttributeValue::N(n.to_owned())
+        }
+        "BOOL" => AttributeValue::Bool(inner.as_bool().ok_or_else(bad)?),
+        "NULL" => AttributeValue::Null(inner.as_bool().ok_or_else(bad)?),
+        "SS" => AttributeValue::Ss(strings(inner)?),
+        "NS" => AttributeValue::Ns(strings(inner)?),
+        "L" => AttributeValue::L(
+            inner
+                .as_array()
+                .ok_or_else(bad)?
+                .iter()
+                .map(|v| attribute(at, v))
+                .collect::<Result<_, _>>()?,
+        ),
+        "M" => AttributeValue::M(item(at, inner)?),
+        _ => return Err(bad()),
+    })
+}
+
+fn to_json_item(item: &HashMap<String, AttributeValue>) -> Value {
+    Value::Object(item.iter().map(|(k, v)| (k.clone(), to_json(v))).collect())
+}
+
+fn to_json(value: &AttributeValue) -> Value {
+    match value {
+        AttributeValue::S(s) => json!({ "S": s }),
+        AttributeValue::N(n) => json!({ "N": n }),
+        AttributeValue::Bool(b) => json!({ "BOOL": b }),
+        AttributeValue::Null(b) => json!({ "NULL": b }),
+        AttributeValue::Ss(v) => json!({ "SS": v }),
+        AttributeValue::Ns(v) => json!({ "NS": v }),
+        AttributeValue::L(v) => json!({ "L": v.iter().map(to_json).collect::<Vec<_>>() }),
+        AttributeValue::M(m) => json!({ "M": to_json_item(m) }),
+        _ => Value::Null,
+    }
+}
