@@ -138,8 +138,7 @@ impl Deployment {
         let config = lb_pipeline::FunctionConfig {
             settings_secret: self.settings_secret.clone(),
             token_secret: token.token_secret.clone(),
-            // NB: only the EvalAI client is built from it.
-            wake_table: String::new(),
+            wake_table: None,
         };
         lb_pipeline::clients::evalai(&self.sdk, &config, &self.settings).await
     }

@@ -230,7 +230,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
-        wake_table: WAKE_TABLE.into(),
+        wake_table: Some(WAKE_TABLE.into()),
     };
     let clusters = || Clusters::Kubeconfig(kubeconfig.clone());
     let intake = Arc::new(intake::Deps::load(&stack.sdk, &config).await?);

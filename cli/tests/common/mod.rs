@@ -13,6 +13,7 @@ pub const CALL_TIMEOUT: Duration = Duration::from_secs(60);
 const SCRUBBED: &[&str] = &[
     "LB_SETTINGS_SECRET",
     "LB_EVALAI_TOKEN_SECRET",
+    "LB_WAKE_TABLE",
     "LB_STATE_MACHINE_ARN",
     "LB_KUBECONFIG",
     "AWS_ENDPOINT_URL",
@@ -129,5 +130,6 @@ pub async fn stack(
     let mut env = stack.moto.sdk_env();
     env.push(("LB_SETTINGS_SECRET", SETTINGS_SECRET.to_string()));
     env.push(("LB_EVALAI_TOKEN_SECRET", TOKEN_SECRET.to_string()));
+    env.push(("LB_WAKE_TABLE", local_stack::stack::WAKE_TABLE.to_string()));
     (stack, env)
 }

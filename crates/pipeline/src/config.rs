@@ -10,9 +10,9 @@ pub struct FunctionConfig {
     pub settings_secret: String,
     /// `LB_EVALAI_TOKEN_SECRET`: id of the EvalAI host token secret.
     pub token_secret: String,
-    /// `LB_WAKE_TABLE`: the wake table (`lb_aws::wake`), read by the Monitor and written by
-    /// the wake and sweep functions.
-    pub wake_table: String,
+    /// `LB_WAKE_TABLE`: the wake table (`lb_aws::wake`), which the Monitor reads (the other
+    /// stages do without it).
+    pub wake_table: Option<String>,
 }
 
 impl FunctionConfig {
@@ -31,7 +31,16 @@ impl FunctionConfig {
         Ok(FunctionConfig {
             settings_secret: get("LB_SETTINGS_SECRET")?,
             token_secret: get("LB_EVALAI_TOKEN_SECRET")?,
-            wake_table: get("LB_WAKE_TABLE")?,
+            wake_table: lookup("LB_WAKE_TABLE").filter(|v| !v.trim().is_empty()),
+        })
+    }
+}
+
+impl FunctionConfig {
+    /// The wake table, for the functions that need it.
+    pub fn wake_table(&self) -> Result<&str, FnError> {
+        self.wake_table.as_deref().ok_or_else(|| {
+            FnError::Config("environment variable `LB_WAKE_TABLE` is not set".into())
         })
     }
 }

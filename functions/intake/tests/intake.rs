@@ -17,7 +17,7 @@ async fn stack(settings: &str) -> (Stack, Deps) {
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
-        wake_table: WAKE_TABLE.into(),
+        wake_table: Some(WAKE_TABLE.into()),
     };
     let deps = Deps::load(&stack.sdk, &config).await.unwrap();
     (stack, deps)

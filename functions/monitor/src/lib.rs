@@ -58,7 +58,7 @@ impl Deps {
         clusters: Clusters,
     ) -> Result<Deps> {
         let clients = RunClients::load(sdk, config, clusters).await?;
-        let wake = WakeTable::new(clients.dynamo.clone(), &config.wake_table);
+        let wake = WakeTable::new(clients.dynamo.clone(), config.wake_table()?);
         Ok(Deps {
             clients,
             policy: VerdictPolicy::default(),

@@ -236,6 +236,7 @@ fn main() {
             .chain([
                 ("LB_SETTINGS_SECRET".to_string(), SETTINGS_SECRET.to_string()),
                 ("LB_EVALAI_TOKEN_SECRET".to_string(), TOKEN_SECRET.to_string()),
+                ("LB_WAKE_TABLE".to_string(), "leaderboard-wakes".to_string()),
                 ("LB_KUBECONFIG".to_string(), stack.kubeconfig.as_ref().unwrap().display().to_string()),
             ])
             .collect();

@@ -57,7 +57,7 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
-        wake_table: WAKE_TABLE.into(),
+        wake_table: Some(WAKE_TABLE.into()),
     };
     let clusters = || Clusters::Kubeconfig(stack.kubeconfig.clone().unwrap());
     let intake = intake::Deps::load(&stack.sdk, &config).await.unwrap();
@@ -483,7 +483,7 @@ async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() 
     let config = FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
-        wake_table: WAKE_TABLE.into(),
+        wake_table: Some(WAKE_TABLE.into()),
     };
     let unreachable = monitor::Deps::load(&h.stack.sdk, &config, Clusters::Kubeconfig(down))
         .await
