@@ -25,7 +25,8 @@ pub const PARTIAL_UPDATE_INTERVAL: Duration = Duration::from_secs(30);
 pub const POLL_WITHOUT_WAKE: Duration = Duration::from_secs(60);
 
 /// How often the Monitor reads the status on EvalAI itself, in case the cancel sweep is down.
-pub const STATUS_FALLBACK: Duration = Duration::from_secs(30 * 60);
+/// NB: every round until the sweep is deployed (issue 14): a cancel must not wait for it.
+pub const STATUS_FALLBACK: Duration = Duration::ZERO;
 
 /// The safety net, `elapsed` after launch: the longest a wait lasts without a change. Short
 /// while pods pull images and start (the failures only the cluster shows happen then: an
