@@ -134,6 +134,12 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let track = &mut settings["leaderboards"][&args.leaderboard]["tracks"]["SENSORS"];
     track["routes"] = json!(args.routes);
     track["workers"] = json!(args.workers);
+    // The Monitor's clock is real while the executor scales every wait: the least interval
+    // between partial updates is scaled here, or a fast run would defer its updates and spin.
+    let interval = (lb_domain::schedule::PARTIAL_UPDATE_INTERVAL.as_secs_f64() * args.time_scale)
+        .round()
+        .max(1.0) as u64;
+    settings["leaderboards"][&args.leaderboard]["partial_update_seconds"] = json!(interval);
     // Another EvalAI has its own phase ids: its phase runs the chosen leaderboard's track.
     if let (Some(_), Some(p)) = (&args.evalai_url, args.phase) {
         settings["phases"][p.to_string()] =

@@ -330,8 +330,8 @@ impl Settings {
                     return invalid(at(field), "must not be empty");
                 }
             }
-            if !(5..=3600).contains(&lb.partial_update_seconds) {
-                return invalid(at("partial_update_seconds"), "must be between 5 and 3600");
+            if !(1..=3600).contains(&lb.partial_update_seconds) {
+                return invalid(at("partial_update_seconds"), "must be between 1 and 3600");
             }
             if !(1..=16).contains(&lb.gpus_per_node) {
                 return invalid(at("gpus_per_node"), "must be between 1 and 16");
