@@ -13,7 +13,7 @@ use std::collections::HashMap;
 use aws_sdk_dynamodb::types::AttributeValue;
 use aws_sdk_dynamodb::Client;
 
-use crate::{AwsError, Result};
+use crate::{condition_failed, AwsError, Result};
 
 /// `submission_status` values of the record.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -258,10 +258,7 @@ impl SubmissionsTable {
         };
         match request.send().await {
             Ok(_) => Ok(Claim::Claimed),
-            Err(e)
-                if e.as_service_error()
-                    .is_some_and(|e| e.is_conditional_check_failed_exception()) =>
-            {
+            Err(e) if condition_failed(&e) => {
                 let current = self.get(record.team_id, record.submission_id).await?;
                 let text = |k: &str| {
                     current
@@ -322,10 +319,7 @@ impl SubmissionsTable {
         };
         match update(false).send().await {
             Ok(_) => Ok(()),
-            Err(e)
-                if e.as_service_error()
-                    .is_some_and(|e| e.is_conditional_check_failed_exception()) =>
-            {
+            Err(e) if condition_failed(&e) => {
                 update(true)
                     .send()
                     .await
@@ -416,12 +410,7 @@ impl SubmissionsTable {
             .await;
         match result {
             Ok(_) => Ok(true),
-            Err(e)
-                if e.as_service_error()
-                    .is_some_and(|e| e.is_conditional_check_failed_exception()) =>
-            {
-                Ok(false)
-            }
+            Err(e) if condition_failed(&e) => Ok(false),
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
         }
     }
@@ -486,12 +475,7 @@ impl QualifierTable {
             .await;
         match result {
             Ok(_) => Ok(()),
-            Err(e)
-                if e.as_service_error()
-                    .is_some_and(|e| e.is_conditional_check_failed_exception()) =>
-            {
-                Ok(())
-            }
+            Err(e) if condition_failed(&e) => Ok(()),
             Err(e) => Err(AwsError::sdk("dynamodb", "PutItem", e)),
         }
     }

@@ -74,6 +74,11 @@ impl AwsError {
         }
     }
 
+    /// Throttling, timeouts, 5xx: worth trying again later.
+    pub fn is_transient(&self) -> bool {
+        matches!(self, AwsError::Transient { .. })
+    }
+
     /// Classifies an SDK error: throttling and transport problems are transient.
     pub(crate) fn sdk<E, R>(
         service: &'static str,
@@ -122,4 +127,13 @@ impl AwsError {
             }
         }
     }
+}
+
+/// Whether a DynamoDB write was refused by its condition: for a conditional write, the
+/// answer "someone else got there first", not a failure.
+pub(crate) fn condition_failed<E, R>(err: &SdkError<E, R>) -> bool
+where
+    E: aws_sdk_dynamodb::error::ProvideErrorMetadata,
+{
+    err.as_service_error().and_then(|e| e.code()) == Some("ConditionalCheckFailedException")
 }

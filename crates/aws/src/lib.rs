@@ -11,6 +11,7 @@ pub mod s3;
 pub mod secrets;
 pub mod wake;
 
+use error::condition_failed;
 pub use error::{AwsError, Result};
 
 use aws_config::{BehaviorVersion, SdkConfig};

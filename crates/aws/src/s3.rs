@@ -11,6 +11,15 @@ pub use lb_domain::protocol::{CANCEL_MARKER, STATUS_DIR};
 /// Biggest worker results file we read (the results engine refuses more anyway).
 pub const MAX_PARTIAL_BYTES: u64 = 64 << 20;
 
+/// One object a listing found.
+struct Listed {
+    relative: String,
+    size: u64,
+    etag: String,
+    /// Last modified, epoch seconds.
+    modified: Option<i64>,
+}
+
 /// One worker's partial results file in S3.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PartialObject {
@@ -65,8 +74,8 @@ impl SubmissionStore {
         format!("s3://{bucket}/{submission_id}")
     }
 
-    /// Keys (relative to the submission) under `dir`, with size and ETag; paginated.
-    async fn list(&self, dir: &str) -> Result<Vec<(String, u64, String)>> {
+    /// Objects (keys relative to the submission) under `dir`; paginated.
+    async fn list(&self, dir: &str) -> Result<Vec<Listed>> {
         let mut out = Vec::new();
         let mut pages = self
             .client
@@ -79,13 +88,12 @@ impl SubmissionStore {
             let page = page.map_err(|e| AwsError::sdk("s3", "ListObjectsV2", e))?;
             for object in page.contents() {
                 let Some(key) = object.key() else { continue };
-                let relative = key.strip_prefix(&self.prefix).unwrap_or(key).to_string();
-                let size = object.size().unwrap_or(0).max(0) as u64;
-                out.push((
-                    relative,
-                    size,
-                    object.e_tag().unwrap_or_default().to_string(),
-                ));
+                out.push(Listed {
+                    relative: key.strip_prefix(&self.prefix).unwrap_or(key).to_string(),
+                    size: object.size().unwrap_or(0).max(0) as u64,
+                    etag: object.e_tag().unwrap_or_default().to_string(),
+                    modified: object.last_modified().map(|t| t.secs()),
+                });
             }
         }
         Ok(out)
@@ -97,20 +105,27 @@ impl SubmissionStore {
             .list("agent/")
             .await?
             .into_iter()
-            .filter_map(|(relative, size, etag)| {
-                let id = relative
-                    .strip_prefix("agent/partial_agent_results")?
-                    .strip_suffix(".json")?;
-                if id.is_empty() || id.len() > 4 || !id.bytes().all(|b| b.is_ascii_digit()) {
-                    return None;
-                }
-                Some(PartialObject {
-                    key: format!("{}{relative}", self.prefix),
-                    pair_id: id.parse().ok()?,
-                    size,
-                    etag,
-                })
-            })
+            .filter_map(
+                |Listed {
+                     relative,
+                     size,
+                     etag,
+                     ..
+                 }| {
+                    let id = relative
+                        .strip_prefix("agent/partial_agent_results")?
+                        .strip_suffix(".json")?;
+                    if id.is_empty() || id.len() > 4 || !id.bytes().all(|b| b.is_ascii_digit()) {
+                        return None;
+                    }
+                    Some(PartialObject {
+                        key: format!("{}{relative}", self.prefix),
+                        pair_id: id.parse().ok()?,
+                        size,
+                        etag,
+                    })
+                },
+            )
             .collect();
         out.sort_by_key(|p| p.pair_id);
         Ok(out)
@@ -136,7 +151,7 @@ impl SubmissionStore {
             .list(&format!("{}/", lb_domain::protocol::LOGS_DIR))
             .await?
             .into_iter()
-            .map(|(relative, size, _)| (relative, size))
+            .map(|l| (l.relative, l.size))
             .collect();
         out.sort();
         Ok(out)
@@ -196,44 +211,23 @@ impl SubmissionStore {
 
     /// The marker file names under `containers-status/`.
     pub async fn markers(&self) -> Result<Vec<String>> {
-        let dir = format!("{STATUS_DIR}/");
-        Ok(self
-            .list(&dir)
-            .await?
-            .into_iter()
-            .filter_map(|(relative, _, _)| relative.strip_prefix(&dir).map(str::to_owned))
-            .filter(|name| !name.is_empty() && !name.contains('/'))
-            .collect())
+        self.markers_since(0).await
     }
 
     /// The marker file names under `containers-status/` written at or after `since` (epoch
     /// seconds): a run's own, not those an earlier run of the submission left until its
     /// Jobs' init removes them.
     pub async fn markers_since(&self, since: u64) -> Result<Vec<String>> {
-        let dir = format!("{}{STATUS_DIR}/", self.prefix);
-        let mut out = Vec::new();
-        let mut pages = self
-            .client
-            .list_objects_v2()
-            .bucket(&self.bucket)
-            .prefix(&dir)
-            .into_paginator()
-            .send();
-        while let Some(page) = pages.next().await {
-            let page = page.map_err(|e| AwsError::sdk("s3", "ListObjectsV2", e))?;
-            for object in page.contents() {
-                let fresh = object
-                    .last_modified()
-                    .is_some_and(|t| t.secs() >= i64::try_from(since).unwrap_or(i64::MAX));
-                let name = object.key().and_then(|k| k.strip_prefix(&dir));
-                if let (true, Some(name)) = (fresh, name) {
-                    if !name.is_empty() && !name.contains('/') {
-                        out.push(name.to_owned());
-                    }
-                }
-            }
-        }
-        Ok(out)
+        let dir = format!("{STATUS_DIR}/");
+        let since = i64::try_from(since).unwrap_or(i64::MAX);
+        Ok(self
+            .list(&dir)
+            .await?
+            .into_iter()
+            .filter(|l| since == 0 || l.modified.is_some_and(|t| t >= since))
+            .filter_map(|l| l.relative.strip_prefix(&dir).map(str::to_owned))
+            .filter(|name| !name.is_empty() && !name.contains('/'))
+            .collect())
     }
 
     /// Writes the cancel marker the Jobs' logcopy mirrors into the pods.

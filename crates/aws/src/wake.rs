@@ -20,7 +20,7 @@ use std::collections::HashMap;
 use aws_sdk_dynamodb::types::{AttributeValue, ReturnValue};
 use aws_sdk_dynamodb::Client;
 
-use crate::{AwsError, Result};
+use crate::{condition_failed, AwsError, Result};
 
 /// How long an item outlives its last write: longer than any evaluation and its queue time.
 pub const RETENTION_SECONDS: u64 = 7 * 24 * 3600;
@@ -92,11 +92,6 @@ impl WakeTable {
         }
     }
 
-    /// The table's name.
-    pub fn name(&self) -> &str {
-        &self.table
-    }
-
     /// The submission's count and cancel flag, read consistently (the next wait's condition
     /// compares with the item as it is now, not with a replica's).
     pub async fn state(&self, submission_id: u64) -> Result<WakeState> {
@@ -166,12 +161,7 @@ impl WakeTable {
             .await;
         match result {
             Ok(out) => Ok(Some(taken(out.attributes()))),
-            Err(e)
-                if e.as_service_error()
-                    .is_some_and(|e| e.is_conditional_check_failed_exception()) =>
-            {
-                Ok(None)
-            }
+            Err(e) if condition_failed(&e) => Ok(None),
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
         }
     }
@@ -194,12 +184,7 @@ impl WakeTable {
             .await;
         match result {
             Ok(_) => Ok(()),
-            Err(e)
-                if e.as_service_error()
-                    .is_some_and(|e| e.is_conditional_check_failed_exception()) =>
-            {
-                Ok(())
-            }
+            Err(e) if condition_failed(&e) => Ok(()),
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
         }
     }

@@ -60,7 +60,7 @@ impl FnError {
     pub fn is_transient(&self) -> bool {
         match self {
             FnError::EvalAi(e) => e.is_transient(),
-            FnError::Aws(e) => matches!(e, AwsError::Transient { .. }),
+            FnError::Aws(e) => e.is_transient(),
             FnError::Stage { transient, .. } => *transient,
             _ => false,
         }

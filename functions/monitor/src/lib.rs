@@ -135,7 +135,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             monitor.seen = wake.changes;
             wake
         }
-        Err(e) if e.name() == "AwsTransient" => {
+        Err(e) if e.is_transient() => {
             warn!(submission_id = id, error = %e, "wake count not read: polling this time");
             monitor.poll = true;
             monitor.wait_seconds = POLL_WITHOUT_WAKE.as_secs();
@@ -187,73 +187,9 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         submission: id,
     };
 
-    // Results: a changed set is merged and sent (the PUT's own GET reads the status), at most
-    // once per `partial_update_seconds`; an unchanged one costs one listing.
     let interval = target.deployment.partial_update_seconds;
-    let mut evalai_status = None;
-    match list(&store).await {
-        Ok(listing)
-            if Some(&listing.fingerprint) != run.monitor.fingerprint.as_ref()
-                && !listing.fingerprint.is_empty() =>
-        {
-            let since_update = run.monitor.updated_at.map(|t| now.saturating_sub(t));
-            if let Some(since) = since_update.filter(|&since| since < interval) {
-                // Too soon (a round the hold did not cover): the wait ends when it may go.
-                run.monitor.wait_seconds = run.monitor.wait_seconds.min((interval - since).max(1));
-            } else {
-                let current = listing.fingerprint.clone();
-                match collect_listed(&store, listing, leaderboard, &run.pairs, run.repetitions)
-                    .await
-                {
-                    Ok(snapshot) => {
-                        run.monitor.progress = snapshot.progress;
-                        let update = PartialUpdate {
-                            result: snapshot.files.results_json(),
-                            stdout: snapshot.files.stdout.clone(),
-                            metadata: snapshot
-                                .files
-                                .metadata
-                                .clone()
-                                .unwrap_or_else(|| "{}".into()),
-                        };
-                        match deps.clients.evalai.post_partial(at, &update).await {
-                            Ok(WriteOutcome::Written) => {
-                                run.monitor.fingerprint = Some(snapshot.fingerprint);
-                                run.monitor.updated_at = Some(now);
-                                run.monitor.hold_seconds = interval;
-                                evalai_status = Some(SubmissionStatus::PartiallyEvaluated);
-                            }
-                            Ok(WriteOutcome::Cancelled) => {
-                                evalai_status = Some(SubmissionStatus::Cancelled)
-                            }
-                            Ok(WriteOutcome::AlreadyFinal(status)) => evalai_status = Some(status),
-                            Err(e) if e.is_transient() => {
-                                warn!(submission_id = id, error = %e, "partial update skipped this round");
-                                // Nothing in S3 will change for it: try again soon.
-                                run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
-                            }
-                            Err(e) => return Err(e.into()),
-                        }
-                    }
-                    Err(e) if e.is_transient() => {
-                        warn!(submission_id = id, error = %e.chain(), "results not read this round");
-                        run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
-                    }
-                    Err(e) => {
-                        // The participant's own files are broken; the sidecar marks that pair crashed.
-                        warn!(submission_id = id, error = %e.chain(), "results unusable this round");
-                        run.monitor.fingerprint = Some(current);
-                    }
-                }
-            }
-        }
-        Ok(_) => {}
-        Err(e) if e.is_transient() => {
-            warn!(submission_id = id, error = %e.chain(), "results not listed this round");
-            run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
-        }
-        Err(e) => return Err(e),
-    }
+    let mut evalai_status =
+        send_changed_results(deps, &store, at, leaderboard, &mut run, now, interval).await?;
     // The status itself: to confirm a cancel the sweep found (a flag an earlier run left is
     // not believed without it), or now and then in case the sweep is not running.
     let fallback_due = run
@@ -324,6 +260,83 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         }
     }
     Ok(run)
+}
+
+/// Results: a changed set is merged and sent, at most once per `interval` seconds; an
+/// unchanged one costs one listing. Returns the status the PUT's own GET read, if it ran.
+async fn send_changed_results(
+    deps: &Deps,
+    store: &SubmissionStore,
+    at: SubmissionRef,
+    leaderboard: Leaderboard,
+    run: &mut RunState,
+    now: u64,
+    interval: u64,
+) -> Result<Option<SubmissionStatus>> {
+    let id = at.submission;
+    let listing = match list(store).await {
+        Ok(listing) => listing,
+        Err(e) if e.is_transient() => {
+            warn!(submission_id = id, error = %e.chain(), "results not listed this round");
+            run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
+            return Ok(None);
+        }
+        Err(e) => return Err(e),
+    };
+    if listing.fingerprint.is_empty()
+        || Some(&listing.fingerprint) == run.monitor.fingerprint.as_ref()
+    {
+        return Ok(None);
+    }
+    let since_update = run.monitor.updated_at.map(|t| now.saturating_sub(t));
+    if let Some(since) = since_update.filter(|&since| since < interval) {
+        // Too soon (a round the hold did not cover): the wait ends when it may go.
+        run.monitor.wait_seconds = run.monitor.wait_seconds.min((interval - since).max(1));
+        return Ok(None);
+    }
+    let current = listing.fingerprint.clone();
+    let snapshot =
+        match collect_listed(store, listing, leaderboard, &run.pairs, run.repetitions).await {
+            Ok(snapshot) => snapshot,
+            Err(e) if e.is_transient() => {
+                warn!(submission_id = id, error = %e.chain(), "results not read this round");
+                run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
+                return Ok(None);
+            }
+            Err(e) => {
+                // The participant's own files are broken; the sidecar marks that pair crashed.
+                warn!(submission_id = id, error = %e.chain(), "results unusable this round");
+                run.monitor.fingerprint = Some(current);
+                return Ok(None);
+            }
+        };
+    run.monitor.progress = snapshot.progress;
+    let update = PartialUpdate {
+        result: snapshot.files.results_json(),
+        stdout: snapshot.files.stdout.clone(),
+        metadata: snapshot
+            .files
+            .metadata
+            .clone()
+            .unwrap_or_else(|| "{}".into()),
+    };
+    match deps.clients.evalai.post_partial(at, &update).await {
+        Ok(WriteOutcome::Written) => {
+            run.monitor.fingerprint = Some(snapshot.fingerprint);
+            run.monitor.updated_at = Some(now);
+            run.monitor.hold_seconds = interval;
+            Ok(Some(SubmissionStatus::PartiallyEvaluated))
+        }
+        Ok(WriteOutcome::Cancelled) => Ok(Some(SubmissionStatus::Cancelled)),
+        Ok(WriteOutcome::AlreadyFinal(status)) => Ok(Some(status)),
+        Err(e) if e.is_transient() => {
+            warn!(submission_id = id, error = %e, "partial update skipped this round");
+            // Nothing in S3 will change for it: try again soon.
+            run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
+            Ok(None)
+        }
+        Err(e) => Err(e.into()),
+    }
 }
 
 /// How soon to look again once every Job's logcopy is done.

@@ -915,7 +915,13 @@ impl Run {
         };
         let timeout = match &task.timeout_path {
             None => task.timeout_seconds,
-            Some(path) => Some(timeout_from_path(path, input, &ctx)?),
+            Some(path) => Some(seconds_at(
+                path,
+                input,
+                &ctx,
+                ("TimeoutSecondsPath", "Task"),
+                1,
+            )?),
         };
         let mut scheduled =
             resource(json!({"region": self.options.region, "parameters": effective}));
@@ -1323,18 +1329,25 @@ fn kind_of(value: &Value) -> &'static str {
     }
 }
 
-/// A Task's `TimeoutSecondsPath` read from its input: a positive integer, as `TimeoutSeconds`.
-fn timeout_from_path(path: &ReferencePath, input: &Value, ctx: &Value) -> Result<u64, Failure> {
+/// Whole seconds a `...SecondsPath` field selects: an integer from `min` to 99999999, else a
+/// runtime error naming the field (`field` of the `kind` state).
+fn seconds_at(
+    path: &ReferencePath,
+    input: &Value,
+    ctx: &Value,
+    (field, kind): (&str, &str),
+    min: u64,
+) -> Result<u64, Failure> {
     let value = path.get(input, ctx).ok_or_else(|| {
         Failure::runtime(format!(
-            "Invalid path '{}': the TimeoutSecondsPath of the Task state selects nothing",
+            "Invalid path '{}': the {field} of the {kind} state selects nothing",
             path.text()
         ))
     })?;
     match value.as_u64() {
-        Some(s) if (1..=99_999_999).contains(&s) => Ok(s),
+        Some(s) if (min..=99_999_999).contains(&s) => Ok(s),
         _ => Err(Failure::runtime(format!(
-            "The TimeoutSecondsPath '{}' must select an integer from 1 to 99999999, got {value}",
+            "The {field} '{}' must select an integer from {min} to 99999999, got {value}",
             path.text()
         ))),
     }
@@ -1346,23 +1359,7 @@ fn wait_seconds(wait: &Wait, input: &Value, ctx: &Value) -> Result<f64, Failure>
     Ok(match wait {
         Wait::Seconds(s) => *s as f64,
         Wait::Timestamp(at) => until(*at),
-        Wait::SecondsPath(path) => {
-            let value = path.get(input, ctx).ok_or_else(|| {
-                Failure::runtime(format!(
-                    "Invalid path '{}': the SecondsPath of the Wait state selects nothing",
-                    path.text()
-                ))
-            })?;
-            match value.as_u64() {
-                Some(s) if s <= 99_999_999 => s as f64,
-                _ => {
-                    return Err(Failure::runtime(format!(
-                    "The SecondsPath '{}' must select an integer from 0 to 99999999, got {value}",
-                    path.text()
-                )))
-                }
-            }
-        }
+        Wait::SecondsPath(path) => seconds_at(path, input, ctx, ("SecondsPath", "Wait"), 0)? as f64,
         Wait::TimestampPath(path) => {
             let value = path.get(input, ctx).ok_or_else(|| {
                 Failure::runtime(format!(
