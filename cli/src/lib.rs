@@ -12,6 +12,7 @@ mod invoke;
 mod local;
 mod logs;
 mod ops;
+mod relay;
 mod rescore;
 mod watch;
 

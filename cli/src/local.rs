@@ -358,10 +358,20 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         },
     )
     .map_err(|e| anyhow::anyhow!("{e}"))?;
+    // S3's events wake the waiting execution, as in the deployment.
+    let relays = crate::relay::spawn(
+        &stack.sdk,
+        &local_stack::stack::app_template(&settings),
+        WAKE_TABLE,
+        executor.clone(),
+    )
+    .await?;
     let execution = executor
         .start(&machine, &format!("local-{submission}"), input)
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     let result = execution.wait().await;
+    let wake_messages = relays.wake_messages.load(Ordering::Relaxed);
+    drop(relays);
 
     // The summary.
     let on_fake = stack
@@ -394,6 +404,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         outln!("caught error   {}", deployment::clean(&caught));
     }
     outln!("EvalAI status  {status_on_evalai}");
+    outln!("S3 events      {wake_messages} results files and markers seen by the wake function");
     // What the participant reads on a failure: the reason and the end of their agent's output.
     if let Some(stderr) = on_fake
         .as_ref()

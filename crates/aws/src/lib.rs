@@ -1,5 +1,5 @@
 //! AWS adapters of the pipeline: settings and token from Secrets Manager, the DynamoDB claim
-//! and records, the S3 layout of a submission, and EKS access.
+//! and records, the S3 layout of a submission, EKS access, the wake table and task callbacks.
 //!
 //! Clients are concrete SDK clients built once per cold start from one [`aws_config::SdkConfig`]
 //! (see [`sdk_config`]); tests point them at moto through `AWS_ENDPOINT_URL`.
@@ -9,6 +9,7 @@ pub mod eks;
 mod error;
 pub mod s3;
 pub mod secrets;
+pub mod tasks;
 pub mod wake;
 
 use error::condition_failed;

@@ -99,6 +99,35 @@ pub fn partial_results_name(pair: PairId) -> String {
     format!("partial_agent_results{pair}.json")
 }
 
+/// The submission whose Monitor an S3 object key should wake, if the key is one: a worker's
+/// results file (`<id>/agent/partial_agent_results<ID>.json`) or a status marker
+/// (`<id>/containers-status/<name>`). Logs and everything else wait for the next round.
+///
+/// Keys come from S3 events for the results buckets, written by logcopy (and so by whatever
+/// the participant's container left in the shared directories): anything else is `None`.
+pub fn wakes_submission(key: &str) -> Option<u64> {
+    let (id, rest) = key.split_once('/')?;
+    if id.is_empty() || id.len() > 20 || !id.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    let submission: u64 = id.parse().ok()?;
+    let wakes = if let Some(name) = rest
+        .strip_prefix(AGENT_DIR)
+        .and_then(|r| r.strip_prefix("/partial_agent_results"))
+    {
+        name.strip_suffix(".json")
+            .is_some_and(|pair| !pair.is_empty() && pair.bytes().all(|b| b.is_ascii_digit()))
+    } else if let Some(name) = rest
+        .strip_prefix(STATUS_DIR)
+        .and_then(|r| r.strip_prefix('/'))
+    {
+        !name.is_empty() && !name.contains('/')
+    } else {
+        false
+    };
+    wakes.then_some(submission)
+}
+
 /// `simulator/simulator<ID>.log`: CARLA's output, relative to the logs directory.
 pub fn simulator_log(pair: PairId) -> String {
     format!("simulator/simulator{pair}.log")
@@ -528,6 +557,33 @@ pub fn parse_pairs(text: &str) -> Result<Vec<PairId>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn results_files_and_markers_wake_their_submission_and_nothing_else_does() {
+        for (key, wakes) in [
+            ("42/agent/partial_agent_results1.json", Some(42)),
+            ("42/agent/partial_agent_results12.json", Some(42)),
+            ("7/containers-status/agent-1.done", Some(7)),
+            ("7/containers-status/simulation.cancel", Some(7)),
+            ("7/containers-status/logcopy-0.done", Some(7)),
+            // Logs, temporaries, other folders and foreign keys keep their period.
+            ("42/agent/partial_agent_results.json", None),
+            ("42/agent/partial_agent_results1.json.tmp", None),
+            ("42/agent/partial_agent_resultsX.json", None),
+            ("42/agent/agent1/log.txt", None),
+            ("42/logs/simulator/simulator1.log", None),
+            ("42/containers-status/", None),
+            ("42/containers-status/deep/x", None),
+            ("42/evalai/results.json", None),
+            ("abc/containers-status/x", None),
+            ("/containers-status/x", None),
+            ("99999999999999999999999/containers-status/x", None),
+            ("containers-status/x", None),
+            ("", None),
+        ] {
+            assert_eq!(wakes_submission(key), wakes, "{key}");
+        }
+    }
 
     fn markers(names: &[&str]) -> Markers {
         Markers::from_names(names.iter().copied())

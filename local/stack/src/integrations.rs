@@ -18,6 +18,33 @@ use serde_json::{json, Map, Value};
 /// The handler key of the wake table's wait.
 pub const DYNAMODB_UPDATE_ITEM: &str = "aws-sdk:dynamodb:updateItem";
 
+/// The `WaitForChange` state's Parameters of the deployed definition as Step Functions
+/// resolves them for a submission's wait (token, execution `submission-<id>-a`), with the
+/// table named [`crate::stack::WAKE_TABLE`]: what tests write to stand for a waiting execution.
+pub fn wait_for_change(token: &str, submission_id: u64, challenge: u64, seen: u64) -> Value {
+    let definition: Value =
+        serde_json::from_str(include_str!("../../../statemachine/submission.asl.json"))
+            .expect("the deployed definition is JSON");
+    let state = definition["States"]["WaitForChange"]
+        .as_object()
+        .expect("the definition has WaitForChange");
+    let flow = lb_asl::DataFlow::from_state(state).expect("WaitForChange's data flow");
+    let input = json!({
+        "intake": {"submission": {"submission_id": submission_id, "challenge_id": challenge}},
+        "run": {"monitor": {"seen": seen, "expires_at": 1_900_000_000u64, "wait_seconds": 60}}
+    });
+    let context = json!({
+        "Task": {"Token": token},
+        "Execution": {"Name": format!("submission-{submission_id}-a")}
+    });
+    let env = lb_asl::Env::with_context(&context);
+    let mut params = flow
+        .effective_input(&input, &env)
+        .expect("WaitForChange's Parameters resolve");
+    params["TableName"] = json!(crate::stack::WAKE_TABLE);
+    params
+}
+
 /// `tasks` with the integrations the deployed definition uses, against `sdk` (moto).
 pub fn with_services(tasks: TaskMap, sdk: &SdkConfig) -> TaskMap {
     let client = aws_sdk_dynamodb::Client::new(sdk);

@@ -1,5 +1,6 @@
 //! Local stand-ins for the systems the backend talks to, for tests and local mode.
 
+pub mod events;
 pub mod integrations;
 pub mod moto;
 pub mod pipe;

@@ -152,6 +152,18 @@ pub fn allowed(statements: &[Statement]) -> BTreeMap<String, BTreeSet<String>> {
     out
 }
 
+/// Actions whose only resource is `*` (Service Authorization Reference: no resource type).
+/// `states:SendTaskSuccess` reports a task token, which is not an ARN.
+pub const UNSCOPED: [&str; 1] = ["states:SendTaskSuccess"];
+
+/// What an SQS event source mapping does with its function's role (Lambda developer guide,
+/// "Execution role permissions"), on its queue only.
+pub const EVENT_SOURCE_ACTIONS: [&str; 3] = [
+    "sqs:DeleteMessage",
+    "sqs:GetQueueAttributes",
+    "sqs:ReceiveMessage",
+];
+
 /// The differences between what code needs and what a policy allows, in words.
 pub fn compare(
     who: &str,
@@ -170,10 +182,13 @@ pub fn compare(
         ));
     }
     for (action, resources) in allowed {
-        if resources.is_empty()
-            || resources
-                .iter()
-                .any(|r| r.contains('*') && !r.ends_with("/*"))
+        let unscoped_by_design =
+            UNSCOPED.contains(&action.as_str()) && resources.iter().all(|r| r == "*");
+        if !unscoped_by_design
+            && (resources.is_empty()
+                || resources
+                    .iter()
+                    .any(|r| r.contains('*') && !r.ends_with("/*")))
         {
             problems.push(format!(
                 "{who}'s role allows `{action}` on {resources:?}: name the resources"
@@ -271,12 +286,42 @@ pub fn check_function(template: &Template, function: &str, binary: &Path) -> Vec
         .flatten()
         .filter_map(|p| p["PolicyName"].as_str())
         .collect();
-    if policies != ["logs", "code"] {
+    let queues = event_source_queues(template, function);
+    let expected: &[&str] = if queues.is_empty() {
+        &["logs", "code"]
+    } else {
+        &["logs", "code", "source"]
+    };
+    if policies != expected {
         problems.push(format!(
-            "{function}: its role's policies are {policies:?}, expected [logs, code]"
+            "{function}: its role's policies are {policies:?}, expected {expected:?}"
         ));
     }
+    if !queues.is_empty() {
+        let source = allowed_or_empty(template, &role, "source");
+        let expected: BTreeMap<String, BTreeSet<String>> = EVENT_SOURCE_ACTIONS
+            .iter()
+            .map(|a| (a.to_string(), queues.clone()))
+            .collect();
+        if source != expected {
+            problems.push(format!(
+                "{function}: its `source` policy must allow exactly what its event source mapping does on {queues:?}, found {source:?}"
+            ));
+        }
+    }
     problems
+}
+
+/// The queues (as `<Id.Arn>`) whose event source mappings invoke `function`.
+fn event_source_queues(template: &Template, function: &str) -> BTreeSet<String> {
+    template
+        .resources_of("AWS::Lambda::EventSourceMapping")
+        .into_iter()
+        .filter(|id| {
+            template.text(id, &["FunctionName"]).ok().as_deref() == Some(&format!("<{function}>"))
+        })
+        .filter_map(|id| template.text(&id, &["EventSourceArn"]).ok())
+        .collect()
 }
 
 fn allowed_or_empty(

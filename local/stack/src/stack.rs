@@ -1,6 +1,7 @@
 //! The whole local stack in one handle: moto, the fake EvalAI (or an external EvalAI), and the
 //! AWS resources the pipeline expects, provisioned from the operator settings.
 
+use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use aws_config::SdkConfig;
@@ -230,7 +231,8 @@ impl Stack {
             .await?;
         provisioner.buckets().await?;
         provisioner.tables().await?;
-        provisioner.queues().await?;
+        let queues = provisioner.queues().await?;
+        provisioner.rules(&queues).await?;
         Ok(settings)
     }
 }
@@ -307,6 +309,73 @@ impl Provisioner<'_> {
                 .send()
                 .await
                 .map_err(|e| provision(&name, e))?;
+            // The bucket's events to EventBridge, as the template declares (moto then hands
+            // each object event to the rules, as S3 does: moto/s3/notifications.py).
+            let eventbridge = self
+                .template
+                .text(
+                    &id,
+                    &[
+                        "NotificationConfiguration",
+                        "EventBridgeConfiguration",
+                        "EventBridgeEnabled",
+                    ],
+                )
+                .is_ok_and(|v| v == "true");
+            if eventbridge {
+                s3.put_bucket_notification_configuration()
+                    .bucket(&name)
+                    .notification_configuration(
+                        aws_sdk_s3::types::NotificationConfiguration::builder()
+                            .event_bridge_configuration(
+                                aws_sdk_s3::types::EventBridgeConfiguration::builder().build(),
+                            )
+                            .build(),
+                    )
+                    .send()
+                    .await
+                    .map_err(|e| provision(&name, e))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// EventBridge rules on the default bus with their pattern and their SQS targets (by the
+    /// queue ARNs `queues` maps from `<Id.Arn>`), named by logical id.
+    async fn rules(&self, queues: &BTreeMap<String, String>) -> Result<(), StackError> {
+        let client = aws_sdk_eventbridge::Client::new(self.sdk);
+        let root = self.template.root();
+        for id in self.template.resources_of("AWS::Events::Rule") {
+            let props = &root["Resources"][id.as_str()]["Properties"];
+            let pattern = self.template.json(&props["EventPattern"]);
+            client
+                .put_rule()
+                .name(&id)
+                .event_pattern(pattern.to_string())
+                .send()
+                .await
+                .map_err(|e| provision(&id, e))?;
+            for target in props["Targets"].as_sequence().into_iter().flatten() {
+                let reference = self.template.eval(&target["Arn"]).unwrap_or_default();
+                let arn = queues.get(&reference).ok_or_else(|| {
+                    provision(
+                        &id,
+                        TemplateError::Missing(format!("the target queue {reference}")),
+                    )
+                })?;
+                let built = aws_sdk_eventbridge::types::Target::builder()
+                    .id(self.template.eval(&target["Id"]).unwrap_or_default())
+                    .arn(arn)
+                    .build()
+                    .map_err(|e| provision(&id, e))?;
+                client
+                    .put_targets()
+                    .rule(&id)
+                    .targets(built)
+                    .send()
+                    .await
+                    .map_err(|e| provision(&id, e))?;
+            }
         }
         Ok(())
     }
@@ -353,14 +422,15 @@ impl Provisioner<'_> {
     }
 
     /// Queues with their attributes; a redrive target is created before the queue naming it.
-    async fn queues(&self) -> Result<(), StackError> {
+    /// Returns each queue's ARN by `<Id.Arn>`.
+    async fn queues(&self) -> Result<BTreeMap<String, String>, StackError> {
         let client = aws_sdk_sqs::Client::new(self.sdk);
         let root = self.template.root();
         let mut ids = self.template.resources_of("AWS::SQS::Queue");
         ids.sort_by_key(|id| {
             !root["Resources"][id.as_str()]["Properties"]["RedrivePolicy"].is_null()
         });
-        let mut arns = std::collections::BTreeMap::new();
+        let mut arns = BTreeMap::new();
         for id in ids {
             let name = self.name(&id)?;
             let props = &root["Resources"][id.as_str()]["Properties"];
@@ -415,7 +485,7 @@ impl Provisioner<'_> {
                 arns.insert(format!("<{id}.Arn>"), arn.clone());
             }
         }
-        Ok(())
+        Ok(arns)
     }
 }
 

@@ -294,6 +294,36 @@ impl Template {
     }
 }
 
+impl Template {
+    /// A property as the JSON CloudFormation hands the service: intrinsics evaluated to
+    /// their text (`!Ref`, `!Sub`, `!GetAtt` as `<Id.Attr>`), mappings and lists kept.
+    pub fn json(&self, v: &Value) -> serde_json::Value {
+        match v {
+            Value::Tagged(_) => self.eval(v).map_or(serde_json::Value::Null, Into::into),
+            Value::Mapping(m) if m.len() == 1 && is_intrinsic(m) => {
+                self.eval(v).map_or(serde_json::Value::Null, Into::into)
+            }
+            Value::Mapping(m) => serde_json::Value::Object(
+                m.iter()
+                    .filter_map(|(k, v)| Some((k.as_str()?.to_string(), self.json(v))))
+                    .collect(),
+            ),
+            Value::Sequence(items) => items.iter().map(|i| self.json(i)).collect(),
+            Value::Number(n) => serde_json::to_value(n).unwrap_or(serde_json::Value::Null),
+            Value::Bool(b) => serde_json::Value::Bool(*b),
+            Value::String(s) => serde_json::Value::String(s.clone()),
+            _ => serde_json::Value::Null,
+        }
+    }
+}
+
+fn is_intrinsic(m: &serde_yaml::Mapping) -> bool {
+    m.keys()
+        .next()
+        .and_then(|k| k.as_str())
+        .is_some_and(|k| k == "Ref" || k.starts_with("Fn::"))
+}
+
 fn scalar(v: &Value) -> Option<String> {
     match v {
         Value::String(s) => Some(s.clone()),

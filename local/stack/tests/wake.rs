@@ -4,26 +4,13 @@
 
 use fake_evalai::Fixture;
 use lb_aws::wake::{Taken, WakeTable};
-use local_stack::integrations::update_item;
+use local_stack::integrations::{update_item, wait_for_change};
 use local_stack::stack::{LOCAL_SETTINGS, WAKE_TABLE};
 use local_stack::{EvalAi, Stack};
 use serde_json::{json, Value};
 
-/// The WaitForChange state's Parameters as Step Functions would resolve them for `run`.
 fn wait_parameters(token: &str, seen: u64) -> Value {
-    let definition: Value =
-        serde_json::from_str(include_str!("../../../statemachine/submission.asl.json")).unwrap();
-    let state = definition["States"]["WaitForChange"].as_object().unwrap();
-    let flow = lb_asl::DataFlow::from_state(state).unwrap();
-    let input = json!({
-        "intake": {"submission": {"submission_id": 42, "challenge_id": 7}},
-        "run": {"monitor": {"seen": seen, "expires_at": 1_900_000_000u64, "wait_seconds": 60}}
-    });
-    let context = json!({"Task": {"Token": token}, "Execution": {"Name": "submission-42-a"}});
-    let env = lb_asl::Env::with_context(&context);
-    let mut params = flow.effective_input(&input, &env).unwrap();
-    params["TableName"] = json!(WAKE_TABLE);
-    params
+    wait_for_change(token, 42, 7, seen)
 }
 
 #[tokio::test]

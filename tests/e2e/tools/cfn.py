@@ -125,6 +125,15 @@ def main(argv):
         "tables": tables,
         "buckets": [b["Name"] for b in s3.list_buckets()["Buckets"]],
         "queues": boto3.client("sqs").list_queues().get("QueueUrls", []),
+        "rules": [
+            {"name": r["Name"], "pattern": json.loads(r.get("EventPattern", "{}"))}
+            for r in boto3.client("events").list_rules()["Rules"]
+        ],
+        "mappings": [
+            {"source": m["EventSourceArn"], "function": m["FunctionArn"], "batch": m["BatchSize"],
+             "window": m.get("MaximumBatchingWindowInSeconds"), "responses": m.get("FunctionResponseTypes", [])}
+            for m in boto3.client("lambda").list_event_source_mappings()["EventSourceMappings"]
+        ],
         "state_machines": [m["name"] for m in boto3.client("stepfunctions").list_state_machines()["stateMachines"]],
         "functions": sorted(f["FunctionName"] for f in boto3.client("lambda").list_functions()["Functions"]),
     }, indent=1, sort_keys=True))

@@ -1,0 +1,195 @@
+//! The wake function against moto's DynamoDB, with the deployed definition's wait standing
+//! for a waiting execution and a recorder standing for Step Functions. The events are S3's
+//! `Object Created` as EventBridge delivers them (`fixtures/object-created.json`, the S3 user
+//! guide's "EventBridge message structure" example with one of our keys), in Lambda's SQS
+//! batch (`{"Records": [{"messageId", "body", ...}]}`).
+
+use std::sync::Mutex;
+
+use fake_evalai::Fixture;
+use lb_aws::tasks::{Callbacks, Reported};
+use lb_aws::wake::WakeTable;
+use lb_aws::AwsError;
+use local_stack::integrations::{update_item, wait_for_change};
+use local_stack::stack::{LOCAL_SETTINGS, WAKE_TABLE};
+use local_stack::{EvalAi, Stack};
+use serde_json::{json, Value};
+use wake::{BatchResponse, Deps, ItemFailure};
+
+const EVENT: &str = include_str!("fixtures/object-created.json");
+
+/// Step Functions as the wake sees it: records each report and answers as told.
+#[derive(Default)]
+struct Recorder {
+    reports: Mutex<Vec<String>>,
+    /// `None`: delivered; `Some(true)`: stale; `Some(false)`: the API fails.
+    answer: Mutex<Option<bool>>,
+}
+
+impl Callbacks for Recorder {
+    async fn succeed(&self, token: &str, output: &str) -> lb_aws::Result<Reported> {
+        assert_eq!(output, "{}");
+        self.reports.lock().unwrap().push(token.to_string());
+        match *self.answer.lock().unwrap() {
+            None => Ok(Reported::Delivered),
+            Some(true) => Ok(Reported::Stale),
+            Some(false) => Err(AwsError::Malformed {
+                what: "SendTaskSuccess".into(),
+                problem: "the API is unreachable (test)".into(),
+            }),
+        }
+    }
+}
+
+fn event_for(key: &str) -> String {
+    let mut event: Value = serde_json::from_str(EVENT).unwrap();
+    event["detail"]["object"]["key"] = json!(key);
+    event.to_string()
+}
+
+fn batch(records: &[(&str, String)]) -> Value {
+    let records: Vec<Value> = records
+        .iter()
+        .map(|(id, body)| {
+            json!({
+                "messageId": id, "receiptHandle": format!("handle-{id}"), "body": body,
+                "attributes": {"ApproximateReceiveCount": "1"}, "messageAttributes": {},
+                "md5OfBody": "", "eventSource": "aws:sqs",
+                "eventSourceARN": "arn:aws:sqs:us-east-1:123456789012:leaderboard-wakes",
+                "awsRegion": "us-east-1"
+            })
+        })
+        .collect();
+    json!({ "Records": records })
+}
+
+fn failures(ids: &[&str]) -> BatchResponse {
+    BatchResponse {
+        batch_item_failures: ids
+            .iter()
+            .map(|id| ItemFailure {
+                item_identifier: id.to_string(),
+            })
+            .collect(),
+    }
+}
+
+async fn run(deps: &Deps<Recorder>, records: &[(&str, String)]) -> BatchResponse {
+    let out = wake::handle_json(batch(records), deps).await.unwrap();
+    let failed: Vec<String> = out["batchItemFailures"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["itemIdentifier"].as_str().unwrap().to_string())
+        .collect();
+    failures(&failed.iter().map(String::as_str).collect::<Vec<_>>())
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
+    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
+        .await
+        .expect("stack starts");
+    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    let deps = Deps {
+        wakes: WakeTable::new(client.clone(), WAKE_TABLE),
+        callbacks: Recorder::default(),
+    };
+    update_item(&client, wait_for_change("token-1", 42, 7, 0))
+        .await
+        .expect("submission 42 waits");
+
+    // Two results files and a marker of 42, one of 43 (nobody waits), a log, and garbage.
+    let response = run(
+        &deps,
+        &[
+            ("m1", event_for("42/agent/partial_agent_results1.json")),
+            ("m2", event_for("42/agent/partial_agent_results2.json")),
+            ("m3", event_for("42/containers-status/agent-1.done")),
+            ("m4", event_for("43/containers-status/agent-1.done")),
+            ("m5", event_for("42/logs/simulator/simulator1.log")),
+            ("m6", "{not json".into()),
+            (
+                "m7",
+                json!({"source": "aws.ec2", "detail-type": "x"}).to_string(),
+            ),
+        ],
+    )
+    .await;
+    assert_eq!(response, failures(&[]), "nothing to deliver again");
+    assert_eq!(*deps.callbacks.reports.lock().unwrap(), ["token-1"]);
+    assert_eq!(
+        deps.wakes.state(42).await.unwrap().changes,
+        1,
+        "once per batch"
+    );
+    assert_eq!(deps.wakes.state(43).await.unwrap().changes, 1, "counted");
+
+    // An event after the wake found no token: it only counts.
+    run(&deps, &[("m8", event_for("42/containers-status/x"))]).await;
+    assert_eq!(deps.callbacks.reports.lock().unwrap().len(), 1);
+    assert_eq!(deps.wakes.state(42).await.unwrap().changes, 2);
+
+    // Step Functions unreachable: 42's messages come back and its token is put back, while
+    // 43's are done; the redelivery reports the same token.
+    update_item(&client, wait_for_change("token-2", 42, 7, 2))
+        .await
+        .unwrap();
+    *deps.callbacks.answer.lock().unwrap() = Some(false);
+    let response = run(
+        &deps,
+        &[
+            ("m9", event_for("42/agent/partial_agent_results1.json")),
+            ("m10", event_for("43/agent/partial_agent_results1.json")),
+            ("m11", event_for("42/containers-status/agent-2.done")),
+        ],
+    )
+    .await;
+    assert_eq!(response, failures(&["m9", "m11"]));
+    *deps.callbacks.answer.lock().unwrap() = None;
+    let response = run(
+        &deps,
+        &[
+            ("m9", event_for("42/agent/partial_agent_results1.json")),
+            ("m11", event_for("42/containers-status/agent-2.done")),
+        ],
+    )
+    .await;
+    assert_eq!(response, failures(&[]));
+    assert_eq!(
+        *deps.callbacks.reports.lock().unwrap(),
+        ["token-1", "token-2", "token-2"]
+    );
+
+    // A token whose wait already ended (timed out into the Monitor): harmless, not retried.
+    update_item(&client, wait_for_change("token-3", 42, 7, 4))
+        .await
+        .unwrap();
+    *deps.callbacks.answer.lock().unwrap() = Some(true);
+    let response = run(&deps, &[("m12", event_for("42/containers-status/y"))]).await;
+    assert_eq!(response, failures(&[]));
+    assert_eq!(deps.wakes.state(42).await.unwrap().changes, 5);
+
+    // The table unreachable (here: missing): every wake-worthy message comes back.
+    let broken = Deps {
+        wakes: WakeTable::new(client.clone(), "no-such-table"),
+        callbacks: Recorder::default(),
+    };
+    let response = run(
+        &broken,
+        &[
+            ("m13", event_for("42/containers-status/z")),
+            ("m14", event_for("42/logs/x.log")),
+        ],
+    )
+    .await;
+    assert_eq!(response, failures(&["m13"]));
+
+    // Not Lambda's SQS event at all: an input error, nothing half done.
+    let err = wake::handle_json(json!({"Records": "x"}), &deps)
+        .await
+        .unwrap_err();
+    assert_eq!(err.name(), "InvalidInput");
+}

@@ -1,0 +1,233 @@
+//! What carries events to the functions in local mode as the deployment does: Lambda's SQS
+//! event source mapping (the wake queue to the wake function), and task reports to the
+//! embedded executor instead of the Step Functions API.
+//!
+//! Followed (Lambda developer guide, "Using Lambda with Amazon SQS"): the mapping polls the
+//! queue and gathers messages until the batch is full or `MaximumBatchingWindowInSeconds` has
+//! passed; the function gets `{"Records": [...]}`, each record as the Pipe sees it
+//! ([`crate::pipe::sqs_record`]). With `ReportBatchItemFailures`, the messages named in the
+//! response's `batchItemFailures` stay on the queue and come back after the visibility
+//! timeout; the others are deleted. A function error, or a response naming a message that
+//! is not in the batch, fails the whole batch: nothing is deleted.
+
+use std::time::{Duration, Instant};
+
+use aws_config::SdkConfig;
+use aws_sdk_sqs::types::{MessageSystemAttributeName, QueueAttributeName};
+use lb_aws::tasks::{Callbacks, Reported};
+use local_stepfunctions::{CallbackError, Executor};
+use serde_json::Value;
+
+use crate::pipe::{sqs_record, PipeError};
+use crate::template::{Template, TemplateError};
+
+/// An SQS event source mapping of the template.
+#[derive(Debug, Clone)]
+pub struct SqsEventSource {
+    sqs: aws_sdk_sqs::Client,
+    url: String,
+    arn: String,
+    region: String,
+    batch_size: usize,
+    window: Duration,
+}
+
+/// One batch handed to the function.
+#[derive(Debug, Clone)]
+pub struct Batch {
+    /// The event, `{"Records": [...]}`.
+    pub event: Value,
+    receipts: Vec<(String, String)>,
+}
+
+impl Batch {
+    /// How many messages it holds.
+    pub fn len(&self) -> usize {
+        self.receipts.len()
+    }
+
+    /// Whether it holds none.
+    pub fn is_empty(&self) -> bool {
+        self.receipts.is_empty()
+    }
+}
+
+fn sqs_error<E, R>(operation: &'static str, e: aws_sdk_sqs::error::SdkError<E, R>) -> PipeError
+where
+    E: std::error::Error + 'static,
+    R: std::fmt::Debug,
+{
+    PipeError::Sqs {
+        operation,
+        message: aws_sdk_sqs::error::DisplayErrorContext(e).to_string(),
+    }
+}
+
+impl SqsEventSource {
+    /// The mapping `id` of `template` (its queue must exist on `sdk`'s endpoint).
+    pub async fn from_template(
+        sdk: &SdkConfig,
+        template: &Template,
+        id: &str,
+    ) -> Result<SqsEventSource, TemplateError> {
+        let queue = template.text(id, &["EventSourceArn"])?;
+        let queue_id = queue
+            .strip_prefix('<')
+            .and_then(|q| q.strip_suffix(".Arn>"))
+            .ok_or_else(|| {
+                TemplateError::Invalid(format!(
+                    "`{id}` reads `{queue}`, not a queue of the template"
+                ))
+            })?;
+        let name = template.physical_name(queue_id)?;
+        let number = |key: &str, default: usize| {
+            template
+                .text(id, &[key])
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(default)
+        };
+        // The API's defaults for SQS: 10 messages, no window.
+        let batch_size = number("BatchSize", 10);
+        let window = Duration::from_secs(number("MaximumBatchingWindowInSeconds", 0) as u64);
+        let sqs = aws_sdk_sqs::Client::new(sdk);
+        let invalid = |e: PipeError| TemplateError::Invalid(format!("queue `{name}`: {e}"));
+        let url = sqs
+            .get_queue_url()
+            .queue_name(&name)
+            .send()
+            .await
+            .map_err(|e| invalid(sqs_error("GetQueueUrl", e)))?
+            .queue_url
+            .unwrap_or_default();
+        let arn = sqs
+            .get_queue_attributes()
+            .queue_url(&url)
+            .attribute_names(QueueAttributeName::QueueArn)
+            .send()
+            .await
+            .map_err(|e| invalid(sqs_error("GetQueueAttributes", e)))?
+            .attributes()
+            .and_then(|a| a.get(&QueueAttributeName::QueueArn).cloned())
+            .unwrap_or_default();
+        let region = arn.split(':').nth(3).unwrap_or_default().to_owned();
+        Ok(SqsEventSource {
+            sqs,
+            url,
+            arn,
+            region,
+            batch_size,
+            window,
+        })
+    }
+
+    /// One batch: waits up to `wait` for a first message, then gathers more until the batch
+    /// is full or the batching window has passed. `None` when nothing came.
+    pub async fn poll(&self, wait: Duration) -> Result<Option<Batch>, PipeError> {
+        let mut records = Vec::new();
+        let mut receipts = Vec::new();
+        let mut window_ends: Option<Instant> = None;
+        while records.len() < self.batch_size {
+            let wait_seconds = match window_ends {
+                None => wait.as_secs().min(20) as i32,
+                Some(end) if Instant::now() >= end => break,
+                Some(end) => end
+                    .saturating_duration_since(Instant::now())
+                    .as_secs()
+                    .min(20) as i32,
+            };
+            let received = self
+                .sqs
+                .receive_message()
+                .queue_url(&self.url)
+                .max_number_of_messages((self.batch_size - records.len()).min(10) as i32)
+                .wait_time_seconds(wait_seconds)
+                .message_system_attribute_names(MessageSystemAttributeName::All)
+                .send()
+                .await
+                .map_err(|e| sqs_error("ReceiveMessage", e))?;
+            let messages = received.messages();
+            if messages.is_empty() && window_ends.is_none() {
+                return Ok(None);
+            }
+            for m in messages {
+                records.push(sqs_record(m, &self.arn, &self.region));
+                receipts.push((
+                    m.message_id().unwrap_or_default().to_owned(),
+                    m.receipt_handle().unwrap_or_default().to_owned(),
+                ));
+            }
+            if messages.is_empty() && wait_seconds == 0 {
+                // Nothing more within the window's last second.
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            window_ends.get_or_insert_with(|| Instant::now() + self.window);
+        }
+        Ok(Some(Batch {
+            event: serde_json::json!({ "Records": records }),
+            receipts,
+        }))
+    }
+
+    /// Settles a batch after the function ran: `response` is what it returned (`None` for a
+    /// function error). Returns how many messages were deleted.
+    pub async fn settle(&self, batch: Batch, response: Option<&Value>) -> Result<usize, PipeError> {
+        let Some(response) = response else {
+            return Ok(0);
+        };
+        let mut failed = Vec::new();
+        if let Some(items) = response.get("batchItemFailures") {
+            let Some(items) = items.as_array() else {
+                return Ok(0);
+            };
+            for item in items {
+                match item["itemIdentifier"].as_str() {
+                    Some(id) if batch.receipts.iter().any(|(m, _)| m == id) => failed.push(id),
+                    // Not a message of the batch: Lambda fails the whole batch.
+                    _ => return Ok(0),
+                }
+            }
+        }
+        let mut deleted = 0;
+        for (id, handle) in &batch.receipts {
+            if failed.contains(&id.as_str()) {
+                continue;
+            }
+            self.sqs
+                .delete_message()
+                .queue_url(&self.url)
+                .receipt_handle(handle)
+                .send()
+                .await
+                .map_err(|e| sqs_error("DeleteMessage", e))?;
+            deleted += 1;
+        }
+        Ok(deleted)
+    }
+}
+
+/// The embedded executor where the deployment has the Step Functions API.
+#[derive(Clone)]
+pub struct ExecutorCallbacks(pub Executor);
+
+impl Callbacks for ExecutorCallbacks {
+    async fn succeed(&self, token: &str, output: &str) -> lb_aws::Result<Reported> {
+        let output: Value =
+            serde_json::from_str(output).map_err(|e| lb_aws::AwsError::Malformed {
+                what: "SendTaskSuccess output".into(),
+                problem: e.to_string(),
+            })?;
+        match self.0.send_task_success(token, output) {
+            Ok(()) => Ok(Reported::Delivered),
+            Err(
+                CallbackError::TaskTimedOut
+                | CallbackError::TaskDoesNotExist
+                | CallbackError::InvalidToken(_),
+            ) => Ok(Reported::Stale),
+            Err(e) => Err(lb_aws::AwsError::Malformed {
+                what: "SendTaskSuccess".into(),
+                problem: e.to_string(),
+            }),
+        }
+    }
+}
