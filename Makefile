@@ -65,7 +65,7 @@ bench-sidecar: venv ## logcopy's peak memory uploading a 1 GiB tree to moto (tar
 # Lambdas: cargo lambda (and its zig) from PyPI into .venv; x86-64 against an old glibc (arm64: LAMBDA_ARCH=arm64).
 LAMBDA_ARCH ?= x86-64
 LAMBDA_TOOLS := $(VENV)/.lambda-tools
-FUNCTIONS := intake launch monitor finalize wake
+FUNCTIONS := intake launch monitor finalize wake sweep
 TARGET_DIR := $(or $(CARGO_TARGET_DIR),target)
 
 $(LAMBDA_TOOLS): functions/build-requirements.txt

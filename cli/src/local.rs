@@ -33,7 +33,8 @@ pub enum Scenario {
     Crash,
     /// The first pair's evaluator hangs: the idle watchdog ends it, it resumes, FINISHED.
     Hang,
-    /// The participant cancels on EvalAI: CANCELLED within two monitor rounds, nothing left.
+    /// The participant cancels on EvalAI after the first round: CANCELLED once the sweep (or
+    /// a partial update's status read) notices, nothing left.
     Cancel,
     /// The participant's image cannot be pulled: FAILED with a message naming it.
     Unpullable,
@@ -77,6 +78,9 @@ pub struct LocalRun {
     /// `InternalError` for this many minutes (scaled by --time-scale); the Jobs run on.
     #[arg(long, default_value_t = 0.0)]
     pub kube_outage_minutes: f64,
+    /// The cancel scenario: the participant cancels when this Monitor round ends.
+    #[arg(long, default_value_t = 1)]
+    pub cancel_after_round: u64,
     /// Wall-clock limit of the whole run, in seconds.
     #[arg(long, default_value_t = 600)]
     pub timeout: u64,
@@ -295,6 +299,8 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     // Live progress, and the scenario's own act at the right moment.
     let rounds = Arc::new(AtomicU64::new(0));
     let acted = Arc::new(AtomicBool::new(true));
+    // When the participant cancelled (the cancel scenario), to time how long the Jobs outlive it.
+    let cancelled_at: Arc<std::sync::Mutex<Option<Instant>>> = Arc::default();
     let fake = stack.fake_evalai.as_ref().map(|f| f.url());
     let outage = stack
         .kube
@@ -306,7 +312,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let on_event = {
         let rounds = rounds.clone();
         let acted = acted.clone();
+        let cancelled_at = cancelled_at.clone();
         let scenario = args.scenario;
+        let cancel_after = args.cancel_after_round;
         Arc::new(move |event: &HistoryEvent| {
             if event.event_type == EventType::TaskStateEntered {
                 let name = event.state_name().unwrap_or_default();
@@ -319,7 +327,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                             format!("the cluster's API answers 500 for {outage_minutes} minutes (scaled)"),
                         );
                     }
-                    if !act(scenario, n, fake.as_deref(), submission) {
+                    if !act(scenario, n) {
                         acted.store(false, Ordering::SeqCst);
                     }
                 } else {
@@ -335,6 +343,14 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                 } else {
                     " (cluster unreachable: verdict skipped)"
                 };
+                // The cancel comes after a round (the first read the status on EvalAI): from
+                // then on the cancel sweep notices it, or a partial update's own read.
+                if scenario == Scenario::Cancel && output["rounds"] == cancel_after {
+                    if let Ok(mut at) = cancelled_at.lock() {
+                        at.get_or_insert_with(Instant::now);
+                    }
+                    cancel_on(fake.as_deref(), submission);
+                }
                 say(
                     started,
                     format!(
@@ -358,19 +374,22 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         },
     )
     .map_err(|e| anyhow::anyhow!("{e}"))?;
-    // S3's events wake the waiting execution, as in the deployment.
+    // S3's events and the cancel sweep wake the waiting execution, as in the deployment.
     let relays = crate::relay::spawn(
         &stack.sdk,
         &local_stack::stack::app_template(&settings),
-        WAKE_TABLE,
+        &config,
         executor.clone(),
+        args.time_scale,
     )
     .await?;
     let execution = executor
         .start(&machine, &format!("local-{submission}"), input)
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     let result = execution.wait().await;
+    let ended = Instant::now();
     let wake_messages = relays.wake_messages.load(Ordering::Relaxed);
+    let sweep_wakes = relays.sweep_wakes.load(Ordering::Relaxed);
     drop(relays);
 
     // The summary.
@@ -405,6 +424,15 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     }
     outln!("EvalAI status  {status_on_evalai}");
     outln!("S3 events      {wake_messages} results files and markers seen by the wake function");
+    outln!("cancel sweep   woke the execution {sweep_wakes} times");
+    // Finalize deletes the Jobs in the foreground: when the execution ends, they are gone.
+    if let Some(at) = cancelled_at.lock().ok().and_then(|at| *at) {
+        let took = ended.saturating_duration_since(at).as_secs_f64();
+        outln!(
+            "cancel to end  {took:.1}s from the participant's cancel to the Jobs gone (time scale {})",
+            args.time_scale
+        );
+    }
     // What the participant reads on a failure: the reason and the end of their agent's output.
     if let Some(stderr) = on_fake
         .as_ref()
@@ -518,35 +546,35 @@ fn lambda(result: Result<Value, FnError>) -> Result<Value, TaskError> {
 }
 
 /// The scenario's intervention at monitor round `n`; `false` when it could not be done.
-fn act(scenario: Scenario, n: u64, fake: Option<&str>, submission: u64) -> bool {
-    match (scenario, n) {
-        (Scenario::Crash, 1) => {
-            // NB: match CARLA itself (`./CarlaUE4.sh ...`), not the sidecar that wraps it.
-            let killed = std::process::Command::new("pkill")
-                .args([
-                    "-KILL",
-                    "-f",
-                    r"^\./CarlaUE4\.sh .*-carla-rpc-port=2000( |$)",
-                ])
-                .status()
-                .is_ok_and(|s| s.success());
-            outln!("           scenario: CARLA of pair 1 killed: {killed}");
-            return killed;
-        }
-        (Scenario::Cancel, 1) => {
-            if let Some(url) = fake {
-                let url = format!("{url}/_admin/submissions/{submission}/cancel");
-                std::thread::spawn(move || {
-                    let status = std::process::Command::new("curl")
-                        .args(["-s", "-o", "/dev/null", "-X", "POST", &url])
-                        .status();
-                    outln!("           scenario: the participant cancels ({status:?})");
-                });
-            }
-        }
-        _ => {}
+fn act(scenario: Scenario, n: u64) -> bool {
+    if (scenario, n) != (Scenario::Crash, 1) {
+        return true;
     }
-    true
+    // NB: match CARLA itself (`./CarlaUE4.sh ...`), not the sidecar that wraps it.
+    let killed = std::process::Command::new("pkill")
+        .args([
+            "-KILL",
+            "-f",
+            r"^\./CarlaUE4\.sh .*-carla-rpc-port=2000( |$)",
+        ])
+        .status()
+        .is_ok_and(|s| s.success());
+    outln!("           scenario: CARLA of pair 1 killed: {killed}");
+    killed
+}
+
+/// The participant cancels on the fake EvalAI (its admin endpoint, as the participant's
+/// button would), without holding up the executor's event callback.
+fn cancel_on(fake: Option<&str>, submission: u64) {
+    if let Some(url) = fake {
+        let url = format!("{url}/_admin/submissions/{submission}/cancel");
+        std::thread::spawn(move || {
+            let status = std::process::Command::new("curl")
+                .args(["-s", "-o", "/dev/null", "-X", "POST", &url])
+                .status();
+            outln!("           scenario: the participant cancels ({status:?})");
+        });
+    }
 }
 
 /// Seconds spent in each state, summed over its visits.

@@ -1,6 +1,7 @@
 //! Local mode's event-driven functions, fed as the deployment feeds them: the wake queue's
 //! event source mapping hands S3's events (delivered by moto through EventBridge) to the
-//! wake function, whose task reports go to the embedded executor.
+//! wake function, and the sweep runs at its schedule's period (scaled like the state
+//! machine's waits); their task reports go to the embedded executor.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -8,7 +9,8 @@ use std::time::Duration;
 
 use aws_config::SdkConfig;
 use lb_aws::wake::WakeTable;
-use local_stack::events::{ExecutorCallbacks, SqsEventSource};
+use lb_pipeline::FunctionConfig;
+use local_stack::events::{schedule_period, ExecutorCallbacks, SqsEventSource};
 use local_stack::template::Template;
 use local_stepfunctions::Executor;
 
@@ -17,6 +19,8 @@ pub struct Relays {
     tasks: Vec<tokio::task::JoinHandle<()>>,
     /// Messages the wake function handled.
     pub wake_messages: Arc<AtomicU64>,
+    /// Executions the sweep woke for a cancel.
+    pub sweep_wakes: Arc<AtomicU64>,
 }
 
 impl Drop for Relays {
@@ -27,17 +31,20 @@ impl Drop for Relays {
     }
 }
 
-/// Starts the wake queue's mapping against `executor`.
+/// Starts the wake queue's mapping and the sweep's schedule against `executor`; the
+/// schedule's period is multiplied by `time_scale`.
 pub async fn spawn(
     sdk: &SdkConfig,
     template: &Template,
-    wake_table: &str,
+    config: &FunctionConfig,
     executor: Executor,
+    time_scale: f64,
 ) -> anyhow::Result<Relays> {
+    let wake_table = config.wake_table()?;
     let source = SqsEventSource::from_template(sdk, template, "WakeEventSource").await?;
     let deps = wake::Deps {
         wakes: WakeTable::new(aws_sdk_dynamodb::Client::new(sdk), wake_table),
-        callbacks: ExecutorCallbacks(executor),
+        callbacks: ExecutorCallbacks(executor.clone()),
     };
     let wake_messages = Arc::new(AtomicU64::new(0));
     let counted = wake_messages.clone();
@@ -65,8 +72,29 @@ pub async fn spawn(
             }
         }
     });
+    let period = schedule_period(template, "SweepSchedule")?.mul_f64(time_scale);
+    let sweep = sweep::Deps::load(sdk, config, ExecutorCallbacks(executor)).await?;
+    let sweep_wakes = Arc::new(AtomicU64::new(0));
+    let woken = sweep_wakes.clone();
+    let sweeps = tokio::spawn(async move {
+        let mut ticks = tokio::time::interval(period);
+        ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            ticks.tick().await;
+            match sweep::handle(&sweep).await {
+                Ok(done) => {
+                    for id in &done.woken {
+                        outln!("           the cancel sweep found submission {id} cancelled on EvalAI and woke its execution");
+                    }
+                    woken.fetch_add(done.woken.len() as u64, Ordering::Relaxed);
+                }
+                Err(e) => tracing::warn!(error = %e.chain(), "the sweep did not finish"),
+            }
+        }
+    });
     Ok(Relays {
-        tasks: vec![wakes],
+        tasks: vec![wakes, sweeps],
         wake_messages,
+        sweep_wakes,
     })
 }

@@ -143,6 +143,47 @@ fn a_30_minute_cluster_api_outage_mid_run_skips_rounds_and_the_run_ends_finished
 }
 
 #[test]
+#[ignore = "needs moto"]
+fn a_cancel_in_a_quiet_stretch_is_found_by_the_sweep_and_the_jobs_are_gone_within_two_minutes() {
+    let _one = one_at_a_time();
+    local_stack::workloads::Binaries::build().expect("the workloads build");
+    // Real time (scale 1), routes long enough that no results change for minutes, the cancel
+    // after the second round (whose partial update was the last): only the once-a-minute
+    // sweep can notice it (the Monitor reads EvalAI's status itself every 30 minutes, and at
+    // each partial update).
+    let stdout = local_run(
+        &[
+            "--scenario",
+            "cancel",
+            "--cancel-after-round",
+            "2",
+            "--time-scale",
+            "1",
+            "--route-seconds",
+            "300",
+            "--timeout",
+            "300",
+        ],
+        &[],
+    );
+    assert!(stdout.contains("EvalAI status  cancelled"), "{stdout}");
+    assert!(
+        stdout.contains("cancel sweep   woke the execution 1 times"),
+        "the sweep woke it: {stdout}"
+    );
+    let seconds: f64 = stdout
+        .lines()
+        .find_map(|l| l.strip_prefix("cancel to end  "))
+        .and_then(|l| l.split('s').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no cancel timing: {stdout}"));
+    assert!(
+        seconds <= 120.0,
+        "the Jobs outlived the cancel by {seconds} s"
+    );
+}
+
+#[test]
 fn bad_arguments_are_named() {
     let out = Command::new(env!("CARGO_BIN_EXE_lbctl"))
         .args(["local", "run", "--scenario", "nope"])

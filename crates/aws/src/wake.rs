@@ -189,6 +189,28 @@ impl WakeTable {
         }
     }
 
+    /// Undoes a cancel flag whose report failed: the token goes back and the flag goes, so
+    /// the next sweep finds the submission again (unless a newer wait already stored one).
+    pub async fn unflag_cancel(&self, submission_id: u64, taken: &Taken) -> Result<()> {
+        let result = self
+            .client
+            .update_item()
+            .table_name(&self.table)
+            .set_key(Some(key(submission_id)))
+            .update_expression("SET #token = :token REMOVE #cancel")
+            .condition_expression("attribute_exists(#cancel) AND attribute_not_exists(#token)")
+            .expression_attribute_names("#token", "token")
+            .expression_attribute_names("#cancel", "cancel")
+            .expression_attribute_values(":token", AttributeValue::S(taken.token.clone()))
+            .send()
+            .await;
+        match result {
+            Ok(_) => Ok(()),
+            Err(e) if condition_failed(&e) => Ok(()),
+            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
+        }
+    }
+
     /// Every execution waiting now that is not flagged cancelled: what the sweep checks.
     /// The table holds in-flight submissions and, until their TTL, recent ones: one page
     /// (1 MB) covers thousands; the pages are bounded all the same.

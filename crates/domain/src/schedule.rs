@@ -24,9 +24,10 @@ pub const PARTIAL_UPDATE_INTERVAL: Duration = Duration::from_secs(30);
 /// How long the Monitor waits when it could not read the wake count (it then polls instead).
 pub const POLL_WITHOUT_WAKE: Duration = Duration::from_secs(60);
 
-/// How often the Monitor reads the status on EvalAI itself, in case the cancel sweep is down.
-/// NB: every round until the sweep is deployed (issue 14): a cancel must not wait for it.
-pub const STATUS_FALLBACK: Duration = Duration::ZERO;
+/// How often the Monitor reads the status on EvalAI itself, in case the cancel sweep (once
+/// a minute, functions/sweep) is down: a cancel then still ends the run within the next round
+/// after this.
+pub const STATUS_FALLBACK: Duration = Duration::from_secs(30 * 60);
 
 /// The safety net, `elapsed` after launch: the longest a wait lasts without a change. Short
 /// while pods pull images and start (the failures only the cluster shows happen then: an

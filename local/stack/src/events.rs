@@ -1,6 +1,6 @@
 //! What carries events to the functions in local mode as the deployment does: Lambda's SQS
-//! event source mapping (the wake queue to the wake function), and task reports to the
-//! embedded executor instead of the Step Functions API.
+//! event source mapping (the wake queue to the wake function), a scheduled rule's period (the
+//! cancel sweep), and task reports to the embedded executor instead of the Step Functions API.
 //!
 //! Followed (Lambda developer guide, "Using Lambda with Amazon SQS"): the mapping polls the
 //! queue and gathers messages until the batch is full or `MaximumBatchingWindowInSeconds` has
@@ -206,6 +206,27 @@ impl SqsEventSource {
     }
 }
 
+/// The period of the scheduled rule `id` (`ScheduleExpression: rate(<n> <unit>)`, units as
+/// EventBridge spells them).
+pub fn schedule_period(template: &Template, id: &str) -> Result<Duration, TemplateError> {
+    let expression = template.text(id, &["ScheduleExpression"])?;
+    let invalid =
+        || TemplateError::Invalid(format!("`{id}`: `{expression}` is not rate(<n> <unit>)"));
+    let inner = expression
+        .strip_prefix("rate(")
+        .and_then(|r| r.strip_suffix(')'))
+        .ok_or_else(invalid)?;
+    let (n, unit) = inner.split_once(' ').ok_or_else(invalid)?;
+    let n: u64 = n.parse().map_err(|_| invalid())?;
+    let seconds = match unit {
+        "minute" | "minutes" => 60,
+        "hour" | "hours" => 3600,
+        "day" | "days" => 86_400,
+        _ => return Err(invalid()),
+    };
+    Ok(Duration::from_secs(n * seconds))
+}
+
 /// The embedded executor where the deployment has the Step Functions API.
 #[derive(Clone)]
 pub struct ExecutorCallbacks(pub Executor);
@@ -229,5 +250,20 @@ impl Callbacks for ExecutorCallbacks {
                 problem: e.to_string(),
             }),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_sweep_runs_once_a_minute_and_other_expressions_are_named() {
+        assert_eq!(
+            schedule_period(&crate::template::APP, "SweepSchedule").unwrap(),
+            Duration::from_secs(60)
+        );
+        let err = schedule_period(&crate::template::APP, "WakeRule").unwrap_err();
+        assert!(err.to_string().contains("ScheduleExpression"), "{err}");
     }
 }

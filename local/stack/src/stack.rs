@@ -340,13 +340,17 @@ impl Provisioner<'_> {
         Ok(())
     }
 
-    /// EventBridge rules on the default bus with their pattern and their SQS targets (by the
-    /// queue ARNs `queues` maps from `<Id.Arn>`), named by logical id.
+    /// EventBridge rules with an event pattern, on the default bus, with their SQS targets
+    /// (by the queue ARNs `queues` maps from `<Id.Arn>`), named by logical id. Scheduled rules
+    /// and function targets are local mode's to play (`lbctl local run`'s relays).
     async fn rules(&self, queues: &BTreeMap<String, String>) -> Result<(), StackError> {
         let client = aws_sdk_eventbridge::Client::new(self.sdk);
         let root = self.template.root();
         for id in self.template.resources_of("AWS::Events::Rule") {
             let props = &root["Resources"][id.as_str()]["Properties"];
+            if props["EventPattern"].is_null() {
+                continue;
+            }
             let pattern = self.template.json(&props["EventPattern"]);
             client
                 .put_rule()
@@ -357,12 +361,9 @@ impl Provisioner<'_> {
                 .map_err(|e| provision(&id, e))?;
             for target in props["Targets"].as_sequence().into_iter().flatten() {
                 let reference = self.template.eval(&target["Arn"]).unwrap_or_default();
-                let arn = queues.get(&reference).ok_or_else(|| {
-                    provision(
-                        &id,
-                        TemplateError::Missing(format!("the target queue {reference}")),
-                    )
-                })?;
+                let Some(arn) = queues.get(&reference) else {
+                    continue;
+                };
                 let built = aws_sdk_eventbridge::types::Target::builder()
                     .id(self.template.eval(&target["Id"]).unwrap_or_default())
                     .arn(arn)

@@ -108,11 +108,11 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     }
     // What moto did create, by type: the whole application but the skipped types.
     let count = |kind: &str| created.values().filter(|k| *k == kind).count();
-    assert_eq!(count("AWS::Lambda::Function"), 5);
+    assert_eq!(count("AWS::Lambda::Function"), 6);
     assert_eq!(
         count("AWS::IAM::Role"),
-        7,
-        "five functions, the state machine, the Pipe"
+        8,
+        "six functions, the state machine, the Pipe"
     );
     assert_eq!(
         count("AWS::DynamoDB::Table"),
@@ -126,9 +126,10 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
         "EvalAI's, its dead letters, wakes"
     );
     assert_eq!(count("AWS::StepFunctions::StateMachine"), 1);
-    assert_eq!(count("AWS::Logs::LogGroup"), 6);
-    // The wake path: the rule on the buckets' events and the queue's mapping to the function.
-    assert_eq!(count("AWS::Events::Rule"), 1);
+    assert_eq!(count("AWS::Logs::LogGroup"), 7);
+    // The wake path (the rule on the buckets' events, the queue's mapping to the function)
+    // and the sweep's schedule.
+    assert_eq!(count("AWS::Events::Rule"), 2);
     assert_eq!(count("AWS::Lambda::EventSourceMapping"), 1);
     // The types moto skips are declared all the same (so the real deployment has them).
     let declared_count = |kind: &str| declared.values().filter(|k| *k == kind).count();
@@ -182,8 +183,12 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
         );
     }
     let rules = report["rules"].as_array().unwrap();
-    assert_eq!(rules.len(), 1, "{rules:?}");
-    let pattern = &rules[0]["pattern"];
+    assert_eq!(rules.len(), 2, "{rules:?}");
+    let wake = rules
+        .iter()
+        .find(|r| !r["pattern"].as_object().unwrap().is_empty())
+        .unwrap();
+    let pattern = &wake["pattern"];
     assert_eq!(
         pattern["detail"]["bucket"]["name"],
         serde_json::json!(["leaderboard-10-results", "leaderboard-20-results"])
@@ -298,7 +303,7 @@ fn each_function_runs_the_bootstrap_on_al2023_within_its_tasks_timeout() {
     let tasks = tasks();
     let functions = APP.resources_of("AWS::Serverless::Function");
     // One function per Task, and the event-driven ones, each invoked by its event source.
-    let event_driven = ["WakeFunction"];
+    let event_driven = ["WakeFunction", "SweepFunction"];
     assert_eq!(
         functions
             .iter()
@@ -349,7 +354,7 @@ fn each_function_runs_the_bootstrap_on_al2023_within_its_tasks_timeout() {
 
 #[test]
 fn the_template_is_the_only_place_function_deploy_settings_live() {
-    for f in ["intake", "launch", "monitor", "finalize", "wake"] {
+    for f in ["intake", "launch", "monitor", "finalize", "wake", "sweep"] {
         let manifest =
             std::fs::read_to_string(root().join("functions").join(f).join("Cargo.toml")).unwrap();
         assert!(

@@ -332,6 +332,17 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
     assert!(jobs.is_empty() && pods.is_empty(), "the Jobs were deleted");
 }
 
+/// Step Functions as the sweep sees it: the tokens it reported.
+#[derive(Default)]
+struct Tokens(std::sync::Mutex<Vec<String>>);
+
+impl lb_aws::tasks::Callbacks for Tokens {
+    async fn succeed(&self, token: &str, _output: &str) -> lb_aws::Result<lb_aws::tasks::Reported> {
+        self.0.lock().unwrap().push(token.to_string());
+        Ok(lb_aws::tasks::Reported::Delivered)
+    }
+}
+
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn a_participant_cancel_ends_cancelled_with_the_jobs_gone() {
@@ -341,15 +352,64 @@ async fn a_participant_cancel_ends_cancelled_with_the_jobs_gone() {
     };
     let h = harness(slow, &[]).await;
     let submission = h.intake(PARTICIPANT_IMAGE).await;
-    let run = h.launch(&submission).await;
+    let mut run = h.launch(&submission).await;
     let fake = h.stack.fake();
-    let run = h
-        .monitor_until_done(&submission, run, |round| {
-            if round == 2 {
-                fake.cancel(1).unwrap();
-            }
-        })
-        .await;
+    let dynamo = aws_sdk_dynamodb::Client::new(&h.stack.sdk);
+    let config = FunctionConfig {
+        settings_secret: SETTINGS_SECRET.into(),
+        token_secret: TOKEN_SECRET.into(),
+        wake_table: Some(WAKE_TABLE.into()),
+    };
+    let sweeper = sweep::Deps::load(&h.stack.sdk, &config, Tokens::default())
+        .await
+        .unwrap();
+    // The state machine's loop, with its wait written as WaitForChange writes it, and the
+    // sweep's schedule between rounds.
+    let mut cancelled_at_round = None;
+    while run.monitor.state == RunPhase::Running {
+        assert!(run.monitor.rounds < 60, "{:?}", run.monitor);
+        run = monitor::handle(
+            monitor::MonitorInput {
+                submission: submission.clone(),
+                run,
+            },
+            &h.monitor,
+        )
+        .await
+        .unwrap();
+        if run.monitor.state != RunPhase::Running {
+            break;
+        }
+        let token = format!("token-{}", run.monitor.rounds);
+        let wait = local_stack::integrations::wait_for_change(
+            &token,
+            submission.submission_id,
+            submission.challenge_id,
+            run.monitor.seen,
+        );
+        // A change during the round fails the wait's write: the state machine goes straight
+        // to the next round, as here.
+        let _ = local_stack::integrations::update_item(&dynamo, wait).await;
+        if run.monitor.rounds == 2 {
+            fake.cancel(1).unwrap();
+            cancelled_at_round = Some(2);
+        }
+        // Nothing counts changes in this harness (no wake function), so every wait's write
+        // holds: the sweep after the cancel finds the execution waiting, flags it and takes
+        // that round's token, and the next round confirms the cancel with EvalAI.
+        let swept = sweep::handle(&sweeper).await.unwrap();
+        let expected: &[u64] = if cancelled_at_round.is_some() {
+            &[1]
+        } else {
+            &[]
+        };
+        assert_eq!(swept.woken, expected, "round {}", run.monitor.rounds);
+        if cancelled_at_round.is_some() {
+            assert_eq!(*sweeper.callbacks.0.lock().unwrap(), [token.as_str()]);
+            cancelled_at_round = None;
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
     assert_eq!(run.monitor.state, RunPhase::Cancelled);
     assert!(
         run.monitor.rounds <= 4,

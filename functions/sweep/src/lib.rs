@@ -1,0 +1,158 @@
+//! Sweep: once a minute (an EventBridge schedule), the cancels of the submissions in flight.
+//!
+//! A participant cancels on EvalAI, which writes nothing to S3, so no upload wakes the
+//! execution. The sweep lists the executions waiting (the wake table), asks EvalAI for each of
+//! their challenges' cancelled submissions in one request (host API reference, 7.3), flags
+//! each waiting one it finds, and reports the token it took, so the Monitor runs within the
+//! minute, confirms the cancel with EvalAI and writes the cancel marker. One request per
+//! challenge a minute, whatever the number of submissions in flight.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use aws_config::SdkConfig;
+use lb_aws::tasks::{Callbacks, Reported, StepFunctions};
+use lb_aws::wake::WakeTable;
+use lb_domain::submission::SubmissionStatus;
+use lb_evalai::EvalAiClient;
+use lb_pipeline::{clients, FnError, FunctionConfig, Result};
+use serde::Serialize;
+use tracing::{info, warn};
+
+/// What the sweep needs: EvalAI, the wake table and where tokens are reported.
+#[derive(Debug, Clone)]
+pub struct Deps<C = StepFunctions> {
+    /// EvalAI, as the host.
+    pub evalai: EvalAiClient,
+    /// The wake table.
+    pub wakes: WakeTable,
+    /// Step Functions (the embedded executor in local mode).
+    pub callbacks: C,
+}
+
+impl Deps {
+    /// Cold start: environment, secrets, clients.
+    pub async fn from_env() -> Result<Deps> {
+        let (config, sdk) = clients::cold_start().await?;
+        let callbacks = StepFunctions::new(aws_sdk_sfn::Client::new(&sdk));
+        Deps::load(&sdk, &config, callbacks).await
+    }
+}
+
+impl<C: Callbacks> Deps<C> {
+    /// The same from an explicit SDK configuration, reporting to `callbacks` (local mode, tests).
+    pub async fn load(sdk: &SdkConfig, config: &FunctionConfig, callbacks: C) -> Result<Deps<C>> {
+        let settings = clients::settings(sdk, config).await?;
+        Ok(Deps {
+            evalai: clients::evalai(sdk, config, &settings).await?,
+            wakes: WakeTable::new(aws_sdk_dynamodb::Client::new(sdk), config.wake_table()?),
+            callbacks,
+        })
+    }
+}
+
+/// What one sweep did (its result, and its log line).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
+pub struct Sweep {
+    /// Executions waiting.
+    pub waiting: usize,
+    /// Challenges asked.
+    pub challenges: usize,
+    /// Waiting submissions found cancelled and flagged.
+    pub cancelled: Vec<u64>,
+    /// Of those, executions woken now.
+    pub woken: Vec<u64>,
+}
+
+/// The Lambda entry: the sweep's summary as JSON.
+pub async fn handle_json<C: Callbacks>(deps: &Deps<C>) -> Result<serde_json::Value> {
+    let sweep = handle(deps).await?;
+    serde_json::to_value(sweep).map_err(|e| FnError::Input(e.to_string()))
+}
+
+/// One sweep. Everything it can do is done; if a challenge could not be read or a wake
+/// failed, the error names them after the rest (the next sweep tries again).
+pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
+    let waiting = deps.wakes.waiting().await?;
+    let mut by_challenge: BTreeMap<u64, BTreeSet<u64>> = BTreeMap::new();
+    for w in &waiting {
+        by_challenge
+            .entry(w.challenge)
+            .or_default()
+            .insert(w.submission_id);
+    }
+    let mut sweep = Sweep {
+        waiting: waiting.len(),
+        challenges: by_challenge.len(),
+        ..Sweep::default()
+    };
+    let mut problems = Vec::new();
+    for (challenge, ours) in by_challenge {
+        let cancelled = match deps
+            .evalai
+            .submissions_with_status(challenge, SubmissionStatus::Cancelled)
+            .await
+        {
+            Ok(list) => list,
+            Err(e) => {
+                warn!(challenge, error = %e, "cancels not read this sweep");
+                problems.push(format!("challenge {challenge}: {e}"));
+                continue;
+            }
+        };
+        for id in cancelled
+            .iter()
+            .map(|s| s.id)
+            .filter(|id| ours.contains(id))
+        {
+            match wake(deps, id).await {
+                Ok(woken) => {
+                    sweep.cancelled.push(id);
+                    if woken {
+                        sweep.woken.push(id);
+                    }
+                }
+                Err(e) => {
+                    warn!(submission_id = id, error = %e, "cancel not passed on this sweep");
+                    problems.push(format!("submission {id}: {e}"));
+                }
+            }
+        }
+    }
+    info!(
+        waiting = sweep.waiting,
+        challenges = sweep.challenges,
+        cancelled = ?sweep.cancelled,
+        woken = ?sweep.woken,
+        "sweep"
+    );
+    if !problems.is_empty() {
+        return Err(FnError::Stage {
+            name: "SweepIncomplete",
+            message: problems.join("; "),
+            transient: true,
+        });
+    }
+    Ok(sweep)
+}
+
+/// Flags the cancel and reports the token it took; `true` when an execution was woken.
+async fn wake<C: Callbacks>(deps: &Deps<C>, id: u64) -> lb_aws::Result<bool> {
+    // `None`: flagged already, or the wait ended meanwhile (the Monitor reads the status
+    // itself then).
+    let Some(Some(taken)) = deps.wakes.flag_cancel(id).await? else {
+        return Ok(false);
+    };
+    match deps.callbacks.succeed(&taken.token, "{}").await {
+        Ok(Reported::Delivered) => {
+            info!(submission_id = id, execution = ?taken.execution, "cancelled on EvalAI: woke the execution");
+            Ok(true)
+        }
+        Ok(Reported::Stale) => Ok(false),
+        Err(e) => {
+            if let Err(undo) = deps.wakes.unflag_cancel(id, &taken).await {
+                warn!(submission_id = id, error = %undo, "could not undo the cancel flag; the safety net wakes it");
+            }
+            Err(e)
+        }
+    }
+}

@@ -1,0 +1,122 @@
+//! The cancel sweep against the fake EvalAI and moto's wake table, with the deployed
+//! definition's wait standing for each waiting execution and a recorder for Step Functions.
+
+use std::sync::Mutex;
+
+use fake_evalai::{Fixture, NewSubmission};
+use lb_aws::tasks::{Callbacks, Reported};
+use lb_aws::AwsError;
+use lb_pipeline::FunctionConfig;
+use local_stack::integrations::{update_item, wait_for_change};
+use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET, WAKE_TABLE};
+use local_stack::{EvalAi, Stack};
+use sweep::Deps;
+
+/// Step Functions as the sweep sees it: records each report; fails them when told.
+#[derive(Default)]
+struct Recorder {
+    reports: Mutex<Vec<String>>,
+    fail: Mutex<bool>,
+}
+
+impl Callbacks for Recorder {
+    async fn succeed(&self, token: &str, _output: &str) -> lb_aws::Result<Reported> {
+        self.reports.lock().unwrap().push(token.to_string());
+        if *self.fail.lock().unwrap() {
+            return Err(AwsError::Malformed {
+                what: "SendTaskSuccess".into(),
+                problem: "the API is unreachable (test)".into(),
+            });
+        }
+        Ok(Reported::Delivered)
+    }
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waiting() {
+    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
+        .await
+        .expect("stack starts");
+    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let config = FunctionConfig {
+        settings_secret: SETTINGS_SECRET.into(),
+        token_secret: TOKEN_SECRET.into(),
+        wake_table: Some(WAKE_TABLE.into()),
+    };
+    let deps = Deps::load(&stack.sdk, &config, Recorder::default())
+        .await
+        .unwrap();
+    let fake = stack.fake();
+    let new = || {
+        fake.add_submission(NewSubmission {
+            challenge_phase: 1,
+            participant_team: 1,
+            submitted_image_uri: "123456789012.dkr.ecr.us-west-2.amazonaws.com/t:1".into(),
+            created_by: None,
+        })
+        .unwrap()
+        .id
+    };
+    let (a, b, c) = (new(), new(), new());
+    let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    // a and b wait; c does not (its execution is in a Monitor round, or not ours).
+    for (id, token) in [(a, "token-a"), (b, "token-b")] {
+        update_item(&client, wait_for_change(token, id, 1, 0))
+            .await
+            .unwrap();
+    }
+
+    // Nothing cancelled: one request, no wake.
+    let before = fake.requests().len();
+    let sweep = sweep::handle(&deps).await.unwrap();
+    assert_eq!((sweep.waiting, sweep.challenges), (2, 1));
+    assert!(sweep.cancelled.is_empty() && sweep.woken.is_empty());
+    let requests = fake.requests()[before..].to_vec();
+    assert_eq!(requests.len(), 1, "{requests:?}");
+    assert_eq!(requests[0].path, "/api/jobs/challenge/1/submission/");
+    assert_eq!(requests[0].query.as_deref(), Some("status=cancelled"));
+
+    // a and c cancel: only a is waiting, so only a's token is reported, once.
+    fake.cancel(a).unwrap();
+    fake.cancel(c).unwrap();
+    let sweep = sweep::handle(&deps).await.unwrap();
+    assert_eq!(
+        (sweep.cancelled.clone(), sweep.woken.clone()),
+        (vec![a], vec![a])
+    );
+    assert_eq!(*deps.callbacks.reports.lock().unwrap(), ["token-a"]);
+    assert!(
+        deps.wakes.state(a).await.unwrap().cancel,
+        "the Monitor will confirm it"
+    );
+    let sweep = sweep::handle(&deps).await.unwrap();
+    assert_eq!(sweep.waiting, 1, "a is no longer waiting");
+    assert!(sweep.cancelled.is_empty());
+    assert_eq!(deps.callbacks.reports.lock().unwrap().len(), 1);
+
+    // b cancels while Step Functions is unreachable: the flag is undone and the token put
+    // back, so the next sweep wakes it.
+    fake.cancel(b).unwrap();
+    *deps.callbacks.fail.lock().unwrap() = true;
+    let err = sweep::handle(&deps).await.unwrap_err();
+    assert_eq!(err.name(), "SweepIncomplete");
+    assert!(!deps.wakes.state(b).await.unwrap().cancel);
+    *deps.callbacks.fail.lock().unwrap() = false;
+    let sweep = sweep::handle(&deps).await.unwrap();
+    assert_eq!(sweep.woken, vec![b]);
+    assert_eq!(
+        *deps.callbacks.reports.lock().unwrap(),
+        ["token-a", "token-b", "token-b"]
+    );
+
+    // A challenge EvalAI does not have: named in the error, the other challenges still swept.
+    let d = new();
+    update_item(&client, wait_for_change("token-d", d, 99, 0))
+        .await
+        .unwrap();
+    fake.cancel(d).unwrap();
+    let err = sweep::handle(&deps).await.unwrap_err();
+    assert_eq!(err.name(), "SweepIncomplete");
+    assert!(err.to_string().contains("challenge 99"), "{err}");
+}
