@@ -1,5 +1,6 @@
-//! `lb-sidecar logcopy`: uploads what changed under the logs tree every period, mirrors the
-//! cancel marker, and finishes with a final upload and `logcopy-<J>.done`.
+//! `lb-sidecar logcopy`: uploads what changed under the logs tree every period, results files
+//! and markers within a second of their change (they wake the Monitor), mirrors the cancel
+//! marker, and finishes with a final upload and `logcopy-<J>.done`.
 //!
 //! A file is recorded as uploaded only after S3 accepted it, so an S3 outage loses nothing:
 //! the pass stops at the first S3 error, the next one (after an exponential backoff) tries
@@ -20,6 +21,9 @@ use crate::signals::{Signals, Wake};
 use crate::status::StatusDir;
 use crate::tree::{self, Action, Tracker};
 
+/// Between full passes, how often the results files and markers are looked at, so that a
+/// change reaches S3 (and wakes the Monitor) within seconds while logs keep their period.
+pub const WAKE_CHECK: Duration = Duration::from_secs(1);
 /// Longest pause between passes while S3 keeps failing.
 const MAX_BACKOFF: Duration = Duration::from_secs(300);
 /// How long the final upload may keep retrying after a normal end.
@@ -162,10 +166,58 @@ impl<'a> Logcopy<'a> {
                 return self.finish(end, signals).await;
             }
             let pause = backoff(self.cfg.period, failures);
-            if signals.sleep(pause).await == Wake::Terminate {
+            if failures > 0 {
+                if signals.sleep(pause).await == Wake::Terminate {
+                    return self.terminated().await;
+                }
+                continue;
+            }
+            // Until the next full pass: the results files and markers, every second.
+            let next = Instant::now() + pause;
+            while Instant::now() + WAKE_CHECK < next {
+                if signals.sleep(WAKE_CHECK).await == Wake::Terminate {
+                    return self.terminated().await;
+                }
+                let quick = tokio::select! {
+                    result = self.wake_pass() => Some(result),
+                    () = signals.terminate() => None,
+                };
+                match quick {
+                    None => return self.terminated().await,
+                    // S3 failing: the full pass after the period retries (and backs off).
+                    Some(Err(_)) => break,
+                    Some(Ok(_)) => {}
+                }
+            }
+            let rest = next.saturating_duration_since(Instant::now());
+            if signals.sleep(rest).await == Wake::Terminate {
                 return self.terminated().await;
             }
         }
+    }
+
+    /// Uploads the results files and markers that changed since they were last uploaded
+    /// (the full pass's bookkeeping: nothing is uploaded twice). Logs wait for their period.
+    pub async fn wake_pass(&mut self) -> Result<usize, S3Error> {
+        let mut uploaded = 0;
+        for entry in tree::scan_wake_worthy(&self.cfg.logs_root, self.dev) {
+            let last = self.tracker.get(&entry.rel).copied();
+            if tree::action(last.as_ref(), &entry.meta) == Action::Skip {
+                continue;
+            }
+            match self.sync_file(&entry, last.as_ref()).await {
+                Ok(Some(_)) => uploaded += 1,
+                Ok(None) => {}
+                Err(UploadError::Read { path, source }) => {
+                    debug!(%path, error = %source, "cannot read a file; next pass retries");
+                }
+                Err(UploadError::S3(e)) => return Err(e),
+            }
+        }
+        if uploaded > 0 {
+            debug!(uploaded, "results or markers uploaded between passes");
+        }
+        Ok(uploaded)
     }
 
     /// One period: mirror the cancel marker, then upload what changed.

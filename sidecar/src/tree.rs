@@ -149,6 +149,47 @@ fn walk(
     Ok(())
 }
 
+/// The files whose upload wakes the submission's Monitor (`lb_domain::protocol::
+/// wakes_submission`): the workers' results files directly under `agent/`, then the markers
+/// under `containers-status/` (results before markers, as in [`scan`], so a done marker never
+/// lands before the results it vouches for). Two directory listings, no walk: cheap enough
+/// to run every second between full passes.
+pub fn scan_wake_worthy(root: &Path, dev: u64) -> Vec<Entry> {
+    let mut out = Vec::new();
+    for (dir, keep) in [
+        (
+            lb_domain::protocol::AGENT_DIR,
+            (|name: &str| {
+                name.strip_prefix("partial_agent_results")
+                    .and_then(|n| n.strip_suffix(".json"))
+                    .is_some_and(|id| !id.is_empty() && id.bytes().all(|b| b.is_ascii_digit()))
+            }) as fn(&str) -> bool,
+        ),
+        (lb_domain::protocol::STATUS_DIR, |_: &str| true),
+    ] {
+        let Ok(listing) = fs::read_dir(root.join(dir)) else {
+            continue;
+        };
+        let mut found: Vec<Entry> = listing
+            .filter_map(Result::ok)
+            .filter_map(|item| {
+                let name = item.file_name().to_str()?.to_owned();
+                let meta = item.metadata().ok()?;
+                let regular = meta.is_file() && meta.dev() == dev;
+                (regular && key_ok(&name) && keep(&name)).then(|| Entry {
+                    rel: format!("{dir}/{name}"),
+                    path: item.path(),
+                    meta: FileMeta::of(&meta),
+                })
+            })
+            .take(MAX_FILES)
+            .collect();
+        found.sort_by(|a, b| a.rel.cmp(&b.rel));
+        out.extend(found);
+    }
+    out
+}
+
 /// A name that is safe as part of an S3 key and a local path: printable, not `.`/`..`.
 pub fn key_ok(name: &str) -> bool {
     !name.is_empty()

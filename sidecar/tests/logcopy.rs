@@ -91,6 +91,64 @@ fn an_unchanged_tree_sends_nothing_and_a_changed_file_is_sent_alone() {
 
 #[test]
 #[ignore = "needs moto"]
+fn results_and_markers_are_sent_within_seconds_and_logs_keep_their_period() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    write(vols.root(), "logs/agent/agent1/agent.log", b"route 0\n");
+    // A long period: only the between-pass check can send within seconds.
+    let mut lc = logcopy(&vols, &moto, None, &[("LB_PERIOD_SECONDS", "120")]);
+    lc.wait_event("logcopy pass", LIMIT, |_| true);
+
+    write(
+        vols.root(),
+        "agent/partial_agent_results1.json",
+        b"{\"records\": 1}",
+    );
+    write(
+        vols.root(),
+        "logs/agent/agent1/agent.log",
+        b"route 0\nroute 1\n",
+    );
+    write(vols.status().as_path(), "agent-1.start1", b"");
+    // Not wake-worthy: a file next to the results that is not one.
+    write(vols.root(), "agent/notes.json", b"{}");
+    // Sent long before the next full pass (how soon is a benchmark's to measure).
+    wait_until("the results file and the marker in S3", LIMIT, || {
+        moto.get(&key("agent/partial_agent_results1.json"))
+            .is_some()
+            && moto.get(&key("containers-status/agent-1.start1")).is_some()
+    });
+    assert_eq!(lc.events("logcopy pass").len(), 1, "no full pass meanwhile");
+    // The log and the other file wait for the next full pass (120 s away).
+    assert_eq!(
+        moto.get(&key("logs/agent/agent1/agent.log")).unwrap(),
+        b"route 0\n"
+    );
+    assert!(moto.get(&key("agent/notes.json")).is_none());
+    // A second change of the results file is sent again; an unchanged one is not re-sent.
+    write(
+        vols.root(),
+        "agent/partial_agent_results1.json",
+        b"{\"records\": 2}",
+    );
+    wait_until("the new results in S3", LIMIT, || {
+        moto.get(&key("agent/partial_agent_results1.json"))
+            .as_deref()
+            == Some(b"{\"records\": 2}".as_slice())
+    });
+    assert_eq!(lc.events("logcopy pass").len(), 1, "no full pass meanwhile");
+
+    lc.signal(Signal::SIGTERM);
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+    // The final upload on SIGTERM sends the log.
+    assert_eq!(
+        moto.get(&key("logs/agent/agent1/agent.log")).unwrap(),
+        b"route 0\nroute 1\n"
+    );
+}
+
+#[test]
+#[ignore = "needs moto"]
 fn sigterm_makes_a_final_upload_and_exits_cleanly_without_the_done_marker() {
     let moto = Moto::start();
     let vols = Volumes::new();
