@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar local bench-stack bench-functions deploy cluster cluster-manifests
+.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency local bench-stack bench-functions deploy cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -58,6 +58,18 @@ $(SIDECAR_TOOLS): sidecar/build-requirements.txt
 sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) zigbuild --release -p sidecar --bin lb-sidecar --target $(SIDECAR_TARGET).$(SIDECAR_GLIBC)
 	sidecar/check-glibc.sh $(SIDECAR_BIN) $(SIDECAR_GLIBC)
+
+# Issue 14's measure: local runs in real time (time scale 1), 40 routes of 5 s on 4 pairs.
+LATENCY_RUN := local run --time-scale 1 --routes 40 --workers 4 --route-seconds 5 --latency --timeout 900
+bench-latency: venv kubectl ## Record -> partial update and last write -> final status, with and without S3's events (targets: p50 < 15 s, p99 < 60 s, final < 60 s)
+	$(CARGO) build --quiet -p cli -p sidecar -p fake-workloads --bins
+	@for run in "events, partial_update_seconds 30 (the default)|" \
+	            "events, partial_update_seconds 20|--partial-update-seconds 20" \
+	            "no events: safety net, holds and sweep only|--no-wake"; do \
+		label=$${run%%|*}; flags=$${run#*|}; \
+		line=$$($(TARGET_DIR)/debug/lbctl $(LATENCY_RUN) $$flags | grep '^latency') || exit 1; \
+		printf '%-48s %s\n' "$$label" "$${line#latency        }"; \
+	done
 
 bench-sidecar: venv ## logcopy's peak memory uploading a 1 GiB tree to moto (target < 20 MiB)
 	$(CARGO) bench -p sidecar --bench logcopy

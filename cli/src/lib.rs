@@ -9,6 +9,7 @@ mod deployment;
 mod error;
 mod executions;
 mod invoke;
+mod latency;
 mod local;
 mod logs;
 mod ops;

@@ -99,6 +99,17 @@ pub struct LocalRun {
     /// Submission id on that EvalAI.
     #[arg(long)]
     pub submission: Option<u64>,
+    /// The leaderboard's `partial_update_seconds` (default: 30 s scaled by --time-scale).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=3600))]
+    pub partial_update_seconds: Option<u64>,
+    /// Measure how long results take to reach EvalAI (record -> partial update, last write ->
+    /// final status; `make bench-latency`).
+    #[arg(long)]
+    pub latency: bool,
+    /// Leave S3's events undelivered (no wake function): rounds come only from the safety
+    /// net, holds and the sweep, as in a deployment whose buckets send no events.
+    #[arg(long)]
+    pub no_wake: bool,
     /// Keep the stack running after the summary (until Ctrl-C) to look at S3, EvalAI, logs.
     #[arg(long)]
     pub keep: bool,
@@ -140,9 +151,11 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     track["workers"] = json!(args.workers);
     // The Monitor's clock is real while the executor scales every wait: the least interval
     // between partial updates is scaled here, or a fast run would defer its updates and spin.
-    let interval = (lb_domain::schedule::PARTIAL_UPDATE_INTERVAL.as_secs_f64() * args.time_scale)
-        .round()
-        .max(1.0) as u64;
+    let interval = args.partial_update_seconds.unwrap_or(
+        (lb_domain::schedule::PARTIAL_UPDATE_INTERVAL.as_secs_f64() * args.time_scale)
+            .round()
+            .max(1.0) as u64,
+    );
     settings["leaderboards"][&args.leaderboard]["partial_update_seconds"] = json!(interval);
     // Another EvalAI has its own phase ids: its phase runs the chosen leaderboard's track.
     if let (Some(_), Some(p)) = (&args.evalai_url, args.phase) {
@@ -185,6 +198,13 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         // No once-dir: every attempt of the pair that runs route 1 crashes there.
         behaviour.evaluator_env =
             BTreeMap::from([("FAKE_EVALUATOR_CRASH_AT_ROUTE".into(), "1".into())]);
+    }
+    let record_log = stack.workdir.path().join("record-writes.log");
+    if args.latency {
+        behaviour.evaluator_env.insert(
+            "FAKE_EVALUATOR_RECORD_LOG".into(),
+            record_log.display().to_string(),
+        );
     }
     let unpullable: &[&str] = if args.scenario == Scenario::Unpullable {
         &[UNPULLABLE]
@@ -381,6 +401,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         &config,
         executor.clone(),
         args.time_scale,
+        !args.no_wake,
     )
     .await?;
     let execution = executor
@@ -455,6 +476,21 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let bucket = settings_bucket(&settings, &args.leaderboard);
     if let Some(line) = merged_summary(&stack.sdk, &bucket, submission).await {
         outln!("merged         {line}");
+    }
+    if let (true, Some(fake)) = (args.latency, &stack.fake_evalai) {
+        let log = std::fs::read_to_string(&record_log).unwrap_or_default();
+        let m = crate::latency::measure(&log, &fake.requests(), submission);
+        let secs = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}s"));
+        outln!(
+            "latency        record -> partial update: p50 {}, p99 {}, max {} ({} records, {} updates, {} only in the final update); last write -> final status {}",
+            secs(m.quantile(0.5)),
+            secs(m.quantile(0.99)),
+            secs(m.record_delays.last().copied()),
+            m.record_delays.len() + m.undelivered,
+            m.updates,
+            m.undelivered,
+            secs(m.final_delay)
+        );
     }
     outln!("time per stage");
     for (stage, seconds) in stage_times(&result.history) {

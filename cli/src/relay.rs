@@ -31,14 +31,15 @@ impl Drop for Relays {
     }
 }
 
-/// Starts the wake queue's mapping and the sweep's schedule against `executor`; the
-/// schedule's period is multiplied by `time_scale`.
+/// Starts the wake queue's mapping (unless `wake` is false) and the sweep's schedule against
+/// `executor`; the schedule's period is multiplied by `time_scale`.
 pub async fn spawn(
     sdk: &SdkConfig,
     template: &Template,
     config: &FunctionConfig,
     executor: Executor,
     time_scale: f64,
+    wake: bool,
 ) -> anyhow::Result<Relays> {
     let wake_table = config.wake_table()?;
     let source = SqsEventSource::from_template(sdk, template, "WakeEventSource").await?;
@@ -49,6 +50,9 @@ pub async fn spawn(
     let wake_messages = Arc::new(AtomicU64::new(0));
     let counted = wake_messages.clone();
     let wakes = tokio::spawn(async move {
+        if !wake {
+            return;
+        }
         loop {
             match source.poll(Duration::from_secs(1)).await {
                 Ok(Some(batch)) => {

@@ -437,8 +437,33 @@ impl Run {
         }
         self.checkpoint.entry_status = entry_status.to_owned();
         self.checkpoint.done = cfg.index as u64 + 1;
-        self.write("self.statistics_manager.write_statistics()")
-            .err()
+        let written = self
+            .write("self.statistics_manager.write_statistics()")
+            .err();
+        if written.is_none() {
+            self.note_write(&cfg.index.to_string());
+        }
+        written
+    }
+
+    /// Appends a write's time to `FAKE_EVALUATOR_RECORD_LOG` (one short line: appends of
+    /// several evaluators to one file do not interleave).
+    fn note_write(&self, what: &str) {
+        let Some(path) = &self.cfg.faults.record_log else {
+            return;
+        };
+        let ms = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis());
+        let line = format!("{ms} {what}\n");
+        let appended = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .and_then(|mut f| std::io::Write::write_all(&mut f, line.as_bytes()));
+        if let Err(e) = appended {
+            tracing::warn!(path = %path.display(), error = %e, "cannot note a write");
+        }
     }
 
     fn not_enough_entries(&self, error: &RecordsError) -> Exit {
@@ -508,7 +533,10 @@ impl Run {
             }
         }
         match records::write_atomic(self.checkpoint.path(), text.as_bytes()) {
-            Ok(()) => Exit::Finished,
+            Ok(()) => {
+                self.note_write("global");
+                Exit::Finished
+            }
             Err(e) => self.write_failed(
                 &e,
                 "self.statistics_manager.validate_and_write_statistics(self.sensors_initialized, crashed)",

@@ -281,6 +281,10 @@ pub struct EvaluatorFaults {
     pub child_pid_file: Option<PathBuf>,
     /// `FAKE_EVALUATOR_ONCE_DIR`: where the once markers live.
     pub once_dir: Option<PathBuf>,
+    /// `FAKE_EVALUATOR_RECORD_LOG` (instrumentation, not a fault): a file to which each
+    /// record's write is appended as `<epoch ms> <route index>`, and the final write as
+    /// `<epoch ms> global` (what `lbctl local run --latency` measures from).
+    pub record_log: Option<PathBuf>,
 }
 
 impl EvaluatorFaults {
@@ -306,6 +310,9 @@ impl EvaluatorFaults {
                 .non_empty("FAKE_EVALUATOR_CHILD_PID_FILE")
                 .map(PathBuf::from),
             once_dir: env.non_empty("FAKE_EVALUATOR_ONCE_DIR").map(PathBuf::from),
+            record_log: env
+                .non_empty("FAKE_EVALUATOR_RECORD_LOG")
+                .map(PathBuf::from),
         })
     }
 }
