@@ -167,44 +167,35 @@ impl WakeTable {
     }
 
     /// Puts back a token whose report failed (Step Functions unreachable), unless a newer
-    /// wait already stored one, so that the event's retry can wake the execution.
-    pub async fn restore_token(&self, submission_id: u64, taken: &Taken) -> Result<()> {
-        let result = self
+    /// wait already stored one, so that the event's retry can wake the execution. With
+    /// `undo_cancel`, the cancel flag the same write set goes too (the sweep's), so the next
+    /// sweep finds the submission again.
+    pub async fn restore_token(
+        &self,
+        submission_id: u64,
+        taken: &Taken,
+        undo_cancel: bool,
+    ) -> Result<()> {
+        let mut update = self
             .client
             .update_item()
             .table_name(&self.table)
             .set_key(Some(key(submission_id)))
-            .update_expression("SET #token = :token")
-            .condition_expression(
-                "attribute_exists(submission_id) AND attribute_not_exists(#token)",
-            )
             .expression_attribute_names("#token", "token")
-            .expression_attribute_values(":token", AttributeValue::S(taken.token.clone()))
-            .send()
-            .await;
-        match result {
-            Ok(_) => Ok(()),
-            Err(e) if condition_failed(&e) => Ok(()),
-            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
-        }
-    }
-
-    /// Undoes a cancel flag whose report failed: the token goes back and the flag goes, so
-    /// the next sweep finds the submission again (unless a newer wait already stored one).
-    pub async fn unflag_cancel(&self, submission_id: u64, taken: &Taken) -> Result<()> {
-        let result = self
-            .client
-            .update_item()
-            .table_name(&self.table)
-            .set_key(Some(key(submission_id)))
-            .update_expression("SET #token = :token REMOVE #cancel")
-            .condition_expression("attribute_exists(#cancel) AND attribute_not_exists(#token)")
-            .expression_attribute_names("#token", "token")
-            .expression_attribute_names("#cancel", "cancel")
-            .expression_attribute_values(":token", AttributeValue::S(taken.token.clone()))
-            .send()
-            .await;
-        match result {
+            .expression_attribute_values(":token", AttributeValue::S(taken.token.clone()));
+        update = if undo_cancel {
+            update
+                .update_expression("SET #token = :token REMOVE #cancel")
+                .condition_expression("attribute_exists(#cancel) AND attribute_not_exists(#token)")
+                .expression_attribute_names("#cancel", "cancel")
+        } else {
+            update
+                .update_expression("SET #token = :token")
+                .condition_expression(
+                    "attribute_exists(submission_id) AND attribute_not_exists(#token)",
+                )
+        };
+        match update.send().await {
             Ok(_) => Ok(()),
             Err(e) if condition_failed(&e) => Ok(()),
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),

@@ -149,7 +149,7 @@ async fn wake<C: Callbacks>(deps: &Deps<C>, id: u64) -> lb_aws::Result<bool> {
         }
         Ok(Reported::Stale) => Ok(false),
         Err(e) => {
-            if let Err(undo) = deps.wakes.unflag_cancel(id, &taken).await {
+            if let Err(undo) = deps.wakes.restore_token(id, &taken, true).await {
                 warn!(submission_id = id, error = %undo, "could not undo the cancel flag; the safety net wakes it");
             }
             Err(e)

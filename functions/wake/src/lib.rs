@@ -159,7 +159,7 @@ async fn wake<C: Callbacks>(submission_id: u64, deps: &Deps<C>, now: u64) -> lb_
         }
         Err(e) => {
             // The token goes back so that the redelivered message can use it.
-            if let Err(restore) = deps.wakes.restore_token(submission_id, &taken).await {
+            if let Err(restore) = deps.wakes.restore_token(submission_id, &taken, false).await {
                 warn!(submission_id, error = %restore, "could not put the token back; the safety net wakes it");
             }
             Err(e)

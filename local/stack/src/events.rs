@@ -18,7 +18,7 @@ use lb_aws::tasks::{Callbacks, Reported};
 use local_stepfunctions::{CallbackError, Executor};
 use serde_json::Value;
 
-use crate::pipe::{sqs_record, PipeError};
+use crate::pipe::{sqs_error, sqs_record, PipeError};
 use crate::template::{Template, TemplateError};
 
 /// An SQS event source mapping of the template.
@@ -49,17 +49,6 @@ impl Batch {
     /// Whether it holds none.
     pub fn is_empty(&self) -> bool {
         self.receipts.is_empty()
-    }
-}
-
-fn sqs_error<E, R>(operation: &'static str, e: aws_sdk_sqs::error::SdkError<E, R>) -> PipeError
-where
-    E: std::error::Error + 'static,
-    R: std::fmt::Debug,
-{
-    PipeError::Sqs {
-        operation,
-        message: aws_sdk_sqs::error::DisplayErrorContext(e).to_string(),
     }
 }
 

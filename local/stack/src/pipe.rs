@@ -130,7 +130,10 @@ pub async fn poll(
     Ok(Some(out))
 }
 
-fn sqs_error<E, R>(operation: &'static str, e: aws_sdk_sqs::error::SdkError<E, R>) -> PipeError
+pub(crate) fn sqs_error<E, R>(
+    operation: &'static str,
+    e: aws_sdk_sqs::error::SdkError<E, R>,
+) -> PipeError
 where
     E: std::error::Error + 'static,
     R: std::fmt::Debug,

@@ -55,7 +55,7 @@ async fn a_burst_wakes_once_and_a_change_during_a_round_fails_the_next_wait() {
     // A token whose report failed goes back, and is taken again by the event's retry.
     let taken = wake.count_change(42, 1_003).await.unwrap().unwrap();
     assert_eq!(taken.token, "token-3");
-    wake.restore_token(42, &taken).await.unwrap();
+    wake.restore_token(42, &taken, false).await.unwrap();
     assert_eq!(wake.count_change(42, 1_004).await.unwrap(), Some(taken));
 
     // The sweep: waiting executions are listed with their challenge; a cancel is flagged once
