@@ -13,7 +13,8 @@ use crate::error::{CliError, Result};
 /// Biggest event accepted: Step Functions passes at most 256 KiB between states.
 const MAX_EVENT_BYTES: u64 = 256 * 1024;
 
-/// The functions of the state machine, each with the event its Task's `Parameters` build.
+/// The functions: the state machine's, each with the event its Task's `Parameters` build,
+/// and the event-driven ones with their source's event.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum Function {
     /// Stage 1: validate, read EvalAI, gate, claim. Event: `{"message": <the Pipe's output>,
@@ -26,6 +27,12 @@ pub enum Function {
     /// Stage 5 and the failure path: delete the Jobs, final merge, EvalAI, DynamoDB. Event:
     /// `{"state": <the whole execution state>}`.
     Finalize,
+    /// S3's events for results files and markers wake the waiting executions. Event: Lambda's
+    /// SQS batch, `{"Records": [{"messageId": .., "body": <the EventBridge event>}, ..]}`.
+    Wake,
+    /// The cancel sweep: EvalAI's cancels of the executions waiting. Event: the schedule's
+    /// (any JSON; `{}`).
+    Sweep,
 }
 
 impl Function {
@@ -35,6 +42,8 @@ impl Function {
             Function::Launch => "launch",
             Function::Monitor => "monitor",
             Function::Finalize => "finalize",
+            Function::Wake => "wake",
+            Function::Sweep => "sweep",
         }
     }
 }
@@ -110,6 +119,14 @@ pub async fn run(args: Invoke) -> Result<u8> {
         },
         Function::Finalize => match finalize::Deps::from_env().await {
             Ok(deps) => finalize::handle_json(event, &deps).await,
+            Err(e) => Err(e),
+        },
+        Function::Wake => match wake::Deps::from_env().await {
+            Ok(deps) => wake::handle_json(event, &deps).await,
+            Err(e) => Err(e),
+        },
+        Function::Sweep => match sweep::Deps::from_env().await {
+            Ok(deps) => sweep::handle_json(&deps).await,
             Err(e) => Err(e),
         },
     };

@@ -187,7 +187,7 @@ fn invoke_names_an_event_file_that_is_not_json() {
 fn invoke_without_its_environment_prints_the_lambda_error_object() {
     let event =
         r#"{"message": {"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1}, "execution": "x"}"#;
-    for function in ["intake", "launch", "monitor", "finalize"] {
+    for function in ["intake", "launch", "monitor", "finalize", "wake", "sweep"] {
         let out = lbctl(&["invoke", function], &[], Some(event));
         assert_eq!(out.status.code(), Some(1), "{function}: {}", show(&out));
         let error: serde_json::Value = serde_json::from_slice(&out.stdout)
