@@ -159,11 +159,8 @@ pub fn scan_wake_worthy(root: &Path, dev: u64) -> Vec<Entry> {
     for (dir, keep) in [
         (
             lb_domain::protocol::AGENT_DIR,
-            (|name: &str| {
-                name.strip_prefix("partial_agent_results")
-                    .and_then(|n| n.strip_suffix(".json"))
-                    .is_some_and(|id| !id.is_empty() && id.bytes().all(|b| b.is_ascii_digit()))
-            }) as fn(&str) -> bool,
+            (|name: &str| lb_domain::protocol::pair_of_results_name(name).is_some())
+                as fn(&str) -> bool,
         ),
         (lb_domain::protocol::STATUS_DIR, |_: &str| true),
     ] {

@@ -7,6 +7,7 @@ use aws_sdk_s3::Client;
 use crate::{AwsError, Result};
 
 // The marker folder and the cancel marker are the in-Job protocol's names.
+use lb_domain::protocol;
 pub use lb_domain::protocol::{CANCEL_MARKER, STATUS_DIR};
 /// Biggest worker results file we read (the results engine refuses more anyway).
 pub const MAX_PARTIAL_BYTES: u64 = 64 << 20;
@@ -112,15 +113,10 @@ impl SubmissionStore {
                      etag,
                      ..
                  }| {
-                    let id = relative
-                        .strip_prefix("agent/partial_agent_results")?
-                        .strip_suffix(".json")?;
-                    if id.is_empty() || id.len() > 4 || !id.bytes().all(|b| b.is_ascii_digit()) {
-                        return None;
-                    }
+                    let pair_id = protocol::pair_of_results_name(relative.strip_prefix("agent/")?)?;
                     Some(PartialObject {
                         key: format!("{}{relative}", self.prefix),
-                        pair_id: id.parse().ok()?,
+                        pair_id,
                         size,
                         etag,
                     })

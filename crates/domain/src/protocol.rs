@@ -99,6 +99,18 @@ pub fn partial_results_name(pair: PairId) -> String {
     format!("partial_agent_results{pair}.json")
 }
 
+/// The pair of a results file's name, the inverse of [`partial_results_name`]: `None` for
+/// any other name (temporaries, names without an ID, IDs of more than 4 digits).
+pub fn pair_of_results_name(name: &str) -> Option<PairId> {
+    let id = name
+        .strip_prefix("partial_agent_results")?
+        .strip_suffix(".json")?;
+    if id.is_empty() || id.len() > 4 || !id.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    id.parse().ok()
+}
+
 /// The submission whose Monitor an S3 object key should wake, if the key is one: a worker's
 /// results file (`<id>/agent/partial_agent_results<ID>.json`) or a status marker
 /// (`<id>/containers-status/<name>`). Logs and everything else wait for the next round.
@@ -113,10 +125,9 @@ pub fn wakes_submission(key: &str) -> Option<u64> {
     let submission: u64 = id.parse().ok()?;
     let wakes = if let Some(name) = rest
         .strip_prefix(AGENT_DIR)
-        .and_then(|r| r.strip_prefix("/partial_agent_results"))
+        .and_then(|r| r.strip_prefix('/'))
     {
-        name.strip_suffix(".json")
-            .is_some_and(|pair| !pair.is_empty() && pair.bytes().all(|b| b.is_ascii_digit()))
+        pair_of_results_name(name).is_some()
     } else if let Some(name) = rest
         .strip_prefix(STATUS_DIR)
         .and_then(|r| r.strip_prefix('/'))

@@ -38,6 +38,13 @@ pub fn now_record_time() -> String {
     lb_aws::dynamo::record_time(time::OffsetDateTime::now_utc())
 }
 
+/// Now, in epoch seconds (the run state's and the wake table's clock).
+pub fn now_epoch_seconds() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
+}
+
 /// A Lambda's cold start: its environment read once and the SDK configuration built once.
 pub async fn cold_start() -> Result<(FunctionConfig, SdkConfig), FnError> {
     let config = FunctionConfig::from_env()?;

@@ -2,8 +2,6 @@
 //! the Jobs on its cluster (adopting those that already exist), then tell EvalAI and DynamoDB
 //! the submission runs.
 
-use std::time::{SystemTime, UNIX_EPOCH};
-
 use aws_config::SdkConfig;
 use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
@@ -159,9 +157,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         )
         .await?;
 
-    let now = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
+    let now = clients::now_epoch_seconds();
     Ok(RunState {
         jobs: names.len() as u32,
         pairs: plan

@@ -12,7 +12,7 @@
 //! Transient trouble with EvalAI or S3 skips this round's part instead of failing a run that
 //! may last three days.
 
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 use aws_config::SdkConfig;
 use lb_aws::dynamo::SubmissionsTable;
@@ -85,12 +85,6 @@ pub async fn handle_json(input: serde_json::Value, deps: &Deps) -> Result<serde_
     serde_json::to_value(output).map_err(|e| FnError::Input(e.to_string()))
 }
 
-fn now_secs() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs())
-}
-
 /// The submission's Jobs and pods as the cluster reports them now.
 async fn observe(
     deps: &Deps,
@@ -118,7 +112,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     let id = submission.submission_id;
     let target = deps.clients.settings.target(submission.phase_id)?;
     let leaderboard: Leaderboard = target.leaderboard;
-    let now = now_secs();
+    let now = clients::now_epoch_seconds();
     let elapsed = Duration::from_secs(now.saturating_sub(run.launched_at));
     let monitor = &mut run.monitor;
     monitor.rounds += 1;

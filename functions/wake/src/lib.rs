@@ -104,14 +104,8 @@ pub fn submission_of(body: &str) -> std::result::Result<u64, Ignored> {
 pub async fn handle_json<C: Callbacks>(input: Value, deps: &Deps<C>) -> Result<Value> {
     let event: SqsEvent =
         serde_json::from_value(input).map_err(|e| FnError::Input(format!("SQS event: {e}")))?;
-    let response = handle(event, deps, now()).await;
+    let response = handle(event, deps, clients::now_epoch_seconds()).await;
     serde_json::to_value(response).map_err(|e| FnError::Input(e.to_string()))
-}
-
-fn now() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs())
 }
 
 /// Wakes each distinct submission of the batch once. A message that wakes nobody is dropped

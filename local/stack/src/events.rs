@@ -13,12 +13,12 @@
 use std::time::{Duration, Instant};
 
 use aws_config::SdkConfig;
-use aws_sdk_sqs::types::{MessageSystemAttributeName, QueueAttributeName};
+use aws_sdk_sqs::types::MessageSystemAttributeName;
 use lb_aws::tasks::{Callbacks, Reported};
 use local_stepfunctions::{CallbackError, Executor};
 use serde_json::Value;
 
-use crate::pipe::{sqs_error, sqs_record, PipeError};
+use crate::pipe::{queue_arn, region_of, sqs_error, sqs_record, PipeError};
 use crate::template::{Template, TemplateError};
 
 /// An SQS event source mapping of the template.
@@ -89,17 +89,8 @@ impl SqsEventSource {
             .map_err(|e| invalid(sqs_error("GetQueueUrl", e)))?
             .queue_url
             .unwrap_or_default();
-        let arn = sqs
-            .get_queue_attributes()
-            .queue_url(&url)
-            .attribute_names(QueueAttributeName::QueueArn)
-            .send()
-            .await
-            .map_err(|e| invalid(sqs_error("GetQueueAttributes", e)))?
-            .attributes()
-            .and_then(|a| a.get(&QueueAttributeName::QueueArn).cloned())
-            .unwrap_or_default();
-        let region = arn.split(':').nth(3).unwrap_or_default().to_owned();
+        let arn = queue_arn(&sqs, &url).await.map_err(invalid)?;
+        let region = region_of(&arn);
         Ok(SqsEventSource {
             sqs,
             url,

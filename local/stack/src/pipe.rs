@@ -77,6 +77,26 @@ pub fn sqs_record(message: &Message, queue_arn: &str, region: &str) -> Value {
     })
 }
 
+/// A queue's ARN, as its records name it (`eventSourceARN`).
+pub async fn queue_arn(sqs: &aws_sdk_sqs::Client, queue_url: &str) -> Result<String, PipeError> {
+    use aws_sdk_sqs::types::QueueAttributeName;
+    Ok(sqs
+        .get_queue_attributes()
+        .queue_url(queue_url)
+        .attribute_names(QueueAttributeName::QueueArn)
+        .send()
+        .await
+        .map_err(|e| sqs_error("GetQueueAttributes", e))?
+        .attributes()
+        .and_then(|a| a.get(&QueueAttributeName::QueueArn).cloned())
+        .unwrap_or_default())
+}
+
+/// The region of an ARN (`arn:aws:sqs:<region>:<account>:<name>`), as records name it.
+pub fn region_of(arn: &str) -> String {
+    arn.split(':').nth(3).unwrap_or_default().to_owned()
+}
+
 /// One poll of the queue as the Pipe makes it: receive up to `batch_size` messages (waiting
 /// at most `wait_seconds`), transform them, delete them (a FIRE_AND_FORGET target took them)
 /// and return the batch as the state machine receives it; `None` when nothing arrived.
@@ -86,21 +106,8 @@ pub async fn poll(
     batch_size: i32,
     wait_seconds: i32,
 ) -> Result<Option<Value>, PipeError> {
-    let arn = sqs
-        .get_queue_attributes()
-        .queue_url(queue_url)
-        .attribute_names(aws_sdk_sqs::types::QueueAttributeName::QueueArn)
-        .send()
-        .await
-        .map_err(|e| sqs_error("GetQueueAttributes", e))?
-        .attributes()
-        .and_then(|a| {
-            a.get(&aws_sdk_sqs::types::QueueAttributeName::QueueArn)
-                .cloned()
-        })
-        .unwrap_or_default();
-    // arn:aws:sqs:<region>:<account>:<name>
-    let region = arn.split(':').nth(3).unwrap_or_default().to_owned();
+    let arn = queue_arn(sqs, queue_url).await?;
+    let region = region_of(&arn);
     let received = sqs
         .receive_message()
         .queue_url(queue_url)

@@ -472,19 +472,10 @@ impl Provisioner<'_> {
                 .map_err(|e| provision(&name, e))?
                 .queue_url
                 .unwrap_or_default();
-            let attributes = client
-                .get_queue_attributes()
-                .queue_url(&url)
-                .attribute_names(QueueAttributeName::QueueArn)
-                .send()
+            let arn = crate::pipe::queue_arn(&client, &url)
                 .await
                 .map_err(|e| provision(&name, e))?;
-            if let Some(arn) = attributes
-                .attributes()
-                .and_then(|a| a.get(&QueueAttributeName::QueueArn))
-            {
-                arns.insert(format!("<{id}.Arn>"), arn.clone());
-            }
+            arns.insert(format!("<{id}.Arn>"), arn);
         }
         Ok(arns)
     }

@@ -43,6 +43,13 @@ async fn results_and_markers_reach_the_wake_queue_and_logs_do_not() {
         .expect("the wake queue exists");
     let s3 = lb_aws::s3_client(&stack.sdk);
     let bucket = &settings.leaderboards["2.0"].bucket;
+    let put = |key: &'static str| {
+        s3.put_object()
+            .bucket(bucket)
+            .key(key)
+            .body(b"{}".to_vec().into())
+            .send()
+    };
     for key in [
         "42/agent/partial_agent_results1.json",
         "42/containers-status/agent-1.done",
@@ -51,13 +58,7 @@ async fn results_and_markers_reach_the_wake_queue_and_logs_do_not() {
         "42/evalai/results.json",
         "43/agent/partial_agent_results2.json",
     ] {
-        s3.put_object()
-            .bucket(bucket)
-            .key(key)
-            .body(b"{}".to_vec().into())
-            .send()
-            .await
-            .unwrap();
+        put(key).await.unwrap();
     }
     // The mapping's batching window (1 s) gathers the three into one batch.
     let batch = source
@@ -84,13 +85,7 @@ async fn results_and_markers_reach_the_wake_queue_and_logs_do_not() {
         .unwrap();
     assert_eq!(deleted, 2);
     // A response naming a message not in the batch fails it whole (nothing deleted).
-    s3.put_object()
-        .bucket(bucket)
-        .key("44/containers-status/x")
-        .body(b"".to_vec().into())
-        .send()
-        .await
-        .unwrap();
+    put("44/containers-status/x").await.unwrap();
     let batch = source
         .poll(Duration::from_secs(2))
         .await
