@@ -63,8 +63,8 @@ sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
 LATENCY_RUN := local run --time-scale 1 --routes 40 --workers 4 --route-seconds 5 --latency --timeout 900
 bench-latency: venv kubectl ## Record -> partial update and last write -> final status, with and without S3's events (targets: p50 < 15 s, p99 < 60 s, final < 60 s)
 	$(CARGO) build --quiet -p cli -p sidecar -p fake-workloads --bins
-	@for run in "events, partial_update_seconds 30 (the default)|" \
-	            "events, partial_update_seconds 20|--partial-update-seconds 20" \
+	@for run in "events, partial_update_seconds 20 (the default)|" \
+	            "events, partial_update_seconds 30|--partial-update-seconds 30" \
 	            "no events: safety net, holds and sweep only|--no-wake"; do \
 		label=$${run%%|*}; flags=$${run#*|}; \
 		line=$$($(TARGET_DIR)/debug/lbctl $(LATENCY_RUN) $$flags | grep '^latency') || exit 1; \

@@ -52,6 +52,11 @@ pub struct EvalAiTokenArgs {
         default_value = "leaderboard/evalai-token"
     )]
     pub token_secret: String,
+    /// The deployment's EvalAI budget table (stack output `BudgetTable`): this command's
+    /// requests then take from the same 60 a minute as the functions' (recommended while
+    /// submissions are in flight; they share one host token).
+    #[arg(long, value_name = "TABLE", env = "LB_BUDGET_TABLE")]
+    pub budget_table: Option<String>,
 }
 
 /// The loaded deployment: settings and clients.
@@ -139,6 +144,7 @@ impl Deployment {
             settings_secret: self.settings_secret.clone(),
             token_secret: token.token_secret.clone(),
             wake_table: None,
+            budget_table: token.budget_table.clone(),
         };
         lb_pipeline::clients::evalai(&self.sdk, &config, &self.settings).await
     }

@@ -10,8 +10,8 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use fake_evalai::Fixture;
 use lb_pipeline::cluster::Clusters;
-use lb_pipeline::{FnError, FunctionConfig};
-use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET, WAKE_TABLE};
+use lb_pipeline::FnError;
+use local_stack::stack::{LOCAL_SETTINGS, WAKE_TABLE};
 use local_stack::workloads::{Behaviour, Binaries};
 use local_stack::{EvalAi, Stack};
 
@@ -99,7 +99,7 @@ pub struct LocalRun {
     /// Submission id on that EvalAI.
     #[arg(long)]
     pub submission: Option<u64>,
-    /// The leaderboard's `partial_update_seconds` (default: 30 s scaled by --time-scale).
+    /// The leaderboard's `partial_update_seconds` (default: 20 s scaled by --time-scale).
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..=3600))]
     pub partial_update_seconds: Option<u64>,
     /// Measure how long results take to reach EvalAI (record -> partial update, last write ->
@@ -257,11 +257,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     );
 
     // The handlers, in-process, each with its clients built once.
-    let config = FunctionConfig {
-        settings_secret: SETTINGS_SECRET.into(),
-        token_secret: TOKEN_SECRET.into(),
-        wake_table: Some(WAKE_TABLE.into()),
-    };
+    let config = local_stack::stack::function_config();
     let clusters = || Clusters::Kubeconfig(kubeconfig.clone());
     let intake = Arc::new(intake::Deps::load(&stack.sdk, &config).await?);
     let mut launch = launch::Deps::load(&stack.sdk, &config, clusters()).await?;
@@ -444,6 +440,15 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         outln!("caught error   {}", deployment::clean(&caught));
     }
     outln!("EvalAI status  {status_on_evalai}");
+    if let Some(fake) = &stack.fake_evalai {
+        // Every request took from the shared budget first: EvalAI never had to throttle.
+        let log: Vec<_> = fake.requests().into_iter().filter(|r| !r.admin).collect();
+        let throttled = log.iter().filter(|r| r.status == 429).count();
+        outln!(
+            "EvalAI calls   {} requests through the shared budget, {throttled} throttled (429)",
+            log.len()
+        );
+    }
     outln!("S3 events      {wake_messages} results files and markers seen by the wake function");
     outln!("cancel sweep   woke the execution {sweep_wakes} times");
     // Finalize deletes the Jobs in the foreground: when the execution ends, they are gone.

@@ -33,10 +33,18 @@ pub struct EvalAiSettings {
     /// `Bearer` (JWT from the profile page, the default) or `Token` (legacy key).
     #[serde(default = "default_scheme")]
     pub auth_scheme: String,
+    /// The host token's limit (EvalAI's `UserRateThrottle`: 60 a minute, reference section 1),
+    /// shared by every function of every submission in flight (`lb_evalai::budget`).
+    #[serde(default = "default_requests_per_minute")]
+    pub requests_per_minute: u32,
 }
 
 fn default_scheme() -> String {
     "Bearer".into()
+}
+
+fn default_requests_per_minute() -> u32 {
+    60
 }
 
 /// What a phase evaluates.
@@ -307,6 +315,12 @@ impl Settings {
         }
         if !matches!(self.evalai.auth_scheme.as_str(), "Bearer" | "Token") {
             return invalid("evalai.auth_scheme".into(), "must be `Bearer` or `Token`");
+        }
+        if !(14..=6000).contains(&self.evalai.requests_per_minute) {
+            return invalid(
+                "evalai.requests_per_minute".into(),
+                "must be between 14 and 6000 (EvalAI's own limit is 60)",
+            );
         }
         for (name, lb) in &self.leaderboards {
             let at = |field: &str| format!("leaderboards.{name}.{field}");

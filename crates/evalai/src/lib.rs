@@ -3,15 +3,19 @@
 //! The server protects nothing: a write lands on a cancelled or finished submission and
 //! silently undoes it. So every write here reads the submission first and never revives a
 //! cancelled one; a 5xx or timeout is followed by a read to learn what really happened;
-//! throttling is honoured through `Retry-After`; every call has a bounded total time.
+//! throttling is honoured through `Retry-After`; every call has a bounded total time; every
+//! request takes from the shared budget ([`budget`]) first.
 
+pub mod budget;
 mod model;
 mod retry;
 
+pub use budget::{Admission, AdmissionFuture, Budget, BudgetPolicy, Priority};
 pub use model::{validate_result, Submission, MAX_TEAM_NAME};
 pub use retry::{within, RetryPolicy};
 
-use std::time::Duration;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use lb_domain::submission::SubmissionStatus;
 use reqwest::{Method, StatusCode};
@@ -83,6 +87,9 @@ pub enum EvalAiError {
     /// Still throttled when the retry budget ran out.
     #[error("EvalAI kept throttling us (429) for {0:?}")]
     Throttled(Duration),
+    /// A routine request found this window of the shared budget spent (not sent).
+    #[error("the shared EvalAI budget has no room for routine requests until the next window")]
+    OverBudget,
     /// 5xx, timeouts or connection failures until the retry budget ran out.
     #[error("EvalAI unavailable after {attempts} attempts: {last}")]
     Unavailable {
@@ -115,7 +122,8 @@ impl EvalAiError {
             EvalAiError::Unauthorized { .. } => "EvalAiUnauthorized",
             EvalAiError::NotFound(_) => "SubmissionNotFound",
             EvalAiError::Rejected { .. } => "EvalAiRejected",
-            EvalAiError::Throttled(_) => "EvalAiThrottled",
+            // Our own throttle: retried exactly like EvalAI's.
+            EvalAiError::Throttled(_) | EvalAiError::OverBudget => "EvalAiThrottled",
             EvalAiError::Unavailable { .. } => "EvalAiUnavailable",
             EvalAiError::InvalidResponse(_) => "EvalAiInvalidResponse",
             EvalAiError::InvalidResult(_) => "InvalidResult",
@@ -128,6 +136,7 @@ impl EvalAiError {
         matches!(
             self,
             EvalAiError::Throttled(_)
+                | EvalAiError::OverBudget
                 | EvalAiError::Unavailable { .. }
                 | EvalAiError::NotConfirmed { .. }
         )
@@ -226,6 +235,20 @@ pub struct SubmissionRef {
     pub submission: u64,
 }
 
+/// What one request asks of the budget.
+#[derive(Debug, Clone, Copy)]
+struct Ask {
+    priority: Priority,
+    /// This request and those its call needs right after it.
+    headroom: u32,
+}
+
+impl Ask {
+    fn new(priority: Priority, headroom: u32) -> Self {
+        Ask { priority, headroom }
+    }
+}
+
 /// The EvalAI client; build once per cold start.
 #[derive(Debug, Clone)]
 pub struct EvalAiClient {
@@ -234,6 +257,10 @@ pub struct EvalAiClient {
     /// Marked sensitive: `Debug` prints `Sensitive`, and hyper keeps it out of HPACK tables.
     auth: reqwest::header::HeaderValue,
     policy: RetryPolicy,
+    /// Shared with every other function; `None`: unlimited (a tool run by hand).
+    budget: Option<Arc<dyn Budget>>,
+    /// Of the reads (`submission`, `submissions_with_status`); writes have their own.
+    priority: Priority,
 }
 
 impl EvalAiClient {
@@ -279,13 +306,35 @@ impl EvalAiClient {
             base,
             auth,
             policy,
+            budget: None,
+            priority: Priority::Urgent,
         })
+    }
+
+    /// The same client taking every request from `budget` first.
+    pub fn with_budget(mut self, budget: Arc<dyn Budget>) -> Self {
+        self.budget = Some(budget);
+        self
+    }
+
+    /// The same client whose reads go at `priority` (default [`Priority::Urgent`]: a start,
+    /// a cancel's confirmation, the sweep). Partial updates are always routine, final updates
+    /// and `running` always urgent.
+    pub fn with_priority(&self, priority: Priority) -> Self {
+        EvalAiClient {
+            priority,
+            ..self.clone()
+        }
     }
 
     /// GET `/api/jobs/submission/<id>` (no trailing slash).
     pub async fn submission(&self, id: u64) -> Result<Submission> {
+        self.read_submission(id, Ask::new(self.priority, 1)).await
+    }
+
+    async fn read_submission(&self, id: u64, ask: Ask) -> Result<Submission> {
         let url = format!("{}/api/jobs/submission/{id}", self.base);
-        let body = self.send(Method::GET, &url, None, id).await?;
+        let body = self.send(Method::GET, &url, None, id, ask).await?;
         Submission::from_json(&body)
     }
 
@@ -302,7 +351,8 @@ impl EvalAiClient {
             "{}/api/jobs/challenge/{challenge}/submission/?status={status}",
             self.base
         );
-        let body = match self.send(Method::GET, &url, None, challenge).await {
+        let ask = Ask::new(self.priority, 1);
+        let body = match self.send(Method::GET, &url, None, challenge, ask).await {
             Err(EvalAiError::NotFound(_)) => {
                 return Err(EvalAiError::Config(format!(
                     "EvalAI has no challenge `{challenge}`"
@@ -347,7 +397,8 @@ impl EvalAiClient {
 
     /// PATCH `running` with our Job name, unless the submission was cancelled meanwhile.
     pub async fn mark_running(&self, at: SubmissionRef, job_name: &str) -> Result<WriteOutcome> {
-        let current = self.submission(at.submission).await?;
+        let ask = Ask::new(Priority::Urgent, 2);
+        let current = self.read_submission(at.submission, ask).await?;
         if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
         }
@@ -360,8 +411,15 @@ impl EvalAiClient {
             "submission_status": "running",
             "job_name": job_name,
         });
-        self.write(Method::PATCH, &url, body, at, SubmissionStatus::Running)
-            .await
+        self.write(
+            Method::PATCH,
+            &url,
+            body,
+            at,
+            SubmissionStatus::Running,
+            ask,
+        )
+        .await
     }
 
     /// PUT a partial result, unless the submission was cancelled or already final.
@@ -371,7 +429,9 @@ impl EvalAiClient {
         update: &PartialUpdate,
     ) -> Result<WriteOutcome> {
         validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
-        let current = self.submission(at.submission).await?;
+        // The read only if the write can follow it in the same window.
+        let ask = Ask::new(Priority::Routine, 2);
+        let current = self.read_submission(at.submission, ask).await?;
         if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
         }
@@ -394,6 +454,7 @@ impl EvalAiClient {
             body,
             at,
             SubmissionStatus::PartiallyEvaluated,
+            ask,
         )
         .await
     }
@@ -417,7 +478,9 @@ impl EvalAiClient {
         if update.status == SubmissionStatus::Finished {
             validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
         }
-        let current = self.submission(at.submission).await?;
+        // Read, write, read back.
+        let ask = Ask::new(Priority::Urgent, 3);
+        let current = self.read_submission(at.submission, ask).await?;
         if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
         }
@@ -446,7 +509,11 @@ impl EvalAiClient {
             &bounded_text(&update.stderr, MAX_TEXT_BYTES),
             &bounded_metadata(&update.metadata, MAX_METADATA_BYTES),
         );
-        let outcome = match self.write(Method::PUT, &url, full, at, update.status).await {
+        let ask = Ask::new(Priority::Urgent, 2);
+        let outcome = match self
+            .write(Method::PUT, &url, full, at, update.status, ask)
+            .await
+        {
             // The final status must reach EvalAI: a refused body (413 from the proxy, a 400
             // from the view) gets one more try with only the status, the result and the
             // reason, which EvalAI accepts whatever the participant's output was.
@@ -462,13 +529,15 @@ impl EvalAiClient {
                     &bounded_text(&update.stderr, 4 * 1024),
                     "{}",
                 );
-                self.write(Method::PUT, &url, minimal, at, update.status)
+                self.write(Method::PUT, &url, minimal, at, update.status, ask)
                     .await?
             }
             other => other?,
         };
         if outcome == WriteOutcome::Written {
-            let after = self.submission(at.submission).await?;
+            let after = self
+                .read_submission(at.submission, Ask::new(Priority::Urgent, 1))
+                .await?;
             if after.status != update.status {
                 return Err(EvalAiError::NotConfirmed {
                     expected: update.status,
@@ -488,11 +557,13 @@ impl EvalAiClient {
         body: Value,
         at: SubmissionRef,
         target: SubmissionStatus,
+        ask: Ask,
     ) -> Result<WriteOutcome> {
         let mut attempts = Attempts::new(&self.policy);
+        let ask = Ask::new(ask.priority, 1);
         loop {
             match self
-                .once(method.clone(), url, Some(&body), at.submission)
+                .once(method.clone(), url, Some(&body), at.submission, ask)
                 .await
             {
                 Ok(_) => {
@@ -503,7 +574,8 @@ impl EvalAiClient {
                 Err(Failure::Retry { reason, after }) => {
                     warn!(submission_id = at.submission, %reason, "evalai write failed, checking");
                     attempts.wait(reason, after).await?;
-                    let current = self.submission(at.submission).await?;
+                    let check = Ask::new(ask.priority, 2);
+                    let current = self.read_submission(at.submission, check).await?;
                     if current.status == target && target.is_final() {
                         return Ok(WriteOutcome::Written);
                     }
@@ -522,10 +594,11 @@ impl EvalAiClient {
         url: &str,
         body: Option<&Value>,
         id: u64,
+        ask: Ask,
     ) -> Result<Value> {
         let mut attempts = Attempts::new(&self.policy);
         loop {
-            match self.once(method.clone(), url, body, id).await {
+            match self.once(method.clone(), url, body, id, ask).await {
                 Ok(value) => return Ok(value),
                 Err(Failure::Final(e)) => return Err(e),
                 Err(Failure::Retry { reason, after }) => attempts.wait(reason, after).await?,
@@ -539,7 +612,9 @@ impl EvalAiClient {
         url: &str,
         body: Option<&Value>,
         id: u64,
+        ask: Ask,
     ) -> Result<Value, Failure> {
+        self.admit(ask).await.map_err(Failure::Final)?;
         let mut request = self
             .http
             .request(method, url)
@@ -618,6 +693,45 @@ impl EvalAiClient {
                 message,
             }),
         })
+    }
+}
+
+impl EvalAiClient {
+    /// Takes one request from the budget: a routine one is refused when its window is spent,
+    /// an urgent one waits for the next window while its call has time.
+    async fn admit(&self, ask: Ask) -> Result<()> {
+        let Some(budget) = self.budget.as_deref() else {
+            return Ok(());
+        };
+        let started = Instant::now();
+        let allowed =
+            retry::remaining().map_or(self.policy.budget, |left| left.min(self.policy.budget));
+        loop {
+            match budget.take(ask.priority, ask.headroom.max(1)).await {
+                Admission::Granted => return Ok(()),
+                Admission::Unavailable(why) => {
+                    warn!(%why, "the EvalAI budget could not be asked: sending anyway");
+                    return Ok(());
+                }
+                Admission::Full { .. } if ask.priority == Priority::Routine => {
+                    return Err(EvalAiError::OverBudget)
+                }
+                Admission::Full { retry_in } => {
+                    // Past the window's start by a random part of a second, so the functions
+                    // that waited together do not all ask at its first millisecond.
+                    let wait = retry_in.max(Duration::from_millis(50))
+                        + Duration::from_secs(1).mul_f64(retry::jitter());
+                    if started.elapsed() + wait > allowed {
+                        return Err(EvalAiError::Throttled(started.elapsed()));
+                    }
+                    tracing::debug!(
+                        wait_ms = wait.as_millis() as u64,
+                        "evalai budget full: waiting"
+                    );
+                    tokio::time::sleep(wait).await;
+                }
+            }
+        }
     }
 }
 

@@ -133,7 +133,7 @@ impl Attempts {
 }
 
 /// A number in [0, 1) that differs between processes and calls; not for cryptography.
-fn jitter() -> f64 {
+pub(crate) fn jitter() -> f64 {
     use std::hash::{BuildHasher, Hasher};
     let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
     hasher.write_u128(Instant::now().elapsed().as_nanos());

@@ -1,8 +1,9 @@
 //! Clients built once per cold start from the environment, shared by the functions' `Deps`.
 
 use aws_config::SdkConfig;
+use lb_aws::budget::BudgetTable;
 use lb_domain::settings::Settings;
-use lb_evalai::{AuthScheme, EvalAiClient, RetryPolicy};
+use lb_evalai::{AuthScheme, BudgetPolicy, EvalAiClient, RetryPolicy};
 
 use crate::cluster::Clusters;
 use crate::{FnError, FunctionConfig};
@@ -13,7 +14,8 @@ pub async fn settings(sdk: &SdkConfig, config: &FunctionConfig) -> Result<Settin
     Ok(lb_aws::secrets::load_settings(&secrets, &config.settings_secret).await?)
 }
 
-/// The EvalAI client for `settings`, with the host token from its secret.
+/// The EvalAI client for `settings`, with the host token from its secret, taking from the
+/// shared budget when the function has one.
 pub async fn evalai(
     sdk: &SdkConfig,
     config: &FunctionConfig,
@@ -25,12 +27,20 @@ pub async fn evalai(
         "Token" => AuthScheme::Token,
         _ => AuthScheme::Bearer,
     };
-    Ok(EvalAiClient::new(
+    let client = EvalAiClient::new(
         &settings.evalai.api_server,
         &token,
         scheme,
         RetryPolicy::default(),
-    )?)
+    )?;
+    let Some(table) = &config.budget_table else {
+        return Ok(client);
+    };
+    let policy = BudgetPolicy::evalai(settings.evalai.requests_per_minute).ok_or_else(|| {
+        FnError::Config("evalai.requests_per_minute is too small to share".into())
+    })?;
+    let budget = BudgetTable::new(aws_sdk_dynamodb::Client::new(sdk), table, policy);
+    Ok(client.with_budget(std::sync::Arc::new(budget)))
 }
 
 /// Now, in the records' time format (the original's `2024-03-07 10:31:02 UTC`).

@@ -13,6 +13,9 @@ pub struct FunctionConfig {
     /// `LB_WAKE_TABLE`: the wake table (`lb_aws::wake`), which the Monitor reads (the other
     /// stages do without it).
     pub wake_table: Option<String>,
+    /// `LB_BUDGET_TABLE`: the shared EvalAI budget (`lb_aws::budget`) every EvalAI request
+    /// takes from; unset only where one function runs alone (a tool run by hand).
+    pub budget_table: Option<String>,
 }
 
 impl FunctionConfig {
@@ -32,6 +35,7 @@ impl FunctionConfig {
             settings_secret: get("LB_SETTINGS_SECRET")?,
             token_secret: get("LB_EVALAI_TOKEN_SECRET")?,
             wake_table: lookup("LB_WAKE_TABLE").filter(|v| !v.trim().is_empty()),
+            budget_table: lookup("LB_BUDGET_TABLE").filter(|v| !v.trim().is_empty()),
         })
     }
 }

@@ -4,8 +4,7 @@ use aws_sdk_dynamodb::types::AttributeValue;
 use fake_evalai::{Faults, Fixture};
 use intake::{handle, Deps};
 use lb_pipeline::payload::{Action, IntakeInput};
-use lb_pipeline::FunctionConfig;
-use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET, WAKE_TABLE};
+use local_stack::stack::LOCAL_SETTINGS;
 use local_stack::{EvalAi, Stack};
 use serde_json::json;
 
@@ -14,11 +13,7 @@ async fn stack(settings: &str) -> (Stack, Deps) {
         .await
         .unwrap();
     stack.provision(settings).await.unwrap();
-    let config = FunctionConfig {
-        settings_secret: SETTINGS_SECRET.into(),
-        token_secret: TOKEN_SECRET.into(),
-        wake_table: Some(WAKE_TABLE.into()),
-    };
+    let config = local_stack::stack::function_config();
     let deps = Deps::load(&stack.sdk, &config).await.unwrap();
     (stack, deps)
 }

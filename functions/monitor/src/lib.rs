@@ -6,7 +6,9 @@
 //! Jobs and the workers' results in S3, and sends EvalAI a partial update only when the results
 //! changed and the last update is `partial_update_seconds` old (EvalAI allows 60 requests a
 //! minute for every submission in flight together); the status on EvalAI is read only to
-//! confirm a cancel the sweep found, or every [`STATUS_FALLBACK`] in case the sweep is down. A
+//! confirm a cancel the sweep found, or every [`STATUS_FALLBACK`] in case the sweep is down
+//! (partial updates and that fallback are routine for the shared EvalAI budget: when it is
+//! short they wait for a later round, never fail the run). A
 //! participant's cancel becomes the S3 cancel marker; a hopeless run (image that cannot be
 //! pulled, unschedulable, out of retries) ends with a reason the participant can act on.
 //! Transient trouble with EvalAI or S3 skips this round's part instead of failing a run that
@@ -23,7 +25,7 @@ use lb_domain::protocol::Marker;
 use lb_domain::results::Leaderboard;
 use lb_domain::schedule::{safety_net, MAX_EVALUATION, POLL_WITHOUT_WAKE, STATUS_FALLBACK};
 use lb_domain::submission::SubmissionStatus;
-use lb_evalai::{PartialUpdate, SubmissionRef, WriteOutcome};
+use lb_evalai::{PartialUpdate, Priority, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::{cluster_error, Clusters};
 use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
@@ -191,7 +193,19 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         .status_read_at
         .is_none_or(|t| now.saturating_sub(t) >= STATUS_FALLBACK.as_secs());
     if evalai_status.is_none() && (wake.cancel || fallback_due) {
-        match deps.clients.evalai.submission(id).await {
+        // A cancel to confirm goes ahead of partial updates; the fallback yields to them.
+        let priority = if wake.cancel {
+            Priority::Urgent
+        } else {
+            Priority::Routine
+        };
+        match deps
+            .clients
+            .evalai
+            .with_priority(priority)
+            .submission(id)
+            .await
+        {
             Ok(current) => {
                 evalai_status = Some(current.status);
                 run.monitor.status_read_at = Some(now);

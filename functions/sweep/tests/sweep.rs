@@ -6,9 +6,8 @@ use std::sync::Mutex;
 use fake_evalai::{Fixture, NewSubmission};
 use lb_aws::tasks::{Callbacks, Reported};
 use lb_aws::AwsError;
-use lb_pipeline::FunctionConfig;
 use local_stack::integrations::{update_item, wait_for_change};
-use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET, WAKE_TABLE};
+use local_stack::stack::LOCAL_SETTINGS;
 use local_stack::{EvalAi, Stack};
 use sweep::Deps;
 
@@ -39,11 +38,7 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
         .await
         .expect("stack starts");
     stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
-    let config = FunctionConfig {
-        settings_secret: SETTINGS_SECRET.into(),
-        token_secret: TOKEN_SECRET.into(),
-        wake_table: Some(WAKE_TABLE.into()),
-    };
+    let config = local_stack::stack::function_config();
     let deps = Deps::load(&stack.sdk, &config, Recorder::default())
         .await
         .unwrap();

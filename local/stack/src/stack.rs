@@ -25,6 +25,18 @@ pub const SETTINGS_SECRET: &str = "leaderboard/settings";
 pub const TOKEN_SECRET: &str = "leaderboard/evalai-token";
 /// The wake table's name in local mode (`${AWS::StackName}-wakes`).
 pub const WAKE_TABLE: &str = "leaderboard-wakes";
+/// The EvalAI budget table's name in local mode (`${AWS::StackName}-evalai-budget`).
+pub const BUDGET_TABLE: &str = "leaderboard-evalai-budget";
+
+/// The environment the template gives every function, with local mode's names.
+pub fn function_config() -> lb_pipeline::FunctionConfig {
+    lb_pipeline::FunctionConfig {
+        settings_secret: SETTINGS_SECRET.into(),
+        token_secret: TOKEN_SECRET.into(),
+        wake_table: Some(WAKE_TABLE.into()),
+        budget_table: Some(BUDGET_TABLE.into()),
+    }
+}
 /// The settings of local runs and tests: phase 1 is Leaderboard 2.0 SENSORS (20 routes, 4
 /// workers), phase 2 Leaderboard 1.0 SENSORS (12 routes, 3 workers), phase 3 the 2.0
 /// qualifier; gating off. Matches the fake EvalAI's default fixture.

@@ -363,8 +363,11 @@ mod tests {
         assert!(t.condition("CreateDataStores"));
         let t = t.with_parameter("CreateDataStores", "false");
         assert!(!t.condition("CreateDataStores"));
-        // The original system's tables are the operator's; the wake table is ours alone.
-        assert_eq!(t.resources_of("AWS::DynamoDB::Table"), ["WakeTable"]);
+        // The original system's tables are the operator's; the wake and budget tables are ours.
+        assert_eq!(
+            t.resources_of("AWS::DynamoDB::Table"),
+            ["WakeTable", "BudgetTable"]
+        );
     }
 
     #[test]

@@ -116,8 +116,8 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     );
     assert_eq!(
         count("AWS::DynamoDB::Table"),
-        5,
-        "two per leaderboard, the wake table"
+        6,
+        "two per leaderboard, the wake table, the EvalAI budget"
     );
     assert_eq!(count("AWS::S3::Bucket"), 2);
     assert_eq!(
@@ -153,6 +153,19 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
         assert_eq!(t["types"]["team_id"], "S");
         assert_eq!(t["types"][sort], "S");
     }
+    // The budget's key is what lb_aws::budget writes: a window's start, a number.
+    let budget = &report["tables"]["leaderboard-evalai-budget"];
+    assert_eq!(
+        budget["keys"],
+        serde_json::json!([["window_start", "HASH"]])
+    );
+    assert_eq!(budget["types"]["window_start"], "N");
+    assert_eq!(
+        APP.text("BudgetTable", &["TimeToLiveSpecification", "AttributeName"])
+            .unwrap(),
+        "expires_at",
+        "lb_aws::budget writes expires_at"
+    );
     let queues = report["queues"].to_string();
     assert!(
         queues.contains("/carla-leaderboard-submissions\""),
@@ -209,7 +222,7 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     );
 
     // An operator switching from the original keeps their tables and buckets: none created
-    // but the wake table, which is ours alone.
+    // but the wake and budget tables, which are ours alone.
     let switch = deploy(
         &moto,
         "switch",
@@ -222,10 +235,10 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     assert_eq!(switch["status"], "CREATE_COMPLETE");
     let created = types(&switch["created"]);
     assert!(
-        !created
-            .iter()
-            .any(|(id, k)| (k == "AWS::DynamoDB::Table" && id != "WakeTable")
-                || k == "AWS::S3::Bucket"),
+        !created.iter().any(|(id, k)| (k == "AWS::DynamoDB::Table"
+            && id != "WakeTable"
+            && id != "BudgetTable")
+            || k == "AWS::S3::Bucket"),
         "{created:?}"
     );
 }

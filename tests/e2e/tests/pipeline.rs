@@ -9,8 +9,7 @@ use aws_sdk_dynamodb::types::AttributeValue;
 use fake_evalai::Fixture;
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{Action, IntakeInput, RunPhase, RunState, SubmissionInfo};
-use lb_pipeline::FunctionConfig;
-use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET, WAKE_TABLE};
+use local_stack::stack::LOCAL_SETTINGS;
 use local_stack::workloads::{Behaviour, Binaries};
 use local_stack::{EvalAi, Stack};
 use serde_json::json;
@@ -54,11 +53,7 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
     stack
         .start_workloads(&settings, &bins, &behaviour, unpullable)
         .unwrap();
-    let config = FunctionConfig {
-        settings_secret: SETTINGS_SECRET.into(),
-        token_secret: TOKEN_SECRET.into(),
-        wake_table: Some(WAKE_TABLE.into()),
-    };
+    let config = local_stack::stack::function_config();
     let clusters = || Clusters::Kubeconfig(stack.kubeconfig.clone().unwrap());
     let intake = intake::Deps::load(&stack.sdk, &config).await.unwrap();
     let mut launch = launch::Deps::load(&stack.sdk, &config, clusters())
@@ -355,11 +350,7 @@ async fn a_participant_cancel_ends_cancelled_with_the_jobs_gone() {
     let mut run = h.launch(&submission).await;
     let fake = h.stack.fake();
     let dynamo = aws_sdk_dynamodb::Client::new(&h.stack.sdk);
-    let config = FunctionConfig {
-        settings_secret: SETTINGS_SECRET.into(),
-        token_secret: TOKEN_SECRET.into(),
-        wake_table: Some(WAKE_TABLE.into()),
-    };
+    let config = local_stack::stack::function_config();
     let sweeper = sweep::Deps::load(&h.stack.sdk, &config, Tokens::default())
         .await
         .unwrap();
@@ -540,11 +531,7 @@ async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() 
         .to_string();
     let down = kubeconfig.with_file_name("kubeconfig-down");
     std::fs::write(&down, text.replace(&server, "http://127.0.0.1:9")).unwrap();
-    let config = FunctionConfig {
-        settings_secret: SETTINGS_SECRET.into(),
-        token_secret: TOKEN_SECRET.into(),
-        wake_table: Some(WAKE_TABLE.into()),
-    };
+    let config = local_stack::stack::function_config();
     let unreachable = monitor::Deps::load(&h.stack.sdk, &config, Clusters::Kubeconfig(down))
         .await
         .unwrap();

@@ -1,0 +1,112 @@
+//! The shared EvalAI budget in DynamoDB (`lb_evalai::budget` has the arithmetic): one item per
+//! window, counted by a conditional increment, so every function of every submission takes
+//! from the same count and two racing never exceed it.
+//!
+//! The budget table is ours alone (the stack creates it): partition key `window_start` (N,
+//! epoch milliseconds of the window's start), `requests` (N) granted in it, `expires_at` (N,
+//! DynamoDB TTL) an hour after the window.
+
+use std::collections::HashMap;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use aws_sdk_dynamodb::types::AttributeValue;
+use aws_sdk_dynamodb::Client;
+use lb_evalai::{Admission, AdmissionFuture, Budget, BudgetPolicy, Priority};
+
+use crate::{condition_failed, AwsError};
+
+/// How long a window's item is kept after it (for an operator looking at the last hour).
+const KEEP_SECONDS: u64 = 3600;
+
+/// The budget table.
+#[derive(Debug, Clone)]
+pub struct BudgetTable {
+    client: Client,
+    table: String,
+    policy: BudgetPolicy,
+}
+
+impl BudgetTable {
+    /// The table named `table`, granting by `policy`.
+    pub fn new(client: Client, table: impl Into<String>, policy: BudgetPolicy) -> Self {
+        BudgetTable {
+            client,
+            table: table.into(),
+            policy,
+        }
+    }
+
+    /// The arithmetic it grants by.
+    pub fn policy(&self) -> BudgetPolicy {
+        self.policy
+    }
+
+    /// Takes one request in the window of `at_ms` (epoch milliseconds).
+    pub async fn take_at(&self, priority: Priority, headroom: u32, at_ms: u64) -> Admission {
+        let (index, retry_in) = self.policy.window_of(at_ms);
+        let length = self.policy.window.as_millis() as u64;
+        let start = index * length;
+        let Some(most) = self.policy.limit(priority).checked_sub(headroom) else {
+            // The call needs more than a window ever grants this priority.
+            return Admission::Full { retry_in };
+        };
+        let result = self
+            .client
+            .update_item()
+            .table_name(&self.table)
+            .set_key(Some(HashMap::from([(
+                "window_start".to_string(),
+                AttributeValue::N(start.to_string()),
+            )])))
+            .update_expression("ADD #requests :one SET #expires = :expires")
+            .condition_expression("attribute_not_exists(#requests) OR #requests <= :most")
+            .expression_attribute_names("#requests", "requests")
+            .expression_attribute_names("#expires", "expires_at")
+            .expression_attribute_values(":one", AttributeValue::N("1".into()))
+            .expression_attribute_values(":most", AttributeValue::N(most.to_string()))
+            .expression_attribute_values(
+                ":expires",
+                AttributeValue::N(((start + length) / 1000 + KEEP_SECONDS).to_string()),
+            )
+            .send()
+            .await;
+        match result {
+            Ok(_) => Admission::Granted,
+            Err(e) if condition_failed(&e) => Admission::Full { retry_in },
+            Err(e) => {
+                Admission::Unavailable(AwsError::sdk("dynamodb", "UpdateItem", e).to_string())
+            }
+        }
+    }
+
+    /// Requests granted in the window starting at `window_start` (epoch ms), for reports.
+    pub async fn granted(&self, window_start: u64) -> crate::Result<u32> {
+        let out = self
+            .client
+            .get_item()
+            .table_name(&self.table)
+            .key("window_start", AttributeValue::N(window_start.to_string()))
+            .consistent_read(true)
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "GetItem", e))?;
+        Ok(out
+            .item()
+            .and_then(|item| item.get("requests"))
+            .and_then(|v| v.as_n().ok())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or(0))
+    }
+}
+
+fn now_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+impl Budget for BudgetTable {
+    fn take(&self, priority: Priority, headroom: u32) -> AdmissionFuture<'_> {
+        Box::pin(self.take_at(priority, headroom, now_ms()))
+    }
+}
