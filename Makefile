@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency local bench-stack bench-functions deploy cluster cluster-manifests
+.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -70,6 +70,9 @@ bench-latency: venv kubectl ## Record -> partial update and last write -> final 
 		line=$$($(TARGET_DIR)/debug/lbctl $(LATENCY_RUN) $$flags | grep '^latency') || exit 1; \
 		printf '%-48s %s\n' "$$label" "$${line#latency        }"; \
 	done
+
+bench-scale: venv ## 200 submissions in flight through the shared EvalAI budget at 10x speed: EvalAI requests per sliding minute (target <= 60, no 429), record -> partial update and end -> final delays (about 2 minutes)
+	$(CARGO) test --quiet -p e2e --bench scale -- --bench
 
 bench-sidecar: venv ## logcopy's peak memory uploading a 1 GiB tree to moto (target < 20 MiB)
 	$(CARGO) bench -p sidecar --bench logcopy

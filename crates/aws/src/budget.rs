@@ -1,12 +1,14 @@
 //! The shared EvalAI budget in DynamoDB (`lb_evalai::budget` has the arithmetic): one item per
 //! window, counted by a conditional increment, so every function of every submission takes
-//! from the same count and two racing never exceed it.
+//! from the same count and two racing never exceed it. A booking is the same increment on a
+//! later window's item.
 //!
 //! The budget table is ours alone (the stack creates it): partition key `window_start` (N,
 //! epoch milliseconds of the window's start), `requests` (N) granted in it, `expires_at` (N,
 //! DynamoDB TTL) an hour after the window.
 
 use std::collections::HashMap;
+use std::time::Duration;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use aws_sdk_dynamodb::types::AttributeValue;
@@ -41,15 +43,47 @@ impl BudgetTable {
         self.policy
     }
 
-    /// Takes one request in the window of `at_ms` (epoch milliseconds).
+    /// Takes one request in the window of `at_ms` (epoch milliseconds); an urgent request
+    /// finding it full books the first later window with room.
     pub async fn take_at(&self, priority: Priority, headroom: u32, at_ms: u64) -> Admission {
         let (index, retry_in) = self.policy.window_of(at_ms);
-        let length = self.policy.window.as_millis() as u64;
-        let start = index * length;
         let Some(most) = self.policy.limit(priority).checked_sub(headroom) else {
             // The call needs more than a window ever grants this priority.
             return Admission::Full { retry_in };
         };
+        match self.increment(index, most).await {
+            Ok(true) => return Admission::Granted,
+            Ok(false) if priority == Priority::Routine => return Admission::Full { retry_in },
+            Ok(false) => {}
+            Err(why) => return Admission::Unavailable(why),
+        }
+        let length = self.policy.window.as_millis() as u64;
+        for ahead in 1..=BudgetPolicy::BOOK_AHEAD {
+            let booked = index + ahead;
+            match self.increment(booked, self.policy.per_window - 1).await {
+                Ok(true) => {
+                    // Spread over the window's first quarter, so the bookings of one window
+                    // do not all arrive in its first millisecond.
+                    let spread = (length / 4).max(1);
+                    let offset = (at_ms.wrapping_mul(2_654_435_761) >> 7) % spread;
+                    let opens = booked * length + offset;
+                    return Admission::Booked {
+                        wait: Duration::from_millis(opens.saturating_sub(at_ms)),
+                    };
+                }
+                Ok(false) => continue,
+                Err(why) => return Admission::Unavailable(why),
+            }
+        }
+        Admission::Full {
+            retry_in: retry_in + self.policy.window * (BudgetPolicy::BOOK_AHEAD as u32),
+        }
+    }
+
+    /// Adds one to window `index`'s count if it is at most `most`: whether it did.
+    async fn increment(&self, index: u64, most: u32) -> Result<bool, String> {
+        let length = self.policy.window.as_millis() as u64;
+        let start = index * length;
         let result = self
             .client
             .update_item()
@@ -71,11 +105,9 @@ impl BudgetTable {
             .send()
             .await;
         match result {
-            Ok(_) => Admission::Granted,
-            Err(e) if condition_failed(&e) => Admission::Full { retry_in },
-            Err(e) => {
-                Admission::Unavailable(AwsError::sdk("dynamodb", "UpdateItem", e).to_string())
-            }
+            Ok(_) => Ok(true),
+            Err(e) if condition_failed(&e) => Ok(false),
+            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e).to_string()),
         }
     }
 

@@ -66,29 +66,35 @@ async fn a_window_grants_its_routine_share_then_its_reserve_to_urgent_requests_o
         match budget.take_at(Priority::Routine, 1, at).await {
             Admission::Granted => granted += 1,
             Admission::Full { retry_in } => assert_eq!(retry_in, Duration::from_millis(1_500)),
-            Admission::Unavailable(why) => panic!("{why}"),
+            other => panic!("a routine request got {other:?}"),
         }
     }
     assert_eq!(granted, policy.routine_per_window);
     assert_eq!(budget.granted(window_start).await.unwrap(), 7);
 
-    // The reserve is the urgent requests' alone, and then the window is full for all.
+    // The reserve is the urgent requests' alone; then an urgent request books the next
+    // window (opening in 1.5 s, spread over its first quarter) instead of waiting to ask.
     for _ in 0..(policy.per_window - policy.routine_per_window) {
         assert_eq!(
             budget.take_at(Priority::Urgent, 1, at).await,
             Admission::Granted
         );
     }
-    assert!(matches!(
-        budget.take_at(Priority::Urgent, 1, at).await,
-        Admission::Full { .. }
-    ));
+    let Admission::Booked { wait } = budget.take_at(Priority::Urgent, 1, at).await else {
+        panic!("a full window must book the next for an urgent request");
+    };
+    assert!(
+        wait >= Duration::from_millis(1_500) && wait < Duration::from_millis(1_500 + 3_000),
+        "{wait:?}"
+    );
     assert_eq!(budget.granted(window_start).await.unwrap(), 9);
-
-    // The next window starts afresh; a call needing two requests is refused while only one
-    // routine slot is left, so its read is not spent on a write that could not follow.
     let next = window_start + 12_000;
-    for _ in 0..6 {
+    assert_eq!(budget.granted(next).await.unwrap(), 1);
+
+    // In the next window the booking counts against the routine share: 6 routine requests
+    // fit, not 7; a call needing two requests is refused while only one routine slot is
+    // left, so its read is not spent on a write that could not follow.
+    for _ in 0..5 {
         assert_eq!(
             budget.take_at(Priority::Routine, 1, next).await,
             Admission::Granted
@@ -102,6 +108,11 @@ async fn a_window_grants_its_routine_share_then_its_reserve_to_urgent_requests_o
         budget.take_at(Priority::Routine, 1, next).await,
         Admission::Granted
     );
+    assert!(matches!(
+        budget.take_at(Priority::Routine, 1, next).await,
+        Admission::Full { .. }
+    ));
+    assert_eq!(budget.granted(next).await.unwrap(), 7);
 
     // No table: the budget says it cannot tell (the client then sends, and honours 429s).
     let config = lb_aws::sdk_config_at(&moto.endpoint(), "us-east-1").await;

@@ -9,7 +9,9 @@
 //! is one conditional increment (no read, no lock), so two functions racing can never exceed
 //! it. [`Priority::Routine`] requests (partial updates, fallback status reads) stop at a lower
 //! mark, leaving the rest of each window to [`Priority::Urgent`] ones (final updates, the
-//! cancel sweep, a submission's start).
+//! cancel sweep, a submission's start). An urgent request finding its window full books a
+//! place in the first later window with room, and that booking counts against the routine
+//! mark there too: while urgent requests queue, routine ones yield entirely.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -30,6 +32,11 @@ pub enum Priority {
 pub enum Admission {
     /// Send it.
     Granted,
+    /// A place is booked in a later window: send it after `wait` (urgent requests only).
+    Booked {
+        /// Until the booked window opens (plus a spread within it).
+        wait: Duration,
+    },
     /// This window has no room for the priority; the next one opens in `retry_in`.
     Full {
         /// Until the next window.
@@ -86,6 +93,9 @@ impl BudgetPolicy {
     pub fn evalai(requests_per_minute: u32) -> Option<BudgetPolicy> {
         Self::for_limit(requests_per_minute, Duration::from_secs(60))
     }
+
+    /// How far ahead an urgent request may book (windows): beyond it, it waits and asks again.
+    pub const BOOK_AHEAD: u64 = 25;
 
     /// The window `at_ms` (milliseconds since the epoch) falls in, and the time until the next.
     pub fn window_of(&self, at_ms: u64) -> (u64, Duration) {

@@ -716,6 +716,14 @@ impl EvalAiClient {
                 Admission::Full { .. } if ask.priority == Priority::Routine => {
                     return Err(EvalAiError::OverBudget)
                 }
+                Admission::Booked { wait } => {
+                    // A booked place unused is one request EvalAI never sees: harmless.
+                    if started.elapsed() + wait > allowed {
+                        return Err(EvalAiError::Throttled(started.elapsed() + wait));
+                    }
+                    tokio::time::sleep(wait).await;
+                    return Ok(());
+                }
                 Admission::Full { retry_in } => {
                     // Past the window's start by a random part of a second, so the functions
                     // that waited together do not all ask at its first millisecond.
