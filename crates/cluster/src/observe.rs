@@ -35,6 +35,10 @@ pub struct VerdictPolicy {
     /// A pod unschedulable for this long makes the submission hopeless. Generous by default:
     /// the cluster autoscaler needs minutes to add a GPU node, longer when capacity is short.
     pub unschedulable_limit: Duration,
+    /// How long a pod may wait for capacity (`Insufficient nvidia.com/gpu`, `cpu`, `memory`,
+    /// `Too many pods`: what frees up or what the autoscaler adds): a full cluster is a queue,
+    /// and only this bound (a leaderboard setting, `max_queue_hours`) ends the wait.
+    pub queue_limit: Duration,
     /// A container that cannot be created (`CreateContainerConfigError`: a missing Secret or
     /// ConfigMap, an unsupported volume) this long after its pod started makes the submission
     /// hopeless; Kubernetes retries forever, so without this the Job would hold its node
@@ -46,6 +50,7 @@ impl Default for VerdictPolicy {
     fn default() -> Self {
         VerdictPolicy {
             unschedulable_limit: Duration::from_secs(30 * 60),
+            queue_limit: Duration::from_secs(24 * 3600),
             config_error_limit: Duration::from_secs(10 * 60),
         }
     }
@@ -443,23 +448,38 @@ fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict 
             }
         }
     }
-    let limit = policy.unschedulable_limit;
     for (job, pod) in live() {
         let Some(u) = &pod.unschedulable else {
             continue;
         };
         let Some(since) = u.since else { continue };
+        let capacity = waits_for_capacity(&u.message);
+        let limit = if capacity {
+            policy.queue_limit
+        } else {
+            policy.unschedulable_limit
+        };
         if waited_at_least(now, since, limit) {
             let waited = now.as_second().saturating_sub(since.as_second());
+            let message = if capacity {
+                format!(
+                    "the evaluation waited {} minutes for free capacity on the cluster, longer than this leaderboard's queue limit of {} hours ({}); it was not started and used none of your time: please submit again later",
+                    waited / 60,
+                    limit.as_secs() / 3600,
+                    quote(&u.message)
+                )
+            } else {
+                format!(
+                    "the evaluation could not be scheduled on the cluster for {} minutes ({}); please try again later or contact the organizers",
+                    waited / 60,
+                    quote(&u.message)
+                )
+            };
             return Verdict::Failed {
                 kind: FailureKind::Unschedulable,
                 job: Some(job.name.clone()),
                 container: None,
-                message: format!(
-                    "the evaluation could not be scheduled on the cluster for {} minutes ({}); please try again later or contact the organizers",
-                    waited / 60,
-                    quote(&u.message)
-                ),
+                message,
             };
         }
     }
@@ -471,6 +491,40 @@ fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict 
 }
 
 /// Whether `since` is at least `limit` before `now` (a clock behind `since` never is).
+/// Whether the scheduler's message says only that the nodes are full (what frees up, or what
+/// the autoscaler adds), as kube-scheduler's `NodeResourcesFit` and `NodePorts` word it, as
+/// opposed to a pod no node can take (selector, affinity, taints).
+fn waits_for_capacity(message: &str) -> bool {
+    let Some((_, reasons)) = message.split_once("nodes are available:") else {
+        return false;
+    };
+    // The part before the preemption summary: "1 Insufficient nvidia.com/gpu, 2 node(s) ...".
+    let reasons = reasons.split(" preemption:").next().unwrap_or(reasons);
+    reasons
+        .trim()
+        .trim_end_matches('.')
+        .split(", ")
+        .all(|reason| {
+            let reason = reason
+                .trim_start_matches(|c: char| c.is_ascii_digit())
+                .trim();
+            reason.starts_with("Insufficient ")
+                || reason == "Too many pods"
+                // The control plane's taint: never a place for Jobs, full or not.
+                || reason.contains("untolerated taint {node-role.kubernetes.io/control-plane")
+        })
+}
+
+/// Whether the submission's pairs have started: one of its pods is past `Pending`.
+pub fn started(jobs: &[JobView]) -> bool {
+    jobs.iter().any(|j| {
+        j.state == JobState::Complete
+            || j.pods
+                .iter()
+                .any(|p| matches!(p.phase.as_str(), "Running" | "Succeeded" | "Failed"))
+    })
+}
+
 fn waited_at_least(now: Timestamp, since: Timestamp, limit: Duration) -> bool {
     let waited = now.as_second().saturating_sub(since.as_second());
     waited >= 0 && waited.unsigned_abs() >= limit.as_secs()
@@ -1063,13 +1117,57 @@ mod tests {
     }
 
     #[test]
+    fn a_pod_waiting_for_gpus_is_queued_until_the_queue_limit_and_never_failed_before() {
+        let policy = VerdictPolicy {
+            unschedulable_limit: Duration::from_secs(30 * 60),
+            queue_limit: Duration::from_secs(2 * 3600),
+            ..VerdictPolicy::default()
+        };
+        // Unschedulable since 09:01 for `Insufficient nvidia.com/gpu`: a full cluster.
+        for minute in [30, 31, 59] {
+            let obs = run_at(UNSCHEDULABLE, at(9, minute), &policy);
+            assert_eq!(obs.verdict, Verdict::Running, "09:{minute}");
+            assert!(!started(&obs.jobs));
+        }
+        assert_eq!(
+            run_at(UNSCHEDULABLE, at(11, 0), &policy).verdict,
+            Verdict::Running
+        );
+        let late = run_at(UNSCHEDULABLE, at(11, 1), &policy);
+        let (kind, _, _, message) = failed(&late);
+        assert_eq!(kind, FailureKind::Unschedulable);
+        assert!(
+            message.contains("waited 120 minutes for free capacity")
+                && message.contains("queue limit of 2 hours")
+                && message.contains("used none of your time"),
+            "{message}"
+        );
+        assert!(waits_for_capacity(
+            "0/4 nodes are available: 2 Insufficient cpu, 2 Too many pods."
+        ));
+        assert!(!waits_for_capacity(
+            "0/3 nodes are available: 3 node(s) didn't match Pod's node affinity/selector."
+        ));
+        assert!(!waits_for_capacity(""));
+    }
+
+    #[test]
     fn an_unschedulable_pod_is_hopeless_only_after_the_limit() {
         let policy = VerdictPolicy {
             unschedulable_limit: Duration::from_secs(30 * 60),
             ..VerdictPolicy::default()
         };
+        // The same pod, but no node of the instance type it asks for: waiting cannot help.
+        const NO_MATCH: &str =
+            "0/3 nodes are available: 3 node(s) didn't match Pod's node affinity/selector.";
+        let text = UNSCHEDULABLE.replace(
+            "0/3 nodes are available: 1 node(s) had untolerated taint {node-role.kubernetes.io/control-plane: }, 2 Insufficient nvidia.com/gpu. preemption: 0/3 nodes are available: 1 Preemption is not helpful for scheduling, 2 No preemption victims found for incoming pod.",
+            NO_MATCH,
+        );
+        assert!(text.contains(NO_MATCH));
+
         // Unschedulable since 09:01.
-        let early = run_at(UNSCHEDULABLE, at(9, 30), &policy);
+        let early = run_at(&text, at(9, 30), &policy);
         assert_eq!(early.verdict, Verdict::Running);
         let unsched = early.jobs[0].pods[0].unschedulable.as_ref().unwrap();
         assert_eq!(unsched.since, Some(at(9, 1)));
@@ -1080,18 +1178,18 @@ mod tests {
             .iter()
             .all(|c| c.state == ContainerState::NotCreated));
 
-        let late = run_at(UNSCHEDULABLE, at(9, 31), &policy);
+        let late = run_at(&text, at(9, 31), &policy);
         let (kind, job, _, message) = failed(&late);
         assert_eq!(kind, FailureKind::Unschedulable);
         assert_eq!(job, Some("lb-4242-team-77-0"));
         assert!(message.contains("for 30 minutes"), "{message}");
-        assert!(message.contains("Insufficient nvidia.com/gpu"), "{message}");
+        assert!(message.contains("didn't match"), "{message}");
     }
 
     #[test]
-    fn the_unschedulable_limit_is_configurable() {
+    fn the_queue_limit_is_configurable() {
         let short = VerdictPolicy {
-            unschedulable_limit: Duration::from_secs(60),
+            queue_limit: Duration::from_secs(60),
             ..VerdictPolicy::default()
         };
         assert_eq!(

@@ -336,6 +336,7 @@ async fn zero_hopeless_limits_do_not_fail_a_healthy_job() {
     let (_lk, cluster, _dir) = start(Config::default()).await;
     let cluster = cluster.with_policy(VerdictPolicy {
         unschedulable_limit: Duration::ZERO,
+        queue_limit: Duration::ZERO,
         config_error_limit: Duration::ZERO,
     });
     let j = job(

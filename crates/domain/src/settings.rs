@@ -92,6 +92,10 @@ pub struct LeaderboardSettings {
     /// on without the API, and their own deadline is the last safety net.
     #[serde(default = "default_outage_hours")]
     pub max_cluster_outage_hours: u64,
+    /// How long a submission may wait for capacity (its pods `Insufficient nvidia.com/gpu`)
+    /// before it is failed with that reason, hours. Waiting is never a failure before.
+    #[serde(default = "default_queue_hours")]
+    pub max_queue_hours: u64,
     /// CPU, memory and `/dev/shm` of each simulator-agent pair; by default derived from
     /// `instance_type` (required for a type `lb_domain::resources` does not know).
     #[serde(default)]
@@ -141,6 +145,10 @@ fn default_namespace() -> String {
 
 fn default_outage_hours() -> u64 {
     6
+}
+
+fn default_queue_hours() -> u64 {
+    24
 }
 
 fn default_partial_update_seconds() -> u64 {
@@ -343,6 +351,12 @@ impl Settings {
                 if value.trim().is_empty() {
                     return invalid(at(field), "must not be empty");
                 }
+            }
+            if !(1..=336).contains(&lb.max_queue_hours) {
+                return invalid(
+                    at("max_queue_hours"),
+                    "must be between 1 and 336 (two weeks)",
+                );
             }
             if !(1..=3600).contains(&lb.partial_update_seconds) {
                 return invalid(at("partial_update_seconds"), "must be between 1 and 3600");

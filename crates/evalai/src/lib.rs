@@ -378,6 +378,8 @@ impl EvalAiClient {
         let same_origin = url.starts_with(&format!("{}/", self.base));
         let mut request = self.http.get(url);
         if same_origin {
+            // On EvalAI itself it counts against the host token's limit like any other.
+            self.admit(Ask::new(self.priority, 1)).await?;
             request = request.header(reqwest::header::AUTHORIZATION, self.auth.clone());
         }
         let response = request.send().await.map_err(|e| EvalAiError::Unavailable {
@@ -395,8 +397,27 @@ impl EvalAiClient {
         model::image_from_input_file(text.as_bytes())
     }
 
-    /// PATCH `running` with our Job name, unless the submission was cancelled meanwhile.
+    /// PATCH `queued` with our Job names (reference section 5): the Jobs exist and wait for
+    /// capacity. Unless the submission was cancelled or ended meanwhile.
+    pub async fn mark_queued(&self, at: SubmissionRef, job_name: &str) -> Result<WriteOutcome> {
+        self.mark_progress(at, SubmissionStatus::Queued, job_name)
+            .await
+    }
+
+    /// PATCH `running` with our Job names, unless the submission was cancelled or ended
+    /// meanwhile. EvalAI sets `started_at` to now, which participants see as the start of
+    /// their execution time: send it when the first pair starts, not when its Jobs are made.
     pub async fn mark_running(&self, at: SubmissionRef, job_name: &str) -> Result<WriteOutcome> {
+        self.mark_progress(at, SubmissionStatus::Running, job_name)
+            .await
+    }
+
+    async fn mark_progress(
+        &self,
+        at: SubmissionRef,
+        status: SubmissionStatus,
+        job_name: &str,
+    ) -> Result<WriteOutcome> {
         let ask = Ask::new(Priority::Urgent, 2);
         let current = self.read_submission(at.submission, ask).await?;
         if let Some(refused) = refuse_write(current.status) {
@@ -406,20 +427,16 @@ impl EvalAiClient {
             "{}/api/jobs/challenge/{}/update_submission/",
             self.base, at.challenge
         );
-        let body = json!({
+        let mut body = json!({
             "submission": at.submission,
-            "submission_status": "running",
-            "job_name": job_name,
+            "submission_status": status.as_str(),
         });
-        self.write(
-            Method::PATCH,
-            &url,
-            body,
-            at,
-            SubmissionStatus::Running,
-            ask,
-        )
-        .await
+        // EvalAI appends the name on every PATCH: `running` after `queued` names nothing new.
+        let lowered = job_name.to_lowercase();
+        if !current.job_names.contains(&lowered) {
+            body["job_name"] = json!(job_name);
+        }
+        self.write(Method::PATCH, &url, body, at, status, ask).await
     }
 
     /// PUT a partial result, unless the submission was cancelled or already final.

@@ -113,10 +113,23 @@ async fn reads_the_submission_and_names_404_and_bad_tokens() {
 async fn a_whole_run_is_accepted_and_confirmed() {
     let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
     let evalai = client(&server, "host-token");
+    // Queued while the Jobs wait for capacity, then running when the first pair starts: the
+    // second PATCH moves `started_at` to the real start (EvalAI sets it on every PATCH).
     assert_eq!(
-        evalai.mark_running(AT, "LB-1-Team-0").await.unwrap(),
+        evalai.mark_queued(AT, "lb-1-team-0").await.unwrap(),
         WriteOutcome::Written
     );
+    let queued = server.submission(1).unwrap();
+    assert_eq!(queued.status, "queued");
+    assert_eq!(queued.job_name, Some(vec!["lb-1-team-0".to_string()]));
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    assert_eq!(
+        evalai.mark_running(AT, "lb-1-team-0").await.unwrap(),
+        WriteOutcome::Written
+    );
+    let running = server.submission(1).unwrap();
+    assert_eq!(running.status, "running");
+    assert!(running.started_at > queued.started_at, "{running:?}");
     let partial = PartialUpdate {
         result: full_result(10.0),
         stdout: "10 of 20 routes".into(),

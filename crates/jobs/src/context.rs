@@ -764,6 +764,7 @@ impl JobContext {
             qualifier: Default::default(),
             job_role_arn: String::new(),
             max_cluster_outage_hours: 6,
+            max_queue_hours: 24,
             pair_resources: None,
             partial_update_seconds: 30,
         };

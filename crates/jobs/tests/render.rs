@@ -45,6 +45,7 @@ fn settings(leaderboard: Leaderboard) -> JobSettings {
         qualifier: Default::default(),
         job_role_arn: String::new(),
         max_cluster_outage_hours: 6,
+        max_queue_hours: 24,
         pair_resources: None,
         partial_update_seconds: 30,
     };

@@ -188,6 +188,10 @@ pub struct MonitorState {
     /// reaches it clears this.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub unreachable_since: Option<u64>,
+    /// When the first pair started (epoch seconds): EvalAI was told `running` then, and the
+    /// record's `start_time` is that moment. Unset while the Jobs wait for capacity (`queued`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub started_at: Option<u64>,
 }
 
 /// The run's phase.
@@ -224,6 +228,7 @@ mod tests {
             progress: (0, 1),
             reason: Some("é".repeat(100_000)),
             unreachable_since: None,
+            started_at: None,
         };
         let text = serde_json::to_value(&monitor).unwrap()["reason"]
             .as_str()

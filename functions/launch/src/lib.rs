@@ -1,10 +1,9 @@
 //! Launch (stages 2 and 3): plan the workers, render the leaderboard's Job template and create
-//! the Jobs on its cluster (adopting those that already exist), then tell EvalAI and DynamoDB
-//! the submission runs.
+//! the Jobs on its cluster (adopting those that already exist), then tell EvalAI the
+//! submission is `queued`: it runs (EvalAI's `running`, the record's `RUNNING` and start time)
+//! when the Monitor sees its first pair start.
 
 use aws_config::SdkConfig;
-use lb_aws::dynamo::SubmissionsTable;
-use lb_aws::s3::SubmissionStore;
 use lb_domain::plan::{plan, PlanInput};
 use lb_domain::schedule::FIRST_WAIT;
 use lb_domain::settings::Settings;
@@ -16,7 +15,7 @@ use lb_pipeline::{clients, FnError, FunctionConfig, Result};
 use serde::Deserialize;
 use tracing::{info, warn};
 
-/// What Launch needs: the settings, the clusters, EvalAI (to say it runs), the submissions table.
+/// What Launch needs: the settings, the clusters, EvalAI (to say it is queued).
 #[derive(Debug)]
 pub struct Deps {
     /// The operator's configuration.
@@ -25,8 +24,6 @@ pub struct Deps {
     pub evalai: EvalAiClient,
     /// The Job clusters.
     pub clusters: Clusters,
-    /// DynamoDB.
-    pub dynamo: aws_sdk_dynamodb::Client,
     /// Region of the bucket (the Jobs' `AWS_REGION`).
     pub region: String,
     /// The sidecar's timers, when not the defaults (local runs poll faster).
@@ -53,7 +50,6 @@ impl Deps {
             settings,
             evalai,
             clusters,
-            dynamo: aws_sdk_dynamodb::Client::new(sdk),
             region: sdk.region().map(|r| r.to_string()).unwrap_or_default(),
             timers: None,
         })
@@ -138,24 +134,17 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         phase: submission.phase_id,
         submission: submission.submission_id,
     };
-    match deps.evalai.mark_running(at, &names.join(",")).await? {
+    // Queued until a pair starts: the Monitor sends `running` then (EvalAI's `started_at`,
+    // the record's start time), so time spent waiting for a GPU is not the participant's.
+    match deps.evalai.mark_queued(at, &names.join(",")).await? {
         WriteOutcome::Written => {}
         other => warn!(
             submission_id = submission.submission_id,
             ?other,
-            "not marked running; the monitor will see why"
+            "not marked queued; the monitor will see why"
         ),
     }
     let total = u64::from(submission.routes) * u64::from(job_settings.repetitions);
-    SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table)
-        .mark_running(
-            submission.team_id,
-            submission.submission_id,
-            &clients::now_record_time(),
-            &SubmissionStore::location_of(&target.deployment.bucket, submission.submission_id),
-            (0, total),
-        )
-        .await?;
 
     let now = clients::now_epoch_seconds();
     Ok(RunState {
@@ -183,6 +172,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
             progress: (0, total),
             reason: None,
             unreachable_since: None,
+            started_at: None,
         },
     })
 }

@@ -25,7 +25,7 @@ use lb_domain::protocol::Marker;
 use lb_domain::results::Leaderboard;
 use lb_domain::schedule::{safety_net, MAX_EVALUATION, POLL_WITHOUT_WAKE, STATUS_FALLBACK};
 use lb_domain::submission::SubmissionStatus;
-use lb_evalai::{PartialUpdate, Priority, SubmissionRef, WriteOutcome};
+use lb_evalai::{EvalAiError, PartialUpdate, Priority, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::{cluster_error, Clusters};
 use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
@@ -93,12 +93,16 @@ async fn observe(
     deployment: &lb_domain::settings::LeaderboardSettings,
     id: u64,
 ) -> Result<lb_cluster::Observation> {
+    let policy = VerdictPolicy {
+        queue_limit: Duration::from_secs(deployment.max_queue_hours * 3600),
+        ..deps.policy
+    };
     let cluster = deps
         .clients
         .clusters
         .connect(deployment)
         .await?
-        .with_policy(deps.policy);
+        .with_policy(policy);
     cluster
         .observe(&id.to_string())
         .await
@@ -183,6 +187,14 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         submission: id,
     };
 
+    // The first pair started: now the submission runs, for EvalAI and for the record (before
+    // any partial update, which a later `running` would otherwise undo).
+    if let Some(observation) = &observation {
+        if run.monitor.started_at.is_none() && lb_cluster::observe::started(&observation.jobs) {
+            mark_started(deps, at, observation, &mut run, now).await?;
+        }
+    }
+
     let interval = target.deployment.partial_update_seconds;
     let mut evalai_status =
         send_changed_results(deps, &store, at, leaderboard, &mut run, now, interval).await?;
@@ -210,6 +222,13 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
                 evalai_status = Some(current.status);
                 run.monitor.status_read_at = Some(now);
             }
+            // The budget's decision, not trouble: a later round reads it.
+            Err(EvalAiError::OverBudget) => {
+                info!(
+                    submission_id = id,
+                    "status read deferred by the EvalAI budget"
+                )
+            }
             Err(e) if e.is_transient() => {
                 warn!(submission_id = id, error = %e, "status not read this round")
             }
@@ -230,13 +249,21 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         return Ok(run);
     };
     match observation.verdict {
-        Verdict::Running if elapsed > MAX_EVALUATION => {
+        // The evaluation's own time counts from its start, not from the queue.
+        Verdict::Running
+            if run
+                .monitor
+                .started_at
+                .is_some_and(|t| now.saturating_sub(t) > MAX_EVALUATION.as_secs()) =>
+        {
             run.monitor.state = RunPhase::Failed;
             run.monitor.reason = Some(format!(
                 "the evaluation ran longer than the {} hours allowed",
                 MAX_EVALUATION.as_secs() / 3600
             ));
         }
+        // Queued: waiting for capacity is no failure, and the record stays as Intake wrote it.
+        Verdict::Running if run.monitor.started_at.is_none() => {}
         Verdict::Running => {
             let table = SubmissionsTable::new(
                 deps.clients.dynamo.clone(),
@@ -337,11 +364,48 @@ async fn send_changed_results(
         }
         Ok(WriteOutcome::Cancelled) => Ok(Some(SubmissionStatus::Cancelled)),
         Ok(WriteOutcome::AlreadyFinal(status)) => Ok(Some(status)),
+        Err(EvalAiError::OverBudget) => {
+            info!(
+                submission_id = id,
+                "partial update deferred by the EvalAI budget"
+            );
+            run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
+            Ok(None)
+        }
         Err(e) if e.is_transient() => {
             warn!(submission_id = id, error = %e, "partial update skipped this round");
             // Nothing in S3 will change for it: try again soon.
             run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
             Ok(None)
+        }
+        Err(e) => Err(e.into()),
+    }
+}
+
+/// Tells EvalAI the submission runs (its `started_at`, the participant's execution time, starts
+/// now). A transient failure leaves it for the next round; a cancel or an end found instead
+/// is left to the rest of the round.
+async fn mark_started(
+    deps: &Deps,
+    at: SubmissionRef,
+    observation: &lb_cluster::Observation,
+    run: &mut RunState,
+    now: u64,
+) -> Result<()> {
+    let names: Vec<&str> = observation.jobs.iter().map(|j| j.name.as_str()).collect();
+    match deps.clients.evalai.mark_running(at, &names.join(",")).await {
+        Ok(outcome) => {
+            info!(
+                submission_id = at.submission,
+                ?outcome,
+                "first pair started: running"
+            );
+            run.monitor.started_at = Some(now);
+            Ok(())
+        }
+        Err(e) if e.is_transient() => {
+            warn!(submission_id = at.submission, error = %e, "running not sent this round");
+            Ok(())
         }
         Err(e) => Err(e.into()),
     }

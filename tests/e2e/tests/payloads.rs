@@ -100,6 +100,7 @@ fn run(phase: RunPhase) -> RunState {
             progress: (u64::MAX, u64::MAX),
             reason: Some(worst(MAX_REASON_BYTES * 4)),
             unreachable_since: Some(u64::MAX),
+            started_at: Some(u64::MAX),
         },
     }
 }

@@ -220,7 +220,8 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
     assert_eq!(run.jobs, 1, "4 pairs fit one 4-GPU node");
     let subsets: Vec<&str> = run.pairs.iter().map(|p| p.routes.as_str()).collect();
     assert_eq!(subsets, ["0-4", "5-9", "10-14", "15-19"]);
-    assert_eq!(h.stack.fake().submission(1).unwrap().status, "running");
+    // Created, not started: the participant's time has not begun.
+    assert_eq!(h.stack.fake().submission(1).unwrap().status, "queued");
 
     // The Job as created on the cluster.
     let (jobs, _) = h.cluster_jobs().await;
@@ -273,6 +274,41 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
 
     let run = h.monitor_until_done(&submission, run, |_| {}).await;
     assert_eq!(run.monitor.state, RunPhase::Finished, "{:?}", run.monitor);
+    assert!(
+        run.monitor.started_at.is_some(),
+        "the first pair's start was seen"
+    );
+    // EvalAI saw `queued` (Launch), then `running` once the pod ran (the Monitor), before any
+    // partial update; the Job's name once.
+    let progress: Vec<String> = h
+        .stack
+        .fake()
+        .requests()
+        .into_iter()
+        .filter(|r| !r.admin && r.status == 200 && r.method != "GET")
+        .map(|r| {
+            let body = r.body.unwrap_or_default();
+            format!(
+                "{} {}",
+                r.method,
+                body["submission_status"].as_str().unwrap_or_default()
+            )
+        })
+        .collect();
+    assert_eq!(
+        progress[..3],
+        ["PATCH queued", "PATCH running", "PUT partially_evaluated"],
+        "{progress:?}"
+    );
+    assert_eq!(
+        h.stack
+            .fake()
+            .submission(1)
+            .unwrap()
+            .job_name
+            .map(|n| n.len()),
+        Some(1)
+    );
     let partial_puts = h.evalai_writes("update_partially_evaluated_submission");
     assert!(partial_puts >= 1, "partial results reached EvalAI");
     assert!(
