@@ -8,8 +8,7 @@
 //! DynamoDB TTL) an hour after the window.
 
 use std::collections::HashMap;
-use std::time::Duration;
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use aws_sdk_dynamodb::types::AttributeValue;
 use aws_sdk_dynamodb::Client;
@@ -38,11 +37,6 @@ impl BudgetTable {
         }
     }
 
-    /// The arithmetic it grants by.
-    pub fn policy(&self) -> BudgetPolicy {
-        self.policy
-    }
-
     /// Takes one request in the window of `at_ms` (epoch milliseconds); an urgent request
     /// finding it full books the first later window with room.
     pub async fn take_at(&self, priority: Priority, headroom: u32, at_ms: u64) -> Admission {
@@ -57,16 +51,15 @@ impl BudgetTable {
             Ok(false) => {}
             Err(why) => return Admission::Unavailable(why),
         }
-        let length = self.policy.window.as_millis() as u64;
         for ahead in 1..=BudgetPolicy::BOOK_AHEAD {
             let booked = index + ahead;
             match self.increment(booked, self.policy.per_window - 1).await {
                 Ok(true) => {
                     // Spread over the window's first quarter, so the bookings of one window
                     // do not all arrive in its first millisecond.
-                    let spread = (length / 4).max(1);
+                    let spread = (self.policy.window.as_millis() as u64 / 4).max(1);
                     let offset = (at_ms.wrapping_mul(2_654_435_761) >> 7) % spread;
-                    let opens = booked * length + offset;
+                    let opens = self.policy.window_start(booked) + offset;
                     return Admission::Booked {
                         wait: Duration::from_millis(opens.saturating_sub(at_ms)),
                     };
@@ -82,8 +75,8 @@ impl BudgetTable {
 
     /// Adds one to window `index`'s count if it is at most `most`: whether it did.
     async fn increment(&self, index: u64, most: u32) -> Result<bool, String> {
-        let length = self.policy.window.as_millis() as u64;
-        let start = index * length;
+        let start = self.policy.window_start(index);
+        let end = self.policy.window_start(index + 1);
         let result = self
             .client
             .update_item()
@@ -100,7 +93,7 @@ impl BudgetTable {
             .expression_attribute_values(":most", AttributeValue::N(most.to_string()))
             .expression_attribute_values(
                 ":expires",
-                AttributeValue::N(((start + length) / 1000 + KEEP_SECONDS).to_string()),
+                AttributeValue::N((end / 1000 + KEEP_SECONDS).to_string()),
             )
             .send()
             .await;

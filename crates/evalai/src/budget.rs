@@ -105,6 +105,11 @@ impl BudgetPolicy {
         (index, Duration::from_millis(next - at_ms))
     }
 
+    /// When window `index` starts, in epoch milliseconds.
+    pub fn window_start(&self, index: u64) -> u64 {
+        index * (self.window.as_millis() as u64).max(1)
+    }
+
     /// The most requests of `priority` a window holds.
     pub fn limit(&self, priority: Priority) -> u32 {
         match priority {

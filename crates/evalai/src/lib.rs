@@ -436,7 +436,8 @@ impl EvalAiClient {
         if !current.job_names.contains(&lowered) {
             body["job_name"] = json!(job_name);
         }
-        self.write(Method::PATCH, &url, body, at, status, ask).await
+        self.write(Method::PATCH, &url, body, at, status, ask.priority)
+            .await
     }
 
     /// PUT a partial result, unless the submission was cancelled or already final.
@@ -471,7 +472,7 @@ impl EvalAiClient {
             body,
             at,
             SubmissionStatus::PartiallyEvaluated,
-            ask,
+            ask.priority,
         )
         .await
     }
@@ -526,9 +527,8 @@ impl EvalAiClient {
             &bounded_text(&update.stderr, MAX_TEXT_BYTES),
             &bounded_metadata(&update.metadata, MAX_METADATA_BYTES),
         );
-        let ask = Ask::new(Priority::Urgent, 2);
         let outcome = match self
-            .write(Method::PUT, &url, full, at, update.status, ask)
+            .write(Method::PUT, &url, full, at, update.status, Priority::Urgent)
             .await
         {
             // The final status must reach EvalAI: a refused body (413 from the proxy, a 400
@@ -546,8 +546,15 @@ impl EvalAiClient {
                     &bounded_text(&update.stderr, 4 * 1024),
                     "{}",
                 );
-                self.write(Method::PUT, &url, minimal, at, update.status, ask)
-                    .await?
+                self.write(
+                    Method::PUT,
+                    &url,
+                    minimal,
+                    at,
+                    update.status,
+                    Priority::Urgent,
+                )
+                .await?
             }
             other => other?,
         };
@@ -574,10 +581,10 @@ impl EvalAiClient {
         body: Value,
         at: SubmissionRef,
         target: SubmissionStatus,
-        ask: Ask,
+        priority: Priority,
     ) -> Result<WriteOutcome> {
         let mut attempts = Attempts::new(&self.policy);
-        let ask = Ask::new(ask.priority, 1);
+        let ask = Ask::new(priority, 1);
         loop {
             match self
                 .once(method.clone(), url, Some(&body), at.submission, ask)
@@ -591,7 +598,7 @@ impl EvalAiClient {
                 Err(Failure::Retry { reason, after }) => {
                     warn!(submission_id = at.submission, %reason, "evalai write failed, checking");
                     attempts.wait(reason, after).await?;
-                    let check = Ask::new(ask.priority, 2);
+                    let check = Ask::new(priority, 2);
                     let current = self.read_submission(at.submission, check).await?;
                     if current.status == target && target.is_final() {
                         return Ok(WriteOutcome::Written);
