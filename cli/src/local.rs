@@ -62,6 +62,10 @@ pub struct LocalRun {
     /// Simulator-agent pairs.
     #[arg(long, default_value_t = 4)]
     pub workers: u32,
+    /// GPUs of the local node (`nvidia.com/gpu`; each pair's agent requests one): pairs
+    /// beyond them wait Pending, Unschedulable, until a GPU frees. Default: not modelled.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub gpus: Option<u32>,
     /// Routes of the track.
     #[arg(long, default_value_t = 20)]
     pub routes: u32,
@@ -186,6 +190,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     std::fs::create_dir_all(&once)?;
     let mut behaviour = Behaviour {
         route_seconds: args.route_seconds,
+        node_gpus: args.gpus,
         ..Behaviour::default()
     };
     if args.scenario == Scenario::Hang {
@@ -468,6 +473,13 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         outln!("EvalAI stderr");
         for line in stderr.lines() {
             outln!("  | {line}");
+        }
+        // And the head of the summary they read beside it (which routes count).
+        if let Some(stdout) = on_fake.as_ref().and_then(|s| s.files.stdout.as_deref()) {
+            outln!("EvalAI stdout");
+            for line in stdout.lines().take(3) {
+                outln!("  | {line}");
+            }
         }
     }
     if let Some(row) = stack

@@ -75,7 +75,6 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
         team_name: &team,
         routes: target.track_settings.routes,
         workers,
-        gpus_per_node: target.deployment.gpus_per_node,
     })
     .map_err(|e| CliError::Refused(format!("the record's plan: {e}")))?;
 

@@ -68,6 +68,23 @@ fn every_scenario_ends_as_expected() {
                     stdout.contains("Traceback (most recent call last)"),
                     "{stdout}"
                 );
+                // Pair 1 crash-loops in a Job of its own: its retries run out, never its
+                // neighbours'. Their routes are complete, and both files say which count.
+                let note = "routes 0-4 (pair 1) were not evaluated; routes 5-9, 10-14, 15-19 (pairs 2, 3, 4) are complete";
+                let stderr = stdout.split("EvalAI stderr").nth(1).unwrap_or_default();
+                let (stderr, participant_stdout) =
+                    stderr.split_once("EvalAI stdout").unwrap_or_default();
+                assert!(stderr.contains(note), "{stdout}");
+                assert!(participant_stdout.contains(note), "{stdout}");
+                // Pairs 2-4's 15 routes, and whatever pair 1 got through before each crash.
+                let merged: u32 = stdout
+                    .split("merged         ")
+                    .nth(1)
+                    .and_then(|l| l.split(' ').next())
+                    .and_then(|n| n.parse().ok())
+                    .unwrap_or_default();
+                assert!((15..20).contains(&merged), "{stdout}");
+                assert!(stdout.contains("BackoffLimitExceeded"), "{stdout}");
             }
             _ => assert!(!stdout.contains("EvalAI stderr"), "{scenario}: {stdout}"),
         }

@@ -19,6 +19,7 @@ use lb_domain::results::{read_worker_file, WorkerFile, MAX_FILE_BYTES};
 use tracing::{info, warn};
 
 use crate::config::{process_env, AgentConfig, Env};
+use crate::handoff;
 use crate::pair::{self, write_marker, PairError, PairOutcome};
 use crate::signals::{Signals, Wake};
 use crate::status::StatusDir;
@@ -132,6 +133,14 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
         return Ok(PairOutcome::Done);
     }
 
+    // The pair's GPU, before anything of the participant's runs (crate::handoff).
+    let visible = std::env::var(handoff::VISIBLE_DEVICES).ok();
+    match handoff::hand_over(&p.handoff_dir, id, visible.as_deref()) {
+        Ok(Some(uuid)) => info!(pair = id, %uuid, "GPU handed over to the simulator"),
+        Ok(None) => {}
+        Err(e) => warn!(pair = id, error = %e, "cannot hand the GPU over to the simulator"),
+    }
+
     // Wait for this attempt's CARLA.
     let start_by = Instant::now() + p.start_wait;
     loop {
@@ -169,7 +178,12 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
         }
     }
     let resuming = resume(attempt, &paths.checkpoint);
+    // CARLA's port, as its sidecar announced it before writing the start marker.
+    let port = handoff::announced_port(&p.handoff_dir, id).unwrap_or(p.carla_port);
+    let tm_port = port.saturating_add(p.carla_tm_port.wrapping_sub(p.carla_port));
     let envs = [
+        (env::CARLA_PORT, port.to_string()),
+        (env::CARLA_TM_PORT, tm_port.to_string()),
         (env::RESUME, if resuming { "1" } else { "" }.to_owned()),
         (
             env::CHECKPOINT_ENDPOINT,

@@ -207,6 +207,11 @@ pub struct PairConfig {
     pub poll: Duration,
     /// `LB_STOP_GRACE_SECONDS`: SIGTERM to SIGKILL when stopping a child.
     pub stop_grace: Duration,
+    /// `LB_HANDOFF_DIR`: where the pair's containers hand each other the GPU and the port
+    /// (`crate::handoff`).
+    pub handoff_dir: PathBuf,
+    /// `LB_GPU_FROM_AGENT`: the simulator renders on the agent's GPU.
+    pub gpu_from_agent: bool,
 }
 
 impl PairConfig {
@@ -236,6 +241,8 @@ impl PairConfig {
             carla_ready: e.seconds(env::CARLA_READY_SECONDS, 300.0, false)?,
             poll: e.seconds(env::POLL_SECONDS, 1.0, false)?,
             stop_grace: e.seconds(env::STOP_GRACE_SECONDS, 10.0, true)?,
+            handoff_dir: e.path(crate::handoff::DIR_VAR, Some(crate::handoff::DEFAULT_DIR))?,
+            gpu_from_agent: e.flag(crate::handoff::FROM_AGENT_VAR)?,
         })
     }
 }

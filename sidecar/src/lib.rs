@@ -6,6 +6,7 @@
 pub mod agent;
 pub mod cli;
 pub mod config;
+pub mod handoff;
 pub mod init;
 pub mod logcopy;
 pub mod merge;

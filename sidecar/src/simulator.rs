@@ -6,6 +6,8 @@
 //! exit 0; agent crashed -> stop, this attempt's crash marker, exit 1; CARLA died (or never
 //! became ready) -> `simulator-<ID>.crash<CRASH_ID>`, wait (bounded) for the agent, exit 1;
 //! cancel -> stop, exit 0. SIGTERM stops CARLA and writes the marker the pair's state calls for.
+//! With `LB_GPU_FROM_AGENT`, CARLA starts only once the agent handed over its GPU
+//! (`crate::handoff`); no GPU in time is a crash of this attempt.
 
 use std::time::Instant;
 
@@ -13,6 +15,7 @@ use lb_domain::protocol::{self, simulator_step, Marker, Role, SimulatorStep};
 use tracing::{info, warn};
 
 use crate::config::{process_env, Env, PairConfig};
+use crate::handoff;
 use crate::pair::{self, port_open, write_marker, PairError, PairOutcome};
 use crate::signals::{Signals, Wake};
 use crate::status::StatusDir;
@@ -58,20 +61,58 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
     }
 
     let log = cfg.logs_dir.join(protocol::simulator_log(id));
+    let gpu = if cfg.gpu_from_agent {
+        match handoff::take_over(&cfg.handoff_dir, id, cfg.start_wait, cfg.poll, &mut signals).await
+        {
+            Ok(Some((uuid, index))) => {
+                info!(pair = id, %uuid, index, "rendering on the agent's GPU");
+                Some(index)
+            }
+            Ok(None) => {
+                info!(pair = id, "SIGTERM before the agent handed over its GPU");
+                write_marker(&status, crash)?;
+                return Ok(PairOutcome::Crashed);
+            }
+            Err(e) => {
+                warn!(pair = id, error = %e, "no GPU to render on");
+                note_in(&log, &format!("simulator {id} attempt {attempt}: {e}"));
+                write_marker(&status, crash)?;
+                return Ok(PairOutcome::Crashed);
+            }
+        }
+    } else {
+        None
+    };
+    let tm_offset = cfg.carla_tm_port.wrapping_sub(cfg.carla_port);
+    let port = handoff::pick_port(cfg.carla_port, tm_offset);
+    if port != cfg.carla_port {
+        warn!(
+            pair = id,
+            wanted = cfg.carla_port,
+            port,
+            "CARLA's port is taken: using another"
+        );
+    }
+    if let Err(e) = handoff::announce_port(&cfg.handoff_dir, id, port) {
+        warn!(pair = id, error = %e, "cannot tell the agent CARLA's port");
+    }
+    let command = handoff::substitute(command, gpu, port);
+    let mut envs: Vec<(String, String)> = match gpu {
+        Some(index) => handoff::substitute_env(std::env::vars_os(), index),
+        None => Vec::new(),
+    };
+    envs.push((protocol::env::CARLA_PORT.to_owned(), port.to_string()));
+    let envs: Vec<(&str, String)> = envs.iter().map(|(k, v)| (k.as_str(), v.clone())).collect();
+    let command = command.as_slice();
     let mut child =
-        Supervised::spawn(command, &[], &log, true).map_err(|source| PairError::Spawn {
+        Supervised::spawn(command, &envs, &log, true).map_err(|source| PairError::Spawn {
             program: command.first().cloned().unwrap_or_default(),
             source,
         })?;
-    info!(
-        pair = id,
-        attempt,
-        port = cfg.carla_port,
-        "simulator started"
-    );
+    info!(pair = id, attempt, port, "simulator started");
     child.note(&format!(
         "simulator {id} attempt {attempt}: started, waiting for port {}",
-        cfg.carla_port
+        port
     ));
 
     let ready_by = Instant::now() + cfg.carla_ready;
@@ -83,7 +124,7 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
             return crashed(cfg, &mut signals, &status, child, attempt).await;
         }
         if !ready {
-            if port_open(cfg.carla_port).await {
+            if port_open(port).await {
                 ready = true;
                 info!(pair = id, attempt, "CARLA accepts connections");
                 child.note("CARLA accepts connections");
@@ -139,6 +180,20 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
                 }
             };
         }
+    }
+}
+
+/// Appends a note to the simulator's log before CARLA ever ran (so the log says why not).
+fn note_in(log: &std::path::Path, text: &str) {
+    if let Some(dir) = log.parent() {
+        let _ = std::fs::create_dir_all(dir);
+    }
+    if let Ok(f) = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(log)
+    {
+        crate::supervise::note(&f, text);
     }
 }
 

@@ -146,6 +146,7 @@ fn a_job_with_init_a_pair_and_logcopy_completes_and_leaves_its_results_in_s3() {
         json!({"name": "logs", "mountPath": "/tmp/status", "subPath": "containers-status"});
     let logs_mount = json!({"name": "logs", "mountPath": "/tmp/logs", "subPath": "logs"});
     let bin_mount = json!({"name": "lb-bin", "mountPath": "/opt/lb"});
+    let handoff_mount = json!({"name": "handoff", "mountPath": "/tmp/handoff"});
     let code_mounts = [
         json!({"name": "leaderboard", "mountPath": "/workspace/leaderboard"}),
         json!({"name": "scenario-runner", "mountPath": "/workspace/scenario_runner"}),
@@ -166,6 +167,7 @@ fn a_job_with_init_a_pair_and_logcopy_completes_and_leaves_its_results_in_s3() {
                     {"name": "leaderboard", "emptyDir": {}},
                     {"name": "scenario-runner", "emptyDir": {}},
                     {"name": "carla-api", "emptyDir": {}},
+                    {"name": "handoff", "emptyDir": {}},
                 ],
                 "initContainers": [{
                     "name": "private-contents",
@@ -184,9 +186,9 @@ fn a_job_with_init_a_pair_and_logcopy_completes_and_leaves_its_results_in_s3() {
                         "image": "carla:test",
                         "command": ["/opt/lb/lb-sidecar", "simulator", "--",
                                     fake("fake-carla").display().to_string(),
-                                    "-vulkan", "-carla-rpc-port=$(CARLA_PORT)", "-RenderOffScreen", "-nosound"],
+                                    "-vulkan", "-carla-rpc-port={carla_port}", "-RenderOffScreen", "-nosound"],
                         "env": env(&sim_env),
-                        "volumeMounts": [status_mount.clone(), logs_mount.clone(), bin_mount.clone()],
+                        "volumeMounts": [status_mount.clone(), logs_mount.clone(), bin_mount.clone(), handoff_mount.clone()],
                     },
                     {
                         "name": "agent-1",
@@ -198,6 +200,7 @@ fn a_job_with_init_a_pair_and_logcopy_completes_and_leaves_its_results_in_s3() {
                             {"name": "logs", "mountPath": "/tmp/agent", "subPath": "agent"},
                             logs_mount,
                             bin_mount.clone(),
+                            handoff_mount,
                             code_mounts[0].clone(), code_mounts[1].clone(), code_mounts[2].clone(),
                         ],
                     },

@@ -26,6 +26,9 @@ const CONFIG_FAILURES: [&str; 2] = ["CreateContainerConfigError", "CreateContain
 /// Phrases of a pull failure caused by registry throttling, which goes away by itself.
 const THROTTLED_PULL: [&str; 3] = ["toomanyrequests", "429 too many requests", "rate limit"];
 
+/// The Job condition reason of a Job whose pods failed more often than its `backoffLimit`.
+const OUT_OF_RETRIES: &str = "BackoffLimitExceeded";
+
 /// Longest piece of a Kubernetes message copied into a participant message.
 const MAX_QUOTED: usize = 600;
 
@@ -414,9 +417,11 @@ fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict 
     if let Some(v) = infra_pull {
         return v;
     }
+    // One Job per pair, each with its own backoffLimit: a Job out of retries is one pair
+    // giving up, and its neighbours go on; the submission ends when they have (below).
     if let Some(job) = jobs
         .iter()
-        .find(|j| matches!(j.state, JobState::Failed { .. }))
+        .find(|j| matches!(&j.state, JobState::Failed { reason, .. } if reason != OUT_OF_RETRIES))
     {
         return job_failed(job);
     }
@@ -483,10 +488,44 @@ fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict 
             };
         }
     }
+    let ended = |j: &&JobView| matches!(j.state, JobState::Complete | JobState::Failed { .. });
     if jobs.iter().all(|j| j.state == JobState::Complete) {
         Verdict::Finished
+    } else if jobs.iter().all(|j| ended(&j)) {
+        pairs_gave_up(jobs)
     } else {
         Verdict::Running
+    }
+}
+
+/// Every Job has ended and some ran out of retries: the failure names each of those.
+fn pairs_gave_up(jobs: &[JobView]) -> Verdict {
+    let failed: Vec<Verdict> = jobs
+        .iter()
+        .filter(|j| matches!(j.state, JobState::Failed { .. }))
+        .map(job_failed)
+        .collect();
+    let messages: Vec<&str> = failed
+        .iter()
+        .filter_map(|v| match v {
+            Verdict::Failed { message, .. } => Some(message.as_str()),
+            _ => None,
+        })
+        .collect();
+    let message = messages.join("; ");
+    match failed.into_iter().next() {
+        Some(Verdict::Failed {
+            kind,
+            job,
+            container,
+            ..
+        }) => Verdict::Failed {
+            kind,
+            job,
+            container,
+            message,
+        },
+        _ => Verdict::Running,
     }
 }
 
@@ -1245,6 +1284,36 @@ mod tests {
         );
         assert!(!agent.ready);
         assert_eq!(obs.restarts(), 6);
+    }
+
+    /// A pair out of retries (its own Job) beside others: they go on, and the submission
+    /// fails, naming that pair's Job, only once every Job has ended.
+    #[test]
+    fn a_pair_out_of_retries_fails_the_submission_only_when_its_neighbours_have_ended() {
+        let third = BACKOFF
+            .replace("lb-4242-team-77-0", "lb-4242-team-77-2")
+            .replace("job-index: \"0\"", "job-index: \"2\"");
+        let (gave_up, gave_up_pods) = load(&third);
+        let with = |text: &str| {
+            let (mut jobs, mut pods) = load(text);
+            jobs.extend(gave_up.clone());
+            pods.extend(gave_up_pods.clone());
+            observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default())
+        };
+        let running = with(HALF_DONE);
+        assert_eq!(running.verdict, Verdict::Running);
+        assert!(
+            matches!(&running.jobs[2].state, JobState::Failed { reason, .. } if reason == "BackoffLimitExceeded")
+        );
+
+        let ended = with(FINISHED);
+        let (kind, job, _, message) = failed(&ended);
+        assert_eq!(kind, FailureKind::BackoffLimitExceeded);
+        assert_eq!(job, Some("lb-4242-team-77-2"));
+        assert!(message.contains("`lb-4242-team-77-2`"), "{message}");
+        assert!(!message.contains("team-77-0`"), "{message}");
+        // Any other failure of a Job still ends the run at once.
+        assert_eq!(failed(&run(DEADLINE)).0, FailureKind::DeadlineExceeded);
     }
 
     #[test]

@@ -1,24 +1,22 @@
-//! The evaluation plan: routes split over simulator-agent pairs, pairs packed into Jobs, and
-//! the Kubernetes names and label values that tie every Job to its submission.
+//! The evaluation plan: routes split over simulator-agent pairs, one Job per pair, and the
+//! Kubernetes names and label values that tie every Job to its submission.
 //!
 //! R routes go to W = min(R, workers) pairs; worker i runs routes
-//! `ceil(i*R/W) .. ceil((i+1)*R/W)-1` (20 routes, 4 workers: 0-4, 5-9, 10-14, 15-19). Pairs are
-//! packed P at a time (P = GPUs of the node) into Jobs. Pair IDs are 1-based and global, so
-//! result files never collide between Jobs; within a Job, the pair in slot k gets CARLA port
-//! `2000 + 100*k`, traffic-manager port `CARLA port + 10` and GPU `k`.
+//! `ceil(i*R/W) .. ceil((i+1)*R/W)-1` (20 routes, 4 workers: 0-4, 5-9, 10-14, 15-19). Each pair
+//! is a Job of its own (as later versions of the original system ran them): its own
+//! `backoffLimit`, so a pair that keeps crashing uses up its own retries and never its
+//! neighbours', and its own pod requesting one GPU, so the scheduler places pairs wherever a
+//! GPU is free. Pair IDs are 1-based and global, so result files never collide between Jobs;
+//! every pair has its pod's network to itself: CARLA port 2000, traffic manager 2010.
 
 use std::fmt;
 
 use crate::results::RouteSubset;
 
-/// CARLA RPC port of the pair in slot 0; slot k adds `PORT_STRIDE * k`.
-pub const BASE_CARLA_PORT: u16 = 2000;
-/// Port distance between pairs of one Job (CARLA also uses the two ports after its own).
-pub const PORT_STRIDE: u16 = 100;
+/// CARLA RPC port of every pair (each has its pod's network namespace to itself).
+pub const CARLA_PORT: u16 = 2000;
 /// Traffic-manager port = CARLA port + this.
 pub const TM_PORT_OFFSET: u16 = 10;
-/// The most pairs one Job may hold (GPUs per node): keeps every port below 65536 with room.
-pub const MAX_PAIRS_PER_JOB: u32 = 64;
 /// The most workers a submission may ask for.
 pub const MAX_WORKERS: u32 = 1024;
 /// The most routes a track may have.
@@ -82,18 +80,14 @@ impl PlanError {
 pub struct PairPlan {
     /// 1-based ID, global across the submission's Jobs (worker index + 1).
     pub id: u32,
-    /// 0-based worker index.
+    /// 0-based worker index (also its Job's index).
     pub worker: u32,
-    /// 0-based position inside its Job (k).
-    pub slot: u32,
     /// The routes it runs.
     pub routes: RouteSubset,
-    /// CARLA RPC port: `2000 + 100*k`.
+    /// CARLA RPC port.
     pub carla_port: u16,
     /// Traffic-manager port: CARLA port + 10.
     pub tm_port: u16,
-    /// GPU index on the node: k.
-    pub gpu: u32,
 }
 
 /// One Kubernetes Job of the submission.
@@ -103,7 +97,7 @@ pub struct JobPlan {
     pub index: u32,
     /// The Job's name (a DNS-1123 label of at most 63 characters).
     pub name: String,
-    /// Its pairs, in slot order.
+    /// Its pair (a list, as the templates' per-pair section renders it).
     pub pairs: Vec<PairPlan>,
 }
 
@@ -122,10 +116,8 @@ pub struct Plan {
     pub submission_id: u64,
     /// Routes of the track (R).
     pub routes: u32,
-    /// Pairs actually used (W = min(R, workers)).
+    /// Pairs actually used (W = min(R, workers)), one Job each.
     pub workers: u32,
-    /// Pairs per Job (P).
-    pub pairs_per_job: u32,
     /// The Jobs, in index order.
     pub jobs: Vec<JobPlan>,
 }
@@ -148,8 +140,6 @@ pub struct PlanInput<'a> {
     pub routes: u32,
     /// Workers requested (track default or the submission's override).
     pub workers: u32,
-    /// GPUs per node of the track's instance type (P).
-    pub gpus_per_node: u32,
 }
 
 fn invalid(reason: impl Into<String>) -> PlanError {
@@ -186,7 +176,7 @@ pub fn split_routes(routes: u32, workers: u32) -> Result<Vec<RouteSubset>, PlanE
         .collect())
 }
 
-/// Makes the plan: route subsets, pairs, Jobs, names.
+/// Makes the plan: route subsets, pairs, one Job per pair, names.
 pub fn plan(input: PlanInput<'_>) -> Result<Plan, PlanError> {
     if input.workers > MAX_WORKERS {
         return Err(invalid(format!(
@@ -194,46 +184,24 @@ pub fn plan(input: PlanInput<'_>) -> Result<Plan, PlanError> {
             input.workers
         )));
     }
-    if input.gpus_per_node == 0 {
-        return Err(invalid("the instance type needs at least one GPU"));
-    }
-    if input.gpus_per_node > MAX_PAIRS_PER_JOB {
-        return Err(invalid(format!(
-            "{} GPUs per node is over the limit of {MAX_PAIRS_PER_JOB}",
-            input.gpus_per_node
-        )));
-    }
     let subsets = split_routes(input.routes, input.workers)?;
     let workers = subsets.len() as u32;
-    let per_job = input.gpus_per_node as usize;
     let slug = team_slug(input.team_name);
     let jobs = subsets
-        .chunks(per_job)
+        .iter()
         .enumerate()
-        .map(|(j, chunk)| {
-            let index = j as u32;
-            let pairs = chunk
-                .iter()
-                .enumerate()
-                .map(|(k, routes)| {
-                    let worker = index * input.gpus_per_node + k as u32;
-                    // k < MAX_PAIRS_PER_JOB, so the ports stay far below 65536.
-                    let carla_port = BASE_CARLA_PORT + PORT_STRIDE * k as u16;
-                    PairPlan {
-                        id: worker + 1,
-                        worker,
-                        slot: k as u32,
-                        routes: *routes,
-                        carla_port,
-                        tm_port: carla_port + TM_PORT_OFFSET,
-                        gpu: k as u32,
-                    }
-                })
-                .collect();
+        .map(|(i, routes)| {
+            let worker = i as u32;
             JobPlan {
-                index,
-                name: job_name_with_slug(input.submission_id, &slug, index),
-                pairs,
+                index: worker,
+                name: job_name_with_slug(input.submission_id, &slug, worker),
+                pairs: vec![PairPlan {
+                    id: worker + 1,
+                    worker,
+                    routes: *routes,
+                    carla_port: CARLA_PORT,
+                    tm_port: CARLA_PORT + TM_PORT_OFFSET,
+                }],
             }
         })
         .collect();
@@ -241,7 +209,6 @@ pub fn plan(input: PlanInput<'_>) -> Result<Plan, PlanError> {
         submission_id: input.submission_id,
         routes: input.routes,
         workers,
-        pairs_per_job: input.gpus_per_node,
         jobs,
     })
 }
@@ -406,8 +373,8 @@ impl fmt::Display for PairPlan {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "pair {} (routes {}, port {}, gpu {})",
-            self.id, self.routes, self.carla_port, self.gpu
+            "pair {} (routes {}, port {})",
+            self.id, self.routes, self.carla_port
         )
     }
 }
@@ -416,13 +383,12 @@ impl fmt::Display for PairPlan {
 mod tests {
     use super::*;
 
-    fn input(routes: u32, workers: u32, gpus: u32) -> PlanInput<'static> {
+    fn input(routes: u32, workers: u32) -> PlanInput<'static> {
         PlanInput {
             submission_id: 4242,
             team_name: "Team Zoë",
             routes,
             workers,
-            gpus_per_node: gpus,
         }
     }
 
@@ -449,67 +415,50 @@ mod tests {
 
     #[test]
     fn zero_routes_or_workers_is_an_invalid_plan() {
-        for (r, w, g) in [
-            (0, 4, 4),
-            (20, 0, 4),
-            (20, 4, 0),
-            (20, 4, 65),
-            (20, 2000, 4),
-        ] {
-            let err = plan(input(r, w, g)).unwrap_err();
-            assert_eq!(err.name(), "InvalidPlan", "{r} {w} {g}");
+        for (r, w) in [(0, 4), (20, 0), (20, 2000)] {
+            let err = plan(input(r, w)).unwrap_err();
+            assert_eq!(err.name(), "InvalidPlan", "{r} {w}");
         }
     }
 
     #[test]
-    fn four_workers_on_four_gpus_make_one_job_with_the_seed_ports() {
-        let p = plan(input(20, 4, 4)).unwrap();
-        assert_eq!(p.jobs.len(), 1);
-        let job = &p.jobs[0];
-        assert_eq!(job.name, "lb-4242-team-zoe-0");
-        assert_eq!(job.pair_ids(), "1,2,3,4");
-        let ports: Vec<(u16, u16, u32)> = job
-            .pairs
-            .iter()
-            .map(|x| (x.carla_port, x.tm_port, x.gpu))
-            .collect();
-        assert_eq!(
-            ports,
-            [
-                (2000, 2010, 0),
-                (2100, 2110, 1),
-                (2200, 2210, 2),
-                (2300, 2310, 3)
-            ]
-        );
-    }
-
-    #[test]
-    fn more_workers_than_gpus_make_several_jobs_with_global_pair_ids() {
-        let p = plan(input(20, 10, 4)).unwrap();
-        assert_eq!(p.workers, 10);
-        let shape: Vec<(u32, String, Vec<u32>)> = p
+    fn every_pair_is_a_job_of_its_own_with_the_seed_ports() {
+        let p = plan(input(20, 4)).unwrap();
+        assert_eq!(p.workers, 4);
+        let shape: Vec<(u32, String, String, u16, u16)> = p
             .jobs
             .iter()
             .map(|j| {
+                let pair = &j.pairs[0];
                 (
                     j.index,
-                    j.pair_ids(),
-                    j.pairs.iter().map(|x| x.slot).collect(),
+                    j.name.clone(),
+                    format!("{}:{}", j.pair_ids(), pair.routes),
+                    pair.carla_port,
+                    pair.tm_port,
                 )
             })
             .collect();
+        let expect = |i: u32, pair: &str| {
+            (
+                i,
+                format!("lb-4242-team-zoe-{i}"),
+                pair.to_owned(),
+                2000,
+                2010,
+            )
+        };
         assert_eq!(
             shape,
             [
-                (0, "1,2,3,4".to_owned(), vec![0, 1, 2, 3]),
-                (1, "5,6,7,8".to_owned(), vec![0, 1, 2, 3]),
-                (2, "9,10".to_owned(), vec![0, 1]),
+                expect(0, "1:0-4"),
+                expect(1, "2:5-9"),
+                expect(2, "3:10-14"),
+                expect(3, "4:15-19")
             ]
         );
-        assert_eq!(p.jobs[2].pairs[1].carla_port, 2100);
-        assert_eq!(p.jobs[2].pairs[1].routes.to_string(), "18-19");
-        assert_eq!(p.pairs().count(), 10);
+        assert_eq!(plan(input(20, 10)).unwrap().jobs.len(), 10);
+        assert_eq!(plan(input(3, 8)).unwrap().jobs.len(), 3);
     }
 
     #[test]
@@ -598,10 +547,10 @@ mod tests {
 
             #[test]
             fn every_route_is_planned_exactly_once(
-                routes in 1u32..400, workers in 1u32..64, gpus in 1u32..9, sub in any::<u64>(),
+                routes in 1u32..400, workers in 1u32..64, sub in any::<u64>(),
                 name in any_name(),
             ) {
-                let p = plan(PlanInput { submission_id: sub, team_name: &name, routes, workers, gpus_per_node: gpus }).unwrap();
+                let p = plan(PlanInput { submission_id: sub, team_name: &name, routes, workers }).unwrap();
                 prop_assert_eq!(p.workers, workers.min(routes));
                 let mut next = 0u64;
                 for (i, pair) in p.pairs().enumerate() {
@@ -609,17 +558,15 @@ mod tests {
                     prop_assert_eq!(pair.routes.first, next);
                     prop_assert!(pair.routes.last >= pair.routes.first);
                     next = pair.routes.last + 1;
-                    prop_assert_eq!(u32::from(pair.carla_port), 2000 + 100 * pair.slot);
                     prop_assert_eq!(pair.tm_port, pair.carla_port + 10);
-                    prop_assert_eq!(pair.gpu, pair.slot);
-                    prop_assert!(pair.slot < gpus);
                 }
                 prop_assert_eq!(next, u64::from(routes));
                 let names: HashSet<&str> = p.jobs.iter().map(|j| j.name.as_str()).collect();
                 prop_assert_eq!(names.len(), p.jobs.len());
                 for j in &p.jobs {
                     prop_assert!(is_dns_label(&j.name));
-                    prop_assert!(!j.pairs.is_empty() && j.pairs.len() <= gpus as usize);
+                    prop_assert_eq!(j.pairs.len(), 1);
+                    prop_assert_eq!(j.pairs[0].worker, j.index);
                 }
             }
         }

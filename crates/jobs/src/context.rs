@@ -321,13 +321,16 @@ pub struct ContainerResources {
     pub limits: Quantities,
 }
 
-/// CPU and memory quantities (`6000m`, `24576Mi`).
+/// CPU, memory and GPU quantities (`6000m`, `24576Mi`, `1`).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct Quantities {
     /// CPU, millicores.
     pub cpu: String,
     /// Memory, MiB.
     pub memory: String,
+    /// GPUs the NVIDIA device plugin allocates (extended resource: request = limit).
+    #[serde(rename = "nvidia.com/gpu", skip_serializing_if = "Option::is_none")]
+    pub gpu: Option<String>,
 }
 
 impl From<Allotment> for ContainerResources {
@@ -335,6 +338,7 @@ impl From<Allotment> for ContainerResources {
         let q = Quantities {
             cpu: format!("{}m", a.cpu_millis),
             memory: format!("{}Mi", a.memory_mib),
+            gpu: None,
         };
         ContainerResources {
             requests: q.clone(),
@@ -343,12 +347,23 @@ impl From<Allotment> for ContainerResources {
     }
 }
 
+impl ContainerResources {
+    /// The same with one GPU allocated by the device plugin: the pair's GPU is held by its
+    /// agent (the untrusted container sees only that GPU) and handed to its simulator by
+    /// UUID through the status volume (templates/README.md, "One GPU per pair").
+    pub fn with_gpu(mut self) -> Self {
+        self.requests.gpu = Some("1".into());
+        self.limits.gpu = Some("1".into());
+        self
+    }
+}
+
 /// What the Job's containers may use.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct ResourcesContext {
     /// Each `simulator-<ID>`.
     pub simulator: ContainerResources,
-    /// Each `agent-<ID>`.
+    /// Each `agent-<ID>`, with the pair's GPU.
     pub agent: ContainerResources,
     /// `private-contents` and `logcopy`.
     pub sidecar: ContainerResources,
@@ -376,16 +391,12 @@ pub struct PairContext {
     pub id: u32,
     /// 0-based worker index.
     pub worker: u32,
-    /// Slot in the Job (k).
-    pub slot: u32,
     /// `ROUTES_SUBSET` (`a-b`).
     pub routes: String,
     /// `CARLA_PORT`.
     pub carla_port: u16,
     /// `CARLA_TM_PORT`.
     pub tm_port: u16,
-    /// GPU index on the node (`NVIDIA_VISIBLE_DEVICES`, graphics adapter).
-    pub gpu: u32,
 }
 
 /// Everything a Job template reads. Serialized, it is the input of the `.$` paths.
@@ -716,7 +727,7 @@ impl JobContext {
             },
             resources: ResourcesContext {
                 simulator: settings.resources.simulator.into(),
-                agent: settings.resources.agent.into(),
+                agent: ContainerResources::from(settings.resources.agent).with_gpu(),
                 sidecar: Allotment::SIDECAR.into(),
                 shm: format!("{}Mi", settings.resources.shm_mib * job.pairs.len() as u32),
             },
@@ -735,11 +746,9 @@ impl JobContext {
                 .map(|p| PairContext {
                     id: p.id,
                     worker: p.worker,
-                    slot: p.slot,
                     routes: p.routes.to_string(),
                     carla_port: p.carla_port,
                     tm_port: p.tm_port,
-                    gpu: p.gpu,
                 })
                 .collect(),
         })
@@ -780,7 +789,6 @@ impl JobContext {
             team_name: "sample",
             routes: 20,
             workers: 4,
-            gpus_per_node: 4,
         })
         .expect("the sample plan is valid");
         let submission = SubmissionInfo {

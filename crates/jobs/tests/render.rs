@@ -7,6 +7,7 @@ use std::path::PathBuf;
 
 use k8s_openapi::api::batch::v1::Job;
 use k8s_openapi::api::core::v1::{Container, PodSpec};
+use k8s_openapi::apimachinery::pkg::api::resource::Quantity;
 use lb_domain::plan::{plan, PlanInput, SUBMISSION_LABEL, TEAM_LABEL};
 use lb_domain::results::Leaderboard;
 use lb_domain::settings::{Images, LeaderboardSettings};
@@ -79,7 +80,6 @@ fn jobs(leaderboard: Leaderboard, routes: u32, workers: u32, team: &str) -> Vec<
         team_name: team,
         routes,
         workers,
-        gpus_per_node: 4,
     })
     .unwrap();
     render_plan(
@@ -126,6 +126,15 @@ fn mounts(c: &Container) -> Vec<(String, String, String)> {
         .collect()
 }
 
+/// A container's `nvidia.com/gpu` (request, limit).
+fn gpus(c: &Container) -> Option<(String, String)> {
+    let r = c.resources.as_ref()?;
+    let get = |m: &Option<BTreeMap<String, Quantity>>| {
+        m.as_ref()?.get("nvidia.com/gpu").map(|q| q.0.clone())
+    };
+    Some((get(&r.requests)?, get(&r.limits)?))
+}
+
 fn names(job: &Job) -> Vec<String> {
     pod(job).containers.iter().map(|c| c.name.clone()).collect()
 }
@@ -140,64 +149,65 @@ fn command(c: &Container) -> Vec<String> {
 }
 
 #[test]
-fn a_20_route_4_worker_leaderboard_2_submission_is_one_job_of_four_pairs() {
+fn a_20_route_4_worker_leaderboard_2_submission_is_four_jobs_of_one_pair() {
     let jobs = jobs(Leaderboard::V2, 20, 4, "Team Zoë");
-    assert_eq!(jobs.len(), 1);
-    let job = &jobs[0];
-    assert_eq!(job.metadata.name.as_deref(), Some("lb-4242-team-zoe-0"));
-    assert_eq!(job.metadata.namespace.as_deref(), Some("submissions"));
-    assert_eq!(
-        names(job),
-        [
-            "simulator-1",
-            "agent-1",
-            "simulator-2",
-            "agent-2",
-            "simulator-3",
-            "agent-3",
-            "simulator-4",
-            "agent-4",
-            "logcopy"
-        ]
-    );
-    let init: Vec<&str> = pod(job)
-        .init_containers
-        .iter()
-        .flatten()
-        .map(|c| c.name.as_str())
-        .collect();
-    assert_eq!(init, ["private-contents"]);
+    assert_eq!(jobs.len(), 4);
+    for (i, job) in jobs.iter().enumerate() {
+        let id = i + 1;
+        assert_eq!(
+            job.metadata.name.as_deref(),
+            Some(format!("lb-4242-team-zoe-{i}").as_str())
+        );
+        assert_eq!(job.metadata.namespace.as_deref(), Some("submissions"));
+        assert_eq!(
+            names(job),
+            [
+                format!("simulator-{id}"),
+                format!("agent-{id}"),
+                "logcopy".into()
+            ]
+        );
+        let init: Vec<&str> = pod(job)
+            .init_containers
+            .iter()
+            .flatten()
+            .map(|c| c.name.as_str())
+            .collect();
+        assert_eq!(init, ["private-contents"]);
+        assert_eq!(env(container(job, "logcopy"))["LB_PAIRS"], id.to_string());
 
-    let spec = job.spec.as_ref().unwrap();
-    assert_eq!(spec.backoff_limit, Some(8));
-    assert_eq!(spec.active_deadline_seconds, Some(4 * 24 * 3600));
-    assert_eq!(pod(job).restart_policy.as_deref(), Some("OnFailure"));
-    assert_eq!(pod(job).automount_service_account_token, Some(false));
-    assert_eq!(pod(job).enable_service_links, Some(false));
-    assert_eq!(
-        pod(job).service_account_name.as_deref(),
-        Some("submission-worker")
-    );
-    assert_eq!(
-        pod(job).node_selector.as_ref().unwrap()["node.kubernetes.io/instance-type"],
-        "g5.12xlarge"
-    );
+        // Each pair its own retry budget; pairs share nodes (no anti-affinity).
+        let spec = job.spec.as_ref().unwrap();
+        assert_eq!(spec.backoff_limit, Some(8));
+        assert_eq!(spec.active_deadline_seconds, Some(4 * 24 * 3600));
+        assert_eq!(pod(job).restart_policy.as_deref(), Some("OnFailure"));
+        assert_eq!(pod(job).automount_service_account_token, Some(false));
+        assert_eq!(pod(job).enable_service_links, Some(false));
+        assert!(pod(job).affinity.is_none(), "{:?}", pod(job).affinity);
+        assert_eq!(
+            pod(job).service_account_name.as_deref(),
+            Some("submission-worker")
+        );
+        assert_eq!(
+            pod(job).node_selector.as_ref().unwrap()["node.kubernetes.io/instance-type"],
+            "g5.12xlarge"
+        );
+    }
 
     for (i, subset) in ["0-4", "5-9", "10-14", "15-19"].iter().enumerate() {
         let id = i + 1;
-        let port = 2000 + 100 * i;
+        let job = &jobs[i];
         for role in ["simulator", "agent"] {
             let c = container(job, &format!("{role}-{id}"));
             let e = env(c);
             assert_eq!(e["LB_SUBMISSION_ID"], "4242");
-            assert_eq!(e["LB_JOB_INDEX"], "0");
+            assert_eq!(e["LB_JOB_INDEX"], i.to_string());
             assert_eq!(e["LB_LEADERBOARD"], "2.0");
             assert_eq!(e["LB_PAIR_ID"], id.to_string());
             assert_eq!(e["ROUTES_SUBSET"], *subset);
-            assert_eq!(e["CARLA_PORT"], port.to_string());
-            assert_eq!(e["CARLA_TM_PORT"], (port + 10).to_string());
+            assert_eq!(e["CARLA_PORT"], "2000");
+            assert_eq!(e["CARLA_TM_PORT"], "2010");
             assert_eq!(e["REPETITIONS"], "1");
-            assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], i.to_string());
             assert_eq!(e["LB_START_WAIT_SECONDS"], "3600");
             assert_eq!(command(c)[0], "/opt/lb/lb-sidecar");
         }
@@ -211,13 +221,20 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_one_job_of_four_pairs() {
                 "--",
                 "./CarlaUE4.sh",
                 "-vulkan",
-                "-carla-rpc-port=$(CARLA_PORT)",
+                "-carla-rpc-port={carla_port}",
                 "-RenderOffScreen",
                 "-nosound",
-                &format!("-ini:[/Script/Engine.RendererSettings]:r.GraphicsAdapter={i}"),
+                "-ini:[/Script/Engine.RendererSettings]:r.GraphicsAdapter={gpu_index}",
             ]
         );
+        // The GPU: the agent's by the device plugin, handed to CARLA by UUID.
+        let e = env(sim);
+        assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], "all");
+        assert_eq!(e["LB_GPU_FROM_AGENT"], "true");
+        assert_eq!(gpus(sim), None);
         let agent = container(job, &format!("agent-{id}"));
+        assert!(!env(agent).contains_key("NVIDIA_VISIBLE_DEVICES"));
+        assert_eq!(gpus(agent), Some(("1".into(), "1".into())));
         assert_eq!(agent.image.as_deref(), Some(AGENT));
         let e = env(agent);
         assert_eq!(e["CHALLENGE_TRACK_CODENAME"], "SENSORS");
@@ -252,6 +269,7 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_one_job_of_four_pairs() {
                 ("/tmp/logs".into(), "logs".into(), "logs".into()),
                 ("/opt/lb".into(), "lb-bin".into(), String::new()),
                 ("/dev/shm".into(), "dshm".into(), String::new()),
+                ("/tmp/handoff".into(), "handoff".into(), String::new()),
                 (
                     "/workspace/leaderboard".into(),
                     "leaderboard".into(),
@@ -277,13 +295,15 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_one_job_of_four_pairs() {
                 ("/opt/lb".into(), "lb-bin".into(), String::new()),
             ]
         );
+        assert!(mounts(sim).contains(&("/tmp/handoff".into(), "handoff".into(), String::new())));
     }
 
+    let job = &jobs[3];
     let logcopy = container(job, "logcopy");
     assert_eq!(logcopy.image.as_deref(), Some(PRIVATE));
     assert_eq!(command(logcopy), ["/opt/lb/lb-sidecar", "logcopy"]);
     let e = env(logcopy);
-    assert_eq!(e["LB_PAIRS"], "1,2,3,4");
+    assert_eq!(e["LB_PAIRS"], "4");
     assert_eq!(e["LB_S3_BUCKET"], "leaderboard-20-results");
     assert_eq!(e["LB_PERIOD_SECONDS"], "10");
     assert_eq!(e["LB_BACKOFF_LIMIT"], "8");
@@ -304,7 +324,7 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_one_job_of_four_pairs() {
     let init = container(job, "private-contents");
     assert_eq!(command(init), ["lb-sidecar", "init"]);
     let e = env(init);
-    assert_eq!(e["LB_PAIRS"], "1,2,3,4");
+    assert_eq!(e["LB_PAIRS"], "4");
     assert_eq!(e["LB_PARTICIPANT_RESUME"], "");
     assert_eq!(e["LB_SOURCE_LEADERBOARD"], "/src/leaderboard");
     assert!(e.contains_key("AWS_ROLE_ARN"));
@@ -398,22 +418,19 @@ fn no_aws_variable_or_token_reaches_the_simulators_and_agents() {
 #[test]
 fn a_12_route_3_worker_leaderboard_1_submission_runs_three_pairs_five_times() {
     let jobs = jobs(Leaderboard::V1, 12, 3, "team");
-    assert_eq!(jobs.len(), 1);
-    let job = &jobs[0];
-    assert_eq!(
-        names(job),
-        [
-            "simulator-1",
-            "agent-1",
-            "simulator-2",
-            "agent-2",
-            "simulator-3",
-            "agent-3",
-            "logcopy"
-        ]
-    );
+    assert_eq!(jobs.len(), 3);
     for (i, subset) in ["0-3", "4-7", "8-11"].iter().enumerate() {
-        let sim = container(job, &format!("simulator-{}", i + 1));
+        let job = &jobs[i];
+        let id = i + 1;
+        assert_eq!(
+            names(job),
+            [
+                format!("simulator-{id}"),
+                format!("agent-{id}"),
+                "logcopy".into()
+            ]
+        );
+        let sim = container(job, &format!("simulator-{id}"));
         assert_eq!(sim.image.as_deref(), Some(CARLA_10));
         assert_eq!(
             command(sim)[1..],
@@ -423,11 +440,18 @@ fn a_12_route_3_worker_leaderboard_1_submission_runs_three_pairs_five_times() {
                 "./CarlaUE4.sh",
                 "-opengl",
                 "-nosound",
-                "-carla-rpc-port=$(CARLA_PORT)"
+                "-carla-rpc-port={carla_port}"
             ]
         );
-        assert_eq!(env(sim)["SDL_VIDEODRIVER"], "offscreen");
-        let agent = container(job, &format!("agent-{}", i + 1));
+        let e = env(sim);
+        assert_eq!(e["SDL_VIDEODRIVER"], "offscreen");
+        // EGL picks the CUDA device: the agent's GPU, by its index in PCI order.
+        assert_eq!(e["SDL_HINT_CUDA_DEVICE"], "{gpu_index}");
+        assert_eq!(e["CUDA_DEVICE_ORDER"], "PCI_BUS_ID");
+        assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], "all");
+        assert_eq!(e["LB_GPU_FROM_AGENT"], "true");
+        let agent = container(job, &format!("agent-{id}"));
+        assert_eq!(gpus(agent), Some(("1".into(), "1".into())));
         let e = env(agent);
         assert_eq!(e["ROUTES_SUBSET"], *subset);
         assert_eq!(e["REPETITIONS"], "5");
@@ -439,16 +463,11 @@ fn a_12_route_3_worker_leaderboard_1_submission_runs_three_pairs_five_times() {
         let cmd = &command(agent)[5];
         assert!(cmd.contains("--scenarios=\"${SCENARIOS}\""));
         assert!(!cmd.contains("traffic-manager-port"));
-        // Every 1.0 pair shares the pod's network: each has its own traffic-manager port.
         assert!(cmd.contains("--trafficManagerPort=\"${CARLA_TM_PORT}\""));
         assert!(!cmd.contains("debug-checkpoint"));
-        assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], i.to_string());
+        assert!(!e.contains_key("NVIDIA_VISIBLE_DEVICES"));
+        assert_eq!(env(container(job, "logcopy"))["LB_PAIRS"], id.to_string());
     }
-    assert_eq!(env(container(job, "logcopy"))["LB_PAIRS"], "1,2,3");
-    let tm_ports: std::collections::BTreeSet<String> = (1..=3)
-        .map(|i| env(container(job, &format!("agent-{i}")))["CARLA_TM_PORT"].clone())
-        .collect();
-    assert_eq!(tm_ports.len(), 3, "{tm_ports:?}");
 }
 
 /// Runs an agent container's shell script as the pod would, with `python3` a stub that prints
@@ -549,33 +568,21 @@ fn the_agent_prepends_the_official_code_to_the_images_pythonpath_after_its_dotfi
 }
 
 #[test]
-fn more_workers_than_gpus_make_several_jobs_with_global_pair_ids() {
+fn more_workers_than_gpus_of_a_node_are_still_one_job_each_with_global_pair_ids() {
     let jobs = jobs(Leaderboard::V2, 20, 10, "team");
     let job_names: Vec<&str> = jobs
         .iter()
         .map(|j| j.metadata.name.as_deref().unwrap())
         .collect();
-    assert_eq!(
-        job_names,
-        ["lb-4242-team-0", "lb-4242-team-1", "lb-4242-team-2"]
-    );
-    assert_eq!(
-        names(&jobs[2]),
-        [
-            "simulator-9",
-            "agent-9",
-            "simulator-10",
-            "agent-10",
-            "logcopy"
-        ]
-    );
-    let e = env(container(&jobs[2], "agent-10"));
-    assert_eq!(e["LB_JOB_INDEX"], "2");
+    let expected: Vec<String> = (0..10).map(|i| format!("lb-4242-team-{i}")).collect();
+    assert_eq!(job_names, expected);
+    assert_eq!(names(&jobs[9]), ["simulator-10", "agent-10", "logcopy"]);
+    let e = env(container(&jobs[9], "agent-10"));
+    assert_eq!(e["LB_JOB_INDEX"], "9");
     assert_eq!(e["LB_PAIR_ID"], "10");
-    assert_eq!(e["CARLA_PORT"], "2100");
-    assert_eq!(e["NVIDIA_VISIBLE_DEVICES"], "1");
+    assert_eq!(e["CARLA_PORT"], "2000");
     assert_eq!(e["ROUTES_SUBSET"], "18-19");
-    assert_eq!(env(container(&jobs[1], "logcopy"))["LB_PAIRS"], "5,6,7,8");
+    assert_eq!(env(container(&jobs[4], "logcopy"))["LB_PAIRS"], "5");
     for (i, job) in jobs.iter().enumerate() {
         let labels = job.metadata.labels.as_ref().unwrap();
         assert_eq!(labels[SUBMISSION_LABEL], "4242");
@@ -590,7 +597,6 @@ fn a_qualifier_track_runs_the_qualifier_routes_and_a_resume_is_passed_to_init() 
         team_name: "t",
         routes: 10,
         workers: 2,
-        gpus_per_node: 4,
     })
     .unwrap();
     let mut s = submission("t", AGENT);
@@ -617,7 +623,6 @@ fn hostile_images_are_refused_before_rendering() {
         team_name: "t",
         routes: 20,
         workers: 4,
-        gpus_per_node: 4,
     })
     .unwrap();
     for bad in [
@@ -660,7 +665,6 @@ fn invalid_settings_are_named() {
         team_name: "t",
         routes: 20,
         workers: 4,
-        gpus_per_node: 4,
     })
     .unwrap();
     type Edit = Box<dyn Fn(&mut JobSettings)>;
@@ -728,7 +732,7 @@ proptest! {
 
     #[test]
     fn any_team_name_renders_valid_jobs_with_label_safe_values(name in hostile_name()) {
-        let jobs = jobs(Leaderboard::V2, 20, 6, &name);
+        let jobs = jobs(Leaderboard::V2, 20, 2, &name);
         prop_assert_eq!(jobs.len(), 2);
         for job in &jobs {
             let n = job.metadata.name.as_deref().unwrap();
@@ -857,7 +861,7 @@ fn every_container_is_confined_and_sized_from_the_settings() {
                     "agent" => ("6000m", "24576Mi"),
                     _ => ("500m", "512Mi"),
                 };
-                let expected: BTreeMap<String, String> = [
+                let mut expected: BTreeMap<String, String> = [
                     ("limits.cpu", cpu),
                     ("limits.memory", memory),
                     ("requests.cpu", cpu),
@@ -866,6 +870,12 @@ fn every_container_is_confined_and_sized_from_the_settings() {
                 .into_iter()
                 .map(|(k, v)| (k.to_owned(), v.to_owned()))
                 .collect();
+                if agent {
+                    // The pair's one GPU is the agent's.
+                    for k in ["limits.nvidia.com/gpu", "requests.nvidia.com/gpu"] {
+                        expected.insert(k.to_owned(), "1".to_owned());
+                    }
+                }
                 assert_eq!(resources(c), expected, "{}", c.name);
             }
         }
@@ -892,14 +902,13 @@ fn an_operators_pair_resources_reach_the_containers() {
         team_name: "team",
         routes: 20,
         workers: 2,
-        gpus_per_node: 4,
     })
     .unwrap();
     let job = render_plan(Leaderboard::V2, &p, &submission("team", AGENT), &s)
         .unwrap()
         .remove(0);
     assert_eq!(
-        resources(container(&job, "simulator-2"))["limits.cpu"],
+        resources(container(&job, "simulator-1"))["limits.cpu"],
         "3500m"
     );
     assert_eq!(
@@ -920,7 +929,7 @@ fn an_operators_pair_resources_reach_the_containers() {
             .as_ref()
             .unwrap()
             .0,
-        "4096Mi"
+        "2048Mi"
     );
 }
 

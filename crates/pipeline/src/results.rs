@@ -25,6 +25,8 @@ pub struct Snapshot {
     pub progress: (u64, u64),
     /// Every planned route has a record and the global statistics exist.
     pub complete: bool,
+    /// The pairs that finished their routes, by ID.
+    pub finished_pairs: Vec<u32>,
     /// (DynamoDB attribute, value) per metric.
     pub metrics: Vec<(&'static str, Num)>,
 }
@@ -116,6 +118,7 @@ pub async fn collect_listed(
         merged,
         complete,
         progress,
+        finished_pairs,
     } = merge_partials(store, &partials, leaderboard, &pairs, repetitions).await?;
     let files = EvalAiFiles::generate(merged.as_ref(), leaderboard);
     let merged_json = merged.as_ref().map(|m| m.to_json());
@@ -134,6 +137,7 @@ pub async fn collect_listed(
         merged_json,
         progress,
         complete,
+        finished_pairs,
         metrics,
     })
 }
@@ -147,6 +151,8 @@ pub struct Merge {
     pub complete: bool,
     /// Records found and planned.
     pub progress: (u64, u64),
+    /// The pairs whose results file is finished (it has its global record), by ID.
+    pub finished_pairs: Vec<u32>,
 }
 
 /// The planned workers' files read from S3 and merged with the leaderboard's rules: what the
@@ -163,6 +169,7 @@ pub async fn merge_partials(
     let mut sources = Vec::new();
     let mut contents = Vec::new();
     let mut subsets = Vec::new();
+    let mut ids = Vec::new();
     for partial in partials {
         let Some((_, subset)) = pairs.iter().find(|(id, _)| *id == partial.pair_id) else {
             warn!(key = %partial.key, "results file of no planned worker, ignored");
@@ -171,6 +178,7 @@ pub async fn merge_partials(
         sources.push(partial.key.clone());
         contents.push(store.get_bounded(&partial.key, MAX_PARTIAL_BYTES).await?);
         subsets.push(*subset);
+        ids.push(partial.pair_id);
     }
     let inputs: Vec<WorkerInput<'_>> = sources
         .iter()
@@ -183,9 +191,18 @@ pub async fn merge_partials(
         })
         .collect();
     let mut present: Vec<ResultsFile> = Vec::new();
-    for read in read_worker_files(&inputs, leaderboard) {
+    let mut finished_pairs = Vec::new();
+    for (read, id) in read_worker_files(&inputs, leaderboard)
+        .into_iter()
+        .zip(&ids)
+    {
         match read.map_err(results_error)? {
-            WorkerFile::Present(file) => present.push(file),
+            WorkerFile::Present(file) => {
+                if file.has_global_record {
+                    finished_pairs.push(*id);
+                }
+                present.push(file)
+            }
             WorkerFile::Empty(reason) => warn!(%reason, "a results file counts as empty"),
         }
     }
@@ -198,6 +215,7 @@ pub async fn merge_partials(
             merged: None,
             complete: false,
             progress: (0, expected.records()),
+            finished_pairs,
         });
     }
     let outcome = results::merge(
@@ -208,10 +226,13 @@ pub async fn merge_partials(
         },
     )
     .map_err(results_error)?;
+    finished_pairs.sort_unstable();
+    finished_pairs.dedup();
     Ok(Merge {
         progress: outcome.merged.progress,
         complete: outcome.complete,
         merged: Some(outcome.merged),
+        finished_pairs,
     })
 }
 

@@ -18,7 +18,7 @@ use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::{cluster_error, Clusters};
-use lb_pipeline::payload::{Action, IntakeOutput, RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::payload::{Action, IntakeOutput, PairRoutes, RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::results::{collect, Snapshot};
 use lb_pipeline::{FnError, FunctionConfig, Result};
 use serde::{Deserialize, Serialize};
@@ -119,6 +119,27 @@ pub fn caught_error(state: &Value) -> Option<String> {
     } else {
         format!("{name}: {message}")
     })
+}
+
+/// Which routes a failed run evaluated, when some pairs finished and some did not (a pair out
+/// of retries, one Job per pair): `None` when none or all finished.
+pub fn pairs_note(pairs: &[PairRoutes], finished: &[u32]) -> Option<String> {
+    let (done, missing): (Vec<&PairRoutes>, Vec<&PairRoutes>) =
+        pairs.iter().partition(|p| finished.contains(&p.id));
+    if done.is_empty() || missing.is_empty() {
+        return None;
+    }
+    let describe = |ps: &[&PairRoutes]| {
+        let routes: Vec<&str> = ps.iter().map(|p| p.routes.as_str()).collect();
+        let ids: Vec<String> = ps.iter().map(|p| p.id.to_string()).collect();
+        let pairs = if ids.len() == 1 { "pair" } else { "pairs" };
+        format!("routes {} ({pairs} {})", routes.join(", "), ids.join(", "))
+    };
+    Some(format!(
+        "{} were not evaluated; {} are complete and kept: resuming this submission evaluates only the missing routes",
+        describe(&missing),
+        describe(&done)
+    ))
 }
 
 /// What the participant reads for a caught error (`Name: message`, from [`caught_error`]): a
@@ -326,6 +347,16 @@ async fn finish_run(
         ),
     };
     let snapshot = snapshot.and_then(|s| s.ok());
+    // A pair that gave up leaves its routes missing; its neighbours' are complete and kept.
+    let pairs_note = match (&run, &snapshot) {
+        (Some(run), Some(snapshot)) if status == SubmissionStatus::Failed => {
+            pairs_note(&run.pairs, &snapshot.finished_pairs)
+        }
+        _ => None,
+    };
+    if let Some(note) = &pairs_note {
+        reason = reason.map(|r| format!("{r}. {note}"));
+    }
     let metrics: Vec<(&'static str, Num)> = snapshot
         .as_ref()
         .map(|s| s.metrics.clone())
@@ -352,6 +383,9 @@ async fn finish_run(
             }
             stdout = format!("{verdict}{stdout}");
         }
+    }
+    if let Some(note) = &pairs_note {
+        stdout = format!("{note}\n\n{stdout}");
     }
     // The participant learns why: the reason, then the end of the agent's own output.
     let mut stderr = reason.clone().unwrap_or_default();
@@ -504,6 +538,25 @@ async fn post(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_failed_run_names_the_missing_routes_and_the_complete_ones() {
+        let pairs: Vec<PairRoutes> = ["0-4", "5-9", "10-14", "15-19"]
+            .iter()
+            .zip(1..)
+            .map(|(r, id)| PairRoutes {
+                id,
+                routes: (*r).into(),
+            })
+            .collect();
+        assert_eq!(
+            pairs_note(&pairs, &[2, 3, 4]).unwrap(),
+            "routes 0-4 (pair 1) were not evaluated; routes 5-9, 10-14, 15-19 (pairs 2, 3, 4) are complete and kept: resuming this submission evaluates only the missing routes"
+        );
+        assert!(pairs_note(&pairs, &[]).is_none());
+        assert!(pairs_note(&pairs, &[1, 2, 3, 4]).is_none());
+        assert!(pairs_note(&pairs, &[9]).is_none());
+    }
     use serde_json::json;
 
     #[test]

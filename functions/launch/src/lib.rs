@@ -89,7 +89,6 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         team_name: &submission.team_name,
         routes: submission.routes,
         workers: submission.workers,
-        gpus_per_node: target.deployment.gpus_per_node,
     })
     .map_err(|e| stage(e.name(), e.to_string()))?;
     let mut job_settings = JobSettings::from_deployment(

@@ -1559,3 +1559,70 @@ async fn pods_wait_pending_unschedulable_until_the_nodes_gpus_free() {
     })
     .await;
 }
+
+/// As the NVIDIA device plugin and container toolkit: a container that requested GPUs finds
+/// their UUIDs in `NVIDIA_VISIBLE_DEVICES` (its spec's own value overridden), two pods never
+/// get the same GPU, and `nvidia-smi` lists what the variable makes visible (`all`: the node's).
+#[tokio::test]
+async fn containers_get_their_own_gpus_by_uuid_and_nvidia_smi_lists_the_visible_ones() {
+    let (_lk, client) = start(Config {
+        gpus: Some(3),
+        ..Config::default()
+    })
+    .await;
+    let jobs: Api<Job> = Api::namespaced(client.clone(), "default");
+    let pods: Api<Pod> = Api::namespaced(client, "default");
+    let pp = PostParams::default();
+    let show = "echo visible=$NVIDIA_VISIBLE_DEVICES; nvidia-smi --query-gpu=index,uuid --format=csv,noheader; sleep 1";
+    for name in ["one", "two"] {
+        jobs.create(&pp, &gpu_job(name, 1, show)).await.unwrap();
+    }
+    let mut all = gpu_job("all", 0, show);
+    let c = &mut all
+        .spec
+        .as_mut()
+        .unwrap()
+        .template
+        .spec
+        .as_mut()
+        .unwrap()
+        .containers[0];
+    c.resources = None;
+    c.env = Some(vec![k8s_openapi::api::core::v1::EnvVar {
+        name: "NVIDIA_VISIBLE_DEVICES".into(),
+        value: Some("all".into()),
+        ..Default::default()
+    }]);
+    jobs.create(&pp, &all).await.unwrap();
+    let mut seen = Vec::new();
+    for name in ["one", "two", "all"] {
+        wait_condition(&jobs, name, "Complete").await;
+        let pod = one_pod(&pods, name).await;
+        let log = pods
+            .logs(&pod.metadata.name.unwrap(), &LogParams::default())
+            .await
+            .unwrap();
+        seen.push(log);
+    }
+    let uuid = |i: u32| format!("GPU-6c6f6361-6c6b-4b75-8265-{i:012x}");
+    let visible = |log: &str| {
+        log.lines()
+            .next()
+            .unwrap()
+            .trim_start_matches("visible=")
+            .to_owned()
+    };
+    let (one, two) = (visible(&seen[0]), visible(&seen[1]));
+    assert_ne!(one, two, "two pods share a GPU");
+    for (log, v) in [(&seen[0], &one), (&seen[1], &two)] {
+        assert!([uuid(0), uuid(1)].contains(v), "{log}");
+        // nvidia-smi shows the container's one GPU, with its node index.
+        let rows: Vec<&str> = log.lines().skip(1).collect();
+        assert_eq!(rows.len(), 1, "{log}");
+        assert!(rows[0].ends_with(v.as_str()), "{log}");
+    }
+    assert_eq!(
+        seen[2].lines().skip(1).collect::<Vec<_>>(),
+        [0, 1, 2].map(|i| format!("{i}, {}", uuid(i)))
+    );
+}

@@ -207,6 +207,7 @@ impl Stack {
         .map_err(|e| StackError::Kube(format!("image map: {e}")))?;
         self.start_kube(local_kube::Config {
             images,
+            gpus: behaviour.node_gpus,
             ..local_kube::Config::default()
         })
     }

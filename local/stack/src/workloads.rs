@@ -121,6 +121,9 @@ pub struct Behaviour {
     pub evaluator_env: BTreeMap<String, String>,
     /// Extra environment of the CARLA image (`FAKE_CARLA_*`).
     pub carla_env: BTreeMap<String, String>,
+    /// The local node's `nvidia.com/gpu`: pairs beyond it wait `Pending` (`Unschedulable`,
+    /// `Insufficient nvidia.com/gpu`) until a GPU frees. `None`: GPUs not modelled.
+    pub node_gpus: Option<u32>,
 }
 
 impl Default for Behaviour {
@@ -129,6 +132,7 @@ impl Default for Behaviour {
             route_seconds: 0.1,
             evaluator_env: BTreeMap::new(),
             carla_env: BTreeMap::new(),
+            node_gpus: None,
         }
     }
 }

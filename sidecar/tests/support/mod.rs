@@ -39,21 +39,22 @@ pub fn fake(name: &str) -> PathBuf {
     path
 }
 
-/// A loopback port that is free together with the next one (CARLA listens on N and N+1).
-/// Taken from 20000-29999, below Linux's ephemeral range, so no outgoing connection of a
-/// parallel test can grab N+1 between this check and fake-carla's bind.
+/// A loopback port free with what a pair takes beside it (CARLA N to N+2, the traffic
+/// manager N+10: the simulator's sidecar moves the pair when any is taken), from blocks of
+/// 20 in 20000-29999, below Linux's ephemeral range, so no outgoing connection of a parallel
+/// test can grab one between this check and the binds.
 pub fn free_port() -> u16 {
     static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
-    let offset = std::process::id() % 1000 * 10;
-    for _ in 0..5000 {
-        let step = NEXT.fetch_add(2, std::sync::atomic::Ordering::SeqCst);
+    let offset = std::process::id() % 500 * 20;
+    for _ in 0..500 {
+        let step = NEXT.fetch_add(20, std::sync::atomic::Ordering::SeqCst);
         let port = 20000 + ((offset + step) % 10000) as u16;
-        let free = |p: u16| TcpListener::bind(("127.0.0.1", p)).is_ok();
-        if free(port) && free(port + 1) {
+        let free = |p: u16| TcpListener::bind(("0.0.0.0", p)).is_ok();
+        if [0, 1, 2, 10].iter().all(|d| free(port + d)) {
             return port;
         }
     }
-    panic!("no free pair of loopback ports in 20000-29999");
+    panic!("no free block of loopback ports in 20000-29999");
 }
 
 /// One Job's `logs` volume: `containers-status`, `agent`, `logs` under a temp root.
@@ -143,6 +144,7 @@ impl Pair {
             .env("LB_LEADERBOARD", "2.0")
             .env("LB_STATUS_DIR", vols.status())
             .env("LB_AGENT_DIR", vols.root().join("agent"))
+            .env("LB_HANDOFF_DIR", vols.root().join("handoff"))
             .env("LB_LOGS_DIR", vols.root().join("logs"))
             .env("LB_PAIR_ID", self.id.to_string())
             .env("CARLA_PORT", self.port.to_string())
@@ -175,7 +177,7 @@ impl Pair {
             "--".to_owned(),
             fake("fake-carla").display().to_string(),
             "-vulkan".to_owned(),
-            format!("-carla-rpc-port={}", self.port),
+            "-carla-rpc-port={carla_port}".to_owned(),
             "-RenderOffScreen".to_owned(),
             "-nosound".to_owned(),
         ];

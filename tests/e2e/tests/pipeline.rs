@@ -207,7 +207,16 @@ impl Harness {
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
-    let h = harness(Behaviour::default(), &[]).await;
+    // A node of 2 GPUs for 4 pairs: two wait for a GPU, and waiting never fails the run.
+    let h = harness(
+        Behaviour {
+            route_seconds: 0.5,
+            node_gpus: Some(2),
+            ..Behaviour::default()
+        },
+        &[],
+    )
+    .await;
     let submission = h.intake(PARTICIPANT_IMAGE).await;
     assert_eq!((submission.routes, submission.workers), (20, 4));
     let record = h.record().await;
@@ -217,28 +226,35 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
     );
 
     let run = h.launch(&submission).await;
-    assert_eq!(run.jobs, 1, "4 pairs fit one 4-GPU node");
+    assert_eq!(run.jobs, 4, "one Job per pair");
     let subsets: Vec<&str> = run.pairs.iter().map(|p| p.routes.as_str()).collect();
     assert_eq!(subsets, ["0-4", "5-9", "10-14", "15-19"]);
     // Created, not started: the participant's time has not begun.
     assert_eq!(h.stack.fake().submission(1).unwrap().status, "queued");
 
-    // The Job as created on the cluster.
-    let (jobs, _) = h.cluster_jobs().await;
-    let job = serde_json::to_value(&jobs[0]).unwrap();
-    assert_eq!(
-        job["metadata"]["labels"]["leaderboard.carla.org/submission-id"],
-        "1"
-    );
-    assert_eq!(
-        job["spec"]["template"]["metadata"]["labels"]["leaderboard.carla.org/submission-id"],
-        "1"
-    );
-    let containers = job["spec"]["template"]["spec"]["containers"]
-        .as_array()
-        .unwrap();
-    let env_of = |name: &str| -> BTreeMap<String, String> {
-        containers.iter().find(|c| c["name"] == name).unwrap()["env"]
+    // The Jobs as created on the cluster: each pair's agent holds one GPU.
+    let (mut jobs, _) = h.cluster_jobs().await;
+    jobs.sort_by_key(|j| j.metadata.name.clone());
+    assert_eq!(jobs.len(), 4);
+    for (i, subset) in subsets.iter().enumerate() {
+        let job = serde_json::to_value(&jobs[i]).unwrap();
+        assert_eq!(
+            job["metadata"]["labels"]["leaderboard.carla.org/submission-id"],
+            "1"
+        );
+        assert_eq!(
+            job["spec"]["template"]["metadata"]["labels"]["leaderboard.carla.org/submission-id"],
+            "1"
+        );
+        assert!(job["spec"]["template"]["spec"]["affinity"].is_null());
+        let containers = job["spec"]["template"]["spec"]["containers"]
+            .as_array()
+            .unwrap();
+        let agent_spec = containers
+            .iter()
+            .find(|c| c["name"] == format!("agent-{}", i + 1))
+            .unwrap();
+        let agent: BTreeMap<String, String> = agent_spec["env"]
             .as_array()
             .unwrap()
             .iter()
@@ -248,23 +264,43 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
                     e["value"].as_str().unwrap_or_default().to_string(),
                 )
             })
-            .collect()
-    };
-    for (i, subset) in subsets.iter().enumerate() {
-        let agent = env_of(&format!("agent-{}", i + 1));
+            .collect();
         assert_eq!(agent["ROUTES_SUBSET"], *subset);
-        assert_eq!(agent["CARLA_PORT"], (2000 + 100 * i).to_string());
-        assert_eq!(agent["CARLA_TM_PORT"], (2010 + 100 * i).to_string());
+        assert_eq!(agent["CARLA_PORT"], "2000");
         assert!(
             agent.keys().all(|k| !k.starts_with("AWS_")),
             "no AWS access for the participant"
         );
-        let agent_spec = containers
-            .iter()
-            .find(|c| c["name"] == format!("agent-{}", i + 1))
-            .unwrap();
         assert_eq!(agent_spec["image"], PARTICIPANT_IMAGE);
+        assert_eq!(agent_spec["resources"]["limits"]["nvidia.com/gpu"], "1");
     }
+    // Two pairs run; two wait Pending with the scheduler's own reason.
+    let waiting = tokio::time::timeout(Duration::from_secs(30), async {
+        loop {
+            let (_, pods) = h.cluster_jobs().await;
+            let unschedulable = pods
+                .iter()
+                .filter(|p| {
+                    p.status.as_ref().and_then(|s| s.conditions.as_ref()).is_some_and(|c| {
+                        c.iter().any(|c| {
+                            c.type_ == "PodScheduled"
+                                && c.reason.as_deref() == Some("Unschedulable")
+                                && c.message.as_deref()
+                                    == Some("0/1 nodes are available: 1 Insufficient nvidia.com/gpu.")
+                        })
+                    })
+                })
+                .count();
+            if pods.len() == 4 && unschedulable == 2 {
+                break unschedulable;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await
+    .expect("two pods wait for a GPU");
+    assert_eq!(waiting, 2);
+    let job = serde_json::to_value(&jobs[0]).unwrap();
     assert_eq!(
         job["spec"]["template"]["spec"]["automountServiceAccountToken"],
         false
@@ -300,15 +336,10 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
         ["PATCH queued", "PATCH running", "PUT partially_evaluated"],
         "{progress:?}"
     );
-    assert_eq!(
-        h.stack
-            .fake()
-            .submission(1)
-            .unwrap()
-            .job_name
-            .map(|n| n.len()),
-        Some(1)
-    );
+    // The Jobs' names, once (queued carried them; running did not repeat them).
+    let names = h.stack.fake().submission(1).unwrap().job_name.unwrap();
+    assert_eq!(names.len(), 1, "{names:?}");
+    assert_eq!(names[0].split(',').count(), 4, "{names:?}");
     let partial_puts = h.evalai_writes("update_partially_evaluated_submission");
     assert!(partial_puts >= 1, "partial results reached EvalAI");
     assert!(

@@ -18,7 +18,7 @@ use tracing::{debug, info, warn};
 use super::env::{argv, environment, EnvBase, LOCAL_IP};
 use super::mounts::{plan, Mount};
 use super::process::{command, exit_code, signal_group, terminate, wait_group_gone, Launch};
-use super::Runtime;
+use super::{scheduler, Runtime};
 use crate::imagemap::Pull;
 use crate::objects::names::random_u64;
 use crate::objects::pod::{refresh_status, waiting};
@@ -59,6 +59,9 @@ async fn stop_requested(stop: &mut StopRx) -> Duration {
     }
 }
 
+/// The variable through which containers learn their GPUs.
+const VISIBLE_DEVICES: &str = "NVIDIA_VISIBLE_DEVICES";
+
 fn container_id() -> String {
     format!("local-kube://{:016x}{:016x}", random_u64(), random_u64())
 }
@@ -93,6 +96,50 @@ pub async fn run_pod(rt: Arc<Runtime>, pod: Pod, stop: StopRx, done: watch::Send
 }
 
 impl PodWorker {
+    /// What the NVIDIA device plugin does for a container that requested GPUs: their UUIDs in
+    /// `NVIDIA_VISIBLE_DEVICES` (the plugin's default `envvar` list strategy, `uuid` ids),
+    /// over any value of the spec's own; and what the NVIDIA container toolkit does for a
+    /// container with that variable set: `nvidia-smi` on its `PATH`, seeing those GPUs.
+    fn with_gpus(
+        &self,
+        c: &Container,
+        mut env: BTreeMap<String, String>,
+    ) -> BTreeMap<String, String> {
+        let need = scheduler::container_gpus(c) as usize;
+        if need > 0 {
+            let uid = self.pod.metadata.uid.as_deref().unwrap_or_default();
+            let devices = self.rt.devices(uid);
+            let spec = self.pod.spec.as_ref();
+            // App containers hold their own devices in order; an init container runs before
+            // them and may use the pod's first ones.
+            let offset: usize = spec
+                .filter(|s| s.containers.iter().any(|x| x.name == c.name))
+                .map(|s| {
+                    s.containers
+                        .iter()
+                        .take_while(|x| x.name != c.name)
+                        .map(|x| scheduler::container_gpus(x) as usize)
+                        .sum()
+                })
+                .unwrap_or(0);
+            let uuids: Vec<String> = devices
+                .iter()
+                .skip(offset)
+                .take(need)
+                .map(|&i| scheduler::gpu_uuid(i))
+                .collect();
+            env.insert(VISIBLE_DEVICES.to_owned(), uuids.join(","));
+        }
+        if env.get(VISIBLE_DEVICES).is_some_and(|v| !v.is_empty()) {
+            let path = env.get("PATH").cloned().unwrap_or_default();
+            env.insert(
+                "PATH".to_owned(),
+                format!("{}:{path}", self.rt.nvidia_dir.display()),
+            );
+        }
+        env
+    }
+
     fn spec_container(&self, slot: Slot) -> &Container {
         let spec = self
             .pod
@@ -412,7 +459,7 @@ impl PodWorker {
             home: &self.rt.home,
         };
         let env = match environment(&c, entry, &self.pod, &base) {
-            Ok(env) => env,
+            Ok(env) => self.with_gpus(&c, env),
             Err(e) => {
                 return self
                     .wait_stuck(slot, "CreateContainerConfigError", e.0, stop)

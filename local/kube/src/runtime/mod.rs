@@ -81,6 +81,9 @@ pub struct Runtime {
     pub procs: Processes,
     /// The node's `nvidia.com/gpu` (`None`: GPUs not modelled, every pod fits).
     pub gpus: Option<u32>,
+    /// The directory holding the node's `nvidia-smi`, put first on the `PATH` of containers
+    /// that see GPUs.
+    pub nvidia_dir: PathBuf,
     allocations: Mutex<scheduler::Allocations>,
     jobs: Mutex<HashMap<String, JobHandle>>,
     pods: Mutex<HashMap<String, PodHandle>>,
@@ -104,6 +107,17 @@ impl Runtime {
     ) -> std::io::Result<Arc<Self>> {
         let pods_dir = state_dir.join("pods");
         std::fs::create_dir_all(&pods_dir)?;
+        let nvidia_dir = state_dir.join("nvidia");
+        std::fs::create_dir_all(&nvidia_dir)?;
+        let smi = nvidia_dir.join("nvidia-smi");
+        std::fs::write(
+            &smi,
+            scheduler::nvidia_smi_script(gpus.unwrap_or(scheduler::UNMODELLED_GPUS)),
+        )?;
+        {
+            use std::os::unix::fs::PermissionsExt as _;
+            std::fs::set_permissions(&smi, std::fs::Permissions::from_mode(0o755))?;
+        }
         let (shutdown_tx, _) = watch::channel(false);
         Ok(Arc::new(Self {
             store,
@@ -118,6 +132,7 @@ impl Runtime {
             home: std::env::var("HOME").unwrap_or_else(|_| "/root".into()),
             procs: Processes::default(),
             gpus,
+            nvidia_dir,
             allocations: Mutex::new(Default::default()),
             jobs: Mutex::new(HashMap::new()),
             pods: Mutex::new(HashMap::new()),
@@ -235,10 +250,15 @@ impl Runtime {
             else {
                 continue;
             };
-            allocations.bind(&uid, need);
-            info!(pod = %key.name, gpus = need, "pod scheduled");
+            let devices = allocations.bind(&uid, need, self.gpus);
+            info!(pod = %key.name, gpus = need, ?devices, "pod scheduled");
             self.start_kubelet(bound);
         }
+    }
+
+    /// The GPU indexes bound to pod `uid`.
+    pub fn devices(&self, uid: &str) -> Vec<u32> {
+        lock(&self.allocations).devices(uid)
     }
 
     /// Frees a pod's GPUs once its kubelet is done, and schedules what waited for them.
@@ -433,7 +453,7 @@ impl Runtime {
     }
 
     /// Stops everything, blocking (bounded): no new processes, every group terminated, pod
-    /// directories and created mount points removed.
+    /// directories, created mount points and the node's `nvidia-smi` removed.
     pub fn shutdown(&self) {
         if self.shutting_down.swap(true, Ordering::SeqCst) {
             return;
@@ -452,6 +472,7 @@ impl Runtime {
             }
         }
         let _ = std::fs::remove_dir(&self.pods_dir);
+        let _ = std::fs::remove_dir_all(&self.nvidia_dir);
         info!("local-kube runtime stopped");
     }
 }

@@ -1,6 +1,8 @@
 //! The scheduler of the one node: pods are bound in creation order while the node's
 //! `nvidia.com/gpu` has room; the others stay `Pending` with the real scheduler's
-//! `PodScheduled=False`, reason `Unschedulable` condition and message until room frees.
+//! `PodScheduled=False`, reason `Unschedulable` condition and message until room frees. A
+//! bound pod gets particular GPUs, as the NVIDIA device plugin allocates them: the kubelet
+//! gives each container that requested GPUs their UUIDs in `NVIDIA_VISIBLE_DEVICES`.
 
 use std::collections::HashMap;
 
@@ -16,27 +18,101 @@ pub const GPU: &str = "nvidia.com/gpu";
 /// `NodeResourcesFit` plugin, one node).
 pub const INSUFFICIENT_GPU: &str = "0/1 nodes are available: 1 Insufficient nvidia.com/gpu.";
 
-/// GPUs in use, by pod uid.
+/// GPUs a node lists when GPUs are not modelled (every pod fits; beyond this many in use at
+/// once, devices are shared).
+pub const UNMODELLED_GPUS: u32 = 64;
+
+/// GPUs in use: the device indexes of each pod, by pod uid.
 #[derive(Debug, Default)]
 pub struct Allocations {
-    used: HashMap<String, u32>,
+    used: HashMap<String, Vec<u32>>,
 }
 
 impl Allocations {
     /// GPUs bound to pods now.
     pub fn in_use(&self) -> u32 {
-        self.used.values().sum()
+        self.used.values().map(|d| d.len() as u32).sum()
     }
 
-    /// Records `gpus` bound to pod `uid`.
-    pub fn bind(&mut self, uid: &str, gpus: u32) {
-        self.used.insert(uid.to_owned(), gpus);
+    /// Binds `gpus` free devices (the lowest indexes) of a node of `capacity` to pod `uid`.
+    pub fn bind(&mut self, uid: &str, gpus: u32, capacity: Option<u32>) -> Vec<u32> {
+        let total = capacity.unwrap_or(UNMODELLED_GPUS);
+        let taken: std::collections::BTreeSet<u32> =
+            self.used.values().flatten().copied().collect();
+        let mut devices: Vec<u32> = (0..total)
+            .filter(|i| !taken.contains(i))
+            .take(gpus as usize)
+            .collect();
+        // NB: only when GPUs are not modelled can more be asked than are free: share.
+        let mut next = 0;
+        while devices.len() < gpus as usize {
+            devices.push(next % total.max(1));
+            next += 1;
+        }
+        self.used.insert(uid.to_owned(), devices.clone());
+        devices
+    }
+
+    /// The devices of pod `uid`.
+    pub fn devices(&self, uid: &str) -> Vec<u32> {
+        self.used.get(uid).cloned().unwrap_or_default()
     }
 
     /// Frees pod `uid`'s GPUs (idempotent).
     pub fn release(&mut self, uid: &str) {
         self.used.remove(uid);
     }
+}
+
+/// The UUID of GPU `index` of this node, in the form the device plugin hands out.
+pub fn gpu_uuid(index: u32) -> String {
+    format!("GPU-6c6f6361-6c6b-4b75-8265-{index:012x}")
+}
+
+/// A container's own `nvidia.com/gpu` request (an extended resource's request defaults to
+/// its limit).
+pub fn container_gpus(c: &k8s_openapi::api::core::v1::Container) -> u32 {
+    let r = c.resources.as_ref();
+    let request = r.and_then(|r| r.requests.as_ref()).and_then(|m| m.get(GPU));
+    let limit = r.and_then(|r| r.limits.as_ref()).and_then(|m| m.get(GPU));
+    gpus_of(request.or(limit))
+}
+
+/// The `nvidia-smi` this node's containers see (what the NVIDIA container toolkit mounts
+/// into a container with `NVIDIA_VISIBLE_DEVICES` set): it answers
+/// `--query-gpu=index,uuid --format=csv[,noheader]` and `-L` for the GPUs that variable makes
+/// visible (`all`, or a comma-separated list of UUIDs).
+pub fn nvidia_smi_script(gpus: u32) -> String {
+    let rows: String = (0..gpus)
+        .map(|i| format!("{i}, {}\n", gpu_uuid(i)))
+        .collect();
+    format!(
+        r#"#!/bin/sh
+# local-kube's nvidia-smi: the node's {gpus} GPU(s), as the device plugin names them.
+header=1; list=0
+for arg in "$@"; do
+  case "$arg" in
+    --query-gpu=index,uuid) ;;
+    --format=csv) ;;
+    --format=csv,noheader) header=0 ;;
+    -L|--list-gpus) list=1 ;;
+    *) echo "nvidia-smi (local-kube): unsupported argument $arg" >&2; exit 2 ;;
+  esac
+done
+visible="${{NVIDIA_VISIBLE_DEVICES:-}}"
+if [ -z "$visible" ] || [ "$visible" = void ] || [ "$visible" = none ]; then
+  echo "No devices were found" >&2; exit 6
+fi
+[ $list = 0 ] && [ $header = 1 ] && echo "index, uuid"
+printf '{rows}' | while IFS=', ' read -r index uuid; do
+  case ",$visible," in
+    *,all,*|*,"$uuid",*) ;;
+    *) continue ;;
+  esac
+  if [ $list = 1 ]; then echo "GPU $index: local-kube GPU (UUID: $uuid)"; else echo "$index, $uuid"; fi
+done
+"#
+    )
 }
 
 fn gpus_of(q: Option<&Quantity>) -> u32 {
@@ -47,18 +123,12 @@ fn gpus_of(q: Option<&Quantity>) -> u32 {
 /// over the app containers and the largest init container (an extended resource's request
 /// defaults to its limit and must equal it).
 pub fn gpu_request(spec: &PodSpec) -> u32 {
-    let of = |c: &k8s_openapi::api::core::v1::Container| {
-        let r = c.resources.as_ref();
-        let request = r.and_then(|r| r.requests.as_ref()).and_then(|m| m.get(GPU));
-        let limit = r.and_then(|r| r.limits.as_ref()).and_then(|m| m.get(GPU));
-        gpus_of(request.or(limit))
-    };
-    let apps: u32 = spec.containers.iter().map(of).sum();
+    let apps: u32 = spec.containers.iter().map(container_gpus).sum();
     let inits = spec
         .init_containers
         .iter()
         .flatten()
-        .map(of)
+        .map(container_gpus)
         .max()
         .unwrap_or(0);
     apps.max(inits)
@@ -142,11 +212,15 @@ mod tests {
         assert!(!fits(Some(1), 0, 2));
         assert!(fits(None, 100, 8));
         let mut a = Allocations::default();
-        a.bind("x", 2);
-        a.bind("y", 1);
+        assert_eq!(a.bind("x", 2, Some(4)), [0, 1]);
+        assert_eq!(a.bind("y", 1, Some(4)), [2]);
         a.release("x");
         a.release("x");
         assert_eq!(a.in_use(), 1);
+        // Freed devices are handed out again, lowest first; no two pods share one.
+        assert_eq!(a.bind("z", 2, Some(4)), [0, 1]);
+        assert_eq!(a.devices("y"), [2]);
+        assert_eq!(a.devices("gone"), Vec::<u32>::new());
     }
 
     #[test]
