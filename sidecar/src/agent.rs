@@ -180,7 +180,7 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
     let resuming = resume(attempt, &paths.checkpoint);
     // CARLA's port, as its sidecar announced it before writing the start marker.
     let port = handoff::announced_port(&p.handoff_dir, id).unwrap_or(p.carla_port);
-    let tm_port = port.saturating_add(p.carla_tm_port.wrapping_sub(p.carla_port));
+    let tm_port = port.saturating_add(p.tm_offset());
     let envs = [
         (env::CARLA_PORT, port.to_string()),
         (env::CARLA_TM_PORT, tm_port.to_string()),

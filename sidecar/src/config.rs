@@ -215,6 +215,11 @@ pub struct PairConfig {
 }
 
 impl PairConfig {
+    /// How far the traffic manager's port is from CARLA's (kept when CARLA's port moves).
+    pub fn tm_offset(&self) -> u16 {
+        self.carla_tm_port.wrapping_sub(self.carla_port)
+    }
+
     /// Reads the pair's variables.
     pub fn read(e: &Env<'_>) -> Result<PairConfig, EnvError> {
         let common = Common::read(e)?;

@@ -75,7 +75,9 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
             }
             Err(e) => {
                 warn!(pair = id, error = %e, "no GPU to render on");
-                note_in(&log, &format!("simulator {id} attempt {attempt}: {e}"));
+                if let Ok(f) = crate::supervise::open_log(&log) {
+                    crate::supervise::note(&f, &format!("simulator {id} attempt {attempt}: {e}"));
+                }
                 write_marker(&status, crash)?;
                 return Ok(PairOutcome::Crashed);
             }
@@ -83,8 +85,7 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
     } else {
         None
     };
-    let tm_offset = cfg.carla_tm_port.wrapping_sub(cfg.carla_port);
-    let port = handoff::pick_port(cfg.carla_port, tm_offset);
+    let port = handoff::pick_port(cfg.carla_port, cfg.tm_offset());
     if port != cfg.carla_port {
         warn!(
             pair = id,
@@ -180,20 +181,6 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
                 }
             };
         }
-    }
-}
-
-/// Appends a note to the simulator's log before CARLA ever ran (so the log says why not).
-fn note_in(log: &std::path::Path, text: &str) {
-    if let Some(dir) = log.parent() {
-        let _ = std::fs::create_dir_all(dir);
-    }
-    if let Ok(f) = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(log)
-    {
-        crate::supervise::note(&f, text);
     }
 }
 

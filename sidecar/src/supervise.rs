@@ -71,15 +71,7 @@ impl Supervised {
         let (program, args) = argv
             .split_first()
             .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidInput, "no command given"))?;
-        if let Some(dir) = log_path.parent() {
-            fs::create_dir_all(dir)?;
-        }
-        let log = Arc::new(
-            OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(log_path)?,
-        );
+        let log = Arc::new(open_log(log_path)?);
         let mut command = Command::new(program);
         command
             .args(args)
@@ -281,6 +273,14 @@ impl Drop for Supervised {
             self.signal_all(Signal::SIGKILL);
         }
     }
+}
+
+/// Opens a child's log for appending, creating it and its directory.
+pub fn open_log(path: &Path) -> io::Result<File> {
+    if let Some(dir) = path.parent() {
+        fs::create_dir_all(dir)?;
+    }
+    OpenOptions::new().create(true).append(true).open(path)
 }
 
 /// Appends `[lb-sidecar <time>] text` to a log.

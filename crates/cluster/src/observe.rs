@@ -488,44 +488,39 @@ fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict 
             };
         }
     }
-    let ended = |j: &&JobView| matches!(j.state, JobState::Complete | JobState::Failed { .. });
     if jobs.iter().all(|j| j.state == JobState::Complete) {
         Verdict::Finished
-    } else if jobs.iter().all(|j| ended(&j)) {
+    } else if jobs
+        .iter()
+        .all(|j| matches!(j.state, JobState::Complete | JobState::Failed { .. }))
+    {
         pairs_gave_up(jobs)
     } else {
         Verdict::Running
     }
 }
 
-/// Every Job has ended and some ran out of retries: the failure names each of those.
+/// Every Job has ended and some ran out of retries: the first one's failure, naming each.
 fn pairs_gave_up(jobs: &[JobView]) -> Verdict {
-    let failed: Vec<Verdict> = jobs
+    let mut messages = Vec::new();
+    let mut first = None;
+    for job in jobs
         .iter()
         .filter(|j| matches!(j.state, JobState::Failed { .. }))
-        .map(job_failed)
-        .collect();
-    let messages: Vec<&str> = failed
-        .iter()
-        .filter_map(|v| match v {
-            Verdict::Failed { message, .. } => Some(message.as_str()),
-            _ => None,
-        })
-        .collect();
-    let message = messages.join("; ");
-    match failed.into_iter().next() {
-        Some(Verdict::Failed {
+    {
+        if let Verdict::Failed { kind, message, .. } = job_failed(job) {
+            first.get_or_insert((kind, job.name.clone()));
+            messages.push(message);
+        }
+    }
+    match first {
+        Some((kind, job)) => Verdict::Failed {
             kind,
-            job,
-            container,
-            ..
-        }) => Verdict::Failed {
-            kind,
-            job,
-            container,
-            message,
+            job: Some(job),
+            container: None,
+            message: messages.join("; "),
         },
-        _ => Verdict::Running,
+        None => Verdict::Running,
     }
 }
 

@@ -7,7 +7,6 @@ use std::path::PathBuf;
 
 use k8s_openapi::api::batch::v1::Job;
 use k8s_openapi::api::core::v1::{Container, PodSpec};
-use k8s_openapi::apimachinery::pkg::api::resource::Quantity;
 use lb_domain::plan::{plan, PlanInput, SUBMISSION_LABEL, TEAM_LABEL};
 use lb_domain::results::Leaderboard;
 use lb_domain::settings::{Images, LeaderboardSettings};
@@ -128,11 +127,11 @@ fn mounts(c: &Container) -> Vec<(String, String, String)> {
 
 /// A container's `nvidia.com/gpu` (request, limit).
 fn gpus(c: &Container) -> Option<(String, String)> {
-    let r = c.resources.as_ref()?;
-    let get = |m: &Option<BTreeMap<String, Quantity>>| {
-        m.as_ref()?.get("nvidia.com/gpu").map(|q| q.0.clone())
-    };
-    Some((get(&r.requests)?, get(&r.limits)?))
+    let r = resources(c);
+    Some((
+        r.get("requests.nvidia.com/gpu")?.clone(),
+        r.get("limits.nvidia.com/gpu")?.clone(),
+    ))
 }
 
 fn names(job: &Job) -> Vec<String> {

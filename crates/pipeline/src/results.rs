@@ -206,6 +206,8 @@ pub async fn merge_partials(
             WorkerFile::Empty(reason) => warn!(%reason, "a results file counts as empty"),
         }
     }
+    finished_pairs.sort_unstable();
+    finished_pairs.dedup();
     let expected = Expected {
         routes: pairs.iter().map(|(_, s)| s.last - s.first + 1).sum(),
         repetitions: u64::from(repetitions),
@@ -226,8 +228,6 @@ pub async fn merge_partials(
         },
     )
     .map_err(results_error)?;
-    finished_pairs.sort_unstable();
-    finished_pairs.dedup();
     Ok(Merge {
         progress: outcome.merged.progress,
         complete: outcome.complete,

@@ -1457,6 +1457,17 @@ async fn an_injected_outage_answers_500_internal_error_then_ends() {
     .await;
 }
 
+/// local-kube with a node of `gpus` GPUs, and its Jobs and Pods in `default`.
+async fn gpu_node(gpus: u32) -> (LocalKube, Api<Job>, Api<Pod>) {
+    let (lk, client) = start(Config {
+        gpus: Some(gpus),
+        ..Config::default()
+    })
+    .await;
+    let jobs = Api::namespaced(client.clone(), "default");
+    (lk, jobs, Api::namespaced(client, "default"))
+}
+
 /// A Job of one container that requests `gpus` and runs `script`.
 fn gpu_job(name: &str, gpus: u32, script: &str) -> Job {
     job(&format!(
@@ -1494,13 +1505,7 @@ fn scheduled(pod: &Pod) -> Option<k8s_openapi::api::core::v1::PodCondition> {
 /// is bound when room frees; one larger than the node waits for good.
 #[tokio::test]
 async fn pods_wait_pending_unschedulable_until_the_nodes_gpus_free() {
-    let (_lk, client) = start(Config {
-        gpus: Some(2),
-        ..Config::default()
-    })
-    .await;
-    let jobs: Api<Job> = Api::namespaced(client.clone(), "default");
-    let pods: Api<Pod> = Api::namespaced(client, "default");
+    let (_lk, jobs, pods) = gpu_node(2).await;
     let pp = PostParams::default();
     jobs.create(&pp, &gpu_job("first", 2, "sleep 1"))
         .await
@@ -1565,13 +1570,7 @@ async fn pods_wait_pending_unschedulable_until_the_nodes_gpus_free() {
 /// get the same GPU, and `nvidia-smi` lists what the variable makes visible (`all`: the node's).
 #[tokio::test]
 async fn containers_get_their_own_gpus_by_uuid_and_nvidia_smi_lists_the_visible_ones() {
-    let (_lk, client) = start(Config {
-        gpus: Some(3),
-        ..Config::default()
-    })
-    .await;
-    let jobs: Api<Job> = Api::namespaced(client.clone(), "default");
-    let pods: Api<Pod> = Api::namespaced(client, "default");
+    let (_lk, jobs, pods) = gpu_node(3).await;
     let pp = PostParams::default();
     let show = "echo visible=$NVIDIA_VISIBLE_DEVICES; nvidia-smi --query-gpu=index,uuid --format=csv,noheader; sleep 1";
     for name in ["one", "two"] {
