@@ -39,6 +39,10 @@ pub struct DeploymentArgs {
         default_value = "leaderboard/settings"
     )]
     pub settings_secret: String,
+    /// The deployment's admission table (stack output `AdmissionTable`): `status` and `list`
+    /// then show each queued submission's place and what holds it back.
+    #[arg(long, value_name = "TABLE", env = "LB_ADMISSION_TABLE")]
+    pub admission_table: Option<String>,
 }
 
 /// Where the EvalAI host token is, for the commands that talk to EvalAI.
@@ -72,6 +76,8 @@ pub struct Deployment {
     pub dynamo: aws_sdk_dynamodb::Client,
     /// S3 (path-style under an endpoint override).
     pub s3: aws_sdk_s3::Client,
+    /// The leaderboards' queues, when named.
+    pub admission: Option<lb_aws::admission::AdmissionTable>,
 }
 
 /// One submission record and where it was found.
@@ -127,6 +133,9 @@ impl Deployment {
                 )
             })?;
         Ok(Deployment {
+            admission: args.admission_table.as_ref().map(|table| {
+                lb_aws::admission::AdmissionTable::new(aws_sdk_dynamodb::Client::new(&sdk), table)
+            }),
             dynamo: aws_sdk_dynamodb::Client::new(&sdk),
             s3: lb_aws::s3_client(&sdk),
             settings_secret: args.settings_secret.clone(),
@@ -145,6 +154,7 @@ impl Deployment {
             token_secret: token.token_secret.clone(),
             wake_table: None,
             budget_table: token.budget_table.clone(),
+            admission_table: None,
         };
         lb_pipeline::clients::evalai(&self.sdk, &config, &self.settings).await
     }

@@ -13,6 +13,7 @@ mod latency;
 mod local;
 mod logs;
 mod ops;
+mod queue_report;
 mod relay;
 mod rescore;
 mod watch;

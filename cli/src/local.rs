@@ -66,6 +66,20 @@ pub struct LocalRun {
     /// beyond them wait Pending, Unschedulable, until a GPU frees. Default: not modelled.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub gpus: Option<u32>,
+    /// Submissions run together, from the teams of --teams, arriving on EvalAI in that order.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=50))]
+    pub submissions: u32,
+    /// How many of the submissions each team sends, e.g. `6,2,2,2` (summing to
+    /// --submissions; the first team's go first). Default: one team for all.
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..=50))]
+    pub teams: Vec<u32>,
+    /// The leaderboard's `team_limit`: evaluations one team may hold at once.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub team_limit: Option<u32>,
+    /// Write what the fake EvalAI saw of each submission (statuses in order, queue places
+    /// shown, admission order, requests a minute) to this JSON file.
+    #[arg(long, value_name = "FILE")]
+    pub report: Option<std::path::PathBuf>,
     /// Routes of the track.
     #[arg(long, default_value_t = 20)]
     pub routes: u32,
@@ -144,6 +158,10 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             args.kube_outage_minutes
         );
     }
+    let teams = team_sizes(&args)?;
+    if teams.len() > 1 && args.evalai_url.is_some() {
+        bail!("--teams needs the fake EvalAI (an external one has its own teams)");
+    }
     let started = Instant::now();
     let bins = Binaries::find()?;
 
@@ -161,6 +179,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             .max(1.0) as u64,
     );
     settings["leaderboards"][&args.leaderboard]["partial_update_seconds"] = json!(interval);
+    if let Some(limit) = args.team_limit {
+        settings["leaderboards"][&args.leaderboard]["team_limit"] = json!(limit);
+    }
     // Another EvalAI has its own phase ids: its phase runs the chosen leaderboard's track.
     if let (Some(_), Some(p)) = (&args.evalai_url, args.phase) {
         settings["phases"][p.to_string()] =
@@ -171,7 +192,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         url,
         token: args.evalai_token.clone().unwrap_or_default(),
     });
-    let mut stack = Stack::start(external.unwrap_or(EvalAi::Fake(Fixture::default())))
+    let mut stack = Stack::start(external.unwrap_or(EvalAi::Fake(fixture_with_teams(teams.len()))))
         .await
         .context("starting the local stack (run `make venv` for moto)")?;
     say(
@@ -235,31 +256,35 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     } else {
         IMAGE
     };
-    let (challenge, phase, submission) = match (
+    let (challenge, phase, arrivals) = match (
         &stack.fake_evalai,
         args.challenge,
         args.phase,
         args.submission,
     ) {
         (Some(fake), _, _, _) => {
-            let new = fake
-                .add_submission(fake_evalai::NewSubmission {
-                    challenge_phase: phase,
-                    participant_team: 1,
-                    submitted_image_uri: image.into(),
-                    created_by: None,
-                })
-                .map_err(|e| anyhow::anyhow!("{e}"))?;
-            (1, phase, new.id)
+            let mut arrivals = Vec::new();
+            for (index, size) in teams.iter().enumerate() {
+                for _ in 0..*size {
+                    let team = index as u64 + 1;
+                    let new = fake
+                        .add_submission(fake_evalai::NewSubmission {
+                            challenge_phase: phase,
+                            participant_team: team,
+                            submitted_image_uri: image.into(),
+                            created_by: None,
+                        })
+                        .map_err(|e| anyhow::anyhow!("{e}"))?;
+                    arrivals.push((new.id, team));
+                }
+            }
+            (1, phase, arrivals)
         }
-        (None, Some(c), Some(p), Some(s)) => (c, p, s),
+        (None, Some(c), Some(p), Some(s)) => (c, p, vec![(s, 0)]),
         _ => bail!("an external EvalAI needs --challenge, --phase and --submission"),
     };
-    let input = sqs_round_trip(&stack, challenge, phase, submission, image).await?;
-    say(
-        started,
-        format!("message for submission {submission} received from SQS; Pipe output {input}"),
-    );
+    // The first is the one the summary describes in detail (and the scenarios act on).
+    let submission = arrivals[0].0;
 
     // The handlers, in-process, each with its clients built once.
     let config = local_stack::stack::function_config();
@@ -330,6 +355,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         .filter(|_| args.kube_outage_minutes > 0.0);
     let outage_for = Duration::from_secs_f64(args.kube_outage_minutes * 60.0 * args.time_scale);
     let outage_minutes = args.kube_outage_minutes;
+    let many = arrivals.len() > 1;
     let on_event = {
         let rounds = rounds.clone();
         let acted = acted.clone();
@@ -337,6 +363,10 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         let scenario = args.scenario;
         let cancel_after = args.cancel_after_round;
         Arc::new(move |event: &HistoryEvent| {
+            if many {
+                // Many executions: the per-round lines of each would drown the summary.
+                return;
+            }
             if event.event_type == EventType::TaskStateEntered {
                 let name = event.state_name().unwrap_or_default();
                 if name == "Monitor" {
@@ -391,6 +421,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             time_scale: args.time_scale,
             deadline: Some(Duration::from_secs(args.timeout)),
             on_event: Some(on_event),
+            // The handlers run in-process at real speed, and the shared EvalAI budget is a
+            // real minute's requests: a Lambda's timeout is not scaled (its waits are).
+            scale_invocation_timeouts: false,
             ..Options::default()
         },
     )
@@ -405,10 +438,47 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         !args.no_wake,
     )
     .await?;
-    let execution = executor
-        .start(&machine, &format!("local-{submission}"), input)
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let result = execution.wait().await;
+    // All at once, as EvalAI's messages come: each one's place in the queue is when EvalAI
+    // received it (`submitted_at`), the order of `arrivals`.
+    let mut executions = Vec::new();
+    for (id, team) in &arrivals {
+        let input = sqs_round_trip(&stack, challenge, phase, *id, image).await?;
+        if !many {
+            say(
+                started,
+                format!("message for submission {id} received from SQS; Pipe output {input}"),
+            );
+        }
+        let execution = executor
+            .start(&machine, &format!("local-{id}"), input)
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        executions.push((*id, *team, execution));
+    }
+    if many {
+        say(
+            started,
+            format!(
+                "{} submissions from {} teams arrived",
+                arrivals.len(),
+                teams.len()
+            ),
+        );
+    }
+    let mut results = Vec::new();
+    for (id, team, execution) in executions {
+        let result = execution.wait().await;
+        if many {
+            say(
+                started,
+                format!(
+                    "submission {id} (team {team}): execution {}",
+                    result.status.as_str()
+                ),
+            );
+        }
+        results.push(result);
+    }
+    let result = results.remove(0);
     let ended = Instant::now();
     let wake_messages = relays.wake_messages.load(Ordering::Relaxed);
     let sweep_wakes = relays.sweep_wakes.load(Ordering::Relaxed);
@@ -527,7 +597,21 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     outln!("total          {:.1}s", started.elapsed().as_secs_f64());
 
     let expected = args.scenario.expected();
-    let ok = acted.load(Ordering::SeqCst) && status_on_evalai == expected;
+    let mut ok = acted.load(Ordering::SeqCst) && status_on_evalai == expected;
+    if let Some(fake) = &stack.fake_evalai {
+        let report = crate::queue_report::report(&fake.requests(), &arrivals, |id| {
+            fake.submission(id)
+                .map(|s| (s.status.clone(), s.files.stderr.clone()))
+        });
+        if many {
+            crate::queue_report::print(&report);
+            ok &= report.submissions.iter().all(|s| s.status == expected);
+        }
+        if let Some(path) = &args.report {
+            std::fs::write(path, serde_json::to_string_pretty(&report)?)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+    }
     if args.keep {
         outln!(
             "\nthe stack stays up (kubeconfig {}); Ctrl-C to stop",
@@ -548,6 +632,51 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         );
         Ok(1)
     }
+}
+
+/// Each team's number of submissions, checked against --submissions.
+fn team_sizes(args: &LocalRun) -> anyhow::Result<Vec<u32>> {
+    if args.teams.is_empty() {
+        return Ok(vec![args.submissions]);
+    }
+    let total: u32 = args.teams.iter().sum();
+    if total != args.submissions {
+        bail!(
+            "--teams {:?} sends {total} submissions, --submissions says {}",
+            args.teams,
+            args.submissions
+        );
+    }
+    if args.teams.len() > 20 {
+        bail!("--teams: at most 20 teams");
+    }
+    Ok(args.teams.clone())
+}
+
+/// The fake's default fixture with teams 1..=`teams` (the default has two; more get a member
+/// each, a verified participant).
+fn fixture_with_teams(teams: usize) -> Fixture {
+    let mut fixture = Fixture::default();
+    let next_user = fixture.users.iter().map(|u| u.id).max().unwrap_or(0);
+    for n in (fixture.participant_teams.len() + 1)..=teams {
+        let user = next_user + n as u64;
+        fixture.users.push(fake_evalai::fixture::UserFixture {
+            id: user,
+            username: format!("participant-{n}"),
+            email_verified: true,
+            active: true,
+            staff: false,
+        });
+        fixture
+            .participant_teams
+            .push(fake_evalai::fixture::ParticipantTeamFixture {
+                id: n as u64,
+                name: format!("Team {n}"),
+                members: vec![user],
+                challenges: vec![1],
+            });
+    }
+    fixture
 }
 
 /// `agent_results.json` in a line: its records and how many each route has (Leaderboard 1.0

@@ -1,6 +1,8 @@
 //! `lbctl status`, `lbctl list` and `lbctl cancel`: the submissions of a real deployment as
 //! its DynamoDB records and S3 markers show them, and the operator's cancel.
 
+use std::collections::HashMap;
+
 use clap::Args;
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER, STATUS_DIR};
 use serde_json::{json, Value};
@@ -146,6 +148,61 @@ fn tables(deployment: &Deployment, only: Option<&str>) -> String {
         .unwrap_or_default()
 }
 
+/// A submission's place in its leaderboard's queue, as the admission table shows it.
+#[derive(Debug, Clone, Copy)]
+struct Place {
+    /// Submissions that arrived before it and have not started.
+    ahead: u32,
+    /// Waiting for its team's place, admitted (its pods wait for a GPU), or running.
+    state: lb_domain::queue::EntryState,
+}
+
+impl Place {
+    fn to_json(self) -> Value {
+        json!({"ahead": self.ahead, "state": self.state.as_str()})
+    }
+
+    /// What holds it back, in words.
+    fn describe(self) -> String {
+        use lb_domain::queue::EntryState;
+        match self.state {
+            EntryState::Waiting => format!(
+                "{} ahead; waiting for one of its team's evaluations to end (team limit)",
+                self.ahead
+            ),
+            EntryState::Admitted => format!("{} ahead; its Jobs wait for a free GPU", self.ahead),
+            EntryState::Running => "running".into(),
+        }
+    }
+}
+
+/// Every queued submission's place, by leaderboard and id (empty without `--admission-table`).
+async fn places(
+    deployment: &Deployment,
+    only: Option<&str>,
+) -> Result<HashMap<(String, u64), Place>> {
+    let mut out = HashMap::new();
+    let Some(table) = &deployment.admission else {
+        return Ok(out);
+    };
+    for (name, _) in deployment.leaderboards(only)? {
+        let entries = table
+            .entries(name)
+            .await
+            .map_err(|e| CliError::aws(format!("reading the queue of leaderboard {name}"), e))?;
+        for entry in &entries {
+            out.insert(
+                (name.to_string(), entry.submission_id),
+                Place {
+                    ahead: lb_domain::queue::ahead(&entries, entry),
+                    state: entry.state,
+                },
+            );
+        }
+    }
+    Ok(out)
+}
+
 /// `lbctl status`: the records and markers of one submission.
 pub async fn status(args: Status) -> Result<u8> {
     let deployment = Deployment::load(&args.deployment).await?;
@@ -173,9 +230,20 @@ pub async fn status(args: Status) -> Result<u8> {
             tables(&deployment, None)
         )));
     }
+    let places = places(&deployment, None).await?;
+    let queue: Vec<(&str, Place)> = places
+        .iter()
+        .filter(|((_, sid), _)| *sid == id)
+        .map(|((lb, _), place)| (lb.as_str(), *place))
+        .collect();
     if args.json {
         let out = json!({
             "submission_id": id,
+            "queue": queue.iter().map(|(lb, p)| {
+                let mut v = p.to_json();
+                v["leaderboard"] = json!(lb);
+                v
+            }).collect::<Vec<_>>(),
             "records": found.records.iter().map(Record::to_json).collect::<Vec<_>>(),
             "markers": markers.iter().map(|m| json!({
                 "leaderboard": m.leaderboard,
@@ -198,6 +266,9 @@ pub async fn status(args: Status) -> Result<u8> {
     }
     for record in &found.records {
         print_record(record);
+    }
+    for (lb, place) in &queue {
+        outln!("queue of leaderboard {lb}: {}", place.describe());
     }
     for m in &markers {
         outln!("markers in {} (leaderboard {})", m.location, m.leaderboard);
@@ -278,6 +349,7 @@ pub async fn list(args: List) -> Result<u8> {
     warn_truncated(&found);
     let now = time::OffsetDateTime::now_utc();
     let queue = queue_positions(&found.records);
+    let places = places(&deployment, args.leaderboard.as_deref()).await?;
     let wanted = |r: &Record| {
         let team_ok = args.team.as_deref().is_none_or(|team| {
             r.number("team_id")
@@ -294,9 +366,19 @@ pub async fn list(args: List) -> Result<u8> {
     let matching: Vec<&Record> = found.records.iter().filter(|r| wanted(r)).collect();
     let limit = usize::try_from(args.limit).unwrap_or(usize::MAX);
     let shown = &matching[..matching.len().min(limit)];
-    // 1 for the next to start in its leaderboard.
+    // 1 for the next to start in its leaderboard: the admission table's count when it is
+    // named, else the records' order of arrival.
+    let place = |r: &Record| {
+        places
+            .get(&(r.leaderboard.clone(), r.submission_id()?))
+            .copied()
+    };
     let position = |r: &Record| {
         let id = r.submission_id()?;
+        if let Some(place) = place(r) {
+            return (place.state != lb_domain::queue::EntryState::Running)
+                .then_some(place.ahead as usize + 1);
+        }
         queue
             .iter()
             .filter(|(lb, _)| *lb == r.leaderboard)
@@ -309,6 +391,7 @@ pub async fn list(args: List) -> Result<u8> {
             .map(|r| {
                 let mut v = r.to_json();
                 v["queue_position"] = json!(position(r));
+                v["queue"] = place(r).map_or(Value::Null, Place::to_json);
                 v["age_seconds"] = json!(age(r, now).map(|d| d.whole_seconds()));
                 v
             })

@@ -273,3 +273,118 @@ fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard()
         "the scores reached its leaderboard"
     );
 }
+
+/// Issue 13's capacity run: 12 submissions of 2 pairs from 4 teams (one sends 6) on a local
+/// node of 4 GPUs, each team holding at most 2 evaluations, with the fake EvalAI's throttle
+/// on. Read from what the fake EvalAI was told (`--report`).
+#[test]
+#[ignore = "needs moto"]
+fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
+    let _one = one_at_a_time();
+    local_stack::workloads::Binaries::build().expect("the workloads build");
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("report.json");
+    let stdout = local_run(
+        &[
+            "--submissions",
+            "12",
+            "--teams",
+            "6,2,2,2",
+            "--team-limit",
+            "2",
+            "--gpus",
+            "4",
+            "--workers",
+            "2",
+            "--routes",
+            "2",
+            "--timeout",
+            "500",
+            "--report",
+            report.to_str().unwrap(),
+        ],
+        &[],
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let subs = report["submissions"].as_array().unwrap();
+    assert_eq!(subs.len(), 12);
+    let seq = |s: &serde_json::Value, key: &str| s[key].as_u64();
+    for s in subs {
+        // Every one finished: waiting for capacity or for its turn failed none.
+        assert_eq!(s["status"], "finished", "{s}\n{stdout}");
+        // Queued (EvalAI's PATCH) before it ran.
+        let statuses: Vec<&str> = s["statuses"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        assert_eq!(statuses.first(), Some(&"queued"), "{s}");
+        let running = statuses.iter().position(|x| *x == "running").unwrap();
+        assert!(running > 0, "{s}");
+        // The places its participant was shown only ever went down (then the note went).
+        let places: Vec<u64> = s["places"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|v| v.as_u64())
+            .collect();
+        assert!(places.windows(2).all(|w| w[1] <= w[0]), "{s}");
+        assert!(seq(s, "admitted_seq") < seq(s, "running_seq"), "{s}");
+        assert!(seq(s, "running_seq") < seq(s, "final_seq"), "{s}");
+    }
+    // A team's evaluations in progress: admitted (its Jobs named on EvalAI) and not yet final.
+    let holding = |team: u64, at: u64| {
+        subs.iter()
+            .filter(|s| s["team"] == team)
+            .filter(|s| seq(s, "admitted_seq").unwrap() <= at && at < seq(s, "final_seq").unwrap())
+            .count()
+    };
+    for s in subs {
+        let team = s["team"].as_u64().unwrap();
+        let admitted = seq(s, "admitted_seq").unwrap();
+        // The cap held at every admission.
+        assert!(
+            holding(team, admitted) <= 2,
+            "team {team} over its cap: {report}"
+        );
+        // A team's own submissions take their turns in the order they arrived (EvalAI's
+        // `submitted_at`): one admitted later than a teammate that arrived after it would have
+        // jumped its team's queue. (Across teams, admissions race each other's Launches: the
+        // scheduler's order of creation decides who starts first, so the log shows no order.)
+        for later in subs
+            .iter()
+            .filter(|l| l["team"] == team && l["arrival"].as_u64() > s["arrival"].as_u64())
+        {
+            let (mine, theirs) = (admitted, seq(later, "admitted_seq").unwrap());
+            // Two admitted in one round of their team (both places free) may tell EvalAI in
+            // either order; one admitted after a teammate's end never precedes it.
+            let freed_between = subs.iter().any(|e| {
+                e["team"] == team
+                    && seq(e, "final_seq")
+                        .is_some_and(|f| theirs.min(mine) < f && f < theirs.max(mine))
+            });
+            assert!(
+                mine < theirs || !freed_between,
+                "team {team}: {} arrived before {} but took its turn after: {report}",
+                s["id"],
+                later["id"]
+            );
+        }
+    }
+    // Team 1 sent 6 at once: others went ahead of its later ones (the cap did hold it back).
+    let team_one_last = subs[5]["admitted_seq"].as_u64().unwrap();
+    assert!(
+        subs[6..]
+            .iter()
+            .any(|s| seq(s, "admitted_seq").unwrap() < team_one_last),
+        "{report}"
+    );
+    // One budget for everyone: never more than EvalAI allows, never throttled.
+    assert_eq!(report["throttled"], 0, "{report}");
+    assert!(
+        report["most_in_a_minute"].as_u64().unwrap() <= 60,
+        "{report}"
+    );
+}

@@ -1,10 +1,11 @@
 //! AWS adapters of the pipeline: settings and token from Secrets Manager, the DynamoDB claim
-//! and records, the S3 layout of a submission, EKS access, the wake table, task callbacks and
-//! the shared EvalAI budget.
+//! and records, the S3 layout of a submission, EKS access, the wake table, task callbacks,
+//! the shared EvalAI budget and the admission queue.
 //!
 //! Clients are concrete SDK clients built once per cold start from one [`aws_config::SdkConfig`]
 //! (see [`sdk_config`]); tests point them at moto through `AWS_ENDPOINT_URL`.
 
+pub mod admission;
 pub mod budget;
 pub mod dynamo;
 pub mod eks;

@@ -4,6 +4,7 @@ pub mod logtail;
 pub mod plan;
 pub mod protocol;
 pub mod py;
+pub mod queue;
 pub mod resources;
 pub mod results;
 pub mod schedule;

@@ -46,6 +46,18 @@ pub fn safety_net(elapsed: Duration) -> Duration {
     Duration::from_secs(secs)
 }
 
+/// How long a submission held by its team's cap waits before it asks for its turn again,
+/// `waited` after it arrived: a minute at first, longer as the wait grows, so that the
+/// longest queue `max_queue_hours` allows (336 hours) and the longest evaluation fit one
+/// execution's history (the pipeline's tests count them).
+pub fn queue_wait(waited: Duration) -> Duration {
+    Duration::from_secs(match waited.as_secs() {
+        0..3_600 => 60,
+        3_600..86_400 => 300,
+        _ => 1_800,
+    })
+}
+
 /// The Monitor rounds an evaluation of `length` takes when nothing ever wakes it.
 pub fn quiet_rounds(length: Duration) -> u64 {
     let mut elapsed = FIRST_WAIT;

@@ -96,6 +96,10 @@ pub struct LeaderboardSettings {
     /// before it is failed with that reason, hours. Waiting is never a failure before.
     #[serde(default = "default_queue_hours")]
     pub max_queue_hours: u64,
+    /// How many evaluations one team may hold at once (admitted or running); its further
+    /// submissions wait their turn without holding back other teams' (`crate::queue`).
+    #[serde(default = "default_team_limit")]
+    pub team_limit: u32,
     /// CPU, memory and `/dev/shm` of each simulator-agent pair; by default derived from
     /// `instance_type` (required for a type `lb_domain::resources` does not know).
     #[serde(default)]
@@ -149,6 +153,10 @@ fn default_outage_hours() -> u64 {
 
 fn default_queue_hours() -> u64 {
     24
+}
+
+fn default_team_limit() -> u32 {
+    2
 }
 
 fn default_partial_update_seconds() -> u64 {
@@ -357,6 +365,9 @@ impl Settings {
                     at("max_queue_hours"),
                     "must be between 1 and 336 (two weeks)",
                 );
+            }
+            if !(1..=100).contains(&lb.team_limit) {
+                return invalid(at("team_limit"), "must be between 1 and 100");
             }
             if !(1..=3600).contains(&lb.partial_update_seconds) {
                 return invalid(at("partial_update_seconds"), "must be between 1 and 3600");

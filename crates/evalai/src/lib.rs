@@ -412,6 +412,36 @@ impl EvalAiClient {
             .await
     }
 
+    /// Shows a queued submission's participant where it stands (`note`, e.g. "3 submissions
+    /// are ahead of yours; ..."), or removes that line (`None`) once it started: the key
+    /// [`QUEUE_NOTE_KEY`] of its `submission_metadata`, the one field a host may write that
+    /// a participant sees while it is queued (reference 7.2, PATCH update_submission_meta).
+    /// The participant's own keys are read first and kept. Routine for the budget: a GET and
+    /// a PATCH. A cancelled or ended submission is left alone (the outcome says which), and
+    /// metadata that is not a JSON object, or larger than [`MAX_METADATA_BYTES`], is not
+    /// touched (nothing of the participant's is ever rewritten into another shape).
+    pub async fn show_queue(
+        &self,
+        at: SubmissionRef,
+        note: Option<(u32, &str)>,
+    ) -> Result<WriteOutcome> {
+        let ask = Ask::new(self.priority, 2);
+        let current = self.read_submission(at.submission, ask).await?;
+        if let Some(refused) = refuse_write(current.status) {
+            return Ok(refused);
+        }
+        let Some(metadata) = queue_metadata(&current.metadata, note) else {
+            return Ok(WriteOutcome::Written);
+        };
+        let url = format!(
+            "{}/api/jobs/challenges/{}/submissions/{}/update_submission_meta/",
+            self.base, at.challenge, at.submission
+        );
+        let body = json!({ "submission_metadata": metadata });
+        self.write(Method::PATCH, &url, body, at, current.status, ask.priority)
+            .await
+    }
+
     async fn mark_progress(
         &self,
         at: SubmissionRef,
@@ -800,6 +830,44 @@ enum Failure {
 /// neither by a progress update (`running`, `partially_evaluated`) nor replaced by another
 /// final update (a late or repeated Finalize must not turn `finished` into `failed`, nor send
 /// the same update twice). A resume goes through EvalAI's own `resuming` first.
+/// The key of `submission_metadata` that holds the queue note.
+pub const QUEUE_NOTE_KEY: &str = "evaluation_queue";
+
+/// The largest `submission_metadata` we rewrite to add the queue note.
+pub const MAX_QUEUE_METADATA_BYTES: usize = 64 * 1024;
+
+/// The participant's metadata with the queue note set (or removed): `None` when there is
+/// nothing to write (no change) or it must not be touched (not an object, too large).
+fn queue_metadata(current: &Value, note: Option<(u32, &str)>) -> Option<Value> {
+    let mut object = match current {
+        Value::Null => serde_json::Map::new(),
+        Value::Object(object) if current.to_string().len() <= MAX_QUEUE_METADATA_BYTES => {
+            object.clone()
+        }
+        _ => return None,
+    };
+    let before = object.get(QUEUE_NOTE_KEY).cloned();
+    match note {
+        Some((ahead, text)) => {
+            object.insert(
+                QUEUE_NOTE_KEY.into(),
+                json!({ "ahead": ahead, "message": text }),
+            );
+        }
+        None => {
+            object.remove(QUEUE_NOTE_KEY);
+        }
+    }
+    if object.get(QUEUE_NOTE_KEY) == before.as_ref() {
+        return None;
+    }
+    Some(if object.is_empty() {
+        Value::Null
+    } else {
+        Value::Object(object)
+    })
+}
+
 fn refuse_write(current: SubmissionStatus) -> Option<WriteOutcome> {
     if current == SubmissionStatus::Cancelled {
         return Some(WriteOutcome::Cancelled);
@@ -812,6 +880,29 @@ fn refuse_write(current: SubmissionStatus) -> Option<WriteOutcome> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_queue_note_keeps_the_participants_keys_and_never_reshapes_them() {
+        let theirs = json!({"method": "ours", "seed": 3});
+        let with = queue_metadata(&theirs, Some((3, "3 ahead"))).unwrap();
+        assert_eq!(
+            with,
+            json!({"method": "ours", "seed": 3, "evaluation_queue": {"ahead": 3, "message": "3 ahead"}})
+        );
+        // The same note again: nothing to write.
+        assert_eq!(queue_metadata(&with, Some((3, "3 ahead"))), None);
+        // Removed once it runs: the participant's keys as they were.
+        assert_eq!(queue_metadata(&with, None).unwrap(), theirs);
+        assert_eq!(queue_metadata(&theirs, None), None);
+        // No metadata at all: the note alone, and back to null.
+        let alone = queue_metadata(&Value::Null, Some((0, "none"))).unwrap();
+        assert_eq!(queue_metadata(&alone, None).unwrap(), Value::Null);
+        // Not an object, or too large: left as the participant made it.
+        assert_eq!(queue_metadata(&json!([1, 2]), Some((1, "x"))), None);
+        assert_eq!(queue_metadata(&json!("text"), Some((1, "x"))), None);
+        let big = json!({"blob": "x".repeat(MAX_QUEUE_METADATA_BYTES)});
+        assert_eq!(queue_metadata(&big, Some((1, "x"))), None);
+    }
 
     #[test]
     fn cancelled_is_never_overwritten_and_a_final_status_stands() {

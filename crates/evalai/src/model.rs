@@ -22,6 +22,12 @@ pub struct Submission {
     pub input_file: Option<String>,
     /// Job names EvalAI recorded (may hold duplicates and a previous run's names).
     pub job_names: Vec<String>,
+    /// When EvalAI received it (`submitted_at`), epoch milliseconds: its place in the queue.
+    /// `None` when absent or not an ISO-8601 time.
+    pub submitted_ms: Option<u64>,
+    /// `submission_metadata`: the participant's answers to the phase's metadata fields, and
+    /// the queue note we add (`EvalAiClient::show_queue`). Any JSON; `Null` when unset.
+    pub metadata: Value,
 }
 
 /// Longest team name we carry around; EvalAI allows long names, Kubernetes labels do not.
@@ -66,7 +72,20 @@ impl Submission {
                 .ok_or_else(|| bad("job_name", "is not a list of strings"))?,
             Some(_) => return Err(bad("job_name", "is not a list")),
         };
+        let metadata = value
+            .get("submission_metadata")
+            .cloned()
+            .unwrap_or(Value::Null);
+        let submitted_ms = value
+            .get("submitted_at")
+            .and_then(Value::as_str)
+            .and_then(|t| {
+                time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339).ok()
+            })
+            .and_then(|t| u64::try_from(t.unix_timestamp_nanos() / 1_000_000).ok());
         Ok(Submission {
+            submitted_ms,
+            metadata,
             id: uint("id")?,
             team_id: uint("participant_team")?,
             team_name: team_name.to_owned(),

@@ -774,6 +774,7 @@ impl JobContext {
             job_role_arn: String::new(),
             max_cluster_outage_hours: 6,
             max_queue_hours: 24,
+            team_limit: 2,
             pair_resources: None,
             partial_update_seconds: 30,
         };

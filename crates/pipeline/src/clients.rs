@@ -1,6 +1,7 @@
 //! Clients built once per cold start from the environment, shared by the functions' `Deps`.
 
 use aws_config::SdkConfig;
+use lb_aws::admission::AdmissionTable;
 use lb_aws::budget::BudgetTable;
 use lb_domain::settings::Settings;
 use lb_evalai::{AuthScheme, BudgetPolicy, EvalAiClient, RetryPolicy};
@@ -43,6 +44,14 @@ pub async fn evalai(
     Ok(client.with_budget(std::sync::Arc::new(budget)))
 }
 
+/// The admission table, when the function has one.
+pub fn admission(sdk: &SdkConfig, config: &FunctionConfig) -> Option<AdmissionTable> {
+    config
+        .admission_table
+        .as_ref()
+        .map(|table| AdmissionTable::new(aws_sdk_dynamodb::Client::new(sdk), table))
+}
+
 /// Now, in the records' time format (the original's `2024-03-07 10:31:02 UTC`).
 pub fn now_record_time() -> String {
     lb_aws::dynamo::record_time(time::OffsetDateTime::now_utc())
@@ -75,6 +84,8 @@ pub struct RunClients {
     pub s3: aws_sdk_s3::Client,
     /// DynamoDB.
     pub dynamo: aws_sdk_dynamodb::Client,
+    /// The leaderboards' queues, when configured.
+    pub admission: Option<AdmissionTable>,
 }
 
 impl RunClients {
@@ -99,6 +110,7 @@ impl RunClients {
             clusters,
             s3: lb_aws::s3_client(sdk),
             dynamo: aws_sdk_dynamodb::Client::new(sdk),
+            admission: admission(sdk, config),
         })
     }
 }

@@ -16,6 +16,10 @@ pub struct FunctionConfig {
     /// `LB_BUDGET_TABLE`: the shared EvalAI budget (`lb_aws::budget`) every EvalAI request
     /// takes from; unset only where one function runs alone (a tool run by hand).
     pub budget_table: Option<String>,
+    /// `LB_ADMISSION_TABLE`: the leaderboards' queues (`lb_aws::admission`), where Launch
+    /// admits and the Monitor and Finalize move a submission on; unset, nothing is queued
+    /// (every submission is admitted at once: a tool run by hand).
+    pub admission_table: Option<String>,
 }
 
 impl FunctionConfig {
@@ -36,6 +40,7 @@ impl FunctionConfig {
             token_secret: get("LB_EVALAI_TOKEN_SECRET")?,
             wake_table: lookup("LB_WAKE_TABLE").filter(|v| !v.trim().is_empty()),
             budget_table: lookup("LB_BUDGET_TABLE").filter(|v| !v.trim().is_empty()),
+            admission_table: lookup("LB_ADMISSION_TABLE").filter(|v| !v.trim().is_empty()),
         })
     }
 }

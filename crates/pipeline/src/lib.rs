@@ -5,6 +5,7 @@ pub mod cluster;
 pub mod config;
 pub mod error;
 pub mod payload;
+pub mod queue;
 pub mod results;
 
 pub use config::FunctionConfig;

@@ -111,6 +111,10 @@ pub struct SubmissionInfo {
     pub resuming: bool,
     /// The execution that claimed it.
     pub execution: String,
+    /// When it arrived (EvalAI's `submitted_at`, epoch milliseconds): its place in the queue.
+    /// `None` for a resume (it arrives again now) or when EvalAI did not say.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arrived_ms: Option<u64>,
 }
 
 /// The run as Launch started it and the Monitor carries it along (`$.run`).
@@ -130,6 +134,54 @@ pub struct RunState {
     pub launched_at: u64,
     /// The Monitor's state between rounds.
     pub monitor: MonitorState,
+    /// Its place in the leaderboard's queue (a run from before the queue was admitted).
+    #[serde(default)]
+    pub queue: QueueState,
+}
+
+/// A run's place in the queue (`lb_domain::queue`): held by its team's cap until admitted,
+/// then its pods wait for a GPU until the first pair starts.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct QueueState {
+    /// When it arrived (epoch seconds): `max_queue_hours` counts from here.
+    pub arrived_at: u64,
+    /// Its Jobs may exist (they do once Launch ran after the admission).
+    pub admitted: bool,
+    /// Submissions ahead of it, as last counted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ahead: Option<u32>,
+    /// What its participant last saw on EvalAI (`ahead`), and when (epoch seconds): the note
+    /// is rewritten only when it changed, at most once per `QUEUE_NOTE_INTERVAL`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shown: Option<u32>,
+    /// When it was shown.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shown_at: Option<u64>,
+}
+
+impl Default for QueueState {
+    /// A run launched before admission existed: admitted, with no place to show.
+    fn default() -> Self {
+        QueueState {
+            arrived_at: 0,
+            admitted: true,
+            ahead: None,
+            shown: None,
+            shown_at: None,
+        }
+    }
+}
+
+impl QueueState {
+    /// A submission arriving now (epoch seconds), not admitted yet.
+    pub fn arriving(now: u64) -> Self {
+        QueueState {
+            arrived_at: now,
+            admitted: false,
+            ..QueueState::default()
+        }
+    }
 }
 
 /// One worker's routes.
@@ -206,6 +258,8 @@ pub enum RunPhase {
     Failed,
     /// The participant cancelled.
     Cancelled,
+    /// Held by its team's cap until now: Launch creates its Jobs next.
+    Admitted,
 }
 
 #[cfg(test)]

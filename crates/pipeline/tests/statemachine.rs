@@ -261,6 +261,37 @@ fn a_72_hour_evaluation_stays_under_2000_history_events_however_its_routes_go() 
 }
 
 #[test]
+fn the_longest_wait_for_a_turn_and_the_longest_evaluation_fit_one_history() {
+    let def = definition();
+    let states = states(&def);
+    let sum = |names: &[&str]| names.iter().map(|s| events(states, s)).sum::<u64>();
+    // The turn comes: the Choice sends the run back to create its Jobs.
+    let choices = states["Next?"]["Choices"].as_array().unwrap();
+    assert_eq!(choices[0]["StringEquals"], "admitted");
+    assert_eq!(choices[0]["Next"], "LaunchAdmitted");
+    assert_eq!(states["LaunchAdmitted"]["Next"], "Next?");
+    assert_eq!(
+        states["LaunchAdmitted"]["Parameters"]["queue.$"],
+        "$.run.queue"
+    );
+    // A waiting round is a quiet round (its wait is the queue's safety net); the longest queue
+    // the settings allow (336 hours) at the queue's pace, woken at most once a round.
+    let round = sum(&["Next?", "WaitForChange", "Monitor"]);
+    let mut waited = std::time::Duration::ZERO;
+    let mut rounds = 0u64;
+    while waited < std::time::Duration::from_secs(336 * 3600) {
+        waited += lb_domain::schedule::queue_wait(waited);
+        rounds += 1;
+    }
+    let queue = rounds * round + sum(&["Next?", "LaunchAdmitted"]);
+    println!("queue: {rounds} rounds x {round} = {queue}");
+    assert!(
+        queue + HISTORY_BUDGET < 25_000,
+        "Step Functions' limit is 25,000 events: {queue} + {HISTORY_BUDGET}"
+    );
+}
+
+#[test]
 fn the_wait_for_a_change_stores_its_token_only_while_the_count_is_what_the_monitor_read() {
     let def = definition();
     let wait = &states(&def)["WaitForChange"];

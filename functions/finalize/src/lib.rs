@@ -263,6 +263,8 @@ async fn finish_run(
         .filter(|s| !RecordStatus::is_in_flight(s))
     {
         info!(submission_id = id, status = %stored, "already finalized; nothing done");
+        // An earlier attempt may have ended before it gave the place back.
+        leave_queue(deps, submission).await?;
         return Ok(FinalizeOutput {
             status: stored,
             pipeline_error: error.is_some(),
@@ -468,11 +470,30 @@ async fn finish_run(
         status = record_status.as_str(),
         "finalized"
     );
+    leave_queue(deps, submission).await?;
     Ok(FinalizeOutput {
         status: record_status.as_str().into(),
         pipeline_error: error.is_some(),
         reason,
     })
+}
+
+/// Gives the team its place back and takes the submission out of its leaderboard's queue,
+/// last: EvalAI has its final status before the team's next submission is admitted, so the
+/// team never shows more than its `team_limit` evaluations in progress. Repeating it is
+/// harmless.
+async fn leave_queue(deps: &Deps, submission: &SubmissionInfo) -> Result<()> {
+    if let Some(table) = &deps.clients.admission {
+        table
+            .release(
+                &submission.leaderboard,
+                submission.submission_id,
+                submission.team_id,
+            )
+            .await?;
+        info!(submission_id = submission.submission_id, "left the queue");
+    }
+    Ok(())
 }
 
 /// Bytes read from the end of an agent's log: enough for [`MAX_TAIL_CHARS`] characters of

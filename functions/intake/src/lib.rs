@@ -87,6 +87,10 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
         workers: 0,
         resuming: submission.status == SubmissionStatus::Resuming,
         execution: input.execution.clone(),
+        // A resume arrives anew; a new submission's place is when EvalAI received it.
+        arrived_ms: submission
+            .submitted_ms
+            .filter(|_| submission.status != SubmissionStatus::Resuming),
     };
     if !submission.status.starts_evaluation() {
         info!(submission_id = info.submission_id, status = %submission.status, "not ours to run");

@@ -1,17 +1,27 @@
-//! Launch (stages 2 and 3): plan the workers, render the leaderboard's Job template and create
-//! the Jobs on its cluster (adopting those that already exist), then tell EvalAI the
-//! submission is `queued`: it runs (EvalAI's `running`, the record's `RUNNING` and start time)
-//! when the Monitor sees its first pair start.
+//! Launch (stages 2 and 3): take the submission's turn in its leaderboard's queue, then plan the
+//! workers, render the leaderboard's Job template and create the Jobs on its cluster (adopting
+//! those that already exist), and tell EvalAI the submission is `queued`: it runs (EvalAI's
+//! `running`, the record's `RUNNING` and start time) when the Monitor sees its first pair start.
+//!
+//! A submission whose team already holds its `team_limit` evaluations gets no Jobs: it is
+//! `queued` on EvalAI, and the Monitor asks for its turn again each round; once admitted, the
+//! state machine comes back here (`LaunchAdmitted`) to create them.
 
 use aws_config::SdkConfig;
+use lb_aws::admission::AdmissionTable;
 use lb_domain::plan::{plan, PlanInput};
+use lb_domain::schedule::queue_wait;
 use lb_domain::schedule::FIRST_WAIT;
 use lb_domain::settings::Settings;
 use lb_evalai::{EvalAiClient, SubmissionRef, WriteOutcome};
 use lb_jobs::{render_plan, JobSettings};
 use lb_pipeline::cluster::{cluster_error, Clusters};
-use lb_pipeline::payload::{MonitorState, PairRoutes, RunPhase, RunState, SubmissionInfo};
-use lb_pipeline::{clients, FnError, FunctionConfig, Result};
+use lb_pipeline::payload::{
+    MonitorState, PairRoutes, QueueState, RunPhase, RunState, SubmissionInfo,
+};
+use lb_pipeline::{clients, queue, FnError, FunctionConfig, Result};
+use std::time::Duration;
+
 use serde::Deserialize;
 use tracing::{info, warn};
 
@@ -28,6 +38,8 @@ pub struct Deps {
     pub region: String,
     /// The sidecar's timers, when not the defaults (local runs poll faster).
     pub timers: Option<lb_jobs::Timers>,
+    /// The leaderboards' queues (`None`: every submission is admitted at once).
+    pub admission: Option<AdmissionTable>,
 }
 
 impl Deps {
@@ -52,6 +64,7 @@ impl Deps {
             clusters,
             region: sdk.region().map(|r| r.to_string()).unwrap_or_default(),
             timers: None,
+            admission: clients::admission(sdk, config),
         })
     }
 }
@@ -62,6 +75,10 @@ impl Deps {
 pub struct LaunchInput {
     /// As Intake established it.
     pub submission: SubmissionInfo,
+    /// Its place in the queue, when it waited for its turn (`LaunchAdmitted`); none the first
+    /// time.
+    #[serde(default)]
+    pub queue: Option<QueueState>,
 }
 
 /// The Lambda entry: JSON in, JSON out.
@@ -80,10 +97,22 @@ fn stage(name: &'static str, message: String) -> FnError {
     }
 }
 
-/// Creates the submission's Jobs and starts its run state.
+/// Creates the submission's Jobs and starts its run state, or, when its team holds all its
+/// places, starts the run state of a submission waiting for its turn.
 pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
     let submission = input.submission;
     let target = deps.settings.target(submission.phase_id)?;
+    let now = clients::now_epoch_seconds();
+    // The first Launch tells EvalAI `queued` even when the team's cap holds it back.
+    let first = input.queue.is_none();
+    // Its place is when EvalAI received it (never later than now: a clock ahead is not
+    // believed).
+    let arrived_ms = submission
+        .arrived_ms
+        .map_or(now * 1000, |ms| ms.min(now * 1000));
+    let mut place = input
+        .queue
+        .unwrap_or_else(|| QueueState::arriving(arrived_ms / 1000));
     let plan = plan(PlanInput {
         submission_id: submission.submission_id,
         team_name: &submission.team_name,
@@ -101,6 +130,41 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
     if let Some(timers) = &deps.timers {
         job_settings.timers = timers.clone();
     }
+    let pairs: Vec<PairRoutes> = plan
+        .pairs()
+        .map(|p| PairRoutes {
+            id: p.id,
+            routes: p.routes.to_string(),
+        })
+        .collect();
+    let total = u64::from(submission.routes) * u64::from(job_settings.repetitions);
+    let at = SubmissionRef {
+        challenge: submission.challenge_id,
+        phase: submission.phase_id,
+        submission: submission.submission_id,
+    };
+
+    if let Some(table) = &deps.admission {
+        let standing =
+            queue::take_turn(table, &submission, arrived_ms, target.deployment.team_limit).await?;
+        place.ahead = Some(standing.ahead);
+        if !standing.admitted {
+            info!(
+                submission_id = submission.submission_id,
+                team_id = submission.team_id,
+                ahead = standing.ahead,
+                "the team holds all its places: waiting for its turn"
+            );
+            if first {
+                mark_queued(deps, at, "").await?;
+            }
+            place.admitted = false;
+            let mut run = run_state(0, pairs, job_settings.repetitions, now, total, place);
+            run.monitor.wait_seconds = queue_wait(Duration::ZERO).as_secs();
+            return Ok(run);
+        }
+    }
+    place.admitted = true;
     let jobs = render_plan(
         target.leaderboard,
         &plan,
@@ -128,35 +192,47 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         names.push(launched.name);
     }
 
-    let at = SubmissionRef {
-        challenge: submission.challenge_id,
-        phase: submission.phase_id,
-        submission: submission.submission_id,
-    };
     // Queued until a pair starts: the Monitor sends `running` then (EvalAI's `started_at`,
     // the record's start time), so time spent waiting for a GPU is not the participant's.
-    match deps.evalai.mark_queued(at, &names.join(",")).await? {
+    mark_queued(deps, at, &names.join(",")).await?;
+    Ok(run_state(
+        names.len() as u32,
+        pairs,
+        job_settings.repetitions,
+        clients::now_epoch_seconds(),
+        total,
+        place,
+    ))
+}
+
+/// Tells EvalAI the submission is queued (with its Jobs' names once it has Jobs).
+async fn mark_queued(deps: &Deps, at: SubmissionRef, names: &str) -> Result<()> {
+    match deps.evalai.mark_queued(at, names).await? {
         WriteOutcome::Written => {}
         other => warn!(
-            submission_id = submission.submission_id,
+            submission_id = at.submission,
             ?other,
             "not marked queued; the monitor will see why"
         ),
     }
-    let total = u64::from(submission.routes) * u64::from(job_settings.repetitions);
+    Ok(())
+}
 
-    let now = clients::now_epoch_seconds();
-    Ok(RunState {
-        jobs: names.len() as u32,
-        pairs: plan
-            .pairs()
-            .map(|p| PairRoutes {
-                id: p.id,
-                routes: p.routes.to_string(),
-            })
-            .collect(),
-        repetitions: job_settings.repetitions,
+/// A run's first state: `jobs` Jobs launched (none while it waits for its turn) at `now`.
+fn run_state(
+    jobs: u32,
+    pairs: Vec<PairRoutes>,
+    repetitions: u32,
+    now: u64,
+    total: u64,
+    queue: QueueState,
+) -> RunState {
+    RunState {
+        jobs,
+        pairs,
+        repetitions,
         launched_at: now,
+        queue,
         monitor: MonitorState {
             state: RunPhase::Running,
             wait_seconds: FIRST_WAIT.as_secs(),
@@ -173,5 +249,5 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
             unreachable_since: None,
             started_at: None,
         },
-    })
+    }
 }

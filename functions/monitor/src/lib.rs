@@ -23,12 +23,15 @@ use lb_aws::wake::{WakeState, WakeTable, RETENTION_SECONDS};
 use lb_cluster::{Verdict, VerdictPolicy};
 use lb_domain::protocol::Marker;
 use lb_domain::results::Leaderboard;
-use lb_domain::schedule::{safety_net, MAX_EVALUATION, POLL_WITHOUT_WAKE, STATUS_FALLBACK};
+use lb_domain::schedule::{
+    queue_wait, safety_net, MAX_EVALUATION, POLL_WITHOUT_WAKE, STATUS_FALLBACK,
+};
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{EvalAiError, PartialUpdate, Priority, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::{cluster_error, Clusters};
 use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::queue::{self, QUEUE_NOTE_INTERVAL};
 use lb_pipeline::results::{collect_listed, list};
 use lb_pipeline::{FnError, FunctionConfig, Result};
 use serde::Deserialize;
@@ -143,6 +146,9 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         }
         Err(e) => return Err(e.into()),
     };
+    if !run.queue.admitted {
+        return waiting_round(deps, &submission, run, wake, target.deployment, now).await;
+    }
 
     // The cluster's API out of reach (a 500, a timeout, DescribeCluster failing) skips the
     // verdict this round, as an unreachable S3 or EvalAI skips their part: the Jobs run on
@@ -181,17 +187,39 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         Err(e) => return Err(e),
     };
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
-    let at = SubmissionRef {
-        challenge: submission.challenge_id,
-        phase: submission.phase_id,
-        submission: id,
-    };
+    let at = submission_ref(&submission);
 
     // The first pair started: now the submission runs, for EvalAI and for the record (before
     // any partial update, which a later `running` would otherwise undo).
     if let Some(observation) = &observation {
         if run.monitor.started_at.is_none() && lb_cluster::observe::started(&observation.jobs) {
-            mark_started(deps, at, observation, &mut run, now).await?;
+            mark_started(deps, &submission, observation, &mut run, now).await?;
+        }
+    }
+    // Its place while its pods wait for a GPU; once it runs, the note goes. (`None`: nothing
+    // to do this round: no queue, no entry, or the queue not read.)
+    let note = match (&deps.clients.admission, run.monitor.started_at) {
+        (Some(table), None) => match queue::ahead_of(table, &submission).await {
+            Ok(ahead) => ahead.map(|ahead| {
+                let text = lb_domain::queue::describe(ahead, lb_domain::queue::Hold::Capacity);
+                Some((ahead, text))
+            }),
+            Err(e) => {
+                warn!(submission_id = id, error = %e, "queue not read this round");
+                None
+            }
+        },
+        (_, Some(_)) if run.queue.shown.is_some() => Some(None),
+        _ => None,
+    };
+    if let Some(note) = note {
+        if let Some((ahead, _)) = &note {
+            run.queue.ahead = Some(*ahead);
+        }
+        if show_place(deps, at, &mut run, note, now).await? == Some(SubmissionStatus::Cancelled) {
+            store.put_cancel_marker().await?;
+            run.monitor.state = RunPhase::Cancelled;
+            return Ok(run);
         }
     }
 
@@ -200,40 +228,8 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         send_changed_results(deps, &store, at, leaderboard, &mut run, now, interval).await?;
     // The status itself: to confirm a cancel the sweep found (a flag an earlier run left is
     // not believed without it), or now and then in case the sweep is not running.
-    let fallback_due = run
-        .monitor
-        .status_read_at
-        .is_none_or(|t| now.saturating_sub(t) >= STATUS_FALLBACK.as_secs());
-    if evalai_status.is_none() && (wake.cancel || fallback_due) {
-        // A cancel to confirm goes ahead of partial updates; the fallback yields to them.
-        let priority = if wake.cancel {
-            Priority::Urgent
-        } else {
-            Priority::Routine
-        };
-        match deps
-            .clients
-            .evalai
-            .with_priority(priority)
-            .submission(id)
-            .await
-        {
-            Ok(current) => {
-                evalai_status = Some(current.status);
-                run.monitor.status_read_at = Some(now);
-            }
-            // The budget's decision, not trouble: a later round reads it.
-            Err(EvalAiError::OverBudget) => {
-                info!(
-                    submission_id = id,
-                    "status read deferred by the EvalAI budget"
-                )
-            }
-            Err(e) if e.is_transient() => {
-                warn!(submission_id = id, error = %e, "status not read this round")
-            }
-            Err(e) => return Err(e.into()),
-        }
+    if evalai_status.is_none() {
+        evalai_status = read_status(deps, id, wake.cancel, &mut run, now).await?;
     }
 
     if evalai_status == Some(SubmissionStatus::Cancelled) {
@@ -295,6 +291,178 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         }
     }
     Ok(run)
+}
+
+/// The status on EvalAI, when a cancel the sweep flagged is to be confirmed or the fallback
+/// read is due; `None` when not read this round.
+async fn read_status(
+    deps: &Deps,
+    id: u64,
+    cancel_flagged: bool,
+    run: &mut RunState,
+    now: u64,
+) -> Result<Option<SubmissionStatus>> {
+    let fallback_due = run
+        .monitor
+        .status_read_at
+        .is_none_or(|t| now.saturating_sub(t) >= STATUS_FALLBACK.as_secs());
+    if !(cancel_flagged || fallback_due) {
+        return Ok(None);
+    }
+    // A cancel to confirm goes ahead of partial updates; the fallback yields to them.
+    let priority = if cancel_flagged {
+        Priority::Urgent
+    } else {
+        Priority::Routine
+    };
+    match deps
+        .clients
+        .evalai
+        .with_priority(priority)
+        .submission(id)
+        .await
+    {
+        Ok(current) => {
+            run.monitor.status_read_at = Some(now);
+            Ok(Some(current.status))
+        }
+        // The budget's decision, not trouble: a later round reads it.
+        Err(EvalAiError::OverBudget) => {
+            info!(
+                submission_id = id,
+                "status read deferred by the EvalAI budget"
+            );
+            Ok(None)
+        }
+        Err(e) if e.is_transient() => {
+            warn!(submission_id = id, error = %e, "status not read this round");
+            Ok(None)
+        }
+        Err(e) => Err(e.into()),
+    }
+}
+
+/// A round of a submission its team's cap holds back (no Jobs yet): confirm a cancel, end a
+/// wait longer than `max_queue_hours`, ask for its turn (admitted: Launch creates its Jobs
+/// next), and otherwise show its participant where it stands.
+async fn waiting_round(
+    deps: &Deps,
+    submission: &SubmissionInfo,
+    mut run: RunState,
+    wake: WakeState,
+    deployment: &lb_domain::settings::LeaderboardSettings,
+    now: u64,
+) -> Result<RunState> {
+    let id = submission.submission_id;
+    let at = submission_ref(submission);
+    let waited = now.saturating_sub(run.queue.arrived_at);
+    run.monitor.wait_seconds = queue_wait(Duration::from_secs(waited)).as_secs();
+    if read_status(deps, id, wake.cancel, &mut run, now).await? == Some(SubmissionStatus::Cancelled)
+    {
+        info!(
+            submission_id = id,
+            "the participant cancelled while it waited for its turn"
+        );
+        run.monitor.state = RunPhase::Cancelled;
+        return Ok(run);
+    }
+    let limit = deployment.team_limit;
+    if waited >= deployment.max_queue_hours * 3600 {
+        run.monitor.state = RunPhase::Failed;
+        run.monitor.reason = Some(format!(
+            "the evaluation waited {} minutes for its turn, longer than this leaderboard's queue limit of {} hours (a team holds at most {limit} evaluations at once, and your team's were still in progress); it was not started and used none of your time: please submit again later",
+            waited / 60,
+            deployment.max_queue_hours
+        ));
+        return Ok(run);
+    }
+    let Some(table) = &deps.clients.admission else {
+        // No queue configured: every submission has its turn.
+        run.monitor.state = RunPhase::Admitted;
+        return Ok(run);
+    };
+    // The entry exists since Launch: its stored arrival stands, whatever is passed here.
+    let arrived_ms = submission.arrived_ms.unwrap_or(run.queue.arrived_at * 1000);
+    let standing = queue::take_turn(table, submission, arrived_ms, limit).await?;
+    run.queue.ahead = Some(standing.ahead);
+    if standing.admitted {
+        info!(
+            submission_id = id,
+            ahead = standing.ahead,
+            "its turn: admitted"
+        );
+        run.monitor.state = RunPhase::Admitted;
+        return Ok(run);
+    }
+    let note = lb_domain::queue::describe(standing.ahead, standing.hold);
+    if show_place(deps, at, &mut run, Some((standing.ahead, note)), now).await?
+        == Some(SubmissionStatus::Cancelled)
+    {
+        run.monitor.state = RunPhase::Cancelled;
+    }
+    Ok(run)
+}
+
+/// Shows the participant the queue note (`None`: removes it once the run started), when it
+/// changed and the last was shown [`QUEUE_NOTE_INTERVAL`] ago. Returns the status EvalAI
+/// refused the write for (cancelled, ended), if it did. A throttled or failed write is
+/// tried again in a later round, never a failed run.
+async fn show_place(
+    deps: &Deps,
+    at: SubmissionRef,
+    run: &mut RunState,
+    note: Option<(u32, String)>,
+    now: u64,
+) -> Result<Option<SubmissionStatus>> {
+    let ahead = note.as_ref().map(|(ahead, _)| *ahead);
+    if ahead == run.queue.shown {
+        return Ok(None);
+    }
+    let due = run
+        .queue
+        .shown_at
+        .is_none_or(|t| now.saturating_sub(t) >= QUEUE_NOTE_INTERVAL.as_secs());
+    if note.is_some() && !due {
+        return Ok(None);
+    }
+    let evalai = deps.clients.evalai.with_priority(Priority::Routine);
+    let outcome = evalai
+        .show_queue(
+            at,
+            note.as_ref().map(|(ahead, text)| (*ahead, text.as_str())),
+        )
+        .await;
+    match outcome {
+        Ok(WriteOutcome::Written) => {
+            info!(submission_id = at.submission, ?ahead, "queue place shown");
+            run.queue.shown = ahead;
+            run.queue.shown_at = Some(now);
+            Ok(None)
+        }
+        Ok(WriteOutcome::Cancelled) => Ok(Some(SubmissionStatus::Cancelled)),
+        Ok(WriteOutcome::AlreadyFinal(status)) => Ok(Some(status)),
+        Err(EvalAiError::OverBudget) => {
+            info!(
+                submission_id = at.submission,
+                "queue place deferred by the EvalAI budget"
+            );
+            Ok(None)
+        }
+        Err(e) if e.is_transient() => {
+            warn!(submission_id = at.submission, error = %e, "queue place not shown this round");
+            Ok(None)
+        }
+        Err(e) => Err(e.into()),
+    }
+}
+
+/// Where the submission is on EvalAI.
+fn submission_ref(submission: &SubmissionInfo) -> SubmissionRef {
+    SubmissionRef {
+        challenge: submission.challenge_id,
+        phase: submission.phase_id,
+        submission: submission.submission_id,
+    }
 }
 
 /// Results: a changed set is merged and sent, at most once per `interval` seconds; an
@@ -387,11 +555,21 @@ async fn send_changed_results(
 /// is left to the rest of the round.
 async fn mark_started(
     deps: &Deps,
-    at: SubmissionRef,
+    submission: &SubmissionInfo,
     observation: &lb_cluster::Observation,
     run: &mut RunState,
     now: u64,
 ) -> Result<()> {
+    let at = submission_ref(submission);
+    if let Some(table) = &deps.clients.admission {
+        // Out of the count of those waiting: everyone after it moves up.
+        if let Err(e) = table
+            .mark_running(&submission.leaderboard, submission.submission_id)
+            .await
+        {
+            warn!(submission_id = at.submission, error = %e, "queue entry not marked running");
+        }
+    }
     let names: Vec<&str> = observation.jobs.iter().map(|j| j.name.as_str()).collect();
     match deps.clients.evalai.mark_running(at, &names.join(",")).await {
         Ok(outcome) => {

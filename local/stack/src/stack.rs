@@ -27,6 +27,8 @@ pub const TOKEN_SECRET: &str = "leaderboard/evalai-token";
 pub const WAKE_TABLE: &str = "leaderboard-wakes";
 /// The EvalAI budget table's name in local mode (`${AWS::StackName}-evalai-budget`).
 pub const BUDGET_TABLE: &str = "leaderboard-evalai-budget";
+/// The admission table's name in local mode (`${AWS::StackName}-admission`).
+pub const ADMISSION_TABLE: &str = "leaderboard-admission";
 
 /// The environment the template gives every function, with local mode's names.
 pub fn function_config() -> lb_pipeline::FunctionConfig {
@@ -35,6 +37,7 @@ pub fn function_config() -> lb_pipeline::FunctionConfig {
         token_secret: TOKEN_SECRET.into(),
         wake_table: Some(WAKE_TABLE.into()),
         budget_table: Some(BUDGET_TABLE.into()),
+        admission_table: Some(ADMISSION_TABLE.into()),
     }
 }
 /// The settings of local runs and tests: phase 1 is Leaderboard 2.0 SENSORS (20 routes, 4

@@ -363,10 +363,11 @@ mod tests {
         assert!(t.condition("CreateDataStores"));
         let t = t.with_parameter("CreateDataStores", "false");
         assert!(!t.condition("CreateDataStores"));
-        // The original system's tables are the operator's; the wake and budget tables are ours.
+        // The original system's tables are the operator's; the wake, budget and admission
+        // tables are ours.
         assert_eq!(
             t.resources_of("AWS::DynamoDB::Table"),
-            ["WakeTable", "BudgetTable"]
+            ["WakeTable", "BudgetTable", "AdmissionTable"]
         );
     }
 

@@ -52,6 +52,11 @@ pub struct Options {
     pub random_seed: Option<u64>,
     /// Called with every history event as it is recorded (live progress).
     pub on_event: Option<EventCallback>,
+    /// Whether a function Task's `TimeoutSeconds` is scaled too (the default). Off, it stays
+    /// the Lambda's own time, as real as the handler's work in-process: a handler waiting on
+    /// something time does not compress (a budget of requests a minute) is not cut short,
+    /// while callback waits and Wait states still scale.
+    pub scale_invocation_timeouts: bool,
 }
 
 impl Default for Options {
@@ -66,6 +71,7 @@ impl Default for Options {
             max_payload_bytes: 256 * 1024,
             random_seed: None,
             on_event: None,
+            scale_invocation_timeouts: true,
         }
     }
 }
@@ -82,6 +88,7 @@ impl fmt::Debug for Options {
             .field("max_payload_bytes", &self.max_payload_bytes)
             .field("random_seed", &self.random_seed)
             .field("on_event", &self.on_event.as_ref().map(|_| "<callback>"))
+            .field("scale_invocation_timeouts", &self.scale_invocation_timeouts)
             .finish()
     }
 }
@@ -1104,7 +1111,12 @@ impl Run {
         let mut call = AbortOnDrop(tokio::spawn(handler(payload)));
         let joined = match timeout {
             Some(seconds) => {
-                match tokio::time::timeout(self.scaled(seconds as f64), &mut call.0).await {
+                let limit = if self.options.scale_invocation_timeouts {
+                    self.scaled(seconds as f64)
+                } else {
+                    Duration::from_secs(seconds)
+                };
+                match tokio::time::timeout(limit, &mut call.0).await {
                     Ok(joined) => joined,
                     Err(_) => return Err(Invocation::TimedOut),
                 }

@@ -191,7 +191,7 @@ fn the_definition_loads_with_its_five_substitutions() {
         ))
     );
     assert_eq!(sm.start_at(), "OneSubmission?");
-    assert_eq!(sm.state_names().len(), 17);
+    assert_eq!(sm.state_names().len(), 18);
     let (all, _) = tasks(Script::default());
     let executor = Executor::new(all, options(1.0)).unwrap();
     assert!(executor.missing_tasks(&sm).is_empty());

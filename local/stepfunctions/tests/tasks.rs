@@ -253,6 +253,48 @@ async fn timeout_seconds_raises_states_timeout_which_catch_handles() {
 }
 
 #[tokio::test]
+async fn an_invocation_timeout_can_stay_real_while_the_waits_scale() {
+    // A handler taking 300 ms under `TimeoutSeconds: 2` at a time scale of 0.05: scaled, its
+    // limit is 100 ms and it times out; left real (local runs, whose handlers wait on a real
+    // minute's EvalAI budget), it ends. The Wait before it scales either way.
+    let machine = load(json!({
+        "StartAt": "Pause",
+        "States": {
+            "Pause": {"Type": "Wait", "Seconds": 20, "Next": "Work"},
+            "Work": {
+                "Type": "Task",
+                "Resource": "arn:aws:lambda:us-east-1:123456789012:function:work",
+                "TimeoutSeconds": 2,
+                "End": true
+            }
+        }
+    }));
+    let work = || {
+        TaskMap::new().with("work", |_| async {
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            Ok(json!("done"))
+        })
+    };
+    let scaled = run_with(&machine, work(), options(0.05), json!({})).await;
+    assert_eq!(
+        scaled.error.as_deref(),
+        Some("States.Timeout"),
+        "{scaled:?}"
+    );
+    let started = Instant::now();
+    let real = Options {
+        scale_invocation_timeouts: false,
+        ..options(0.05)
+    };
+    let r = run_with(&machine, work(), real, json!({})).await;
+    assert_eq!(r.output, Some(json!("done")), "{r:?}");
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "the 20 s Wait scaled"
+    );
+}
+
+#[tokio::test]
 async fn a_timed_out_task_can_be_retried() {
     // Developer guide, "Handling a timeout using Retry": two retries, then the error stands.
     let machine = load(json!({

@@ -116,8 +116,8 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     );
     assert_eq!(
         count("AWS::DynamoDB::Table"),
-        6,
-        "two per leaderboard, the wake table, the EvalAI budget"
+        7,
+        "two per leaderboard, the wake table, the EvalAI budget, the admission queues"
     );
     assert_eq!(count("AWS::S3::Bucket"), 2);
     assert_eq!(
@@ -165,6 +165,24 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
             .unwrap(),
         "expires_at",
         "lb_aws::budget writes expires_at"
+    );
+    // The admission table's keys are what lb_aws::admission writes: the leaderboard, then an
+    // entry's or a team's key, both strings.
+    let admission = &report["tables"]["leaderboard-admission"];
+    assert_eq!(
+        admission["keys"],
+        serde_json::json!([["queue", "HASH"], ["key", "RANGE"]])
+    );
+    assert_eq!(admission["types"]["queue"], "S");
+    assert_eq!(admission["types"]["key"], "S");
+    assert_eq!(
+        APP.text(
+            "AdmissionTable",
+            &["TimeToLiveSpecification", "AttributeName"]
+        )
+        .unwrap(),
+        "expires_at",
+        "lb_aws::admission writes expires_at"
     );
     let queues = report["queues"].to_string();
     assert!(
@@ -222,7 +240,7 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     );
 
     // An operator switching from the original keeps their tables and buckets: none created
-    // but the wake and budget tables, which are ours alone.
+    // but the wake, budget and admission tables, which are ours alone.
     let switch = deploy(
         &moto,
         "switch",
@@ -237,7 +255,8 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     assert!(
         !created.iter().any(|(id, k)| (k == "AWS::DynamoDB::Table"
             && id != "WakeTable"
-            && id != "BudgetTable")
+            && id != "BudgetTable"
+            && id != "AdmissionTable")
             || k == "AWS::S3::Bucket"),
         "{created:?}"
     );

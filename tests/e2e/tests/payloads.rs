@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, HashMap};
 use lb_domain::plan::{MAX_ROUTES, MAX_WORKERS};
 use lb_pipeline::error::MAX_ERROR_MESSAGE_BYTES;
 use lb_pipeline::payload::{
-    Action, IntakeOutput, MonitorState, PairRoutes, RunPhase, RunState, SubmissionInfo,
+    Action, IntakeOutput, MonitorState, PairRoutes, QueueState, RunPhase, RunState, SubmissionInfo,
     MAX_MESSAGE_BYTES, MAX_REASON_BYTES,
 };
 use local_stepfunctions::{Executor, Options, StateMachine, Status, TaskError, TaskMap};
@@ -67,6 +67,7 @@ fn submission() -> SubmissionInfo {
         resuming: true,
         // Step Functions execution names are at most 80 characters.
         execution: "e".repeat(80),
+        arrived_ms: Some(u64::MAX),
     }
 }
 
@@ -83,6 +84,13 @@ fn run(phase: RunPhase) -> RunState {
             .collect(),
         repetitions: 5,
         launched_at: u64::MAX,
+        queue: QueueState {
+            arrived_at: u64::MAX,
+            admitted: false,
+            ahead: Some(u32::MAX),
+            shown: Some(u32::MAX),
+            shown_at: Some(u64::MAX),
+        },
         monitor: MonitorState {
             state: phase,
             wait_seconds: 1,

@@ -101,6 +101,7 @@ impl Harness {
         launch::handle(
             launch::LaunchInput {
                 submission: submission.clone(),
+                queue: None,
             },
             &self.launch,
         )

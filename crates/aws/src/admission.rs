@@ -1,0 +1,357 @@
+//! The admission table: each leaderboard's evaluation queue and its teams' holds
+//! (`lb_domain::queue` decides the order). Admitting is one `TransactWriteItems`: the team's
+//! hold, conditional on the team holding fewer than its cap, and the entry's move from
+//! `waiting` to `admitted`, conditional on it still waiting. Two Launches or Monitors racing
+//! for a team's last place cannot both get it, and a retried admission changes nothing.
+//!
+//! The table is ours alone (the stack creates it). Partition key `queue` (S, the leaderboard:
+//! `"2.0"`), sort key `key` (S):
+//! - `submission#<id>`: an entry: `submission_id`, `team_id`, `arrived_ms` (N), `state` (S:
+//!   `waiting`, `admitted`, `running`), `expires_at` (N, DynamoDB TTL) past any queue time
+//!   and evaluation, so an entry whose run never reached Finalize goes by itself.
+//! - `team#<id>`: a team's holds: `holders` (SS of submission ids). A holder whose entry is
+//!   gone (its TTL, an operator) is dropped when it would keep the team from its place.
+
+use std::collections::HashMap;
+
+use aws_sdk_dynamodb::types::{AttributeValue, TransactWriteItem, Update};
+use aws_sdk_dynamodb::Client;
+use lb_domain::queue::{Entry, EntryState};
+
+use crate::{condition_failed, AwsError, Result};
+
+/// How long an entry is kept after its arrival: the longest queue (336 hours) and the longest
+/// evaluation (72 hours), and a day for Finalize's retries.
+pub const ENTRY_RETENTION_SECONDS: u64 = (336 + 72 + 24) * 3600;
+
+/// The pages of one queue read at most (1 MB each: thousands of entries).
+const MAX_PAGES: usize = 20;
+
+/// What an admission attempt found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Admit {
+    /// The submission holds one of its team's places (now, or since an earlier attempt).
+    Admitted,
+    /// Its team holds all its places: it waits.
+    Held,
+}
+
+/// The admission table.
+#[derive(Debug, Clone)]
+pub struct AdmissionTable {
+    client: Client,
+    table: String,
+}
+
+fn s(value: impl Into<String>) -> AttributeValue {
+    AttributeValue::S(value.into())
+}
+
+fn n(value: u64) -> AttributeValue {
+    AttributeValue::N(value.to_string())
+}
+
+fn entry_key(queue: &str, submission_id: u64) -> HashMap<String, AttributeValue> {
+    HashMap::from([
+        ("queue".to_string(), s(queue)),
+        ("key".to_string(), s(format!("submission#{submission_id}"))),
+    ])
+}
+
+fn team_key(queue: &str, team_id: u64) -> HashMap<String, AttributeValue> {
+    HashMap::from([
+        ("queue".to_string(), s(queue)),
+        ("key".to_string(), s(format!("team#{team_id}"))),
+    ])
+}
+
+fn malformed(problem: String) -> AwsError {
+    AwsError::Malformed {
+        what: "admission entry".into(),
+        problem,
+    }
+}
+
+/// An entry item read back; anything else than what [`AdmissionTable::enqueue`] writes is
+/// refused by name.
+fn entry_of(item: &HashMap<String, AttributeValue>) -> Result<Entry> {
+    let number = |name: &str| -> Result<u64> {
+        item.get(name)
+            .and_then(|v| v.as_n().ok())
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| malformed(format!("`{name}` is not a number")))
+    };
+    let state = item
+        .get("state")
+        .and_then(|v| v.as_s().ok())
+        .and_then(|v| EntryState::parse(v))
+        .ok_or_else(|| malformed("`state` is not waiting, admitted or running".into()))?;
+    Ok(Entry {
+        submission_id: number("submission_id")?,
+        team_id: number("team_id")?,
+        arrived_ms: number("arrived_ms")?,
+        state,
+    })
+}
+
+impl AdmissionTable {
+    /// The table named `table`.
+    pub fn new(client: Client, table: impl Into<String>) -> Self {
+        AdmissionTable {
+            client,
+            table: table.into(),
+        }
+    }
+
+    /// Puts `entry` in `queue` unless it is there already, and returns it as stored: a retried
+    /// Launch keeps the first arrival, hence its place.
+    pub async fn enqueue(&self, queue: &str, entry: &Entry) -> Result<Entry> {
+        let mut item = entry_key(queue, entry.submission_id);
+        item.insert("submission_id".into(), n(entry.submission_id));
+        item.insert("team_id".into(), n(entry.team_id));
+        item.insert("arrived_ms".into(), n(entry.arrived_ms));
+        item.insert("state".into(), s(entry.state.as_str()));
+        item.insert(
+            "expires_at".into(),
+            n(entry.arrived_ms / 1000 + ENTRY_RETENTION_SECONDS),
+        );
+        let put = self
+            .client
+            .put_item()
+            .table_name(&self.table)
+            .set_item(Some(item))
+            .condition_expression("attribute_not_exists(#key)")
+            .expression_attribute_names("#key", "key")
+            .send()
+            .await;
+        match put {
+            Ok(_) => Ok(entry.clone()),
+            Err(e) if condition_failed(&e) => self
+                .entry(queue, entry.submission_id)
+                .await?
+                .ok_or_else(|| malformed("the entry vanished while it was written".into())),
+            Err(e) => Err(AwsError::sdk("dynamodb", "PutItem", e)),
+        }
+    }
+
+    /// One submission's entry, read consistently.
+    pub async fn entry(&self, queue: &str, submission_id: u64) -> Result<Option<Entry>> {
+        let out = self
+            .client
+            .get_item()
+            .table_name(&self.table)
+            .set_key(Some(entry_key(queue, submission_id)))
+            .consistent_read(true)
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "GetItem", e))?;
+        out.item().map(entry_of).transpose()
+    }
+
+    /// Every entry of `queue`, in arrival order, read consistently. An entry someone edited
+    /// into another shape is left out (and logged), not a reason to stop the queue.
+    pub async fn entries(&self, queue: &str) -> Result<Vec<Entry>> {
+        let mut pages = self
+            .client
+            .query()
+            .table_name(&self.table)
+            .consistent_read(true)
+            .key_condition_expression("#queue = :queue AND begins_with(#key, :entries)")
+            .expression_attribute_names("#queue", "queue")
+            .expression_attribute_names("#key", "key")
+            .expression_attribute_values(":queue", s(queue))
+            .expression_attribute_values(":entries", s("submission#"))
+            .into_paginator()
+            .send();
+        let mut entries = Vec::new();
+        let mut read = 0;
+        while let Some(page) = pages.next().await {
+            let page = page.map_err(|e| AwsError::sdk("dynamodb", "Query", e))?;
+            for item in page.items() {
+                match entry_of(item) {
+                    Ok(entry) => entries.push(entry),
+                    Err(e) => tracing::warn!(error = %e, "admission entry skipped"),
+                }
+            }
+            read += 1;
+            if read >= MAX_PAGES {
+                break;
+            }
+        }
+        entries.sort_by_key(|e| (e.arrived_ms, e.submission_id));
+        Ok(entries)
+    }
+
+    /// Admits `me` (waiting in `queue`) if its team holds fewer than `limit` places. Holds
+    /// whose entries are gone from `entries` (the queue as just read) are dropped first
+    /// when they would keep the team from its place.
+    pub async fn admit(
+        &self,
+        queue: &str,
+        me: &Entry,
+        limit: u32,
+        entries: &[Entry],
+    ) -> Result<Admit> {
+        if me.state != EntryState::Waiting {
+            return Ok(Admit::Admitted);
+        }
+        if self.try_admit(queue, me, limit).await? {
+            return Ok(Admit::Admitted);
+        }
+        let holders = self.holders(queue, me.team_id).await?;
+        let stale: Vec<String> = holders
+            .iter()
+            .filter(|id| {
+                !entries
+                    .iter()
+                    .any(|e| e.state != EntryState::Waiting && e.submission_id.to_string() == **id)
+            })
+            .cloned()
+            .collect();
+        if stale.is_empty() {
+            return Ok(Admit::Held);
+        }
+        tracing::warn!(
+            team_id = me.team_id,
+            ?stale,
+            "dropping holds without an entry"
+        );
+        self.client
+            .update_item()
+            .table_name(&self.table)
+            .set_key(Some(team_key(queue, me.team_id)))
+            .update_expression("DELETE #holders :stale")
+            .expression_attribute_names("#holders", "holders")
+            .expression_attribute_values(":stale", AttributeValue::Ss(stale))
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "UpdateItem", e))?;
+        Ok(if self.try_admit(queue, me, limit).await? {
+            Admit::Admitted
+        } else {
+            Admit::Held
+        })
+    }
+
+    /// The transaction: the team's hold and the entry's state, both or neither.
+    async fn try_admit(&self, queue: &str, me: &Entry, limit: u32) -> Result<bool> {
+        let id = me.submission_id.to_string();
+        let hold = Update::builder()
+            .table_name(&self.table)
+            .set_key(Some(team_key(queue, me.team_id)))
+            .update_expression("ADD #holders :me")
+            .condition_expression(
+                "attribute_not_exists(#holders) OR (size(#holders) < :limit AND NOT contains(#holders, :id))",
+            )
+            .expression_attribute_names("#holders", "holders")
+            .expression_attribute_values(":me", AttributeValue::Ss(vec![id.clone()]))
+            .expression_attribute_values(":id", s(id))
+            .expression_attribute_values(":limit", n(u64::from(limit)))
+            .build()
+            .map_err(|e| malformed(e.to_string()))?;
+        let state = Update::builder()
+            .table_name(&self.table)
+            .set_key(Some(entry_key(queue, me.submission_id)))
+            .update_expression("SET #state = :admitted")
+            .condition_expression("#state = :waiting")
+            .expression_attribute_names("#state", "state")
+            .expression_attribute_values(":admitted", s(EntryState::Admitted.as_str()))
+            .expression_attribute_values(":waiting", s(EntryState::Waiting.as_str()))
+            .build()
+            .map_err(|e| malformed(e.to_string()))?;
+        let result = self
+            .client
+            .transact_write_items()
+            .transact_items(TransactWriteItem::builder().update(hold).build())
+            .transact_items(TransactWriteItem::builder().update(state).build())
+            .send()
+            .await;
+        match result {
+            Ok(_) => Ok(true),
+            Err(e) => {
+                // A condition refused: the team is full (or the entry moved on: read again).
+                use aws_sdk_dynamodb::operation::transact_write_items::TransactWriteItemsError;
+                let refused = match e.as_service_error() {
+                    Some(TransactWriteItemsError::TransactionCanceledException(c)) => c
+                        .cancellation_reasons()
+                        .iter()
+                        .any(|r| r.code() == Some("ConditionalCheckFailed")),
+                    _ => false,
+                };
+                if refused {
+                    let now = self.entry(queue, me.submission_id).await?;
+                    Ok(now.is_some_and(|e| e.state != EntryState::Waiting))
+                } else {
+                    Err(AwsError::sdk("dynamodb", "TransactWriteItems", e))
+                }
+            }
+        }
+    }
+
+    /// The submission ids a team holds places for.
+    pub async fn holders(&self, queue: &str, team_id: u64) -> Result<Vec<String>> {
+        let out = self
+            .client
+            .get_item()
+            .table_name(&self.table)
+            .set_key(Some(team_key(queue, team_id)))
+            .consistent_read(true)
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "GetItem", e))?;
+        let mut holders = out
+            .item()
+            .and_then(|item| item.get("holders"))
+            .and_then(|v| v.as_ss().ok())
+            .cloned()
+            .unwrap_or_default();
+        holders.sort();
+        Ok(holders)
+    }
+
+    /// Marks the entry running (its first pair started). An entry that is not there (a run
+    /// launched before admission existed) is left alone.
+    pub async fn mark_running(&self, queue: &str, submission_id: u64) -> Result<()> {
+        let result = self
+            .client
+            .update_item()
+            .table_name(&self.table)
+            .set_key(Some(entry_key(queue, submission_id)))
+            .update_expression("SET #state = :running")
+            .condition_expression("attribute_exists(#key)")
+            .expression_attribute_names("#state", "state")
+            .expression_attribute_names("#key", "key")
+            .expression_attribute_values(":running", s(EntryState::Running.as_str()))
+            .send()
+            .await;
+        match result {
+            Ok(_) => Ok(()),
+            Err(e) if condition_failed(&e) => Ok(()),
+            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
+        }
+    }
+
+    /// Gives the submission's team its place back and takes the submission out of the queue;
+    /// repeating it changes nothing. (The place first: a release cut in between leaves an
+    /// entry its TTL removes, never a team short of a place.)
+    pub async fn release(&self, queue: &str, submission_id: u64, team_id: u64) -> Result<()> {
+        self.client
+            .update_item()
+            .table_name(&self.table)
+            .set_key(Some(team_key(queue, team_id)))
+            .update_expression("DELETE #holders :me")
+            .expression_attribute_names("#holders", "holders")
+            .expression_attribute_values(":me", AttributeValue::Ss(vec![submission_id.to_string()]))
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "UpdateItem", e))?;
+        self.client
+            .delete_item()
+            .table_name(&self.table)
+            .set_key(Some(entry_key(queue, submission_id)))
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "DeleteItem", e))?;
+        Ok(())
+    }
+}

@@ -1,0 +1,183 @@
+//! The evaluation queue of a leaderboard: who is admitted next and how many are ahead.
+//!
+//! A submission is *admitted* when its Jobs may be created; from then on the Kubernetes
+//! scheduler places its pods (oldest first) and the autoscaler adds nodes for them. Our part is
+//! only the team cap: a team holds at most `team_limit` admitted evaluations, and its further
+//! submissions wait, oldest first, without holding back other teams'. The cap itself is
+//! enforced by a conditional write (`lb_aws::admission`); this module decides the order and
+//! counts the places.
+
+/// Where an entry of the queue stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum EntryState {
+    /// Held by its team's cap: no Jobs yet.
+    Waiting,
+    /// Jobs created; its pods wait for a GPU.
+    Admitted,
+    /// Its first pair started.
+    Running,
+}
+
+impl EntryState {
+    /// The stored name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            EntryState::Waiting => "waiting",
+            EntryState::Admitted => "admitted",
+            EntryState::Running => "running",
+        }
+    }
+
+    /// The stored name read back; `None` for anything else (an entry someone edited).
+    pub fn parse(text: &str) -> Option<Self> {
+        match text {
+            "waiting" => Some(EntryState::Waiting),
+            "admitted" => Some(EntryState::Admitted),
+            "running" => Some(EntryState::Running),
+            _ => None,
+        }
+    }
+}
+
+/// One submission in the queue.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Entry {
+    /// EvalAI submission id.
+    pub submission_id: u64,
+    /// Its participant team.
+    pub team_id: u64,
+    /// When it arrived (epoch milliseconds): the queue's order.
+    pub arrived_ms: u64,
+    /// Where it stands.
+    pub state: EntryState,
+}
+
+impl Entry {
+    /// The queue's order: arrival, then id (two arrivals in one millisecond).
+    fn before(&self, other: &Entry) -> bool {
+        (self.arrived_ms, self.submission_id) < (other.arrived_ms, other.submission_id)
+    }
+}
+
+/// Whether `me` is its team's turn: no submission of its team that arrived earlier still waits.
+/// (The cap is the conditional write's to enforce; this keeps a team's own order.)
+pub fn team_turn(entries: &[Entry], me: &Entry) -> bool {
+    !entries.iter().any(|e| {
+        e.team_id == me.team_id
+            && e.submission_id != me.submission_id
+            && e.state == EntryState::Waiting
+            && e.before(me)
+    })
+}
+
+/// The submissions that arrived before `me` and have not started: those that start first,
+/// whatever holds `me` back. It only ever shrinks while `me` waits (a later arrival is never
+/// counted, and a submission that started or ended leaves the count for good).
+pub fn ahead(entries: &[Entry], me: &Entry) -> u32 {
+    entries
+        .iter()
+        .filter(|e| e.state != EntryState::Running && e.before(me))
+        .count() as u32
+}
+
+/// What holds a queued submission back, for its participant and the operator.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Hold {
+    /// Its team already holds `limit` evaluations.
+    TeamLimit {
+        /// The leaderboard's cap.
+        limit: u32,
+    },
+    /// Admitted: its pods wait for a free GPU.
+    Capacity,
+}
+
+/// The participant's line: "3 submissions ahead of yours; ...".
+pub fn describe(ahead: u32, hold: Hold) -> String {
+    let queue = match ahead {
+        0 => "no submission is ahead of yours".to_string(),
+        1 => "1 submission is ahead of yours".to_string(),
+        n => format!("{n} submissions are ahead of yours"),
+    };
+    let why = match hold {
+        Hold::TeamLimit { limit } => format!(
+            "it starts when one of your team's {limit} evaluations in progress ends (at most {limit} at once per team)"
+        ),
+        Hold::Capacity => "it starts when a GPU is free on the cluster".to_string(),
+    };
+    format!("{queue}; {why}")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(submission_id: u64, team_id: u64, arrived_ms: u64, state: EntryState) -> Entry {
+        Entry {
+            submission_id,
+            team_id,
+            arrived_ms,
+            state,
+        }
+    }
+
+    #[test]
+    fn a_team_waits_its_own_turn_but_never_another_teams() {
+        let entries = [
+            entry(1, 7, 100, EntryState::Running),
+            entry(2, 7, 200, EntryState::Waiting),
+            entry(3, 7, 300, EntryState::Waiting),
+            entry(4, 8, 400, EntryState::Waiting),
+        ];
+        assert!(team_turn(&entries, &entries[1]));
+        // Team 7's third waits for its second, whatever the cap says.
+        assert!(!team_turn(&entries, &entries[2]));
+        // Team 8 is not held back by team 7's waiting submissions.
+        assert!(team_turn(&entries, &entries[3]));
+    }
+
+    #[test]
+    fn ahead_counts_earlier_arrivals_not_started_and_never_later_ones() {
+        let mut entries = vec![
+            entry(10, 1, 100, EntryState::Running),
+            entry(11, 2, 200, EntryState::Admitted),
+            entry(12, 3, 200, EntryState::Waiting),
+            entry(13, 4, 300, EntryState::Waiting),
+        ];
+        let me = entries[3].clone();
+        assert_eq!(ahead(&entries, &me), 2);
+        // Same millisecond: the id decides, so two entries never count each other.
+        assert_eq!(ahead(&entries, &entries[2].clone()), 1);
+        assert_eq!(ahead(&entries, &entries[1].clone()), 0);
+        // A later arrival never moves anyone back; a start moves everyone after it forward.
+        entries.push(entry(14, 1, 50_000, EntryState::Waiting));
+        assert_eq!(ahead(&entries, &me), 2);
+        entries[1].state = EntryState::Running;
+        assert_eq!(ahead(&entries, &me), 1);
+        entries.remove(2);
+        assert_eq!(ahead(&entries, &me), 0);
+    }
+
+    #[test]
+    fn the_participants_line_says_how_many_and_why() {
+        assert_eq!(
+            describe(3, Hold::Capacity),
+            "3 submissions are ahead of yours; it starts when a GPU is free on the cluster"
+        );
+        assert!(describe(1, Hold::TeamLimit { limit: 2 })
+            .starts_with("1 submission is ahead of yours; it starts when one of your team's 2"));
+        assert!(describe(0, Hold::Capacity).starts_with("no submission is ahead"));
+    }
+
+    #[test]
+    fn states_round_trip_and_strangers_are_refused() {
+        for state in [
+            EntryState::Waiting,
+            EntryState::Admitted,
+            EntryState::Running,
+        ] {
+            assert_eq!(EntryState::parse(state.as_str()), Some(state));
+        }
+        assert_eq!(EntryState::parse("Running"), None);
+    }
+}

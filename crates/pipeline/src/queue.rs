@@ -1,0 +1,79 @@
+//! A submission's turn in its leaderboard's queue, as Launch and the Monitor ask for it: put it
+//! in the queue (once), admit it when its team has room and it is the team's oldest waiting,
+//! and count who is ahead (`lb_domain::queue` for the rules, `lb_aws::admission` for the table).
+
+use std::time::Duration;
+
+use lb_aws::admission::{AdmissionTable, Admit};
+use lb_domain::queue::{self, Entry, EntryState, Hold};
+
+use crate::payload::SubmissionInfo;
+use crate::Result;
+
+/// The least interval between two rewrites of a participant's queue note on EvalAI (a GET
+/// and a PATCH each, routine for the shared budget): places change often in a busy queue.
+pub const QUEUE_NOTE_INTERVAL: Duration = Duration::from_secs(300);
+
+/// Where a submission stands after asking for its turn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Standing {
+    /// It may have its Jobs created.
+    pub admitted: bool,
+    /// Submissions that arrived before it and have not started.
+    pub ahead: u32,
+    /// What holds it back.
+    pub hold: Hold,
+}
+
+/// Puts `submission` in the queue if it is not there (arrived at `arrived_ms`), and admits it
+/// when its team holds fewer than `limit` and no older submission of its team waits.
+pub async fn take_turn(
+    table: &AdmissionTable,
+    submission: &SubmissionInfo,
+    arrived_ms: u64,
+    limit: u32,
+) -> Result<Standing> {
+    let me = table
+        .enqueue(
+            &submission.leaderboard,
+            &Entry {
+                submission_id: submission.submission_id,
+                team_id: submission.team_id,
+                arrived_ms,
+                state: EntryState::Waiting,
+            },
+        )
+        .await?;
+    let entries = table.entries(&submission.leaderboard).await?;
+    // The entry as the queue shows it now (an admission since `enqueue` read it).
+    let me = entries
+        .iter()
+        .find(|e| e.submission_id == me.submission_id)
+        .cloned()
+        .unwrap_or(me);
+    let admitted = me.state != EntryState::Waiting
+        || (queue::team_turn(&entries, &me)
+            && table
+                .admit(&submission.leaderboard, &me, limit, &entries)
+                .await?
+                == Admit::Admitted);
+    Ok(Standing {
+        admitted,
+        ahead: queue::ahead(&entries, &me),
+        hold: if admitted {
+            Hold::Capacity
+        } else {
+            Hold::TeamLimit { limit }
+        },
+    })
+}
+
+/// How many are ahead of an admitted submission whose pods wait (its entry as the queue shows
+/// it; `None` when it has none: a run from before the queue).
+pub async fn ahead_of(table: &AdmissionTable, submission: &SubmissionInfo) -> Result<Option<u32>> {
+    let entries = table.entries(&submission.leaderboard).await?;
+    Ok(entries
+        .iter()
+        .find(|e| e.submission_id == submission.submission_id)
+        .map(|me| queue::ahead(&entries, me)))
+}
