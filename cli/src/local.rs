@@ -344,7 +344,8 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
 
     // Live progress, and the scenario's own act at the right moment.
     let rounds = Arc::new(AtomicU64::new(0));
-    let acted = Arc::new(AtomicBool::new(true));
+    // The crash scenario has acted once CARLA was killed; the others have nothing to do.
+    let acted = Arc::new(AtomicBool::new(args.scenario != Scenario::Crash));
     // When the participant cancelled (the cancel scenario), to time how long the Jobs outlive it.
     let cancelled_at: Arc<std::sync::Mutex<Option<Instant>>> = Arc::default();
     let fake = stack.fake_evalai.as_ref().map(|f| f.url());
@@ -378,8 +379,10 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                             format!("the cluster's API answers 500 for {outage_minutes} minutes (scaled)"),
                         );
                     }
-                    if !act(scenario, n) {
-                        acted.store(false, Ordering::SeqCst);
+                    // From the first round on, until CARLA was up to be killed (a busy machine
+                    // may start it after the first round).
+                    if !acted.load(Ordering::SeqCst) && act(scenario, n) {
+                        acted.store(true, Ordering::SeqCst);
                     }
                 } else {
                     say(started, format!("stage {name}"));
@@ -729,7 +732,7 @@ fn lambda(result: Result<Value, FnError>) -> Result<Value, TaskError> {
 
 /// The scenario's intervention at monitor round `n`; `false` when it could not be done.
 fn act(scenario: Scenario, n: u64) -> bool {
-    if (scenario, n) != (Scenario::Crash, 1) {
+    if scenario != Scenario::Crash {
         return true;
     }
     // NB: match CARLA itself (`./CarlaUE4.sh ...`), not the sidecar that wraps it.
@@ -741,7 +744,7 @@ fn act(scenario: Scenario, n: u64) -> bool {
         ])
         .status()
         .is_ok_and(|s| s.success());
-    outln!("           scenario: CARLA of pair 1 killed: {killed}");
+    outln!("           scenario: round {n}: CARLA on port 2000 killed: {killed}");
     killed
 }
 
