@@ -148,9 +148,6 @@ pub struct QueueState {
     pub arrived_at: u64,
     /// Its Jobs may exist (they do once Launch ran after the admission).
     pub admitted: bool,
-    /// Submissions ahead of it, as last counted.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub ahead: Option<u32>,
     /// What its participant last saw on EvalAI (`ahead`), and when (epoch seconds): the note
     /// is rewritten only when it changed, at most once per `QUEUE_NOTE_INTERVAL`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -166,7 +163,6 @@ impl Default for QueueState {
         QueueState {
             arrived_at: 0,
             admitted: true,
-            ahead: None,
             shown: None,
             shown_at: None,
         }

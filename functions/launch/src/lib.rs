@@ -147,7 +147,6 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
     if let Some(table) = &deps.admission {
         let standing =
             queue::take_turn(table, &submission, arrived_ms, target.deployment.team_limit).await?;
-        place.ahead = Some(standing.ahead);
         if !standing.admitted {
             info!(
                 submission_id = submission.submission_id,

@@ -213,9 +213,6 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         _ => None,
     };
     if let Some(note) = note {
-        if let Some((ahead, _)) = &note {
-            run.queue.ahead = Some(*ahead);
-        }
         if show_place(deps, at, &mut run, note, now).await? == Some(SubmissionStatus::Cancelled) {
             store.put_cancel_marker().await?;
             run.monitor.state = RunPhase::Cancelled;
@@ -384,7 +381,6 @@ async fn waiting_round(
     // The entry exists since Launch: its stored arrival stands, whatever is passed here.
     let arrived_ms = submission.arrived_ms.unwrap_or(run.queue.arrived_at * 1000);
     let standing = queue::take_turn(table, submission, arrived_ms, limit).await?;
-    run.queue.ahead = Some(standing.ahead);
     if standing.admitted {
         info!(
             submission_id = id,

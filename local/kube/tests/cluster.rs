@@ -29,6 +29,19 @@ async fn start(config: Config) -> (LocalKube, Client) {
     (lk, client)
 }
 
+/// The first container of a Job's pod template, to change before creating it.
+fn first_container(job: &mut Job) -> &mut k8s_openapi::api::core::v1::Container {
+    &mut job
+        .spec
+        .as_mut()
+        .unwrap()
+        .template
+        .spec
+        .as_mut()
+        .unwrap()
+        .containers[0]
+}
+
 fn job(yaml: &str) -> Job {
     serde_yaml::from_str(yaml).expect("test manifest parses")
 }
@@ -991,26 +1004,10 @@ async fn an_unpullable_image_leaves_the_pod_pending_with_err_image_pull_then_ima
     let jobs: Api<Job> = Api::namespaced(client.clone(), "default");
     let pods: Api<Pod> = Api::namespaced(client, "default");
     let mut j = job(&MINIMAL.replace("NAME", "no-pull"));
-    j.spec
-        .as_mut()
-        .unwrap()
-        .template
-        .spec
-        .as_mut()
-        .unwrap()
-        .containers[0]
-        .image = Some("registry.example/private:1".into());
+    first_container(&mut j).image = Some("registry.example/private:1".into());
     jobs.create(&PostParams::default(), &j).await.unwrap();
     let mut unknown = job(&MINIMAL.replace("NAME", "no-command"));
-    let c = &mut unknown
-        .spec
-        .as_mut()
-        .unwrap()
-        .template
-        .spec
-        .as_mut()
-        .unwrap()
-        .containers[0];
+    let c = first_container(&mut unknown);
     c.image = Some("carlasim/carla:0.9.15".into());
     c.command = None;
     jobs.create(&PostParams::default(), &unknown).await.unwrap();
@@ -1577,15 +1574,7 @@ async fn containers_get_their_own_gpus_by_uuid_and_nvidia_smi_lists_the_visible_
         jobs.create(&pp, &gpu_job(name, 1, show)).await.unwrap();
     }
     let mut all = gpu_job("all", 0, show);
-    let c = &mut all
-        .spec
-        .as_mut()
-        .unwrap()
-        .template
-        .spec
-        .as_mut()
-        .unwrap()
-        .containers[0];
+    let c = first_container(&mut all);
     c.resources = None;
     c.env = Some(vec![k8s_openapi::api::core::v1::EnvVar {
         name: "NVIDIA_VISIBLE_DEVICES".into(),

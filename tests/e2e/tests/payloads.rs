@@ -87,7 +87,6 @@ fn run(phase: RunPhase) -> RunState {
         queue: QueueState {
             arrived_at: u64::MAX,
             admitted: false,
-            ahead: Some(u32::MAX),
             shown: Some(u32::MAX),
             shown_at: Some(u64::MAX),
         },
