@@ -41,6 +41,10 @@ pub enum Scenario {
     /// The first pair's evaluator crashes at every attempt: out of retries, FAILED, and the
     /// participant's stderr shows the reason and the end of that agent's output.
     CrashLoop,
+    /// The cluster's node is of another instance type than the leaderboard names: the
+    /// autoscaler says no node group could hold the pods, FAILED at once naming the instance
+    /// type (a configuration problem of the leaderboard), none of the participant's time used.
+    NoNode,
 }
 
 impl Scenario {
@@ -48,7 +52,7 @@ impl Scenario {
         match self {
             Scenario::Happy | Scenario::Crash | Scenario::Hang => "finished",
             Scenario::Cancel => "cancelled",
-            Scenario::Unpullable | Scenario::CrashLoop => "failed",
+            Scenario::Unpullable | Scenario::CrashLoop | Scenario::NoNode => "failed",
         }
     }
 }
@@ -135,6 +139,8 @@ pub struct LocalRun {
 
 const IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local";
 const UNPULLABLE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:never-pushed";
+/// The node type of the no-node scenario: not the one the local settings name.
+const OTHER_INSTANCE_TYPE: &str = "g6.xlarge";
 
 fn say(started: Instant, text: impl AsRef<str>) {
     outln!(
@@ -225,6 +231,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         behaviour.evaluator_env =
             BTreeMap::from([("FAKE_EVALUATOR_CRASH_AT_ROUTE".into(), "1".into())]);
     }
+    if args.scenario == Scenario::NoNode {
+        behaviour.node_instance_type = Some(OTHER_INSTANCE_TYPE.into());
+    }
     let record_log = stack.workdir.path().join("record-writes.log");
     if args.latency {
         behaviour.evaluator_env.insert(
@@ -300,7 +309,10 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         logcopy_period_seconds: 1,
     });
     let launch = Arc::new(launch);
-    let monitor = Arc::new(monitor::Deps::load(&stack.sdk, &config, clusters()).await?);
+    let mut monitor = monitor::Deps::load(&stack.sdk, &config, clusters()).await?;
+    // The autoscaler's word is believed after minutes on EKS; local-kube's is final at once.
+    monitor.policy.never_fits_grace = Duration::from_secs(2);
+    let monitor = Arc::new(monitor);
     let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters()).await?;
     finalize.delete_wait = Duration::from_secs(60);
     let finalize = Arc::new(finalize);

@@ -281,6 +281,9 @@ fn pods(observation: &lb_cluster::Observation) -> Vec<PodLine> {
             if let Some(u) = &pod.unschedulable {
                 let _ = write!(detail, "{}", clean(&u.message));
             }
+            if let Some(w) = &pod.autoscaler {
+                let _ = write!(detail, " (autoscaler: {})", clean(&w.message));
+            }
             for c in pod.containers.iter().filter(|c| c.restart_count > 0) {
                 let _ = write!(detail, " {}x{}", clean(&c.name), c.restart_count);
             }

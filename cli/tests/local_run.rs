@@ -44,6 +44,7 @@ fn every_scenario_ends_as_expected() {
         ("cancel", "CANCELLED"),
         ("unpullable", "FAILED"),
         ("crash-loop", "FAILED"),
+        ("no-node", "FAILED"),
     ] {
         let started = Instant::now();
         let stdout = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
@@ -85,6 +86,15 @@ fn every_scenario_ends_as_expected() {
                     .unwrap_or_default();
                 assert!((15..20).contains(&merged), "{stdout}");
                 assert!(stdout.contains("BackoffLimitExceeded"), "{stdout}");
+            }
+            "no-node" => {
+                // The autoscaler's word, with what to fix, before any time was used.
+                let stderr = stdout.split("EvalAI stderr").nth(1).unwrap_or_default();
+                assert!(
+                    stderr.contains("offers the instance type `g5.12xlarge`")
+                        && stderr.contains("please contact the organizers"),
+                    "{stdout}"
+                );
             }
             _ => assert!(!stdout.contains("EvalAI stderr"), "{scenario}: {stdout}"),
         }

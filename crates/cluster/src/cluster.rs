@@ -5,7 +5,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use k8s_openapi::api::batch::v1::Job;
-use k8s_openapi::api::core::v1::Pod;
+use k8s_openapi::api::core::v1::{Event, Pod};
 use k8s_openapi::jiff::Timestamp;
 use kube::api::{Api, DeleteParams, ListParams, PostParams};
 use kube::config::{KubeConfigOptions, Kubeconfig};
@@ -178,6 +178,10 @@ impl Cluster {
     }
 
     fn pods(&self) -> Api<Pod> {
+        Api::namespaced(self.client.clone(), &self.namespace)
+    }
+
+    fn events(&self) -> Api<Event> {
         Api::namespaced(self.client.clone(), &self.namespace)
     }
 
@@ -381,7 +385,12 @@ impl Cluster {
     #[instrument(skip(self))]
     pub async fn observe(&self, submission_id: &str) -> Result<Observation> {
         let (jobs, pods) = self.list(submission_id).await?;
-        let obs = observe::observe(submission_id, &jobs, &pods, Timestamp::now(), &self.policy);
+        let now = Timestamp::now();
+        let events = match observe::needs_autoscaler_word(&pods, now, &self.policy) {
+            Some(uid) => self.pod_events(&uid).await,
+            None => Vec::new(),
+        };
+        let obs = observe::observe(submission_id, &jobs, &pods, &events, now, &self.policy);
         debug!(
             jobs = obs.jobs.len(),
             restarts = obs.restarts(),
@@ -389,6 +398,24 @@ impl Cluster {
             "observed"
         );
         Ok(obs)
+    }
+
+    /// The events about pod `uid` (the Cluster Autoscaler's among them). Advisory: a refusal
+    /// (a Role without `list` on events) or a timeout leaves the pod to the scheduler's own
+    /// limits, logged, and never fails the round.
+    async fn pod_events(&self, uid: &str) -> Vec<Event> {
+        let params = ListParams::default().fields(&format!("involvedObject.uid={uid}"));
+        match self.call("list events", self.events().list(&params)).await {
+            Ok(Ok(list)) => list.items,
+            Ok(Err(e)) => {
+                warn!(pod_uid = uid, error = %e, "cannot list the pod's events; the autoscaler's word is not read");
+                Vec::new()
+            }
+            Err(e) => {
+                warn!(pod_uid = uid, error = %e, "listing the pod's events timed out");
+                Vec::new()
+            }
+        }
     }
 
     /// The submission's Jobs and Pods, as the server lists them.

@@ -4,6 +4,7 @@
 //! The client side lives in [`Cluster`]; the mapping from API objects to a [`Verdict`] is pure
 //! and lives in [`observe`](mod@observe), so it is tested without a server.
 
+pub mod autoscaler;
 mod cluster;
 mod error;
 pub mod labels;

@@ -5,11 +5,12 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use k8s_openapi::api::batch::v1::Job;
-use k8s_openapi::api::core::v1::{Container, ContainerStatus, Pod};
+use k8s_openapi::api::core::v1::{Container, ContainerStatus, Event, Pod};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{ObjectMeta, Time};
 use k8s_openapi::jiff::Timestamp;
 use serde::{Deserialize, Serialize};
 
+use crate::autoscaler::{self, Outlook, ScaleUpWord};
 use crate::labels;
 
 /// Waiting reasons that mean an image will not arrive by waiting.
@@ -29,6 +30,9 @@ const THROTTLED_PULL: [&str; 3] = ["toomanyrequests", "429 too many requests", "
 /// The Job condition reason of a Job whose pods failed more often than its `backoffLimit`.
 const OUT_OF_RETRIES: &str = "BackoffLimitExceeded";
 
+/// The well-known node label of a node's EC2 instance type.
+const INSTANCE_TYPE_LABEL: &str = "node.kubernetes.io/instance-type";
+
 /// Longest piece of a Kubernetes message copied into a participant message.
 const MAX_QUOTED: usize = 600;
 
@@ -47,6 +51,10 @@ pub struct VerdictPolicy {
     /// hopeless; Kubernetes retries forever, so without this the Job would hold its node
     /// until the deadline.
     pub config_error_limit: Duration,
+    /// How long a pod waits before the Cluster Autoscaler's word that no node group could ever
+    /// hold it is believed: the autoscaler re-simulates every 10 s, and a node group's
+    /// template can be incomplete just after a node joined (its GPUs not yet advertised).
+    pub never_fits_grace: Duration,
 }
 
 impl Default for VerdictPolicy {
@@ -55,6 +63,7 @@ impl Default for VerdictPolicy {
             unschedulable_limit: Duration::from_secs(30 * 60),
             queue_limit: Duration::from_secs(24 * 3600),
             config_error_limit: Duration::from_secs(10 * 60),
+            never_fits_grace: Duration::from_secs(5 * 60),
         }
     }
 }
@@ -142,8 +151,17 @@ pub struct PodView {
     pub start_time: Option<Timestamp>,
     /// Whether it is being deleted.
     pub terminating: bool,
+    /// Its uid.
+    #[serde(default)]
+    pub uid: Option<String>,
+    /// The instance type its `nodeSelector` asks for.
+    #[serde(default)]
+    pub instance_type: Option<String>,
     /// Set while the scheduler cannot place it.
     pub unschedulable: Option<Unschedulable>,
+    /// The Cluster Autoscaler's latest word on it, when asked (see [`needs_autoscaler_word`]).
+    #[serde(default)]
+    pub autoscaler: Option<ScaleUpWord>,
     /// Init containers, then containers, in spec order.
     pub containers: Vec<ContainerView>,
 }
@@ -250,6 +268,9 @@ pub enum FailureKind {
     ContainerConfig,
     /// A pod stayed unschedulable longer than the policy allows.
     Unschedulable,
+    /// The Cluster Autoscaler found no node group a new node of which could hold a pod (no
+    /// group offers the instance type, or the request is larger than its nodes).
+    NoNodeFits,
     /// A Job failed more often than its backoff limit.
     BackoffLimitExceeded,
     /// A Job ran longer than its active deadline.
@@ -268,6 +289,7 @@ impl FailureKind {
             FailureKind::InfrastructureImagePull => "InfrastructureImagePull",
             FailureKind::ContainerConfig => "ContainerConfig",
             FailureKind::Unschedulable => "Unschedulable",
+            FailureKind::NoNodeFits => "NoNodeFits",
             FailureKind::BackoffLimitExceeded => "BackoffLimitExceeded",
             FailureKind::DeadlineExceeded => "DeadlineExceeded",
             FailureKind::JobFailed => "JobFailed",
@@ -318,18 +340,51 @@ impl Observation {
     }
 }
 
-/// Maps the listed Jobs and Pods of `submission_id` to an observation at `now`.
+/// The uid of a pod worth asking the Cluster Autoscaler about: one unschedulable for at
+/// least `never_fits_grace`. The pairs of a submission request alike, so one pod speaks for
+/// all, and a submission that schedules costs no extra call.
+pub fn needs_autoscaler_word(
+    pods: &[Pod],
+    now: Timestamp,
+    policy: &VerdictPolicy,
+) -> Option<String> {
+    pods.iter()
+        .filter(|p| p.metadata.deletion_timestamp.is_none())
+        .map(pod_view)
+        .filter(|p| p.phase == "Pending")
+        .filter(|p| {
+            p.unschedulable
+                .as_ref()
+                .and_then(|u| u.since)
+                .is_some_and(|since| waited_at_least(now, since, policy.never_fits_grace))
+        })
+        .find_map(|p| p.uid)
+}
+
+/// Maps the listed Jobs and Pods of `submission_id`, and the events listed about its pods
+/// (none, or those of [`needs_autoscaler_word`]'s pod), to an observation at `now`.
 pub fn observe(
     submission_id: &str,
     jobs: &[Job],
     pods: &[Pod],
+    events: &[Event],
     now: Timestamp,
     policy: &VerdictPolicy,
 ) -> Observation {
     let mut views: Vec<JobView> = jobs.iter().map(job_view).collect();
     views.sort_by(|a, b| (a.index, &a.name).cmp(&(b.index, &b.name)));
     let mut stray_pods = Vec::new();
-    let mut pod_views: Vec<PodView> = pods.iter().map(pod_view).collect();
+    let mut pod_views: Vec<PodView> = pods
+        .iter()
+        .map(|p| {
+            let mut view = pod_view(p);
+            view.autoscaler = view
+                .uid
+                .as_deref()
+                .and_then(|uid| autoscaler::latest_word(events, uid));
+            view
+        })
+        .collect();
     pod_views.sort_by(|a, b| a.name.cmp(&b.name));
     for pod in pod_views {
         match views
@@ -458,6 +513,9 @@ fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict 
             continue;
         };
         let Some(since) = u.since else { continue };
+        if let Some(verdict) = never_fits(job, pod, since, now, policy) {
+            return verdict;
+        }
         let capacity = waits_for_capacity(&u.message);
         let limit = if capacity {
             policy.queue_limit
@@ -498,6 +556,52 @@ fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict 
     } else {
         Verdict::Running
     }
+}
+
+/// The failure of a pod unschedulable since `since` that the Cluster Autoscaler says no new
+/// node could hold, once the grace has passed and the word is about this wait.
+fn never_fits(
+    job: &JobView,
+    pod: &PodView,
+    since: Timestamp,
+    now: Timestamp,
+    policy: &VerdictPolicy,
+) -> Option<Verdict> {
+    let word = pod.autoscaler.as_ref()?;
+    let Outlook::Never { reasons } = word.outlook() else {
+        return None;
+    };
+    // NB: a word from before this wait began (an older scheduling attempt) says nothing now.
+    if word.at.is_some_and(|at| at < since) || !waited_at_least(now, since, policy.never_fits_grace)
+    {
+        return None;
+    }
+    let selector = reasons
+        .iter()
+        .any(|r| r.contains("didn't match Pod's node affinity/selector"));
+    let too_large: Vec<&str> = reasons
+        .iter()
+        .filter_map(|r| r.split_once("Insufficient ").map(|(_, what)| what))
+        .collect();
+    let what = match (&pod.instance_type, selector) {
+        (Some(instance_type), true) => format!(
+            "no node group of the evaluation cluster offers the instance type `{instance_type}` this leaderboard runs on"
+        ),
+        _ if !too_large.is_empty() => format!(
+            "its pods request more {} than a node of any node group of the evaluation cluster has",
+            too_large.join(", ")
+        ),
+        _ => "no node group of the evaluation cluster can run its pods".to_string(),
+    };
+    Some(Verdict::Failed {
+        kind: FailureKind::NoNodeFits,
+        job: Some(job.name.clone()),
+        container: None,
+        message: format!(
+            "the evaluation cannot start: {what} (cluster autoscaler: {}); this is a configuration problem of the leaderboard, not of your submission, and waiting would not help: please contact the organizers. It was not started and used none of your time",
+            quote(&reasons.join(", "))
+        ),
+    })
 }
 
 /// Every Job has ended and some ran out of retries: the first one's failure, naming each.
@@ -737,8 +841,16 @@ fn pod_view(pod: &Pod) -> PodView {
             .iter()
             .map(|c| container_view(c, statuses.get(c.name.as_str()).copied(), false)),
     );
+    let instance_type = spec
+        .node_selector
+        .as_ref()
+        .and_then(|s| s.get(INSTANCE_TYPE_LABEL))
+        .cloned();
     PodView {
         name: name_of(&pod.metadata),
+        uid: pod.metadata.uid.clone(),
+        instance_type,
+        autoscaler: None,
         job: owning_job(&pod.metadata),
         phase: status.phase.unwrap_or_else(|| "Unknown".into()),
         reason: status.reason,
@@ -850,7 +962,7 @@ mod tests {
 
     fn run_at(text: &str, now: Timestamp, policy: &VerdictPolicy) -> Observation {
         let (jobs, pods) = load(text);
-        observe("4242", &jobs, &pods, now, policy)
+        observe("4242", &jobs, &pods, &[], now, policy)
     }
 
     fn failed(obs: &Observation) -> (FailureKind, Option<&str>, Option<&str>, &str) {
@@ -927,7 +1039,14 @@ mod tests {
                 assert!(p.status.as_ref().and_then(|s| s.phase.as_ref()).is_some());
             }
             // Every Job and Pod lands somewhere in the observation.
-            let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+            let obs = observe(
+                "4242",
+                &jobs,
+                &pods,
+                &[],
+                at(9, 45),
+                &VerdictPolicy::default(),
+            );
             let placed: usize =
                 obs.jobs.iter().map(|j| j.pods.len()).sum::<usize>() + obs.stray_pods.len();
             assert_eq!((obs.jobs.len(), placed), (jobs.len(), pods.len()));
@@ -1146,7 +1265,14 @@ mod tests {
         // Sorted first by name, so it is met first.
         infra.metadata.name = Some("lb-4242-team-77-0-aaaaa".into());
         pods.push(infra);
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         assert_eq!(failed(&obs).0, FailureKind::ParticipantImagePull);
     }
 
@@ -1183,6 +1309,90 @@ mod tests {
             "0/3 nodes are available: 3 node(s) didn't match Pod's node affinity/selector."
         ));
         assert!(!waits_for_capacity(""));
+    }
+
+    /// The autoscaler-events fixture with the autoscaler's message and time set.
+    fn autoscaler_events(message: &str, last: &str) -> Vec<Event> {
+        let text = include_str!("../tests/fixtures/autoscaler-events.yaml");
+        let mut list: serde_json::Value = serde_yaml::from_str(text).unwrap();
+        let items = list["items"].as_array_mut().unwrap();
+        items[1]["message"] = message.into();
+        items[1]["lastTimestamp"] = last.into();
+        items
+            .iter()
+            .map(|e| serde_json::from_value(e.clone()).unwrap())
+            .collect()
+    }
+
+    #[test]
+    fn a_pod_no_node_group_could_hold_fails_after_the_grace_naming_what_to_fix() {
+        let (jobs, pods) = load(UNSCHEDULABLE);
+        let policy = VerdictPolicy::default();
+        // Unschedulable since 09:01; the autoscaler's word is believed from 09:06.
+        assert_eq!(needs_autoscaler_word(&pods, at(9, 5), &policy), None);
+        assert_eq!(
+            needs_autoscaler_word(&pods, at(9, 6), &policy).as_deref(),
+            Some("8e61dbe7-90cf-4dec-4891-83cfd21a9a89")
+        );
+        let selector = autoscaler_events(
+            "pod didn't trigger scale-up: 1 node(s) didn't match Pod's node affinity/selector",
+            "2025-03-14T09:05:40Z",
+        );
+        let early = observe("4242", &jobs, &pods, &selector, at(9, 5), &policy);
+        assert_eq!(early.verdict, Verdict::Running);
+        assert_eq!(
+            early.jobs[0].pods[0].autoscaler.as_ref().unwrap().reason,
+            autoscaler::NOT_TRIGGERED
+        );
+        let obs = observe("4242", &jobs, &pods, &selector, at(9, 6), &policy);
+        let (kind, job, _, message) = failed(&obs);
+        assert_eq!(
+            (kind, job),
+            (FailureKind::NoNodeFits, Some("lb-4242-team-77-0"))
+        );
+        assert!(
+            message.contains(
+                "no node group of the evaluation cluster offers the instance type `g5.12xlarge`"
+            ) && message.contains("not of your submission")
+                && message.contains("used none of your time"),
+            "{message}"
+        );
+
+        let too_large = autoscaler_events(
+            "pod didn't trigger scale-up: 2 Insufficient nvidia.com/gpu, 1 Insufficient memory",
+            "2025-03-14T09:05:40Z",
+        );
+        let obs = observe("4242", &jobs, &pods, &too_large, at(9, 7), &policy);
+        let message = failed(&obs).3;
+        assert!(
+            message.contains("request more nvidia.com/gpu, memory than a node of any node group"),
+            "{message}"
+        );
+
+        // A group at its maximum is a queue: the capacity limit decides, hours later.
+        let full = autoscaler_events(
+            "pod didn't trigger scale-up: 1 max node group size reached, 1 node(s) didn't match Pod's node affinity/selector",
+            "2025-03-14T09:05:40Z",
+        );
+        assert_eq!(
+            observe("4242", &jobs, &pods, &full, at(12, 0), &policy).verdict,
+            Verdict::Running
+        );
+        // A word from before this wait began is about another attempt.
+        let stale = autoscaler_events(
+            "pod didn't trigger scale-up: 1 Insufficient nvidia.com/gpu",
+            "2025-03-14T08:59:00Z",
+        );
+        assert_eq!(
+            observe("4242", &jobs, &pods, &stale, at(9, 30), &policy).verdict,
+            Verdict::Running
+        );
+        // The scheduler's own events alone change nothing.
+        let scheduler_only = &autoscaler_events("", "2025-03-14T09:05:40Z")[..1];
+        assert_eq!(
+            observe("4242", &jobs, &pods, scheduler_only, at(9, 30), &policy).verdict,
+            Verdict::Running
+        );
     }
 
     #[test]
@@ -1249,7 +1459,14 @@ mod tests {
         {
             c.last_transition_time = None;
         }
-        let obs = observe("4242", &jobs, &pods, at(23, 0), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(23, 0),
+            &VerdictPolicy::default(),
+        );
         assert_eq!(obs.verdict, Verdict::Running);
         assert_eq!(
             obs.jobs[0].pods[0].unschedulable.as_ref().unwrap().since,
@@ -1293,7 +1510,14 @@ mod tests {
             let (mut jobs, mut pods) = load(text);
             jobs.extend(gave_up.clone());
             pods.extend(gave_up_pods.clone());
-            observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default())
+            observe(
+                "4242",
+                &jobs,
+                &pods,
+                &[],
+                at(9, 45),
+                &VerdictPolicy::default(),
+            )
         };
         let running = with(HALF_DONE);
         assert_eq!(running.verdict, Verdict::Running);
@@ -1374,17 +1598,38 @@ mod tests {
     fn pods_attach_to_their_job_by_label_without_an_owner_reference() {
         let (jobs, mut pods) = load(RUNNING);
         pods[0].metadata.owner_references = None;
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         assert_eq!(obs.jobs[0].pods.len(), 1);
         let labels = |p: &mut Pod| p.metadata.labels.as_mut().unwrap().clone();
         let mut l = labels(&mut pods[0]);
         l.remove("batch.kubernetes.io/job-name");
         pods[0].metadata.labels = Some(l.clone());
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         assert_eq!(obs.jobs[0].pods.len(), 1, "the legacy job-name label");
         l.remove("job-name");
         pods[0].metadata.labels = Some(l);
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         assert_eq!((obs.jobs[0].pods.len(), obs.stray_pods.len()), (0, 1));
     }
 
@@ -1425,7 +1670,14 @@ mod tests {
             .as_mut()
             .unwrap()
             .insert(crate::labels::JOB_INDEX.into(), "zero".into());
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         assert_eq!(obs.jobs[0].index, None);
         assert_eq!(obs.verdict, Verdict::Running);
         assert_eq!(failed(&obs.expect_jobs(1)).0, FailureKind::JobsMissing);
@@ -1444,7 +1696,14 @@ mod tests {
             last_probe_time: None,
             last_transition_time: Some(Time(at(9, 10))),
         }]);
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         assert_eq!(obs.jobs[0].state, JobState::Suspended);
         assert_eq!(obs.verdict, Verdict::Running);
     }
@@ -1463,7 +1722,14 @@ mod tests {
             c.reason = Some("PodFailurePolicy".into());
             c.message = Some("Container agent-1 for pod x failed with exit code 42 matching FailJob rule at index 0".into());
         }
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         let (kind, _, _, message) = failed(&obs);
         assert_eq!(kind, FailureKind::JobFailed);
         assert!(
@@ -1485,7 +1751,14 @@ mod tests {
         {
             c.status = "False".into();
         }
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         assert_eq!(obs.jobs[0].state, JobState::Pending);
         assert_eq!(obs.verdict, Verdict::Running);
     }
@@ -1503,7 +1776,14 @@ mod tests {
     fn objects_without_status_or_names_do_not_panic() {
         let jobs = vec![Job::default()];
         let pods = vec![Pod::default()];
-        let obs = observe("4242", &jobs, &pods, at(9, 45), &VerdictPolicy::default());
+        let obs = observe(
+            "4242",
+            &jobs,
+            &pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        );
         assert_eq!(obs.jobs[0].state, JobState::Pending);
         assert_eq!(obs.stray_pods[0].phase, "Unknown");
         assert_eq!(obs.verdict, Verdict::Running);
@@ -1544,10 +1824,10 @@ mod tests {
             ..VerdictPolicy::default()
         };
         // The pod started at 09:01.
-        let early = observe("4242", &jobs, &pods, at(9, 10), &policy);
+        let early = observe("4242", &jobs, &pods, &[], at(9, 10), &policy);
         assert_eq!(early.verdict, Verdict::Running);
         assert_eq!(early.jobs[0].pods[0].start_time, Some(at(9, 1)));
-        let late = observe("4242", &jobs, &pods, at(9, 11), &policy);
+        let late = observe("4242", &jobs, &pods, &[], at(9, 11), &policy);
         let (kind, _, container, message) = failed(&late);
         assert_eq!(kind, FailureKind::ContainerConfig);
         assert_eq!(container, Some("agent-1"));

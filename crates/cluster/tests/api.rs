@@ -453,6 +453,68 @@ async fn observe_lists_jobs_and_pods_by_label_and_maps_them_to_a_verdict() {
     }
 }
 
+/// The pending pod of unschedulable.yaml, whose events the Monitor asks for.
+const PENDING_POD_UID: &str = "8e61dbe7-90cf-4dec-4891-83cfd21a9a89";
+const EVENTS: &str = "/api/v1/namespaces/leaderboard/events";
+
+#[tokio::test]
+async fn a_pod_waiting_past_the_grace_is_looked_up_in_the_autoscalers_events() {
+    let (cluster, mut server) = mock();
+    let (jobs, pods) = fixture(include_str!("fixtures/unschedulable.yaml"));
+    let events: Value =
+        serde_yaml::from_str(include_str!("fixtures/autoscaler-events.yaml")).unwrap();
+    let obs = with_server(cluster.observe("4242"), async move {
+        server.list(JOBS, job_list(jobs)).await;
+        server.list(PODS, pod_list(pods)).await;
+        let selector = format!("involvedObject.uid={PENDING_POD_UID}");
+        let e = Expect {
+            method: Method::GET,
+            path: EVENTS,
+            query: &[("fieldSelector", &selector)],
+        };
+        server.answer(e, 200, events).await;
+    })
+    .await
+    .unwrap();
+    match &obs.verdict {
+        Verdict::Failed { kind, message, .. } => {
+            assert_eq!(*kind, FailureKind::NoNodeFits);
+            assert!(message.contains("instance type `g5.12xlarge`"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[tokio::test]
+async fn events_the_role_may_not_list_leave_the_pod_to_the_schedulers_limits() {
+    let (cluster, mut server) = mock();
+    let (jobs, pods) = fixture(include_str!("fixtures/unschedulable.yaml"));
+    let obs = with_server(cluster.observe("4242"), async move {
+        server.list(JOBS, job_list(jobs)).await;
+        server.list(PODS, pod_list(pods)).await;
+        let selector = format!("involvedObject.uid={PENDING_POD_UID}");
+        let e = Expect {
+            method: Method::GET,
+            path: EVENTS,
+            query: &[("fieldSelector", &selector)],
+        };
+        let forbidden = status(
+            403,
+            "Forbidden",
+            "events is forbidden: User \"leaderboard-pipeline\" cannot list resource \"events\" in API group \"\" in the namespace \"leaderboard\"",
+            json!({"kind": "events"}),
+        );
+        server.answer(e, 403, forbidden).await;
+    })
+    .await
+    .unwrap();
+    // Waiting since 2025 for GPUs: the queue limit (not the autoscaler) ended it.
+    match &obs.verdict {
+        Verdict::Failed { kind, .. } => assert_eq!(*kind, FailureKind::Unschedulable),
+        other => panic!("{other:?}"),
+    }
+}
+
 #[tokio::test]
 async fn observe_of_a_finished_submission_is_finished() {
     let (cluster, mut server) = mock();

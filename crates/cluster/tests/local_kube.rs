@@ -338,6 +338,7 @@ async fn zero_hopeless_limits_do_not_fail_a_healthy_job() {
         unschedulable_limit: Duration::ZERO,
         queue_limit: Duration::ZERO,
         config_error_limit: Duration::ZERO,
+        never_fits_grace: Duration::ZERO,
     });
     let j = job(
         "5009",
@@ -448,4 +449,85 @@ async fn a_resume_replaces_an_earlier_executions_job_instead_of_adopting_it() {
     assert!(!launched.adopted);
     assert_ne!(launched.uid, first.uid);
     bounded(cluster.delete_all("5008", None)).await.unwrap();
+}
+
+/// `job` whose pod asks for `gpus` GPUs on instance type `instance_type`.
+fn gpu_job(sub: &str, gpus: u32, instance_type: &str, script: &str) -> Job {
+    let mut j = job(sub, 0, "OnFailure", 2, &[("agent-1", "busybox", script)]);
+    let spec = j.spec.as_mut().unwrap().template.spec.as_mut().unwrap();
+    spec.node_selector = Some(
+        [(
+            "node.kubernetes.io/instance-type".to_string(),
+            instance_type.to_string(),
+        )]
+        .into(),
+    );
+    spec.containers[0].resources = Some(
+        serde_json::from_value(json!({"limits": {"nvidia.com/gpu": gpus.to_string()}})).unwrap(),
+    );
+    j
+}
+
+#[tokio::test]
+async fn a_pod_no_node_could_ever_hold_fails_and_a_pod_waiting_for_room_waits() {
+    // One g5.12xlarge node with one GPU, the autoscaler's group at its maximum.
+    let (_lk, cluster, _dir) = start(Config {
+        gpus: Some(1),
+        instance_type: Some("g5.12xlarge".into()),
+        autoscaler: true,
+        ..Config::default()
+    })
+    .await;
+    let cluster = cluster.with_policy(VerdictPolicy {
+        never_fits_grace: Duration::ZERO,
+        ..VerdictPolicy::default()
+    });
+    for (sub, gpus, instance_type, script) in [
+        ("5101", 1, "g5.12xlarge", "sleep 30"),
+        ("5102", 1, "g5.12xlarge", "true"),
+        ("5103", 1, "g6.xlarge", "true"),
+        ("5104", 2, "g5.12xlarge", "true"),
+    ] {
+        let j = gpu_job(sub, gpus, instance_type, script);
+        bounded(cluster.create_or_adopt(&j)).await.unwrap();
+    }
+    observe_until(&cluster, "5101", "running", |o| {
+        o.jobs[0].state == JobState::Running
+    })
+    .await;
+
+    // Waits for the GPU 5101 holds: a queue, never a failure.
+    let queued = observe_until(&cluster, "5102", "the autoscaler's word", |o| {
+        o.jobs[0].pods.iter().any(|p| p.autoscaler.is_some())
+    })
+    .await;
+    assert_eq!(queued.verdict, Verdict::Running);
+    let word = queued.jobs[0].pods[0].autoscaler.as_ref().unwrap();
+    assert_eq!(
+        word.message,
+        "pod didn't trigger scale-up: 1 max node group size reached"
+    );
+
+    for (sub, expect) in [
+        (
+            "5103",
+            "no node group of the evaluation cluster offers the instance type `g6.xlarge`",
+        ),
+        (
+            "5104",
+            "its pods request more nvidia.com/gpu than a node of any node group",
+        ),
+    ] {
+        let obs = observe_until(&cluster, sub, "a verdict", |o| o.verdict.is_terminal()).await;
+        match &obs.verdict {
+            Verdict::Failed { kind, message, .. } => {
+                assert_eq!(*kind, FailureKind::NoNodeFits, "{message}");
+                assert!(message.contains(expect), "{sub}: {message}");
+            }
+            other => panic!("{sub}: {other:?}"),
+        }
+    }
+    for sub in ["5101", "5102", "5103", "5104"] {
+        bounded(cluster.delete_all(sub, None)).await.unwrap();
+    }
 }

@@ -63,4 +63,36 @@ pub struct Config {
     /// The node's `nvidia.com/gpu` capacity: pods wait `Pending` (`Unschedulable`) until
     /// their GPU request fits. `None`: GPUs are not modelled and every pod fits.
     pub gpus: Option<u32>,
+    /// The node's `node.kubernetes.io/instance-type` label. When set, the scheduler honours
+    /// a pod's `nodeSelector` against the node's labels (a pod asking for another instance
+    /// type waits `Unschedulable`); `None`: node selectors are not modelled.
+    pub instance_type: Option<String>,
+    /// Record the Cluster Autoscaler's events on pods that wait, as for a cluster whose only
+    /// node group is this node at its maximum size: `NotTriggerScaleUp` with
+    /// `max node group size reached` for a pod a free node would hold, and the rejection
+    /// (`Insufficient nvidia.com/gpu`, `node(s) didn't match Pod's node affinity/selector`)
+    /// for one no node of the group ever could.
+    pub autoscaler: bool,
+}
+
+/// What the scheduler (and the autoscaler) know of the one node.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Node {
+    /// `Config::gpus`.
+    pub gpus: Option<u32>,
+    /// `Config::instance_type`.
+    pub instance_type: Option<String>,
+    /// `Config::autoscaler`.
+    pub autoscaler: bool,
+}
+
+impl Config {
+    /// The node this configuration describes.
+    pub fn node(&self) -> Node {
+        Node {
+            gpus: self.gpus,
+            instance_type: self.instance_type.clone(),
+            autoscaler: self.autoscaler,
+        }
+    }
 }

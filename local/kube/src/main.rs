@@ -43,6 +43,14 @@ struct Args {
     /// request fits (default: GPUs not modelled, every pod fits).
     #[arg(long)]
     gpus: Option<u32>,
+    /// The node's `node.kubernetes.io/instance-type` label; pods' `nodeSelector` is then
+    /// honoured (default: node selectors not modelled).
+    #[arg(long)]
+    instance_type: Option<String>,
+    /// Record the Cluster Autoscaler's `NotTriggerScaleUp` events on waiting pods, as for a
+    /// node group of this one node at its maximum size.
+    #[arg(long)]
+    autoscaler: bool,
 }
 
 #[tokio::main]
@@ -80,6 +88,8 @@ async fn main() -> anyhow::Result<()> {
             IsolationArg::None => Isolation::None,
         },
         gpus: args.gpus,
+        instance_type: args.instance_type,
+        autoscaler: args.autoscaler,
         ..Config::default()
     };
     let mut server = LocalKube::bind(SocketAddr::from(([127, 0, 0, 1], args.port)), config).await?;

@@ -87,18 +87,13 @@ async fn prepare(addr: SocketAddr, config: Config) -> Result<Prepared> {
         source,
     })?;
     let store = Arc::new(Store::new());
-    let rt = Runtime::new(
-        store,
-        config.images,
-        config.timing,
-        ns,
-        &state_dir,
-        config.gpus,
-    )
-    .map_err(|source| Error::StateDir {
-        path: state_dir.clone(),
-        source,
-    })?;
+    let node = config.node();
+    let rt = Runtime::new(store, config.images, config.timing, ns, &state_dir, node).map_err(
+        |source| Error::StateDir {
+            path: state_dir.clone(),
+            source,
+        },
+    )?;
     let outage = Arc::new(Outage::default());
     let state = AppState {
         rt: rt.clone(),

@@ -208,9 +208,19 @@ impl Stack {
             unpullable,
         )
         .map_err(|e| StackError::Kube(format!("image map: {e}")))?;
+        // One node, of the instance type the leaderboards run on, under a Cluster Autoscaler
+        // whose one node group is at its maximum (infra/k8s/cluster-autoscaler.yaml runs one
+        // on EKS): a pod no node could hold hears so, as it would there.
+        let mut types = settings.leaderboards.values().map(|l| &l.instance_type);
+        let shared = types
+            .next()
+            .filter(|first| types.all(|t| t == *first))
+            .cloned();
         self.start_kube(local_kube::Config {
             images,
             gpus: behaviour.node_gpus,
+            instance_type: behaviour.node_instance_type.clone().or(shared),
+            autoscaler: true,
             ..local_kube::Config::default()
         })
     }

@@ -124,6 +124,10 @@ pub struct Behaviour {
     /// The local node's `nvidia.com/gpu`: pairs beyond it wait `Pending` (`Unschedulable`,
     /// `Insufficient nvidia.com/gpu`) until a GPU frees. `None`: GPUs not modelled.
     pub node_gpus: Option<u32>,
+    /// The local node's instance type (`node.kubernetes.io/instance-type`), which the Jobs'
+    /// `nodeSelector` must match. `None`: the one every leaderboard of the settings names
+    /// (not modelled when they differ).
+    pub node_instance_type: Option<String>,
 }
 
 impl Default for Behaviour {
@@ -133,6 +137,7 @@ impl Default for Behaviour {
             evaluator_env: BTreeMap::new(),
             carla_env: BTreeMap::new(),
             node_gpus: None,
+            node_instance_type: None,
         }
     }
 }

@@ -545,6 +545,7 @@ fn cluster_calls() -> BTreeSet<(String, String, String)> {
         let (group, resource) = match receiver.as_str() {
             "jobs" => ("batch", "jobs"),
             "pods" => ("", "pods"),
+            "events" => ("", "events"),
             other => panic!("an Api of `{other}`: add its group and resource here"),
         };
         calls.insert((

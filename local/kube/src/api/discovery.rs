@@ -8,6 +8,7 @@ use serde_json::{json, Value};
 use sha2::{Digest, Sha256};
 
 use super::{json, valid_namespace, AppState, Params};
+use crate::selector::FieldSelector;
 use crate::status::{ApiError, NAMESPACES};
 
 /// Kubernetes version this server answers as.
@@ -303,11 +304,12 @@ pub async fn list_namespaces(State(state): State<AppState>) -> Response {
     )
 }
 
-/// GET /api/v1/namespaces/{ns}/events: local-kube records no events.
+/// GET /api/v1/namespaces/{ns}/events: the events local-kube records (the Cluster
+/// Autoscaler's, with `Config::autoscaler`), field selectors as the real server takes them.
 pub async fn list_events(
     State(state): State<AppState>,
     Path(ns): Path<String>,
-    Query(_p): Query<Params>,
+    Query(p): Query<Params>,
 ) -> Response {
     let events = crate::status::Resource {
         group: "",
@@ -320,13 +322,39 @@ pub async fn list_events(
     if let Err(e) = state.check("list", &events, &ns, None) {
         return e.into_response();
     }
+    let fields = match FieldSelector::parse(
+        p.field_selector.as_deref().unwrap_or_default(),
+        &crate::runtime::events::FIELDS,
+    ) {
+        Ok(f) => f,
+        Err(e) => return ApiError::bad_request(e).into_response(),
+    };
+    let items = state
+        .rt
+        .events
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .list(&ns, |e| {
+            fields.matches(|f| crate::runtime::events::field(e, f))
+        })
+        .into_iter()
+        .map(|e| {
+            // NB: as in every list, items carry no apiVersion and kind.
+            let mut v = serde_json::to_value(e).unwrap_or_default();
+            if let Value::Object(m) = &mut v {
+                m.remove("apiVersion");
+                m.remove("kind");
+            }
+            v
+        })
+        .collect::<Vec<_>>();
     json(
         StatusCode::OK,
         &json!({
             "kind": "EventList",
             "apiVersion": "v1",
             "metadata": {"resourceVersion": state.rt.store.resource_version().to_string()},
-            "items": [],
+            "items": items,
         }),
     )
 }

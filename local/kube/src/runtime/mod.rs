@@ -2,6 +2,7 @@
 
 pub mod controller;
 pub mod env;
+pub mod events;
 pub mod expand;
 pub mod kubelet;
 pub mod mounts;
@@ -19,7 +20,7 @@ use k8s_openapi::api::core::v1::Pod;
 use tokio::sync::{watch, Notify};
 use tracing::{info, warn};
 
-use crate::config::Timing;
+use crate::config::{Node, Timing};
 use crate::imagemap::ImageMap;
 use crate::objects::pod::controller_uid;
 use crate::status::{success_status, ApiError, JOBS};
@@ -79,8 +80,11 @@ pub struct Runtime {
     pub home: String,
     /// Live process groups.
     pub procs: Processes,
-    /// The node's `nvidia.com/gpu` (`None`: GPUs not modelled, every pod fits).
-    pub gpus: Option<u32>,
+    /// The node's `nvidia.com/gpu` (`None`: GPUs not modelled, every pod fits), labels
+    /// and whether the autoscaler's events are recorded.
+    pub node_model: Node,
+    /// Events about pods.
+    pub events: Mutex<events::Events>,
     /// The directory holding the node's `nvidia-smi`, put first on the `PATH` of containers
     /// that see GPUs.
     pub nvidia_dir: PathBuf,
@@ -103,8 +107,9 @@ impl Runtime {
         timing: Timing,
         ns: Namespaces,
         state_dir: &Path,
-        gpus: Option<u32>,
+        node_model: Node,
     ) -> std::io::Result<Arc<Self>> {
+        let gpus = node_model.gpus;
         let pods_dir = state_dir.join("pods");
         std::fs::create_dir_all(&pods_dir)?;
         let nvidia_dir = state_dir.join("nvidia");
@@ -131,7 +136,8 @@ impl Runtime {
             }),
             home: std::env::var("HOME").unwrap_or_else(|_| "/root".into()),
             procs: Processes::default(),
-            gpus,
+            node_model,
+            events: Mutex::new(Default::default()),
             nvidia_dir,
             allocations: Mutex::new(Default::default()),
             jobs: Mutex::new(HashMap::new()),
@@ -235,13 +241,40 @@ impl Runtime {
             (&a.metadata.creation_timestamp, &a.metadata.name)
                 .cmp(&(&b.metadata.creation_timestamp, &b.metadata.name))
         });
+        {
+            let (all, _) = self.store.list::<Pod>(None, |_| true);
+            let live: std::collections::HashSet<String> =
+                all.into_iter().filter_map(|p| p.metadata.uid).collect();
+            lock(&self.events).retain_pods(|uid| live.contains(uid));
+        }
+        let node = &self.node_model;
+        let labels = scheduler::node_labels(&self.node, node);
         for pod in pending {
             let key = ObjKey::of(&pod.metadata);
             let uid = pod.metadata.uid.clone().unwrap_or_default();
-            let need = pod.spec.as_ref().map_or(0, scheduler::gpu_request);
-            if !scheduler::fits(self.gpus, allocations.in_use(), need) {
-                self.store
-                    .update::<Pod>(&key, scheduler::mark_unschedulable);
+            let spec = pod.spec.clone().unwrap_or_default();
+            let need = scheduler::gpu_request(&spec);
+            let selected = node.instance_type.is_none() || scheduler::selects(&spec, &labels);
+            if !selected || !scheduler::fits(node.gpus, allocations.in_use(), need) {
+                let message = if selected {
+                    scheduler::INSUFFICIENT_GPU
+                } else {
+                    scheduler::SELECTOR_MISMATCH
+                };
+                if let Some(waiting) = self
+                    .store
+                    .update::<Pod>(&key, |p| scheduler::mark_unschedulable(p, message))
+                {
+                    if node.autoscaler {
+                        let word = scheduler::autoscaler_word(selected, need, node.gpus);
+                        lock(&self.events).record(
+                            &waiting,
+                            scheduler::AUTOSCALER,
+                            scheduler::NOT_TRIGGERED,
+                            &word,
+                        );
+                    }
+                }
                 continue;
             }
             let Some(bound) = self
@@ -250,7 +283,7 @@ impl Runtime {
             else {
                 continue;
             };
-            let devices = allocations.bind(&uid, need, self.gpus);
+            let devices = allocations.bind(&uid, need, node.gpus);
             info!(pod = %key.name, gpus = need, ?devices, "pod scheduled");
             self.start_kubelet(bound);
         }

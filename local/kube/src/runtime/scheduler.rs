@@ -4,11 +4,12 @@
 //! bound pod gets particular GPUs, as the NVIDIA device plugin allocates them: the kubelet
 //! gives each container that requested GPUs their UUIDs in `NVIDIA_VISIBLE_DEVICES`.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 use k8s_openapi::api::core::v1::{Pod, PodCondition, PodSpec};
 use k8s_openapi::apimachinery::pkg::api::resource::Quantity;
 
+use crate::config::Node;
 use crate::store::time_now;
 
 /// The extended resource the NVIDIA device plugin advertises.
@@ -17,6 +18,18 @@ pub const GPU: &str = "nvidia.com/gpu";
 /// What the real scheduler writes on a pod no node has GPUs for (kube-scheduler's
 /// `NodeResourcesFit` plugin, one node).
 pub const INSUFFICIENT_GPU: &str = "0/1 nodes are available: 1 Insufficient nvidia.com/gpu.";
+
+/// What the real scheduler writes on a pod whose `nodeSelector` the node's labels do not
+/// satisfy (kube-scheduler's `NodeAffinity` filter, one node; preemption cannot help).
+pub const SELECTOR_MISMATCH: &str = "0/1 nodes are available: 1 node(s) didn't match Pod's node affinity/selector. preemption: 0/1 nodes are available: 1 Preemption is not helpful for scheduling.";
+
+/// The component the Cluster Autoscaler's events name.
+pub const AUTOSCALER: &str = "cluster-autoscaler";
+/// The autoscaler's event reason for a pod it did not add a node for.
+pub const NOT_TRIGGERED: &str = "NotTriggerScaleUp";
+
+/// The well-known label of a node's instance type.
+pub const INSTANCE_TYPE_LABEL: &str = "node.kubernetes.io/instance-type";
 
 /// GPUs a node lists when GPUs are not modelled (every pod fits; beyond this many in use at
 /// once, devices are shared).
@@ -149,9 +162,47 @@ pub fn bind(pod: &mut Pod, node: &str) {
     set_scheduled(pod, None);
 }
 
-/// Marks `pod` unschedulable (keeping the transition time while it stays so).
-pub fn mark_unschedulable(pod: &mut Pod) {
-    set_scheduled(pod, Some(INSUFFICIENT_GPU));
+/// Marks `pod` unschedulable with the scheduler's `message` (keeping the transition time
+/// while it stays so).
+pub fn mark_unschedulable(pod: &mut Pod, message: &str) {
+    set_scheduled(pod, Some(message));
+}
+
+/// The labels of node `name`: the well-known ones a kubelet sets, and the instance type.
+pub fn node_labels(name: &str, node: &Node) -> BTreeMap<String, String> {
+    let mut labels = BTreeMap::from([
+        ("kubernetes.io/hostname".to_owned(), name.to_owned()),
+        ("kubernetes.io/os".to_owned(), "linux".to_owned()),
+        ("kubernetes.io/arch".to_owned(), "amd64".to_owned()),
+    ]);
+    if let Some(t) = &node.instance_type {
+        labels.insert(INSTANCE_TYPE_LABEL.to_owned(), t.clone());
+    }
+    labels
+}
+
+/// Whether a node with `labels` satisfies the pod's `nodeSelector` (every pair present).
+pub fn selects(spec: &PodSpec, labels: &BTreeMap<String, String>) -> bool {
+    spec.node_selector
+        .iter()
+        .flatten()
+        .all(|(k, v)| labels.get(k) == Some(v))
+}
+
+/// What the Cluster Autoscaler says of a pod that waits, when the cluster's one node group is
+/// this node at its maximum size (kubernetes/autoscaler `eventing_scale_up_processor.go`:
+/// `pod didn't trigger scale-up: ` and one counted reason per node group): *skipped* when a
+/// new node of the group would hold the pod, *rejected* with the scheduler filter's reason
+/// (the first that fails, as the framework stops there) when none would.
+pub fn autoscaler_word(selected: bool, need: u32, capacity: Option<u32>) -> String {
+    let reason = if !selected {
+        "node(s) didn't match Pod's node affinity/selector"
+    } else if capacity.is_some_and(|total| need > total) {
+        "Insufficient nvidia.com/gpu"
+    } else {
+        "max node group size reached"
+    };
+    format!("pod didn't trigger scale-up: 1 {reason}")
 }
 
 fn set_scheduled(pod: &mut Pod, unschedulable: Option<&str>) {
@@ -224,9 +275,39 @@ mod tests {
     }
 
     #[test]
+    fn node_selectors_and_the_autoscalers_word_follow_the_node() {
+        let node = Node {
+            gpus: Some(4),
+            instance_type: Some("g5.12xlarge".into()),
+            autoscaler: true,
+        };
+        let labels = node_labels("local-kube", &node);
+        let asks = |t: &str| {
+            spec(&format!(
+                r#"{{"containers": [{{"name": "a"}}], "nodeSelector": {{"{INSTANCE_TYPE_LABEL}": "{t}"}}}}"#
+            ))
+        };
+        assert!(selects(&asks("g5.12xlarge"), &labels));
+        assert!(!selects(&asks("g6.xlarge"), &labels));
+        assert!(selects(&spec("containers: [{name: a}]"), &labels));
+        assert_eq!(
+            autoscaler_word(true, 1, Some(4)),
+            "pod didn't trigger scale-up: 1 max node group size reached"
+        );
+        assert_eq!(
+            autoscaler_word(true, 5, Some(4)),
+            "pod didn't trigger scale-up: 1 Insufficient nvidia.com/gpu"
+        );
+        assert_eq!(
+            autoscaler_word(false, 1, Some(4)),
+            "pod didn't trigger scale-up: 1 node(s) didn't match Pod's node affinity/selector"
+        );
+    }
+
+    #[test]
     fn the_conditions_are_the_real_schedulers() {
         let mut pod = Pod::default();
-        mark_unschedulable(&mut pod);
+        mark_unschedulable(&mut pod, INSUFFICIENT_GPU);
         let c = &pod.status.as_ref().unwrap().conditions.as_ref().unwrap()[0];
         assert_eq!(
             (c.type_.as_str(), c.status.as_str(), c.reason.as_deref()),
