@@ -16,6 +16,9 @@ use lb_evalai::{Admission, AdmissionFuture, Budget, BudgetPolicy, Priority};
 
 use crate::{condition_failed, AwsError};
 
+/// How often a grant that arrived after its window closed is asked for again.
+const RETAKES: u32 = 2;
+
 /// How long a window's item is kept after it (for an operator looking at the last hour).
 const KEEP_SECONDS: u64 = 3600;
 
@@ -40,37 +43,83 @@ impl BudgetTable {
     /// Takes one request in the window of `at_ms` (epoch milliseconds); an urgent request
     /// finding it full books the first later window with room.
     pub async fn take_at(&self, priority: Priority, headroom: u32, at_ms: u64) -> Admission {
-        let (index, retry_in) = self.policy.window_of(at_ms);
-        let Some(most) = self.policy.limit(priority).checked_sub(headroom) else {
-            // The call needs more than a window ever grants this priority.
-            return Admission::Full { retry_in };
-        };
-        match self.increment(index, most).await {
-            Ok(true) => return Admission::Granted,
-            Ok(false) if priority == Priority::Routine => return Admission::Full { retry_in },
-            Ok(false) => {}
-            Err(why) => return Admission::Unavailable(why),
+        self.take_by(priority, headroom, &|| at_ms).await
+    }
+
+    /// [`Self::take_at`] on `clock`, read again after the writes: a grant counts in its window
+    /// only, so one whose round trips outlasted that window (a slow table, a paused function)
+    /// would be sent uncounted in the next; it is asked for again instead (a counted place
+    /// unused is a request EvalAI never sees), at most [`RETAKES`] times.
+    pub async fn take_by(
+        &self,
+        priority: Priority,
+        headroom: u32,
+        clock: &(dyn Fn() -> u64 + Send + Sync),
+    ) -> Admission {
+        let mut late = Duration::ZERO;
+        for _ in 0..=RETAKES {
+            let at_ms = clock();
+            let (index, retry_in) = self.policy.window_of(at_ms);
+            let Some(most) = self.policy.limit(priority).checked_sub(headroom) else {
+                // The call needs more than a window ever grants this priority.
+                return Admission::Full { retry_in };
+            };
+            match self.increment(index, most).await {
+                Ok(true) if clock() < self.policy.window_start(index + 1) => {
+                    return Admission::Granted
+                }
+                Ok(true) => {
+                    late = retry_in;
+                    continue;
+                }
+                Ok(false) if priority == Priority::Routine => return Admission::Full { retry_in },
+                Ok(false) => {}
+                Err(why) => return Admission::Unavailable(why),
+            }
+            match self.book(index, at_ms, clock).await {
+                Ok(Some(admission)) => return admission,
+                Ok(None) => {
+                    return Admission::Full {
+                        retry_in: retry_in + self.policy.window * (BudgetPolicy::BOOK_AHEAD as u32),
+                    }
+                }
+                Err(Some(why)) => return Admission::Unavailable(why),
+                Err(None) => late = retry_in,
+            }
         }
+        Admission::Full { retry_in: late }
+    }
+
+    /// Books the first window after `index` with room: `Ok(None)` when none has, `Err(None)`
+    /// when the booked window had passed by the time the write returned.
+    async fn book(
+        &self,
+        index: u64,
+        at_ms: u64,
+        clock: &(dyn Fn() -> u64 + Send + Sync),
+    ) -> Result<Option<Admission>, Option<String>> {
         for ahead in 1..=BudgetPolicy::BOOK_AHEAD {
             let booked = index + ahead;
             match self.increment(booked, self.policy.per_window - 1).await {
                 Ok(true) => {
+                    let now = clock();
+                    if now >= self.policy.window_start(booked + 1) {
+                        return Err(None);
+                    }
                     // Spread over the window's first quarter, so the bookings of one window
                     // do not all arrive in its first millisecond.
                     let spread = (self.policy.window.as_millis() as u64 / 4).max(1);
                     let offset = (at_ms.wrapping_mul(2_654_435_761) >> 7) % spread;
                     let opens = self.policy.window_start(booked) + offset;
-                    return Admission::Booked {
-                        wait: Duration::from_millis(opens.saturating_sub(at_ms)),
-                    };
+                    return Ok(Some(Admission::Booked {
+                        wait: Duration::from_millis(opens.saturating_sub(now)),
+                    }));
                 }
                 Ok(false) => continue,
-                Err(why) => return Admission::Unavailable(why),
+                Err(why) => return Err(Some(why)),
             }
         }
-        Admission::Full {
-            retry_in: retry_in + self.policy.window * (BudgetPolicy::BOOK_AHEAD as u32),
-        }
+        Ok(None)
     }
 
     /// Adds one to window `index`'s count if it is at most `most`: whether it did.
@@ -132,6 +181,6 @@ fn now_ms() -> u64 {
 
 impl Budget for BudgetTable {
     fn take(&self, priority: Priority, headroom: u32) -> AdmissionFuture<'_> {
-        Box::pin(self.take_at(priority, headroom, now_ms()))
+        Box::pin(self.take_by(priority, headroom, &now_ms))
     }
 }

@@ -236,3 +236,34 @@ async fn eight_submissions_hammering_evalai_through_one_budget_are_never_throttl
         );
     }
 }
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_grant_that_returns_after_its_window_closed_is_asked_for_again() {
+    let moto = MotoServer::start().unwrap();
+    let policy = BudgetPolicy::evalai(60).unwrap();
+    let budget = budget_table(&moto, policy).await;
+    let window_start: u64 = 1_800_000_000_000;
+    let granted = |start: u64| budget.granted(start);
+    // The write is slow: 11.9 s into a 12 s window, and each reading of the clock 200 ms on.
+    let ticks = std::sync::atomic::AtomicU64::new(window_start + 11_900);
+    let clock = || ticks.fetch_add(200, std::sync::atomic::Ordering::SeqCst);
+    // The grant came back in the next window: asked again there, granted there.
+    assert_eq!(
+        budget.take_by(Priority::Urgent, 1, &clock).await,
+        Admission::Granted
+    );
+    assert_eq!(
+        granted(window_start).await.unwrap(),
+        1,
+        "the late place, unused"
+    );
+    assert_eq!(granted(window_start + 12_000).await.unwrap(), 1);
+    // A clock a window ahead at every reading never finds its grant in time: it gives up.
+    let ticks = std::sync::atomic::AtomicU64::new(window_start + 24_000);
+    let clock = || ticks.fetch_add(12_000, std::sync::atomic::Ordering::SeqCst);
+    assert!(matches!(
+        budget.take_by(Priority::Urgent, 1, &clock).await,
+        Admission::Full { .. }
+    ));
+}
