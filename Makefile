@@ -71,7 +71,7 @@ bench-latency: venv kubectl ## Record -> partial update and last write -> final 
 		printf '%-48s %s\n' "$$label" "$${line#latency        }"; \
 	done
 
-bench-scale: venv ## 200 submissions in flight through the shared EvalAI budget at 10x speed: EvalAI requests per sliding minute (target <= 60, no 429), record -> partial update and end -> final delays (about 2 minutes)
+bench-scale: venv ## 200 submissions of 40 teams on 160 simulated GPUs through the shared EvalAI budget and the admission queue at 10x speed: EvalAI requests per sliding minute (target <= 60, no 429), arrival -> admitted and -> running, record -> partial update and end -> final delays
 	$(CARGO) test --quiet -p e2e --bench scale -- --bench
 
 bench-sidecar: venv ## logcopy's peak memory uploading a 1 GiB tree to moto (target < 20 MiB)

@@ -198,9 +198,10 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         url,
         token: args.evalai_token.clone().unwrap_or_default(),
     });
-    let mut stack = Stack::start(external.unwrap_or(EvalAi::Fake(fixture_with_teams(teams.len()))))
-        .await
-        .context("starting the local stack (run `make venv` for moto)")?;
+    let mut stack =
+        Stack::start(external.unwrap_or(EvalAi::Fake(Fixture::with_teams(teams.len()))))
+            .await
+            .context("starting the local stack (run `make venv` for moto)")?;
     say(
         started,
         format!(
@@ -313,7 +314,12 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     // The autoscaler's word is believed after minutes on EKS; local-kube's is final at once.
     monitor.policy.never_fits_grace = Duration::from_secs(2);
     let monitor = Arc::new(monitor);
-    let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters()).await?;
+    // Finalize wakes a team's next submission through the executor, which the task map below
+    // is made for: bound once it exists.
+    let late = local_stack::events::LateCallbacks::default();
+    let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters())
+        .await?
+        .with_callbacks(late.clone());
     finalize.delete_wait = Duration::from_secs(60);
     let finalize = Arc::new(finalize);
     // The summary reads the outcome from EvalAI with the functions' own client.
@@ -443,6 +449,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         },
     )
     .map_err(|e| anyhow::anyhow!("{e}"))?;
+    late.bind(executor.clone());
     // S3's events and the cancel sweep wake the waiting execution, as in the deployment.
     let relays = crate::relay::spawn(
         &stack.sdk,
@@ -666,32 +673,6 @@ fn team_sizes(args: &LocalRun) -> anyhow::Result<Vec<u32>> {
         bail!("--teams: at most 20 teams");
     }
     Ok(args.teams.clone())
-}
-
-/// The fake's default fixture with teams 1..=`teams` (the default has two; more get a member
-/// each, a verified participant).
-fn fixture_with_teams(teams: usize) -> Fixture {
-    let mut fixture = Fixture::default();
-    let next_user = fixture.users.iter().map(|u| u.id).max().unwrap_or(0);
-    for n in (fixture.participant_teams.len() + 1)..=teams {
-        let user = next_user + n as u64;
-        fixture.users.push(fake_evalai::fixture::UserFixture {
-            id: user,
-            username: format!("participant-{n}"),
-            email_verified: true,
-            active: true,
-            staff: false,
-        });
-        fixture
-            .participant_teams
-            .push(fake_evalai::fixture::ParticipantTeamFixture {
-                id: n as u64,
-                name: format!("Team {n}"),
-                members: vec![user],
-                challenges: vec![1],
-            });
-    }
-    fixture
 }
 
 /// `agent_results.json` in a line: its records and how many each route has (Leaderboard 1.0

@@ -70,6 +70,15 @@ pub fn team_turn(entries: &[Entry], me: &Entry) -> bool {
     })
 }
 
+/// The team's oldest waiting submission: the one whose turn comes when a place of `team_id`
+/// is given back.
+pub fn next_of_team(entries: &[Entry], team_id: u64) -> Option<&Entry> {
+    entries
+        .iter()
+        .filter(|e| e.team_id == team_id && e.state == EntryState::Waiting)
+        .min_by_key(|e| (e.arrived_ms, e.submission_id))
+}
+
 /// The submissions that arrived before `me` and have not started: those that start first,
 /// whatever holds `me` back. It only ever shrinks while `me` waits (a later arrival is never
 /// counted, and a submission that started or ended leaves the count for good).
@@ -134,6 +143,10 @@ mod tests {
         assert!(!team_turn(&entries, &entries[2]));
         // Team 8 is not held back by team 7's waiting submissions.
         assert!(team_turn(&entries, &entries[3]));
+        // A place of team 7 freed is team 7's second's turn; team 9 has nobody waiting.
+        assert_eq!(next_of_team(&entries, 7).map(|e| e.submission_id), Some(2));
+        assert_eq!(next_of_team(&entries, 8).map(|e| e.submission_id), Some(4));
+        assert_eq!(next_of_team(&entries, 9), None);
     }
 
     #[test]

@@ -47,13 +47,14 @@ pub fn safety_net(elapsed: Duration) -> Duration {
 }
 
 /// How long a submission held by its team's cap waits before it asks for its turn again,
-/// `waited` after it arrived: a minute at first, longer as the wait grows, so that the
-/// longest queue `max_queue_hours` allows (336 hours) and the longest evaluation fit one
-/// execution's history (the pipeline's tests count them).
+/// `waited` after it arrived: a safety net, since Finalize wakes the team's next submission
+/// when it gives a place back. Five minutes (the participant's place note is refreshed at
+/// that pace too), half an hour after the first day, so that the longest queue
+/// `max_queue_hours` allows (336 hours) and the longest evaluation fit one execution's
+/// history (the pipeline's tests count them).
 pub fn queue_wait(waited: Duration) -> Duration {
     Duration::from_secs(match waited.as_secs() {
-        0..3_600 => 60,
-        3_600..86_400 => 300,
+        0..86_400 => 300,
         _ => 1_800,
     })
 }

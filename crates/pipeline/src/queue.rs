@@ -5,6 +5,8 @@
 use std::time::Duration;
 
 use lb_aws::admission::{AdmissionTable, Admit};
+use lb_aws::tasks::{Callbacks, Reported};
+use lb_aws::wake::WakeTable;
 use lb_domain::queue::{self, Entry, EntryState, Hold};
 
 use crate::payload::SubmissionInfo;
@@ -76,4 +78,50 @@ pub async fn ahead_of(table: &AdmissionTable, submission: &SubmissionInfo) -> Re
         .iter()
         .find(|e| e.submission_id == submission.submission_id)
         .map(|me| queue::ahead(&entries, me)))
+}
+
+/// What [`wake_team_next`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Woken {
+    /// No submission of the team waits.
+    Nobody,
+    /// The team's next (this id) is not waiting on a token now (in a round, or not yet
+    /// parked): it asks for its turn at its round anyway.
+    NotWaiting(u64),
+    /// Its execution was woken.
+    Delivered(u64),
+    /// Its wait had already ended.
+    Stale(u64),
+}
+
+/// Wakes the execution of team `team_id`'s oldest waiting submission in `leaderboard`, whose
+/// turn a place just given back is, so its Monitor round asks now instead of at its next poll
+/// (a minute into a queue, half an hour into a long one). The token is taken from the wake
+/// table as the wake function takes it, and put back when the report fails.
+pub async fn wake_team_next<C: Callbacks>(
+    table: &AdmissionTable,
+    wakes: &WakeTable,
+    callbacks: &C,
+    leaderboard: &str,
+    team_id: u64,
+    now: u64,
+) -> Result<Woken> {
+    let entries = table.entries(leaderboard).await?;
+    let Some(next) = queue::next_of_team(&entries, team_id) else {
+        return Ok(Woken::Nobody);
+    };
+    let id = next.submission_id;
+    let Some(taken) = wakes.count_change(id, now).await? else {
+        return Ok(Woken::NotWaiting(id));
+    };
+    match callbacks.succeed(&taken.token, "{}").await {
+        Ok(Reported::Delivered) => Ok(Woken::Delivered(id)),
+        Ok(Reported::Stale) => Ok(Woken::Stale(id)),
+        Err(e) => {
+            // NB: the report's error is the one worth telling; a failed put-back only means
+            // the safety net's timeout wakes it.
+            let _ = wakes.restore_token(id, &taken, false).await;
+            Err(e.into())
+        }
+    }
 }

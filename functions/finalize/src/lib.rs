@@ -9,8 +9,11 @@
 use std::time::Duration;
 
 use aws_config::SdkConfig;
+use lb_aws::admission::AdmissionTable;
 use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable};
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
+use lb_aws::tasks::{Callbacks, StepFunctions};
+use lb_aws::wake::WakeTable;
 use lb_domain::logtail::{participant_tail, MAX_TAIL_CHARS};
 use lb_domain::protocol::{self, Marker, Role, LOGS_DIR};
 use lb_domain::py::Num;
@@ -19,6 +22,7 @@ use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::{cluster_error, Clusters};
 use lb_pipeline::payload::{Action, IntakeOutput, PairRoutes, RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::queue;
 use lb_pipeline::results::{collect, Snapshot};
 use lb_pipeline::{FnError, FunctionConfig, Result};
 use serde::{Deserialize, Serialize};
@@ -30,17 +34,23 @@ pub const DELETE_WAIT: Duration = Duration::from_secs(120);
 
 /// What Finalize needs: everything the pipeline touches.
 #[derive(Debug)]
-pub struct Deps {
+pub struct Deps<C = StepFunctions> {
     /// Settings, EvalAI, clusters, S3, DynamoDB.
     pub clients: RunClients,
     /// How long to wait for deleted pods.
     pub delete_wait: Duration,
+    /// The wake table, to wake the team's next submission when a place is given back.
+    pub wakes: Option<WakeTable>,
+    /// Where its token is reported (the embedded executor in local mode).
+    pub callbacks: C,
 }
 
 impl Deps {
     /// Cold start: environment, secrets, clients.
     pub async fn from_env() -> Result<Deps> {
-        Ok(Self::with(RunClients::from_env().await?))
+        let (config, sdk) = clients::cold_start().await?;
+        let clusters = Clusters::from_env(&sdk);
+        Self::load(&sdk, &config, clusters).await
     }
 
     /// The same from an explicit SDK configuration and cluster access (local mode, tests).
@@ -49,13 +59,28 @@ impl Deps {
         config: &FunctionConfig,
         clusters: Clusters,
     ) -> Result<Deps> {
-        Ok(Self::with(RunClients::load(sdk, config, clusters).await?))
-    }
-
-    fn with(clients: RunClients) -> Deps {
-        Deps {
+        let clients = RunClients::load(sdk, config, clusters).await?;
+        let wakes = config
+            .wake_table
+            .as_deref()
+            .map(|t| WakeTable::new(clients.dynamo.clone(), t));
+        Ok(Deps {
             clients,
             delete_wait: DELETE_WAIT,
+            wakes,
+            callbacks: StepFunctions::new(aws_sdk_sfn::Client::new(sdk)),
+        })
+    }
+}
+
+impl<C> Deps<C> {
+    /// The same, reporting tokens to `callbacks`.
+    pub fn with_callbacks<D: Callbacks>(self, callbacks: D) -> Deps<D> {
+        Deps {
+            clients: self.clients,
+            delete_wait: self.delete_wait,
+            wakes: self.wakes,
+            callbacks,
         }
     }
 }
@@ -87,7 +112,7 @@ pub struct FinalizeOutput {
 }
 
 /// The Lambda entry: JSON in, JSON out.
-pub async fn handle_json(input: Value, deps: &Deps) -> Result<Value> {
+pub async fn handle_json<C: Callbacks>(input: Value, deps: &Deps<C>) -> Result<Value> {
     let input: FinalizeInput = serde_json::from_value(input)
         .map_err(|e| FnError::Input(format!("finalize input: {e}")))?;
     let output = handle(input, deps).await?;
@@ -160,7 +185,7 @@ pub fn participant_reason(error: &str) -> String {
 }
 
 /// Ends one execution.
-pub async fn handle(input: FinalizeInput, deps: &Deps) -> Result<FinalizeOutput> {
+pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Result<FinalizeOutput> {
     let state = input.state;
     let error = caught_error(&state);
     let intake: Option<IntakeOutput> = state
@@ -223,8 +248,8 @@ pub async fn handle(input: FinalizeInput, deps: &Deps) -> Result<FinalizeOutput>
     finish_run(deps, &submission, run, error).await
 }
 
-async fn finish_run(
-    deps: &Deps,
+async fn finish_run<C: Callbacks>(
+    deps: &Deps<C>,
     submission: &SubmissionInfo,
     run: Option<RunState>,
     error: Option<String>,
@@ -482,7 +507,7 @@ async fn finish_run(
 /// last: EvalAI has its final status before the team's next submission is admitted, so the
 /// team never shows more than its `team_limit` evaluations in progress. Repeating it is
 /// harmless.
-async fn leave_queue(deps: &Deps, submission: &SubmissionInfo) -> Result<()> {
+async fn leave_queue<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) -> Result<()> {
     if let Some(table) = &deps.clients.admission {
         table
             .release(
@@ -492,8 +517,38 @@ async fn leave_queue(deps: &Deps, submission: &SubmissionInfo) -> Result<()> {
             )
             .await?;
         info!(submission_id = submission.submission_id, "left the queue");
+        wake_next(deps, table, submission).await;
     }
     Ok(())
+}
+
+/// Wakes the team's next waiting submission, whose turn the place just given back is (see
+/// [`queue::wake_team_next`]). Best effort: a failure is logged, and its poll still comes.
+async fn wake_next<C: Callbacks>(
+    deps: &Deps<C>,
+    table: &AdmissionTable,
+    submission: &SubmissionInfo,
+) {
+    let Some(wakes) = &deps.wakes else { return };
+    let woken = queue::wake_team_next(
+        table,
+        wakes,
+        &deps.callbacks,
+        &submission.leaderboard,
+        submission.team_id,
+        clients::now_epoch_seconds(),
+    )
+    .await;
+    match woken {
+        Ok(woken) => info!(
+            submission_id = submission.submission_id,
+            ?woken,
+            "the team's next submission"
+        ),
+        Err(e) => {
+            warn!(submission_id = submission.submission_id, error = %e, "cannot wake the team's next; its poll comes")
+        }
+    }
 }
 
 /// Bytes read from the end of an agent's log: enough for [`MAX_TAIL_CHARS`] characters of
@@ -536,8 +591,8 @@ async fn agent_log_tail(store: &SubmissionStore, markers: &[String]) -> Option<(
 
 /// The final EvalAI update: scores for a finished run; for a failed one, the partial summary
 /// as stdout and the reason as stderr.
-async fn post(
-    deps: &Deps,
+async fn post<C: Callbacks>(
+    deps: &Deps<C>,
     at: SubmissionRef,
     status: SubmissionStatus,
     snapshot: Option<&Snapshot>,

@@ -265,6 +265,30 @@ impl Default for Fixture {
 }
 
 impl Fixture {
+    /// The embedded default with participant teams 1..=`teams` in challenge 1 (the default's
+    /// own first), each of one verified member, for runs of several teams' submissions.
+    pub fn with_teams(teams: usize) -> Fixture {
+        let mut fixture = Fixture::default();
+        let next_user = fixture.users.iter().map(|u| u.id).max().unwrap_or(0);
+        for n in (fixture.participant_teams.len() + 1)..=teams {
+            let user = next_user + n as u64;
+            fixture.users.push(UserFixture {
+                id: user,
+                username: format!("participant-{n}"),
+                email_verified: true,
+                active: true,
+                staff: false,
+            });
+            fixture.participant_teams.push(ParticipantTeamFixture {
+                id: n as u64,
+                name: format!("Team {n}"),
+                members: vec![user],
+                challenges: vec![1],
+            });
+        }
+        fixture
+    }
+
     /// Reads and validates a fixture file.
     pub fn from_path(path: &Path) -> Result<Fixture, FixtureError> {
         let text = std::fs::read_to_string(path).map_err(|source| FixtureError::Read {

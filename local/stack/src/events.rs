@@ -10,6 +10,7 @@
 //! timeout; the others are deleted. A function error, or a response naming a message that
 //! is not in the batch, fails the whole batch: nothing is deleted.
 
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use aws_config::SdkConfig;
@@ -229,6 +230,32 @@ impl Callbacks for ExecutorCallbacks {
                 what: "SendTaskSuccess".into(),
                 problem: e.to_string(),
             }),
+        }
+    }
+}
+
+/// [`ExecutorCallbacks`] for a handler made before its executor (the task map the executor
+/// runs holds the handlers): tokens reported before [`LateCallbacks::bind`] are stale (no
+/// execution can be waiting on a token of an executor that does not exist yet).
+#[derive(Clone, Default)]
+pub struct LateCallbacks(Arc<OnceLock<Executor>>);
+
+impl LateCallbacks {
+    /// Reports from now on go to `executor`.
+    pub fn bind(&self, executor: Executor) {
+        let _ = self.0.set(executor);
+    }
+}
+
+impl Callbacks for LateCallbacks {
+    async fn succeed(&self, token: &str, output: &str) -> lb_aws::Result<Reported> {
+        match self.0.get() {
+            Some(executor) => {
+                ExecutorCallbacks(executor.clone())
+                    .succeed(token, output)
+                    .await
+            }
+            None => Ok(Reported::Stale),
         }
     }
 }

@@ -10,24 +10,40 @@
 //! submission behaves as its Monitor does: a new record wakes it; it sends a partial update
 //! when it has unsent records and its last update is `partial_update_seconds` old; an update
 //! the budget refuses is tried again one interval later. Each submission ends at a random time
-//! with its final update (urgent). `make bench-scale` runs 200 submissions for 15 (scaled)
-//! minutes; without `--bench` (as `cargo test` runs benches) 20 for 5 minutes, with the same
+//! with its final update (urgent).
+//!
+//! Admission is the pipeline's own (`lb_pipeline::queue::take_turn` on the stack's admission
+//! table): submissions from teams of uneven sizes arrive over the first minutes, each is
+//! marked `queued`, asks for its turn at Launch and then at each Monitor round while its team
+//! holds `team_limit`: when Finalize wakes it (the team's oldest waiting, as
+//! `lb_pipeline::queue::wake_team_next` picks it) or at the safety net, and once admitted waits for its pairs' GPUs on a simulated
+//! cluster (a FIFO semaphore, as the scheduler takes pending pods oldest first), is marked
+//! `running` when it has them, and gives both back when it ends. `make bench-scale` runs 200
+//! submissions of 40 teams on 160 GPUs, evaluations of 3 to 8 minutes; without `--bench` (as
+//! `cargo test` runs benches) 20 of 8 teams on 12 GPUs, of 1 to 3 minutes, with the same
 //! assertions.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use fake_evalai::{Fixture, NewSubmission};
+use lb_aws::admission::AdmissionTable;
 use lb_aws::budget::BudgetTable;
+use lb_domain::queue::next_of_team;
+use lb_domain::schedule::queue_wait;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{
     AuthScheme, BudgetPolicy, EvalAiClient, EvalAiError, FinalUpdate, HostToken, PartialUpdate,
     RetryPolicy, SubmissionRef, WriteOutcome,
 };
-use local_stack::stack::{BUDGET_TABLE, LOCAL_SETTINGS};
+use lb_pipeline::payload::SubmissionInfo;
+use lb_pipeline::queue::take_turn;
+use local_stack::stack::{ADMISSION_TABLE, BUDGET_TABLE, LOCAL_SETTINGS};
 use local_stack::{EvalAi, Stack};
 use time::format_description::well_known::Rfc3339;
 use time::OffsetDateTime;
+use tokio::sync::{Notify, Semaphore};
 
 /// Real life / this bench.
 const SCALE: f64 = 10.0;
@@ -35,6 +51,12 @@ const SCALE: f64 = 10.0;
 const LIMIT: u32 = 60;
 /// `partial_update_seconds`, in real life.
 const INTERVAL: f64 = 20.0;
+/// `team_limit`: evaluations a team holds at once.
+const TEAM_LIMIT: u32 = 2;
+/// Simulator-agent pairs per submission, a GPU each.
+const PAIRS: u32 = 2;
+/// The leaderboard whose queue the submissions share.
+const LEADERBOARD: &str = "2.0";
 
 /// A duration of real life, in the bench's time.
 fn scaled(real_seconds: f64) -> Duration {
@@ -59,6 +81,16 @@ impl Rng {
 /// What one submission saw, in real-life seconds.
 #[derive(Default)]
 struct Seen {
+    /// Arrival -> admitted (its Jobs created).
+    admission_wait: f64,
+    /// Arrival -> `running` (its GPUs found).
+    start_wait: f64,
+    /// Its team's holders when it was admitted.
+    team_holders: usize,
+    /// Urgent writes run again after EvalAI's budget stayed full.
+    retries: u32,
+    /// Times a released place woke it.
+    woken: u32,
     record_delays: Vec<f64>,
     final_delay: Option<f64>,
     updates: u32,
@@ -67,21 +99,110 @@ struct Seen {
     in_final: u32,
 }
 
-async fn submission(
+/// An urgent write as the pipeline makes it: the function fails when EvalAI's budget stays
+/// full past its retry budget, and the state machine runs it again (Launch, Monitor and
+/// Finalize retry with back-off); `retries` counts those runs.
+async fn urgent<F, Fut>(what: &str, retries: &mut u32, mut write: F)
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = Result<WriteOutcome, EvalAiError>>,
+{
+    for attempt in 0..20 {
+        match write().await {
+            Ok(WriteOutcome::Written) => return,
+            // A write EvalAI stored before the client gave up: the next run finds it there.
+            Ok(WriteOutcome::AlreadyFinal(_)) if attempt > 0 => return,
+            Err(EvalAiError::Throttled(_)) => {
+                *retries += 1;
+                tokio::time::sleep(scaled(30.0 * f64::from(attempt + 1))).await;
+            }
+            other => panic!("{what}: {other:?}"),
+        }
+    }
+    panic!("{what}: throttled 20 times");
+}
+
+/// Where a submission runs: the EvalAI client, its admission queue and the cluster's GPUs.
+struct World {
     client: EvalAiClient,
-    at: SubmissionRef,
-    seed: u64,
-    run: Duration,
-    started: Instant,
-) -> Seen {
+    queue: Arc<AdmissionTable>,
+    gpus: Arc<Semaphore>,
+    /// Each submission's parked execution, as the wake table holds its token.
+    parked: Arc<BTreeMap<u64, Notify>>,
+    /// Shortest and longest evaluation, real-life minutes.
+    minutes: (f64, f64),
+}
+
+async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Duration) -> Seen {
+    let World {
+        client,
+        queue,
+        gpus,
+        parked,
+        minutes,
+    } = world;
+    let at = SubmissionRef {
+        challenge: info.challenge_id,
+        phase: info.phase_id,
+        submission: info.submission_id,
+    };
     let mut rng = Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
-    // A route takes 1 to 4 minutes; the submission ends somewhere in the second half.
-    let ends = started + run.mul_f64(rng.between(0.5, 1.0));
+    let mut seen = Seen::default();
+    tokio::time::sleep(arrival).await;
+    let arrived = Instant::now();
+    let arrived_ms = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64;
+    // Launch: queued on EvalAI, then its turn; the Monitor asks again each round until then.
+    let job = format!("lb-{}-0", info.submission_id);
+    urgent("mark queued", &mut seen.retries, || {
+        client.mark_queued(at, &job)
+    })
+    .await;
+    let give_up = arrived + scaled(6.0 * 3600.0);
+    loop {
+        let standing = take_turn(&queue, &info, arrived_ms, TEAM_LIMIT)
+            .await
+            .expect("take a turn");
+        if standing.admitted {
+            break;
+        }
+        assert!(
+            Instant::now() < give_up,
+            "{} never admitted",
+            info.submission_id
+        );
+        let waited = (Instant::now() - arrived).mul_f64(SCALE);
+        tokio::select! {
+            _ = tokio::time::sleep(scaled(queue_wait(waited).as_secs_f64())) => {}
+            _ = parked[&info.submission_id].notified() => seen.woken += 1,
+        }
+    }
+    seen.admission_wait = arrived.elapsed().as_secs_f64() * SCALE;
+    seen.team_holders = queue
+        .holders(LEADERBOARD, info.team_id)
+        .await
+        .expect("holders")
+        .len();
+    // The scheduler: its pairs' GPUs, oldest pending first; `running` once it has them.
+    let held = gpus.acquire_many(PAIRS).await.expect("the cluster is up");
+    seen.start_wait = arrived.elapsed().as_secs_f64() * SCALE;
+    urgent("mark running", &mut seen.retries, || {
+        client.mark_running(at, &job)
+    })
+    .await;
+    queue
+        .mark_running(LEADERBOARD, info.submission_id)
+        .await
+        .expect("mark running in the queue");
+    let started = Instant::now();
+    // Routes take 1 to 4 minutes.
+    let ends = started + scaled(60.0 * rng.between(minutes.0, minutes.1));
     let mut next_record = started + scaled(rng.between(60.0, 240.0));
     let mut pending: Vec<Instant> = Vec::new();
     let mut last_update: Option<Instant> = None;
     let mut retry_at: Option<Instant> = None;
-    let mut seen = Seen::default();
     let partial = PartialUpdate {
         result: "[]".into(),
         stdout: "routes done so far".into(),
@@ -137,14 +258,22 @@ async fn submission(
         metadata: "{}".into(),
     };
     seen.in_final = pending.len() as u32;
-    let outcome = client.post_final(at, &done).await;
-    assert_eq!(
-        outcome.map_err(|e| e.to_string()),
-        Ok(WriteOutcome::Written),
-        "final update of {}",
-        at.submission
-    );
+    let what = format!("final update of {}", at.submission);
+    urgent(&what, &mut seen.retries, || client.post_final(at, &done)).await;
     seen.final_delay = Some((Instant::now() - ends).as_secs_f64() * SCALE);
+    // Finalize: the Jobs go (their GPUs free), the team's place last, and the team's next
+    // waiting submission is woken.
+    drop(held);
+    queue
+        .release(LEADERBOARD, info.submission_id, info.team_id)
+        .await
+        .expect("release");
+    let entries = queue.entries(LEADERBOARD).await.expect("the queue");
+    if let Some(next) = next_of_team(&entries, info.team_id) {
+        // NB: notify_one keeps the wake for a waiter between two polls, as the wake table's
+        // count does for an execution between two waits.
+        parked[&next.submission_id].notify_one();
+    }
     seen
 }
 
@@ -159,14 +288,19 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() {
     let full = std::env::args().any(|a| a == "--bench");
-    let (count, minutes) = if full { (200, 15.0) } else { (20, 5.0) };
+    // (submissions, teams, GPUs, minutes over which they arrive, evaluation minutes)
+    let (count, teams, gpus, arriving, minutes): (u32, u32, usize, f64, (f64, f64)) = if full {
+        (200, 40, 160, 15.0, (3.0, 8.0))
+    } else {
+        (20, 8, 12, 2.0, (1.0, 3.0))
+    };
     let period = scaled(60.0);
-    // The local stack as local mode provisions it from infra/app.yaml (the budget table
-    // included), with EvalAI's throttle on at the bench's pace.
+    // The local stack as local mode provisions it from infra/app.yaml (the budget and
+    // admission tables included), with EvalAI's throttle on at the bench's pace.
     let stack = Stack::start(EvalAi::Fake(Fixture {
         throttle_per_minute: LIMIT,
         throttle_window_secs: period.as_secs(),
-        ..Fixture::default()
+        ..Fixture::with_teams(teams as usize)
     }))
     .await
     .unwrap();
@@ -174,20 +308,23 @@ async fn main() {
     let server = stack.fake();
     let token = server.host_token().unwrap().to_string();
     let policy = BudgetPolicy::for_limit(LIMIT, period).unwrap();
-    let budget = Arc::new(BudgetTable::new(
-        aws_sdk_dynamodb::Client::new(&stack.sdk),
-        BUDGET_TABLE,
-        policy,
-    ));
+    let dynamo = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    let budget = Arc::new(BudgetTable::new(dynamo.clone(), BUDGET_TABLE, policy));
+    let queue = Arc::new(AdmissionTable::new(dynamo, ADMISSION_TABLE));
+    let cluster = Arc::new(Semaphore::new(gpus));
 
     let started = Instant::now();
-    let run = scaled(minutes * 60.0);
-    let mut tasks = Vec::new();
-    for seed in 0..count {
+    let mut arrivals = Rng(0x5EED);
+    let mut worlds = Vec::new();
+    let mut team_sizes = vec![0u32; teams as usize];
+    for seed in 0..u64::from(count) {
+        // Uneven teams, as on a real leaderboard: a few submit most (u^1.25 favours low ids).
+        let team = (arrivals.next().powf(1.25) * f64::from(teams)) as u64 + 1;
+        team_sizes[team as usize - 1] += 1;
         let id = server
             .add_submission(NewSubmission {
                 challenge_phase: 1,
-                participant_team: 1,
+                participant_team: team,
                 submitted_image_uri: "example/agent:1".into(),
                 created_by: None,
             })
@@ -204,26 +341,66 @@ async fn main() {
         )
         .unwrap()
         .with_budget(budget.clone());
-        let at = SubmissionRef {
-            challenge: 1,
-            phase: 1,
-            submission: id,
+        let info = SubmissionInfo {
+            challenge_id: 1,
+            phase_id: 1,
+            submission_id: id,
+            team_id: team,
+            team_name: format!("team {team}"),
+            leaderboard: LEADERBOARD.into(),
+            track: "SENSORS".into(),
+            image: "example/agent:1".into(),
+            routes: 20,
+            workers: PAIRS,
+            resuming: false,
+            execution: format!("bench-{id}"),
+            arrived_ms: None,
         };
-        tasks.push(tokio::spawn(submission(client, at, seed + 1, run, started)));
+        // Arrivals in submission-id order (EvalAI's), spread over the first minutes.
+        let arrival = scaled(arriving * 60.0 * seed as f64 / f64::from(count));
+        worlds.push((client, info, seed + 1, arrival));
+    }
+    let parked: Arc<BTreeMap<u64, Notify>> = Arc::new(
+        worlds
+            .iter()
+            .map(|(_, info, ..)| (info.submission_id, Notify::new()))
+            .collect(),
+    );
+    let mut tasks = Vec::new();
+    for (client, info, seed, arrival) in worlds {
+        let world = World {
+            client,
+            queue: queue.clone(),
+            gpus: cluster.clone(),
+            parked: parked.clone(),
+            minutes,
+        };
+        tasks.push(tokio::spawn(submission(world, info, seed, arrival)));
     }
     let mut delays = Vec::new();
     let mut finals = Vec::new();
-    let (mut updates, mut skipped, mut in_final) = (0, 0, 0);
+    let mut admission = Vec::new();
+    let mut start = Vec::new();
+    let mut most_held = 0;
+    let (mut updates, mut skipped, mut in_final, mut retries, mut woken) = (0, 0, 0, 0, 0);
     for task in tasks {
         let seen = task.await.unwrap();
         delays.extend(seen.record_delays);
         finals.extend(seen.final_delay);
+        admission.push(seen.admission_wait);
+        start.push(seen.start_wait);
+        most_held = most_held.max(seen.team_holders);
         updates += seen.updates;
         skipped += seen.skipped;
         in_final += seen.in_final;
+        retries += seen.retries;
+        woken += seen.woken;
     }
     delays.sort_by(f64::total_cmp);
     finals.sort_by(f64::total_cmp);
+    admission.sort_by(f64::total_cmp);
+    start.sort_by(f64::total_cmp);
+    team_sizes.sort_unstable_by(|a, b| b.cmp(a));
 
     // What EvalAI saw: arrival times from its own log, the busiest sliding (scaled) minute.
     let log: Vec<_> = server.requests().into_iter().filter(|r| !r.admin).collect();
@@ -246,12 +423,16 @@ async fn main() {
     let simulated = started.elapsed().as_secs_f64() * SCALE / 60.0;
 
     println!(
-        "scale          {count} submissions in flight for {simulated:.1} minutes (time x{SCALE}), partial_update_seconds {INTERVAL}"
+        "scale          {count} submissions of {teams} teams (largest {:?}) on {gpus} GPUs, {PAIRS} pairs each, for {simulated:.1} minutes (time x{SCALE}), partial_update_seconds {INTERVAL}, team_limit {TEAM_LIMIT}",
+        &team_sizes[..3.min(team_sizes.len())]
     );
     println!(
         "EvalAI         {} requests, {:.1} a minute on average, {busiest} in the busiest sliding minute (target <= {LIMIT}), {throttled} throttled (429)",
         log.len(),
         log.len() as f64 / simulated,
+    );
+    println!(
+        "urgent         {retries} queued/running/final writes run again after the budget stayed full past the client's minute (the state machine's retry)"
     );
     println!(
         "partial        {updates} updates sent, {skipped} deferred by the budget; record -> partial update p50 {:.0} s, p99 {:.0} s ({} records; {in_final} more only in the final update)",
@@ -265,7 +446,19 @@ async fn main() {
         finals.last().copied().unwrap_or(f64::NAN),
         finals.len()
     );
-    println!("admission      not measured: admission (issue 13, item 2) is not built yet");
+    let in_minutes = |q: f64, v: &[f64]| quantile(v, q) / 60.0;
+    println!(
+        "admission      arrival -> admitted p50 {:.1} min, p99 {:.1} min, max {:.1} min; most places a team held {most_held} (limit {TEAM_LIMIT}); {woken} turns taken on a released place's wake",
+        in_minutes(0.5, &admission),
+        in_minutes(0.99, &admission),
+        admission.last().copied().unwrap_or(f64::NAN) / 60.0,
+    );
+    println!(
+        "start          arrival -> running (its GPUs free) p50 {:.1} min, p99 {:.1} min, max {:.1} min",
+        in_minutes(0.5, &start),
+        in_minutes(0.99, &start),
+        start.last().copied().unwrap_or(f64::NAN) / 60.0,
+    );
 
     assert_eq!(throttled, 0, "EvalAI throttled {throttled} requests");
     assert!(
@@ -273,5 +466,9 @@ async fn main() {
         "{busiest} requests in one sliding minute"
     );
     assert_eq!(finals.len(), count as usize);
+    assert!(
+        most_held <= TEAM_LIMIT as usize,
+        "a team held {most_held} places"
+    );
     assert!(updates > 0);
 }

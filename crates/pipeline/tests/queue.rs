@@ -1,0 +1,115 @@
+//! A place given back wakes its team's next waiting submission, on moto's DynamoDB with the
+//! stack's admission and wake tables and the state machine's own wait write.
+
+use std::sync::Mutex;
+
+use fake_evalai::Fixture;
+use lb_aws::admission::AdmissionTable;
+use lb_aws::tasks::{Callbacks, Reported};
+use lb_aws::wake::WakeTable;
+use lb_domain::queue::{Entry, EntryState};
+use lb_pipeline::payload::SubmissionInfo;
+use lb_pipeline::queue::{take_turn, wake_team_next, Woken};
+use local_stack::integrations::{update_item, wait_for_change};
+use local_stack::stack::{ADMISSION_TABLE, LOCAL_SETTINGS, WAKE_TABLE};
+use local_stack::{EvalAi, Stack};
+
+/// Records the tokens reported; fails the next report once `fail` is set.
+#[derive(Default)]
+struct Recorder {
+    reported: Mutex<Vec<String>>,
+    fail: Mutex<bool>,
+}
+
+impl Callbacks for Recorder {
+    async fn succeed(&self, token: &str, _output: &str) -> lb_aws::Result<Reported> {
+        if std::mem::take(&mut *self.fail.lock().unwrap()) {
+            return Err(lb_aws::AwsError::Malformed {
+                what: "SendTaskSuccess".into(),
+                problem: "throttled".into(),
+            });
+        }
+        self.reported.lock().unwrap().push(token.to_string());
+        Ok(Reported::Delivered)
+    }
+}
+
+fn info(submission_id: u64, team_id: u64) -> SubmissionInfo {
+    SubmissionInfo {
+        challenge_id: 7,
+        phase_id: 1,
+        submission_id,
+        team_id,
+        team_name: format!("team {team_id}"),
+        leaderboard: "2.0".into(),
+        track: "SENSORS".into(),
+        image: "example/agent:1".into(),
+        routes: 20,
+        workers: 2,
+        resuming: false,
+        execution: format!("exec-{submission_id}"),
+        arrived_ms: None,
+    }
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn a_place_given_back_wakes_the_teams_oldest_waiting_submission() {
+    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
+        .await
+        .expect("stack starts");
+    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    let table = AdmissionTable::new(client.clone(), ADMISSION_TABLE);
+    let wakes = WakeTable::new(client.clone(), WAKE_TABLE);
+    let callbacks = Recorder::default();
+
+    // Team 5 holds its one place with 1; 2 and 3 wait behind it, 4 of team 6 runs.
+    for (id, team, arrived) in [(1, 5, 100), (2, 5, 200), (3, 5, 300), (4, 6, 250)] {
+        take_turn(&table, &info(id, team), arrived, 1)
+            .await
+            .unwrap();
+    }
+    let wake = |team| wake_team_next(&table, &wakes, &callbacks, "2.0", team, 1_000);
+    // Nobody of team 6 waits; team 5's next is 2, not parked on a token yet.
+    assert_eq!(wake(6).await.unwrap(), Woken::Nobody);
+    assert_eq!(wake(5).await.unwrap(), Woken::NotWaiting(2));
+
+    // 2 and 3 park in the state machine's wait, each with its token.
+    for (id, token) in [(2, "token-2"), (3, "token-3")] {
+        // The changes its Monitor round read (the wake above counted one for 2).
+        let seen = wakes.state(id).await.unwrap().changes;
+        update_item(&client, wait_for_change(token, id, 7, seen))
+            .await
+            .expect("the wait's write");
+    }
+    // 1 ends and gives its place back: 2 (the older) is woken, never 3.
+    table.release("2.0", 1, 5).await.unwrap();
+    *callbacks.fail.lock().unwrap() = true;
+    assert!(wake(5).await.is_err(), "a failed report is an error");
+    // The token went back: the next try delivers it.
+    assert_eq!(wake(5).await.unwrap(), Woken::Delivered(2));
+    assert_eq!(*callbacks.reported.lock().unwrap(), ["token-2"]);
+    // Its token is taken: a second wake finds it not waiting, and 3 stays parked.
+    assert_eq!(wake(5).await.unwrap(), Woken::NotWaiting(2));
+    let parked: Vec<u64> = wakes
+        .waiting()
+        .await
+        .unwrap()
+        .iter()
+        .map(|w| w.submission_id)
+        .collect();
+    assert_eq!(parked, [3]);
+    // Woken, 2 takes its turn at once.
+    let standing = take_turn(&table, &info(2, 5), 200, 1).await.unwrap();
+    assert!(standing.admitted);
+    let entries = table.entries("2.0").await.unwrap();
+    let state = |id: u64| {
+        entries
+            .iter()
+            .find(|e: &&Entry| e.submission_id == id)
+            .map(|e| e.state)
+    };
+    assert_eq!(state(2), Some(EntryState::Admitted));
+    assert_eq!(state(3), Some(EntryState::Waiting));
+}
