@@ -1369,24 +1369,24 @@ mod tests {
             "{message}"
         );
 
-        // A group at its maximum is a queue: the capacity limit decides, hours later.
-        let full = autoscaler_events(
-            "pod didn't trigger scale-up: 1 max node group size reached, 1 node(s) didn't match Pod's node affinity/selector",
-            "2025-03-14T09:05:40Z",
-        );
-        assert_eq!(
-            observe("4242", &jobs, &pods, &full, at(12, 0), &policy).verdict,
-            Verdict::Running
-        );
-        // A word from before this wait began is about another attempt.
-        let stale = autoscaler_events(
-            "pod didn't trigger scale-up: 1 Insufficient nvidia.com/gpu",
-            "2025-03-14T08:59:00Z",
-        );
-        assert_eq!(
-            observe("4242", &jobs, &pods, &stale, at(9, 30), &policy).verdict,
-            Verdict::Running
-        );
+        for (why, message, said, now) in [
+            (
+                "a group at its maximum is a queue: the capacity limit decides, hours later",
+                "pod didn't trigger scale-up: 1 max node group size reached, 1 node(s) didn't match Pod's node affinity/selector",
+                "2025-03-14T09:05:40Z",
+                at(12, 0),
+            ),
+            (
+                "a word from before this wait began is about another attempt",
+                "pod didn't trigger scale-up: 1 Insufficient nvidia.com/gpu",
+                "2025-03-14T08:59:00Z",
+                at(9, 30),
+            ),
+        ] {
+            let events = autoscaler_events(message, said);
+            let obs = observe("4242", &jobs, &pods, &events, now, &policy);
+            assert_eq!(obs.verdict, Verdict::Running, "{why}");
+        }
         // The scheduler's own events alone change nothing.
         let scheduler_only = &autoscaler_events("", "2025-03-14T09:05:40Z")[..1];
         assert_eq!(

@@ -157,6 +157,17 @@ impl ApiServerVerifier {
         self.answer(e, 200, answer).await;
     }
 
+    /// The Monitor's read of one pod's events (the autoscaler's word on it).
+    async fn pod_events(&mut self, uid: &str, code: u16, answer: Value) {
+        let selector = format!("involvedObject.uid={uid}");
+        let e = Expect {
+            method: Method::GET,
+            path: "/api/v1/namespaces/leaderboard/events",
+            query: &[("fieldSelector", &selector)],
+        };
+        self.answer(e, code, answer).await;
+    }
+
     async fn delete(&mut self, path: &str, code: u16, answer: Value) -> Value {
         let e = Expect {
             method: Method::DELETE,
@@ -455,7 +466,6 @@ async fn observe_lists_jobs_and_pods_by_label_and_maps_them_to_a_verdict() {
 
 /// The pending pod of unschedulable.yaml, whose events the Monitor asks for.
 const PENDING_POD_UID: &str = "8e61dbe7-90cf-4dec-4891-83cfd21a9a89";
-const EVENTS: &str = "/api/v1/namespaces/leaderboard/events";
 
 #[tokio::test]
 async fn a_pod_waiting_past_the_grace_is_looked_up_in_the_autoscalers_events() {
@@ -466,13 +476,7 @@ async fn a_pod_waiting_past_the_grace_is_looked_up_in_the_autoscalers_events() {
     let obs = with_server(cluster.observe("4242"), async move {
         server.list(JOBS, job_list(jobs)).await;
         server.list(PODS, pod_list(pods)).await;
-        let selector = format!("involvedObject.uid={PENDING_POD_UID}");
-        let e = Expect {
-            method: Method::GET,
-            path: EVENTS,
-            query: &[("fieldSelector", &selector)],
-        };
-        server.answer(e, 200, events).await;
+        server.pod_events(PENDING_POD_UID, 200, events).await;
     })
     .await
     .unwrap();
@@ -492,19 +496,13 @@ async fn events_the_role_may_not_list_leave_the_pod_to_the_schedulers_limits() {
     let obs = with_server(cluster.observe("4242"), async move {
         server.list(JOBS, job_list(jobs)).await;
         server.list(PODS, pod_list(pods)).await;
-        let selector = format!("involvedObject.uid={PENDING_POD_UID}");
-        let e = Expect {
-            method: Method::GET,
-            path: EVENTS,
-            query: &[("fieldSelector", &selector)],
-        };
         let forbidden = status(
             403,
             "Forbidden",
             "events is forbidden: User \"leaderboard-pipeline\" cannot list resource \"events\" in API group \"\" in the namespace \"leaderboard\"",
             json!({"kind": "events"}),
         );
-        server.answer(e, 403, forbidden).await;
+        server.pod_events(PENDING_POD_UID, 403, forbidden).await;
     })
     .await
     .unwrap();
