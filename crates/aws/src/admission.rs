@@ -134,18 +134,30 @@ impl AdmissionTable {
         }
     }
 
-    /// One submission's entry, read consistently.
-    pub async fn entry(&self, queue: &str, submission_id: u64) -> Result<Option<Entry>> {
+    /// The item of `key`, read consistently.
+    async fn get(
+        &self,
+        key: HashMap<String, AttributeValue>,
+    ) -> Result<Option<HashMap<String, AttributeValue>>> {
         let out = self
             .client
             .get_item()
             .table_name(&self.table)
-            .set_key(Some(entry_key(queue, submission_id)))
+            .set_key(Some(key))
             .consistent_read(true)
             .send()
             .await
             .map_err(|e| AwsError::sdk("dynamodb", "GetItem", e))?;
-        out.item().map(entry_of).transpose()
+        Ok(out.item)
+    }
+
+    /// One submission's entry, read consistently.
+    pub async fn entry(&self, queue: &str, submission_id: u64) -> Result<Option<Entry>> {
+        self.get(entry_key(queue, submission_id))
+            .await?
+            .as_ref()
+            .map(entry_of)
+            .transpose()
     }
 
     /// Every entry of `queue`, in arrival order, read consistently. An entry someone edited
@@ -290,17 +302,9 @@ impl AdmissionTable {
 
     /// The submission ids a team holds places for.
     pub async fn holders(&self, queue: &str, team_id: u64) -> Result<Vec<String>> {
-        let out = self
-            .client
-            .get_item()
-            .table_name(&self.table)
-            .set_key(Some(team_key(queue, team_id)))
-            .consistent_read(true)
-            .send()
-            .await
-            .map_err(|e| AwsError::sdk("dynamodb", "GetItem", e))?;
-        let mut holders = out
-            .item()
+        let item = self.get(team_key(queue, team_id)).await?;
+        let mut holders = item
+            .as_ref()
             .and_then(|item| item.get("holders"))
             .and_then(|v| v.as_ss().ok())
             .cloned()

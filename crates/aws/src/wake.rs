@@ -20,6 +20,7 @@ use std::collections::HashMap;
 use aws_sdk_dynamodb::types::{AttributeValue, ReturnValue};
 use aws_sdk_dynamodb::Client;
 
+use crate::tasks::{Callbacks, Reported};
 use crate::{condition_failed, AwsError, Result};
 
 /// How long an item outlives its last write: longer than any evaluation and its queue time.
@@ -163,6 +164,29 @@ impl WakeTable {
             Ok(out) => Ok(Some(taken(out.attributes()))),
             Err(e) if condition_failed(&e) => Ok(None),
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
+        }
+    }
+
+    /// Counts a change for the submission and, if an execution waits on it, reports its token
+    /// to `callbacks`: `Ok(None)` when none waited. A failed report puts the token back (a
+    /// failed put-back is logged: the wait's own timeout then wakes it) and is the error.
+    pub async fn wake<C: Callbacks>(
+        &self,
+        submission_id: u64,
+        now: u64,
+        callbacks: &C,
+    ) -> Result<Option<Reported>> {
+        let Some(taken) = self.count_change(submission_id, now).await? else {
+            return Ok(None);
+        };
+        match callbacks.succeed(&taken.token, "{}").await {
+            Ok(reported) => Ok(Some(reported)),
+            Err(e) => {
+                if let Err(restore) = self.restore_token(submission_id, &taken, false).await {
+                    tracing::warn!(submission_id, error = %restore, "could not put the token back; the safety net wakes it");
+                }
+                Err(e)
+            }
         }
     }
 

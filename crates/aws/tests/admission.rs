@@ -1,46 +1,24 @@
 //! The admission table on moto's DynamoDB: the team cap held by conditional transactions, even
 //! with admissions racing; arrival kept across retries; places given back; stale holds dropped.
 
-use aws_sdk_dynamodb::types::{
-    AttributeDefinition, BillingMode, KeySchemaElement, KeyType, ScalarAttributeType,
-};
+use fake_evalai::Fixture;
 use lb_aws::admission::{AdmissionTable, Admit};
 use lb_domain::queue::{ahead, Entry, EntryState};
-use local_stack::moto::MotoServer;
+use local_stack::stack::{ADMISSION_TABLE, LOCAL_SETTINGS};
+use local_stack::{EvalAi, Stack};
 
-const TABLE: &str = "leaderboard-admission";
 const QUEUE: &str = "2.0";
 
-/// The admission table in the template's key schema (`queue` S, `key` S).
-async fn admission_table(moto: &MotoServer) -> (AdmissionTable, aws_sdk_dynamodb::Client) {
-    let config = lb_aws::sdk_config_at(&moto.endpoint(), "us-east-1").await;
-    let client = aws_sdk_dynamodb::Client::new(&config);
-    let attribute = |name: &str| {
-        AttributeDefinition::builder()
-            .attribute_name(name)
-            .attribute_type(ScalarAttributeType::S)
-            .build()
-            .unwrap()
-    };
-    let key = |name: &str, kind: KeyType| {
-        KeySchemaElement::builder()
-            .attribute_name(name)
-            .key_type(kind)
-            .build()
-            .unwrap()
-    };
-    client
-        .create_table()
-        .table_name(TABLE)
-        .billing_mode(BillingMode::PayPerRequest)
-        .attribute_definitions(attribute("queue"))
-        .attribute_definitions(attribute("key"))
-        .key_schema(key("queue", KeyType::Hash))
-        .key_schema(key("key", KeyType::Range))
-        .send()
+/// The admission table as the local stack provisions it from `infra/app.yaml` (its key
+/// schema, `queue` S and `key` S, included), on moto.
+async fn admission_table() -> (Stack, AdmissionTable, aws_sdk_dynamodb::Client) {
+    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
         .await
-        .unwrap();
-    (AdmissionTable::new(client.clone(), TABLE), client)
+        .expect("stack starts");
+    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    let table = AdmissionTable::new(client.clone(), ADMISSION_TABLE);
+    (stack, table, client)
 }
 
 fn waiting(submission_id: u64, team_id: u64, arrived_ms: u64) -> Entry {
@@ -61,8 +39,7 @@ async fn admit(table: &AdmissionTable, id: u64, limit: u32) -> Admit {
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn a_team_holds_at_most_its_cap_even_when_admissions_race() {
-    let moto = MotoServer::start().unwrap();
-    let (table, _) = admission_table(&moto).await;
+    let (_stack, table, _) = admission_table().await;
     for id in 1..=6 {
         table
             .enqueue(QUEUE, &waiting(id, 7, 1_000 + id))
@@ -106,8 +83,7 @@ async fn a_team_holds_at_most_its_cap_even_when_admissions_race() {
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn arrival_survives_a_retry_and_starts_move_the_queue_forward() {
-    let moto = MotoServer::start().unwrap();
-    let (table, _) = admission_table(&moto).await;
+    let (_stack, table, _) = admission_table().await;
     let first = table.enqueue(QUEUE, &waiting(1, 1, 100)).await.unwrap();
     // A retried Launch, later: the stored arrival (the place in the queue) stays.
     let again = table.enqueue(QUEUE, &waiting(1, 1, 999_999)).await.unwrap();
@@ -135,8 +111,7 @@ async fn arrival_survives_a_retry_and_starts_move_the_queue_forward() {
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn a_hold_whose_entry_is_gone_is_dropped_rather_than_block_the_team() {
-    let moto = MotoServer::start().unwrap();
-    let (table, client) = admission_table(&moto).await;
+    let (_stack, table, client) = admission_table().await;
     table.enqueue(QUEUE, &waiting(1, 9, 100)).await.unwrap();
     table.enqueue(QUEUE, &waiting(2, 9, 200)).await.unwrap();
     assert_eq!(admit(&table, 1, 1).await, Admit::Admitted);
@@ -144,7 +119,7 @@ async fn a_hold_whose_entry_is_gone_is_dropped_rather_than_block_the_team() {
     // Entry 1 expires (its TTL) without its run ever reaching Finalize.
     client
         .delete_item()
-        .table_name(TABLE)
+        .table_name(ADMISSION_TABLE)
         .key(
             "queue",
             aws_sdk_dynamodb::types::AttributeValue::S(QUEUE.into()),

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use k8s_openapi::api::batch::v1::Job;
-use k8s_openapi::api::core::v1::{Container, ContainerStatus, Event, Pod};
+use k8s_openapi::api::core::v1::{Container, ContainerStatus, Event, Pod, PodStatus};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{ObjectMeta, Time};
 use k8s_openapi::jiff::Timestamp;
 use serde::{Deserialize, Serialize};
@@ -350,15 +350,15 @@ pub fn needs_autoscaler_word(
 ) -> Option<String> {
     pods.iter()
         .filter(|p| p.metadata.deletion_timestamp.is_none())
-        .map(pod_view)
-        .filter(|p| p.phase == "Pending")
         .filter(|p| {
-            p.unschedulable
-                .as_ref()
-                .and_then(|u| u.since)
-                .is_some_and(|since| waited_at_least(now, since, policy.never_fits_grace))
+            let status = p.status.as_ref();
+            status.and_then(|s| s.phase.as_deref()) == Some("Pending")
+                && status
+                    .and_then(unschedulable_of)
+                    .and_then(|u| u.since)
+                    .is_some_and(|since| waited_at_least(now, since, policy.never_fits_grace))
         })
-        .find_map(|p| p.uid)
+        .find_map(|p| p.metadata.uid.clone())
 }
 
 /// Maps the listed Jobs and Pods of `submission_id`, and the events listed about its pods
@@ -815,19 +815,7 @@ fn owning_job(meta: &ObjectMeta) -> Option<String> {
 fn pod_view(pod: &Pod) -> PodView {
     let status = pod.status.clone().unwrap_or_default();
     let spec = pod.spec.clone().unwrap_or_default();
-    let unschedulable = status
-        .conditions
-        .iter()
-        .flatten()
-        .find(|c| {
-            c.type_ == "PodScheduled"
-                && c.status == "False"
-                && c.reason.as_deref() == Some("Unschedulable")
-        })
-        .map(|c| Unschedulable {
-            since: ts(&c.last_transition_time),
-            message: c.message.clone().unwrap_or_default(),
-        });
+    let unschedulable = unschedulable_of(&status);
     let init_statuses = index_statuses(status.init_container_statuses.as_deref());
     let statuses = index_statuses(status.container_statuses.as_deref());
     let mut containers: Vec<ContainerView> = spec
@@ -861,6 +849,23 @@ fn pod_view(pod: &Pod) -> PodView {
         unschedulable,
         containers,
     }
+}
+
+/// The scheduler's complaint in a pod's `PodScheduled=False`, reason `Unschedulable`.
+fn unschedulable_of(status: &PodStatus) -> Option<Unschedulable> {
+    status
+        .conditions
+        .iter()
+        .flatten()
+        .find(|c| {
+            c.type_ == "PodScheduled"
+                && c.status == "False"
+                && c.reason.as_deref() == Some("Unschedulable")
+        })
+        .map(|c| Unschedulable {
+            since: ts(&c.last_transition_time),
+            message: c.message.clone().unwrap_or_default(),
+        })
 }
 
 fn index_statuses(statuses: Option<&[ContainerStatus]>) -> BTreeMap<&str, &ContainerStatus> {
@@ -960,6 +965,18 @@ mod tests {
         run_at(text, at(9, 45), &VerdictPolicy::default())
     }
 
+    /// `jobs` and `pods` at 09:45 with the default policy and no events.
+    fn observe_at_945(jobs: &[Job], pods: &[Pod]) -> Observation {
+        observe(
+            "4242",
+            jobs,
+            pods,
+            &[],
+            at(9, 45),
+            &VerdictPolicy::default(),
+        )
+    }
+
     fn run_at(text: &str, now: Timestamp, policy: &VerdictPolicy) -> Observation {
         let (jobs, pods) = load(text);
         observe("4242", &jobs, &pods, &[], now, policy)
@@ -1039,14 +1056,7 @@ mod tests {
                 assert!(p.status.as_ref().and_then(|s| s.phase.as_ref()).is_some());
             }
             // Every Job and Pod lands somewhere in the observation.
-            let obs = observe(
-                "4242",
-                &jobs,
-                &pods,
-                &[],
-                at(9, 45),
-                &VerdictPolicy::default(),
-            );
+            let obs = observe_at_945(&jobs, &pods);
             let placed: usize =
                 obs.jobs.iter().map(|j| j.pods.len()).sum::<usize>() + obs.stray_pods.len();
             assert_eq!((obs.jobs.len(), placed), (jobs.len(), pods.len()));
@@ -1265,14 +1275,7 @@ mod tests {
         // Sorted first by name, so it is met first.
         infra.metadata.name = Some("lb-4242-team-77-0-aaaaa".into());
         pods.push(infra);
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         assert_eq!(failed(&obs).0, FailureKind::ParticipantImagePull);
     }
 
@@ -1510,14 +1513,7 @@ mod tests {
             let (mut jobs, mut pods) = load(text);
             jobs.extend(gave_up.clone());
             pods.extend(gave_up_pods.clone());
-            observe(
-                "4242",
-                &jobs,
-                &pods,
-                &[],
-                at(9, 45),
-                &VerdictPolicy::default(),
-            )
+            observe_at_945(&jobs, &pods)
         };
         let running = with(HALF_DONE);
         assert_eq!(running.verdict, Verdict::Running);
@@ -1598,38 +1594,17 @@ mod tests {
     fn pods_attach_to_their_job_by_label_without_an_owner_reference() {
         let (jobs, mut pods) = load(RUNNING);
         pods[0].metadata.owner_references = None;
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         assert_eq!(obs.jobs[0].pods.len(), 1);
         let labels = |p: &mut Pod| p.metadata.labels.as_mut().unwrap().clone();
         let mut l = labels(&mut pods[0]);
         l.remove("batch.kubernetes.io/job-name");
         pods[0].metadata.labels = Some(l.clone());
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         assert_eq!(obs.jobs[0].pods.len(), 1, "the legacy job-name label");
         l.remove("job-name");
         pods[0].metadata.labels = Some(l);
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         assert_eq!((obs.jobs[0].pods.len(), obs.stray_pods.len()), (0, 1));
     }
 
@@ -1670,14 +1645,7 @@ mod tests {
             .as_mut()
             .unwrap()
             .insert(crate::labels::JOB_INDEX.into(), "zero".into());
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         assert_eq!(obs.jobs[0].index, None);
         assert_eq!(obs.verdict, Verdict::Running);
         assert_eq!(failed(&obs.expect_jobs(1)).0, FailureKind::JobsMissing);
@@ -1696,14 +1664,7 @@ mod tests {
             last_probe_time: None,
             last_transition_time: Some(Time(at(9, 10))),
         }]);
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         assert_eq!(obs.jobs[0].state, JobState::Suspended);
         assert_eq!(obs.verdict, Verdict::Running);
     }
@@ -1722,14 +1683,7 @@ mod tests {
             c.reason = Some("PodFailurePolicy".into());
             c.message = Some("Container agent-1 for pod x failed with exit code 42 matching FailJob rule at index 0".into());
         }
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         let (kind, _, _, message) = failed(&obs);
         assert_eq!(kind, FailureKind::JobFailed);
         assert!(
@@ -1751,14 +1705,7 @@ mod tests {
         {
             c.status = "False".into();
         }
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         assert_eq!(obs.jobs[0].state, JobState::Pending);
         assert_eq!(obs.verdict, Verdict::Running);
     }
@@ -1776,14 +1723,7 @@ mod tests {
     fn objects_without_status_or_names_do_not_panic() {
         let jobs = vec![Job::default()];
         let pods = vec![Pod::default()];
-        let obs = observe(
-            "4242",
-            &jobs,
-            &pods,
-            &[],
-            at(9, 45),
-            &VerdictPolicy::default(),
-        );
+        let obs = observe_at_945(&jobs, &pods);
         assert_eq!(obs.jobs[0].state, JobState::Pending);
         assert_eq!(obs.stray_pods[0].phase, "Unknown");
         assert_eq!(obs.verdict, Verdict::Running);

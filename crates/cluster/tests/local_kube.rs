@@ -65,6 +65,11 @@ fn job(
     .unwrap()
 }
 
+/// The pod template's spec of a Job, to change before creating it.
+fn pod_spec(job: &mut Job) -> &mut k8s_openapi::api::core::v1::PodSpec {
+    job.spec.as_mut().unwrap().template.spec.as_mut().unwrap()
+}
+
 /// Observes every 50 ms until `done` accepts an observation or `WAIT` passes.
 async fn observe_until<F>(cluster: &Cluster, sub: &str, what: &str, mut done: F) -> Observation
 where
@@ -294,16 +299,7 @@ async fn the_real_server_refusals_map_to_invalid_and_forbidden() {
         2,
         &[("simulator-1", "busybox", "true")],
     );
-    invalid
-        .spec
-        .as_mut()
-        .unwrap()
-        .template
-        .spec
-        .as_mut()
-        .unwrap()
-        .containers[0]
-        .image = None;
+    pod_spec(&mut invalid).containers[0].image = None;
     let err = bounded(cluster.create_or_adopt(&invalid))
         .await
         .unwrap_err();
@@ -454,7 +450,7 @@ async fn a_resume_replaces_an_earlier_executions_job_instead_of_adopting_it() {
 /// `job` whose pod asks for `gpus` GPUs on instance type `instance_type`.
 fn gpu_job(sub: &str, gpus: u32, instance_type: &str, script: &str) -> Job {
     let mut j = job(sub, 0, "OnFailure", 2, &[("agent-1", "busybox", script)]);
-    let spec = j.spec.as_mut().unwrap().template.spec.as_mut().unwrap();
+    let spec = pod_spec(&mut j);
     spec.node_selector = Some(
         [(
             "node.kubernetes.io/instance-type".to_string(),

@@ -89,14 +89,8 @@ pub struct RunClients {
 }
 
 impl RunClients {
-    /// Cold start from the environment (EKS unless `LB_KUBECONFIG` is set).
-    pub async fn from_env() -> Result<RunClients, FnError> {
-        let (config, sdk) = cold_start().await?;
-        let clusters = Clusters::from_env(&sdk);
-        Self::load(&sdk, &config, clusters).await
-    }
-
-    /// The same from an explicit SDK configuration and cluster access (local mode, tests).
+    /// The clients from an SDK configuration and cluster access (each function's cold start
+    /// reads them from the environment first; local mode and tests pass their own).
     pub async fn load(
         sdk: &SdkConfig,
         config: &FunctionConfig,

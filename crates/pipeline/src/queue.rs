@@ -96,8 +96,8 @@ pub enum Woken {
 
 /// Wakes the execution of team `team_id`'s oldest waiting submission in `leaderboard`, whose
 /// turn a place just given back is, so its Monitor round asks now instead of at its next poll
-/// (a minute into a queue, half an hour into a long one). The token is taken from the wake
-/// table as the wake function takes it, and put back when the report fails.
+/// (five minutes into a queue, half an hour into a long one), through the same
+/// [`WakeTable::wake`] the wake function uses.
 pub async fn wake_team_next<C: Callbacks>(
     table: &AdmissionTable,
     wakes: &WakeTable,
@@ -111,17 +111,9 @@ pub async fn wake_team_next<C: Callbacks>(
         return Ok(Woken::Nobody);
     };
     let id = next.submission_id;
-    let Some(taken) = wakes.count_change(id, now).await? else {
-        return Ok(Woken::NotWaiting(id));
-    };
-    match callbacks.succeed(&taken.token, "{}").await {
-        Ok(Reported::Delivered) => Ok(Woken::Delivered(id)),
-        Ok(Reported::Stale) => Ok(Woken::Stale(id)),
-        Err(e) => {
-            // NB: the report's error is the one worth telling; a failed put-back only means
-            // the safety net's timeout wakes it.
-            let _ = wakes.restore_token(id, &taken, false).await;
-            Err(e.into())
-        }
-    }
+    Ok(match wakes.wake(id, now, callbacks).await? {
+        None => Woken::NotWaiting(id),
+        Some(Reported::Delivered) => Woken::Delivered(id),
+        Some(Reported::Stale) => Woken::Stale(id),
+    })
 }

@@ -138,25 +138,10 @@ pub async fn handle<C: Callbacks>(event: SqsEvent, deps: &Deps<C>, now: u64) -> 
 
 /// Counts the change and reports the waiting token, if one was taken.
 async fn wake<C: Callbacks>(submission_id: u64, deps: &Deps<C>, now: u64) -> lb_aws::Result<()> {
-    let Some(taken) = deps.wakes.count_change(submission_id, now).await? else {
-        debug!(submission_id, "counted; no execution waiting");
-        return Ok(());
-    };
-    match deps.callbacks.succeed(&taken.token, "{}").await {
-        Ok(Reported::Delivered) => {
-            info!(submission_id, execution = ?taken.execution, "woke the execution");
-            Ok(())
-        }
-        Ok(Reported::Stale) => {
-            info!(submission_id, execution = ?taken.execution, "the wait had already ended");
-            Ok(())
-        }
-        Err(e) => {
-            // The token goes back so that the redelivered message can use it.
-            if let Err(restore) = deps.wakes.restore_token(submission_id, &taken, false).await {
-                warn!(submission_id, error = %restore, "could not put the token back; the safety net wakes it");
-            }
-            Err(e)
-        }
+    match deps.wakes.wake(submission_id, now, &deps.callbacks).await? {
+        None => debug!(submission_id, "counted; no execution waiting"),
+        Some(Reported::Delivered) => info!(submission_id, "woke the execution"),
+        Some(Reported::Stale) => info!(submission_id, "the wait had already ended"),
     }
+    Ok(())
 }

@@ -338,15 +338,7 @@ pub async fn list_events(
             fields.matches(|f| crate::runtime::events::field(e, f))
         })
         .into_iter()
-        .map(|e| {
-            // NB: as in every list, items carry no apiVersion and kind.
-            let mut v = serde_json::to_value(e).unwrap_or_default();
-            if let Value::Object(m) = &mut v {
-                m.remove("apiVersion");
-                m.remove("kind");
-            }
-            v
-        })
+        .map(|e| super::objects::as_list_item(serde_json::to_value(e).unwrap_or_default()))
         .collect::<Vec<_>>();
     json(
         StatusCode::OK,

@@ -20,7 +20,11 @@ pub fn to_json<T: Stored>(obj: &T) -> Value {
 
 /// A list item: real servers omit apiVersion and kind inside lists.
 fn item_json<T: Stored>(obj: &T) -> Value {
-    let mut v = to_json(obj);
+    as_list_item(to_json(obj))
+}
+
+/// `v` without apiVersion and kind, as a list carries its items.
+pub fn as_list_item(mut v: Value) -> Value {
     if let Value::Object(m) = &mut v {
         m.remove("apiVersion");
         m.remove("kind");

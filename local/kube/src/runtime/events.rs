@@ -88,13 +88,13 @@ impl Events {
         self.by_key.insert(key, event);
     }
 
-    /// Keeps only the events about pods `live` accepts (the others are gone; a real
-    /// cluster keeps events an hour, local-kube as long as their pod).
-    pub fn retain_pods(&mut self, live: impl Fn(&str) -> bool) {
-        self.by_key.retain(|(pod, ..), _| live(pod));
+    /// Drops the events about pod `uid`, once it is gone (a real cluster keeps events an
+    /// hour, local-kube as long as their pod).
+    pub fn forget(&mut self, uid: &str) {
+        self.by_key.retain(|(pod, ..), _| pod != uid);
     }
 
-    /// The events of `namespace` whose fields `get` accepts, oldest first.
+    /// The events of `namespace` that `accept` takes, oldest first.
     pub fn list(&self, namespace: &str, accept: impl Fn(&Event) -> bool) -> Vec<Event> {
         let mut out: Vec<Event> = self
             .by_key
@@ -165,7 +165,7 @@ mod tests {
         assert_eq!(field(&about_a[0], "source"), "cluster-autoscaler");
         assert_eq!(field(&about_a[0], "involvedObject.kind"), "Pod");
         assert!(events.list("other", |_| true).is_empty());
-        events.retain_pods(|uid| uid != "u-a");
+        events.forget("u-a");
         assert_eq!(events.list("default", |_| true).len(), 1);
     }
 }

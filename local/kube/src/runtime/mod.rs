@@ -241,20 +241,15 @@ impl Runtime {
             (&a.metadata.creation_timestamp, &a.metadata.name)
                 .cmp(&(&b.metadata.creation_timestamp, &b.metadata.name))
         });
-        {
-            let (all, _) = self.store.list::<Pod>(None, |_| true);
-            let live: std::collections::HashSet<String> =
-                all.into_iter().filter_map(|p| p.metadata.uid).collect();
-            lock(&self.events).retain_pods(|uid| live.contains(uid));
-        }
         let node = &self.node_model;
         let labels = scheduler::node_labels(&self.node, node);
+        let no_spec = k8s_openapi::api::core::v1::PodSpec::default();
         for pod in pending {
             let key = ObjKey::of(&pod.metadata);
             let uid = pod.metadata.uid.clone().unwrap_or_default();
-            let spec = pod.spec.clone().unwrap_or_default();
-            let need = scheduler::gpu_request(&spec);
-            let selected = node.instance_type.is_none() || scheduler::selects(&spec, &labels);
+            let spec = pod.spec.as_ref().unwrap_or(&no_spec);
+            let need = scheduler::gpu_request(spec);
+            let selected = node.instance_type.is_none() || scheduler::selects(spec, &labels);
             if !selected || !scheduler::fits(node.gpus, allocations.in_use(), need) {
                 let message = if selected {
                     scheduler::INSUFFICIENT_GPU
@@ -375,6 +370,7 @@ impl Runtime {
         if same {
             self.store.remove::<Pod>(key);
         }
+        lock(&self.events).forget(&uid);
         if let Some(owner) = controller_uid(&pod) {
             self.notify_job(&owner);
         }
