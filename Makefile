@@ -62,7 +62,7 @@ sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
 # Issue 14's measure: local runs in real time (time scale 1), 40 routes of 5 s on 4 pairs.
 LATENCY_RUN := local run --time-scale 1 --routes 40 --workers 4 --route-seconds 5 --latency --timeout 900
 bench-latency: venv kubectl ## Record -> partial update and last write -> final status, with and without S3's events (targets: p50 < 15 s, p99 < 60 s, final < 60 s)
-	$(CARGO) build --quiet -p cli -p sidecar -p fake-workloads --bins
+	$(CARGO) build --quiet -p cli -p local-cli -p sidecar -p fake-workloads --bins
 	@for run in "events, partial_update_seconds 20 (the default)|" \
 	            "events, partial_update_seconds 30|--partial-update-seconds 30" \
 	            "no events: safety net, holds and sweep only|--no-wake"; do \
@@ -125,7 +125,7 @@ cluster-manifests: $(DEPLOY_TOOLS) ## Apply infra/k8s/ to LEADERBOARD's cluster 
 			infra/k8s/$$f.yaml | kubectl apply -f -; done
 
 local: venv kubectl ## One whole submission on this machine (ARGS="--scenario crash" etc.)
-	$(CARGO) build --quiet -p cli -p sidecar -p fake-workloads --bins
+	$(CARGO) build --quiet -p cli -p local-cli -p sidecar -p fake-workloads --bins
 	$(TARGET_DIR)/debug/lbctl local run $(ARGS)
 
 # The harness only starts processes and servers: its own profile does not matter, so it is

@@ -8,7 +8,7 @@ use clap::Args;
 use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::{CANCEL_MARKER, STATUS_DIR};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
-use local_stack::pipe;
+use lb_infra::pipe;
 use serde_json::{json, Map, Value};
 
 use crate::deployment::{clean, Deployment, DeploymentArgs, EvalAiTokenArgs, ScanFilter};

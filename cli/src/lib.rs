@@ -1,6 +1,6 @@
-//! `lbctl`: the operators' tool. `lbctl local run` rehearses a whole submission on one machine;
-//! `invoke` runs one function in-process; `status`, `list`, `cancel`, `submit` and `resume`
-//! work on a real deployment (AWS configuration from the environment).
+//! `lbctl`: the operators' tool. `invoke` runs one function in-process; `status`, `list`,
+//! `cancel`, `submit`, `resume`, `rescore`, `logs` and `watch` work on a real deployment (AWS
+//! configuration from the environment); `lbctl local ...` runs the rehearsal's own executable.
 
 #[macro_use]
 pub mod output;
@@ -9,22 +9,18 @@ mod deployment;
 mod error;
 mod executions;
 mod invoke;
-mod latency;
-mod local;
 mod logs;
 mod ops;
-mod queue_report;
-mod relay;
+mod plugin;
 mod rescore;
 mod watch;
 
 use clap::{Parser, Subcommand};
 
-pub use deployment::{DeploymentArgs, MAX_SCAN_PAGES};
+pub use deployment::{clean, DeploymentArgs, MAX_SCAN_PAGES};
 pub use error::CliError;
 pub use executions::{execution_name, pipe_input, Resume, StateMachineArgs, Submit};
 pub use invoke::{error_object, Function, Invoke};
-pub use local::{LocalRun, Scenario};
 pub use logs::Logs;
 pub use ops::{Cancel, List, Status};
 pub use rescore::Rescore;
@@ -70,9 +66,14 @@ pub enum LogFormat {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// Work with the local stack (no AWS account needed).
-    #[command(subcommand)]
-    Local(LocalCommand),
+    /// Rehearse on this machine (no AWS account needed): `lbctl local run --help`. Runs
+    /// `lbctl-local` from beside lbctl or from PATH (`make local` builds it).
+    #[command(disable_help_flag = true)]
+    Local {
+        /// The rehearsal's own arguments, e.g. `run --scenario crash`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<std::ffi::OsString>,
+    },
     /// Run one function's handler in this process, as its Lambda would: configured from
     /// LB_SETTINGS_SECRET, LB_EVALAI_TOKEN_SECRET, AWS_* and LB_KUBECONFIG; prints its JSON
     /// result, or `{"errorType", "errorMessage"}` and exits 1.
@@ -101,19 +102,13 @@ pub enum Command {
     Watch(Watch),
 }
 
-/// `lbctl local ...`.
-#[derive(Debug, Subcommand)]
-pub enum LocalCommand {
-    /// Run one submission from the SQS message to the final scores: moto, the fake EvalAI,
-    /// the local Kubernetes API, the real state machine, handlers, Job templates and sidecar.
-    Run(LocalRun),
-}
-
 /// Runs a parsed command line; returns the process exit code. Errors of the operator commands
 /// are [`CliError`]s ([`exit_code`] tells their code).
 pub async fn run(cli: Cli) -> anyhow::Result<u8> {
     let code = match cli.command {
-        Command::Local(LocalCommand::Run(args)) => return local::run(args).await,
+        Command::Local { args } => {
+            return Err(plugin::exec("local", &args, cli.log_format, cli.verbose).into())
+        }
         Command::Invoke(args) => invoke::run(args).await?,
         Command::Status(args) => ops::status(args).await?,
         Command::List(args) => ops::list(args).await?,

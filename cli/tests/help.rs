@@ -27,7 +27,6 @@ fn the_help_lists_every_subcommand_and_the_exit_codes() {
 #[test]
 fn every_subcommand_documents_its_arguments() {
     let expected: &[(&[&str], &[&str])] = &[
-        (&["local", "run"], &["--scenario", "--workers", "--keep"]),
         (
             &["invoke"],
             &["intake", "launch", "monitor", "finalize", "--event"],
@@ -84,7 +83,6 @@ fn every_subcommand_documents_its_arguments() {
                 "Examples:",
             ],
         ),
-        (&["local", "run"], &["crash-loop", "LB_EVALAI_TOKEN"]),
         (&["cancel"], &["<SUBMISSION>", "--force", "--leaderboard"]),
         (
             &["submit"],

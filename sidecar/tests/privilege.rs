@@ -2,8 +2,8 @@
 //! allows exactly the S3 calls `lb-sidecar` can make (read from its symbols), on this
 //! leaderboard's bucket under the prefixes the sidecar writes, and nothing else.
 
-use local_stack::privilege;
-use local_stack::template::CLUSTER;
+use lb_infra::template::CLUSTER;
+use test_support::privilege;
 
 #[test]
 fn the_jobs_role_allows_exactly_what_the_sidecar_calls() {

@@ -2,12 +2,13 @@
 
 use std::path::{Path, PathBuf};
 
-/// `shared/fixtures/leaderboard-results`, beside the repository (as CI lays it out), or
+/// The results fixtures the repository keeps (`tests/fixtures/leaderboard-results`), or
 /// `$LB_FIXTURES_DIR`.
 pub fn results_fixtures_dir() -> PathBuf {
     match std::env::var_os("LB_FIXTURES_DIR") {
         Some(dir) => PathBuf::from(dir),
-        None => Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../../shared/fixtures/leaderboard-results"),
+        None => {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/leaderboard-results")
+        }
     }
 }

@@ -1,4 +1,4 @@
-//! Every case under `shared/fixtures/leaderboard-results/` against the results engine.
+//! Every case under `tests/fixtures/leaderboard-results/` against the results engine.
 //!
 //! The fixtures were produced by the official Python tooling: merged file and EvalAI files
 //! must equal them as JSON values (int vs float kept), `stdout.txt` byte for byte.
@@ -317,4 +317,57 @@ fn leaderboard_1_rates_skip_a_route_that_never_moved_and_stay_int_only_when_all_
         .infractions
         .iter()
         .all(|(_, v)| *v == lb_domain::py::Num::Int(0)));
+}
+
+/// Every file under `root`, as paths relative to it, sorted.
+fn files_under(root: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut dirs = vec![root.to_owned()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                dirs.push(path);
+            } else {
+                out.push(path.strip_prefix(root).unwrap().to_owned());
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The repository keeps its own copy of the shared results fixtures, so a clone alone tests.
+/// Where the shared set lies beside the repository (as CI lays it out), the copy must be it,
+/// byte for byte: a case or file it lacks, has in excess or holds differently is named.
+#[test]
+fn the_kept_fixtures_are_the_shared_set_byte_for_byte_when_it_is_beside_the_repository() {
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let shared = manifest.join("../../../shared/fixtures/leaderboard-results");
+    let kept = manifest.join("../../tests/fixtures/leaderboard-results");
+    if !shared.is_dir() {
+        eprintln!("no shared fixtures beside the repository: nothing to compare");
+        return;
+    }
+    let (theirs, ours) = (files_under(&shared), files_under(&kept));
+    let mut problems: Vec<String> = theirs
+        .iter()
+        .filter(|f| !ours.contains(f))
+        .map(|f| format!("missing from tests/fixtures: {}", f.display()))
+        .collect();
+    problems.extend(
+        ours.iter()
+            .filter(|f| !theirs.contains(f))
+            .map(|f| format!("not in the shared set: {}", f.display())),
+    );
+    problems.extend(
+        theirs
+            .iter()
+            .filter(|f| ours.contains(f))
+            .filter(|f| {
+                std::fs::read(shared.join(f)).unwrap() != std::fs::read(kept.join(f)).unwrap()
+            })
+            .map(|f| format!("differs from the shared set: {}", f.display())),
+    );
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
 }

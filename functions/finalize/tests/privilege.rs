@@ -1,11 +1,11 @@
 //! Finalize's role in `infra/app.yaml` allows exactly the AWS calls this binary can make
-//! (read from its symbols: `local_stack::privilege`).
+//! (read from its symbols: `test_support::privilege`).
 
 #[test]
 fn the_role_allows_exactly_what_the_code_calls() {
     let binary = std::path::Path::new(env!("CARGO_BIN_EXE_finalize"));
-    let problems = local_stack::privilege::check_function(
-        &local_stack::template::APP,
+    let problems = test_support::privilege::check_function(
+        &lb_infra::template::APP,
         "FinalizeFunction",
         binary,
     );

@@ -1,10 +1,10 @@
 //! The wake function's role in `infra/app.yaml` allows exactly the AWS calls this binary can
-//! make (read from its symbols: `local_stack::privilege`), and its event source's reads.
+//! make (read from its symbols: `test_support::privilege`), and its event source's reads.
 
 #[test]
 fn the_role_allows_exactly_what_the_code_calls() {
     let binary = std::path::Path::new(env!("CARGO_BIN_EXE_wake"));
     let problems =
-        local_stack::privilege::check_function(&local_stack::template::APP, "WakeFunction", binary);
+        test_support::privilege::check_function(&lb_infra::template::APP, "WakeFunction", binary);
     assert!(problems.is_empty(), "{}", problems.join("\n"));
 }

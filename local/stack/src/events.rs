@@ -20,7 +20,7 @@ use local_stepfunctions::{CallbackError, Executor};
 use serde_json::Value;
 
 use crate::pipe::{queue_arn, region_of, sqs_error, sqs_record, PipeError};
-use crate::template::{Template, TemplateError};
+use lb_infra::template::{Template, TemplateError};
 
 /// An SQS event source mapping of the template.
 #[derive(Debug, Clone)]
@@ -267,10 +267,10 @@ mod tests {
     #[test]
     fn the_sweep_runs_once_a_minute_and_other_expressions_are_named() {
         assert_eq!(
-            schedule_period(&crate::template::APP, "SweepSchedule").unwrap(),
+            schedule_period(&lb_infra::template::APP, "SweepSchedule").unwrap(),
             Duration::from_secs(60)
         );
-        let err = schedule_period(&crate::template::APP, "WakeRule").unwrap_err();
+        let err = schedule_period(&lb_infra::template::APP, "WakeRule").unwrap_err();
         assert!(err.to_string().contains("ScheduleExpression"), "{err}");
     }
 }

@@ -4,9 +4,7 @@ pub mod events;
 pub mod integrations;
 pub mod moto;
 pub mod pipe;
-pub mod privilege;
 pub mod stack;
-pub mod template;
 pub mod workloads;
 
 pub use stack::{EvalAi, Stack, StackError};

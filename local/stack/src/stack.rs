@@ -14,8 +14,8 @@ use lb_domain::settings::Settings;
 use local_kube::LocalKube;
 
 use crate::moto::{MotoError, MotoServer};
-use crate::template::{Template, TemplateError, APP};
 use crate::workloads::{image_map, Behaviour, Binaries};
+use lb_infra::template::{Template, TemplateError, APP};
 
 /// The region the local stack uses.
 pub const REGION: &str = "us-east-1";

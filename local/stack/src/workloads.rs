@@ -68,7 +68,7 @@ impl Binaries {
                         std::io::ErrorKind::NotFound,
                         format!(
                             "`{name}` not found beside this program or on PATH (looked in {}): \
-                             run `make local`, or `cargo build -p sidecar -p fake-workloads --bins`",
+                             run `make local`, or `cargo build -p cli -p local-cli -p sidecar -p fake-workloads --bins`",
                             looked.join(", ")
                         ),
                     )
@@ -87,9 +87,15 @@ impl Binaries {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
         let status = Command::new(cargo)
             .current_dir(&root)
+            // The set `make local` builds (lbctl and the rehearsal too), so one build serves
+            // both and a test can run `lbctl local` from the same folder.
             .args([
                 "build",
                 "--quiet",
+                "-p",
+                "cli",
+                "-p",
+                "local-cli",
                 "-p",
                 "sidecar",
                 "-p",

@@ -5,8 +5,8 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use lb_infra::template::{Template, APP, CLUSTER};
 use local_stack::moto::MotoServer;
-use local_stack::template::{Template, APP, CLUSTER};
 use serde_json::Value;
 
 fn root() -> PathBuf {
@@ -451,7 +451,7 @@ fn the_pipe_reads_the_queue_in_batches_of_one_and_starts_the_state_machine() {
         "FIRE_AND_FORGET"
     );
     // Its role: receive and delete from that queue, start that state machine, nothing else.
-    let allowed = local_stack::privilege::allowed(&APP.role_statements("PipeRole", None).unwrap());
+    let allowed = test_support::privilege::allowed(&APP.role_statements("PipeRole", None).unwrap());
     let expected: BTreeMap<String, BTreeSet<String>> = [
         ("sqs:ReceiveMessage", "<SubmissionsQueue.Arn>"),
         ("sqs:DeleteMessage", "<SubmissionsQueue.Arn>"),
@@ -491,7 +491,7 @@ fn the_state_machine_role_invokes_the_four_functions_only() {
     let statements = APP
         .role_statements("StateMachineRole", Some("invoke-functions"))
         .unwrap();
-    let allowed = local_stack::privilege::allowed(&statements);
+    let allowed = test_support::privilege::allowed(&statements);
     assert_eq!(allowed.len(), 1);
     let targets: BTreeSet<_> = tasks().keys().map(|f| format!("<{f}.Arn>")).collect();
     assert_eq!(allowed["lambda:InvokeFunction"], targets);

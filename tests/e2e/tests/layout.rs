@@ -1,8 +1,9 @@
 //! The layout tells the architecture: what ships never depends on what only rehearses it.
 //!
-//! `crates/`, `functions/` and `sidecar/` ship; `local/` (the embedded Step Functions
-//! executor, the local stack, the fake EvalAI, the local Kubernetes API, the fake workloads)
-//! exists to run them on one machine and may appear in their `[dev-dependencies]` only.
+//! `crates/`, `functions/`, `sidecar/` and `cli/` (`lbctl`) ship; `local/` (the embedded Step
+//! Functions executor, the local stack, the fake EvalAI, the local Kubernetes API, the fake
+//! workloads, `lbctl local`) and `tests/` exist to run and check them on one machine and may
+//! appear in their `[dev-dependencies]` only.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -46,13 +47,13 @@ fn folder(manifest_path: &str, root: &Path) -> String {
 }
 
 fn ships(folder: &str) -> bool {
-    ["crates/", "functions/", "sidecar"]
+    ["crates/", "functions/", "sidecar", "cli"]
         .iter()
         .any(|p| folder.starts_with(p))
 }
 
 #[test]
-fn nothing_that_ships_depends_on_local_outside_dev_dependencies() {
+fn nothing_that_ships_depends_on_local_or_tests_outside_dev_dependencies() {
     let meta = metadata();
     let root = root();
     let packages = meta["packages"].as_array().unwrap();
@@ -70,7 +71,8 @@ fn nothing_that_ships_depends_on_local_outside_dev_dependencies() {
             };
             let there = folder(&format!("{path}/Cargo.toml"), &root);
             let kind = dep["kind"].as_str().unwrap_or("normal");
-            if there.starts_with("local/") && kind != "dev" {
+            let rehearses = there.starts_with("local/") || there.starts_with("tests/");
+            if rehearses && kind != "dev" {
                 violations.push(format!(
                     "{here} has `{}` ({there}) as a {kind} dependency",
                     dep["name"].as_str().unwrap()

@@ -1,0 +1,48 @@
+//! `lbctl local`: the rehearsal room's commands, a separate executable (`lbctl-local`) that
+//! the shipped `lbctl` runs for `lbctl local ...`, so nothing of the rehearsal ships.
+
+mod latency;
+mod queue_report;
+mod relay;
+mod run;
+
+use clap::{Parser, Subcommand};
+
+pub use run::{LocalRun, Scenario};
+
+/// Rehearse the CARLA Leaderboard evaluation backend on this machine: moto, the fake EvalAI
+/// and the local Kubernetes API stand in for AWS, EvalAI and EKS (no AWS account needed).
+#[derive(Debug, Parser)]
+#[command(name = "lbctl local", bin_name = "lbctl local", version)]
+pub struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+    /// Log lines on stderr: `text` for people, `json` for machines.
+    #[arg(
+        long,
+        global = true,
+        value_enum,
+        env = "LB_LOG_FORMAT",
+        default_value = "text"
+    )]
+    pub log_format: cli::LogFormat,
+    /// More log lines: `-v` info, `-vv` debug (RUST_LOG, when set, decides instead).
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    pub verbose: u8,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run one submission from the SQS message to the final scores: moto, the fake EvalAI,
+    /// the local Kubernetes API, the real state machine, handlers, Job templates and sidecar.
+    Run(LocalRun),
+}
+
+/// Runs a parsed command line; returns the process exit code.
+pub async fn run(cli: Cli) -> anyhow::Result<u8> {
+    match cli.command {
+        Command::Run(args) => run::run(args).await,
+    }
+}

@@ -1,0 +1,815 @@
+//! `lbctl local run`: one submission from the SQS message to the final scores on this machine,
+//! through the deployed state machine definition, the real handlers, Job templates and sidecar.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use clap::{Args, ValueEnum};
+use fake_evalai::Fixture;
+use lb_pipeline::cluster::Clusters;
+use lb_pipeline::FnError;
+use local_stack::stack::{LOCAL_SETTINGS, WAKE_TABLE};
+use local_stack::workloads::{Behaviour, Binaries};
+use local_stack::{EvalAi, Stack};
+
+use cli::{clean, outln};
+use local_stepfunctions::{
+    EventType, Executor, HistoryEvent, Options, StateMachine, TaskError, TaskMap,
+};
+use serde_json::{json, Value};
+
+/// The deployed definition, embedded so `lbctl` runs from anywhere.
+const DEFINITION: &str = include_str!("../../../statemachine/submission.asl.json");
+
+/// What the run rehearses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Scenario {
+    /// Everything works: FINISHED with scores.
+    Happy,
+    /// CARLA of the first pair is killed mid-route: crash markers, restart, resume, FINISHED.
+    Crash,
+    /// The first pair's evaluator hangs: the idle watchdog ends it, it resumes, FINISHED.
+    Hang,
+    /// The participant cancels on EvalAI after the first round: CANCELLED once the sweep (or
+    /// a partial update's status read) notices, nothing left.
+    Cancel,
+    /// The participant's image cannot be pulled: FAILED with a message naming it.
+    Unpullable,
+    /// The first pair's evaluator crashes at every attempt: out of retries, FAILED, and the
+    /// participant's stderr shows the reason and the end of that agent's output.
+    CrashLoop,
+    /// The cluster's node is of another instance type than the leaderboard names: the
+    /// autoscaler says no node group could hold the pods, FAILED at once naming the instance
+    /// type (a configuration problem of the leaderboard), none of the participant's time used.
+    NoNode,
+}
+
+impl Scenario {
+    fn expected(self) -> &'static str {
+        match self {
+            Scenario::Happy | Scenario::Crash | Scenario::Hang => "finished",
+            Scenario::Cancel => "cancelled",
+            Scenario::Unpullable | Scenario::CrashLoop | Scenario::NoNode => "failed",
+        }
+    }
+}
+
+/// `lbctl local run` options.
+#[derive(Debug, Clone, Args)]
+pub struct LocalRun {
+    /// What to rehearse.
+    #[arg(long, value_enum, default_value = "happy")]
+    pub scenario: Scenario,
+    /// Simulator-agent pairs.
+    #[arg(long, default_value_t = 4)]
+    pub workers: u32,
+    /// GPUs of the local node (`nvidia.com/gpu`; each pair's agent requests one): pairs
+    /// beyond them wait Pending, Unschedulable, until a GPU frees. Default: not modelled.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub gpus: Option<u32>,
+    /// Submissions run together, from the teams of --teams, arriving on EvalAI in that order.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=50))]
+    pub submissions: u32,
+    /// How many of the submissions each team sends, e.g. `6,2,2,2` (summing to
+    /// --submissions; the first team's go first). Default: one team for all.
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..=50))]
+    pub teams: Vec<u32>,
+    /// The leaderboard's `team_limit`: evaluations one team may hold at once.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub team_limit: Option<u32>,
+    /// Write what the fake EvalAI saw of each submission (statuses in order, queue places
+    /// shown, admission order, requests a minute) to this JSON file.
+    #[arg(long, value_name = "FILE")]
+    pub report: Option<std::path::PathBuf>,
+    /// Routes of the track.
+    #[arg(long, default_value_t = 20)]
+    pub routes: u32,
+    /// Seconds the fake evaluator spends per route.
+    #[arg(long, default_value_t = 0.2)]
+    pub route_seconds: f64,
+    /// Leaderboard of the submission's phase (`1.0` or `2.0`).
+    #[arg(long, default_value = "2.0", value_parser = ["1.0", "2.0"])]
+    pub leaderboard: String,
+    /// Multiplies the state machine's waits and retry intervals (0.05: a 60 s Wait lasts 3 s).
+    #[arg(long, default_value_t = 0.05)]
+    pub time_scale: f64,
+    /// From the first Monitor round, the local cluster's API answers every request with 500
+    /// `InternalError` for this many minutes (scaled by --time-scale); the Jobs run on.
+    #[arg(long, default_value_t = 0.0)]
+    pub kube_outage_minutes: f64,
+    /// The cancel scenario: the participant cancels when this Monitor round ends.
+    #[arg(long, default_value_t = 1)]
+    pub cancel_after_round: u64,
+    /// Wall-clock limit of the whole run, in seconds.
+    #[arg(long, default_value_t = 600)]
+    pub timeout: u64,
+    /// An EvalAI to use instead of the fake (needs --evalai-token, --challenge, --phase, --submission).
+    #[arg(long, requires_all = ["evalai_token", "challenge", "phase", "submission"])]
+    pub evalai_url: Option<String>,
+    /// Host token of that EvalAI (better from the environment: a flag shows in `ps`).
+    #[arg(long, env = "LB_EVALAI_TOKEN", hide_env_values = true)]
+    pub evalai_token: Option<String>,
+    /// Challenge id on that EvalAI.
+    #[arg(long)]
+    pub challenge: Option<u64>,
+    /// Phase id on that EvalAI.
+    #[arg(long)]
+    pub phase: Option<u64>,
+    /// Submission id on that EvalAI.
+    #[arg(long)]
+    pub submission: Option<u64>,
+    /// The leaderboard's `partial_update_seconds` (default: 20 s scaled by --time-scale).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=3600))]
+    pub partial_update_seconds: Option<u64>,
+    /// Measure how long results take to reach EvalAI (record -> partial update, last write ->
+    /// final status; `make bench-latency`).
+    #[arg(long)]
+    pub latency: bool,
+    /// Leave S3's events undelivered (no wake function): rounds come only from the safety
+    /// net, holds and the sweep, as in a deployment whose buckets send no events.
+    #[arg(long)]
+    pub no_wake: bool,
+    /// Keep the stack running after the summary (until Ctrl-C) to look at S3, EvalAI, logs.
+    #[arg(long)]
+    pub keep: bool,
+}
+
+const IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local";
+const UNPULLABLE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:never-pushed";
+/// The node type of the no-node scenario: not the one the local settings name.
+const OTHER_INSTANCE_TYPE: &str = "g6.xlarge";
+
+fn say(started: Instant, text: impl AsRef<str>) {
+    outln!(
+        "[{:>6.1}s] {}",
+        started.elapsed().as_secs_f64(),
+        text.as_ref()
+    );
+}
+
+/// Runs one local submission; the exit code is 0 only when it ended as the scenario expects.
+pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
+    if !(args.time_scale > 0.0 && args.time_scale <= 1.0) {
+        bail!("--time-scale must be in (0, 1], got {}", args.time_scale);
+    }
+    if args.routes == 0 || args.workers == 0 {
+        bail!("--routes and --workers must be at least 1");
+    }
+    if !(args.kube_outage_minutes >= 0.0 && args.kube_outage_minutes <= 7.0 * 24.0 * 60.0) {
+        bail!(
+            "--kube-outage-minutes must be between 0 and a week, got {}",
+            args.kube_outage_minutes
+        );
+    }
+    let teams = team_sizes(&args)?;
+    if teams.len() > 1 && args.evalai_url.is_some() {
+        bail!("--teams needs the fake EvalAI (an external one has its own teams)");
+    }
+    let started = Instant::now();
+    let bins = Binaries::find()?;
+
+    // The phase: 1 is Leaderboard 2.0, 2 is 1.0 in the local settings and the fake's fixture.
+    let phase = if args.leaderboard == "1.0" { 2 } else { 1 };
+    let mut settings: Value = serde_json::from_str(LOCAL_SETTINGS)?;
+    let track = &mut settings["leaderboards"][&args.leaderboard]["tracks"]["SENSORS"];
+    track["routes"] = json!(args.routes);
+    track["workers"] = json!(args.workers);
+    // The Monitor's clock is real while the executor scales every wait: the least interval
+    // between partial updates is scaled here, or a fast run would defer its updates and spin.
+    let interval = args.partial_update_seconds.unwrap_or(
+        (lb_domain::schedule::PARTIAL_UPDATE_INTERVAL.as_secs_f64() * args.time_scale)
+            .round()
+            .max(1.0) as u64,
+    );
+    settings["leaderboards"][&args.leaderboard]["partial_update_seconds"] = json!(interval);
+    if let Some(limit) = args.team_limit {
+        settings["leaderboards"][&args.leaderboard]["team_limit"] = json!(limit);
+    }
+    // Another EvalAI has its own phase ids: its phase runs the chosen leaderboard's track.
+    if let (Some(_), Some(p)) = (&args.evalai_url, args.phase) {
+        settings["phases"][p.to_string()] =
+            json!({"leaderboard": args.leaderboard, "track": "SENSORS"});
+    }
+
+    let external = args.evalai_url.clone().map(|url| EvalAi::External {
+        url,
+        token: args.evalai_token.clone().unwrap_or_default(),
+    });
+    let mut stack =
+        Stack::start(external.unwrap_or(EvalAi::Fake(Fixture::with_teams(teams.len()))))
+            .await
+            .context("starting the local stack (run `make venv` for moto)")?;
+    say(
+        started,
+        format!(
+            "stack up in {:.1}s: moto {}, EvalAI {}",
+            stack.started_in.as_secs_f64(),
+            stack.moto.endpoint(),
+            stack.evalai_url
+        ),
+    );
+    let settings = stack.provision(&settings.to_string()).await?;
+
+    let scratch = stack.workdir.path().join("images");
+    let once = scratch.join("once");
+    std::fs::create_dir_all(&once)?;
+    let mut behaviour = Behaviour {
+        route_seconds: args.route_seconds,
+        node_gpus: args.gpus,
+        ..Behaviour::default()
+    };
+    if args.scenario == Scenario::Hang {
+        behaviour.evaluator_env = BTreeMap::from([
+            ("FAKE_EVALUATOR_HANG_AT_ROUTE".into(), "1".into()),
+            ("FAKE_EVALUATOR_ONCE_DIR".into(), once.display().to_string()),
+        ]);
+    }
+    if args.scenario == Scenario::CrashLoop {
+        // No once-dir: every attempt of the pair that runs route 1 crashes there.
+        behaviour.evaluator_env =
+            BTreeMap::from([("FAKE_EVALUATOR_CRASH_AT_ROUTE".into(), "1".into())]);
+    }
+    if args.scenario == Scenario::NoNode {
+        behaviour.node_instance_type = Some(OTHER_INSTANCE_TYPE.into());
+    }
+    let record_log = stack.workdir.path().join("record-writes.log");
+    if args.latency {
+        behaviour.evaluator_env.insert(
+            "FAKE_EVALUATOR_RECORD_LOG".into(),
+            record_log.display().to_string(),
+        );
+    }
+    let unpullable: &[&str] = if args.scenario == Scenario::Unpullable {
+        &[UNPULLABLE]
+    } else {
+        &[]
+    };
+    stack
+        .start_workloads(&settings, &bins, &behaviour, unpullable)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let kubeconfig = stack.kubeconfig.clone().context("no kubeconfig")?;
+    say(
+        started,
+        format!(
+            "local Kubernetes API {} (kubeconfig {})",
+            stack.kube.as_ref().map(|k| k.url()).unwrap_or_default(),
+            kubeconfig.display()
+        ),
+    );
+
+    // The submission on EvalAI and the message EvalAI publishes for it.
+    let image = if args.scenario == Scenario::Unpullable {
+        UNPULLABLE
+    } else {
+        IMAGE
+    };
+    let (challenge, phase, arrivals) = match (
+        &stack.fake_evalai,
+        args.challenge,
+        args.phase,
+        args.submission,
+    ) {
+        (Some(fake), _, _, _) => {
+            let mut arrivals = Vec::new();
+            for (index, size) in teams.iter().enumerate() {
+                for _ in 0..*size {
+                    let team = index as u64 + 1;
+                    let new = fake
+                        .add_submission(fake_evalai::NewSubmission {
+                            challenge_phase: phase,
+                            participant_team: team,
+                            submitted_image_uri: image.into(),
+                            created_by: None,
+                        })
+                        .map_err(|e| anyhow::anyhow!("{e}"))?;
+                    arrivals.push((new.id, team));
+                }
+            }
+            (1, phase, arrivals)
+        }
+        (None, Some(c), Some(p), Some(s)) => (c, p, vec![(s, 0)]),
+        _ => bail!("an external EvalAI needs --challenge, --phase and --submission"),
+    };
+    // The first is the one the summary describes in detail (and the scenarios act on).
+    let submission = arrivals[0].0;
+
+    // The handlers, in-process, each with its clients built once.
+    let config = local_stack::stack::function_config();
+    let clusters = || Clusters::Kubeconfig(kubeconfig.clone());
+    let intake = Arc::new(intake::Deps::load(&stack.sdk, &config).await?);
+    let mut launch = launch::Deps::load(&stack.sdk, &config, clusters()).await?;
+    launch.timers = Some(lb_jobs::Timers {
+        start_wait_seconds: 120,
+        end_wait_seconds: 60,
+        carla_ready_seconds: 60,
+        poll_seconds: 1,
+        max_idle_seconds: 5,
+        logcopy_period_seconds: 1,
+    });
+    let launch = Arc::new(launch);
+    let mut monitor = monitor::Deps::load(&stack.sdk, &config, clusters()).await?;
+    // The autoscaler's word is believed after minutes on EKS; local-kube's is final at once.
+    monitor.policy.never_fits_grace = Duration::from_secs(2);
+    let monitor = Arc::new(monitor);
+    // Finalize wakes a team's next submission through the executor, which the task map below
+    // is made for: bound once it exists.
+    let late = local_stack::events::LateCallbacks::default();
+    let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters())
+        .await?
+        .with_callbacks(late.clone());
+    finalize.delete_wait = Duration::from_secs(60);
+    let finalize = Arc::new(finalize);
+    // The summary reads the outcome from EvalAI with the functions' own client.
+    let evalai = intake.evalai.clone();
+    let tasks = TaskMap::new()
+        .with("IntakeFunctionArn", move |v| {
+            let deps = intake.clone();
+            async move { lambda(intake::handle_json(v, &deps).await) }
+        })
+        .with("LaunchFunctionArn", move |v| {
+            let deps = launch.clone();
+            async move { lambda(launch::handle_json(v, &deps).await) }
+        })
+        .with("MonitorFunctionArn", move |v| {
+            let deps = monitor.clone();
+            async move { lambda(monitor::handle_json(v, &deps).await) }
+        })
+        .with("FinalizeFunctionArn", move |v| {
+            let deps = finalize.clone();
+            async move { lambda(finalize::handle_json(v, &deps).await) }
+        });
+    // The wake table's wait, on moto's DynamoDB.
+    let tasks = local_stack::integrations::with_services(tasks, &stack.sdk);
+
+    let mut substitutions: HashMap<String, String> = ["Intake", "Launch", "Monitor", "Finalize"]
+        .iter()
+        .map(|f| {
+            (
+                format!("{f}FunctionArn"),
+                format!(
+                    "arn:aws:lambda:us-east-1:123456789012:function:{}",
+                    f.to_lowercase()
+                ),
+            )
+        })
+        .collect();
+    substitutions.insert("WakeTable".into(), WAKE_TABLE.into());
+    let machine = StateMachine::load(&serde_json::from_str(DEFINITION)?, &substitutions)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+
+    // Live progress, and the scenario's own act at the right moment.
+    let rounds = Arc::new(AtomicU64::new(0));
+    // The crash scenario has acted once CARLA was killed; the others have nothing to do.
+    let acted = Arc::new(AtomicBool::new(args.scenario != Scenario::Crash));
+    // When the participant cancelled (the cancel scenario), to time how long the Jobs outlive it.
+    let cancelled_at: Arc<std::sync::Mutex<Option<Instant>>> = Arc::default();
+    let fake = stack.fake_evalai.as_ref().map(|f| f.url());
+    let outage = stack
+        .kube
+        .as_ref()
+        .map(|k| k.outage())
+        .filter(|_| args.kube_outage_minutes > 0.0);
+    let outage_for = Duration::from_secs_f64(args.kube_outage_minutes * 60.0 * args.time_scale);
+    let outage_minutes = args.kube_outage_minutes;
+    let many = arrivals.len() > 1;
+    let on_event = {
+        let rounds = rounds.clone();
+        let acted = acted.clone();
+        let cancelled_at = cancelled_at.clone();
+        let scenario = args.scenario;
+        let cancel_after = args.cancel_after_round;
+        Arc::new(move |event: &HistoryEvent| {
+            if many {
+                // Many executions: the per-round lines of each would drown the summary.
+                return;
+            }
+            if event.event_type == EventType::TaskStateEntered {
+                let name = event.state_name().unwrap_or_default();
+                if name == "Monitor" {
+                    let n = rounds.fetch_add(1, Ordering::SeqCst) + 1;
+                    if let (1, Some(outage)) = (n, &outage) {
+                        outage.fail_for(outage_for);
+                        say(
+                            started,
+                            format!("the cluster's API answers 500 for {outage_minutes} minutes (scaled)"),
+                        );
+                    }
+                    // From the first round on, until CARLA was up to be killed (a busy machine
+                    // may start it after the first round).
+                    if !acted.load(Ordering::SeqCst) && act(scenario, n) {
+                        acted.store(true, Ordering::SeqCst);
+                    }
+                } else {
+                    say(started, format!("stage {name}"));
+                }
+            }
+            if event.event_type == EventType::TaskStateExited
+                && event.state_name() == Some("Monitor")
+            {
+                let output = &event.details["output"]["run"]["monitor"];
+                let unreachable = if output["unreachable_since"].is_null() {
+                    ""
+                } else {
+                    " (cluster unreachable: verdict skipped)"
+                };
+                // The cancel comes after a round (the first read the status on EvalAI): from
+                // then on the cancel sweep notices it, or a partial update's own read.
+                if scenario == Scenario::Cancel && output["rounds"] == cancel_after {
+                    if let Ok(mut at) = cancelled_at.lock() {
+                        at.get_or_insert_with(Instant::now);
+                    }
+                    cancel_on(fake.as_deref(), submission);
+                }
+                say(
+                    started,
+                    format!(
+                        "monitor round {}: {} routes {}/{}{unreachable}",
+                        output["rounds"],
+                        output["state"],
+                        output["progress"][0],
+                        output["progress"][1]
+                    ),
+                );
+            }
+        }) as local_stepfunctions::EventCallback
+    };
+    let executor = Executor::new(
+        tasks,
+        Options {
+            time_scale: args.time_scale,
+            deadline: Some(Duration::from_secs(args.timeout)),
+            on_event: Some(on_event),
+            // The handlers run in-process at real speed, and the shared EvalAI budget is a
+            // real minute's requests: a Lambda's timeout is not scaled (its waits are).
+            scale_invocation_timeouts: false,
+            ..Options::default()
+        },
+    )
+    .map_err(|e| anyhow::anyhow!("{e}"))?;
+    late.bind(executor.clone());
+    // S3's events and the cancel sweep wake the waiting execution, as in the deployment.
+    let relays = crate::relay::spawn(
+        &stack.sdk,
+        &local_stack::stack::app_template(&settings),
+        &config,
+        executor.clone(),
+        args.time_scale,
+        !args.no_wake,
+    )
+    .await?;
+    // All at once, as EvalAI's messages come: each one's place in the queue is when EvalAI
+    // received it (`submitted_at`), the order of `arrivals`.
+    let mut executions = Vec::new();
+    for (id, team) in &arrivals {
+        let input = sqs_round_trip(&stack, challenge, phase, *id, image).await?;
+        if !many {
+            say(
+                started,
+                format!("message for submission {id} received from SQS; Pipe output {input}"),
+            );
+        }
+        let execution = executor
+            .start(&machine, &format!("local-{id}"), input)
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        executions.push((*id, *team, execution));
+    }
+    if many {
+        say(
+            started,
+            format!(
+                "{} submissions from {} teams arrived",
+                arrivals.len(),
+                teams.len()
+            ),
+        );
+    }
+    let mut results = Vec::new();
+    for (id, team, execution) in executions {
+        let result = execution.wait().await;
+        if many {
+            say(
+                started,
+                format!(
+                    "submission {id} (team {team}): execution {}",
+                    result.status.as_str()
+                ),
+            );
+        }
+        results.push(result);
+    }
+    let result = results.remove(0);
+    let ended = Instant::now();
+    let wake_messages = relays.wake_messages.load(Ordering::Relaxed);
+    let sweep_wakes = relays.sweep_wakes.load(Ordering::Relaxed);
+    drop(relays);
+
+    // The summary.
+    let on_fake = stack
+        .fake_evalai
+        .as_ref()
+        .and_then(|fake| fake.submission(submission));
+    let status_on_evalai = match (&stack.fake_evalai, &on_fake) {
+        (Some(_), Some(s)) => s.status.clone(),
+        (Some(_), None) => String::new(),
+        // Another EvalAI: ask it, with the client the functions use.
+        (None, _) => match evalai.submission(submission).await {
+            Ok(s) => s.status.as_str().to_string(),
+            Err(e) => format!("(unknown: {e})"),
+        },
+    };
+    outln!();
+    outln!(
+        "execution      {} ({} history events)",
+        result.status.as_str(),
+        result.history.len()
+    );
+    if let Some(error) = &result.error {
+        outln!(
+            "error          {error}: {}",
+            result.cause.clone().unwrap_or_default()
+        );
+    }
+    // An error a Catch routed to Finalize: the execution succeeds, the submission failed.
+    if let Some(caught) = result.output.as_ref().and_then(finalize::caught_error) {
+        outln!("caught error   {}", clean(&caught));
+    }
+    outln!("EvalAI status  {status_on_evalai}");
+    if let Some(fake) = &stack.fake_evalai {
+        // Every request took from the shared budget first: EvalAI never had to throttle.
+        let log: Vec<_> = fake.requests().into_iter().filter(|r| !r.admin).collect();
+        let throttled = log.iter().filter(|r| r.status == 429).count();
+        outln!(
+            "EvalAI calls   {} requests through the shared budget, {throttled} throttled (429)",
+            log.len()
+        );
+    }
+    outln!("S3 events      {wake_messages} results files and markers seen by the wake function");
+    outln!("cancel sweep   woke the execution {sweep_wakes} times");
+    // Finalize deletes the Jobs in the foreground: when the execution ends, they are gone.
+    if let Some(at) = cancelled_at.lock().ok().and_then(|at| *at) {
+        let took = ended.saturating_duration_since(at).as_secs_f64();
+        outln!(
+            "cancel to end  {took:.1}s from the participant's cancel to the Jobs gone (time scale {})",
+            args.time_scale
+        );
+    }
+    // What the participant reads on a failure: the reason and the end of their agent's output.
+    if let Some(stderr) = on_fake
+        .as_ref()
+        .and_then(|s| s.files.stderr.as_deref())
+        .filter(|e| !e.trim().is_empty())
+    {
+        outln!("EvalAI stderr");
+        for line in stderr.lines() {
+            outln!("  | {line}");
+        }
+        // And the head of the summary they read beside it (which routes count).
+        if let Some(stdout) = on_fake.as_ref().and_then(|s| s.files.stdout.as_deref()) {
+            outln!("EvalAI stdout");
+            for line in stdout.lines().take(3) {
+                outln!("  | {line}");
+            }
+        }
+    }
+    if let Some(row) = stack
+        .fake_evalai
+        .as_ref()
+        .and_then(|f| f.submission(submission))
+        .and_then(|s| s.leaderboard.first().cloned())
+    {
+        outln!("scores         {}", row.result);
+    }
+    let bucket = settings_bucket(&settings, &args.leaderboard);
+    if let Some(line) = merged_summary(&stack.sdk, &bucket, submission).await {
+        outln!("merged         {line}");
+    }
+    if let (true, Some(fake)) = (args.latency, &stack.fake_evalai) {
+        let log = std::fs::read_to_string(&record_log).unwrap_or_default();
+        let m = crate::latency::measure(&log, &fake.requests(), submission);
+        let secs = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}s"));
+        outln!(
+            "latency        record -> partial update: p50 {}, p99 {}, max {} ({} records, {} updates, {} only in the final update); last write -> final status {}",
+            secs(m.quantile(0.5)),
+            secs(m.quantile(0.99)),
+            secs(m.record_delays.last().copied()),
+            m.record_delays.len() + m.undelivered,
+            m.updates,
+            m.undelivered,
+            secs(m.final_delay)
+        );
+    }
+    outln!("time per stage");
+    for (stage, seconds) in stage_times(&result.history) {
+        outln!("  {stage:<12} {seconds:>7.1}s");
+    }
+    outln!(
+        "results        s3://{bucket}/{submission}/ on moto {}",
+        stack.moto.endpoint()
+    );
+    outln!(
+        "pod logs       {}",
+        stack.workdir.path().join("pods").display()
+    );
+    if !args.keep {
+        outln!("               (the stack and these go away on exit: --keep to look at them)");
+    }
+    outln!("total          {:.1}s", started.elapsed().as_secs_f64());
+
+    let expected = args.scenario.expected();
+    let mut ok = acted.load(Ordering::SeqCst) && status_on_evalai == expected;
+    if let Some(fake) = &stack.fake_evalai {
+        let report = crate::queue_report::report(&fake.requests(), &arrivals, |id| {
+            fake.submission(id)
+                .map(|s| (s.status.clone(), s.files.stderr.clone()))
+        });
+        if many {
+            crate::queue_report::print(&report);
+            ok &= report.submissions.iter().all(|s| s.status == expected);
+        }
+        if let Some(path) = &args.report {
+            std::fs::write(path, serde_json::to_string_pretty(&report)?)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+    }
+    if args.keep {
+        outln!(
+            "\nthe stack stays up (kubeconfig {}); Ctrl-C to stop",
+            kubeconfig.display()
+        );
+        let _ = tokio::signal::ctrl_c().await;
+    }
+    if ok {
+        outln!(
+            "OK: the {:?} scenario ended {expected} as expected",
+            args.scenario
+        );
+        Ok(0)
+    } else {
+        outln!(
+            "UNEXPECTED: the {:?} scenario should end {expected}",
+            args.scenario
+        );
+        Ok(1)
+    }
+}
+
+/// Each team's number of submissions, checked against --submissions.
+fn team_sizes(args: &LocalRun) -> anyhow::Result<Vec<u32>> {
+    if args.teams.is_empty() {
+        return Ok(vec![args.submissions]);
+    }
+    let total: u32 = args.teams.iter().sum();
+    if total != args.submissions {
+        bail!(
+            "--teams {:?} sends {total} submissions, --submissions says {}",
+            args.teams,
+            args.submissions
+        );
+    }
+    if args.teams.len() > 20 {
+        bail!("--teams: at most 20 teams");
+    }
+    Ok(args.teams.clone())
+}
+
+/// `agent_results.json` in a line: its records and how many each route has (Leaderboard 1.0
+/// runs every route 5 times under one id).
+async fn merged_summary(
+    sdk: &aws_config::SdkConfig,
+    bucket: &str,
+    submission: u64,
+) -> Option<String> {
+    let object = lb_aws::s3_client(sdk)
+        .get_object()
+        .bucket(bucket)
+        .key(format!("{submission}/agent_results.json"))
+        .send()
+        .await
+        .ok()?;
+    let bytes = object.body.collect().await.ok()?.into_bytes();
+    let merged: Value = serde_json::from_slice(&bytes).ok()?;
+    let records = merged["_checkpoint"]["records"].as_array()?;
+    let mut per_route: BTreeMap<&str, usize> = BTreeMap::new();
+    for record in records {
+        *per_route
+            .entry(record["route_id"].as_str().unwrap_or_default())
+            .or_default() += 1;
+    }
+    let counts: std::collections::BTreeSet<usize> = per_route.values().copied().collect();
+    let each = match counts.len() {
+        1 => format!("{} per route", counts.first().copied().unwrap_or_default()),
+        _ => format!("{counts:?} per route"),
+    };
+    Some(format!(
+        "{} records over {} routes, {each}",
+        records.len(),
+        per_route.len()
+    ))
+}
+
+fn settings_bucket(settings: &lb_domain::settings::Settings, leaderboard: &str) -> String {
+    settings
+        .leaderboards
+        .get(leaderboard)
+        .map(|l| l.bucket.clone())
+        .unwrap_or_default()
+}
+
+/// A handler's result as Lambda reports it to Step Functions.
+fn lambda(result: Result<Value, FnError>) -> Result<Value, TaskError> {
+    result.map_err(|e| TaskError::lambda(e.name(), e.chain()))
+}
+
+/// The scenario's intervention at monitor round `n`; `false` when it could not be done.
+fn act(scenario: Scenario, n: u64) -> bool {
+    if scenario != Scenario::Crash {
+        return true;
+    }
+    // NB: match CARLA itself (`./CarlaUE4.sh ...`), not the sidecar that wraps it.
+    let killed = std::process::Command::new("pkill")
+        .args([
+            "-KILL",
+            "-f",
+            r"^\./CarlaUE4\.sh .*-carla-rpc-port=2000( |$)",
+        ])
+        .status()
+        .is_ok_and(|s| s.success());
+    outln!("           scenario: round {n}: CARLA on port 2000 killed: {killed}");
+    killed
+}
+
+/// The participant cancels on the fake EvalAI (its admin endpoint, as the participant's
+/// button would), without holding up the executor's event callback.
+fn cancel_on(fake: Option<&str>, submission: u64) {
+    if let Some(url) = fake {
+        let url = format!("{url}/_admin/submissions/{submission}/cancel");
+        std::thread::spawn(move || {
+            let status = std::process::Command::new("curl")
+                .args(["-s", "-o", "/dev/null", "-X", "POST", &url])
+                .status();
+            outln!("           scenario: the participant cancels ({status:?})");
+        });
+    }
+}
+
+/// Seconds spent in each state, summed over its visits.
+fn stage_times(history: &[HistoryEvent]) -> Vec<(String, f64)> {
+    let mut out: Vec<(String, f64)> = Vec::new();
+    let mut entered: Option<(String, f64)> = None;
+    for event in history {
+        if event.event_type.is_state_entered() {
+            entered = event.state_name().map(|n| (n.to_string(), seconds(event)));
+        } else if event.event_type.is_state_exited() {
+            if let Some((name, at)) = entered.take() {
+                let seconds = seconds(event) - at;
+                match out.iter_mut().find(|(n, _)| *n == name) {
+                    Some((_, total)) => *total += seconds,
+                    None => out.push((name, seconds)),
+                }
+            }
+        }
+    }
+    out
+}
+
+fn seconds(event: &HistoryEvent) -> f64 {
+    event.timestamp.unix_timestamp_nanos() as f64 / 1e9
+}
+
+/// Puts EvalAI's message on a moto SQS queue and takes it off as the EventBridge Pipe does:
+/// the deployed input template applied to the record, handed over as a one-element batch.
+async fn sqs_round_trip(
+    stack: &Stack,
+    challenge: u64,
+    phase: u64,
+    submission: u64,
+    image: &str,
+) -> anyhow::Result<Value> {
+    let sqs = aws_sdk_sqs::Client::new(&stack.sdk);
+    // The queue `infra/app.yaml` declares, which the stack provisioned.
+    let queue = sqs
+        .get_queue_url()
+        .queue_name(local_stack::stack::submissions_queue())
+        .send()
+        .await?;
+    let url = queue.queue_url().context("no queue url")?.to_string();
+    // As EvalAI publishes a new submission: string challenge and phase ids, int submission id.
+    let body = json!({
+        "challenge_pk": challenge.to_string(),
+        "phase_pk": phase.to_string(),
+        "submission_pk": submission,
+        "is_static_dataset_code_upload_submission": false,
+        "submitted_image_uri": image,
+    });
+    sqs.send_message()
+        .queue_url(&url)
+        .message_body(body.to_string())
+        .send()
+        .await?;
+    local_stack::pipe::poll(&sqs, &url, 1, 5)
+        .await?
+        .context("the message did not arrive")
+}

@@ -1,0 +1,426 @@
+//! `lbctl local run` as a maintainer runs it (the shipped `lbctl` handing over to
+//! `lbctl-local`): each scenario ends as it should, with exit 0.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::{Mutex, OnceLock};
+use std::time::Instant;
+
+/// Local Jobs share the host's network (CARLA ports 2000+): one local run at a time.
+static ONE_RUN_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    ONE_RUN_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// `lbctl`, built beside `lbctl-local` (and the workloads) as `make local` builds them.
+fn lbctl() -> PathBuf {
+    static BUILT: OnceLock<PathBuf> = OnceLock::new();
+    BUILT
+        .get_or_init(|| {
+            local_stack::workloads::Binaries::build().expect("lbctl and the workloads build");
+            Path::new(env!("CARGO_BIN_EXE_lbctl-local")).with_file_name("lbctl")
+        })
+        .clone()
+}
+
+/// `lbctl local run <args>` with `env`, which must succeed: its stdout.
+fn local_run(args: &[&str], env: &[(&str, &str)]) -> String {
+    let out = Command::new(lbctl())
+        .args(["local", "run"])
+        .args(args)
+        .envs(env.iter().copied())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{args:?}: {stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn every_scenario_ends_as_expected() {
+    let _one = one_at_a_time();
+    // lbctl finds the sidecar and the fakes next to itself.
+    // One at a time: local Jobs share the host's CARLA ports.
+    for (scenario, expected) in [
+        ("happy", "FINISHED"),
+        ("crash", "FINISHED"),
+        ("hang", "FINISHED"),
+        ("cancel", "CANCELLED"),
+        ("unpullable", "FAILED"),
+        ("crash-loop", "FAILED"),
+        ("no-node", "FAILED"),
+    ] {
+        let started = Instant::now();
+        let stdout = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
+        assert!(
+            stdout.contains(&format!("EvalAI status  {}", expected.to_lowercase())),
+            "{scenario}: {stdout}"
+        );
+        assert!(stdout.contains("OK: the"), "{scenario}: {stdout}");
+        // A failure tells the participant why, and shows their agent's own last words.
+        match scenario {
+            "unpullable" => assert!(
+                stdout.contains("EvalAI stderr") && stdout.contains("never-pushed"),
+                "{stdout}"
+            ),
+            "crash-loop" => {
+                assert!(stdout.contains("EvalAI stderr"), "{stdout}");
+                assert!(
+                    stdout.contains("The last lines of agent 1's output:"),
+                    "{stdout}"
+                );
+                assert!(
+                    stdout.contains("Traceback (most recent call last)"),
+                    "{stdout}"
+                );
+                // Pair 1 crash-loops in a Job of its own: its retries run out, never its
+                // neighbours'. Their routes are complete, and both files say which count.
+                let note = "routes 0-4 (pair 1) were not evaluated; routes 5-9, 10-14, 15-19 (pairs 2, 3, 4) are complete";
+                let stderr = stdout.split("EvalAI stderr").nth(1).unwrap_or_default();
+                let (stderr, participant_stdout) =
+                    stderr.split_once("EvalAI stdout").unwrap_or_default();
+                assert!(stderr.contains(note), "{stdout}");
+                assert!(participant_stdout.contains(note), "{stdout}");
+                // Pairs 2-4's 15 routes, and whatever pair 1 got through before each crash.
+                let merged: u32 = stdout
+                    .split("merged         ")
+                    .nth(1)
+                    .and_then(|l| l.split(' ').next())
+                    .and_then(|n| n.parse().ok())
+                    .unwrap_or_default();
+                assert!((15..20).contains(&merged), "{stdout}");
+                assert!(stdout.contains("BackoffLimitExceeded"), "{stdout}");
+            }
+            "no-node" => {
+                // The autoscaler's word, with what to fix, before any time was used.
+                let stderr = stdout.split("EvalAI stderr").nth(1).unwrap_or_default();
+                assert!(
+                    stderr.contains("offers the instance type `g5.12xlarge`")
+                        && stderr.contains("please contact the organizers"),
+                    "{stdout}"
+                );
+            }
+            _ => assert!(!stdout.contains("EvalAI stderr"), "{scenario}: {stdout}"),
+        }
+        assert!(
+            started.elapsed().as_secs() < 60,
+            "{scenario} took {:?}",
+            started.elapsed()
+        );
+    }
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
+    let _one = one_at_a_time();
+    let stdout = local_run(
+        &[
+            "--leaderboard",
+            "1.0",
+            "--routes",
+            "8",
+            "--workers",
+            "2",
+            "--route-seconds",
+            "0.05",
+            "--timeout",
+            "240",
+        ],
+        &[],
+    );
+    assert!(stdout.contains("EvalAI status  finished"), "{stdout}");
+    assert!(
+        stdout.contains("merged         40 records over 8 routes, 5 per route"),
+        "{stdout}"
+    );
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_30_minute_cluster_api_outage_mid_run_skips_rounds_and_the_run_ends_finished() {
+    let _one = one_at_a_time();
+    // 30 minutes at scale 0.01: 18 s of 500s from the first Monitor round, while the Jobs
+    // (5 s of routes) run on and finish.
+    let stdout = local_run(
+        &[
+            "--time-scale",
+            "0.01",
+            "--route-seconds",
+            "1",
+            "--kube-outage-minutes",
+            "30",
+            "--timeout",
+            "240",
+        ],
+        &[],
+    );
+    assert!(
+        stdout.contains("the cluster's API answers 500 for 30 minutes (scaled)"),
+        "{stdout}"
+    );
+    let skipped = stdout
+        .lines()
+        .filter(|l| l.contains("(cluster unreachable: verdict skipped)"))
+        .count();
+    assert!(skipped >= 10, "{skipped} rounds skipped: {stdout}");
+    assert!(stdout.contains("EvalAI status  finished"), "{stdout}");
+    assert!(
+        stdout.contains("merged         20 records over 20 routes"),
+        "{stdout}"
+    );
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_cancel_in_a_quiet_stretch_is_found_by_the_sweep_and_the_jobs_are_gone_within_two_minutes() {
+    let _one = one_at_a_time();
+    // Real time (scale 1), routes long enough that no results change for minutes, the cancel
+    // after the second round (whose partial update was the last): only the once-a-minute
+    // sweep can notice it (the Monitor reads EvalAI's status itself every 30 minutes, and at
+    // each partial update).
+    let stdout = local_run(
+        &[
+            "--scenario",
+            "cancel",
+            "--cancel-after-round",
+            "2",
+            "--time-scale",
+            "1",
+            "--route-seconds",
+            "300",
+            "--timeout",
+            "300",
+        ],
+        &[],
+    );
+    assert!(stdout.contains("EvalAI status  cancelled"), "{stdout}");
+    assert!(
+        stdout.contains("cancel sweep   woke the execution 1 times"),
+        "the sweep woke it: {stdout}"
+    );
+    let seconds: f64 = stdout
+        .lines()
+        .find_map(|l| l.strip_prefix("cancel to end  "))
+        .and_then(|l| l.split('s').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no cancel timing: {stdout}"));
+    assert!(
+        seconds <= 120.0,
+        "the Jobs outlived the cancel by {seconds} s"
+    );
+}
+
+/// The rehearsal's own executable, for what needs no build of the rest.
+fn lbctl_local(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_lbctl-local"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn bad_arguments_are_named() {
+    let out = lbctl_local(&["run", "--scenario", "nope"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--scenario"));
+    let out = lbctl_local(&["run", "--time-scale", "0"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--time-scale"));
+}
+
+#[test]
+fn the_run_documents_its_options_and_scenarios() {
+    let out = lbctl_local(&["run", "--help"]);
+    assert_eq!(out.status.code(), Some(0));
+    let text = String::from_utf8_lossy(&out.stdout);
+    for word in [
+        "--scenario",
+        "--workers",
+        "--keep",
+        "crash-loop",
+        "LB_EVALAI_TOKEN",
+        "Usage: lbctl local run",
+    ] {
+        assert!(text.contains(word), "`{word}` missing from\n{text}");
+    }
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard() {
+    let _one = one_at_a_time();
+    // A separately started EvalAI whose ids are nothing like the local settings': challenge 7,
+    // phase 4321 (a 2.0 phase), submission 55.
+    let mut fixture: serde_json::Value =
+        serde_json::from_str(fake_evalai::fixture::DEFAULT_FIXTURE_JSON).unwrap();
+    fixture["challenges"][0]["id"] = 7.into();
+    fixture["challenges"][0]["phases"][0]["id"] = 4321.into();
+    fixture["host_teams"][0]["challenges"] = serde_json::json!([7]);
+    for team in fixture["participant_teams"].as_array_mut().unwrap() {
+        team["challenges"] = serde_json::json!([7]);
+    }
+    fixture["submissions"] = serde_json::json!([{
+        "id": 55, "challenge_phase": 4321, "participant_team": 1, "created_by": 2,
+        "status": "submitted", "submitted_at": "2026-11-24T00:00:00Z",
+        "submitted_image_uri": "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local"
+    }]);
+    let fake = fake_evalai::FakeEvalAi::spawn(
+        fake_evalai::Fixture::from_json(&fixture.to_string()).unwrap(),
+    )
+    .unwrap();
+    let url = fake.url();
+    let stdout = local_run(
+        &[
+            "--leaderboard",
+            "2.0",
+            "--routes",
+            "4",
+            "--workers",
+            "2",
+            "--route-seconds",
+            "0.05",
+            "--timeout",
+            "240",
+            "--evalai-url",
+            &url,
+            "--challenge",
+            "7",
+            "--phase",
+            "4321",
+            "--submission",
+            "55",
+        ],
+        // The token from the environment, not the command line.
+        &[("LB_EVALAI_TOKEN", "host-token")],
+    );
+    let on_evalai = fake.submission(55).unwrap();
+    assert_eq!(on_evalai.status, "finished", "{stdout}");
+    assert_eq!(
+        on_evalai.leaderboard.len(),
+        1,
+        "the scores reached its leaderboard"
+    );
+}
+
+/// Issue 13's capacity run: 12 submissions of 2 pairs from 4 teams (one sends 6) on a local
+/// node of 4 GPUs, each team holding at most 2 evaluations, with the fake EvalAI's throttle
+/// on. Read from what the fake EvalAI was told (`--report`).
+#[test]
+#[ignore = "needs moto"]
+fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
+    let _one = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("report.json");
+    let stdout = local_run(
+        &[
+            "--submissions",
+            "12",
+            "--teams",
+            "6,2,2,2",
+            "--team-limit",
+            "2",
+            "--gpus",
+            "4",
+            "--workers",
+            "2",
+            "--routes",
+            "2",
+            "--timeout",
+            "500",
+            "--report",
+            report.to_str().unwrap(),
+        ],
+        &[],
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let subs = report["submissions"].as_array().unwrap();
+    assert_eq!(subs.len(), 12);
+    let seq = |s: &serde_json::Value, key: &str| s[key].as_u64();
+    for s in subs {
+        // Every one finished: waiting for capacity or for its turn failed none.
+        assert_eq!(s["status"], "finished", "{s}\n{stdout}");
+        // Queued (EvalAI's PATCH) before it ran.
+        let statuses: Vec<&str> = s["statuses"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        assert_eq!(statuses.first(), Some(&"queued"), "{s}");
+        let running = statuses.iter().position(|x| *x == "running").unwrap();
+        assert!(running > 0, "{s}");
+        // The places its participant was shown only ever went down (then the note went).
+        let places: Vec<u64> = s["places"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|v| v.as_u64())
+            .collect();
+        assert!(places.windows(2).all(|w| w[1] <= w[0]), "{s}");
+        assert!(seq(s, "admitted_seq") < seq(s, "running_seq"), "{s}");
+        assert!(seq(s, "running_seq") < seq(s, "final_seq"), "{s}");
+    }
+    // A team's evaluations in progress: admitted (its Jobs named on EvalAI) and not yet final.
+    let holding = |team: u64, at: u64| {
+        subs.iter()
+            .filter(|s| s["team"] == team)
+            .filter(|s| seq(s, "admitted_seq").unwrap() <= at && at < seq(s, "final_seq").unwrap())
+            .count()
+    };
+    for s in subs {
+        let team = s["team"].as_u64().unwrap();
+        let admitted = seq(s, "admitted_seq").unwrap();
+        // The cap held at every admission.
+        assert!(
+            holding(team, admitted) <= 2,
+            "team {team} over its cap: {report}"
+        );
+        // A team's own submissions take their turns in the order they arrived (EvalAI's
+        // `submitted_at`): one admitted later than a teammate that arrived after it would have
+        // jumped its team's queue. (Across teams, admissions race each other's Launches: the
+        // scheduler's order of creation decides who starts first, so the log shows no order.)
+        for later in subs
+            .iter()
+            .filter(|l| l["team"] == team && l["arrival"].as_u64() > s["arrival"].as_u64())
+        {
+            let (mine, theirs) = (admitted, seq(later, "admitted_seq").unwrap());
+            // Two admitted in one round of their team (both places free) may tell EvalAI in
+            // either order; one admitted after a teammate's end never precedes it.
+            let freed_between = subs.iter().any(|e| {
+                e["team"] == team
+                    && seq(e, "final_seq")
+                        .is_some_and(|f| theirs.min(mine) < f && f < theirs.max(mine))
+            });
+            assert!(
+                mine < theirs || !freed_between,
+                "team {team}: {} arrived before {} but took its turn after: {report}",
+                s["id"],
+                later["id"]
+            );
+        }
+    }
+    // Team 1 sent 6 at once: others went ahead of its later ones (the cap did hold it back).
+    let team_one_last = subs[5]["admitted_seq"].as_u64().unwrap();
+    assert!(
+        subs[6..]
+            .iter()
+            .any(|s| seq(s, "admitted_seq").unwrap() < team_one_last),
+        "{report}"
+    );
+    // One budget for everyone: never more than EvalAI allows, never throttled.
+    assert_eq!(report["throttled"], 0, "{report}");
+    assert!(
+        report["most_in_a_minute"].as_u64().unwrap() <= 60,
+        "{report}"
+    );
+}
