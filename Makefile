@@ -59,7 +59,7 @@ sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) zigbuild --release -p sidecar --bin lb-sidecar --target $(SIDECAR_TARGET).$(SIDECAR_GLIBC)
 	sidecar/check-glibc.sh $(SIDECAR_BIN) $(SIDECAR_GLIBC)
 
-# Issue 14's measure: local runs in real time (time scale 1), 40 routes of 5 s on 4 pairs.
+# Local runs in real time (time scale 1), 40 routes of 5 s on 4 pairs.
 LATENCY_RUN := local run --time-scale 1 --routes 40 --workers 4 --route-seconds 5 --latency --timeout 900
 bench-latency: venv kubectl ## Record -> partial update and last write -> final status, with and without S3's events (targets: p50 < 15 s, p99 < 60 s, final < 60 s)
 	$(CARGO) build --quiet -p cli -p local-cli -p sidecar -p fake-workloads --bins

@@ -1,6 +1,6 @@
 //! Typed configuration of each subcommand, read once from the environment and validated.
 //!
-//! The Job templates set the variables (see `notes/in-job-contract.md` and the README); a
+//! The Job templates set the variables (see `docs/reference/in-job.md` and the README); a
 //! missing or malformed one stops the subcommand at start with an error naming it, before
 //! anything is started or written.
 

@@ -4,6 +4,7 @@ use std::fs;
 use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 
+use lb_domain::protocol::derived;
 use lb_domain::results::{
     self, read_worker_files, EvalAiFiles, Expected, MergeOptions, MergeOutcome, ResultsError,
     ResultsFile, WorkerFile, WorkerInput, MAX_FILE_BYTES,
@@ -14,10 +15,10 @@ use crate::cli::MergeArgs;
 
 /// The files `merge` writes, relative to its output directory.
 pub const OUTPUTS: [&str; 4] = [
-    "agent_results.json",
-    "evalai/results.json",
-    "evalai/stdout.txt",
-    "evalai/metadata.json",
+    derived::MERGED,
+    derived::EVALAI_RESULTS,
+    derived::EVALAI_STDOUT,
+    derived::EVALAI_METADATA,
 ];
 
 /// Why `merge` failed.
@@ -198,7 +199,7 @@ fn write_outputs(
         .prefix(".lb-merge-")
         .tempdir_in(out)
         .map_err(write_err(out))?;
-    fs::create_dir(staging.path().join("evalai")).map_err(write_err(staging.path()))?;
+    fs::create_dir(staging.path().join(derived::EVALAI_DIR)).map_err(write_err(staging.path()))?;
 
     let evalai = EvalAiFiles::generate(Some(&outcome.merged), leaderboard);
     // metadata.json is a copy of the merged file: serialize once, write twice.

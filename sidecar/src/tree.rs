@@ -12,6 +12,7 @@ use std::os::unix::fs::{MetadataExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
+use lb_domain::protocol::STATUS_DIR;
 use nix::fcntl::OFlag;
 use sha2::{Digest, Sha256};
 
@@ -83,7 +84,11 @@ pub fn scan(root: &Path, dev: u64) -> io::Result<(Vec<Entry>, Skipped)> {
     let mut skipped = Skipped::default();
     walk(root, "", dev, 0, &mut entries, &mut skipped)?;
     entries.sort_by(|a, b| {
-        let status = |e: &Entry| e.rel.starts_with("containers-status/");
+        let status = |e: &Entry| {
+            e.rel
+                .strip_prefix(STATUS_DIR)
+                .is_some_and(|rest| rest.starts_with('/'))
+        };
         status(a).cmp(&status(b)).then_with(|| a.rel.cmp(&b.rel))
     });
     Ok((entries, skipped))

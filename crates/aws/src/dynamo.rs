@@ -1,6 +1,6 @@
 //! DynamoDB: the claim that makes a duplicate SQS delivery harmless, the submission record,
 //! and the qualifier table, in the layout the original system left operators
-//! (`shared/reference/original-system.md`), so they switch without a migration.
+//! (`docs/reference/original-system.md`), so they switch without a migration.
 //!
 //! Submissions table: partition key `team_id` (S), sort key `submission_id` (S); the original
 //! attributes are strings, `-` for a value not known yet, times as `2024-03-07 10:31:02 UTC`.

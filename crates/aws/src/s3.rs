@@ -1,4 +1,4 @@
-//! The S3 layout of a submission (`<bucket>/<submission_id>/...`, DESIGN "Storage layout")
+//! The S3 layout of a submission (`<bucket>/<submission_id>/...`, `docs/storage.md`)
 //! and the reads and writes the pipeline makes there.
 
 use aws_sdk_s3::primitives::ByteStream;
@@ -7,7 +7,7 @@ use aws_sdk_s3::Client;
 use crate::{AwsError, Result};
 
 // The marker folder and the cancel marker are the in-Job protocol's names.
-use lb_domain::protocol;
+use lb_domain::protocol::{self, derived};
 pub use lb_domain::protocol::{CANCEL_MARKER, STATUS_DIR};
 /// Biggest worker results file we read (the results engine refuses more anyway).
 pub const MAX_PARTIAL_BYTES: u64 = 64 << 20;
@@ -103,7 +103,7 @@ impl SubmissionStore {
     /// The workers' partial results files, by pair ID. Other names under `agent/` are ignored.
     pub async fn partials(&self) -> Result<Vec<PartialObject>> {
         let mut out: Vec<PartialObject> = self
-            .list("agent/")
+            .list(&format!("{}/", protocol::AGENT_DIR))
             .await?
             .into_iter()
             .filter_map(
@@ -113,7 +113,11 @@ impl SubmissionStore {
                      etag,
                      ..
                  }| {
-                    let pair_id = protocol::pair_of_results_name(relative.strip_prefix("agent/")?)?;
+                    let pair_id = protocol::pair_of_results_name(
+                        relative
+                            .strip_prefix(protocol::AGENT_DIR)?
+                            .strip_prefix('/')?,
+                    )?;
                     Some(PartialObject {
                         key: format!("{}{relative}", self.prefix),
                         pair_id,
@@ -240,27 +244,27 @@ impl SubmissionStore {
     pub async fn put_evalai_files(&self, files: &EvalAiObjects<'_>) -> Result<()> {
         if let Some(merged) = files.merged {
             self.put(
-                "agent_results.json",
+                derived::MERGED,
                 merged.as_bytes().to_vec(),
                 "application/json",
             )
             .await?;
         }
         self.put(
-            "evalai/results.json",
+            derived::EVALAI_RESULTS,
             files.results.as_bytes().to_vec(),
             "application/json",
         )
         .await?;
         self.put(
-            "evalai/stdout.txt",
+            derived::EVALAI_STDOUT,
             files.stdout.as_bytes().to_vec(),
             "text/plain; charset=utf-8",
         )
         .await?;
         if let Some(metadata) = files.metadata {
             self.put(
-                "evalai/metadata.json",
+                derived::EVALAI_METADATA,
                 metadata.as_bytes().to_vec(),
                 "application/json",
             )

@@ -153,7 +153,7 @@ fn ceil_div(a: u64, b: u64) -> u64 {
     a.div_ceil(b)
 }
 
-/// The route subsets of W workers over R routes, as DESIGN.md defines them.
+/// The route subsets of W workers over R routes: worker i gets `ceil(i*R/W)..ceil((i+1)*R/W)-1`.
 pub fn split_routes(routes: u32, workers: u32) -> Result<Vec<RouteSubset>, PlanError> {
     if routes == 0 {
         return Err(invalid("a track needs at least one route"));

@@ -22,6 +22,22 @@ pub const AGENT_DIR: &str = "agent";
 /// The logs directory's name in the logs tree and in S3.
 pub const LOGS_DIR: &str = "logs";
 
+/// The files the Monitor and Finalize derive from the workers' results, relative to the
+/// submission's S3 prefix (and to `lb-sidecar merge`'s output directory): the merged results
+/// file, then the three EvalAI files. Participant-side containers may not write them.
+pub mod derived {
+    /// The merged results file.
+    pub const MERGED: &str = "agent_results.json";
+    /// What EvalAI's `result` field was sent.
+    pub const EVALAI_RESULTS: &str = "evalai/results.json";
+    /// What EvalAI's `stdout` field was sent.
+    pub const EVALAI_STDOUT: &str = "evalai/stdout.txt";
+    /// What EvalAI's `metadata` field was sent (a copy of the merged file).
+    pub const EVALAI_METADATA: &str = "evalai/metadata.json";
+    /// The folder of the three EvalAI files.
+    pub const EVALAI_DIR: &str = "evalai";
+}
+
 /// Environment variables of the in-Job contract (set by the Job templates).
 pub mod env {
     /// Submission id (integer); every container.

@@ -1,6 +1,6 @@
 //! The submission as EvalAI describes it: the SQS message, statuses and who may start.
 //!
-//! The message is untrusted input (reference `evalai-host-api.md` §8): ids arrive as JSON
+//! The message is untrusted input (`docs/reference/evalai.md` §8): ids arrive as JSON
 //! numbers or as numeric strings depending on the path that published them, and
 //! `submitted_image_uri` can be absent. Everything is checked here, once, before anything
 //! is launched.

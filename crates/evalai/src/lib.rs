@@ -1,4 +1,4 @@
-//! EvalAI host API client (reference `evalai-host-api.md`): the only code that talks to EvalAI.
+//! EvalAI host API client (`docs/reference/evalai.md`): the only code that talks to EvalAI.
 //!
 //! The server protects nothing: a write lands on a cancelled or finished submission and
 //! silently undoes it. So every write here reads the submission first and never revives a

@@ -1,4 +1,6 @@
-//! The layout tells the architecture: what ships never depends on what only rehearses it.
+//! The layout tells the architecture: what ships never depends on what only rehearses it, and
+//! the docs stay true to the tree (every repository path they name exists, nothing points
+//! outside the repository: a clone alone is enough).
 //!
 //! `crates/`, `functions/`, `sidecar/` and `cli/` (`lbctl`) ship; `local/` (the embedded Step
 //! Functions executor, the local stack, the fake EvalAI, the local Kubernetes API, the fake
@@ -125,7 +127,7 @@ fn the_readme_layout_table_names_every_package_folder_and_only_folders_that_exis
     }
 }
 
-/// `functions/{a,b}` -> `functions/a`, `functions/b`.
+/// `functions/{intake,wake}` -> `functions/intake`, `functions/wake`.
 fn expand(path: &str) -> Vec<String> {
     match (path.find('{'), path.find('}')) {
         (Some(open), Some(close)) if open < close => path[open + 1..close]
@@ -134,4 +136,207 @@ fn expand(path: &str) -> Vec<String> {
             .collect(),
         _ => vec![path.to_owned()],
     }
+}
+
+/// This file, whose examples of what is not a path are not docs.
+const SELF: &str = "tests/e2e/tests/layout.rs";
+
+/// Folders whose files are not ours to check: build output, installs, recorded data.
+const SKIPPED: &[&str] = &["target", ".git", ".venv", ".venv-deploy", "tests/fixtures"];
+
+/// The top-level entries a repository path starts with.
+const TOP: &[&str] = &[
+    "crates/",
+    "functions/",
+    "local/",
+    "tests/",
+    "docs/",
+    "infra/",
+    "templates/",
+    "statemachine/",
+    "sidecar/",
+    "cli/",
+    ".ci/",
+];
+
+/// Every file under the repository with one of `extensions`, as (absolute, relative) paths.
+fn files(extensions: &[&str]) -> Vec<(PathBuf, String)> {
+    let root = root().canonicalize().unwrap();
+    let mut out = Vec::new();
+    let mut dirs = vec![root.clone()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            let rel = path
+                .strip_prefix(&root)
+                .unwrap()
+                .to_string_lossy()
+                .into_owned();
+            if SKIPPED.contains(&rel.as_str()) {
+                continue;
+            }
+            if rel == SELF {
+                continue;
+            }
+            if path.is_dir() {
+                dirs.push(path);
+            } else if extensions.iter().any(|e| rel.ends_with(&format!(".{e}"))) {
+                out.push((path, rel));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The text a reader of `rel` sees as documentation: a Markdown file whole, a Rust file's
+/// comments only.
+fn documentation(path: &Path, rel: &str) -> String {
+    let text = std::fs::read_to_string(path).unwrap();
+    if rel.ends_with(".md") {
+        return text;
+    }
+    text.lines()
+        .filter_map(|l| l.trim_start().strip_prefix("//"))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// The repository paths named inside backticks in `text`, each with where it may be: from the
+/// repository root or, as a package's README says `tests/x.rs`, from the file's package folder
+/// (`package`); `../x` from the file's own folder. Placeholders, globs and commands run inside
+/// a container (`./CarlaUE4.sh`) are not paths.
+fn named_paths(text: &str, folder: &Path, package: &Path) -> Vec<(String, Vec<PathBuf>)> {
+    let mut out = Vec::new();
+    for span in text.split('`').skip(1).step_by(2) {
+        for token in span.split_whitespace() {
+            let token = token.trim_end_matches([',', ';', ':', ')', '.']);
+            let token = token.split(['#', ':']).next().unwrap_or_default();
+            if token.contains(['<', '*', '$', '=', '|']) {
+                continue;
+            }
+            for path in expand(token) {
+                let places = if path.starts_with("../") {
+                    vec![folder.join(&path)]
+                } else if TOP.iter().any(|t| path.starts_with(t)) {
+                    vec![root().join(&path), package.join(&path)]
+                } else {
+                    continue;
+                };
+                out.push((path, places));
+            }
+        }
+    }
+    out
+}
+
+/// The folder of the package `path` belongs to (the nearest with a `Cargo.toml`), else the
+/// repository root.
+fn package_of(path: &Path) -> PathBuf {
+    path.ancestors()
+        .skip(1)
+        .find(|dir| dir.join("Cargo.toml").is_file())
+        .map_or_else(root, Path::to_owned)
+}
+
+#[test]
+fn every_repository_path_the_docs_name_exists() {
+    let mut missing = Vec::new();
+    let mut checked = 0;
+    for (path, rel) in files(&["md", "rs"]) {
+        let (folder, package) = (path.parent().unwrap(), package_of(&path));
+        for (named, places) in named_paths(&documentation(&path, &rel), folder, &package) {
+            checked += 1;
+            if !places.iter().any(|p| p.exists()) {
+                missing.push(format!("{rel} names `{named}`, which does not exist"));
+            }
+        }
+    }
+    assert!(
+        checked > 200,
+        "only {checked} paths found: is the scan broken?"
+    );
+    assert!(missing.is_empty(), "{}", missing.join("\n"));
+}
+
+#[test]
+fn nothing_points_outside_the_repository() {
+    // The one exception: the test that keeps the repository's copy of the shared results
+    // fixtures byte-identical to them when they lie beside the repository.
+    let allowed = "crates/domain/tests/fixtures.rs";
+    let outside = [
+        "../shared",
+        "shared/reference",
+        "shared/fixtures",
+        "DESIGN.md",
+    ];
+    let mut found = Vec::new();
+    for (path, rel) in files(&["md", "rs", "toml", "yaml", "json", "sh"]) {
+        if rel == allowed {
+            continue;
+        }
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            continue;
+        };
+        for (n, line) in text.lines().enumerate() {
+            if let Some(word) = outside.iter().find(|w| line.contains(**w)) {
+                found.push(format!("{rel}:{}: `{word}`", n + 1));
+            }
+        }
+    }
+    for (path, rel) in [
+        (root().join("Makefile"), "Makefile"),
+        (root().join(".ci/run"), ".ci/run"),
+    ] {
+        let text = std::fs::read_to_string(path).unwrap();
+        if text.contains("../shared") {
+            found.push(format!("{rel}: `../shared`"));
+        }
+    }
+    assert!(found.is_empty(), "{}", found.join("\n"));
+}
+
+#[test]
+fn the_readme_stays_a_newcomers_page() {
+    let readme = std::fs::read_to_string(root().join("README.md")).unwrap();
+    assert!(
+        readme.len() <= 8 * 1024,
+        "README.md is {} bytes",
+        readme.len()
+    );
+    for command in ["make local", "make test"] {
+        assert!(readme.contains(command), "README.md lacks `{command}`");
+    }
+}
+
+#[test]
+fn a_placeholder_or_a_glob_is_not_a_path_and_a_relative_path_resolves_from_its_file() {
+    let (folder, package) = (root().join("infra"), root().join("sidecar"));
+    let named: Vec<String> = named_paths(
+        "see `../cli/README.md`, `functions/{intake,wake}`, `functions/*/tests`, \
+         `s3://<bucket>/x`, `app.yaml`, `./CarlaUE4.sh`, `tests/init.rs` and \
+         `docs/storage.md#tables`",
+        &folder,
+        &package,
+    )
+    .into_iter()
+    .map(|(named, places)| {
+        assert!(places.iter().any(|p| p.exists()), "{named}");
+        named
+    })
+    .collect();
+    assert_eq!(
+        named,
+        [
+            "../cli/README.md",
+            "functions/intake",
+            "functions/wake",
+            "tests/init.rs",
+            "docs/storage.md"
+        ]
+    );
+    assert_eq!(
+        package_of(&root().join("sidecar/src/main.rs")),
+        root().join("sidecar")
+    );
 }

@@ -1,8 +1,8 @@
 //! The results engine: worker files in, the merged file and the three EvalAI files out.
 //!
 //! Parity with the official Leaderboard tooling is the contract here (see
-//! `shared/reference/leaderboard-results.md`); the fixtures under
-//! `shared/fixtures/leaderboard-results/` are the tests of record.
+//! `docs/reference/results.md`); the fixtures under `tests/fixtures/leaderboard-results/` are
+//! the tests of record.
 
 mod evalai;
 mod merge;
