@@ -51,9 +51,9 @@ pub enum CliError {
     EvalAi {
         /// The submission.
         submission: u64,
-        /// The pipeline's error.
+        /// The pipeline's error (boxed: it carries every adapter's error whole).
         #[source]
-        source: lb_pipeline::FnError,
+        source: Box<lb_pipeline::FnError>,
     },
     /// Nothing is known about the submission.
     #[error("{0}")]

@@ -312,11 +312,11 @@ pub async fn resume(args: Resume) -> Result<u8> {
             .await
             .map_err(|source| CliError::EvalAi {
                 submission: id,
-                source,
+                source: Box::new(source),
             })?;
         let on_evalai = evalai.submission(id).await.map_err(|e| CliError::EvalAi {
             submission: id,
-            source: e.into(),
+            source: Box::new(e.into()),
         })?;
         if on_evalai.status != SubmissionStatus::Resuming {
             return Err(CliError::Refused(evalai_advice(id, on_evalai.status)));

@@ -100,35 +100,25 @@ pub fn error_object(error: &FnError) -> Value {
     json!({ "errorType": error.name(), "errorMessage": error.chain() })
 }
 
+/// One invocation on the dependencies the function's cold start built, as Lambda makes it.
+async fn invoke<F: lb_pipeline::serve::Function>(
+    deps: lb_pipeline::Result<F>,
+    event: Value,
+) -> lb_pipeline::Result<Value> {
+    lb_pipeline::serve::call(&deps?, event).await
+}
+
 /// Runs the handler; prints its result (exit 0) or its error object (exit 1) on stdout.
 pub async fn run(args: Invoke) -> Result<u8> {
     let event = read_event(args.event.as_deref())?;
     let name = args.function.as_str();
     let result = match args.function {
-        Function::Intake => match intake::Deps::from_env().await {
-            Ok(deps) => intake::handle_json(event, &deps).await,
-            Err(e) => Err(e),
-        },
-        Function::Launch => match launch::Deps::from_env().await {
-            Ok(deps) => launch::handle_json(event, &deps).await,
-            Err(e) => Err(e),
-        },
-        Function::Monitor => match monitor::Deps::from_env().await {
-            Ok(deps) => monitor::handle_json(event, &deps).await,
-            Err(e) => Err(e),
-        },
-        Function::Finalize => match finalize::Deps::from_env().await {
-            Ok(deps) => finalize::handle_json(event, &deps).await,
-            Err(e) => Err(e),
-        },
-        Function::Wake => match wake::Deps::from_env().await {
-            Ok(deps) => wake::handle_json(event, &deps).await,
-            Err(e) => Err(e),
-        },
-        Function::Sweep => match sweep::Deps::from_env().await {
-            Ok(deps) => sweep::handle_json(&deps).await,
-            Err(e) => Err(e),
-        },
+        Function::Intake => invoke(intake::Deps::from_env().await, event).await,
+        Function::Launch => invoke(launch::Deps::from_env().await, event).await,
+        Function::Monitor => invoke(monitor::Deps::from_env().await, event).await,
+        Function::Finalize => invoke(finalize::Deps::from_env().await, event).await,
+        Function::Wake => invoke(wake::Deps::from_env().await, event).await,
+        Function::Sweep => invoke(sweep::Deps::from_env().await, event).await,
     };
     match result {
         Ok(output) => {
@@ -153,11 +143,12 @@ mod tests {
 
     #[test]
     fn the_error_object_has_the_name_the_state_machine_matches() {
-        let error = FnError::Input("intake input: missing field `execution`".into());
+        let error =
+            FnError::decode::<lb_pipeline::payload::IntakeInput>("intake", json!({})).unwrap_err();
         assert_eq!(
             error_object(&error),
             json!({"errorType": "InvalidInput",
-                   "errorMessage": "invalid input: intake input: missing field `execution`"})
+                   "errorMessage": "invalid intake input: missing field `message`"})
         );
     }
 

@@ -220,7 +220,7 @@ async fn post(
         .await
         .map_err(|source| CliError::EvalAi {
             submission: id,
-            source,
+            source: Box::new(source),
         })?;
     let update = FinalUpdate {
         status,
@@ -245,7 +245,7 @@ async fn post(
         .await
         .map_err(|e| CliError::EvalAi {
             submission: id,
-            source: e.into(),
+            source: Box::new(e.into()),
         })?;
     match outcome {
         WriteOutcome::Written => {

@@ -62,23 +62,16 @@ pub enum AwsError {
     },
 }
 
+lb_domain::error_names!(AwsError {
+    // Throttling, timeouts, 5xx: worth trying again later.
+    Transient => "AwsTransient" [transient];
+    Service => "AwsServiceError";
+    InvalidSecret => "InvalidSecret";
+    TooLarge => "ObjectTooLarge";
+    Malformed => "MalformedRecord";
+});
+
 impl AwsError {
-    /// The stable PascalCase name raised to the state machine.
-    pub fn name(&self) -> &'static str {
-        match self {
-            AwsError::Transient { .. } => "AwsTransient",
-            AwsError::Service { .. } => "AwsServiceError",
-            AwsError::InvalidSecret { .. } => "InvalidSecret",
-            AwsError::TooLarge { .. } => "ObjectTooLarge",
-            AwsError::Malformed { .. } => "MalformedRecord",
-        }
-    }
-
-    /// Throttling, timeouts, 5xx: worth trying again later.
-    pub fn is_transient(&self) -> bool {
-        matches!(self, AwsError::Transient { .. })
-    }
-
     /// Classifies an SDK error: throttling and transport problems are transient.
     pub(crate) fn sdk<E, R>(
         service: &'static str,

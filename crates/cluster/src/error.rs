@@ -139,37 +139,23 @@ pub enum ClusterError {
     },
 }
 
+lb_domain::error_names!(ClusterError {
+    Config => "KubeConfigInvalid";
+    InvalidSubmissionId => "InvalidSubmissionId";
+    InvalidJobSpec => "InvalidJobSpec";
+    JobNameTaken => "JobNameTaken";
+    JobTerminating => "JobTerminating" [transient];
+    Invalid => "KubeInvalid";
+    Forbidden => "KubeForbidden";
+    Unauthorized => "KubeUnauthorized";
+    Transient => "KubeTransient" [transient];
+    Unavailable => "KubeUnavailable" [transient];
+    Timeout => "KubeTimeout" [transient];
+    Request => "KubeRequestFailed";
+    Malformed => "KubeResponseMalformed";
+});
+
 impl ClusterError {
-    /// The stable PascalCase name raised to the state machine.
-    pub fn name(&self) -> &'static str {
-        match self {
-            ClusterError::Config { .. } => "KubeConfigInvalid",
-            ClusterError::InvalidSubmissionId { .. } => "InvalidSubmissionId",
-            ClusterError::InvalidJobSpec { .. } => "InvalidJobSpec",
-            ClusterError::JobNameTaken { .. } => "JobNameTaken",
-            ClusterError::JobTerminating { .. } => "JobTerminating",
-            ClusterError::Invalid { .. } => "KubeInvalid",
-            ClusterError::Forbidden { .. } => "KubeForbidden",
-            ClusterError::Unauthorized { .. } => "KubeUnauthorized",
-            ClusterError::Transient { .. } => "KubeTransient",
-            ClusterError::Unavailable { .. } => "KubeUnavailable",
-            ClusterError::Timeout { .. } => "KubeTimeout",
-            ClusterError::Request { .. } => "KubeRequestFailed",
-            ClusterError::Malformed { .. } => "KubeResponseMalformed",
-        }
-    }
-
-    /// Whether the same call may succeed later (the state machine retries these with backoff).
-    pub fn is_transient(&self) -> bool {
-        matches!(
-            self,
-            ClusterError::Transient { .. }
-                | ClusterError::Unavailable { .. }
-                | ClusterError::Timeout { .. }
-                | ClusterError::JobTerminating { .. }
-        )
-    }
-
     /// Classifies a kube error of `operation`. 404 and 409 are handled by the callers that
     /// expect them; here they are plain request failures.
     pub(crate) fn from_kube(operation: &'static str, what: &str, err: kube::Error) -> Self {

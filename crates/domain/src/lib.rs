@@ -1,5 +1,6 @@
 //! Pure domain core of the CARLA Leaderboard evaluation backend: no AWS, Kubernetes or Lambda.
 
+pub mod errors;
 pub mod logtail;
 pub mod plan;
 pub mod protocol;

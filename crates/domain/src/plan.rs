@@ -66,14 +66,9 @@ pub enum PlanError {
     },
 }
 
-impl PlanError {
-    /// The stable PascalCase name.
-    pub fn name(&self) -> &'static str {
-        match self {
-            PlanError::InvalidPlan { .. } => "InvalidPlan",
-        }
-    }
-}
+crate::error_names!(PlanError {
+    InvalidPlan => "InvalidPlan";
+});
 
 /// One simulator-agent pair.
 #[derive(Debug, Clone, PartialEq, Eq)]

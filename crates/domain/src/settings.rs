@@ -271,15 +271,10 @@ pub enum SettingsError {
     UnknownPhase(u64),
 }
 
-impl SettingsError {
-    /// The stable name the state machine matches.
-    pub fn name(&self) -> &'static str {
-        match self {
-            SettingsError::Invalid { .. } => "InvalidSettings",
-            SettingsError::UnknownPhase(_) => "UnknownPhase",
-        }
-    }
-}
+crate::error_names!(SettingsError {
+    Invalid => "InvalidSettings";
+    UnknownPhase => "UnknownPhase";
+});
 
 /// What a phase resolves to.
 #[derive(Debug, Clone, Copy, PartialEq)]

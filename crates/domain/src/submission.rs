@@ -46,15 +46,10 @@ pub enum MessageError {
     Batch(usize),
 }
 
-impl MessageError {
-    /// The stable name the state machine matches.
-    pub fn name(&self) -> &'static str {
-        match self {
-            MessageError::Batch(_) => "InvalidBatch",
-            _ => "InvalidMessage",
-        }
-    }
-}
+crate::error_names!(MessageError {
+    NotAnObject | Field => "InvalidMessage";
+    Batch => "InvalidBatch";
+});
 
 impl SubmissionMessage {
     /// Parses the message body (a JSON text).

@@ -114,34 +114,18 @@ pub enum EvalAiError {
     },
 }
 
-impl EvalAiError {
-    /// The stable PascalCase name raised to the state machine.
-    pub fn name(&self) -> &'static str {
-        match self {
-            EvalAiError::Config(_) => "EvalAiConfig",
-            EvalAiError::Unauthorized { .. } => "EvalAiUnauthorized",
-            EvalAiError::NotFound(_) => "SubmissionNotFound",
-            EvalAiError::Rejected { .. } => "EvalAiRejected",
-            // Our own throttle: retried exactly like EvalAI's.
-            EvalAiError::Throttled(_) | EvalAiError::OverBudget => "EvalAiThrottled",
-            EvalAiError::Unavailable { .. } => "EvalAiUnavailable",
-            EvalAiError::InvalidResponse(_) => "EvalAiInvalidResponse",
-            EvalAiError::InvalidResult(_) => "InvalidResult",
-            EvalAiError::NotConfirmed { .. } => "EvalAiNotConfirmed",
-        }
-    }
-
-    /// Worth another try later (the state machine retries these with backoff).
-    pub fn is_transient(&self) -> bool {
-        matches!(
-            self,
-            EvalAiError::Throttled(_)
-                | EvalAiError::OverBudget
-                | EvalAiError::Unavailable { .. }
-                | EvalAiError::NotConfirmed { .. }
-        )
-    }
-}
+lb_domain::error_names!(EvalAiError {
+    Config => "EvalAiConfig";
+    Unauthorized => "EvalAiUnauthorized";
+    NotFound => "SubmissionNotFound";
+    Rejected => "EvalAiRejected";
+    // Our own throttle is retried exactly like EvalAI's.
+    Throttled | OverBudget => "EvalAiThrottled" [transient];
+    Unavailable => "EvalAiUnavailable" [transient];
+    InvalidResponse => "EvalAiInvalidResponse";
+    InvalidResult => "InvalidResult";
+    NotConfirmed => "EvalAiNotConfirmed" [transient];
+});
 
 /// What a guarded write did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -55,15 +55,10 @@ pub enum ContextError {
     },
 }
 
-impl ContextError {
-    /// The stable PascalCase name.
-    pub fn name(&self) -> &'static str {
-        match self {
-            ContextError::InvalidImage { .. } => "InvalidImage",
-            ContextError::InvalidSetting { .. } => "InvalidJobSetting",
-        }
-    }
-}
+lb_domain::error_names!(ContextError {
+    InvalidImage => "InvalidImage";
+    InvalidSetting => "InvalidJobSetting";
+});
 
 fn shown(value: &str) -> String {
     let escaped: String = value.escape_debug().collect();

@@ -56,17 +56,13 @@ pub enum RenderError {
     },
 }
 
-impl RenderError {
-    /// The stable PascalCase name.
-    pub fn name(&self) -> &'static str {
-        match self {
-            RenderError::Template(_) => "InvalidJobTemplate",
-            RenderError::Context(e) => e.name(),
-            RenderError::Evaluation { .. } => "JobTemplateEvaluationFailed",
-            RenderError::InvalidSpec { .. } => "InvalidJobSpec",
-        }
-    }
-}
+lb_domain::error_names!(RenderError {
+    Template => "InvalidJobTemplate";
+    Evaluation => "JobTemplateEvaluationFailed";
+    InvalidSpec => "InvalidJobSpec";
+} wraps {
+    Context => ContextError;
+});
 
 /// Renders one Job of `leaderboard` from its context, with the built-in template.
 pub fn render(leaderboard: Leaderboard, context: &JobContext) -> Result<Job, RenderError> {

@@ -146,11 +146,7 @@ async fn bounded<T>(
         Ok(done) => done,
         Err(_) => {
             tracing::warn!("the invocation's time ran out; the state machine retries it");
-            Err(FnError::Stage {
-                name: "DeadlineExceeded",
-                message: "the invocation's time ran out before its calls ended".into(),
-                transient: true,
-            })
+            Err(FnError::DeadlineExceeded)
         }
     }
 }
@@ -188,7 +184,7 @@ mod tests {
             .unwrap_err();
         assert_eq!(err.name(), "DeadlineExceeded");
         assert!(err.is_transient());
-        assert!(crate::error::TRANSIENT_NAMES.contains(&err.name()));
+        assert!(FnError::transient_names().contains(&err.name()));
         assert!(now.elapsed() < Duration::from_secs(5));
         let quick = bounded(now, now + Duration::from_secs(5), async {
             Ok::<_, FnError>(7)

@@ -47,9 +47,7 @@ impl Clusters {
     /// A client for `deployment`'s cluster, in its namespace.
     pub async fn connect(&self, deployment: &LeaderboardSettings) -> Result<Cluster, FnError> {
         let cluster = match self {
-            Clusters::Kubeconfig(path) => Cluster::from_kubeconfig(path, None)
-                .await
-                .map_err(cluster_error)?,
+            Clusters::Kubeconfig(path) => Cluster::from_kubeconfig(path, None).await?,
             Clusters::Eks { sdk, cache } => {
                 let mut cache = cache.lock().await;
                 if !cache.contains_key(&deployment.cluster) {
@@ -64,18 +62,9 @@ impl Clusters {
                 }
                 let (access, tokens) = &cache[&deployment.cluster];
                 let token = tokens.token().await?;
-                Cluster::for_eks(&access.endpoint, &access.ca_pem, &token).map_err(cluster_error)?
+                Cluster::for_eks(&access.endpoint, &access.ca_pem, &token)?
             }
         };
         Ok(cluster.with_namespace(&deployment.namespace))
-    }
-}
-
-/// The cluster adapter's error under its own stable name.
-pub fn cluster_error(e: lb_cluster::ClusterError) -> FnError {
-    FnError::Stage {
-        name: e.name(),
-        transient: e.is_transient(),
-        message: e.to_string(),
     }
 }

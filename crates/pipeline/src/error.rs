@@ -2,14 +2,19 @@
 //! matches, and becomes a Lambda `Diagnostic` with that name as `errorType`.
 
 use lb_aws::AwsError;
+use lb_cluster::ClusterError;
+use lb_domain::plan::PlanError;
+use lb_domain::results::ResultsError;
 use lb_domain::settings::SettingsError;
 use lb_domain::submission::MessageError;
 use lb_evalai::EvalAiError;
+use lb_jobs::{ContextError, RenderError};
 
 /// Result alias of the functions.
 pub type Result<T, E = FnError> = std::result::Result<T, E>;
 
-/// Why a function failed.
+/// Why a function failed. Each adapter's error travels whole (its source kept) and under its
+/// own stable name; the few failures that belong to a stage are variants here.
 #[derive(Debug, thiserror::Error)]
 pub enum FnError {
     /// The submission message is malformed.
@@ -24,48 +29,85 @@ pub enum FnError {
     /// An AWS call failed.
     #[error(transparent)]
     Aws(#[from] AwsError),
+    /// The Job cluster refused or failed.
+    #[error(transparent)]
+    Cluster(#[from] ClusterError),
+    /// The workers' results cannot be used.
+    #[error(transparent)]
+    Results(#[from] ResultsError),
+    /// The routes cannot be planned over the workers.
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    /// The leaderboard's settings cannot fill the Job template.
+    #[error(transparent)]
+    JobSettings(#[from] ContextError),
+    /// The Job template cannot be rendered.
+    #[error(transparent)]
+    Render(#[from] RenderError),
     /// The function's input is not what the state machine sends.
-    #[error("invalid input: {0}")]
-    Input(String),
+    #[error("invalid {what} input")]
+    Input {
+        /// Which function's input.
+        what: &'static str,
+        /// Where and why it does not decode.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A run state carried from an earlier stage holds a value no stage writes.
+    #[error("invalid run state: {0}")]
+    RunState(String),
+    /// The function's output cannot be serialised (a defect: every output is plain data).
+    #[error("the {what} output cannot be serialized")]
+    Output {
+        /// Which function's output.
+        what: &'static str,
+        /// serde_json's reason.
+        #[source]
+        source: serde_json::Error,
+    },
     /// The function's environment is incomplete.
     #[error("invalid function configuration: {0}")]
     Config(String),
-    /// A stage-specific failure with its own stable name.
-    #[error("{message}")]
-    Stage {
-        /// Stable PascalCase name.
-        name: &'static str,
-        /// Readable cause.
-        message: String,
-        /// Worth retrying.
-        transient: bool,
+    /// The invocation's time ran out before its calls ended (they were cut short on purpose,
+    /// before Lambda's own timeout).
+    #[error("the invocation's time ran out before its calls ended")]
+    DeadlineExceeded,
+    /// EvalAI has the submission in another phase than the message says.
+    #[error("the message says phase `{message}` but EvalAI has submission `{submission}` in phase `{evalai}`")]
+    PhaseMismatch {
+        /// The message's phase.
+        message: u64,
+        /// The submission.
+        submission: u64,
+        /// EvalAI's phase.
+        evalai: u64,
     },
+    /// A sweep did what it could; these challenges or wake-ups failed (the next sweep retries).
+    #[error("{}", .0.join("; "))]
+    SweepIncomplete(Vec<String>),
 }
 
+lb_domain::error_names!(FnError {
+    Input | RunState => "InvalidInput";
+    Output => "OutputNotSerializable";
+    Config => "InvalidConfiguration";
+    DeadlineExceeded => "DeadlineExceeded" [transient];
+    PhaseMismatch => "PhaseMismatch";
+    // The next minute's sweep tries again: no state machine retries it.
+    SweepIncomplete => "SweepIncomplete";
+} wraps {
+    Message => MessageError;
+    Settings => SettingsError;
+    EvalAi => EvalAiError;
+    Aws => AwsError;
+    Cluster => ClusterError;
+    Results => ResultsError;
+    Plan => PlanError;
+    JobSettings => ContextError;
+    Render => RenderError;
+});
+
 impl FnError {
-    /// The stable name raised to the state machine.
-    pub fn name(&self) -> &'static str {
-        match self {
-            FnError::Message(e) => e.name(),
-            FnError::Settings(e) => e.name(),
-            FnError::EvalAi(e) => e.name(),
-            FnError::Aws(e) => e.name(),
-            FnError::Input(_) => "InvalidInput",
-            FnError::Config(_) => "InvalidConfiguration",
-            FnError::Stage { name, .. } => name,
-        }
-    }
-
-    /// Transient errors are retried by the state machine (and listed in its Retry).
-    pub fn is_transient(&self) -> bool {
-        match self {
-            FnError::EvalAi(e) => e.is_transient(),
-            FnError::Aws(e) => e.is_transient(),
-            FnError::Stage { transient, .. } => *transient,
-            _ => false,
-        }
-    }
-
     /// The message with its causes, for EvalAI's stderr and the Lambda diagnostic.
     pub fn chain(&self) -> String {
         let mut text = self.to_string();
@@ -79,6 +121,22 @@ impl FnError {
             source = cause.source();
         }
         text
+    }
+
+    /// A function's input decoded, or [`FnError::Input`] naming the function.
+    pub fn decode<T: serde::de::DeserializeOwned>(
+        what: &'static str,
+        input: serde_json::Value,
+    ) -> Result<T> {
+        serde_json::from_value(input).map_err(|source| FnError::Input { what, source })
+    }
+
+    /// A function's output encoded, or [`FnError::Output`] naming the function.
+    pub fn encode<T: serde::Serialize>(
+        what: &'static str,
+        output: &T,
+    ) -> Result<serde_json::Value> {
+        serde_json::to_value(output).map_err(|source| FnError::Output { what, source })
     }
 }
 
@@ -100,82 +158,41 @@ impl From<FnError> for lambda_runtime::Diagnostic {
     }
 }
 
-/// The names of the transient errors (`FnError::is_transient`): every Task retries them all
-/// (the state machine test checks it).
-pub const TRANSIENT_NAMES: &[&str] = &[
-    "EvalAiThrottled",
-    "EvalAiUnavailable",
-    "EvalAiNotConfirmed",
-    "AwsTransient",
-    "KubeTransient",
-    "KubeUnavailable",
-    "KubeTimeout",
-    "JobTerminating",
-    "DeadlineExceeded",
-];
-
-/// Every name our functions raise; the state machine test checks `ErrorEquals` against it.
-pub const ERROR_NAMES: &[&str] = &[
-    "DeadlineExceeded",
-    "InvalidMessage",
-    "InvalidBatch",
-    "InvalidSettings",
-    "UnknownPhase",
-    "EvalAiConfig",
-    "EvalAiUnauthorized",
-    "SubmissionNotFound",
-    "EvalAiRejected",
-    "EvalAiThrottled",
-    "EvalAiUnavailable",
-    "EvalAiInvalidResponse",
-    "InvalidResult",
-    "EvalAiNotConfirmed",
-    "AwsTransient",
-    "AwsServiceError",
-    "InvalidSecret",
-    "ObjectTooLarge",
-    "MalformedRecord",
-    "InvalidInput",
-    "InvalidConfiguration",
-    "PhaseMismatch",
-    "KubeConfigInvalid",
-    "InvalidSubmissionId",
-    "InvalidJobSpec",
-    "JobNameTaken",
-    "JobTerminating",
-    "KubeInvalid",
-    "KubeForbidden",
-    "KubeUnauthorized",
-    "KubeTransient",
-    "KubeUnavailable",
-    "KubeTimeout",
-    "KubeRequestFailed",
-    "KubeResponseMalformed",
-    "InvalidPlan",
-    "InvalidJobTemplate",
-    "InvalidImage",
-    "InvalidJobSetting",
-    "JobTemplateEvaluationFailed",
-    "ResultsTooLarge",
-    "ResultsNonFinite",
-    "ResultsInvalid",
-    "ResultsOutsideSubset",
-    "SensorMismatch",
-    "DuplicateRoute",
-    "MissingRouteData",
-    "UnexpectedRecords",
-    "RepetitionMismatch",
-];
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn every_results_error_name_is_raised_to_the_state_machine() {
-        for name in lb_domain::results::ResultsError::NAMES {
-            assert!(ERROR_NAMES.contains(&name), "{name}");
+    fn the_lists_hold_the_wrapped_errors_names_and_only_the_transient_ones_as_transient() {
+        let (names, transient) = (FnError::names(), FnError::transient_names());
+        for name in ResultsError::names()
+            .into_iter()
+            .chain(["InvalidBatch", "KubeTimeout"])
+        {
+            assert!(names.contains(&name), "{name}");
         }
+        assert!(transient.contains(&"DeadlineExceeded") && transient.contains(&"EvalAiThrottled"));
+        assert!(!transient.contains(&"InvalidResult") && !transient.contains(&"KubeForbidden"));
+        assert!(transient.iter().all(|t| names.contains(t)));
+    }
+
+    #[test]
+    fn undecodable_input_and_unencodable_output_are_named_apart() {
+        let input = FnError::decode::<u64>("monitor", serde_json::json!("x")).unwrap_err();
+        assert_eq!(input.name(), "InvalidInput");
+        assert!(
+            input
+                .chain()
+                .starts_with("invalid monitor input: invalid type"),
+            "{}",
+            input.chain()
+        );
+        let map: std::collections::HashMap<(u8, u8), u8> = [((1, 2), 3)].into();
+        let output = FnError::encode("sweep", &map).unwrap_err();
+        assert_eq!(output.name(), "OutputNotSerializable");
+        assert!(output
+            .chain()
+            .starts_with("the sweep output cannot be serialized: "));
     }
 
     #[test]
@@ -202,6 +219,6 @@ mod tests {
             diagnostic.error_message,
             "submission message field `phase_pk` is missing"
         );
-        assert!(ERROR_NAMES.contains(&"InvalidMessage"));
+        assert!(FnError::names().contains(&"InvalidMessage"));
     }
 }

@@ -7,6 +7,7 @@ pub mod error;
 pub mod payload;
 pub mod queue;
 pub mod results;
+pub mod serve;
 
 pub use config::FunctionConfig;
 pub use error::{FnError, Result};

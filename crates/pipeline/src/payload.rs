@@ -53,6 +53,12 @@ pub struct IntakeInput {
     pub execution: String,
 }
 
+impl crate::serve::Invocation for IntakeInput {
+    fn execution(&self) -> Option<&str> {
+        Some(&self.execution)
+    }
+}
+
 /// What Intake decided (`$.intake`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

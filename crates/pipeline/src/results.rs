@@ -110,7 +110,7 @@ pub async fn collect_listed(
                 .parse::<RouteSubset>()
                 .map(|s| (pair.id, s))
                 .map_err(|e| {
-                    FnError::Input(format!("pair {} routes `{}`: {e}", pair.id, pair.routes))
+                    FnError::RunState(format!("pair {} routes `{}`: {e}", pair.id, pair.routes))
                 })
         })
         .collect::<Result<Vec<_>, _>>()?;
@@ -196,7 +196,7 @@ pub async fn merge_partials(
         .into_iter()
         .zip(&ids)
     {
-        match read.map_err(results_error)? {
+        match read? {
             WorkerFile::Present(file) => {
                 if file.has_global_record {
                     finished_pairs.push(*id);
@@ -226,8 +226,7 @@ pub async fn merge_partials(
             leaderboard,
             expected: Some(expected),
         },
-    )
-    .map_err(results_error)?;
+    )?;
     Ok(Merge {
         progress: outcome.merged.progress,
         complete: outcome.complete,
@@ -249,12 +248,4 @@ fn metrics(files: &EvalAiFiles, leaderboard: Leaderboard) -> Vec<(&'static str, 
                 .map(|(_, value)| (m.attribute, *value))
         })
         .collect()
-}
-
-fn results_error(e: lb_domain::results::ResultsError) -> FnError {
-    FnError::Stage {
-        name: e.name(),
-        message: e.to_string(),
-        transient: false,
-    }
 }

@@ -6,7 +6,7 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::PathBuf;
 
 use lb_domain::schedule::{quiet_rounds, HISTORY_BUDGET, MAX_EVALUATION};
-use lb_pipeline::error::{ERROR_NAMES, TRANSIENT_NAMES};
+use lb_pipeline::FnError;
 use serde_json::{Map, Value};
 
 fn root() -> PathBuf {
@@ -77,16 +77,17 @@ fn every_path_and_template_compiles_with_the_shared_asl_implementation() {
 
 #[test]
 fn every_error_name_is_built_in_or_raised_by_our_functions() {
+    let ours = FnError::names();
     for (name, state) in states(&definition()) {
         for list in ["Retry", "Catch"] {
             for rule in state[list].as_array().into_iter().flatten() {
                 for error in rule["ErrorEquals"].as_array().unwrap() {
                     let error = error.as_str().unwrap();
                     assert!(
-                        BUILT_IN.contains(&error) || ERROR_NAMES.contains(&error),
+                        BUILT_IN.contains(&error) || ours.contains(&error),
                         "{name}.{list}: `{error}` is neither built in nor one of ours"
                     );
-                    assert!(!ERROR_NAMES.contains(&error) || !error.starts_with("States."));
+                    assert!(!ours.contains(&error) || !error.starts_with("States."));
                 }
             }
         }
@@ -107,7 +108,7 @@ fn every_task_retries_every_transient_error_and_its_own_timeout() {
             .flat_map(|r| r["ErrorEquals"].as_array().unwrap())
             .filter_map(Value::as_str)
             .collect();
-        for error in TRANSIENT_NAMES.iter().chain(&["States.Timeout"]) {
+        for error in FnError::transient_names().iter().chain(&["States.Timeout"]) {
             assert!(retried.contains(error), "{name} does not retry {error}");
         }
     }

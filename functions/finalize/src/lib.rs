@@ -6,6 +6,8 @@
 //! failed before its claim must not touch a submission another execution is evaluating.
 //! Every step is idempotent, so the state machine can retry it.
 
+use lb_pipeline::serve::{Function, Invocation};
+use std::future::Future;
 use std::time::Duration;
 
 use aws_config::SdkConfig;
@@ -20,7 +22,7 @@ use lb_domain::py::Num;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
-use lb_pipeline::cluster::{cluster_error, Clusters};
+use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{Action, IntakeOutput, PairRoutes, RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::queue;
 use lb_pipeline::results::{collect, Snapshot};
@@ -111,12 +113,24 @@ pub struct FinalizeOutput {
     pub reason: Option<String>,
 }
 
-/// The Lambda entry: JSON in, JSON out.
-pub async fn handle_json<C: Callbacks>(input: Value, deps: &Deps<C>) -> Result<Value> {
-    let input: FinalizeInput = serde_json::from_value(input)
-        .map_err(|e| FnError::Input(format!("finalize input: {e}")))?;
-    let output = handle(input, deps).await?;
-    serde_json::to_value(output).map_err(|e| FnError::Input(e.to_string()))
+impl Invocation for FinalizeInput {
+    fn submission_id(&self) -> Option<u64> {
+        self.state
+            .pointer("/intake/submission/submission_id")?
+            .as_u64()
+    }
+    fn execution(&self) -> Option<&str> {
+        self.state.pointer("/intake/submission/execution")?.as_str()
+    }
+}
+
+impl<C: Callbacks> Function for Deps<C> {
+    const NAME: &'static str = "finalize";
+    type Input = FinalizeInput;
+    type Output = FinalizeOutput;
+    fn handle(&self, input: FinalizeInput) -> impl Future<Output = Result<FinalizeOutput>> {
+        handle(input, self)
+    }
 }
 
 /// The error a Catch put at `$.error`, in words: Lambda's `Cause` is a JSON text holding
@@ -174,7 +188,7 @@ pub fn pairs_note(pairs: &[PairRoutes], finished: &[u32]) -> Option<String> {
 pub fn participant_reason(error: &str) -> String {
     let name = error.split_once(": ").map_or(error, |(name, _)| name);
     // The participant's own results: the message names the file, field or route to fix.
-    if lb_domain::results::ResultsError::NAMES.contains(&name) {
+    if lb_domain::results::ResultsError::names().contains(&name) {
         format!("the evaluation failed: {error}")
     } else {
         format!(
@@ -302,10 +316,7 @@ async fn finish_run<C: Callbacks>(
     // execution never reaches here (the claim check above), and this is the second guard.
     let execution = submission.execution.as_str();
     let cluster = deps.clients.clusters.connect(target.deployment).await?;
-    let deleted = cluster
-        .delete_all(&id.to_string(), Some(execution))
-        .await
-        .map_err(cluster_error)?;
+    let deleted = cluster.delete_all(&id.to_string(), Some(execution)).await?;
     info!(submission_id = id, ?deleted, "jobs deleted");
     if !cluster
         .wait_gone(
@@ -314,8 +325,7 @@ async fn finish_run<C: Callbacks>(
             deps.delete_wait,
             Duration::from_secs(2),
         )
-        .await
-        .map_err(cluster_error)?
+        .await?
     {
         warn!(
             submission_id = id,
@@ -332,6 +342,11 @@ async fn finish_run<C: Callbacks>(
         Some(run) => Some(collect(&store, target.leaderboard, &run.pairs, run.repetitions).await),
         None => None,
     };
+    // The results could not be read for now: retried, unless the outcome does not need them.
+    let snapshot = match snapshot {
+        Some(Err(e)) if !cancelled && error.is_none() && e.is_transient() => return Err(e),
+        other => other,
+    };
     let (mut status, mut reason) = match (&error, &run, &snapshot) {
         _ if cancelled => (SubmissionStatus::Cancelled, None),
         (Some(error), _, _) => {
@@ -342,13 +357,6 @@ async fn finish_run<C: Callbacks>(
             SubmissionStatus::Failed,
             Some(format!("the results cannot be used: {}", e.chain())),
         ),
-        (None, _, Some(Err(e))) => {
-            return Err(FnError::Stage {
-                name: e.name(),
-                message: e.chain(),
-                transient: true,
-            })
-        }
         (None, Some(run), Some(Ok(snapshot))) => match run.monitor.state {
             RunPhase::Finished if snapshot.complete => (SubmissionStatus::Finished, None),
             RunPhase::Finished => (

@@ -9,7 +9,9 @@ use lb_domain::settings::Settings;
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
 use lb_evalai::EvalAiClient;
 use lb_pipeline::payload::{Action, IntakeInput, IntakeOutput, SubmissionInfo};
+use lb_pipeline::serve::Function;
 use lb_pipeline::{clients, FnError, FunctionConfig, Result};
+use std::future::Future;
 use tracing::{info, warn};
 
 /// What Intake needs: read access to EvalAI and the settings, the submissions and qualifier
@@ -43,12 +45,13 @@ impl Deps {
     }
 }
 
-/// The Lambda entry: JSON in, JSON out.
-pub async fn handle_json(input: serde_json::Value, deps: &Deps) -> Result<serde_json::Value> {
-    let input: IntakeInput =
-        serde_json::from_value(input).map_err(|e| FnError::Input(format!("intake input: {e}")))?;
-    let output = handle(input, deps).await?;
-    serde_json::to_value(output).map_err(|e| FnError::Input(e.to_string()))
+impl Function for Deps {
+    const NAME: &'static str = "intake";
+    type Input = IntakeInput;
+    type Output = IntakeOutput;
+    fn handle(&self, input: IntakeInput) -> impl Future<Output = Result<IntakeOutput>> {
+        handle(input, self)
+    }
 }
 
 fn skip(reason: String, submission: Option<SubmissionInfo>) -> IntakeOutput {
@@ -65,13 +68,10 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
     let target = deps.settings.target(message.phase_id)?;
     let submission = deps.evalai.submission(message.submission_id).await?;
     if submission.phase_id != message.phase_id {
-        return Err(FnError::Stage {
-            name: "PhaseMismatch",
-            message: format!(
-                "the message says phase `{}` but EvalAI has submission `{}` in phase `{}`",
-                message.phase_id, submission.id, submission.phase_id
-            ),
-            transient: false,
+        return Err(FnError::PhaseMismatch {
+            message: message.phase_id,
+            submission: submission.id,
+            evalai: submission.phase_id,
         });
     }
     let mut info = SubmissionInfo {

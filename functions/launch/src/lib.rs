@@ -15,11 +15,13 @@ use lb_domain::schedule::FIRST_WAIT;
 use lb_domain::settings::Settings;
 use lb_evalai::{EvalAiClient, SubmissionRef, WriteOutcome};
 use lb_jobs::{render_plan, JobSettings};
-use lb_pipeline::cluster::{cluster_error, Clusters};
+use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{
     MonitorState, PairRoutes, QueueState, RunPhase, RunState, SubmissionInfo,
 };
-use lb_pipeline::{clients, queue, FnError, FunctionConfig, Result};
+use lb_pipeline::serve::{Function, Invocation};
+use lb_pipeline::{clients, queue, FunctionConfig, Result};
+use std::future::Future;
 use std::time::Duration;
 
 use serde::Deserialize;
@@ -81,19 +83,21 @@ pub struct LaunchInput {
     pub queue: Option<QueueState>,
 }
 
-/// The Lambda entry: JSON in, JSON out.
-pub async fn handle_json(input: serde_json::Value, deps: &Deps) -> Result<serde_json::Value> {
-    let input: LaunchInput =
-        serde_json::from_value(input).map_err(|e| FnError::Input(format!("launch input: {e}")))?;
-    let output = handle(input, deps).await?;
-    serde_json::to_value(output).map_err(|e| FnError::Input(e.to_string()))
+impl Invocation for LaunchInput {
+    fn submission_id(&self) -> Option<u64> {
+        Some(self.submission.submission_id)
+    }
+    fn execution(&self) -> Option<&str> {
+        Some(&self.submission.execution)
+    }
 }
 
-fn stage(name: &'static str, message: String) -> FnError {
-    FnError::Stage {
-        name,
-        message,
-        transient: false,
+impl Function for Deps {
+    const NAME: &'static str = "launch";
+    type Input = LaunchInput;
+    type Output = RunState;
+    fn handle(&self, input: LaunchInput) -> impl Future<Output = Result<RunState>> {
+        handle(input, self)
     }
 }
 
@@ -118,15 +122,13 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         team_name: &submission.team_name,
         routes: submission.routes,
         workers: submission.workers,
-    })
-    .map_err(|e| stage(e.name(), e.to_string()))?;
+    })?;
     let mut job_settings = JobSettings::from_deployment(
         target.leaderboard,
         target.deployment,
         &deps.region,
         &target.deployment.job_role_arn,
-    )
-    .map_err(|e| stage(e.name(), e.to_string()))?;
+    )?;
     if let Some(timers) = &deps.timers {
         job_settings.timers = timers.clone();
     }
@@ -180,13 +182,12 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
             execution: submission.execution.clone(),
         },
         &job_settings,
-    )
-    .map_err(|e| stage(e.name(), e.to_string()))?;
+    )?;
 
     let cluster = deps.clusters.connect(target.deployment).await?;
     let mut names = Vec::with_capacity(jobs.len());
     for job in &jobs {
-        let launched = cluster.create_or_adopt(job).await.map_err(cluster_error)?;
+        let launched = cluster.create_or_adopt(job).await?;
         info!(submission_id = submission.submission_id, job = %launched.name, adopted = launched.adopted, "job launched");
         names.push(launched.name);
     }

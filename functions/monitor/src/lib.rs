@@ -14,6 +14,8 @@
 //! Transient trouble with EvalAI or S3 skips this round's part instead of failing a run that
 //! may last three days.
 
+use lb_pipeline::serve::{Function, Invocation};
+use std::future::Future;
 use std::time::Duration;
 
 use aws_config::SdkConfig;
@@ -29,7 +31,7 @@ use lb_domain::schedule::{
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{EvalAiError, PartialUpdate, Priority, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
-use lb_pipeline::cluster::{cluster_error, Clusters};
+use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::queue::{self, QUEUE_NOTE_INTERVAL};
 use lb_pipeline::results::{collect_listed, list};
@@ -82,12 +84,22 @@ pub struct MonitorInput {
     pub run: RunState,
 }
 
-/// The Lambda entry: JSON in, JSON out.
-pub async fn handle_json(input: serde_json::Value, deps: &Deps) -> Result<serde_json::Value> {
-    let input: MonitorInput =
-        serde_json::from_value(input).map_err(|e| FnError::Input(format!("monitor input: {e}")))?;
-    let output = handle(input, deps).await?;
-    serde_json::to_value(output).map_err(|e| FnError::Input(e.to_string()))
+impl Invocation for MonitorInput {
+    fn submission_id(&self) -> Option<u64> {
+        Some(self.submission.submission_id)
+    }
+    fn execution(&self) -> Option<&str> {
+        Some(&self.submission.execution)
+    }
+}
+
+impl Function for Deps {
+    const NAME: &'static str = "monitor";
+    type Input = MonitorInput;
+    type Output = RunState;
+    fn handle(&self, input: MonitorInput) -> impl Future<Output = Result<RunState>> {
+        handle(input, self)
+    }
 }
 
 /// The submission's Jobs and pods as the cluster reports them now.
@@ -109,7 +121,7 @@ async fn observe(
     cluster
         .observe(&id.to_string())
         .await
-        .map_err(cluster_error)
+        .map_err(FnError::from)
 }
 
 /// One monitor round.

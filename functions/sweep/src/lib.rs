@@ -7,7 +7,9 @@
 //! minute, confirms the cancel with EvalAI and writes the cancel marker. One request per
 //! challenge a minute, whatever the number of submissions in flight.
 
+use lb_pipeline::serve::Function;
 use std::collections::{BTreeMap, BTreeSet};
+use std::future::Future;
 
 use aws_config::SdkConfig;
 use lb_aws::tasks::{Callbacks, Reported, StepFunctions};
@@ -63,10 +65,14 @@ pub struct Sweep {
     pub woken: Vec<u64>,
 }
 
-/// The Lambda entry: the sweep's summary as JSON.
-pub async fn handle_json<C: Callbacks>(deps: &Deps<C>) -> Result<serde_json::Value> {
-    let sweep = handle(deps).await?;
-    serde_json::to_value(sweep).map_err(|e| FnError::Input(e.to_string()))
+impl<C: Callbacks> Function for Deps<C> {
+    const NAME: &'static str = "sweep";
+    /// The schedule's event says nothing the sweep needs.
+    type Input = serde::de::IgnoredAny;
+    type Output = Sweep;
+    fn handle(&self, _: serde::de::IgnoredAny) -> impl Future<Output = Result<Sweep>> {
+        handle(self)
+    }
 }
 
 /// One sweep. Everything it can do is done; if a challenge could not be read or a wake
@@ -126,11 +132,7 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
         "sweep"
     );
     if !problems.is_empty() {
-        return Err(FnError::Stage {
-            name: "SweepIncomplete",
-            message: problems.join("; "),
-            transient: true,
-        });
+        return Err(FnError::SweepIncomplete(problems));
     }
     Ok(sweep)
 }

@@ -9,11 +9,12 @@
 //! with `SendTaskSuccess`: a burst wakes an execution once, an event for a submission nobody
 //! waits on only counts, and a token is never reported twice.
 
+use lb_pipeline::serve::{Function, Invocation};
 use std::collections::BTreeMap;
 
 use lb_aws::tasks::{Callbacks, Reported, StepFunctions};
 use lb_aws::wake::WakeTable;
-use lb_pipeline::{clients, FnError, Result};
+use lb_pipeline::{clients, Result};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use tracing::{debug, info, warn};
@@ -100,12 +101,16 @@ pub fn submission_of(body: &str) -> std::result::Result<u64, Ignored> {
     lb_domain::protocol::wakes_submission(key).ok_or_else(|| Ignored::OtherKey(key.into()))
 }
 
-/// The Lambda entry: the SQS event in, the partial batch response out.
-pub async fn handle_json<C: Callbacks>(input: Value, deps: &Deps<C>) -> Result<Value> {
-    let event: SqsEvent =
-        serde_json::from_value(input).map_err(|e| FnError::Input(format!("SQS event: {e}")))?;
-    let response = handle(event, deps, clients::now_epoch_seconds()).await;
-    serde_json::to_value(response).map_err(|e| FnError::Input(e.to_string()))
+impl Invocation for SqsEvent {}
+
+impl<C: Callbacks> Function for Deps<C> {
+    const NAME: &'static str = "wake";
+    type Input = SqsEvent;
+    type Output = BatchResponse;
+    /// Never fails: a message not handled is reported back for SQS to deliver again.
+    async fn handle(&self, event: SqsEvent) -> Result<BatchResponse> {
+        Ok(handle(event, self, clients::now_epoch_seconds()).await)
+    }
 }
 
 /// Wakes each distinct submission of the batch once. A message that wakes nobody is dropped

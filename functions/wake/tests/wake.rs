@@ -75,7 +75,9 @@ fn failures(ids: &[&str]) -> BatchResponse {
 }
 
 async fn run(deps: &Deps<Recorder>, records: &[(&str, String)]) -> BatchResponse {
-    let out = wake::handle_json(batch(records), deps).await.unwrap();
+    let out = lb_pipeline::serve::call(deps, batch(records))
+        .await
+        .unwrap();
     let failed: Vec<String> = out["batchItemFailures"]
         .as_array()
         .unwrap()
@@ -188,7 +190,7 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
     assert_eq!(response, failures(&["m13"]));
 
     // Not Lambda's SQS event at all: an input error, nothing half done.
-    let err = wake::handle_json(json!({"Records": "x"}), &deps)
+    let err = lb_pipeline::serve::call(&deps, json!({"Records": "x"}))
         .await
         .unwrap_err();
     assert_eq!(err.name(), "InvalidInput");

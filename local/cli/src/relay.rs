@@ -58,7 +58,7 @@ pub async fn spawn(
             match source.poll(Duration::from_secs(1)).await {
                 Ok(Some(batch)) => {
                     let messages = batch.len() as u64;
-                    let response = wake::handle_json(batch.event.clone(), &deps).await;
+                    let response = lb_pipeline::serve::call(&deps, batch.event.clone()).await;
                     if let Err(e) = &response {
                         tracing::warn!(error = %e, "the wake function failed; the batch comes back");
                     }

@@ -327,19 +327,19 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let tasks = TaskMap::new()
         .with("IntakeFunctionArn", move |v| {
             let deps = intake.clone();
-            async move { lambda(intake::handle_json(v, &deps).await) }
+            async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
         })
         .with("LaunchFunctionArn", move |v| {
             let deps = launch.clone();
-            async move { lambda(launch::handle_json(v, &deps).await) }
+            async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
         })
         .with("MonitorFunctionArn", move |v| {
             let deps = monitor.clone();
-            async move { lambda(monitor::handle_json(v, &deps).await) }
+            async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
         })
         .with("FinalizeFunctionArn", move |v| {
             let deps = finalize.clone();
-            async move { lambda(finalize::handle_json(v, &deps).await) }
+            async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
         });
     // The wake table's wait, on moto's DynamoDB.
     let tasks = local_stack::integrations::with_services(tasks, &stack.sdk);

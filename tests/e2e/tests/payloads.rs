@@ -114,7 +114,7 @@ fn run(phase: RunPhase) -> RunState {
 
 /// A Lambda error with the longest message a function reports, as the runtime reports it.
 fn error() -> TaskError {
-    let diagnostic = lambda_runtime::Diagnostic::from(lb_pipeline::FnError::Input(worst(
+    let diagnostic = lambda_runtime::Diagnostic::from(lb_pipeline::FnError::RunState(worst(
         MAX_ERROR_MESSAGE_BYTES * 4,
     )));
     assert!(diagnostic.error_message.len() <= MAX_ERROR_MESSAGE_BYTES);

@@ -331,32 +331,15 @@ pub enum ResultsError {
     },
 }
 
-impl ResultsError {
-    /// Every name [`name`](Self::name) gives: the problems of a participant's own results.
-    pub const NAMES: [&'static str; 9] = [
-        "ResultsTooLarge",
-        "ResultsNonFinite",
-        "ResultsInvalid",
-        "ResultsOutsideSubset",
-        "SensorMismatch",
-        "DuplicateRoute",
-        "MissingRouteData",
-        "UnexpectedRecords",
-        "RepetitionMismatch",
-    ];
-
-    /// The stable PascalCase name that state machines and callers match on.
-    pub fn name(&self) -> &'static str {
-        match self {
-            ResultsError::TooLarge { .. } => "ResultsTooLarge",
-            ResultsError::NonFinite { .. } => "ResultsNonFinite",
-            ResultsError::Invalid { .. } => "ResultsInvalid",
-            ResultsError::OutsideSubset { .. } => "ResultsOutsideSubset",
-            ResultsError::SensorMismatch { .. } => "SensorMismatch",
-            ResultsError::DuplicateRoute { .. } => "DuplicateRoute",
-            ResultsError::MissingRouteData { .. } => "MissingRouteData",
-            ResultsError::UnexpectedRecords { .. } => "UnexpectedRecords",
-            ResultsError::RepetitionMismatch { .. } => "RepetitionMismatch",
-        }
-    }
-}
+// Every name is a problem of a participant's own results (Finalize tells them so).
+crate::error_names!(ResultsError {
+    TooLarge => "ResultsTooLarge";
+    NonFinite => "ResultsNonFinite";
+    Invalid => "ResultsInvalid";
+    OutsideSubset => "ResultsOutsideSubset";
+    SensorMismatch => "SensorMismatch";
+    DuplicateRoute => "DuplicateRoute";
+    MissingRouteData => "MissingRouteData";
+    UnexpectedRecords => "UnexpectedRecords";
+    RepetitionMismatch => "RepetitionMismatch";
+});

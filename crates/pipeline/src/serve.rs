@@ -1,0 +1,127 @@
+//! The one entry path of every function: tracing, dependencies built once, the event decoded
+//! into the function's typed input, one span per invocation naming the function, submission
+//! and execution, the invocation's deadline, and a failure reported under its stable name.
+
+use std::future::Future;
+
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+use serde_json::Value;
+use tracing::Instrument;
+
+use crate::{FnError, Result};
+
+/// What an invocation's span says of its input (the submission and the execution, when the
+/// input names them).
+pub trait Invocation: DeserializeOwned {
+    /// The EvalAI submission this invocation is about.
+    fn submission_id(&self) -> Option<u64> {
+        None
+    }
+    /// The Step Functions execution that invoked it.
+    fn execution(&self) -> Option<&str> {
+        None
+    }
+}
+
+/// An event whose content the function does not read (the sweep's schedule).
+impl Invocation for serde::de::IgnoredAny {}
+
+/// A function: its typed input and output, and its handler on the dependencies it was given.
+pub trait Function {
+    /// The function's name, as its folder, binary and `ErrorEquals` messages say it.
+    const NAME: &'static str;
+    /// What the state machine (or AWS) sends it.
+    type Input: Invocation;
+    /// What it returns.
+    type Output: Serialize;
+    /// Handles one decoded input.
+    fn handle(&self, input: Self::Input) -> impl Future<Output = Result<Self::Output>>;
+}
+
+/// One invocation of `function` on a JSON event: decoded, handled inside its span, encoded.
+/// Lambda, `lbctl invoke` and local mode all call functions through here.
+pub async fn call<F: Function>(function: &F, event: Value) -> Result<Value> {
+    let input: F::Input = FnError::decode(F::NAME, event)?;
+    let span = tracing::info_span!(
+        "invocation",
+        function = F::NAME,
+        submission_id = input.submission_id(),
+        execution = input.execution(),
+    );
+    async {
+        let output = function.handle(input).await;
+        if let Err(e) = &output {
+            tracing::warn!(error = e.name(), reason = %e.chain(), "the invocation failed");
+        }
+        FnError::encode(F::NAME, &output?)
+    }
+    .instrument(span)
+    .await
+}
+
+/// Runs a function as a Lambda until the runtime stops it: tracing (JSON when the log format
+/// says so), `deps` built once at cold start, every event through [`call`] within the
+/// invocation's deadline, a failure as the Lambda diagnostic carrying its stable name.
+pub async fn serve<F: Function>(
+    deps: impl Future<Output = Result<F>>,
+) -> std::result::Result<(), lambda_runtime::Error> {
+    lambda_runtime::tracing::init_default_subscriber();
+    let function = deps.await?;
+    let function = &function;
+    lambda_runtime::run(lambda_runtime::service_fn(
+        move |event: lambda_runtime::LambdaEvent<Value>| async move {
+            crate::clients::within_deadline(&event.context, call(function, event.payload)).await
+        },
+    ))
+    .await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(serde::Deserialize)]
+    struct Echo {
+        submission: u64,
+        fail: bool,
+    }
+    impl Invocation for Echo {
+        fn submission_id(&self) -> Option<u64> {
+            Some(self.submission)
+        }
+    }
+
+    struct Doubler;
+    impl Function for Doubler {
+        const NAME: &'static str = "doubler";
+        type Input = Echo;
+        type Output = u64;
+        async fn handle(&self, input: Echo) -> Result<u64> {
+            if input.fail {
+                return Err(FnError::DeadlineExceeded);
+            }
+            Ok(input.submission * 2)
+        }
+    }
+
+    #[tokio::test]
+    async fn an_event_is_decoded_handled_and_encoded_and_each_failure_keeps_its_name() {
+        let ok = call(
+            &Doubler,
+            serde_json::json!({"submission": 21, "fail": false}),
+        )
+        .await;
+        assert_eq!(ok.unwrap(), serde_json::json!(42));
+        let failed = call(&Doubler, serde_json::json!({"submission": 1, "fail": true})).await;
+        assert_eq!(failed.unwrap_err().name(), "DeadlineExceeded");
+        let undecodable = call(&Doubler, serde_json::json!({"submission": "x"})).await;
+        let e = undecodable.unwrap_err();
+        assert_eq!(e.name(), "InvalidInput");
+        assert!(
+            e.chain().starts_with("invalid doubler input: "),
+            "{}",
+            e.chain()
+        );
+    }
+}
