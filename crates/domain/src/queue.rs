@@ -59,6 +59,13 @@ impl Entry {
     }
 }
 
+/// When a submission arrived for its place in the queue, epoch milliseconds: when EvalAI
+/// received it, never later than `now` (epoch seconds; a clock ahead is not believed), and
+/// `now` when EvalAI did not say (a resume arrives anew).
+pub fn arrival_ms(received_ms: Option<u64>, now: u64) -> u64 {
+    received_ms.map_or(now * 1000, |ms| ms.min(now * 1000))
+}
+
 /// Whether `me` is its team's turn: no submission of its team that arrived earlier still waits.
 /// (The cap is the conditional write's to enforce; this keeps a team's own order.)
 pub fn team_turn(entries: &[Entry], me: &Entry) -> bool {
@@ -120,6 +127,17 @@ pub fn describe(ahead: u32, hold: Hold) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_place_is_when_evalai_received_it_never_later_than_now() {
+        for (received, now, expected) in [
+            (Some(5_000), 10, 5_000),
+            (Some(50_000), 10, 10_000),
+            (None, 10, 10_000),
+        ] {
+            assert_eq!(arrival_ms(received, now), expected, "{received:?} {now}");
+        }
+    }
 
     fn entry(submission_id: u64, team_id: u64, arrived_ms: u64, state: EntryState) -> Entry {
         Entry {

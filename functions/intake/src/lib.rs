@@ -5,9 +5,10 @@
 
 use aws_config::SdkConfig;
 use lb_aws::dynamo::{Claim, NewRecord, QualifierTable, SubmissionsTable};
-use lb_domain::settings::Settings;
+use lb_domain::intake;
+use lb_domain::settings::{Settings, Target};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
-use lb_evalai::EvalAiClient;
+use lb_evalai::{EvalAiClient, Submission};
 use lb_pipeline::payload::{Action, IntakeInput, IntakeOutput, SubmissionInfo};
 use lb_pipeline::serve::Function;
 use lb_pipeline::{clients, FnError, FunctionConfig, Result};
@@ -54,19 +55,78 @@ impl Function for Deps {
     }
 }
 
-fn skip(reason: String, submission: Option<SubmissionInfo>) -> IntakeOutput {
+/// The decision, with the submission as far as it is known.
+fn decided(action: Action, reason: Option<String>, submission: SubmissionInfo) -> IntakeOutput {
+    let id = submission.submission_id;
+    match action {
+        Action::Run => info!(submission_id = id, workers = submission.workers, "claimed"),
+        Action::Reject => warn!(submission_id = id, reason = reason.as_deref(), "rejected"),
+        Action::Skip => info!(submission_id = id, reason = reason.as_deref(), "skipped"),
+    }
     IntakeOutput {
-        action: Action::Skip,
-        reason: Some(reason),
-        submission,
+        action,
+        reason,
+        submission: Some(submission),
     }
 }
 
-/// Decides what to do with one submission message.
+/// Decides what to do with one submission message: each fact is read only when the rules
+/// before it let the submission through (`lb_domain::intake` has the rules).
 pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
     let message = SubmissionMessage::from_pipe(&input.message)?;
     let target = deps.settings.target(message.phase_id)?;
     let submission = deps.evalai.submission(message.submission_id).await?;
+    let mut info = described(&message, &target, &submission, input.execution)?;
+    if let Some(reason) = intake::skip_reason(submission.status) {
+        return Ok(decided(Action::Skip, Some(reason), info));
+    }
+    let image = match message.image {
+        Some(image) => image,
+        None => match deps.evalai.submitted_image(&submission).await {
+            Ok(image) => image,
+            Err(e) => {
+                let reason = intake::no_image(&e.to_string());
+                return Ok(decided(Action::Reject, Some(reason), info));
+            }
+        },
+    };
+    // Before anything is claimed: an image no cluster can pull would hold the claim for a run
+    // that cannot start, and an oversized one would grow every state's payload.
+    if let Err(problem) = lb_jobs::parse_image(&image) {
+        let reason = intake::invalid_image(&image, &problem);
+        return Ok(decided(Action::Reject, Some(reason), info));
+    }
+    info.image = image;
+    if let Some(qualifier) = target.required_qualifier() {
+        let table = QualifierTable::new(deps.dynamo.clone(), &target.deployment.qualifier_table);
+        // The item `(team, track)` admits: a pass recorded by the original system counts.
+        if !table.admitted(info.team_id, &info.track).await? {
+            let reason = intake::not_qualified(&info.team_name, qualifier, &info.track);
+            return Ok(decided(Action::Reject, Some(reason), info));
+        }
+    }
+    let table = SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table);
+    let overridden = table
+        .worker_override(info.team_id, info.submission_id)
+        .await?;
+    info.workers = intake::worker_count(overridden, target.track_settings.workers, info.routes);
+    Ok(match table.claim(&new_record(&info)).await? {
+        Claim::Claimed => decided(Action::Run, None, info),
+        Claim::Duplicate { status, claimed_by } => {
+            let reason = intake::duplicate(claimed_by.as_deref(), status.as_deref());
+            decided(Action::Skip, Some(reason), info)
+        }
+    })
+}
+
+/// The submission as the message, the settings and EvalAI describe it (no image or worker
+/// count yet); EvalAI must have it in the message's phase.
+fn described(
+    message: &SubmissionMessage,
+    target: &Target<'_>,
+    submission: &Submission,
+    execution: String,
+) -> Result<SubmissionInfo> {
     if submission.phase_id != message.phase_id {
         return Err(FnError::PhaseMismatch {
             message: message.phase_id,
@@ -74,7 +134,8 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
             evalai: submission.phase_id,
         });
     }
-    let mut info = SubmissionInfo {
+    let resuming = submission.status == SubmissionStatus::Resuming;
+    Ok(SubmissionInfo {
         challenge_id: message.challenge_id,
         phase_id: message.phase_id,
         submission_id: message.submission_id,
@@ -85,121 +146,25 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
         image: String::new(),
         routes: target.track_settings.routes,
         workers: 0,
-        resuming: submission.status == SubmissionStatus::Resuming,
-        execution: input.execution.clone(),
+        resuming,
+        execution,
         // A resume arrives anew; a new submission's place is when EvalAI received it.
-        arrived_ms: submission
-            .submitted_ms
-            .filter(|_| submission.status != SubmissionStatus::Resuming),
-    };
-    if !submission.status.starts_evaluation() {
-        info!(submission_id = info.submission_id, status = %submission.status, "not ours to run");
-        return Ok(skip(
-            format!(
-                "EvalAI status is `{}`; only submitted or resuming submissions start",
-                submission.status
-            ),
-            Some(info),
-        ));
-    }
+        arrived_ms: submission.submitted_ms.filter(|_| !resuming),
+    })
+}
 
-    let reject = |reason: String, info: SubmissionInfo| {
-        warn!(submission_id = info.submission_id, %reason, "rejected");
-        Ok(IntakeOutput {
-            action: Action::Reject,
-            reason: Some(reason),
-            submission: Some(info),
-        })
-    };
-
-    info.image = match message.image {
-        Some(image) => image,
-        None => match deps.evalai.submitted_image(&submission).await {
-            Ok(image) => image,
-            Err(e) => {
-                return reject(
-                    format!("the submission has no docker image URI ({e}); push the image again with `evalai push`"),
-                    info,
-                )
-            }
-        },
-    };
-
-    // Before anything is claimed: an image no cluster can pull would hold the claim for a run
-    // that cannot start, and an oversized one would grow every state's payload.
-    if let Err(problem) = lb_jobs::parse_image(&info.image) {
-        let shown: String = info.image.chars().take(120).collect();
-        let cut = if shown.len() < info.image.len() {
-            "..."
-        } else {
-            ""
-        };
-        info.image = String::new();
-        return reject(
-            format!(
-                "the docker image URI `{}{cut}` is not a valid image reference: {problem}; push \
-                 the image again with `evalai push`",
-                shown.escape_debug()
-            ),
-            info,
-        );
-    }
-
-    if let Some(qualifier) = target.required_qualifier() {
-        let table = QualifierTable::new(deps.dynamo.clone(), &target.deployment.qualifier_table);
-        // The item `(team, track)` admits: a pass recorded by the original system counts.
-        if !table.admitted(info.team_id, &info.track).await? {
-            return reject(
-                format!(
-                    "team `{}` has not passed the qualifier track `{qualifier}` yet, which `{}` requires",
-                    info.team_name, info.track
-                ),
-                info,
-            );
-        }
-    }
-
-    let table = SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table);
-    let workers = table
-        .worker_override(info.team_id, info.submission_id)
-        .await?
-        .unwrap_or(target.track_settings.workers);
-    info.workers = workers.min(info.routes).max(1);
-
-    let claim = table
-        .claim(&NewRecord {
-            team_id: info.team_id,
-            submission_id: info.submission_id,
-            team_name: info.team_name.clone(),
-            track_id: info.phase_id,
-            track_name: info.track.clone(),
-            image: info.image.clone(),
-            workers: info.workers,
-            submitted_time: clients::now_record_time(),
-            claimed_by: info.execution.clone(),
-            resuming: info.resuming,
-        })
-        .await?;
-    match claim {
-        Claim::Claimed => {
-            info!(
-                submission_id = info.submission_id,
-                workers = info.workers,
-                "claimed"
-            );
-            Ok(IntakeOutput {
-                action: Action::Run,
-                reason: None,
-                submission: Some(info),
-            })
-        }
-        Claim::Duplicate { status, claimed_by } => Ok(skip(
-            format!(
-                "already claimed by `{}` (record status `{}`): a duplicate delivery",
-                claimed_by.unwrap_or_default(),
-                status.unwrap_or_default()
-            ),
-            Some(info),
-        )),
+/// The record the claim writes.
+fn new_record(info: &SubmissionInfo) -> NewRecord {
+    NewRecord {
+        team_id: info.team_id,
+        submission_id: info.submission_id,
+        team_name: info.team_name.clone(),
+        track_id: info.phase_id,
+        track_name: info.track.clone(),
+        image: info.image.clone(),
+        workers: info.workers,
+        submitted_time: clients::now_record_time(),
+        claimed_by: info.execution.clone(),
+        resuming: info.resuming,
     }
 }

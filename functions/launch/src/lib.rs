@@ -9,10 +9,10 @@
 
 use aws_config::SdkConfig;
 use lb_aws::admission::AdmissionTable;
-use lb_domain::plan::{plan, PlanInput};
+use lb_domain::plan::{plan, Plan, PlanInput};
 use lb_domain::schedule::queue_wait;
 use lb_domain::schedule::FIRST_WAIT;
-use lb_domain::settings::Settings;
+use lb_domain::settings::{Settings, Target};
 use lb_evalai::{EvalAiClient, SubmissionRef, WriteOutcome};
 use lb_jobs::{render_plan, JobSettings};
 use lb_pipeline::cluster::Clusters;
@@ -109,46 +109,19 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
     let now = clients::now_epoch_seconds();
     // The first Launch tells EvalAI `queued` even when the team's cap holds it back.
     let first = input.queue.is_none();
-    // Its place is when EvalAI received it (never later than now: a clock ahead is not
-    // believed).
-    let arrived_ms = submission
-        .arrived_ms
-        .map_or(now * 1000, |ms| ms.min(now * 1000));
+    let arrived_ms = lb_domain::queue::arrival_ms(submission.arrived_ms, now);
     let mut place = input
         .queue
         .unwrap_or_else(|| QueueState::arriving(arrived_ms / 1000));
-    let plan = plan(PlanInput {
-        submission_id: submission.submission_id,
-        team_name: &submission.team_name,
-        routes: submission.routes,
-        workers: submission.workers,
-    })?;
-    let mut job_settings = JobSettings::from_deployment(
-        target.leaderboard,
-        target.deployment,
-        &deps.region,
-        &target.deployment.job_role_arn,
-    )?;
-    if let Some(timers) = &deps.timers {
-        job_settings.timers = timers.clone();
-    }
-    let pairs: Vec<PairRoutes> = plan
-        .pairs()
-        .map(|p| PairRoutes {
-            id: p.id,
-            routes: p.routes.to_string(),
-        })
-        .collect();
-    let total = u64::from(submission.routes) * u64::from(job_settings.repetitions);
+    let prepared = prepare(deps, &target, &submission)?;
     let at = SubmissionRef {
         challenge: submission.challenge_id,
         phase: submission.phase_id,
         submission: submission.submission_id,
     };
-
     if let Some(table) = &deps.admission {
-        let standing =
-            queue::take_turn(table, &submission, arrived_ms, target.deployment.team_limit).await?;
+        let limit = target.deployment.team_limit;
+        let standing = queue::take_turn(table, &submission, arrived_ms, limit).await?;
         if !standing.admitted {
             info!(
                 submission_id = submission.submission_id,
@@ -160,30 +133,103 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
                 mark_queued(deps, at, "").await?;
             }
             place.admitted = false;
-            let mut run = run_state(0, pairs, job_settings.repetitions, now, total, place);
+            let mut run = prepared.run_state(0, now, place);
             run.monitor.wait_seconds = queue_wait(Duration::ZERO).as_secs();
             return Ok(run);
         }
     }
     place.admitted = true;
+    let names = launch_jobs(deps, &target, &submission, &prepared).await?;
+    // Queued until a pair starts: the Monitor sends `running` then (EvalAI's `started_at`,
+    // the record's start time), so time spent waiting for a GPU is not the participant's.
+    mark_queued(deps, at, &names.join(",")).await?;
+    let jobs = names.len() as u32;
+    Ok(prepared.run_state(jobs, clients::now_epoch_seconds(), place))
+}
+
+/// What a submission's run is made of, decided before anything is created: the routes over
+/// the pairs and the Jobs' settings.
+struct Prepared {
+    plan: Plan,
+    settings: JobSettings,
+    pairs: Vec<PairRoutes>,
+    /// Records the run ends with: routes times repetitions.
+    total: u64,
+}
+
+fn prepare(deps: &Deps, target: &Target<'_>, submission: &SubmissionInfo) -> Result<Prepared> {
+    let plan = plan(PlanInput {
+        submission_id: submission.submission_id,
+        team_name: &submission.team_name,
+        routes: submission.routes,
+        workers: submission.workers,
+    })?;
+    let deployment = target.deployment;
+    let mut settings = JobSettings::from_deployment(
+        target.leaderboard,
+        deployment,
+        &deps.region,
+        &deployment.job_role_arn,
+    )?;
+    if let Some(timers) = &deps.timers {
+        settings.timers = timers.clone();
+    }
+    let pairs = plan
+        .pairs()
+        .map(|p| PairRoutes {
+            id: p.id,
+            routes: p.routes.to_string(),
+        })
+        .collect();
+    let total = u64::from(submission.routes) * u64::from(settings.repetitions);
+    Ok(Prepared {
+        plan,
+        settings,
+        pairs,
+        total,
+    })
+}
+
+impl Prepared {
+    /// A run's first state: `jobs` Jobs launched (none while it waits for its turn) at `now`.
+    fn run_state(self, jobs: u32, now: u64, queue: QueueState) -> RunState {
+        run_state(
+            jobs,
+            self.pairs,
+            self.settings.repetitions,
+            now,
+            self.total,
+            queue,
+        )
+    }
+}
+
+/// Renders the plan's Jobs and creates them (or adopts those a retry already created); their
+/// names.
+async fn launch_jobs(
+    deps: &Deps,
+    target: &Target<'_>,
+    submission: &SubmissionInfo,
+    prepared: &Prepared,
+) -> Result<Vec<String>> {
+    let about = lb_jobs::SubmissionInfo {
+        submission_id: submission.submission_id,
+        challenge_id: submission.challenge_id,
+        phase_id: submission.phase_id,
+        team_id: submission.team_id,
+        team_name: submission.team_name.clone(),
+        track: submission.track.clone(),
+        qualifier: target.track_settings.qualifier,
+        participant_image: submission.image.clone(),
+        participant_resume: submission.resuming,
+        execution: submission.execution.clone(),
+    };
     let jobs = render_plan(
         target.leaderboard,
-        &plan,
-        &lb_jobs::SubmissionInfo {
-            submission_id: submission.submission_id,
-            challenge_id: submission.challenge_id,
-            phase_id: submission.phase_id,
-            team_id: submission.team_id,
-            team_name: submission.team_name.clone(),
-            track: submission.track.clone(),
-            qualifier: target.track_settings.qualifier,
-            participant_image: submission.image.clone(),
-            participant_resume: submission.resuming,
-            execution: submission.execution.clone(),
-        },
-        &job_settings,
+        &prepared.plan,
+        &about,
+        &prepared.settings,
     )?;
-
     let cluster = deps.clusters.connect(target.deployment).await?;
     let mut names = Vec::with_capacity(jobs.len());
     for job in &jobs {
@@ -191,18 +237,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         info!(submission_id = submission.submission_id, job = %launched.name, adopted = launched.adopted, "job launched");
         names.push(launched.name);
     }
-
-    // Queued until a pair starts: the Monitor sends `running` then (EvalAI's `started_at`,
-    // the record's start time), so time spent waiting for a GPU is not the participant's.
-    mark_queued(deps, at, &names.join(",")).await?;
-    Ok(run_state(
-        names.len() as u32,
-        pairs,
-        job_settings.repetitions,
-        clients::now_epoch_seconds(),
-        total,
-        place,
-    ))
+    Ok(names)
 }
 
 /// Tells EvalAI the submission is queued (with its Jobs' names once it has Jobs).
