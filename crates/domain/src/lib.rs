@@ -1,6 +1,7 @@
 //! Pure domain core of the CARLA Leaderboard evaluation backend: no AWS, Kubernetes or Lambda.
 
 pub mod errors;
+pub mod finalize;
 pub mod intake;
 pub mod logtail;
 pub mod plan;

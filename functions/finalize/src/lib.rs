@@ -16,17 +16,18 @@ use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
+use lb_domain::finalize::{self, Outcome, Posted};
 use lb_domain::logtail::{participant_tail, MAX_TAIL_CHARS};
-use lb_domain::protocol::{self, Marker, Role, LOGS_DIR};
-use lb_domain::py::Num;
+use lb_domain::protocol::{self, LOGS_DIR};
+use lb_domain::settings::Target;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::Clusters;
-use lb_pipeline::payload::{Action, IntakeOutput, PairRoutes, RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::payload::{Action, IntakeOutput, RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::queue;
 use lb_pipeline::results::{collect, Snapshot};
-use lb_pipeline::{FnError, FunctionConfig, Result};
+use lb_pipeline::{FunctionConfig, Result};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use tracing::{info, warn};
@@ -133,75 +134,10 @@ impl<C: Callbacks> Function for Deps<C> {
     }
 }
 
-/// The error a Catch put at `$.error`, in words: Lambda's `Cause` is a JSON text holding
-/// `errorMessage`.
-pub fn caught_error(state: &Value) -> Option<String> {
-    let error = state.get("error")?;
-    let name = error
-        .get("Error")
-        .and_then(Value::as_str)
-        .unwrap_or("Error");
-    let cause = error
-        .get("Cause")
-        .and_then(Value::as_str)
-        .unwrap_or_default();
-    let message = serde_json::from_str::<Value>(cause)
-        .ok()
-        .and_then(|c| {
-            c.get("errorMessage")
-                .and_then(Value::as_str)
-                .map(str::to_owned)
-        })
-        .unwrap_or_else(|| cause.to_string());
-    Some(if message.is_empty() {
-        name.to_string()
-    } else {
-        format!("{name}: {message}")
-    })
-}
-
-/// Which routes a failed run evaluated, when some pairs finished and some did not (a pair out
-/// of retries, one Job per pair): `None` when none or all finished.
-pub fn pairs_note(pairs: &[PairRoutes], finished: &[u32]) -> Option<String> {
-    let (done, missing): (Vec<&PairRoutes>, Vec<&PairRoutes>) =
-        pairs.iter().partition(|p| finished.contains(&p.id));
-    if done.is_empty() || missing.is_empty() {
-        return None;
-    }
-    let describe = |ps: &[&PairRoutes]| {
-        let routes: Vec<&str> = ps.iter().map(|p| p.routes.as_str()).collect();
-        let ids: Vec<String> = ps.iter().map(|p| p.id.to_string()).collect();
-        let pairs = if ids.len() == 1 { "pair" } else { "pairs" };
-        format!("routes {} ({pairs} {})", routes.join(", "), ids.join(", "))
-    };
-    Some(format!(
-        "{} were not evaluated; {} are complete and kept: resuming this submission evaluates only the missing routes",
-        describe(&missing),
-        describe(&done)
-    ))
-}
-
-/// What the participant reads for a caught error (`Name: message`, from [`caught_error`]): a
-/// problem with their results in full; anything on our side as a plain sentence with the
-/// error's stable name, its chain (ARNs, table names, endpoints) staying in our logs and in the
-/// submission's record.
-pub fn participant_reason(error: &str) -> String {
-    let name = error.split_once(": ").map_or(error, |(name, _)| name);
-    // The participant's own results: the message names the file, field or route to fix.
-    if lb_domain::results::ResultsError::names().contains(&name) {
-        format!("the evaluation failed: {error}")
-    } else {
-        format!(
-            "the evaluation failed because of an error on the evaluation service's side \
-             ({name}), not because of your agent; the organisers have been alerted"
-        )
-    }
-}
-
 /// Ends one execution.
 pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Result<FinalizeOutput> {
     let state = input.state;
-    let error = caught_error(&state);
+    let error = finalize::caught_error(&state);
     let intake: Option<IntakeOutput> = state
         .get("intake")
         .and_then(|v| serde_json::from_value(v.clone()).ok());
@@ -271,226 +207,68 @@ async fn finish_run<C: Callbacks>(
     let id = submission.submission_id;
     let target = deps.clients.settings.target(submission.phase_id)?;
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
-    let table = SubmissionsTable::new(
-        deps.clients.dynamo.clone(),
-        &target.deployment.submissions_table,
-    );
-
+    let submissions = &target.deployment.submissions_table;
+    let table = SubmissionsTable::new(deps.clients.dynamo.clone(), submissions);
+    let ended = |status: String, reason| FinalizeOutput {
+        status,
+        pipeline_error: error.is_some(),
+        reason,
+    };
     // Only the execution that holds the claim ends the run, once: a stale execution (one a
     // resume superseded) must not delete the new run's Jobs or post its own status, and a
     // repeated Finalize reports what stands instead of doing it again.
     let standing = table.standing(submission.team_id, id).await?;
-    let holder = standing.as_ref().and_then(|s| s.claimed_by.clone());
-    if holder.as_deref() != Some(submission.execution.as_str()) {
-        warn!(
-            submission_id = id,
-            holder = holder.as_deref().unwrap_or("nobody"),
-            "another execution holds the submission; nothing done"
-        );
-        return Ok(FinalizeOutput {
-            status: "SUPERSEDED".into(),
-            pipeline_error: error.is_some(),
-            reason: Some(format!(
-                "execution `{}` holds the submission now",
-                holder.unwrap_or_default()
-            )),
-        });
+    let holder = standing.as_ref().and_then(|s| s.claimed_by.as_deref());
+    if let Some(why) = finalize::superseded(holder, &submission.execution) {
+        warn!(submission_id = id, %why, "nothing done");
+        return Ok(ended("SUPERSEDED".into(), Some(why)));
     }
-    if let Some(stored) = standing
-        .as_ref()
-        .and_then(|s| s.status.clone())
-        .filter(|s| !RecordStatus::is_in_flight(s))
-    {
-        info!(submission_id = id, status = %stored, "already finalized; nothing done");
+    if let Some(standing) = standing.filter(|s| {
+        s.status
+            .as_deref()
+            .is_some_and(|s| !RecordStatus::is_in_flight(s))
+    }) {
+        info!(submission_id = id, status = ?standing.status, "already finalized; nothing done");
         // An earlier attempt may have ended before it gave the place back.
         leave_queue(deps, submission).await?;
-        return Ok(FinalizeOutput {
-            status: stored,
-            pipeline_error: error.is_some(),
-            reason: standing.and_then(|s| s.error),
-        });
+        return Ok(ended(standing.status.unwrap_or_default(), standing.error));
     }
-
-    // Stop the Jobs first: GPUs cost money, and their logcopy makes its last upload on the way out.
-    // Only this execution's Jobs (and unlabelled ones from before the label): a superseded
-    // execution never reaches here (the claim check above), and this is the second guard.
-    let execution = submission.execution.as_str();
-    let cluster = deps.clients.clusters.connect(target.deployment).await?;
-    let deleted = cluster.delete_all(&id.to_string(), Some(execution)).await?;
-    info!(submission_id = id, ?deleted, "jobs deleted");
-    if !cluster
-        .wait_gone(
-            &id.to_string(),
-            Some(execution),
-            deps.delete_wait,
-            Duration::from_secs(2),
-        )
-        .await?
-    {
-        warn!(
-            submission_id = id,
-            "jobs still terminating; results as they are now"
-        );
-    }
-
+    stop_jobs(deps, &target, submission).await?;
     let markers = store.markers().await?;
+    let snapshot = match &run {
+        Some(run) => Some(collect(&store, target.leaderboard, &run.pairs, run.repetitions).await),
+        None => None,
+    };
     let cancelled = run
         .as_ref()
         .is_some_and(|r| r.monitor.state == RunPhase::Cancelled)
         || markers.iter().any(|m| m == CANCEL_MARKER);
-    let snapshot: Option<std::result::Result<Snapshot, FnError>> = match &run {
-        Some(run) => Some(collect(&store, target.leaderboard, &run.pairs, run.repetitions).await),
-        None => None,
-    };
     // The results could not be read for now: retried, unless the outcome does not need them.
     let snapshot = match snapshot {
         Some(Err(e)) if !cancelled && error.is_none() && e.is_transient() => return Err(e),
         other => other,
     };
-    let (mut status, mut reason) = match (&error, &run, &snapshot) {
-        _ if cancelled => (SubmissionStatus::Cancelled, None),
-        (Some(error), _, _) => {
-            warn!(submission_id = id, error = %error, "the run failed");
-            (SubmissionStatus::Failed, Some(participant_reason(error)))
-        }
-        (None, _, Some(Err(e))) if !e.is_transient() => (
-            SubmissionStatus::Failed,
-            Some(format!("the results cannot be used: {}", e.chain())),
-        ),
-        (None, Some(run), Some(Ok(snapshot))) => match run.monitor.state {
-            RunPhase::Finished if snapshot.complete => (SubmissionStatus::Finished, None),
-            RunPhase::Finished => (
-                SubmissionStatus::Failed,
-                Some(format!(
-                    "the evaluation ended with {} of {} routes evaluated",
-                    snapshot.progress.0, snapshot.progress.1
-                )),
-            ),
-            _ => (
-                SubmissionStatus::Failed,
-                Some(
-                    run.monitor
-                        .reason
-                        .clone()
-                        .unwrap_or_else(|| "the evaluation failed".into()),
-                ),
-            ),
-        },
-        _ => (
-            SubmissionStatus::Failed,
-            Some("the evaluation did not start".into()),
-        ),
-    };
-    let snapshot = snapshot.and_then(|s| s.ok());
-    // A pair that gave up leaves its routes missing; its neighbours' are complete and kept.
-    let pairs_note = match (&run, &snapshot) {
-        (Some(run), Some(snapshot)) if status == SubmissionStatus::Failed => {
-            pairs_note(&run.pairs, &snapshot.finished_pairs)
-        }
+    let (outcome, snapshot) = decide(cancelled, error.as_deref(), run.as_ref(), snapshot);
+    let summary = snapshot.as_ref().map_or("", |s| s.files.stdout.as_str());
+    let verdict = qualify(deps, &target, submission, &outcome, snapshot.as_ref()).await?;
+    let stdout = finalize::stdout(outcome.pairs_note.as_deref(), verdict.as_deref(), summary);
+    let tail = match outcome.status {
+        SubmissionStatus::Failed => agent_log_tail(&store, &markers).await,
         _ => None,
     };
-    if let Some(note) = &pairs_note {
-        reason = reason.map(|r| format!("{r}. {note}"));
-    }
-    let metrics: Vec<(&'static str, Num)> = snapshot
-        .as_ref()
-        .map(|s| s.metrics.clone())
-        .unwrap_or_default();
-
-    let mut stdout = snapshot
-        .as_ref()
-        .map(|s| s.files.stdout.clone())
-        .unwrap_or_default();
-    if status == SubmissionStatus::Finished && target.track_settings.qualifier {
-        // As the original: a pass admits the team to the qualifier's target track(s).
-        let qualifier = &target.deployment.qualifier;
-        let targets = qualifier.targets_of(&submission.track);
-        if let Some(first) = targets.first() {
-            let (passed, verdict) = qualifier.verdict(first, &metrics);
-            if passed {
-                let table = QualifierTable::new(
-                    deps.clients.dynamo.clone(),
-                    &target.deployment.qualifier_table,
-                );
-                for track in &targets {
-                    table.admit(submission.team_id, track, id).await?;
-                }
-            }
-            stdout = format!("{verdict}{stdout}");
-        }
-    }
-    if let Some(note) = &pairs_note {
-        stdout = format!("{note}\n\n{stdout}");
-    }
-    // The participant learns why: the reason, then the end of the agent's own output.
-    let mut stderr = reason.clone().unwrap_or_default();
-    if status == SubmissionStatus::Failed {
-        if let Some((pair, tail)) = agent_log_tail(&store, &markers).await {
-            stderr.push_str(&format!(
-                "\n\nThe last lines of agent {pair}'s output:\n{tail}\n"
-            ));
-        }
-    }
-    let outcome = post(
-        deps,
-        SubmissionRef {
-            challenge: submission.challenge_id,
-            phase: submission.phase_id,
-            submission: id,
-        },
-        status,
-        snapshot.as_ref(),
-        stdout,
-        stderr,
-    )
-    .await?;
-    match outcome {
-        WriteOutcome::Cancelled => {
-            status = SubmissionStatus::Cancelled;
-            reason = None;
-        }
-        // EvalAI already holds a final status (an earlier attempt of this Finalize posted it
-        // before failing): that is what stands, and what the record says.
-        WriteOutcome::AlreadyFinal(stands) if stands != status => {
-            warn!(submission_id = id, %stands, computed = %status, "EvalAI's final status stands");
-            if stands == SubmissionStatus::Finished {
-                reason = None;
-            }
-            status = stands;
-        }
-        _ => {}
-    }
-    let record_status = match status {
-        SubmissionStatus::Finished => RecordStatus::Finished,
-        SubmissionStatus::Cancelled => RecordStatus::Cancelled,
-        _ => RecordStatus::Failed,
+    let stderr = finalize::stderr(&outcome, tail.as_ref().map(|(p, t)| (*p, t.as_str())));
+    let at = SubmissionRef {
+        challenge: submission.challenge_id,
+        phase: submission.phase_id,
+        submission: id,
     };
-    let written = table
-        .finish(
-            submission.team_id,
-            id,
-            &submission.execution,
-            &FinalRecord {
-                status: record_status,
-                end_time: clients::now_record_time(),
-                results: store.location(),
-                // Every metric of the leaderboard, as EvalAI got it, `-` where it got none.
-                metrics: target
-                    .leaderboard
-                    .metrics()
-                    .iter()
-                    .map(|m| {
-                        let value = metrics.iter().find(|(a, _)| *a == m.attribute);
-                        (m.attribute, value.map(|(_, v)| v.py_str()))
-                    })
-                    .collect(),
-                progress: snapshot.as_ref().map_or((0, 0), |s| s.progress),
-                // Operators get the whole chain; the participant got `reason`.
-                error: error.clone().or_else(|| reason.clone()),
-            },
-        )
-        .await?;
-    if !written {
+    let posted = post(deps, at, outcome.status, snapshot.as_ref(), stdout, stderr).await?;
+    let outcome = finalize::settle(outcome, posted);
+    let record = final_record(&target, &store, &outcome, snapshot.as_ref(), error.clone());
+    if !table
+        .finish(submission.team_id, id, &submission.execution, &record)
+        .await?
+    {
         // Lost the claim while this ran (a resume claimed it anew): EvalAI had the final word
         // before that; the new execution owns the record.
         warn!(
@@ -500,15 +278,146 @@ async fn finish_run<C: Callbacks>(
     }
     info!(
         submission_id = id,
-        status = record_status.as_str(),
+        status = record.status.as_str(),
         "finalized"
     );
     leave_queue(deps, submission).await?;
-    Ok(FinalizeOutput {
-        status: record_status.as_str().into(),
-        pipeline_error: error.is_some(),
-        reason,
-    })
+    Ok(ended(record.status.as_str().into(), outcome.reason))
+}
+
+/// The final status from what the run left (`lb_domain::finalize::outcome`), and the
+/// results when they could be read.
+fn decide(
+    cancelled: bool,
+    caught: Option<&str>,
+    run: Option<&RunState>,
+    snapshot: Option<Result<Snapshot>>,
+) -> (Outcome, Option<Snapshot>) {
+    if let Some(caught) = caught {
+        warn!(error = %caught, "the run failed");
+    }
+    let problem = match &snapshot {
+        Some(Err(e)) => e.chain(),
+        _ => String::new(),
+    };
+    let pairs: Vec<(u32, &str)> = run
+        .map(|r| r.pairs.iter().map(|p| (p.id, p.routes.as_str())).collect())
+        .unwrap_or_default();
+    let outcome = {
+        let run = match (run, &snapshot) {
+            (Some(run), Some(read)) => Some(finalize::Run {
+                finished: run.monitor.state == RunPhase::Finished,
+                reason: run.monitor.reason.as_deref(),
+                pairs: &pairs,
+                results: match read {
+                    Ok(s) => Ok(finalize::Results {
+                        complete: s.complete,
+                        progress: s.progress,
+                        finished_pairs: &s.finished_pairs,
+                    }),
+                    Err(_) => Err(problem.as_str()),
+                },
+            }),
+            _ => None,
+        };
+        finalize::outcome(&finalize::Facts {
+            cancelled,
+            caught,
+            run,
+        })
+    };
+    (outcome, snapshot.and_then(|s| s.ok()))
+}
+
+/// Stops the Jobs first: GPUs cost money, and their logcopy makes its last upload on the way
+/// out. Only this execution's Jobs (and unlabelled ones from before the label): a superseded
+/// execution never gets here (the claim check), and this is the second guard.
+async fn stop_jobs<C: Callbacks>(
+    deps: &Deps<C>,
+    target: &Target<'_>,
+    submission: &SubmissionInfo,
+) -> Result<()> {
+    let (id, execution) = (
+        submission.submission_id,
+        Some(submission.execution.as_str()),
+    );
+    let cluster = deps.clients.clusters.connect(target.deployment).await?;
+    let deleted = cluster.delete_all(&id.to_string(), execution).await?;
+    info!(submission_id = id, ?deleted, "jobs deleted");
+    let poll = Duration::from_secs(2);
+    if !cluster
+        .wait_gone(&id.to_string(), execution, deps.delete_wait, poll)
+        .await?
+    {
+        warn!(
+            submission_id = id,
+            "jobs still terminating; results as they are now"
+        );
+    }
+    Ok(())
+}
+
+/// A finished qualifier run: as the original, a pass admits the team to the qualifier's target
+/// track(s); the verdict heads the participant's stdout either way.
+async fn qualify<C: Callbacks>(
+    deps: &Deps<C>,
+    target: &Target<'_>,
+    submission: &SubmissionInfo,
+    outcome: &Outcome,
+    snapshot: Option<&Snapshot>,
+) -> Result<Option<String>> {
+    if outcome.status != SubmissionStatus::Finished || !target.track_settings.qualifier {
+        return Ok(None);
+    }
+    let qualifier = &target.deployment.qualifier;
+    let targets = qualifier.targets_of(&submission.track);
+    let Some(first) = targets.first() else {
+        return Ok(None);
+    };
+    let metrics = snapshot.map(|s| s.metrics.as_slice()).unwrap_or_default();
+    let (passed, verdict) = qualifier.verdict(first, metrics);
+    if passed {
+        let table = &target.deployment.qualifier_table;
+        let table = QualifierTable::new(deps.clients.dynamo.clone(), table);
+        for track in &targets {
+            table
+                .admit(submission.team_id, track, submission.submission_id)
+                .await?;
+        }
+    }
+    Ok(Some(verdict))
+}
+
+/// The record Finalize writes: every metric of the leaderboard as EvalAI got it (`-` where it
+/// got none); operators get the whole error chain, the participant got the outcome's reason.
+fn final_record(
+    target: &Target<'_>,
+    store: &SubmissionStore,
+    outcome: &Outcome,
+    snapshot: Option<&Snapshot>,
+    error: Option<String>,
+) -> FinalRecord {
+    let metrics = snapshot.map(|s| s.metrics.as_slice()).unwrap_or_default();
+    FinalRecord {
+        status: match outcome.status {
+            SubmissionStatus::Finished => RecordStatus::Finished,
+            SubmissionStatus::Cancelled => RecordStatus::Cancelled,
+            _ => RecordStatus::Failed,
+        },
+        end_time: clients::now_record_time(),
+        results: store.location(),
+        metrics: target
+            .leaderboard
+            .metrics()
+            .iter()
+            .map(|m| {
+                let value = metrics.iter().find(|(a, _)| *a == m.attribute);
+                (m.attribute, value.map(|(_, v)| v.py_str()))
+            })
+            .collect(),
+        progress: snapshot.map_or((0, 0), |s| s.progress),
+        error: error.or_else(|| outcome.reason.clone()),
+    }
 }
 
 /// Gives the team its place back and takes the submission out of its leaderboard's queue,
@@ -568,21 +477,7 @@ const TAIL_BYTES: u64 = 64 * 1024;
 /// token), so its own output has none of ours to leak. `None` when no agent crashed or its log
 /// cannot be read (the reason alone is posted then).
 async fn agent_log_tail(store: &SubmissionStore, markers: &[String]) -> Option<(u32, String)> {
-    let mut crashes: std::collections::BTreeMap<u32, u32> = Default::default();
-    for name in markers {
-        if let Some(Marker::Crash {
-            role: Role::Agent,
-            pair,
-            ..
-        }) = Marker::parse(name)
-        {
-            *crashes.entry(pair).or_default() += 1;
-        }
-    }
-    let pair = crashes
-        .iter()
-        .max_by_key(|(pair, n)| (**n, std::cmp::Reverse(**pair)))
-        .map(|(pair, _)| *pair)?;
+    let pair = finalize::most_crashed_agent(markers.iter().map(String::as_str))?;
     let key = format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair));
     match store.get_tail(&key, TAIL_BYTES).await {
         Ok(Some(bytes)) => {
@@ -606,7 +501,7 @@ async fn post<C: Callbacks>(
     snapshot: Option<&Snapshot>,
     stdout: String,
     stderr: String,
-) -> Result<WriteOutcome> {
+) -> Result<Posted> {
     let update = FinalUpdate {
         status,
         result: snapshot.map_or_else(|| "[]".to_string(), |s| s.files.results_json()),
@@ -616,63 +511,9 @@ async fn post<C: Callbacks>(
             .and_then(|s| s.files.metadata.clone())
             .unwrap_or_else(|| "{}".into()),
     };
-    Ok(deps.clients.evalai.post_final(at, &update).await?)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_failed_run_names_the_missing_routes_and_the_complete_ones() {
-        let pairs: Vec<PairRoutes> = ["0-4", "5-9", "10-14", "15-19"]
-            .iter()
-            .zip(1..)
-            .map(|(r, id)| PairRoutes {
-                id,
-                routes: (*r).into(),
-            })
-            .collect();
-        assert_eq!(
-            pairs_note(&pairs, &[2, 3, 4]).unwrap(),
-            "routes 0-4 (pair 1) were not evaluated; routes 5-9, 10-14, 15-19 (pairs 2, 3, 4) are complete and kept: resuming this submission evaluates only the missing routes"
-        );
-        assert!(pairs_note(&pairs, &[]).is_none());
-        assert!(pairs_note(&pairs, &[1, 2, 3, 4]).is_none());
-        assert!(pairs_note(&pairs, &[9]).is_none());
-    }
-    use serde_json::json;
-
-    #[test]
-    fn a_caught_lambda_error_reads_as_its_name_and_message() {
-        let state = json!({"error": {"Error": "KubeForbidden",
-            "Cause": "{\"errorType\":\"KubeForbidden\",\"errorMessage\":\"jobs.batch is forbidden\"}"}});
-        assert_eq!(
-            caught_error(&state).unwrap(),
-            "KubeForbidden: jobs.batch is forbidden"
-        );
-        let timeout = json!({"error": {"Error": "States.Timeout", "Cause": ""}});
-        assert_eq!(caught_error(&timeout).unwrap(), "States.Timeout");
-        assert_eq!(caught_error(&json!({})), None);
-    }
-
-    #[test]
-    fn participants_read_their_results_problems_but_never_our_internals() {
-        let ours = "AwsTransient: dynamodb UpdateItem on `leaderboard-20-submissions` \
-                    (arn:aws:iam::123456789012:role/leaderboard-FinalizeRole-X): timed out";
-        let reason = participant_reason(ours);
-        assert!(reason.contains("(AwsTransient)"), "{reason}");
-        for secret in ["arn:aws", "leaderboard-20-submissions", "UpdateItem"] {
-            assert!(!reason.contains(secret), "{reason}");
-        }
-        assert_eq!(
-            participant_reason("States.Timeout"),
-            participant_reason("States.Timeout: ")
-        );
-        let theirs = "ResultsInvalid: `worker1.json` field `_checkpoint.records[3].scores.score_route` is negative";
-        assert_eq!(
-            participant_reason(theirs),
-            format!("the evaluation failed: {theirs}")
-        );
-    }
+    Ok(match deps.clients.evalai.post_final(at, &update).await? {
+        WriteOutcome::Written => Posted::Written,
+        WriteOutcome::Cancelled => Posted::Cancelled,
+        WriteOutcome::AlreadyFinal(stands) => Posted::AlreadyFinal(stands),
+    })
 }

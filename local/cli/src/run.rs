@@ -533,7 +533,11 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         );
     }
     // An error a Catch routed to Finalize: the execution succeeds, the submission failed.
-    if let Some(caught) = result.output.as_ref().and_then(finalize::caught_error) {
+    if let Some(caught) = result
+        .output
+        .as_ref()
+        .and_then(lb_domain::finalize::caught_error)
+    {
         outln!("caught error   {}", clean(&caught));
     }
     outln!("EvalAI status  {status_on_evalai}");
