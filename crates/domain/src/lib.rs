@@ -4,6 +4,7 @@ pub mod errors;
 pub mod finalize;
 pub mod intake;
 pub mod logtail;
+pub mod monitor;
 pub mod plan;
 pub mod protocol;
 pub mod py;

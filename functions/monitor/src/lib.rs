@@ -23,11 +23,11 @@ use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
 use lb_aws::wake::{WakeState, WakeTable, RETENTION_SECONDS};
 use lb_cluster::{Verdict, VerdictPolicy};
+use lb_domain::monitor::{self, StatusRead};
 use lb_domain::protocol::Marker;
 use lb_domain::results::Leaderboard;
-use lb_domain::schedule::{
-    queue_wait, safety_net, MAX_EVALUATION, POLL_WITHOUT_WAKE, STATUS_FALLBACK,
-};
+use lb_domain::schedule::{queue_wait, safety_net, POLL_WITHOUT_WAKE};
+use lb_domain::settings::Target;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{EvalAiError, PartialUpdate, Priority, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
@@ -35,7 +35,7 @@ use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::queue::{self, QUEUE_NOTE_INTERVAL};
 use lb_pipeline::results::{collect_listed, list};
-use lb_pipeline::{FnError, FunctionConfig, Result};
+use lb_pipeline::{FunctionConfig, Result};
 use serde::Deserialize;
 use tracing::{info, warn};
 
@@ -112,19 +112,12 @@ async fn observe(
         queue_limit: Duration::from_secs(deployment.max_queue_hours * 3600),
         ..deps.policy
     };
-    let cluster = deps
-        .clients
-        .clusters
-        .connect(deployment)
-        .await?
-        .with_policy(policy);
-    cluster
-        .observe(&id.to_string())
-        .await
-        .map_err(FnError::from)
+    let cluster = deps.clients.clusters.connect(deployment).await?;
+    Ok(cluster.with_policy(policy).observe(&id.to_string()).await?)
 }
 
-/// One monitor round.
+/// One monitor round: the wake count, the cluster, the queue note, the results and EvalAI's
+/// status, then the cluster's verdict (`lb_domain::monitor` has the round's rules).
 pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     let MonitorInput {
         submission,
@@ -132,75 +125,19 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     } = input;
     let id = submission.submission_id;
     let target = deps.clients.settings.target(submission.phase_id)?;
-    let leaderboard: Leaderboard = target.leaderboard;
     let now = clients::now_epoch_seconds();
-    let elapsed = Duration::from_secs(now.saturating_sub(run.launched_at));
-    let monitor = &mut run.monitor;
-    monitor.rounds += 1;
-    monitor.wait_seconds = safety_net(elapsed).as_secs();
-    monitor.hold_seconds = 0;
-    monitor.poll = false;
-    monitor.expires_at = now + RETENTION_SECONDS;
-
-    // The wake count before anything else: a change after this read makes the next wait end
-    // at once. Unreadable, the next wait is a plain poll (a wait conditional on a count we do
-    // not know could end at once every time).
-    let wake = match deps.wake.state(id).await {
-        Ok(wake) => {
-            monitor.seen = wake.changes;
-            wake
-        }
-        Err(e) if e.is_transient() => {
-            warn!(submission_id = id, error = %e, "wake count not read: polling this time");
-            monitor.poll = true;
-            monitor.wait_seconds = POLL_WITHOUT_WAKE.as_secs();
-            WakeState::default()
-        }
-        Err(e) => return Err(e.into()),
-    };
+    begin_round(&mut run, now);
+    let wake = read_wake(deps, id, &mut run).await?;
     if !run.queue.admitted {
         return waiting_round(deps, &submission, run, wake, target.deployment, now).await;
     }
-
-    // The cluster's API out of reach (a 500, a timeout, DescribeCluster failing) skips the
-    // verdict this round, as an unreachable S3 or EvalAI skips their part: the Jobs run on
-    // without it. Only an outage longer than the setting ends the run.
-    let observation = match observe(deps, target.deployment, id).await {
-        Ok(observation) => {
-            run.monitor.unreachable_since = None;
-            Some(observation.expect_jobs(run.jobs))
-        }
-        Err(e) if e.is_transient() => {
-            let since = *run.monitor.unreachable_since.get_or_insert(now);
-            let outage = Duration::from_secs(now.saturating_sub(since));
-            let bound = Duration::from_secs(target.deployment.max_cluster_outage_hours * 3600);
-            warn!(
-                submission_id = id,
-                error = %e.chain(),
-                outage_seconds = outage.as_secs(),
-                "cluster not reached this round"
-            );
-            if outage >= bound {
-                run.monitor.state = RunPhase::Failed;
-                run.monitor.reason = Some(format!(
-                    "the evaluation cluster could not be reached for {} minutes ({})",
-                    outage.as_secs() / 60,
-                    e.name()
-                ));
-                return Ok(run);
-            }
-            // Its recovery writes nothing to S3: look again at the first outage's pace.
-            run.monitor.wait_seconds = run
-                .monitor
-                .wait_seconds
-                .min(safety_net(Duration::ZERO).as_secs());
-            None
-        }
-        Err(e) => return Err(e),
+    let observation = match observe_round(deps, &target, id, &mut run, now).await? {
+        Seen::Ended => return Ok(run),
+        Seen::Observed(observation) => Some(observation),
+        Seen::Unreachable => None,
     };
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
     let at = submission_ref(&submission);
-
     // The first pair started: now the submission runs, for EvalAI and for the record (before
     // any partial update, which a later `running` would otherwise undo).
     if let Some(observation) = &observation {
@@ -208,39 +145,21 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             mark_started(deps, &submission, observation, &mut run, now).await?;
         }
     }
-    // Its place while its pods wait for a GPU; once it runs, the note goes. (`None`: nothing
-    // to do this round: no queue, no entry, or the queue not read.)
-    let note = match (&deps.clients.admission, run.monitor.started_at) {
-        (Some(table), None) => match queue::ahead_of(table, &submission).await {
-            Ok(ahead) => ahead.map(|ahead| {
-                let text = lb_domain::queue::describe(ahead, lb_domain::queue::Hold::Capacity);
-                Some((ahead, text))
-            }),
-            Err(e) => {
-                warn!(submission_id = id, error = %e, "queue not read this round");
-                None
-            }
-        },
-        (_, Some(_)) if run.queue.shown.is_some() => Some(None),
-        _ => None,
-    };
-    if let Some(note) = note {
-        if show_place(deps, at, &mut run, note, now).await? == Some(SubmissionStatus::Cancelled) {
-            store.put_cancel_marker().await?;
-            run.monitor.state = RunPhase::Cancelled;
-            return Ok(run);
-        }
+    // Only a cancel the note found ends the round here; any other word is left to the rest.
+    let mut evalai_status = queue_note(deps, &submission, at, &mut run, now)
+        .await?
+        .filter(|s| *s == SubmissionStatus::Cancelled);
+    if evalai_status.is_none() {
+        let interval = target.deployment.partial_update_seconds;
+        let (leaderboard, store) = (target.leaderboard, &store);
+        evalai_status =
+            send_changed_results(deps, store, at, leaderboard, &mut run, now, interval).await?;
     }
-
-    let interval = target.deployment.partial_update_seconds;
-    let mut evalai_status =
-        send_changed_results(deps, &store, at, leaderboard, &mut run, now, interval).await?;
     // The status itself: to confirm a cancel the sweep found (a flag an earlier run left is
     // not believed without it), or now and then in case the sweep is not running.
     if evalai_status.is_none() {
         evalai_status = read_status(deps, id, wake.cancel, &mut run, now).await?;
     }
-
     if evalai_status == Some(SubmissionStatus::Cancelled) {
         store.put_cancel_marker().await?;
         info!(
@@ -250,48 +169,161 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         run.monitor.state = RunPhase::Cancelled;
         return Ok(run);
     }
-    let Some(observation) = observation else {
-        return Ok(run);
+    if let Some(observation) = observation {
+        judge(
+            deps,
+            &target,
+            &submission,
+            &store,
+            &mut run,
+            observation.verdict,
+            now,
+        )
+        .await;
+    }
+    Ok(run)
+}
+
+/// A round's defaults: the safety net's timeout for the next wait, no hold, no poll.
+fn begin_round(run: &mut RunState, now: u64) {
+    let elapsed = Duration::from_secs(now.saturating_sub(run.launched_at));
+    let monitor = &mut run.monitor;
+    monitor.rounds += 1;
+    monitor.wait_seconds = safety_net(elapsed).as_secs();
+    monitor.hold_seconds = 0;
+    monitor.poll = false;
+    monitor.expires_at = now + RETENTION_SECONDS;
+}
+
+/// The wake count before anything else: a change after this read makes the next wait end at
+/// once. Unreadable, the next wait is a plain poll (a wait conditional on a count we do not
+/// know could end at once every time).
+async fn read_wake(deps: &Deps, id: u64, run: &mut RunState) -> Result<WakeState> {
+    match deps.wake.state(id).await {
+        Ok(wake) => {
+            run.monitor.seen = wake.changes;
+            Ok(wake)
+        }
+        Err(e) if e.is_transient() => {
+            warn!(submission_id = id, error = %e, "wake count not read: polling this time");
+            run.monitor.poll = true;
+            run.monitor.wait_seconds = POLL_WITHOUT_WAKE.as_secs();
+            Ok(WakeState::default())
+        }
+        Err(e) => Err(e.into()),
+    }
+}
+
+/// What the round saw of the cluster.
+enum Seen {
+    Observed(lb_cluster::Observation),
+    /// Out of reach this round: the verdict is skipped, the Jobs run on without it.
+    Unreachable,
+    /// Out of reach for longer than the leaderboard allows: the run has ended.
+    Ended,
+}
+
+/// The cluster's API out of reach (a 500, a timeout, DescribeCluster failing) skips the
+/// verdict this round, as an unreachable S3 or EvalAI skips their part. Only an outage longer
+/// than the setting ends the run.
+async fn observe_round(
+    deps: &Deps,
+    target: &Target<'_>,
+    id: u64,
+    run: &mut RunState,
+    now: u64,
+) -> Result<Seen> {
+    let e = match observe(deps, target.deployment, id).await {
+        Ok(observation) => {
+            run.monitor.unreachable_since = None;
+            return Ok(Seen::Observed(observation.expect_jobs(run.jobs)));
+        }
+        Err(e) if e.is_transient() => e,
+        Err(e) => return Err(e),
     };
-    match observation.verdict {
-        // The evaluation's own time counts from its start, not from the queue.
-        Verdict::Running
-            if run
-                .monitor
-                .started_at
-                .is_some_and(|t| now.saturating_sub(t) > MAX_EVALUATION.as_secs()) =>
-        {
-            run.monitor.state = RunPhase::Failed;
-            run.monitor.reason = Some(format!(
-                "the evaluation ran longer than the {} hours allowed",
-                MAX_EVALUATION.as_secs() / 3600
-            ));
-        }
-        // Queued: waiting for capacity is no failure, and the record stays as Intake wrote it.
-        Verdict::Running if run.monitor.started_at.is_none() => {}
-        Verdict::Running => {
-            let table = SubmissionsTable::new(
-                deps.clients.dynamo.clone(),
-                &target.deployment.submissions_table,
-            );
-            if let Err(e) = table
-                .mark_running(
-                    submission.team_id,
-                    id,
-                    &clients::now_record_time(),
-                    &store.location(),
-                    run.monitor.progress,
-                )
-                .await
-            {
-                warn!(submission_id = id, error = %e, "progress not recorded this round");
+    let since = *run.monitor.unreachable_since.get_or_insert(now);
+    warn!(submission_id = id, error = %e.chain(), outage_seconds = now.saturating_sub(since), "cluster not reached this round");
+    let bound = target.deployment.max_cluster_outage_hours;
+    if let Some(reason) = monitor::outage_ends_run(since, now, bound, e.name()) {
+        run.monitor.state = RunPhase::Failed;
+        run.monitor.reason = Some(reason);
+        return Ok(Seen::Ended);
+    }
+    // Its recovery writes nothing to S3: look again at the first outage's pace.
+    let first_pace = safety_net(Duration::ZERO).as_secs();
+    run.monitor.wait_seconds = run.monitor.wait_seconds.min(first_pace);
+    Ok(Seen::Unreachable)
+}
+
+/// Its place while its pods wait for a GPU; once it runs, the note goes. Returns the status
+/// EvalAI refused the note for (cancelled, ended), if it did.
+async fn queue_note(
+    deps: &Deps,
+    submission: &SubmissionInfo,
+    at: SubmissionRef,
+    run: &mut RunState,
+    now: u64,
+) -> Result<Option<SubmissionStatus>> {
+    // `None`: nothing to do this round (no queue, no entry, or the queue not read).
+    let note = match (&deps.clients.admission, run.monitor.started_at) {
+        (Some(table), None) => match queue::ahead_of(table, submission).await {
+            Ok(ahead) => ahead.map(|ahead| {
+                let text = lb_domain::queue::describe(ahead, lb_domain::queue::Hold::Capacity);
+                Some((ahead, text))
+            }),
+            Err(e) => {
+                warn!(submission_id = at.submission, error = %e, "queue not read this round");
+                None
             }
-            // Every Job's logcopy is done (its last upload is in): the Jobs complete within
-            // seconds, and nothing more will land in S3 to wake us.
-            if ending(&store, run.jobs, run.launched_at).await {
-                run.monitor.wait_seconds = run.monitor.wait_seconds.min(ENDING_POLL.as_secs());
+        },
+        (_, Some(_)) if run.queue.shown.is_some() => Some(None),
+        _ => None,
+    };
+    match note {
+        Some(note) => show_place(deps, at, run, note, now).await,
+        None => Ok(None),
+    }
+}
+
+/// The cluster's verdict on a run whose status did not end it: too long, still queued,
+/// running (progress recorded), finished or failed.
+async fn judge(
+    deps: &Deps,
+    target: &Target<'_>,
+    submission: &SubmissionInfo,
+    store: &SubmissionStore,
+    run: &mut RunState,
+    verdict: Verdict,
+    now: u64,
+) {
+    let id = submission.submission_id;
+    match verdict {
+        Verdict::Running => match (
+            run.monitor.started_at,
+            monitor::overran(run.monitor.started_at, now),
+        ) {
+            (_, Some(reason)) => {
+                run.monitor.state = RunPhase::Failed;
+                run.monitor.reason = Some(reason);
             }
-        }
+            // Queued: waiting for capacity is no failure, and the record stays as Intake wrote it.
+            (None, None) => {}
+            (Some(_), None) => {
+                let table = &target.deployment.submissions_table;
+                let table = SubmissionsTable::new(deps.clients.dynamo.clone(), table);
+                let (time, location) = (clients::now_record_time(), store.location());
+                let progress = run.monitor.progress;
+                let marked = table.mark_running(submission.team_id, id, &time, &location, progress);
+                if let Err(e) = marked.await {
+                    warn!(submission_id = id, error = %e, "progress not recorded this round");
+                }
+                // Every Job's logcopy is done (its last upload is in): the Jobs complete within
+                // seconds, and nothing more will land in S3 to wake us.
+                if ending(store, run.jobs, run.launched_at).await {
+                    run.monitor.wait_seconds = run.monitor.wait_seconds.min(ENDING_POLL.as_secs());
+                }
+            }
+        },
         Verdict::Finished => run.monitor.state = RunPhase::Finished,
         Verdict::Failed { kind, message, .. } => {
             info!(submission_id = id, kind = kind.name(), %message, "run failed");
@@ -299,7 +331,6 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             run.monitor.reason = Some(message);
         }
     }
-    Ok(run)
 }
 
 /// The status on EvalAI, when a cancel the sweep flagged is to be confirmed or the fallback
@@ -311,26 +342,14 @@ async fn read_status(
     run: &mut RunState,
     now: u64,
 ) -> Result<Option<SubmissionStatus>> {
-    let fallback_due = run
-        .monitor
-        .status_read_at
-        .is_none_or(|t| now.saturating_sub(t) >= STATUS_FALLBACK.as_secs());
-    if !(cancel_flagged || fallback_due) {
-        return Ok(None);
-    }
     // A cancel to confirm goes ahead of partial updates; the fallback yields to them.
-    let priority = if cancel_flagged {
-        Priority::Urgent
-    } else {
-        Priority::Routine
+    let priority = match monitor::status_read(cancel_flagged, run.monitor.status_read_at, now) {
+        None => return Ok(None),
+        Some(StatusRead::ConfirmCancel) => Priority::Urgent,
+        Some(StatusRead::Fallback) => Priority::Routine,
     };
-    match deps
-        .clients
-        .evalai
-        .with_priority(priority)
-        .submission(id)
-        .await
-    {
+    let evalai = deps.clients.evalai.with_priority(priority);
+    match evalai.submission(id).await {
         Ok(current) => {
             run.monitor.status_read_at = Some(now);
             Ok(Some(current.status))
@@ -376,13 +395,10 @@ async fn waiting_round(
         return Ok(run);
     }
     let limit = deployment.team_limit;
-    if waited >= deployment.max_queue_hours * 3600 {
+    if let Some(reason) = monitor::queue_limit_ends_wait(waited, deployment.max_queue_hours, limit)
+    {
         run.monitor.state = RunPhase::Failed;
-        run.monitor.reason = Some(format!(
-            "the evaluation waited {} minutes for its turn, longer than this leaderboard's queue limit of {} hours (a team holds at most {limit} evaluations at once, and your team's were still in progress); it was not started and used none of your time: please submit again later",
-            waited / 60,
-            deployment.max_queue_hours
-        ));
+        run.monitor.reason = Some(reason);
         return Ok(run);
     }
     let Some(table) = &deps.clients.admission else {
@@ -499,10 +515,9 @@ async fn send_changed_results(
     {
         return Ok(None);
     }
-    let since_update = run.monitor.updated_at.map(|t| now.saturating_sub(t));
-    if let Some(since) = since_update.filter(|&since| since < interval) {
+    if let Err(wait) = monitor::partial_update_due(run.monitor.updated_at, now, interval) {
         // Too soon (a round the hold did not cover): the wait ends when it may go.
-        run.monitor.wait_seconds = run.monitor.wait_seconds.min((interval - since).max(1));
+        run.monitor.wait_seconds = run.monitor.wait_seconds.min(wait.as_secs());
         return Ok(None);
     }
     let current = listing.fingerprint.clone();

@@ -1,0 +1,158 @@
+//! A Monitor round's policy: when an unreachable cluster, a long queue or a long evaluation
+//! ends the run and what the participant reads then, when EvalAI's status is read, and when
+//! the round's results go out. The Monitor fetches the facts and acts on these.
+
+use std::time::Duration;
+
+use crate::schedule::{MAX_EVALUATION, STATUS_FALLBACK};
+
+/// Why the run ends after the cluster's API was out of reach since `since` (epoch seconds):
+/// only an outage of `bound_hours` or more does; a shorter one skips the round's verdict while
+/// the Jobs run on. `error` is the last error's stable name.
+pub fn outage_ends_run(since: u64, now: u64, bound_hours: u64, error: &str) -> Option<String> {
+    let outage = now.saturating_sub(since);
+    (outage >= bound_hours * 3600).then(|| {
+        format!(
+            "the evaluation cluster could not be reached for {} minutes ({error})",
+            outage / 60
+        )
+    })
+}
+
+/// Why a submission its team's cap held back ends after waiting `waited` seconds for its turn:
+/// only a wait of `max_queue_hours` or more does, and it used none of the participant's time.
+pub fn queue_limit_ends_wait(waited: u64, max_queue_hours: u64, team_limit: u32) -> Option<String> {
+    (waited >= max_queue_hours * 3600).then(|| {
+        format!(
+            "the evaluation waited {} minutes for its turn, longer than this leaderboard's queue \
+             limit of {max_queue_hours} hours (a team holds at most {team_limit} evaluations at \
+             once, and your team's were still in progress); it was not started and used none of \
+             your time: please submit again later",
+            waited / 60
+        )
+    })
+}
+
+/// Why a running evaluation ends: it ran longer than [`MAX_EVALUATION`], counted from its start
+/// (time spent queued is not the participant's).
+pub fn overran(started_at: Option<u64>, now: u64) -> Option<String> {
+    started_at
+        .filter(|&t| now.saturating_sub(t) > MAX_EVALUATION.as_secs())
+        .map(|_| {
+            format!(
+                "the evaluation ran longer than the {} hours allowed",
+                MAX_EVALUATION.as_secs() / 3600
+            )
+        })
+}
+
+/// Why EvalAI's status is read this round, if it is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StatusRead {
+    /// The sweep flagged a cancel: confirmed before any partial update (urgent).
+    ConfirmCancel,
+    /// The last read is [`STATUS_FALLBACK`] old, in case the sweep is down (routine).
+    Fallback,
+}
+
+/// Whether this round reads EvalAI's status, and why.
+pub fn status_read(cancel_flagged: bool, last_read: Option<u64>, now: u64) -> Option<StatusRead> {
+    if cancel_flagged {
+        return Some(StatusRead::ConfirmCancel);
+    }
+    last_read
+        .is_none_or(|t| now.saturating_sub(t) >= STATUS_FALLBACK.as_secs())
+        .then_some(StatusRead::Fallback)
+}
+
+/// When changed results may go to EvalAI: at once, or after `wait` (the last partial update
+/// was sent less than `interval` seconds ago; the next wait ends when it may go).
+pub fn partial_update_due(
+    last_update: Option<u64>,
+    now: u64,
+    interval: u64,
+) -> Result<(), Duration> {
+    match last_update.map(|t| now.saturating_sub(t)) {
+        Some(since) if since < interval => Err(Duration::from_secs((interval - since).max(1))),
+        _ => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const HOUR: u64 = 3600;
+
+    #[test]
+    fn only_an_outage_as_long_as_the_bound_ends_the_run() {
+        for (since, now, ends) in [
+            (0, 6 * HOUR - 1, false),
+            (0, 6 * HOUR, true),
+            (100, 50, false),
+        ] {
+            let reason = outage_ends_run(since, now, 6, "KubeUnavailable");
+            assert_eq!(reason.is_some(), ends, "{since} {now}");
+        }
+        assert_eq!(
+            outage_ends_run(0, 6 * HOUR, 6, "KubeTimeout").unwrap(),
+            "the evaluation cluster could not be reached for 360 minutes (KubeTimeout)"
+        );
+    }
+
+    #[test]
+    fn a_wait_for_the_turn_ends_at_the_queue_limit_and_says_no_time_was_used() {
+        assert_eq!(queue_limit_ends_wait(24 * HOUR - 1, 24, 2), None);
+        let reason = queue_limit_ends_wait(24 * HOUR, 24, 2).unwrap();
+        assert!(
+            reason.starts_with("the evaluation waited 1440 minutes"),
+            "{reason}"
+        );
+        assert!(reason.contains("at most 2 evaluations"), "{reason}");
+        assert!(reason.contains("used none of your time"), "{reason}");
+    }
+
+    #[test]
+    fn the_evaluation_s_time_counts_from_its_start_not_from_the_queue() {
+        let max = MAX_EVALUATION.as_secs();
+        assert_eq!(overran(None, 10 * max), None);
+        assert_eq!(overran(Some(100), 100 + max), None);
+        assert!(overran(Some(100), 101 + max).unwrap().contains("72 hours"));
+    }
+
+    #[test]
+    fn the_status_is_read_to_confirm_a_cancel_or_when_the_fallback_is_due() {
+        let fallback = STATUS_FALLBACK.as_secs();
+        for (flagged, last, now, expected) in [
+            (true, Some(1000), 1000, Some(StatusRead::ConfirmCancel)),
+            (false, None, 1000, Some(StatusRead::Fallback)),
+            (false, Some(1000), 1000 + fallback - 1, None),
+            (
+                false,
+                Some(1000),
+                1000 + fallback,
+                Some(StatusRead::Fallback),
+            ),
+        ] {
+            assert_eq!(
+                status_read(flagged, last, now),
+                expected,
+                "{flagged} {last:?} {now}"
+            );
+        }
+    }
+
+    #[test]
+    fn changed_results_wait_out_the_interval_since_the_last_update() {
+        assert_eq!(partial_update_due(None, 100, 20), Ok(()));
+        assert_eq!(partial_update_due(Some(80), 100, 20), Ok(()));
+        assert_eq!(
+            partial_update_due(Some(95), 100, 20),
+            Err(Duration::from_secs(15))
+        );
+        assert_eq!(
+            partial_update_due(Some(100), 100, 20),
+            Err(Duration::from_secs(20))
+        );
+    }
+}
