@@ -1,5 +1,7 @@
 //! Pure domain core of the CARLA Leaderboard evaluation backend: no AWS, Kubernetes or Lambda.
 
+pub mod autoscaler;
+pub mod cluster;
 pub mod errors;
 pub mod finalize;
 pub mod intake;

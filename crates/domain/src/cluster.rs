@@ -1,0 +1,982 @@
+//! The cluster as the pipeline judges it: each Job, pod and container of a submission as a
+//! view, and the one verdict the Monitor acts on (keep waiting, finished, or failed with a
+//! message the participant can act on). `lb_cluster::observe` maps the API objects into these.
+
+use std::time::Duration;
+
+use jiff::Timestamp;
+use serde::{Deserialize, Serialize};
+
+use crate::autoscaler::{Outlook, ScaleUpWord};
+
+/// Waiting reasons that mean an image will not arrive by waiting.
+const PULL_FAILURES: [&str; 4] = [
+    "ErrImagePull",
+    "ImagePullBackOff",
+    "InvalidImageName",
+    "ErrImageNeverPull",
+];
+
+/// Waiting reasons of a container whose configuration the kubelet cannot apply.
+const CONFIG_FAILURES: [&str; 2] = ["CreateContainerConfigError", "CreateContainerError"];
+
+/// Phrases of a pull failure caused by registry throttling, which goes away by itself.
+const THROTTLED_PULL: [&str; 3] = ["toomanyrequests", "429 too many requests", "rate limit"];
+
+/// The Job condition reason of a Job whose pods failed more often than its `backoffLimit`.
+const OUT_OF_RETRIES: &str = "BackoffLimitExceeded";
+
+/// Longest piece of a Kubernetes message copied into a participant message.
+const MAX_QUOTED: usize = 600;
+
+/// How patient the verdict is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct VerdictPolicy {
+    /// A pod unschedulable for this long makes the submission hopeless. Generous by default:
+    /// the cluster autoscaler needs minutes to add a GPU node, longer when capacity is short.
+    pub unschedulable_limit: Duration,
+    /// How long a pod may wait for capacity (`Insufficient nvidia.com/gpu`, `cpu`, `memory`,
+    /// `Too many pods`: what frees up or what the autoscaler adds): a full cluster is a queue,
+    /// and only this bound (a leaderboard setting, `max_queue_hours`) ends the wait.
+    pub queue_limit: Duration,
+    /// A container that cannot be created (`CreateContainerConfigError`: a missing Secret or
+    /// ConfigMap, an unsupported volume) this long after its pod started makes the submission
+    /// hopeless; Kubernetes retries forever, so without this the Job would hold its node
+    /// until the deadline.
+    pub config_error_limit: Duration,
+    /// How long a pod waits before the Cluster Autoscaler's word that no node group could ever
+    /// hold it is believed: the autoscaler re-simulates every 10 s, and a node group's
+    /// template can be incomplete just after a node joined (its GPUs not yet advertised).
+    pub never_fits_grace: Duration,
+}
+
+impl Default for VerdictPolicy {
+    fn default() -> Self {
+        VerdictPolicy {
+            unschedulable_limit: Duration::from_secs(30 * 60),
+            queue_limit: Duration::from_secs(24 * 3600),
+            config_error_limit: Duration::from_secs(10 * 60),
+            never_fits_grace: Duration::from_secs(5 * 60),
+        }
+    }
+}
+
+/// Everything the pipeline needs to know about a submission's Jobs at one instant.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Observation {
+    /// The EvalAI submission id.
+    pub submission_id: String,
+    /// When the mapping was made (the clock that measured unschedulable durations).
+    pub observed_at: Timestamp,
+    /// The submission's Jobs, by index then name, each with its Pods.
+    pub jobs: Vec<JobView>,
+    /// Pods labelled with the submission whose Job is not among `jobs` (leftovers of a
+    /// deleted Job). They never decide the verdict.
+    pub stray_pods: Vec<PodView>,
+    /// What the Monitor should do.
+    pub verdict: Verdict,
+}
+
+/// One Job.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobView {
+    /// Its name.
+    pub name: String,
+    /// The `job-index` label, when it is a number.
+    pub index: Option<u32>,
+    /// Where it is in its life.
+    pub state: JobState,
+    /// Pods running now (`status.active`).
+    pub active: i32,
+    /// Pods ready now (`status.ready`).
+    pub ready: i32,
+    /// Pods that succeeded.
+    pub succeeded: i32,
+    /// Pods that failed (a container restart in place does not count, a pod replacement does).
+    pub failed: i32,
+    /// When the Job controller started it.
+    pub start_time: Option<Timestamp>,
+    /// When it completed.
+    pub completion_time: Option<Timestamp>,
+    /// Whether it is being deleted.
+    pub terminating: bool,
+    /// Its Pods, by name.
+    pub pods: Vec<PodView>,
+}
+
+/// Life stage of a Job, from its conditions.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "state")]
+pub enum JobState {
+    /// Created, no pod running yet.
+    Pending,
+    /// At least one pod active.
+    Running,
+    /// `spec.suspend` is set: nothing runs until someone resumes it.
+    Suspended,
+    /// `Complete` (or `SuccessCriteriaMet`, while its pods finish terminating).
+    Complete,
+    /// `Failed` (or `FailureTarget`, while its pods are being terminated).
+    Failed {
+        /// The condition reason: `BackoffLimitExceeded`, `DeadlineExceeded`, ...
+        reason: String,
+        /// The condition message.
+        message: String,
+    },
+}
+
+/// One Pod.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PodView {
+    /// Its name.
+    pub name: String,
+    /// The Job it belongs to (owner reference or `job-name` label).
+    pub job: Option<String>,
+    /// `Pending`, `Running`, `Succeeded`, `Failed` or `Unknown`.
+    pub phase: String,
+    /// `status.reason`, e.g. `Evicted`.
+    pub reason: Option<String>,
+    /// `status.message`.
+    pub message: Option<String>,
+    /// The node it runs on.
+    pub node: Option<String>,
+    /// When the kubelet accepted it.
+    pub start_time: Option<Timestamp>,
+    /// Whether it is being deleted.
+    pub terminating: bool,
+    /// Its uid.
+    #[serde(default)]
+    pub uid: Option<String>,
+    /// The instance type its `nodeSelector` asks for.
+    #[serde(default)]
+    pub instance_type: Option<String>,
+    /// Set while the scheduler cannot place it.
+    pub unschedulable: Option<Unschedulable>,
+    /// The Cluster Autoscaler's latest word on it, when asked (see [`needs_autoscaler_word`]).
+    #[serde(default)]
+    pub autoscaler: Option<ScaleUpWord>,
+    /// Init containers, then containers, in spec order.
+    pub containers: Vec<ContainerView>,
+}
+
+/// The scheduler's complaint about a pod.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Unschedulable {
+    /// Since when (`lastTransitionTime` of `PodScheduled`), when known.
+    pub since: Option<Timestamp>,
+    /// The scheduler's message (`0/3 nodes are available: ...`).
+    pub message: String,
+}
+
+/// One container of a pod.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ContainerView {
+    /// Its name (`simulator-1`, `agent-1`, `logcopy`, `private-contents`).
+    pub name: String,
+    /// The image as the spec names it.
+    pub image: String,
+    /// Whether it is an init container.
+    pub init: bool,
+    /// What it is doing now.
+    pub state: ContainerState,
+    /// Whether it passes its readiness check.
+    pub ready: bool,
+    /// How often the kubelet restarted it in place.
+    pub restart_count: i32,
+    /// How its previous run ended.
+    pub last_exit: Option<Exit>,
+}
+
+/// A container's current state.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "state")]
+pub enum ContainerState {
+    /// No status yet (the pod is not scheduled, or the kubelet has not reported).
+    NotCreated,
+    /// Waiting: `ContainerCreating`, `PodInitializing`, `CrashLoopBackOff`, `ImagePullBackOff`, ...
+    Waiting {
+        /// The kubelet's reason.
+        reason: String,
+        /// The kubelet's message.
+        message: Option<String>,
+    },
+    /// Running.
+    Running {
+        /// Since when.
+        started_at: Option<Timestamp>,
+    },
+    /// Ended.
+    Terminated(Exit),
+}
+
+/// How a container run ended.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Exit {
+    /// Exit code.
+    pub exit_code: i32,
+    /// `Completed`, `Error`, `OOMKilled`, ...
+    pub reason: Option<String>,
+    /// Termination message.
+    pub message: Option<String>,
+    /// When.
+    pub finished_at: Option<Timestamp>,
+}
+
+/// What the Monitor should do about the submission.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "verdict")]
+pub enum Verdict {
+    /// Keep waiting: pending, running, restarting.
+    Running,
+    /// Every Job is complete.
+    Finished,
+    /// Nothing good will come from waiting.
+    Failed {
+        /// Why, as a stable name.
+        kind: FailureKind,
+        /// The Job concerned, when one is.
+        job: Option<String>,
+        /// The container concerned, when one is.
+        container: Option<String>,
+        /// A message the participant can read and act on.
+        message: String,
+    },
+}
+
+impl Verdict {
+    /// Whether the submission's Jobs will not change by themselves any more.
+    pub fn is_terminal(&self) -> bool {
+        !matches!(self, Verdict::Running)
+    }
+}
+
+/// Why a submission failed, as the Monitor sees it from Kubernetes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum FailureKind {
+    /// The participant's image cannot be pulled or is not a valid reference.
+    ParticipantImagePull,
+    /// One of the evaluation's own images cannot be pulled.
+    InfrastructureImagePull,
+    /// A container cannot be created (its configuration refers to something missing).
+    ContainerConfig,
+    /// A pod stayed unschedulable longer than the policy allows.
+    Unschedulable,
+    /// The Cluster Autoscaler found no node group a new node of which could hold a pod (no
+    /// group offers the instance type, or the request is larger than its nodes).
+    NoNodeFits,
+    /// A Job failed more often than its backoff limit.
+    BackoffLimitExceeded,
+    /// A Job ran longer than its active deadline.
+    DeadlineExceeded,
+    /// A Job failed for another reason.
+    JobFailed,
+    /// A Job of the submission does not exist.
+    JobsMissing,
+}
+
+impl FailureKind {
+    /// The stable PascalCase name.
+    pub fn name(self) -> &'static str {
+        match self {
+            FailureKind::ParticipantImagePull => "ParticipantImagePull",
+            FailureKind::InfrastructureImagePull => "InfrastructureImagePull",
+            FailureKind::ContainerConfig => "ContainerConfig",
+            FailureKind::Unschedulable => "Unschedulable",
+            FailureKind::NoNodeFits => "NoNodeFits",
+            FailureKind::BackoffLimitExceeded => "BackoffLimitExceeded",
+            FailureKind::DeadlineExceeded => "DeadlineExceeded",
+            FailureKind::JobFailed => "JobFailed",
+            FailureKind::JobsMissing => "JobsMissing",
+        }
+    }
+}
+
+impl Observation {
+    /// Container restarts across every Job's pods.
+    pub fn restarts(&self) -> i64 {
+        self.jobs
+            .iter()
+            .flat_map(|j| &j.pods)
+            .flat_map(|p| &p.containers)
+            .map(|c| i64::from(c.restart_count.max(0)))
+            .sum()
+    }
+
+    /// When the first Job started, if any has.
+    pub fn started_at(&self) -> Option<Timestamp> {
+        self.jobs.iter().filter_map(|j| j.start_time).min()
+    }
+
+    /// Fails a verdict that is not already failed when a Job index below `count` is absent
+    /// (deleted outside the pipeline, or never created): `Finished` over half the Jobs is not
+    /// a finished submission.
+    pub fn expect_jobs(mut self, count: u32) -> Self {
+        if matches!(self.verdict, Verdict::Failed { .. }) {
+            return self;
+        }
+        let missing: Vec<String> = (0..count)
+            .filter(|i| !self.jobs.iter().any(|j| j.index == Some(*i)))
+            .map(|i| i.to_string())
+            .collect();
+        if !missing.is_empty() {
+            self.verdict = Verdict::Failed {
+                kind: FailureKind::JobsMissing,
+                job: None,
+                container: None,
+                message: format!(
+                    "the evaluation stopped unexpectedly: its Kubernetes Job(s) with index {} of {count} no longer exist",
+                    missing.join(", ")
+                ),
+            };
+        }
+        self
+    }
+}
+
+/// The verdict on a submission's Jobs (with their pods) at `now`: an image that cannot be
+/// pulled (the participant's first: the one failure they can fix), a Job failed for another
+/// reason than its retries, a container that cannot be created, a pod no node takes, then how
+/// the Jobs ended.
+pub fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verdict {
+    if jobs.is_empty() {
+        return Verdict::Failed {
+            kind: FailureKind::JobsMissing,
+            job: None,
+            container: None,
+            message: "the evaluation stopped unexpectedly: its Kubernetes Jobs no longer exist"
+                .into(),
+        };
+    }
+    if let Some(failed) = pull_failure(jobs) {
+        return failed;
+    }
+    // One Job per pair, each with its own backoffLimit: a Job out of retries is one pair
+    // giving up, and its neighbours go on; the submission ends when they have (below).
+    if let Some(job) = jobs
+        .iter()
+        .find(|j| matches!(&j.state, JobState::Failed { reason, .. } if reason != OUT_OF_RETRIES))
+    {
+        return job_failed(job);
+    }
+    if let Some(failed) = config_failure(jobs, now, policy) {
+        return failed;
+    }
+    if let Some(failed) = unschedulable_too_long(jobs, now, policy) {
+        return failed;
+    }
+    if jobs.iter().all(|j| j.state == JobState::Complete) {
+        Verdict::Finished
+    } else if jobs
+        .iter()
+        .all(|j| matches!(j.state, JobState::Complete | JobState::Failed { .. }))
+    {
+        pairs_gave_up(jobs)
+    } else {
+        Verdict::Running
+    }
+}
+
+/// The pods that can still make progress, with their Jobs: a finished or dying Job's pods say
+/// nothing about the future.
+fn live(jobs: &[JobView]) -> impl Iterator<Item = (&JobView, &PodView)> {
+    jobs.iter()
+        .filter(|j| {
+            !j.terminating && !matches!(j.state, JobState::Complete | JobState::Failed { .. })
+        })
+        .flat_map(|j| j.pods.iter().map(move |p| (j, p)))
+        .filter(|(_, p)| !p.terminating && matches!(p.phase.as_str(), "Pending" | "Running"))
+}
+
+/// `reason: message`, the message quoted, or the reason alone.
+fn detail(reason: &str, message: Option<&str>) -> String {
+    match message {
+        Some(m) if !m.is_empty() => format!("{reason}: {}", quote(m)),
+        _ => reason.to_string(),
+    }
+}
+
+/// An image that will not arrive by waiting: the participant's first, then ours.
+fn pull_failure(jobs: &[JobView]) -> Option<Verdict> {
+    let mut infra_pull = None;
+    for (job, pod) in live(jobs) {
+        for c in &pod.containers {
+            let ContainerState::Waiting { reason, message } = &c.state else {
+                continue;
+            };
+            if !PULL_FAILURES.contains(&reason.as_str()) || is_throttled(message.as_deref()) {
+                continue;
+            }
+            let detail = detail(reason, message.as_deref());
+            if is_participant(&c.name) {
+                let message = if reason == "InvalidImageName" {
+                    format!(
+                        "the submitted image `{}` is not a valid image reference ({detail}); check the image URI you pushed to EvalAI",
+                        c.image
+                    )
+                } else {
+                    format!(
+                        "the submitted image `{}` could not be pulled ({detail}); check that the image URI is correct and that the image was pushed (and is readable by the evaluation cluster)",
+                        c.image
+                    )
+                };
+                return Some(Verdict::Failed {
+                    kind: FailureKind::ParticipantImagePull,
+                    job: Some(job.name.clone()),
+                    container: Some(c.name.clone()),
+                    message,
+                });
+            }
+            infra_pull.get_or_insert_with(|| Verdict::Failed {
+                kind: FailureKind::InfrastructureImagePull,
+                job: Some(job.name.clone()),
+                container: Some(c.name.clone()),
+                message: format!(
+                    "the evaluation could not start: the organizers' image `{}` of container `{}` could not be pulled ({detail}); this is not a problem with your submission",
+                    c.image, c.name
+                ),
+            });
+        }
+    }
+    infra_pull
+}
+
+/// A container the kubelet cannot create, past the policy's limit since its pod started.
+fn config_failure(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Option<Verdict> {
+    for (job, pod) in live(jobs) {
+        let Some(started) = pod.start_time else {
+            continue;
+        };
+        if !waited_at_least(now, started, policy.config_error_limit) {
+            continue;
+        }
+        for c in &pod.containers {
+            let ContainerState::Waiting { reason, message } = &c.state else {
+                continue;
+            };
+            if CONFIG_FAILURES.contains(&reason.as_str()) {
+                return Some(Verdict::Failed {
+                    kind: FailureKind::ContainerConfig,
+                    job: Some(job.name.clone()),
+                    container: Some(c.name.clone()),
+                    message: format!(
+                        "the evaluation could not start: container `{}` could not be created ({}); this is not a problem with your submission",
+                        c.name,
+                        detail(reason, message.as_deref())
+                    ),
+                });
+            }
+        }
+    }
+    None
+}
+
+/// A pod no new node could hold (the autoscaler's word), or one unschedulable longer than its
+/// limit: the queue limit when it waits for capacity, the unschedulable limit otherwise.
+fn unschedulable_too_long(
+    jobs: &[JobView],
+    now: Timestamp,
+    policy: &VerdictPolicy,
+) -> Option<Verdict> {
+    for (job, pod) in live(jobs) {
+        let Some(u) = &pod.unschedulable else {
+            continue;
+        };
+        let Some(since) = u.since else { continue };
+        if let Some(verdict) = never_fits(job, pod, since, now, policy) {
+            return Some(verdict);
+        }
+        let capacity = waits_for_capacity(&u.message);
+        let limit = if capacity {
+            policy.queue_limit
+        } else {
+            policy.unschedulable_limit
+        };
+        if !waited_at_least(now, since, limit) {
+            continue;
+        }
+        let waited = now.as_second().saturating_sub(since.as_second());
+        let message = if capacity {
+            format!(
+                "the evaluation waited {} minutes for free capacity on the cluster, longer than this leaderboard's queue limit of {} hours ({}); it was not started and used none of your time: please submit again later",
+                waited / 60,
+                limit.as_secs() / 3600,
+                quote(&u.message)
+            )
+        } else {
+            format!(
+                "the evaluation could not be scheduled on the cluster for {} minutes ({}); please try again later or contact the organizers",
+                waited / 60,
+                quote(&u.message)
+            )
+        };
+        return Some(Verdict::Failed {
+            kind: FailureKind::Unschedulable,
+            job: Some(job.name.clone()),
+            container: None,
+            message,
+        });
+    }
+    None
+}
+
+/// The failure of a pod unschedulable since `since` that the Cluster Autoscaler says no new
+/// node could hold, once the grace has passed and the word is about this wait.
+fn never_fits(
+    job: &JobView,
+    pod: &PodView,
+    since: Timestamp,
+    now: Timestamp,
+    policy: &VerdictPolicy,
+) -> Option<Verdict> {
+    let word = pod.autoscaler.as_ref()?;
+    let Outlook::Never { reasons } = word.outlook() else {
+        return None;
+    };
+    // NB: a word from before this wait began (an older scheduling attempt) says nothing now.
+    if word.at.is_some_and(|at| at < since) || !waited_at_least(now, since, policy.never_fits_grace)
+    {
+        return None;
+    }
+    let selector = reasons
+        .iter()
+        .any(|r| r.contains("didn't match Pod's node affinity/selector"));
+    let too_large: Vec<&str> = reasons
+        .iter()
+        .filter_map(|r| r.split_once("Insufficient ").map(|(_, what)| what))
+        .collect();
+    let what = match (&pod.instance_type, selector) {
+        (Some(instance_type), true) => format!(
+            "no node group of the evaluation cluster offers the instance type `{instance_type}` this leaderboard runs on"
+        ),
+        _ if !too_large.is_empty() => format!(
+            "its pods request more {} than a node of any node group of the evaluation cluster has",
+            too_large.join(", ")
+        ),
+        _ => "no node group of the evaluation cluster can run its pods".to_string(),
+    };
+    Some(Verdict::Failed {
+        kind: FailureKind::NoNodeFits,
+        job: Some(job.name.clone()),
+        container: None,
+        message: format!(
+            "the evaluation cannot start: {what} (cluster autoscaler: {}); this is a configuration problem of the leaderboard, not of your submission, and waiting would not help: please contact the organizers. It was not started and used none of your time",
+            quote(&reasons.join(", "))
+        ),
+    })
+}
+
+/// Every Job has ended and some ran out of retries: the first one's failure, naming each.
+fn pairs_gave_up(jobs: &[JobView]) -> Verdict {
+    let mut messages = Vec::new();
+    let mut first = None;
+    for job in jobs
+        .iter()
+        .filter(|j| matches!(j.state, JobState::Failed { .. }))
+    {
+        if let Verdict::Failed { kind, message, .. } = job_failed(job) {
+            first.get_or_insert((kind, job.name.clone()));
+            messages.push(message);
+        }
+    }
+    match first {
+        Some((kind, job)) => Verdict::Failed {
+            kind,
+            job: Some(job),
+            container: None,
+            message: messages.join("; "),
+        },
+        None => Verdict::Running,
+    }
+}
+
+/// Whether `since` is at least `limit` before `now` (a clock behind `since` never is).
+/// Whether the scheduler's message says only that the nodes are full (what frees up, or what
+/// the autoscaler adds), as kube-scheduler's `NodeResourcesFit` and `NodePorts` word it, as
+/// opposed to a pod no node can take (selector, affinity, taints).
+pub fn waits_for_capacity(message: &str) -> bool {
+    let Some((_, reasons)) = message.split_once("nodes are available:") else {
+        return false;
+    };
+    // The part before the preemption summary: "1 Insufficient nvidia.com/gpu, 2 node(s) ...".
+    let reasons = reasons.split(" preemption:").next().unwrap_or(reasons);
+    reasons
+        .trim()
+        .trim_end_matches('.')
+        .split(", ")
+        .all(|reason| {
+            let reason = reason
+                .trim_start_matches(|c: char| c.is_ascii_digit())
+                .trim();
+            reason.starts_with("Insufficient ")
+                || reason == "Too many pods"
+                // The control plane's taint: never a place for Jobs, full or not.
+                || reason.contains("untolerated taint {node-role.kubernetes.io/control-plane")
+        })
+}
+
+/// Whether the submission's pairs have started: one of its pods is past `Pending`.
+pub fn started(jobs: &[JobView]) -> bool {
+    jobs.iter().any(|j| {
+        j.state == JobState::Complete
+            || j.pods
+                .iter()
+                .any(|p| matches!(p.phase.as_str(), "Running" | "Succeeded" | "Failed"))
+    })
+}
+
+/// Whether `since` is at least `limit` before `now`.
+pub fn waited_at_least(now: Timestamp, since: Timestamp, limit: Duration) -> bool {
+    let waited = now.as_second().saturating_sub(since.as_second());
+    waited >= 0 && waited.unsigned_abs() >= limit.as_secs()
+}
+
+fn job_failed(job: &JobView) -> Verdict {
+    let JobState::Failed { reason, message } = &job.state else {
+        return Verdict::Running;
+    };
+    let restarts: Vec<String> = job
+        .pods
+        .iter()
+        .flat_map(|p| &p.containers)
+        .filter(|c| c.restart_count > 0)
+        .map(|c| match &c.last_exit {
+            Some(e) => format!(
+                "{} restarted {}x, last exit code {}",
+                c.name, c.restart_count, e.exit_code
+            ),
+            None => format!("{} restarted {}x", c.name, c.restart_count),
+        })
+        .collect();
+    let restarts = if restarts.is_empty() {
+        String::new()
+    } else {
+        format!("; {}", restarts.join(", "))
+    };
+    let detail = if message.is_empty() {
+        reason.clone()
+    } else {
+        format!("{reason}: {}", quote(message))
+    };
+    let (kind, what) = match reason.as_str() {
+        "BackoffLimitExceeded" => (
+            FailureKind::BackoffLimitExceeded,
+            "its containers failed more often than the retry limit allows",
+        ),
+        "DeadlineExceeded" => (
+            FailureKind::DeadlineExceeded,
+            "it ran longer than the time limit of an evaluation",
+        ),
+        _ => (FailureKind::JobFailed, "Kubernetes marked it failed"),
+    };
+    Verdict::Failed {
+        kind,
+        job: Some(job.name.clone()),
+        container: None,
+        message: format!(
+            "the evaluation Job `{}` failed: {what} ({detail}{restarts})",
+            job.name
+        ),
+    }
+}
+
+/// The agent containers run the participant's image (see the in-Job contract).
+fn is_participant(container: &str) -> bool {
+    container == "agent" || container.starts_with("agent-")
+}
+
+fn is_throttled(message: Option<&str>) -> bool {
+    let Some(m) = message else { return false };
+    let m = m.to_ascii_lowercase();
+    THROTTLED_PULL.iter().any(|p| m.contains(p))
+}
+
+/// At most [`MAX_QUOTED`] characters of `text`, marked when cut.
+pub fn quote(text: &str) -> String {
+    let text = text.trim();
+    match text.char_indices().nth(MAX_QUOTED) {
+        Some((at, _)) => format!("{}...", &text[..at]),
+        None => text.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(hh: i8, mm: i8) -> Timestamp {
+        format!("2025-03-14T{hh:02}:{mm:02}:00Z").parse().unwrap()
+    }
+
+    fn container(name: &str, state: ContainerState) -> ContainerView {
+        ContainerView {
+            name: name.into(),
+            image: format!("registry/{name}:1"),
+            init: false,
+            state,
+            ready: false,
+            restart_count: 0,
+            last_exit: None,
+        }
+    }
+
+    fn waiting(reason: &str, message: &str) -> ContainerState {
+        ContainerState::Waiting {
+            reason: reason.into(),
+            message: Some(message.into()),
+        }
+    }
+
+    fn pod(phase: &str, containers: Vec<ContainerView>) -> PodView {
+        PodView {
+            name: "pod".into(),
+            job: Some("job-0".into()),
+            phase: phase.into(),
+            reason: None,
+            message: None,
+            node: None,
+            start_time: Some(at(9, 0)),
+            terminating: false,
+            uid: Some("uid".into()),
+            instance_type: None,
+            unschedulable: None,
+            autoscaler: None,
+            containers,
+        }
+    }
+
+    fn job(name: &str, state: JobState, pods: Vec<PodView>) -> JobView {
+        JobView {
+            name: name.into(),
+            index: name.strip_prefix("job-").and_then(|i| i.parse().ok()),
+            state,
+            active: 0,
+            ready: 0,
+            succeeded: 0,
+            failed: 0,
+            start_time: Some(at(9, 0)),
+            completion_time: None,
+            terminating: false,
+            pods,
+        }
+    }
+
+    fn out_of_retries() -> JobState {
+        JobState::Failed {
+            reason: "BackoffLimitExceeded".into(),
+            message: "Job has reached the specified backoff limit".into(),
+        }
+    }
+
+    fn unschedulable(message: &str) -> PodView {
+        PodView {
+            phase: "Pending".into(),
+            start_time: None,
+            unschedulable: Some(Unschedulable {
+                since: Some(at(9, 0)),
+                message: message.into(),
+            }),
+            ..pod(
+                "Pending",
+                vec![container("agent-1", ContainerState::NotCreated)],
+            )
+        }
+    }
+
+    const FULL: &str = "0/2 nodes are available: 2 Insufficient nvidia.com/gpu.";
+    const NO_MATCH: &str =
+        "0/3 nodes are available: 3 node(s) didn't match Pod's node affinity/selector.";
+
+    /// The verdict's kind (`None`: running; `Some(None)`: finished) at `now`.
+    fn kind_of(jobs: &[JobView], now: Timestamp) -> Option<Option<FailureKind>> {
+        match verdict(jobs, now, &VerdictPolicy::default()) {
+            Verdict::Running => None,
+            Verdict::Finished => Some(None),
+            Verdict::Failed { kind, .. } => Some(Some(kind)),
+        }
+    }
+
+    #[test]
+    fn the_verdict_on_each_situation() {
+        let running = || {
+            pod(
+                "Running",
+                vec![container(
+                    "agent-1",
+                    ContainerState::Running {
+                        started_at: Some(at(9, 1)),
+                    },
+                )],
+            )
+        };
+        type Case = (
+            &'static str,
+            Vec<JobView>,
+            Timestamp,
+            Option<Option<FailureKind>>,
+        );
+        let cases: Vec<Case> = vec![
+            (
+                "no Jobs",
+                vec![],
+                at(9, 5),
+                Some(Some(FailureKind::JobsMissing)),
+            ),
+            (
+                "running",
+                vec![job("job-0", JobState::Running, vec![running()])],
+                at(9, 5),
+                None,
+            ),
+            (
+                "every Job complete",
+                vec![
+                    job("job-0", JobState::Complete, vec![]),
+                    job("job-1", JobState::Complete, vec![]),
+                ],
+                at(9, 5),
+                Some(None),
+            ),
+            (
+                "the participant's image cannot be pulled",
+                vec![job(
+                    "job-0",
+                    JobState::Pending,
+                    vec![pod(
+                        "Pending",
+                        vec![container(
+                            "agent-1",
+                            waiting("ImagePullBackOff", "not found"),
+                        )],
+                    )],
+                )],
+                at(9, 5),
+                Some(Some(FailureKind::ParticipantImagePull)),
+            ),
+            (
+                "our image cannot be pulled",
+                vec![job(
+                    "job-0",
+                    JobState::Pending,
+                    vec![pod(
+                        "Pending",
+                        vec![container("simulator-1", waiting("ErrImagePull", "denied"))],
+                    )],
+                )],
+                at(9, 5),
+                Some(Some(FailureKind::InfrastructureImagePull)),
+            ),
+            (
+                "a registry's throttle passes by itself",
+                vec![job(
+                    "job-0",
+                    JobState::Pending,
+                    vec![pod(
+                        "Pending",
+                        vec![container(
+                            "agent-1",
+                            waiting("ErrImagePull", "429 Too Many Requests"),
+                        )],
+                    )],
+                )],
+                at(9, 5),
+                None,
+            ),
+            (
+                "a container that cannot be created, past its limit",
+                vec![job(
+                    "job-0",
+                    JobState::Pending,
+                    vec![pod(
+                        "Pending",
+                        vec![container(
+                            "logcopy",
+                            waiting("CreateContainerConfigError", "secret not found"),
+                        )],
+                    )],
+                )],
+                at(9, 11),
+                Some(Some(FailureKind::ContainerConfig)),
+            ),
+            (
+                "a pair out of retries while another runs",
+                vec![
+                    job("job-0", out_of_retries(), vec![]),
+                    job("job-1", JobState::Running, vec![running()]),
+                ],
+                at(9, 5),
+                None,
+            ),
+            (
+                "every pair ended, one out of retries",
+                vec![
+                    job("job-0", out_of_retries(), vec![]),
+                    job("job-1", JobState::Complete, vec![]),
+                ],
+                at(9, 5),
+                Some(Some(FailureKind::BackoffLimitExceeded)),
+            ),
+            (
+                "a full cluster is a queue",
+                vec![job("job-0", JobState::Pending, vec![unschedulable(FULL)])],
+                at(12, 0),
+                None,
+            ),
+            (
+                "a full cluster past the queue limit",
+                vec![job("job-0", JobState::Pending, vec![unschedulable(FULL)])],
+                Timestamp::from_second(at(9, 0).as_second() + 24 * 3600).unwrap(),
+                Some(Some(FailureKind::Unschedulable)),
+            ),
+            (
+                "no node matches for 30 minutes",
+                vec![job(
+                    "job-0",
+                    JobState::Pending,
+                    vec![unschedulable(NO_MATCH)],
+                )],
+                at(9, 30),
+                Some(Some(FailureKind::Unschedulable)),
+            ),
+        ];
+        for (situation, jobs, now, expected) in cases {
+            assert_eq!(kind_of(&jobs, now), expected, "{situation}");
+        }
+    }
+
+    #[test]
+    fn the_autoscaler_s_word_that_no_group_fits_ends_the_wait_after_the_grace() {
+        let word = |at_| ScaleUpWord {
+            reason: crate::autoscaler::NOT_TRIGGERED.into(),
+            message:
+                "pod didn't trigger scale-up: 1 node(s) didn't match Pod's node affinity/selector"
+                    .into(),
+            at: Some(at_),
+        };
+        let never = |now| {
+            let mut pod = unschedulable(FULL);
+            pod.autoscaler = Some(word(at(9, 6)));
+            kind_of(&[job("job-0", JobState::Pending, vec![pod])], now)
+        };
+        assert_eq!(never(at(9, 6)), Some(Some(FailureKind::NoNodeFits)));
+        assert_eq!(never(at(9, 4)), None, "within the grace");
+    }
+
+    #[test]
+    fn capacity_is_what_frees_up_or_the_autoscaler_adds() {
+        assert!(waits_for_capacity(FULL));
+        assert!(waits_for_capacity(
+            "0/4 nodes are available: 2 Insufficient cpu, 2 Too many pods."
+        ));
+        assert!(!waits_for_capacity(NO_MATCH));
+        assert!(!waits_for_capacity(""));
+    }
+
+    #[test]
+    fn long_kubelet_messages_are_cut_for_the_participant() {
+        let long = "é".repeat(1000);
+        let cut = quote(&long);
+        assert_eq!(cut.chars().count(), MAX_QUOTED + 3);
+        assert!(cut.ends_with("..."));
+        assert_eq!(quote("  short  "), "short");
+    }
+}
