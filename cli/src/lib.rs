@@ -40,6 +40,14 @@ pub struct Cli {
     /// What to do.
     #[command(subcommand)]
     pub command: Command,
+    /// Logging.
+    #[command(flatten)]
+    pub global: Global,
+}
+
+/// The options every command takes (`lbctl local` too).
+#[derive(Debug, Clone, Copy, clap::Args)]
+pub struct Global {
     /// Log lines on stderr: `text` for people, `json` for machines.
     #[arg(
         long,
@@ -52,6 +60,29 @@ pub struct Cli {
     /// More log lines: `-v` info, `-vv` debug (RUST_LOG, when set, decides instead).
     #[arg(short, long, global = true, action = clap::ArgAction::Count)]
     pub verbose: u8,
+}
+
+/// The whole of a `main`: logging as `global` says, the async runtime, `run`, and the exit
+/// code (an error said once on stderr after `name: `).
+pub fn main_with<F>(name: &str, global: Global, run: F) -> std::process::ExitCode
+where
+    F: std::future::Future<Output = anyhow::Result<u8>>,
+{
+    telemetry(global.log_format, global.verbose);
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            eprintln!("{name}: cannot start the async runtime: {e}");
+            return std::process::ExitCode::from(1);
+        }
+    };
+    match runtime.block_on(run) {
+        Ok(code) => std::process::ExitCode::from(code),
+        Err(e) => {
+            eprintln!("{name}: {}", describe(&e));
+            std::process::ExitCode::from(exit_code(&e))
+        }
+    }
 }
 
 /// How log lines are written.
@@ -107,7 +138,9 @@ pub enum Command {
 pub async fn run(cli: Cli) -> anyhow::Result<u8> {
     let code = match cli.command {
         Command::Local { args } => {
-            return Err(plugin::exec("local", &args, cli.log_format, cli.verbose).into())
+            return Err(
+                plugin::exec("local", &args, cli.global.log_format, cli.global.verbose).into(),
+            )
         }
         Command::Invoke(args) => invoke::run(args).await?,
         Command::Status(args) => ops::status(args).await?,

@@ -119,14 +119,7 @@ pub async fn stack(
     fixture: fake_evalai::Fixture,
 ) -> (local_stack::Stack, Vec<(&'static str, String)>) {
     use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
-    let stack = tokio::time::timeout(
-        Duration::from_secs(60),
-        local_stack::Stack::start(local_stack::EvalAi::Fake(fixture)),
-    )
-    .await
-    .expect("the stack starts in time")
-    .expect("the stack starts (run `make venv` for moto)");
-    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let (stack, _) = test_support::stack::provisioned_with(fixture, LOCAL_SETTINGS).await;
     let mut env = stack.moto.sdk_env();
     env.push(("LB_SETTINGS_SECRET", SETTINGS_SECRET.to_string()));
     env.push(("LB_EVALAI_TOKEN_SECRET", TOKEN_SECRET.to_string()));

@@ -1,21 +1,17 @@
 //! The admission table on moto's DynamoDB: the team cap held by conditional transactions, even
 //! with admissions racing; arrival kept across retries; places given back; stale holds dropped.
 
-use fake_evalai::Fixture;
 use lb_aws::admission::{AdmissionTable, Admit};
 use lb_domain::queue::{ahead, Entry, EntryState};
-use local_stack::stack::{ADMISSION_TABLE, LOCAL_SETTINGS};
-use local_stack::{EvalAi, Stack};
+use local_stack::stack::ADMISSION_TABLE;
+use local_stack::Stack;
 
 const QUEUE: &str = "2.0";
 
 /// The admission table as the local stack provisions it from `infra/app.yaml` (its key
 /// schema, `queue` S and `key` S, included), on moto.
 async fn admission_table() -> (Stack, AdmissionTable, aws_sdk_dynamodb::Client) {
-    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
-        .await
-        .expect("stack starts");
-    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let (stack, _) = test_support::stack::provisioned().await;
     let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
     let table = AdmissionTable::new(client.clone(), ADMISSION_TABLE);
     (stack, table, client)

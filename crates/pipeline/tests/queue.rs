@@ -1,38 +1,15 @@
 //! A place given back wakes its team's next waiting submission, on moto's DynamoDB with the
 //! stack's admission and wake tables and the state machine's own wait write.
 
-use std::sync::Mutex;
+use test_support::{Answer, RecordingCallbacks};
 
-use fake_evalai::Fixture;
 use lb_aws::admission::AdmissionTable;
-use lb_aws::tasks::{Callbacks, Reported};
 use lb_aws::wake::WakeTable;
 use lb_domain::queue::{Entry, EntryState};
 use lb_pipeline::payload::SubmissionInfo;
 use lb_pipeline::queue::{take_turn, wake_team_next, Woken};
 use local_stack::integrations::{update_item, wait_for_change};
-use local_stack::stack::{ADMISSION_TABLE, LOCAL_SETTINGS, WAKE_TABLE};
-use local_stack::{EvalAi, Stack};
-
-/// Records the tokens reported; fails the next report once `fail` is set.
-#[derive(Default)]
-struct Recorder {
-    reported: Mutex<Vec<String>>,
-    fail: Mutex<bool>,
-}
-
-impl Callbacks for Recorder {
-    async fn succeed(&self, token: &str, _output: &str) -> lb_aws::Result<Reported> {
-        if std::mem::take(&mut *self.fail.lock().unwrap()) {
-            return Err(lb_aws::AwsError::Malformed {
-                what: "SendTaskSuccess".into(),
-                problem: "throttled".into(),
-            });
-        }
-        self.reported.lock().unwrap().push(token.to_string());
-        Ok(Reported::Delivered)
-    }
-}
+use local_stack::stack::{ADMISSION_TABLE, WAKE_TABLE};
 
 fn info(submission_id: u64, team_id: u64) -> SubmissionInfo {
     SubmissionInfo {
@@ -55,14 +32,11 @@ fn info(submission_id: u64, team_id: u64) -> SubmissionInfo {
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn a_place_given_back_wakes_the_teams_oldest_waiting_submission() {
-    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
-        .await
-        .expect("stack starts");
-    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let (stack, _) = test_support::stack::provisioned().await;
     let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
     let table = AdmissionTable::new(client.clone(), ADMISSION_TABLE);
     let wakes = WakeTable::new(client.clone(), WAKE_TABLE);
-    let callbacks = Recorder::default();
+    let callbacks = RecordingCallbacks::default();
 
     // Team 5 holds its one place with 1; 2 and 3 wait behind it, 4 of team 6 runs.
     for (id, team, arrived) in [(1, 5, 100), (2, 5, 200), (3, 5, 300), (4, 6, 250)] {
@@ -85,11 +59,11 @@ async fn a_place_given_back_wakes_the_teams_oldest_waiting_submission() {
     }
     // 1 ends and gives its place back: 2 (the older) is woken, never 3.
     table.release("2.0", 1, 5).await.unwrap();
-    *callbacks.fail.lock().unwrap() = true;
+    callbacks.answer_next(Answer::Unreachable);
     assert!(wake(5).await.is_err(), "a failed report is an error");
     // The token went back: the next try delivers it.
     assert_eq!(wake(5).await.unwrap(), Woken::Delivered(2));
-    assert_eq!(*callbacks.reported.lock().unwrap(), ["token-2"]);
+    assert_eq!(callbacks.delivered(), ["token-2"]);
     // Its token is taken: a second wake finds it not waiting, and 3 stays parked.
     assert_eq!(wake(5).await.unwrap(), Woken::NotWaiting(2));
     let parked: Vec<u64> = wakes

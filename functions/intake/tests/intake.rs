@@ -5,14 +5,11 @@ use fake_evalai::{Faults, Fixture};
 use intake::{handle, Deps};
 use lb_pipeline::payload::{Action, IntakeInput};
 use local_stack::stack::LOCAL_SETTINGS;
-use local_stack::{EvalAi, Stack};
+use local_stack::Stack;
 use serde_json::json;
 
 async fn stack(settings: &str) -> (Stack, Deps) {
-    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
-        .await
-        .unwrap();
-    stack.provision(settings).await.unwrap();
+    let (stack, _) = test_support::stack::provisioned_with(Fixture::default(), settings).await;
     let config = local_stack::stack::function_config();
     let deps = Deps::load(&stack.sdk, &config).await.unwrap();
     (stack, deps)

@@ -1,45 +1,18 @@
 //! The cancel sweep against the fake EvalAI and moto's wake table, with the deployed
 //! definition's wait standing for each waiting execution and a recorder for Step Functions.
 
-use std::sync::Mutex;
+use test_support::{Answer, RecordingCallbacks};
 
-use fake_evalai::{Fixture, NewSubmission};
-use lb_aws::tasks::{Callbacks, Reported};
-use lb_aws::AwsError;
+use fake_evalai::NewSubmission;
 use local_stack::integrations::{update_item, wait_for_change};
-use local_stack::stack::LOCAL_SETTINGS;
-use local_stack::{EvalAi, Stack};
 use sweep::Deps;
-
-/// Step Functions as the sweep sees it: records each report; fails them when told.
-#[derive(Default)]
-struct Recorder {
-    reports: Mutex<Vec<String>>,
-    fail: Mutex<bool>,
-}
-
-impl Callbacks for Recorder {
-    async fn succeed(&self, token: &str, _output: &str) -> lb_aws::Result<Reported> {
-        self.reports.lock().unwrap().push(token.to_string());
-        if *self.fail.lock().unwrap() {
-            return Err(AwsError::Malformed {
-                what: "SendTaskSuccess".into(),
-                problem: "the API is unreachable (test)".into(),
-            });
-        }
-        Ok(Reported::Delivered)
-    }
-}
 
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waiting() {
-    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
-        .await
-        .expect("stack starts");
-    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let (stack, _) = test_support::stack::provisioned().await;
     let config = local_stack::stack::function_config();
-    let deps = Deps::load(&stack.sdk, &config, Recorder::default())
+    let deps = Deps::load(&stack.sdk, &config, RecordingCallbacks::default())
         .await
         .unwrap();
     let fake = stack.fake();
@@ -80,7 +53,7 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
         (sweep.cancelled.clone(), sweep.woken.clone()),
         (vec![a], vec![a])
     );
-    assert_eq!(*deps.callbacks.reports.lock().unwrap(), ["token-a"]);
+    assert_eq!(deps.callbacks.reported(), ["token-a"]);
     assert!(
         deps.wakes.state(a).await.unwrap().cancel,
         "the Monitor will confirm it"
@@ -88,22 +61,19 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
     let sweep = sweep::handle(&deps).await.unwrap();
     assert_eq!(sweep.waiting, 1, "a is no longer waiting");
     assert!(sweep.cancelled.is_empty());
-    assert_eq!(deps.callbacks.reports.lock().unwrap().len(), 1);
+    assert_eq!(deps.callbacks.reported().len(), 1);
 
     // b cancels while Step Functions is unreachable: the flag is undone and the token put
     // back, so the next sweep wakes it.
     fake.cancel(b).unwrap();
-    *deps.callbacks.fail.lock().unwrap() = true;
+    deps.callbacks.answer_always(Answer::Unreachable);
     let err = sweep::handle(&deps).await.unwrap_err();
     assert_eq!(err.name(), "SweepIncomplete");
     assert!(!deps.wakes.state(b).await.unwrap().cancel);
-    *deps.callbacks.fail.lock().unwrap() = false;
+    deps.callbacks.answer_always(Answer::Delivered);
     let sweep = sweep::handle(&deps).await.unwrap();
     assert_eq!(sweep.woken, vec![b]);
-    assert_eq!(
-        *deps.callbacks.reports.lock().unwrap(),
-        ["token-a", "token-b", "token-b"]
-    );
+    assert_eq!(deps.callbacks.reported(), ["token-a", "token-b", "token-b"]);
 
     // A challenge EvalAI does not have: named in the error, the other challenges still swept.
     let d = new();

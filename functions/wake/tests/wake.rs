@@ -4,42 +4,15 @@
 //! guide's "EventBridge message structure" example with one of our keys), in Lambda's SQS
 //! batch (`{"Records": [{"messageId", "body", ...}]}`).
 
-use std::sync::Mutex;
+use test_support::{Answer, RecordingCallbacks};
 
-use fake_evalai::Fixture;
-use lb_aws::tasks::{Callbacks, Reported};
 use lb_aws::wake::WakeTable;
-use lb_aws::AwsError;
 use local_stack::integrations::{update_item, wait_for_change};
-use local_stack::stack::{LOCAL_SETTINGS, WAKE_TABLE};
-use local_stack::{EvalAi, Stack};
+use local_stack::stack::WAKE_TABLE;
 use serde_json::{json, Value};
 use wake::{BatchResponse, Deps, ItemFailure};
 
 const EVENT: &str = include_str!("fixtures/object-created.json");
-
-/// Step Functions as the wake sees it: records each report and answers as told.
-#[derive(Default)]
-struct Recorder {
-    reports: Mutex<Vec<String>>,
-    /// `None`: delivered; `Some(true)`: stale; `Some(false)`: the API fails.
-    answer: Mutex<Option<bool>>,
-}
-
-impl Callbacks for Recorder {
-    async fn succeed(&self, token: &str, output: &str) -> lb_aws::Result<Reported> {
-        assert_eq!(output, "{}");
-        self.reports.lock().unwrap().push(token.to_string());
-        match *self.answer.lock().unwrap() {
-            None => Ok(Reported::Delivered),
-            Some(true) => Ok(Reported::Stale),
-            Some(false) => Err(AwsError::Malformed {
-                what: "SendTaskSuccess".into(),
-                problem: "the API is unreachable (test)".into(),
-            }),
-        }
-    }
-}
 
 fn event_for(key: &str) -> String {
     let mut event: Value = serde_json::from_str(EVENT).unwrap();
@@ -74,7 +47,7 @@ fn failures(ids: &[&str]) -> BatchResponse {
     }
 }
 
-async fn run(deps: &Deps<Recorder>, records: &[(&str, String)]) -> BatchResponse {
+async fn run(deps: &Deps<RecordingCallbacks>, records: &[(&str, String)]) -> BatchResponse {
     let out = lb_pipeline::serve::call(deps, batch(records))
         .await
         .unwrap();
@@ -90,14 +63,11 @@ async fn run(deps: &Deps<Recorder>, records: &[(&str, String)]) -> BatchResponse
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
-    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
-        .await
-        .expect("stack starts");
-    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+    let (stack, _) = test_support::stack::provisioned().await;
     let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
     let deps = Deps {
         wakes: WakeTable::new(client.clone(), WAKE_TABLE),
-        callbacks: Recorder::default(),
+        callbacks: RecordingCallbacks::default(),
     };
     update_item(&client, wait_for_change("token-1", 42, 7, 0))
         .await
@@ -121,7 +91,7 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
     )
     .await;
     assert_eq!(response, failures(&[]), "nothing to deliver again");
-    assert_eq!(*deps.callbacks.reports.lock().unwrap(), ["token-1"]);
+    assert_eq!(deps.callbacks.reported(), ["token-1"]);
     assert_eq!(
         deps.wakes.state(42).await.unwrap().changes,
         1,
@@ -131,7 +101,7 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
 
     // An event after the wake found no token: it only counts.
     run(&deps, &[("m8", event_for("42/containers-status/x"))]).await;
-    assert_eq!(deps.callbacks.reports.lock().unwrap().len(), 1);
+    assert_eq!(deps.callbacks.reported().len(), 1);
     assert_eq!(deps.wakes.state(42).await.unwrap().changes, 2);
 
     // Step Functions unreachable: 42's messages come back and its token is put back, while
@@ -139,7 +109,7 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
     update_item(&client, wait_for_change("token-2", 42, 7, 2))
         .await
         .unwrap();
-    *deps.callbacks.answer.lock().unwrap() = Some(false);
+    deps.callbacks.answer_always(Answer::Unreachable);
     let response = run(
         &deps,
         &[
@@ -150,7 +120,7 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
     )
     .await;
     assert_eq!(response, failures(&["m9", "m11"]));
-    *deps.callbacks.answer.lock().unwrap() = None;
+    deps.callbacks.answer_always(Answer::Delivered);
     let response = run(
         &deps,
         &[
@@ -160,16 +130,13 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
     )
     .await;
     assert_eq!(response, failures(&[]));
-    assert_eq!(
-        *deps.callbacks.reports.lock().unwrap(),
-        ["token-1", "token-2", "token-2"]
-    );
+    assert_eq!(deps.callbacks.reported(), ["token-1", "token-2", "token-2"]);
 
     // A token whose wait already ended (timed out into the Monitor): harmless, not retried.
     update_item(&client, wait_for_change("token-3", 42, 7, 4))
         .await
         .unwrap();
-    *deps.callbacks.answer.lock().unwrap() = Some(true);
+    deps.callbacks.answer_always(Answer::Stale);
     let response = run(&deps, &[("m12", event_for("42/containers-status/y"))]).await;
     assert_eq!(response, failures(&[]));
     assert_eq!(deps.wakes.state(42).await.unwrap().changes, 5);
@@ -177,7 +144,7 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
     // The table unreachable (here: missing): every wake-worthy message comes back.
     let broken = Deps {
         wakes: WakeTable::new(client.clone(), "no-such-table"),
-        callbacks: Recorder::default(),
+        callbacks: RecordingCallbacks::default(),
     };
     let response = run(
         &broken,

@@ -18,18 +18,9 @@ pub struct Cli {
     /// What to do.
     #[command(subcommand)]
     pub command: Command,
-    /// Log lines on stderr: `text` for people, `json` for machines.
-    #[arg(
-        long,
-        global = true,
-        value_enum,
-        env = "LB_LOG_FORMAT",
-        default_value = "text"
-    )]
-    pub log_format: cli::LogFormat,
-    /// More log lines: `-v` info, `-vv` debug (RUST_LOG, when set, decides instead).
-    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
-    pub verbose: u8,
+    /// Logging.
+    #[command(flatten)]
+    pub global: cli::Global,
 }
 
 /// Subcommands.

@@ -131,6 +131,17 @@ impl Stack {
         Self::start_with(evalai, None).await
     }
 
+    /// Starts moto and EvalAI and provisions what `infra/app.yaml` declares for the settings
+    /// `settings_json` (the stack every emulator test and the rehearsal begin with).
+    pub async fn provisioned(
+        evalai: EvalAi,
+        settings_json: &str,
+    ) -> Result<(Stack, Settings), StackError> {
+        let stack = Self::start(evalai).await?;
+        let settings = stack.provision(settings_json).await?;
+        Ok((stack, settings))
+    }
+
     /// Starts moto, EvalAI and, with a configuration, the local Kubernetes API, side by side.
     pub async fn start_with(
         evalai: EvalAi,

@@ -33,10 +33,9 @@ fn keys(event: &Value) -> Vec<String> {
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn results_and_markers_reach_the_wake_queue_and_logs_do_not() {
-    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
+    let (stack, settings) = Stack::provisioned(EvalAi::Fake(Fixture::default()), LOCAL_SETTINGS)
         .await
-        .expect("stack starts");
-    let settings = stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+        .expect("the stack starts and is provisioned");
     let template = app_template(&settings);
     let source = SqsEventSource::from_template(&stack.sdk, &template, "WakeEventSource")
         .await

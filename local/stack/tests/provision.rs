@@ -8,10 +8,9 @@ use local_stack::{EvalAi, Stack};
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn the_tables_queues_buckets_and_secrets_are_the_templates() {
-    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
+    let (stack, settings) = Stack::provisioned(EvalAi::Fake(Fixture::default()), LOCAL_SETTINGS)
         .await
-        .expect("stack starts");
-    let settings = stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+        .expect("the stack starts and is provisioned");
 
     let dynamo = aws_sdk_dynamodb::Client::new(&stack.sdk);
     for lb in settings.leaderboards.values() {

@@ -16,10 +16,9 @@ fn wait_parameters(token: &str, seen: u64) -> Value {
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn a_burst_wakes_once_and_a_change_during_a_round_fails_the_next_wait() {
-    let stack = Stack::start(EvalAi::Fake(Fixture::default()))
+    let (stack, _) = Stack::provisioned(EvalAi::Fake(Fixture::default()), LOCAL_SETTINGS)
         .await
-        .expect("stack starts");
-    stack.provision(LOCAL_SETTINGS).await.expect("provisioned");
+        .expect("the stack starts and is provisioned");
     let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
     let wake = WakeTable::new(client.clone(), WAKE_TABLE);
 

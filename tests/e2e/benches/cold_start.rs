@@ -14,10 +14,8 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use fake_evalai::Fixture;
-use local_stack::stack::{LOCAL_SETTINGS, SETTINGS_SECRET, TOKEN_SECRET};
+use local_stack::stack::{SETTINGS_SECRET, TOKEN_SECRET};
 use local_stack::workloads::{Behaviour, Binaries};
-use local_stack::{EvalAi, Stack};
 use serde_json::{json, Value};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
@@ -225,8 +223,7 @@ fn main() {
     let runtime = tokio::runtime::Runtime::new().unwrap();
     runtime.block_on(async {
         let bins = tokio::task::spawn_blocking(Binaries::build).await.unwrap().unwrap();
-        let mut stack = Stack::start(EvalAi::Fake(Fixture::default())).await.expect("the stack (make venv)");
-        let settings = stack.provision(LOCAL_SETTINGS).await.unwrap();
+        let (mut stack, settings) = test_support::stack::provisioned().await;
         stack.start_workloads(&settings, &bins, &Behaviour::default(), &[]).unwrap();
         let env: HashMap<String, String> = stack
             .moto

@@ -40,7 +40,6 @@ use lb_evalai::{
 use lb_pipeline::payload::SubmissionInfo;
 use lb_pipeline::queue::take_turn;
 use local_stack::stack::{ADMISSION_TABLE, BUDGET_TABLE, LOCAL_SETTINGS};
-use local_stack::{EvalAi, Stack};
 use time::format_description::well_known::Rfc3339;
 use time::OffsetDateTime;
 use tokio::sync::{Notify, Semaphore};
@@ -297,14 +296,12 @@ async fn main() {
     let period = scaled(60.0);
     // The local stack as local mode provisions it from infra/app.yaml (the budget and
     // admission tables included), with EvalAI's throttle on at the bench's pace.
-    let stack = Stack::start(EvalAi::Fake(Fixture {
+    let fixture = Fixture {
         throttle_per_minute: LIMIT,
         throttle_window_secs: period.as_secs(),
         ..Fixture::with_teams(teams as usize)
-    }))
-    .await
-    .unwrap();
-    stack.provision(LOCAL_SETTINGS).await.unwrap();
+    };
+    let (stack, _) = test_support::stack::provisioned_with(fixture, LOCAL_SETTINGS).await;
     let server = stack.fake();
     let token = server.host_token().unwrap().to_string();
     let policy = BudgetPolicy::for_limit(LIMIT, period).unwrap();

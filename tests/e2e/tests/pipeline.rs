@@ -6,12 +6,11 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use aws_sdk_dynamodb::types::AttributeValue;
-use fake_evalai::Fixture;
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{Action, IntakeInput, RunPhase, RunState, SubmissionInfo};
 use local_stack::stack::LOCAL_SETTINGS;
 use local_stack::workloads::{Behaviour, Binaries};
-use local_stack::{EvalAi, Stack};
+use local_stack::Stack;
 use serde_json::json;
 
 const PARTICIPANT_IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v1";
@@ -46,10 +45,7 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
         .await
         .unwrap()
         .unwrap();
-    let mut stack = Stack::start(EvalAi::Fake(Fixture::default()))
-        .await
-        .unwrap();
-    let settings = stack.provision(LOCAL_SETTINGS).await.unwrap();
+    let (mut stack, settings) = test_support::stack::provisioned().await;
     stack
         .start_workloads(&settings, &bins, &behaviour, unpullable)
         .unwrap();
