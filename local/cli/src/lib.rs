@@ -4,6 +4,7 @@
 mod latency;
 mod queue_report;
 mod relay;
+mod report;
 mod run;
 
 use clap::{Parser, Subcommand};

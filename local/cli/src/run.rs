@@ -15,6 +15,7 @@ use local_stack::stack::{LOCAL_SETTINGS, WAKE_TABLE};
 use local_stack::workloads::{Behaviour, Binaries};
 use local_stack::{EvalAi, Stack};
 
+use crate::report::{Merged, RunReport};
 use cli::{clean, outln};
 use local_stepfunctions::{
     EventType, Executor, HistoryEvent, Options, StateMachine, TaskError, TaskMap,
@@ -362,6 +363,8 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
 
     // Live progress, and the scenario's own act at the right moment.
     let rounds = Arc::new(AtomicU64::new(0));
+    // Rounds that found the cluster's API out of reach (their verdict skipped).
+    let unreachable_rounds = Arc::new(AtomicU64::new(0));
     // The crash scenario has acted once CARLA was killed; the others have nothing to do.
     let acted = Arc::new(AtomicBool::new(args.scenario != Scenario::Crash));
     // When the participant cancelled (the cancel scenario), to time how long the Jobs outlive it.
@@ -377,6 +380,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let many = arrivals.len() > 1;
     let on_event = {
         let rounds = rounds.clone();
+        let unreachable_rounds = unreachable_rounds.clone();
         let acted = acted.clone();
         let cancelled_at = cancelled_at.clone();
         let scenario = args.scenario;
@@ -413,6 +417,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                 let unreachable = if output["unreachable_since"].is_null() {
                     ""
                 } else {
+                    unreachable_rounds.fetch_add(1, Ordering::SeqCst);
                     " (cluster unreachable: verdict skipped)"
                 };
                 // The cancel comes after a round (the first read the status on EvalAI): from
@@ -506,7 +511,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let sweep_wakes = relays.sweep_wakes.load(Ordering::Relaxed);
     drop(relays);
 
-    // The summary.
+    // The summary: one report, printed for people and written with --report for tests.
     let on_fake = stack
         .fake_evalai
         .as_ref()
@@ -520,124 +525,72 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             Err(e) => format!("(unknown: {e})"),
         },
     };
-    outln!();
-    outln!(
-        "execution      {} ({} history events)",
-        result.status.as_str(),
-        result.history.len()
-    );
-    if let Some(error) = &result.error {
-        outln!(
-            "error          {error}: {}",
-            result.cause.clone().unwrap_or_default()
-        );
-    }
-    // An error a Catch routed to Finalize: the execution succeeds, the submission failed.
-    if let Some(caught) = result
-        .output
-        .as_ref()
-        .and_then(lb_domain::finalize::caught_error)
-    {
-        outln!("caught error   {}", clean(&caught));
-    }
-    outln!("EvalAI status  {status_on_evalai}");
-    if let Some(fake) = &stack.fake_evalai {
-        // Every request took from the shared budget first: EvalAI never had to throttle.
-        let log: Vec<_> = fake.requests().into_iter().filter(|r| !r.admin).collect();
-        let throttled = log.iter().filter(|r| r.status == 429).count();
-        outln!(
-            "EvalAI calls   {} requests through the shared budget, {throttled} throttled (429)",
-            log.len()
-        );
-    }
-    outln!("S3 events      {wake_messages} results files and markers seen by the wake function");
-    outln!("cancel sweep   woke the execution {sweep_wakes} times");
-    // Finalize deletes the Jobs in the foreground: when the execution ends, they are gone.
-    if let Some(at) = cancelled_at.lock().ok().and_then(|at| *at) {
-        let took = ended.saturating_duration_since(at).as_secs_f64();
-        outln!(
-            "cancel to end  {took:.1}s from the participant's cancel to the Jobs gone (time scale {})",
-            args.time_scale
-        );
-    }
-    // What the participant reads on a failure: the reason and the end of their agent's output.
-    if let Some(stderr) = on_fake
-        .as_ref()
-        .and_then(|s| s.files.stderr.as_deref())
-        .filter(|e| !e.trim().is_empty())
-    {
-        outln!("EvalAI stderr");
-        for line in stderr.lines() {
-            outln!("  | {line}");
-        }
-        // And the head of the summary they read beside it (which routes count).
-        if let Some(stdout) = on_fake.as_ref().and_then(|s| s.files.stdout.as_deref()) {
-            outln!("EvalAI stdout");
-            for line in stdout.lines().take(3) {
-                outln!("  | {line}");
-            }
-        }
-    }
-    if let Some(row) = stack
-        .fake_evalai
-        .as_ref()
-        .and_then(|f| f.submission(submission))
-        .and_then(|s| s.leaderboard.first().cloned())
-    {
-        outln!("scores         {}", row.result);
-    }
     let bucket = settings_bucket(&settings, &args.leaderboard);
-    if let Some(line) = merged_summary(&stack.sdk, &bucket, submission).await {
-        outln!("merged         {line}");
-    }
-    if let (true, Some(fake)) = (args.latency, &stack.fake_evalai) {
-        let log = std::fs::read_to_string(&record_log).unwrap_or_default();
-        let m = crate::latency::measure(&log, &fake.requests(), submission);
-        let secs = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}s"));
-        outln!(
-            "latency        record -> partial update: p50 {}, p99 {}, max {} ({} records, {} updates, {} only in the final update); last write -> final status {}",
-            secs(m.quantile(0.5)),
-            secs(m.quantile(0.99)),
-            secs(m.record_delays.last().copied()),
-            m.record_delays.len() + m.undelivered,
-            m.updates,
-            m.undelivered,
-            secs(m.final_delay)
-        );
-    }
-    outln!("time per stage");
-    for (stage, seconds) in stage_times(&result.history) {
-        outln!("  {stage:<12} {seconds:>7.1}s");
-    }
-    outln!(
-        "results        s3://{bucket}/{submission}/ on moto {}",
-        stack.moto.endpoint()
-    );
-    outln!(
-        "pod logs       {}",
-        stack.workdir.path().join("pods").display()
-    );
-    if !args.keep {
-        outln!("               (the stack and these go away on exit: --keep to look at them)");
-    }
-    outln!("total          {:.1}s", started.elapsed().as_secs_f64());
-
     let expected = args.scenario.expected();
-    let mut ok = acted.load(Ordering::SeqCst) && status_on_evalai == expected;
-    if let Some(fake) = &stack.fake_evalai {
-        let report = crate::queue_report::report(&fake.requests(), &arrivals, |id| {
+    let queue = stack.fake_evalai.as_ref().map(|fake| {
+        crate::queue_report::report(&fake.requests(), &arrivals, |id| {
             fake.submission(id)
                 .map(|s| (s.status.clone(), s.files.stderr.clone()))
-        });
-        if many {
-            crate::queue_report::print(&report);
-            ok &= report.submissions.iter().all(|s| s.status == expected);
+        })
+    });
+    let latency = match (args.latency, &stack.fake_evalai) {
+        (true, Some(fake)) => {
+            let log = std::fs::read_to_string(&record_log).unwrap_or_default();
+            Some(crate::latency::measure(&log, &fake.requests(), submission))
         }
-        if let Some(path) = &args.report {
-            std::fs::write(path, serde_json::to_string_pretty(&report)?)
-                .with_context(|| format!("writing {}", path.display()))?;
-        }
+        _ => None,
+    };
+    let report = RunReport {
+        scenario: format!("{:?}", args.scenario),
+        expected,
+        ok: acted.load(Ordering::SeqCst)
+            && status_on_evalai == expected
+            && queue
+                .as_ref()
+                .is_none_or(|q| !many || q.submissions.iter().all(|s| s.status == expected)),
+        execution: result.status.as_str().to_string(),
+        history_events: result.history.len(),
+        error: result
+            .error
+            .as_ref()
+            .map(|e| format!("{e}: {}", result.cause.clone().unwrap_or_default())),
+        caught_error: result
+            .output
+            .as_ref()
+            .and_then(lb_domain::finalize::caught_error)
+            .map(|c| clean(&c)),
+        evalai_status: status_on_evalai,
+        evalai_stderr: on_fake
+            .as_ref()
+            .and_then(|s| s.files.stderr.clone())
+            .filter(|e| !e.trim().is_empty()),
+        evalai_stdout: on_fake.as_ref().and_then(|s| s.files.stdout.clone()),
+        scores: on_fake
+            .as_ref()
+            .and_then(|s| s.leaderboard.first())
+            .map(|row| row.result.clone()),
+        merged: merged_summary(&stack.sdk, &bucket, submission).await,
+        wake_messages,
+        sweep_wakes,
+        unreachable_rounds: unreachable_rounds.load(Ordering::SeqCst),
+        // Finalize deletes the Jobs in the foreground: when the execution ends, they are gone.
+        cancel_to_end_seconds: cancelled_at
+            .lock()
+            .ok()
+            .and_then(|at| *at)
+            .map(|at| ended.saturating_duration_since(at).as_secs_f64()),
+        stages: stage_times(&result.history),
+        results: format!("s3://{bucket}/{submission}/"),
+        pod_logs: stack.workdir.path().join("pods"),
+        seconds: started.elapsed().as_secs_f64(),
+        queue,
+    };
+    report.print(&args, &stack.moto.endpoint(), latency.as_ref(), many);
+    if let Some(path) = &args.report {
+        std::fs::write(path, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("writing {}", path.display()))?;
     }
+    let ok = report.ok;
     if args.keep {
         outln!(
             "\nthe stack stays up (kubeconfig {}); Ctrl-C to stop",
@@ -679,17 +632,20 @@ fn team_sizes(args: &LocalRun) -> anyhow::Result<Vec<u32>> {
     Ok(args.teams.clone())
 }
 
-/// `agent_results.json` in a line: its records and how many each route has (Leaderboard 1.0
+/// `agent_results.json` summed up: its records and how many each route has (Leaderboard 1.0
 /// runs every route 5 times under one id).
 async fn merged_summary(
     sdk: &aws_config::SdkConfig,
     bucket: &str,
     submission: u64,
-) -> Option<String> {
+) -> Option<Merged> {
     let object = lb_aws::s3_client(sdk)
         .get_object()
         .bucket(bucket)
-        .key(format!("{submission}/agent_results.json"))
+        .key(format!(
+            "{submission}/{}",
+            lb_domain::protocol::derived::MERGED
+        ))
         .send()
         .await
         .ok()?;
@@ -702,16 +658,11 @@ async fn merged_summary(
             .entry(record["route_id"].as_str().unwrap_or_default())
             .or_default() += 1;
     }
-    let counts: std::collections::BTreeSet<usize> = per_route.values().copied().collect();
-    let each = match counts.len() {
-        1 => format!("{} per route", counts.first().copied().unwrap_or_default()),
-        _ => format!("{counts:?} per route"),
-    };
-    Some(format!(
-        "{} records over {} routes, {each}",
-        records.len(),
-        per_route.len()
-    ))
+    Some(Merged {
+        records: records.len(),
+        routes: per_route.len(),
+        per_route: per_route.values().copied().collect(),
+    })
 }
 
 fn settings_bucket(settings: &lb_domain::settings::Settings, leaderboard: &str) -> String {

@@ -2,6 +2,8 @@
 //! `lbctl-local`): each scenario ends as it should, with exit 0.
 
 use std::path::{Path, PathBuf};
+
+use serde_json::Value;
 use std::process::Command;
 use std::sync::{Mutex, OnceLock};
 use std::time::Instant;
@@ -26,10 +28,13 @@ fn lbctl() -> PathBuf {
         .clone()
 }
 
-/// `lbctl local run <args>` with `env`, which must succeed: its stdout.
-fn local_run(args: &[&str], env: &[(&str, &str)]) -> String {
+/// `lbctl local run <args>` with `env`, which must succeed: its `--report` and its stdout (the
+/// progress lines; the report holds the outcome).
+fn local_run(args: &[&str], env: &[(&str, &str)]) -> (Value, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("report.json");
     let out = Command::new(lbctl())
-        .args(["local", "run"])
+        .args(["local", "run", "--report", path.to_str().unwrap()])
         .args(args)
         .envs(env.iter().copied())
         .output()
@@ -40,7 +45,13 @@ fn local_run(args: &[&str], env: &[(&str, &str)]) -> String {
         "{args:?}: {stdout}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    stdout
+    let report = std::fs::read_to_string(&path).expect("the run writes its report");
+    (serde_json::from_str(&report).unwrap(), stdout)
+}
+
+/// A text field of the report (empty when absent).
+fn text<'a>(report: &'a Value, key: &str) -> &'a str {
+    report[key].as_str().unwrap_or_default()
 }
 
 #[test]
@@ -59,56 +70,52 @@ fn every_scenario_ends_as_expected() {
         ("no-node", "FAILED"),
     ] {
         let started = Instant::now();
-        let stdout = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
-        assert!(
-            stdout.contains(&format!("EvalAI status  {}", expected.to_lowercase())),
-            "{scenario}: {stdout}"
+        let (report, stdout) = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
+        assert_eq!(
+            text(&report, "evalai_status"),
+            expected.to_lowercase(),
+            "{scenario}: {report}"
         );
-        assert!(stdout.contains("OK: the"), "{scenario}: {stdout}");
+        assert_eq!(report["ok"], true, "{scenario}: {report}");
+        let (stderr, participant_stdout) = (
+            text(&report, "evalai_stderr"),
+            text(&report, "evalai_stdout"),
+        );
         // A failure tells the participant why, and shows their agent's own last words.
         match scenario {
-            "unpullable" => assert!(
-                stdout.contains("EvalAI stderr") && stdout.contains("never-pushed"),
-                "{stdout}"
-            ),
+            "unpullable" => assert!(stderr.contains("never-pushed"), "{report}"),
             "crash-loop" => {
-                assert!(stdout.contains("EvalAI stderr"), "{stdout}");
                 assert!(
-                    stdout.contains("The last lines of agent 1's output:"),
-                    "{stdout}"
+                    stderr.contains("The last lines of agent 1's output:"),
+                    "{report}"
                 );
                 assert!(
-                    stdout.contains("Traceback (most recent call last)"),
-                    "{stdout}"
+                    stderr.contains("Traceback (most recent call last)"),
+                    "{report}"
                 );
                 // Pair 1 crash-loops in a Job of its own: its retries run out, never its
                 // neighbours'. Their routes are complete, and both files say which count.
                 let note = "routes 0-4 (pair 1) were not evaluated; routes 5-9, 10-14, 15-19 (pairs 2, 3, 4) are complete";
-                let stderr = stdout.split("EvalAI stderr").nth(1).unwrap_or_default();
-                let (stderr, participant_stdout) =
-                    stderr.split_once("EvalAI stdout").unwrap_or_default();
-                assert!(stderr.contains(note), "{stdout}");
-                assert!(participant_stdout.contains(note), "{stdout}");
+                assert!(stderr.contains(note), "{report}");
+                assert!(participant_stdout.contains(note), "{report}");
                 // Pairs 2-4's 15 routes, and whatever pair 1 got through before each crash.
-                let merged: u32 = stdout
-                    .split("merged         ")
-                    .nth(1)
-                    .and_then(|l| l.split(' ').next())
-                    .and_then(|n| n.parse().ok())
-                    .unwrap_or_default();
-                assert!((15..20).contains(&merged), "{stdout}");
-                assert!(stdout.contains("BackoffLimitExceeded"), "{stdout}");
+                let merged = report["merged"]["records"].as_u64().unwrap_or_default();
+                assert!((15..20).contains(&merged), "{report}");
+                assert!(
+                    stderr.contains("BackoffLimitExceeded")
+                        || stdout.contains("BackoffLimitExceeded"),
+                    "{report}\n{stdout}"
+                );
             }
             "no-node" => {
                 // The autoscaler's word, with what to fix, before any time was used.
-                let stderr = stdout.split("EvalAI stderr").nth(1).unwrap_or_default();
                 assert!(
                     stderr.contains("offers the instance type `g5.12xlarge`")
                         && stderr.contains("please contact the organizers"),
-                    "{stdout}"
+                    "{report}"
                 );
             }
-            _ => assert!(!stdout.contains("EvalAI stderr"), "{scenario}: {stdout}"),
+            _ => assert!(report["evalai_stderr"].is_null(), "{scenario}: {report}"),
         }
         assert!(
             started.elapsed().as_secs() < 60,
@@ -122,7 +129,7 @@ fn every_scenario_ends_as_expected() {
 #[ignore = "needs moto"]
 fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
     let _one = one_at_a_time();
-    let stdout = local_run(
+    let (report, _) = local_run(
         &[
             "--leaderboard",
             "1.0",
@@ -137,10 +144,20 @@ fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
         ],
         &[],
     );
-    assert!(stdout.contains("EvalAI status  finished"), "{stdout}");
+    assert_eq!(text(&report, "evalai_status"), "finished", "{report}");
+    let merged = &report["merged"];
+    assert_eq!(
+        (merged["records"].as_u64(), merged["routes"].as_u64()),
+        (Some(40), Some(8)),
+        "{report}"
+    );
     assert!(
-        stdout.contains("merged         40 records over 8 routes, 5 per route"),
-        "{stdout}"
+        merged["per_route"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|n| n == 5),
+        "{report}"
     );
 }
 
@@ -150,7 +167,7 @@ fn a_30_minute_cluster_api_outage_mid_run_skips_rounds_and_the_run_ends_finished
     let _one = one_at_a_time();
     // 30 minutes at scale 0.01: 18 s of 500s from the first Monitor round, while the Jobs
     // (5 s of routes) run on and finish.
-    let stdout = local_run(
+    let (report, stdout) = local_run(
         &[
             "--time-scale",
             "0.01",
@@ -167,15 +184,14 @@ fn a_30_minute_cluster_api_outage_mid_run_skips_rounds_and_the_run_ends_finished
         stdout.contains("the cluster's API answers 500 for 30 minutes (scaled)"),
         "{stdout}"
     );
-    let skipped = stdout
-        .lines()
-        .filter(|l| l.contains("(cluster unreachable: verdict skipped)"))
-        .count();
-    assert!(skipped >= 10, "{skipped} rounds skipped: {stdout}");
-    assert!(stdout.contains("EvalAI status  finished"), "{stdout}");
-    assert!(
-        stdout.contains("merged         20 records over 20 routes"),
-        "{stdout}"
+    let skipped = report["unreachable_rounds"].as_u64().unwrap();
+    assert!(skipped >= 10, "{skipped} rounds skipped: {report}");
+    assert_eq!(text(&report, "evalai_status"), "finished", "{report}");
+    let merged = &report["merged"];
+    assert_eq!(
+        (merged["records"].as_u64(), merged["routes"].as_u64()),
+        (Some(20), Some(20)),
+        "{report}"
     );
 }
 
@@ -187,7 +203,7 @@ fn a_cancel_in_a_quiet_stretch_is_found_by_the_sweep_and_the_jobs_are_gone_withi
     // after the second round (whose partial update was the last): only the once-a-minute
     // sweep can notice it (the Monitor reads EvalAI's status itself every 30 minutes, and at
     // each partial update).
-    let stdout = local_run(
+    let (report, _) = local_run(
         &[
             "--scenario",
             "cancel",
@@ -202,17 +218,11 @@ fn a_cancel_in_a_quiet_stretch_is_found_by_the_sweep_and_the_jobs_are_gone_withi
         ],
         &[],
     );
-    assert!(stdout.contains("EvalAI status  cancelled"), "{stdout}");
-    assert!(
-        stdout.contains("cancel sweep   woke the execution 1 times"),
-        "the sweep woke it: {stdout}"
-    );
-    let seconds: f64 = stdout
-        .lines()
-        .find_map(|l| l.strip_prefix("cancel to end  "))
-        .and_then(|l| l.split('s').next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or_else(|| panic!("no cancel timing: {stdout}"));
+    assert_eq!(text(&report, "evalai_status"), "cancelled", "{report}");
+    assert_eq!(report["sweep_wakes"], 1, "the sweep woke it: {report}");
+    let seconds = report["cancel_to_end_seconds"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no cancel timing: {report}"));
     assert!(
         seconds <= 120.0,
         "the Jobs outlived the cancel by {seconds} s"
@@ -278,7 +288,7 @@ fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard()
     )
     .unwrap();
     let url = fake.url();
-    let stdout = local_run(
+    let (_, stdout) = local_run(
         &[
             "--leaderboard",
             "2.0",
@@ -318,9 +328,7 @@ fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard()
 #[ignore = "needs moto"]
 fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
     let _one = one_at_a_time();
-    let dir = tempfile::tempdir().unwrap();
-    let report = dir.path().join("report.json");
-    let stdout = local_run(
+    let (report, stdout) = local_run(
         &[
             "--submissions",
             "12",
@@ -336,13 +344,10 @@ fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
             "2",
             "--timeout",
             "500",
-            "--report",
-            report.to_str().unwrap(),
         ],
         &[],
     );
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let report = &report["queue"];
     let subs = report["submissions"].as_array().unwrap();
     assert_eq!(subs.len(), 12);
     let seq = |s: &serde_json::Value, key: &str| s[key].as_u64();

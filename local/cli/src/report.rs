@@ -1,0 +1,196 @@
+//! What a local run ended with: one report, printed as the run's summary for people and
+//! written as JSON with `--report` for the tests and scripts that check a run.
+
+use std::path::PathBuf;
+
+use cli::outln;
+use serde::Serialize;
+use serde_json::Value;
+
+use crate::latency::Latency;
+use crate::queue_report::QueueReport;
+use crate::run::LocalRun;
+
+/// The run's outcome.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunReport {
+    /// The scenario rehearsed.
+    pub scenario: String,
+    /// The status on EvalAI it should end with.
+    pub expected: &'static str,
+    /// It did, and the scenario's act happened (every submission's, when several ran).
+    pub ok: bool,
+    /// The (first) execution's status.
+    pub execution: String,
+    /// Its history's length.
+    pub history_events: usize,
+    /// The execution's own error and cause, when it failed.
+    pub error: Option<String>,
+    /// The error a Catch routed to Finalize (the execution succeeded, the submission failed).
+    pub caught_error: Option<String>,
+    /// The submission's status on EvalAI.
+    pub evalai_status: String,
+    /// What the participant reads as stderr, when there is any.
+    pub evalai_stderr: Option<String>,
+    /// What the participant reads as stdout.
+    pub evalai_stdout: Option<String>,
+    /// The leaderboard row's scores.
+    pub scores: Option<Value>,
+    /// The merged results file in numbers.
+    pub merged: Option<Merged>,
+    /// Results files and markers S3's events brought to the wake function.
+    pub wake_messages: u64,
+    /// Times the cancel sweep woke the execution.
+    pub sweep_wakes: u64,
+    /// Monitor rounds that found the cluster's API out of reach.
+    pub unreachable_rounds: u64,
+    /// Seconds from the participant's cancel to the Jobs gone (the cancel scenario).
+    pub cancel_to_end_seconds: Option<f64>,
+    /// Seconds spent in each state, in order.
+    pub stages: Vec<(String, f64)>,
+    /// Where the results are on moto.
+    pub results: String,
+    /// Where the pods' logs are.
+    pub pod_logs: PathBuf,
+    /// The whole run's seconds.
+    pub seconds: f64,
+    /// What the fake EvalAI saw of every submission (none against another EvalAI).
+    pub queue: Option<QueueReport>,
+}
+
+/// `agent_results.json` in numbers.
+#[derive(Debug, Clone, Serialize)]
+pub struct Merged {
+    /// Its records.
+    pub records: usize,
+    /// The distinct routes they cover.
+    pub routes: usize,
+    /// Records per route, route by route.
+    pub per_route: Vec<usize>,
+}
+
+impl Merged {
+    /// `40 records over 8 routes, 5 per route`.
+    fn line(&self) -> String {
+        let mut counts = self.per_route.clone();
+        counts.sort_unstable();
+        counts.dedup();
+        let each = match counts.as_slice() {
+            [one] => format!("{one} per route"),
+            many => format!("{many:?} per route"),
+        };
+        format!(
+            "{} records over {} routes, {each}",
+            self.records, self.routes
+        )
+    }
+}
+
+impl RunReport {
+    /// The summary a person reads at the end of the run.
+    pub fn print(&self, args: &LocalRun, moto: &str, latency: Option<&Latency>, many: bool) {
+        outln!();
+        outln!(
+            "execution      {} ({} history events)",
+            self.execution,
+            self.history_events
+        );
+        if let Some(error) = &self.error {
+            outln!("error          {error}");
+        }
+        if let Some(caught) = &self.caught_error {
+            outln!("caught error   {caught}");
+        }
+        outln!("EvalAI status  {}", self.evalai_status);
+        if let Some(queue) = &self.queue {
+            // Every request took from the shared budget first: EvalAI never had to throttle.
+            outln!(
+                "EvalAI calls   {} requests through the shared budget, {} throttled (429)",
+                queue.requests,
+                queue.throttled
+            );
+        }
+        outln!(
+            "S3 events      {} results files and markers seen by the wake function",
+            self.wake_messages
+        );
+        outln!(
+            "cancel sweep   woke the execution {} times",
+            self.sweep_wakes
+        );
+        if let Some(took) = self.cancel_to_end_seconds {
+            outln!(
+                "cancel to end  {took:.1}s from the participant's cancel to the Jobs gone (time scale {})",
+                args.time_scale
+            );
+        }
+        // What the participant reads on a failure: the reason and the end of their agent's
+        // output, and the head of the summary beside it (which routes count).
+        if let Some(stderr) = &self.evalai_stderr {
+            outln!("EvalAI stderr");
+            for line in stderr.lines() {
+                outln!("  | {line}");
+            }
+            if let Some(stdout) = &self.evalai_stdout {
+                outln!("EvalAI stdout");
+                for line in stdout.lines().take(3) {
+                    outln!("  | {line}");
+                }
+            }
+        }
+        if let Some(scores) = &self.scores {
+            outln!("scores         {scores}");
+        }
+        if let Some(merged) = &self.merged {
+            outln!("merged         {}", merged.line());
+        }
+        if let Some(m) = latency {
+            let secs = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}s"));
+            outln!(
+                "latency        record -> partial update: p50 {}, p99 {}, max {} ({} records, {} updates, {} only in the final update); last write -> final status {}",
+                secs(m.quantile(0.5)),
+                secs(m.quantile(0.99)),
+                secs(m.record_delays.last().copied()),
+                m.record_delays.len() + m.undelivered,
+                m.updates,
+                m.undelivered,
+                secs(m.final_delay)
+            );
+        }
+        outln!("time per stage");
+        for (stage, seconds) in &self.stages {
+            outln!("  {stage:<12} {seconds:>7.1}s");
+        }
+        outln!("results        {} on moto {moto}", self.results);
+        outln!("pod logs       {}", self.pod_logs.display());
+        if !args.keep {
+            outln!("               (the stack and these go away on exit: --keep to look at them)");
+        }
+        outln!("total          {:.1}s", self.seconds);
+        if let (true, Some(queue)) = (many, &self.queue) {
+            crate::queue_report::print(queue);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_merged_line_says_records_routes_and_their_repetitions() {
+        let merged = |per_route: Vec<usize>| Merged {
+            records: per_route.iter().sum(),
+            routes: per_route.len(),
+            per_route,
+        };
+        assert_eq!(
+            merged(vec![5; 8]).line(),
+            "40 records over 8 routes, 5 per route"
+        );
+        assert_eq!(
+            merged(vec![1, 2, 1]).line(),
+            "4 records over 3 routes, [1, 2] per route"
+        );
+    }
+}
