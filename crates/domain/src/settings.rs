@@ -255,6 +255,130 @@ fn capitalised(attribute: &str) -> String {
         .unwrap_or_default()
 }
 
+/// A setting's JSON path and what is wrong with it.
+type Problem = (String, String);
+
+impl EvalAiSettings {
+    fn check(&self) -> Result<(), Problem> {
+        let invalid = |field: &str, problem: &str| Err((format!("evalai.{field}"), problem.into()));
+        let api = &self.api_server;
+        if !(api.starts_with("https://") || api.starts_with("http://")) {
+            return invalid("api_server", "must be an http(s) URL");
+        }
+        if !matches!(self.auth_scheme.as_str(), "Bearer" | "Token") {
+            return invalid("auth_scheme", "must be `Bearer` or `Token`");
+        }
+        if !(14..=6000).contains(&self.requests_per_minute) {
+            return invalid(
+                "requests_per_minute",
+                "must be between 14 and 6000 (EvalAI's own limit is 60)",
+            );
+        }
+        Ok(())
+    }
+}
+
+impl LeaderboardSettings {
+    /// Checks leaderboard `name`'s settings: its key, the names it needs, the bounds of its
+    /// numbers, its pairs' share of a node, its tracks and its qualifier.
+    fn check(&self, name: &str) -> Result<(), Problem> {
+        let invalid = |field: &str, problem: &str| {
+            Err((format!("leaderboards.{name}.{field}"), problem.to_string()))
+        };
+        if ![Leaderboard::V1, Leaderboard::V2]
+            .iter()
+            .any(|l| l.as_str() == name)
+        {
+            return Err((
+                format!("leaderboards.{name}"),
+                "key must be `1.0` or `2.0`".into(),
+            ));
+        }
+        for (field, value) in [
+            ("cluster", &self.cluster),
+            ("namespace", &self.namespace),
+            ("bucket", &self.bucket),
+            ("submissions_table", &self.submissions_table),
+            ("qualifier_table", &self.qualifier_table),
+            ("images.carla", &self.images.carla),
+            ("images.private_contents", &self.images.private_contents),
+            ("instance_type", &self.instance_type),
+        ] {
+            if value.trim().is_empty() {
+                return invalid(field, "must not be empty");
+            }
+        }
+        for (field, value, range, problem) in [
+            (
+                "max_queue_hours",
+                self.max_queue_hours,
+                1..=336,
+                "must be between 1 and 336 (two weeks)",
+            ),
+            (
+                "team_limit",
+                u64::from(self.team_limit),
+                1..=100,
+                "must be between 1 and 100",
+            ),
+            (
+                "partial_update_seconds",
+                self.partial_update_seconds,
+                1..=3600,
+                "must be between 1 and 3600",
+            ),
+            (
+                "gpus_per_node",
+                u64::from(self.gpus_per_node),
+                1..=16,
+                "must be between 1 and 16",
+            ),
+        ] {
+            if !range.contains(&value) {
+                return invalid(field, problem);
+            }
+        }
+        if let Err((field, problem)) = self.pair_share() {
+            return invalid(field, &problem);
+        }
+        if let Some((track, _)) = self
+            .tracks
+            .iter()
+            .find(|(_, t)| t.routes == 0 || t.workers == 0)
+        {
+            return invalid(
+                &format!("tracks.{track}"),
+                "routes and workers must be at least 1",
+            );
+        }
+        self.check_qualifier()
+            .map_err(|(field, problem)| (format!("leaderboards.{name}.{field}"), problem))
+    }
+
+    /// The qualifier's tracks name qualifier tracks, and its thresholds are finite and metrics.
+    fn check_qualifier(&self) -> Result<(), Problem> {
+        for (main, qualifier) in &self.qualifier.tracks {
+            if !self.tracks.get(qualifier).is_some_and(|t| t.qualifier) {
+                let field = format!("qualifier.tracks.{main}");
+                return Err((field, "must name a track marked `qualifier: true`".into()));
+            }
+        }
+        for (metric, min) in &self.qualifier.thresholds {
+            let field = format!("qualifier.thresholds.{metric}");
+            if !min.is_finite() {
+                return Err((field, "must be finite".into()));
+            }
+            if !crate::results::METRICS
+                .iter()
+                .any(|m| m.attribute == metric)
+            {
+                return Err((field, "is not a metric".into()));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Why the configuration is unusable.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SettingsError {
@@ -314,111 +438,19 @@ impl Settings {
     }
 
     fn check(&self) -> Result<(), SettingsError> {
-        let invalid = |path: String, problem: &str| {
-            Err(SettingsError::Invalid {
-                path,
-                problem: problem.to_string(),
-            })
-        };
-        let api = &self.evalai.api_server;
-        if !(api.starts_with("https://") || api.starts_with("http://")) {
-            return invalid("evalai.api_server".into(), "must be an http(s) URL");
-        }
-        if !matches!(self.evalai.auth_scheme.as_str(), "Bearer" | "Token") {
-            return invalid("evalai.auth_scheme".into(), "must be `Bearer` or `Token`");
-        }
-        if !(14..=6000).contains(&self.evalai.requests_per_minute) {
-            return invalid(
-                "evalai.requests_per_minute".into(),
-                "must be between 14 and 6000 (EvalAI's own limit is 60)",
-            );
-        }
+        let invalid = |(path, problem): (String, String)| SettingsError::Invalid { path, problem };
+        self.evalai.check().map_err(invalid)?;
         for (name, lb) in &self.leaderboards {
-            let at = |field: &str| format!("leaderboards.{name}.{field}");
-            if ![Leaderboard::V1, Leaderboard::V2]
-                .iter()
-                .any(|l| l.as_str() == name)
-            {
-                return invalid(format!("leaderboards.{name}"), "key must be `1.0` or `2.0`");
-            }
-            for (field, value) in [
-                ("cluster", &lb.cluster),
-                ("namespace", &lb.namespace),
-                ("bucket", &lb.bucket),
-                ("submissions_table", &lb.submissions_table),
-                ("qualifier_table", &lb.qualifier_table),
-                ("images.carla", &lb.images.carla),
-                ("images.private_contents", &lb.images.private_contents),
-                ("instance_type", &lb.instance_type),
-            ] {
-                if value.trim().is_empty() {
-                    return invalid(at(field), "must not be empty");
-                }
-            }
-            if !(1..=336).contains(&lb.max_queue_hours) {
-                return invalid(
-                    at("max_queue_hours"),
-                    "must be between 1 and 336 (two weeks)",
-                );
-            }
-            if !(1..=100).contains(&lb.team_limit) {
-                return invalid(at("team_limit"), "must be between 1 and 100");
-            }
-            if !(1..=3600).contains(&lb.partial_update_seconds) {
-                return invalid(at("partial_update_seconds"), "must be between 1 and 3600");
-            }
-            if !(1..=16).contains(&lb.gpus_per_node) {
-                return invalid(at("gpus_per_node"), "must be between 1 and 16");
-            }
-            if let Err((field, problem)) = lb.pair_share() {
-                return invalid(at(field), &problem);
-            }
-            for (track, t) in &lb.tracks {
-                if t.routes == 0 || t.workers == 0 {
-                    return invalid(
-                        at(&format!("tracks.{track}")),
-                        "routes and workers must be at least 1",
-                    );
-                }
-            }
-            for (main, qualifier) in &lb.qualifier.tracks {
-                if !lb.tracks.get(qualifier).is_some_and(|t| t.qualifier) {
-                    return invalid(
-                        at(&format!("qualifier.tracks.{main}")),
-                        "must name a track marked `qualifier: true`",
-                    );
-                }
-            }
-            for (metric, min) in &lb.qualifier.thresholds {
-                if !min.is_finite() {
-                    return invalid(
-                        at(&format!("qualifier.thresholds.{metric}")),
-                        "must be finite",
-                    );
-                }
-                if !crate::results::METRICS
-                    .iter()
-                    .any(|m| m.attribute == metric)
-                {
-                    return invalid(
-                        at(&format!("qualifier.thresholds.{metric}")),
-                        "is not a metric",
-                    );
-                }
-            }
+            lb.check(name).map_err(invalid)?;
         }
         for (phase, p) in &self.phases {
             let Some(lb) = self.leaderboards.get(&p.leaderboard) else {
-                return invalid(
-                    format!("phases.{phase}.leaderboard"),
-                    "names no configured leaderboard",
-                );
+                let path = format!("phases.{phase}.leaderboard");
+                return Err(invalid((path, "names no configured leaderboard".into())));
             };
             if !lb.tracks.contains_key(&p.track) {
-                return invalid(
-                    format!("phases.{phase}.track"),
-                    "names no track of its leaderboard",
-                );
+                let path = format!("phases.{phase}.track");
+                return Err(invalid((path, "names no track of its leaderboard".into())));
             }
         }
         Ok(())

@@ -538,65 +538,78 @@ fn check_settings(s: &JobSettings) -> Result<(), ContextError> {
             "expected an instance type such as `g5.12xlarge`",
         ));
     }
-    check_range("backoff_limit", s.backoff_limit.into(), 0, 100)?;
-    check_range(
-        "active_deadline_seconds",
-        s.active_deadline_seconds,
-        60,
-        14 * 24 * 3600,
-    )?;
-    check_range(
-        "ttl_seconds_after_finished",
-        s.ttl_seconds_after_finished.into(),
-        0,
-        30 * 24 * 3600,
-    )?;
-    check_range(
-        "termination_grace_seconds",
-        s.termination_grace_seconds.into(),
-        1,
-        3600,
-    )?;
-    check_range("repetitions", s.repetitions.into(), 1, 100)?;
-    check_path("routes_file", &s.routes_file, false)?;
-    check_path("qualifier_routes_file", &s.qualifier_routes_file, false)?;
-    check_path("scenarios_file", &s.scenarios_file, true)?;
-    check_path("sources.leaderboard", &s.sources.leaderboard, false)?;
-    check_path("sources.scenario_runner", &s.sources.scenario_runner, false)?;
-    check_path("sources.carla_api", &s.sources.carla_api, false)?;
+    check_bounds(s)
+}
+
+/// The Jobs' numbers within their bounds, and the paths of the official code and routes.
+fn check_bounds(s: &JobSettings) -> Result<(), ContextError> {
     const WEEK: u64 = 7 * 24 * 3600;
     let t = &s.timers;
-    check_range(
-        "timers.start_wait_seconds",
-        t.start_wait_seconds.into(),
-        0,
-        WEEK,
-    )?;
-    check_range(
-        "timers.end_wait_seconds",
-        t.end_wait_seconds.into(),
-        0,
-        WEEK,
-    )?;
-    check_range(
-        "timers.carla_ready_seconds",
-        t.carla_ready_seconds.into(),
-        1,
-        WEEK,
-    )?;
-    check_range("timers.poll_seconds", t.poll_seconds.into(), 1, 3600)?;
-    check_range(
-        "timers.max_idle_seconds",
-        t.max_idle_seconds.into(),
-        1,
-        WEEK,
-    )?;
-    check_range(
-        "timers.logcopy_period_seconds",
-        t.logcopy_period_seconds.into(),
-        1,
-        3600,
-    )?;
+    for (field, value, low, high) in [
+        ("backoff_limit", s.backoff_limit.into(), 0, 100),
+        (
+            "active_deadline_seconds",
+            s.active_deadline_seconds,
+            60,
+            14 * 24 * 3600,
+        ),
+        (
+            "ttl_seconds_after_finished",
+            s.ttl_seconds_after_finished.into(),
+            0,
+            30 * 24 * 3600,
+        ),
+        (
+            "termination_grace_seconds",
+            s.termination_grace_seconds.into(),
+            1,
+            3600,
+        ),
+        ("repetitions", s.repetitions.into(), 1, 100),
+        (
+            "timers.start_wait_seconds",
+            t.start_wait_seconds.into(),
+            0,
+            WEEK,
+        ),
+        (
+            "timers.end_wait_seconds",
+            t.end_wait_seconds.into(),
+            0,
+            WEEK,
+        ),
+        (
+            "timers.carla_ready_seconds",
+            t.carla_ready_seconds.into(),
+            1,
+            WEEK,
+        ),
+        ("timers.poll_seconds", t.poll_seconds.into(), 1, 3600),
+        (
+            "timers.max_idle_seconds",
+            t.max_idle_seconds.into(),
+            1,
+            WEEK,
+        ),
+        (
+            "timers.logcopy_period_seconds",
+            t.logcopy_period_seconds.into(),
+            1,
+            3600,
+        ),
+    ] {
+        check_range(field, value, low, high)?;
+    }
+    for (field, path, optional) in [
+        ("routes_file", &s.routes_file, false),
+        ("qualifier_routes_file", &s.qualifier_routes_file, false),
+        ("scenarios_file", &s.scenarios_file, true),
+        ("sources.leaderboard", &s.sources.leaderboard, false),
+        ("sources.scenario_runner", &s.sources.scenario_runner, false),
+        ("sources.carla_api", &s.sources.carla_api, false),
+    ] {
+        check_path(field, path, optional)?;
+    }
     Ok(())
 }
 

@@ -93,6 +93,13 @@ fn check_pod(pod: &PodSpec, context: &JobContext) -> Result<(), RenderError> {
             "must not make root the default user or group",
         ));
     }
+    check_volumes(pod, context)
+}
+
+/// No volume from the node; every memory-backed one bounded, and `/dev/shm` among them at the
+/// size the settings give it.
+fn check_volumes(pod: &PodSpec, context: &JobContext) -> Result<(), RenderError> {
+    const AT: &str = "spec.template.spec";
     let mut shm = false;
     for (i, v) in pod.volumes.iter().flatten().enumerate() {
         let at = format!("{AT}.volumes[{i}]");

@@ -214,24 +214,8 @@ async fn finish_run<C: Callbacks>(
         pipeline_error: error.is_some(),
         reason,
     };
-    // Only the execution that holds the claim ends the run, once: a stale execution (one a
-    // resume superseded) must not delete the new run's Jobs or post its own status, and a
-    // repeated Finalize reports what stands instead of doing it again.
-    let standing = table.standing(submission.team_id, id).await?;
-    let holder = standing.as_ref().and_then(|s| s.claimed_by.as_deref());
-    if let Some(why) = finalize::superseded(holder, &submission.execution) {
-        warn!(submission_id = id, %why, "nothing done");
-        return Ok(ended("SUPERSEDED".into(), Some(why)));
-    }
-    if let Some(standing) = standing.filter(|s| {
-        s.status
-            .as_deref()
-            .is_some_and(|s| !RecordStatus::is_in_flight(s))
-    }) {
-        info!(submission_id = id, status = ?standing.status, "already finalized; nothing done");
-        // An earlier attempt may have ended before it gave the place back.
-        leave_queue(deps, submission).await?;
-        return Ok(ended(standing.status.unwrap_or_default(), standing.error));
+    if let Some((status, reason)) = already_ended(deps, &table, submission).await? {
+        return Ok(ended(status, reason));
     }
     stop_jobs(deps, &target, submission).await?;
     let markers = store.markers().await?;
@@ -283,6 +267,35 @@ async fn finish_run<C: Callbacks>(
     );
     leave_queue(deps, submission).await?;
     Ok(ended(record.status.as_str().into(), outcome.reason))
+}
+
+/// What stands when this execution must not end the run: another holds the claim, or an
+/// earlier attempt of this Finalize already ended it (`None`: end it now). Only the execution
+/// that holds the claim ends the run, once: a stale one (a resume superseded it) must not
+/// delete the new run's Jobs or post its own status, and a repeated one reports what stands.
+async fn already_ended<C: Callbacks>(
+    deps: &Deps<C>,
+    table: &SubmissionsTable,
+    submission: &SubmissionInfo,
+) -> Result<Option<(String, Option<String>)>> {
+    let id = submission.submission_id;
+    let standing = table.standing(submission.team_id, id).await?;
+    let holder = standing.as_ref().and_then(|s| s.claimed_by.as_deref());
+    if let Some(why) = finalize::superseded(holder, &submission.execution) {
+        warn!(submission_id = id, %why, "nothing done");
+        return Ok(Some(("SUPERSEDED".into(), Some(why))));
+    }
+    let Some(ended) = standing.filter(|s| {
+        s.status
+            .as_deref()
+            .is_some_and(|s| !RecordStatus::is_in_flight(s))
+    }) else {
+        return Ok(None);
+    };
+    info!(submission_id = id, status = ?ended.status, "already finalized; nothing done");
+    // An earlier attempt may have ended before it gave the place back.
+    leave_queue(deps, submission).await?;
+    Ok(Some((ended.status.unwrap_or_default(), ended.error)))
 }
 
 /// The final status from what the run left (`lb_domain::finalize::outcome`), and the

@@ -555,17 +555,16 @@ async fn send_changed_results(
         }
         Ok(WriteOutcome::Cancelled) => Ok(Some(SubmissionStatus::Cancelled)),
         Ok(WriteOutcome::AlreadyFinal(status)) => Ok(Some(status)),
-        Err(EvalAiError::OverBudget) => {
-            info!(
-                submission_id = id,
-                "partial update deferred by the EvalAI budget"
-            );
-            run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
-            Ok(None)
-        }
+        // Deferred by the EvalAI budget, or skipped for trouble: nothing in S3 will change
+        // for it, so the next wait ends when it may go again.
         Err(e) if e.is_transient() => {
-            warn!(submission_id = id, error = %e, "partial update skipped this round");
-            // Nothing in S3 will change for it: try again soon.
+            match e {
+                EvalAiError::OverBudget => info!(
+                    submission_id = id,
+                    "partial update deferred by the EvalAI budget"
+                ),
+                e => warn!(submission_id = id, error = %e, "partial update skipped this round"),
+            }
             run.monitor.wait_seconds = run.monitor.wait_seconds.min(interval);
             Ok(None)
         }

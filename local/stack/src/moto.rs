@@ -81,6 +81,14 @@ impl MotoServer {
     /// Starts moto on `127.0.0.1` with a free port and waits until it answers.
     pub fn start() -> Result<MotoServer, MotoError> {
         let exe = Self::executable()?;
+        // NB: one start at a time in this process, until the server answers: a port found
+        // free is only reserved once moto binds it, and two stacks starting side by side (the
+        // tests of one binary run in parallel) could otherwise pick the same one, the loser's
+        // wait then finding the winner's server and both tests sharing one moto.
+        static STARTING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+        let _one = STARTING
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let port = free_port().map_err(MotoError::Spawn)?;
         let addr = SocketAddr::from(([127, 0, 0, 1], port));
         let child = Command::new(&exe)
