@@ -190,20 +190,6 @@ fn prepare(deps: &Deps, target: &Target<'_>, submission: &SubmissionInfo) -> Res
     })
 }
 
-impl Prepared {
-    /// A run's first state: `jobs` Jobs launched (none while it waits for its turn) at `now`.
-    fn run_state(self, jobs: u32, now: u64, queue: QueueState) -> RunState {
-        run_state(
-            jobs,
-            self.pairs,
-            self.settings.repetitions,
-            now,
-            self.total,
-            queue,
-        )
-    }
-}
-
 /// Renders the plan's Jobs and creates them (or adopts those a retry already created); their
 /// names.
 async fn launch_jobs(
@@ -253,36 +239,31 @@ async fn mark_queued(deps: &Deps, at: SubmissionRef, names: &str) -> Result<()> 
     Ok(())
 }
 
-/// A run's first state: `jobs` Jobs launched (none while it waits for its turn) at `now`.
-fn run_state(
-    jobs: u32,
-    pairs: Vec<PairRoutes>,
-    repetitions: u32,
-    now: u64,
-    total: u64,
-    queue: QueueState,
-) -> RunState {
-    RunState {
-        jobs,
-        pairs,
-        repetitions,
-        launched_at: now,
-        queue,
-        monitor: MonitorState {
-            state: RunPhase::Running,
-            wait_seconds: FIRST_WAIT.as_secs(),
-            hold_seconds: 0,
-            seen: 0,
-            poll: false,
-            expires_at: now + lb_aws::wake::RETENTION_SECONDS,
-            updated_at: None,
-            status_read_at: None,
-            rounds: 0,
-            fingerprint: None,
-            progress: (0, total),
-            reason: None,
-            unreachable_since: None,
-            started_at: None,
-        },
+impl Prepared {
+    /// A run's first state: `jobs` Jobs launched (none while it waits for its turn) at `now`.
+    fn run_state(self, jobs: u32, now: u64, queue: QueueState) -> RunState {
+        RunState {
+            jobs,
+            pairs: self.pairs,
+            repetitions: self.settings.repetitions,
+            launched_at: now,
+            queue,
+            monitor: MonitorState {
+                state: RunPhase::Running,
+                wait_seconds: FIRST_WAIT.as_secs(),
+                hold_seconds: 0,
+                seen: 0,
+                poll: false,
+                expires_at: now + lb_aws::wake::RETENTION_SECONDS,
+                updated_at: None,
+                status_read_at: None,
+                rounds: 0,
+                fingerprint: None,
+                progress: (0, self.total),
+                reason: None,
+                unreachable_since: None,
+                started_at: None,
+            },
+        }
     }
 }
