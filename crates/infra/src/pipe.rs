@@ -19,7 +19,7 @@
 //! The template itself is the Pipe's `InputTemplate` in `infra/app.yaml`: the one source that
 //! the deployment, local mode and `lbctl submit` use.
 
-use serde_json::{json, Value};
+use serde_json::Value;
 
 /// The Pipe's `InputTemplate`, exactly as deployed (read from `infra/app.yaml`).
 pub static INPUT_TEMPLATE: std::sync::LazyLock<String> = std::sync::LazyLock::new(|| {
@@ -48,7 +48,11 @@ pub enum TransformError {
 /// A record built from a message body alone, for callers that start executions as the Pipe
 /// would without a queue (`lbctl submit`).
 pub fn record_of_body(body: &str) -> Value {
-    json!({"messageId": "", "body": body, "attributes": {}, "messageAttributes": {}, "eventSource": "aws:sqs"})
+    let mut record = aws_lambda_events::event::sqs::SqsMessage::default();
+    record.message_id = Some(String::new());
+    record.body = Some(body.to_owned());
+    record.event_source = Some("aws:sqs".to_owned());
+    serde_json::to_value(record).expect("an SqsMessage of strings and string maps serializes")
 }
 
 /// What the Pipe hands the state machine for a batch of records: the template applied to
@@ -159,6 +163,7 @@ fn resolve(record: &Value, placeholder: &str) -> Result<Value, TransformError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use serde_json::json;
 
     /// EvalAI's message for a new submission: string challenge and phase ids, an int
     /// submission id, an extra key the template drops.

@@ -27,6 +27,9 @@ pub trait Invocation: DeserializeOwned {
 /// An event whose content the function does not read (the sweep's schedule).
 impl Invocation for serde::de::IgnoredAny {}
 
+/// A batch of SQS messages (the wake's queue): about many submissions, so no single one.
+impl Invocation for aws_lambda_events::event::sqs::SqsEvent {}
+
 /// A function: its typed input and output, and its handler on the dependencies it was given.
 pub trait Function {
     /// The function's name, as its folder, binary and `ErrorEquals` messages say it.

@@ -9,13 +9,16 @@
 //! with `SendTaskSuccess`: a burst wakes an execution once, an event for a submission nobody
 //! waits on only counts, and a token is never reported twice.
 
-use lb_pipeline::serve::{Function, Invocation};
 use std::collections::BTreeMap;
 
+use aws_lambda_events::event::eventbridge::EventBridgeEvent;
+use aws_lambda_events::event::s3::{S3Bucket, S3Object};
+use aws_lambda_events::event::sqs::{BatchItemFailure, SqsBatchResponse, SqsEvent};
 use lb_aws::tasks::{Callbacks, Reported, StepFunctions};
 use lb_aws::wake::WakeTable;
+use lb_pipeline::serve::Function;
 use lb_pipeline::{clients, Result};
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 use serde_json::Value;
 use tracing::{debug, info, warn};
 
@@ -40,41 +43,6 @@ impl Deps {
     }
 }
 
-/// Lambda's event for an SQS batch (Lambda developer guide, "Using Lambda with Amazon SQS").
-#[derive(Debug, Clone, Deserialize)]
-pub struct SqsEvent {
-    /// The messages.
-    #[serde(rename = "Records")]
-    pub records: Vec<SqsRecord>,
-}
-
-/// One message of the batch (the fields this function reads).
-#[derive(Debug, Clone, Deserialize)]
-pub struct SqsRecord {
-    /// What a batch item failure names.
-    #[serde(rename = "messageId")]
-    pub message_id: String,
-    /// The EventBridge event, as text.
-    pub body: String,
-}
-
-/// The partial batch response ("Handling errors for an SQS event source"): the messages to
-/// deliver again; every other one is deleted.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
-pub struct BatchResponse {
-    /// The failed messages.
-    #[serde(rename = "batchItemFailures")]
-    pub batch_item_failures: Vec<ItemFailure>,
-}
-
-/// One failed message.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
-pub struct ItemFailure {
-    /// Its `messageId`.
-    #[serde(rename = "itemIdentifier")]
-    pub item_identifier: String,
-}
-
 /// Why a message wakes nobody.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Ignored {
@@ -84,31 +52,42 @@ pub enum Ignored {
     OtherKey(String),
 }
 
-/// The submission an EventBridge event from S3 wakes (S3 user guide, "EventBridge message
-/// structure": `source` `aws.s3`, `detail-type` `Object Created`, `detail.object.key`).
-pub fn submission_of(body: &str) -> std::result::Result<u64, Ignored> {
-    let event: Value =
-        serde_json::from_str(body).map_err(|e| Ignored::NotAnS3Event(format!("not JSON: {e}")))?;
-    if event["source"] != "aws.s3" || event["detail-type"] != "Object Created" {
-        return Err(Ignored::NotAnS3Event(format!(
-            "source `{}`, detail-type `{}`",
-            event["source"], event["detail-type"]
-        )));
-    }
-    let key = event["detail"]["object"]["key"]
-        .as_str()
-        .ok_or_else(|| Ignored::NotAnS3Event("no detail.object.key".into()))?;
-    lb_domain::protocol::wakes_submission(key).ok_or_else(|| Ignored::OtherKey(key.into()))
+/// The `detail` of S3's `Object Created` event on EventBridge (S3 user guide, "EventBridge
+/// message structure"). `aws_lambda_events` types the envelope, the bucket and the object but
+/// has no type for this detail, so it is only these two of the crate's types side by side.
+#[derive(Debug, Clone, Deserialize)]
+struct ObjectCreated {
+    bucket: S3Bucket,
+    object: S3Object,
 }
 
-impl Invocation for SqsEvent {}
+/// The submission an EventBridge event from S3 wakes: `source` `aws.s3`, `detail-type`
+/// `Object Created`, and a key of a results file or a marker.
+pub fn submission_of(body: &str) -> std::result::Result<u64, Ignored> {
+    let event: EventBridgeEvent<Value> = serde_json::from_str(body)
+        .map_err(|e| Ignored::NotAnS3Event(format!("not an EventBridge event: {e}")))?;
+    if event.source != "aws.s3" || event.detail_type != "Object Created" {
+        return Err(Ignored::NotAnS3Event(format!(
+            "source `{}`, detail-type `{}`",
+            event.source, event.detail_type
+        )));
+    }
+    let detail: ObjectCreated = serde_json::from_value(event.detail)
+        .map_err(|e| Ignored::NotAnS3Event(format!("detail: {e}")))?;
+    let key = detail
+        .object
+        .key
+        .ok_or_else(|| Ignored::NotAnS3Event("no detail.object.key".into()))?;
+    debug!(bucket = detail.bucket.name.as_deref().unwrap_or(""), %key, "object created");
+    lb_domain::protocol::wakes_submission(&key).ok_or(Ignored::OtherKey(key))
+}
 
 impl<C: Callbacks> Function for Deps<C> {
     const NAME: &'static str = "wake";
     type Input = SqsEvent;
-    type Output = BatchResponse;
+    type Output = SqsBatchResponse;
     /// Never fails: a message not handled is reported back for SQS to deliver again.
-    async fn handle(&self, event: SqsEvent) -> Result<BatchResponse> {
+    async fn handle(&self, event: SqsEvent) -> Result<SqsBatchResponse> {
         Ok(handle(event, self, clients::now_epoch_seconds()).await)
     }
 }
@@ -116,29 +95,39 @@ impl<C: Callbacks> Function for Deps<C> {
 /// Wakes each distinct submission of the batch once. A message that wakes nobody is dropped
 /// (no retry could change it); the messages of a submission whose wake failed are reported
 /// for another delivery.
-pub async fn handle<C: Callbacks>(event: SqsEvent, deps: &Deps<C>, now: u64) -> BatchResponse {
+pub async fn handle<C: Callbacks>(event: SqsEvent, deps: &Deps<C>, now: u64) -> SqsBatchResponse {
     let mut by_submission: BTreeMap<u64, Vec<String>> = BTreeMap::new();
     for record in event.records {
-        match submission_of(&record.body) {
-            Ok(id) => by_submission.entry(id).or_default().push(record.message_id),
+        // SQS always sets both; a record without an id could not be reported back anyway.
+        let (Some(message_id), Some(body)) = (record.message_id, record.body) else {
+            warn!("dropped a record without a messageId or body");
+            continue;
+        };
+        match submission_of(&body) {
+            Ok(id) => by_submission.entry(id).or_default().push(message_id),
             Err(Ignored::OtherKey(key)) => debug!(%key, "not a results file or marker"),
             Err(Ignored::NotAnS3Event(why)) => {
-                warn!(message_id = %record.message_id, %why, "dropped a message that is not an S3 event")
+                warn!(%message_id, %why, "dropped a message that is not an S3 event")
             }
         }
     }
-    let mut response = BatchResponse::default();
+    let mut response = SqsBatchResponse::default();
     for (submission_id, messages) in by_submission {
         if let Err(e) = wake(submission_id, deps, now).await {
             warn!(submission_id, error = %e, "wake failed; its messages come back");
-            response.batch_item_failures.extend(
-                messages
-                    .into_iter()
-                    .map(|m| ItemFailure { item_identifier: m }),
-            );
+            response
+                .batch_item_failures
+                .extend(messages.into_iter().map(failure));
         }
     }
     response
+}
+
+/// A batch item failure naming one message (the crate's type is non-exhaustive).
+pub fn failure(message_id: String) -> BatchItemFailure {
+    let mut failure = BatchItemFailure::default();
+    failure.item_identifier = message_id;
+    failure
 }
 
 /// Counts the change and reports the waiting token, if one was taken.

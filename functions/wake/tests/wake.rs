@@ -6,11 +6,12 @@
 
 use test_support::{Answer, RecordingCallbacks};
 
+use aws_lambda_events::event::sqs::SqsBatchResponse;
 use lb_aws::wake::WakeTable;
 use local_stack::integrations::{update_item, wait_for_change};
 use local_stack::stack::WAKE_TABLE;
 use serde_json::{json, Value};
-use wake::{BatchResponse, Deps, ItemFailure};
+use wake::{failure, Deps};
 
 const EVENT: &str = include_str!("fixtures/object-created.json");
 
@@ -36,18 +37,13 @@ fn batch(records: &[(&str, String)]) -> Value {
     json!({ "Records": records })
 }
 
-fn failures(ids: &[&str]) -> BatchResponse {
-    BatchResponse {
-        batch_item_failures: ids
-            .iter()
-            .map(|id| ItemFailure {
-                item_identifier: id.to_string(),
-            })
-            .collect(),
-    }
+fn failures(ids: &[&str]) -> SqsBatchResponse {
+    let mut response = SqsBatchResponse::default();
+    response.batch_item_failures = ids.iter().map(|id| failure(id.to_string())).collect();
+    response
 }
 
-async fn run(deps: &Deps<RecordingCallbacks>, records: &[(&str, String)]) -> BatchResponse {
+async fn run(deps: &Deps<RecordingCallbacks>, records: &[(&str, String)]) -> SqsBatchResponse {
     let out = lb_pipeline::serve::call(deps, batch(records))
         .await
         .unwrap();
