@@ -68,6 +68,10 @@ pub struct Submit {
     /// EvalAI does when it could not read it, and Intake reads it from EvalAI's input file.
     #[arg(long, value_name = "URI")]
     pub image: Option<String>,
+    /// Print the execution input instead of starting one: what to paste into the Step
+    /// Functions console's "Start execution" (needs no AWS access).
+    #[arg(long)]
+    pub print_input: bool,
     #[command(flatten)]
     pub machine: StateMachineArgs,
 }
@@ -170,9 +174,8 @@ fn report(name: &str, arn: &str, input: &Value) {
     outln!("  input  {input}");
 }
 
-/// `lbctl submit`: one execution with the Pipe's input.
+/// `lbctl submit`: one execution with the Pipe's input (or only that input, printed).
 pub async fn submit(args: Submit) -> Result<u8> {
-    let state_machine = args.machine.arn()?;
     if let Some(image) = &args.image {
         image_ok(image)?;
     }
@@ -182,6 +185,14 @@ pub async fn submit(args: Submit) -> Result<u8> {
         args.submission,
         args.image.as_deref(),
     );
+    if args.print_input {
+        outln!(
+            "{}",
+            serde_json::to_string_pretty(&input).unwrap_or_default()
+        );
+        return Ok(0);
+    }
+    let state_machine = args.machine.arn()?;
     let sdk = crate::aws::config().await?;
     let (name, arn) = start(&sdk, state_machine, args.submission, &input).await?;
     report(&name, &arn, &input);

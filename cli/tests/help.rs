@@ -203,3 +203,36 @@ fn invoke_without_its_environment_prints_the_lambda_error_object() {
         );
     }
 }
+
+/// `--print-input` needs no state machine and no AWS: it prints the Pipe's one-element batch
+/// for the console, which Intake reads as the same message the Pipe would give it.
+#[test]
+fn submit_print_input_prints_the_pipes_batch_for_the_console() {
+    let out = lbctl(
+        &[
+            "submit",
+            "--challenge",
+            "12",
+            "--phase",
+            "1234",
+            "--submission",
+            "77",
+            "--image",
+            "repo/agent:1",
+            "--print-input",
+        ],
+        &[],
+        None,
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let printed: serde_json::Value = serde_json::from_str(&stdout(&out)).expect("JSON");
+    assert_eq!(
+        printed,
+        serde_json::json!([{"challenge_pk": 12, "phase_pk": 1234, "submission_pk": 77,
+                            "submitted_image_uri": "repo/agent:1"}])
+    );
+    let message = lb_domain::submission::SubmissionMessage::from_pipe(&printed).unwrap();
+    assert_eq!(message.submission_id, 77);
+    let bare = lb_domain::submission::SubmissionMessage::from_pipe(&printed[0]).unwrap();
+    assert_eq!(bare, message, "the element typed alone is the same message");
+}

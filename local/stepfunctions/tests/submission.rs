@@ -439,13 +439,21 @@ async fn a_cli_can_follow_the_stages_live() {
 
 #[tokio::test]
 async fn a_batch_of_any_size_but_one_fails_as_invalid_batch_before_intake() {
-    let not_a_batch = message();
-    for input in [json!([]), json!([message(), message()]), not_a_batch] {
+    let not_a_message = json!({"challenge_pk": 1, "phase_pk": 1234});
+    let inputs = [
+        json!([]),
+        json!([message(), message()]),
+        not_a_message,
+        json!("77"),
+        json!(77),
+    ];
+    for input in inputs {
         let (tasks, stages) = tasks(Script::default());
         let r = run_with(&machine(), tasks, options(0.001), input.clone()).await;
         assert_eq!(r.status, Status::Failed, "{input}");
         assert_eq!(r.error.as_deref(), Some("InvalidBatch"), "{input}");
         assert!(r.cause.as_deref().unwrap().contains("batch size to 1"));
+        assert!(r.cause.as_deref().unwrap().contains("--print-input"));
         assert_eq!(r.states_entered(), ["OneSubmission?", "InvalidBatch"]);
         let called = stages.intake.count()
             + stages.launch.count()
@@ -453,4 +461,22 @@ async fn a_batch_of_any_size_but_one_fails_as_invalid_batch_before_intake() {
             + stages.finalize.count();
         assert_eq!(called, 0, "nothing is claimed or launched for {input}");
     }
+}
+
+/// What a person types in the console: the message object, not the Pipe's array. It runs as
+/// the Pipe's batch of one does, with Intake given the same message.
+#[tokio::test]
+async fn the_bare_message_typed_in_the_console_runs_as_the_pipes_batch_of_one() {
+    let (tasks, stages) = tasks(Script::default());
+    let r = run_with(&machine(), tasks, options(0.001), message()).await;
+    assert_eq!(r.status, Status::Succeeded, "{:?} {:?}", r.error, r.cause);
+    let entered = r.states_entered();
+    assert_eq!(entered[..3], ["OneSubmission?", "Intake", "Eligible?"]);
+    assert_eq!(entered.last(), Some(&"Done"));
+    assert_eq!(
+        stages.intake.inputs()[0],
+        json!({"message": message(), "execution": "test-run"})
+    );
+    assert_eq!(stages.finalize.count(), 1);
+    assert_eq!(r.output.unwrap()["final"]["status"], "FINISHED");
 }
