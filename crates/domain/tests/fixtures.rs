@@ -342,14 +342,38 @@ fn files_under(root: &Path) -> Vec<PathBuf> {
 /// byte for byte: a case or file it lacks, has in excess or holds differently is named.
 #[test]
 fn the_kept_fixtures_are_the_shared_set_byte_for_byte_when_it_is_beside_the_repository() {
+    same_as_shared(
+        "fixtures/leaderboard-results",
+        "leaderboard-results",
+        |_| true,
+    );
+}
+
+/// The same for the recording of EvalAI's real server that `local/evalai/tests/contract.rs`
+/// replays (its JSON files; the folder's README is the repository's own).
+#[test]
+fn the_kept_evalai_recording_is_the_shared_one_byte_for_byte_when_it_is_beside_the_repository() {
+    same_as_shared("reference/evalai-contract", "evalai-contract", |f| {
+        f.extension().is_some_and(|e| e == "json")
+    });
+}
+
+/// Compares `../shared/<shared>` with `tests/fixtures/<kept>`, the files `keep` selects.
+fn same_as_shared(shared: &str, kept: &str, keep: fn(&Path) -> bool) {
     let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let shared = manifest.join("../../../shared/fixtures/leaderboard-results");
-    let kept = manifest.join("../../tests/fixtures/leaderboard-results");
+    let shared = manifest.join("../../../shared").join(shared);
+    let kept = manifest.join("../../tests/fixtures").join(kept);
     if !shared.is_dir() {
-        eprintln!("no shared fixtures beside the repository: nothing to compare");
+        eprintln!(
+            "no {} beside the repository: nothing to compare",
+            shared.display()
+        );
         return;
     }
-    let (theirs, ours) = (files_under(&shared), files_under(&kept));
+    let select = |root: &Path| -> Vec<PathBuf> {
+        files_under(root).into_iter().filter(|f| keep(f)).collect()
+    };
+    let (theirs, ours) = (select(&shared), select(&kept));
     let mut problems: Vec<String> = theirs
         .iter()
         .filter(|f| !ours.contains(f))

@@ -106,6 +106,13 @@ async fn put_faults(State(shared): State<Arc<Shared>>, body: Bytes) -> Response 
     Json(faults).into_response()
 }
 
+/// Every user's throttle window emptied, as after a minute without requests: a replay of
+/// requests that were paced below the limit needs no real minute between them.
+async fn reset_throttle(State(shared): State<Arc<Shared>>) -> Response {
+    shared.lock().throttle.reset();
+    StatusCode::NO_CONTENT.into_response()
+}
+
 async fn get_faults(State(shared): State<Arc<Shared>>) -> Response {
     Json(shared.lock().faults.faults.clone()).into_response()
 }
@@ -144,5 +151,6 @@ pub(crate) fn router(shared: Arc<Shared>) -> Router<Arc<Shared>> {
         .route("/_admin/submissions/{id}/cancel", post(cancel))
         .route("/_admin/submissions/{id}/resume", post(resume))
         .route("/_admin/faults", get(get_faults).put(put_faults))
+        .route("/_admin/throttle", axum::routing::delete(reset_throttle))
         .route_layer(middleware::from_fn_with_state(shared, log_admin))
 }

@@ -150,11 +150,18 @@ impl PyValue {
     /// `json.dumps(x, separators=(",", ":"), ensure_ascii=False)`, as DRF renders responses.
     pub fn dumps(&self) -> String {
         let mut out = String::new();
-        self.write_json(&mut out);
+        self.write_json(&mut out, (",", ":"));
         out
     }
 
-    fn write_json(&self, out: &mut String) {
+    /// `json.dumps(x)`'s separators (`", "`, `": "`), as a stored file written by Python reads.
+    pub fn dumps_spaced(&self) -> String {
+        let mut out = String::new();
+        self.write_json(&mut out, (", ", ": "));
+        out
+    }
+
+    fn write_json(&self, out: &mut String, separators: (&str, &str)) {
         match self {
             PyValue::None => out.push_str("null"),
             PyValue::Bool(b) => out.push_str(if *b { "true" } else { "false" }),
@@ -175,9 +182,9 @@ impl PyValue {
                 out.push('[');
                 for (i, item) in items.iter().enumerate() {
                     if i > 0 {
-                        out.push(',');
+                        out.push_str(separators.0);
                     }
-                    item.write_json(out);
+                    item.write_json(out, separators);
                 }
                 out.push(']');
             }
@@ -185,11 +192,11 @@ impl PyValue {
                 out.push('{');
                 for (i, (k, v)) in pairs.iter().enumerate() {
                     if i > 0 {
-                        out.push(',');
+                        out.push_str(separators.0);
                     }
                     write_json_string(k, out);
-                    out.push(':');
-                    v.write_json(out);
+                    out.push_str(separators.1);
+                    v.write_json(out, separators);
                 }
                 out.push('}');
             }

@@ -252,6 +252,11 @@ impl FakeEvalAi {
         self.shared.lock().add_submission(new)
     }
 
+    /// Empties every user's throttle window (`DELETE /_admin/throttle`).
+    pub fn reset_throttle(&self) {
+        self.shared.lock().throttle.reset();
+    }
+
     /// Replaces the fault configuration (and reseeds the PRNG).
     pub fn set_faults(&self, faults: Faults) -> Result<(), AdminError> {
         faults.validate().map_err(AdminError::InvalidFaults)?;

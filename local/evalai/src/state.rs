@@ -111,6 +111,15 @@ pub(crate) struct Row {
     pub updated_at: OffsetDateTime,
 }
 
+/// The files a submission serves, by name; the index is the kind in `World::media_path`.
+pub(crate) const MEDIA_FILES: [&str; 5] = [
+    "input_file.json",
+    "stdout.txt",
+    "stderr.txt",
+    "environment_log.txt",
+    "submission_result.json",
+];
+
 /// Everything behind the server's lock.
 pub(crate) struct World {
     pub users: BTreeMap<u64, User>,
@@ -436,10 +445,39 @@ impl World {
             .find(|s| s.id == split)
     }
 
+    /// Where a submission's stored file is served, in EvalAI's media layout
+    /// (`submission_files/challenge_<c>/phase_<p>/submission_<id>/<uuid>.<ext>`). The uuid is
+    /// made of the file's kind and the submission id, so that a path leads back to its file.
+    pub fn media_path(&self, s: &Submission, name: &str) -> String {
+        let kind = MEDIA_FILES.iter().position(|f| *f == name).unwrap_or(0);
+        let ext = name.rsplit('.').next().unwrap_or("txt");
+        format!(
+            "/media/submission_files/challenge_{}/phase_{}/submission_{}/{kind:08x}-0000-4000-8000-{:012x}.{ext}",
+            self.challenge_of(s),
+            s.phase,
+            s.id,
+            s.id
+        )
+    }
+
+    /// The submission and file name a media path serves, if it is one `media_path` gives.
+    pub fn resolve_media(&self, path: &str) -> Option<(u64, &'static str)> {
+        let rest = path.strip_prefix("/media/submission_files/")?;
+        let id = rest
+            .split('/')
+            .find_map(|part| part.strip_prefix("submission_"))?
+            .parse::<u64>()
+            .ok()?;
+        let s = self.submissions.get(&id)?;
+        MEDIA_FILES
+            .iter()
+            .find(|name| self.media_path(s, name) == path)
+            .map(|name| (id, *name))
+    }
+
     /// `SubmissionSerializer(submission).data`, fields in EvalAI's order.
     pub fn serialize_submission(&self, s: &Submission, base_url: &str, host: bool) -> PyValue {
-        let url =
-            |name: &str| PyValue::Str(format!("{base_url}/media/submissions/{}/{name}", s.id));
+        let url = |name: &str| PyValue::Str(format!("{base_url}{}", self.media_path(s, name)));
         let file = |present: bool, name: &str| {
             if present {
                 url(name)
@@ -516,7 +554,7 @@ impl World {
         PyValue::dict(fields)
     }
 
-    /// The content of a stored file, by its URL name.
+    /// The content of a stored file, by its name (one of `MEDIA_FILES`).
     pub fn file(&self, submission: u64, name: &str) -> Option<(String, &'static str)> {
         let s = self.submissions.get(&submission)?;
         let text = |v: &Option<String>| v.clone();
@@ -526,7 +564,7 @@ impl World {
                     Some(uri) => PyValue::dict(vec![("submitted_image_uri", PyValue::str(uri))]),
                     None => PyValue::Dict(Vec::new()),
                 };
-                Some((body.dumps(), "application/json"))
+                Some((body.dumps_spaced(), "application/json"))
             }
             "stdout.txt" => text(&s.files.stdout).map(|t| (t, "text/plain; charset=utf-8")),
             "stderr.txt" => text(&s.files.stderr).map(|t| (t, "text/plain; charset=utf-8")),

@@ -20,6 +20,11 @@ impl Throttle {
         }
     }
 
+    /// Forgets every request: what a minute without requests would do to every window.
+    pub fn reset(&mut self) {
+        self.history.clear();
+    }
+
     /// `allow_request`: records the request, or returns the whole seconds to wait
     /// (DRF's `wait()`, rounded up) without recording it.
     pub fn check(&mut self, user: u64, now: Instant) -> Result<(), u64> {

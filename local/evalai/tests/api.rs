@@ -268,9 +268,14 @@ async fn get_submission_lets_the_creator_and_hosts_in_and_answers_401_to_others(
     assert_eq!(v["job_name"], json!([]));
     assert!(v["started_at"].is_null());
     let input = v["input_file"].as_str().unwrap();
-    assert_eq!(
-        input,
-        format!("{}/media/submissions/1/input_file.json", fake.url())
+    // EvalAI's media layout: the challenge, phase and submission, then a uuid file name.
+    let prefix = format!(
+        "{}/media/submission_files/challenge_1/phase_1/submission_1/",
+        fake.url()
+    );
+    assert!(
+        input.starts_with(&prefix) && input.ends_with(".json"),
+        "{input}"
     );
     let file = api
         .get(input.strip_prefix(&fake.url()).unwrap(), None)
@@ -568,14 +573,21 @@ async fn unvalidated_inputs_give_html_500_like_evalai() {
     cases.push(final_put(r#"["leaderboard"]"#));
     cases.push(final_put(r#"{"split": "leaderboard"}"#));
     cases.push(final_put("3"));
-    cases.push(final_put(
-        r#"[{"split": "leaderboard", "accuracies": {"Driving score": NaN}}]"#,
-    ));
     for body in cases {
         let r = api.put_json(UPDATE, HOST, body.clone()).await;
         assert_eq!(r.status, StatusCode::INTERNAL_SERVER_ERROR, "{body}");
         assert!(r.is_html(), "{body}");
     }
+    // NaN inside the result is refused by the leaderboard row's JSON field: 400, not 500.
+    let r = api
+        .put_json(
+            UPDATE,
+            HOST,
+            final_put(r#"[{"split": "leaderboard", "accuracies": {"Driving score": NaN}}]"#),
+        )
+        .await;
+    assert_eq!(r.status, StatusCode::BAD_REQUEST);
+    assert_eq!(r.json(), json!({"result": ["Value must be valid JSON."]}));
     assert_eq!(
         fake.submission(1).unwrap().status,
         "submitted",

@@ -149,7 +149,11 @@ async fn admin_can_add_a_submission_that_the_api_then_serves() {
         })
         .unwrap();
     assert_eq!(added.id, 4);
-    let input = api.get("/media/submissions/4/input_file.json", None).await;
+    let url = api.get("/api/jobs/submission/4", Some(HOST)).await.json()["input_file"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    let input = api.get(url.strip_prefix(&fake.url()).unwrap(), None).await;
     assert_eq!(input.json(), json!({"submitted_image_uri": "repo/img:2"}));
 }
 

@@ -3,7 +3,9 @@
 use axum::http::StatusCode;
 use time::OffsetDateTime;
 
-use crate::pyjson::PyValue;
+use std::collections::BTreeSet;
+
+use crate::pyjson::{self, Constants, PyValue};
 use crate::routes::body::Data;
 use crate::routes::reply::{Reply, ViewResult};
 use crate::state::Submission;
@@ -14,8 +16,16 @@ const NOT_NULL: &str = "This field may not be null.";
 const NOT_STRING: &str = "Not a valid string.";
 const DATETIME_FORMAT: &str = "Datetime has wrong format. Use one of these formats instead: YYYY-MM-DDThh:mm[:ss[.uuuuuu]][+HH:MM|-HH:MM|Z].";
 
+/// The ids the serializer's related fields may name (`PrimaryKeyRelatedField` querysets).
+pub(crate) struct Related {
+    pub teams: BTreeSet<u64>,
+    pub users: BTreeSet<u64>,
+    pub phases: BTreeSet<u64>,
+}
+
 enum Change {
     Status(String),
+    Related(&'static str, u64),
     Time(&'static str, Option<OffsetDateTime>),
     Text(&'static str, String),
     Flag(&'static str, bool),
@@ -64,6 +74,32 @@ fn char_field(v: &PyValue, max: Option<usize>) -> Result<String, PyValue> {
     Ok(s)
 }
 
+/// `PrimaryKeyRelatedField.to_internal_value`: an id that names an existing object.
+fn related(v: &PyValue, known: &BTreeSet<u64>) -> Result<u64, PyValue> {
+    let id = match v {
+        PyValue::None => return Err(errors(NOT_NULL)),
+        PyValue::Int(i) => Some(*i),
+        PyValue::Float(f) if f.is_finite() => Some(f.trunc() as i128),
+        PyValue::Str(s) => s.trim().parse::<i128>().ok(),
+        _ => None,
+    };
+    let Some(id) = id else {
+        return Err(errors(&format!(
+            "Incorrect type. Expected pk value, received {}.",
+            v.type_name()
+        )));
+    };
+    u64::try_from(id)
+        .ok()
+        .filter(|id| known.contains(id))
+        .ok_or_else(|| {
+            errors(&format!(
+                "Invalid pk \"{}\" - object does not exist.",
+                v.py_str()
+            ))
+        })
+}
+
 fn datetime(v: &PyValue) -> Result<Option<OffsetDateTime>, PyValue> {
     match v {
         PyValue::None => Ok(None),
@@ -100,9 +136,22 @@ fn job_names(v: &PyValue) -> Result<Option<Vec<String>>, PyValue> {
     }
 }
 
+/// `JSONField`: a JSON body's value as it is; a form's text parsed as JSON, as DRF does for
+/// form input.
+fn metadata(v: &PyValue, form: bool) -> Result<Change, PyValue> {
+    let value = match v {
+        PyValue::Str(text) if form => pyjson::loads(text, Constants::Allow)
+            .map_err(|_| errors("Value must be valid JSON."))?,
+        other => other.clone(),
+    };
+    Ok(Change::Metadata(
+        (!matches!(value, PyValue::None)).then_some(value),
+    ))
+}
+
 /// Validates `request.data` as a partial serializer update; applies it when valid,
 /// else answers 400 with DRF's `{field: [messages]}`.
-pub(crate) fn apply(sub: &mut Submission, data: &Data) -> ViewResult<()> {
+pub(crate) fn apply(sub: &mut Submission, data: &Data, known: &Related) -> ViewResult<()> {
     if !matches!(data.value, PyValue::Dict(_)) {
         return Err(Reply::json(
             StatusCode::BAD_REQUEST,
@@ -121,6 +170,15 @@ pub(crate) fn apply(sub: &mut Submission, data: &Data) -> ViewResult<()> {
         Ok(c) => changes.push(c),
         Err(e) => errs.push((field.to_owned(), e)),
     };
+    for (field, ids) in [
+        ("participant_team", &known.teams),
+        ("challenge_phase", &known.phases),
+        ("created_by", &known.users),
+    ] {
+        if let Some(v) = data.value.get(field) {
+            check(field, related(v, ids).map(|id| Change::Related(field, id)));
+        }
+    }
     if let Some(v) = data.value.get("status") {
         let key = v.py_str();
         let r = match v {
@@ -170,14 +228,21 @@ pub(crate) fn apply(sub: &mut Submission, data: &Data) -> ViewResult<()> {
         check("job_name", r);
     }
     if let Some(v) = data.value.get("submission_metadata") {
-        let value = (!matches!(v, PyValue::None)).then(|| v.clone());
-        check("submission_metadata", Ok(Change::Metadata(value)));
+        check(
+            "submission_metadata",
+            metadata(v, data.getlist("submission_metadata").is_some()),
+        );
     }
     if !errs.is_empty() {
         return Err(Reply::json(StatusCode::BAD_REQUEST, PyValue::Dict(errs)));
     }
     for change in changes {
         match change {
+            Change::Related(field, id) => match field {
+                "participant_team" => sub.team = id,
+                "challenge_phase" => sub.phase = id,
+                _ => sub.created_by = id,
+            },
             Change::Status(s) => sub.status = s,
             Change::Time(field, t) => match field {
                 "started_at" => sub.started_at = t,

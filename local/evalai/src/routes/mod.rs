@@ -125,8 +125,8 @@ pub(crate) struct Incoming<'a> {
 
 /// Everything after fault injection: returns the reply and the authenticated user.
 pub(crate) fn process(world: &mut World, req: &Incoming<'_>) -> (Reply, Option<u64>) {
-    if let Some(rest) = req.path.strip_prefix("/media/submissions/") {
-        return (media(world, rest), None);
+    if req.path.starts_with("/media/") {
+        return (media(world, req.path), None);
     }
     let Some(route) = resolve(req.path) else {
         // APPEND_SLASH (CommonMiddleware) runs before any view, so before authentication.
@@ -140,6 +140,24 @@ pub(crate) fn process(world: &mut World, req: &Incoming<'_>) -> (Reply, Option<u
         }
         return (Reply::not_found_page(), None);
     };
+    let (reply, user) = through_view(world, req, route);
+    (with_allow(reply, route), user)
+}
+
+/// DRF's `finalize_response` sets `Allow` on every answer of an API view, errors included
+/// (401, 403, 405, 429); Django's own pages (404, 500) and the redirect carry none.
+fn with_allow(reply: Reply, route: Route) -> Reply {
+    let has_allow = reply.headers.iter().any(|(name, _)| name == header::ALLOW);
+    if matches!(reply.body, reply::ReplyBody::Html(_)) || has_allow {
+        return reply;
+    }
+    let mut allow: Vec<String> = route.allowed().iter().map(|m| m.to_string()).collect();
+    allow.push("OPTIONS".to_owned());
+    reply.with_header(header::ALLOW, allow.join(", "))
+}
+
+/// Authentication, permission, throttle and method checks, then the view.
+fn through_view(world: &mut World, req: &Incoming<'_>, route: Route) -> (Reply, Option<u64>) {
     let header = req.headers.get(header::AUTHORIZATION).map(|v| v.as_bytes());
     let user = match auth::authenticate(world, header) {
         Ok(user) => user,
@@ -198,11 +216,9 @@ pub(crate) fn process(world: &mut World, req: &Incoming<'_>) -> (Reply, Option<u
     (reply, Some(user))
 }
 
-/// DRF's `SimpleMetadata` answer to OPTIONS.
+/// DRF's `SimpleMetadata` answer to OPTIONS (`Allow` added as on every view answer).
 fn options(route: Route) -> Reply {
     let strs = |items: &[&str]| PyValue::List(items.iter().map(|s| PyValue::str(*s)).collect());
-    let mut allow: Vec<String> = route.allowed().iter().map(|m| m.to_string()).collect();
-    allow.push("OPTIONS".to_owned());
     Reply::json(
         StatusCode::OK,
         PyValue::dict(vec![
@@ -219,14 +235,12 @@ fn options(route: Route) -> Reply {
             ),
         ]),
     )
-    .with_header(header::ALLOW, allow.join(", "))
 }
 
-/// Files EvalAI would serve from S3: `input_file.json`, `stdout.txt`, ...
-fn media(world: &World, rest: &str) -> Reply {
-    let file = rest
-        .split_once('/')
-        .and_then(|(id, name)| Some((id.parse::<u64>().ok()?, name)))
+/// Files EvalAI would serve from S3: the input file, stdout, stderr, ...
+fn media(world: &World, path: &str) -> Reply {
+    let file = world
+        .resolve_media(path)
         .and_then(|(id, name)| world.file(id, name));
     match file {
         Some((text, content_type)) => Reply {

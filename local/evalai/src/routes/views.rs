@@ -264,14 +264,19 @@ fn plan_results(
     Ok((writes, public))
 }
 
-/// Writes the rows in one transaction: a NaN or infinity fails the Postgres JSON insert.
+/// Writes the rows in one transaction. A NaN or infinity is refused before anything is
+/// written, by the leaderboard row serializer's JSON field (as recorded from the real server).
 fn commit(world: &mut World, submission: u64, writes: Vec<Write>) -> ViewResult<()> {
     if writes
         .iter()
         .any(|w| w.result.iter().any(|(_, v)| v.has_non_finite()))
     {
-        return Err(Reply::server_error(
-            "DataError: invalid input syntax for type json (NaN or Infinity in a leaderboard result)",
+        return Err(Reply::json(
+            StatusCode::BAD_REQUEST,
+            PyValue::dict(vec![(
+                "result",
+                PyValue::List(vec![PyValue::str("Value must be valid JSON.")]),
+            )]),
         ));
     }
     let now = timefmt::now();
@@ -358,6 +363,12 @@ fn final_put(ctx: &mut Ctx<'_>) -> ViewResult {
     Ok(Reply::success_updated())
 }
 
+/// The job name a running update appends: trimmed and lower-cased, as the real server
+/// stores it (`" Spaced Name "` -> `"spaced name"`).
+fn job_name(data: &Data) -> ViewResult<String> {
+    Ok(lower(&data.get_or_empty("job_name")?)?.trim().to_owned())
+}
+
 /// The `job_name` list after `jobs.append(name)` (a null list cannot be appended to).
 fn appended_jobs(current: &Option<Vec<String>>, name: &str) -> ViewResult<Option<Vec<String>>> {
     let mut jobs = current.clone();
@@ -384,7 +395,7 @@ fn running_patch(ctx: &mut Ctx<'_>) -> ViewResult {
     let submission_value = data.get("submission")?.cloned();
     let id = get_submission_model(ctx.world, submission_value.as_ref())?;
     let status = lower(&data.get_or_empty("submission_status")?)?;
-    let job = lower(&data.get_or_empty("job_name")?)?;
+    let job = job_name(&data)?;
     let jobs = appended_jobs(&ctx.world.submissions[&id].job_name, &job)?;
     if ![statuses::QUEUED, statuses::RUNNING].contains(&status.as_str()) {
         return Err(invalid_status());
@@ -490,7 +501,7 @@ fn partial_patch(ctx: &mut Ctx<'_>) -> ViewResult {
     let data = ctx.data()?;
     let submission_value = data.get("submission")?.cloned();
     let status = lower(&data.get_or_empty("submission_status")?)?;
-    let job = lower(&data.get_or_empty("job_name")?)?;
+    let job = job_name(&data)?;
     let id = get_submission_model(ctx.world, submission_value.as_ref())?;
     let jobs = appended_jobs(&ctx.world.submissions[&id].job_name, &job)?;
     if status == statuses::RUNNING {
@@ -535,7 +546,11 @@ fn update_meta_inner(ctx: &mut Ctx<'_>, challenge: u64, submission: u64) -> View
         get_submission_model(ctx.world, Some(&PyValue::Int(i128::from(submission))))?
     } else {
         let Some(team) = ctx.world.team_of_user_for_challenge(ctx.user, challenge) else {
-            return Err(Reply::detail(StatusCode::NOT_FOUND, "Not found."));
+            // EvalAI looks the team up with a `None` id and reports the failed lookup.
+            return Err(Reply::detail(
+                StatusCode::NOT_FOUND,
+                "ParticipantTeam None does not exist",
+            ));
         };
         match ctx.world.submissions.get(&submission) {
             Some(s) if s.team == team => submission,
@@ -548,12 +563,17 @@ fn update_meta_inner(ctx: &mut Ctx<'_>, challenge: u64, submission: u64) -> View
         }
     };
     let data = ctx.data()?;
+    let known = meta::Related {
+        teams: ctx.world.teams.keys().copied().collect(),
+        users: ctx.world.users.keys().copied().collect(),
+        phases: ctx.world.phases.keys().copied().collect(),
+    };
     let sub = ctx
         .world
         .submissions
         .get_mut(&id)
         .ok_or_else(not_authorized)?;
-    meta::apply(sub, &data)?;
+    meta::apply(sub, &data, &known)?;
     Ok(ctx.serialized(id))
 }
 
@@ -585,18 +605,15 @@ pub(crate) fn list_submissions(ctx: &mut Ctx<'_>, challenge: u64) -> Reply {
             .find(|(k, _)| k == name)
             .map(|(_, v)| v.clone())
     };
-    let status = param("status");
-    let status_ok = status
-        .as_deref()
-        .is_some_and(|s| statuses::LISTABLE.contains(&s));
-    if !status_ok {
-        return Reply::error(
-            StatusCode::BAD_REQUEST,
-            format!(
-                "Invalid submission status {}",
-                status.as_deref().unwrap_or("None")
-            ),
-        );
+    // No `status`, or an empty one, filters nothing: every submission of the challenge.
+    let status = param("status").filter(|s| !s.is_empty());
+    if let Some(status) = status.as_deref() {
+        if !statuses::LISTABLE.contains(&status) {
+            return Reply::error(
+                StatusCode::BAD_REQUEST,
+                format!("Invalid submission status {status}"),
+            );
+        }
     }
     let mut bounds = [None, None];
     for (i, name) in ["submitted_after", "submitted_before"].iter().enumerate() {
@@ -606,7 +623,7 @@ pub(crate) fn list_submissions(ctx: &mut Ctx<'_>, challenge: u64) -> Reply {
                 None => {
                     return Reply::error(
                         StatusCode::BAD_REQUEST,
-                        format!("Invalid {name} date format. Use ISO 8601 format."),
+                        format!("Invalid datetime format for '{name}'"),
                     )
                 }
             }
@@ -618,7 +635,7 @@ pub(crate) fn list_submissions(ctx: &mut Ctx<'_>, challenge: u64) -> Reply {
         .submissions
         .values()
         .filter(|s| ctx.world.challenge_of(s) == challenge)
-        .filter(|s| Some(s.status.as_str()) == status.as_deref())
+        .filter(|s| status.as_deref().is_none_or(|wanted| s.status == wanted))
         .filter(|s| bounds[0].is_none_or(|after| s.submitted_at >= after))
         .filter(|s| bounds[1].is_none_or(|before| s.submitted_at <= before))
         .map(|s| ctx.world.serialize_submission(s, ctx.base_url, host))
