@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy cluster cluster-manifests
+.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -110,6 +110,27 @@ deploy: build $(DEPLOY_TOOLS) ## Build the bootstraps and deploy infra/app.yaml 
 	for f in $(FUNCTIONS); do mkdir -p infra/.build/$$f && cp $(TARGET_DIR)/lambda/$$f/bootstrap infra/.build/$$f/; done
 	cd infra && SAM_CLI_TELEMETRY=0 ../$(DEPLOY_VENV)/bin/sam deploy --config-file samconfig.toml \
 		--parameter-overrides Architecture=$(if $(filter arm64,$(LAMBDA_ARCH)),arm64,x86_64) $(PARAMS)
+
+# One function's code, nothing else: cargo lambda deploy to the function the stack created (its
+# name from the stack's outputs), which changes no setting the template owns. BOOTSTRAP=<file>
+# ships that binary instead of building one (the offline test uses it).
+STACK ?= leaderboard
+FN_OUTPUT = $(shell printf '%s' '$(FN)' | sed 's/^./\U&/')FunctionName
+FN_BOOTSTRAP = $(or $(BOOTSTRAP),$(TARGET_DIR)/lambda/$(FN)/bootstrap)
+FN_ARCH = $(if $(filter arm64,$(LAMBDA_ARCH)),arm64,x86_64)
+deploy-function: $(LAMBDA_TOOLS) $(DEPLOY_TOOLS) ## Ship FN=<name>'s new code to STACK's function with cargo lambda deploy (code only; template changes: make deploy)
+	@case " $(FUNCTIONS) " in *" $(FN) "*) ;; *) echo "FN must be one of: $(FUNCTIONS)" >&2; exit 2;; esac
+	$(if $(BOOTSTRAP),,PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda build --release --$(LAMBDA_ARCH) -p $(FN))
+	@name=$$($(AWS_CLI) cloudformation describe-stacks --stack-name $(STACK) \
+		--query "Stacks[0].Outputs[?OutputKey=='$(FN_OUTPUT)'].OutputValue" --output text) || exit 1; \
+	if [ -z "$$name" ] || [ "$$name" = None ]; then \
+		echo "stack $(STACK) has no output $(FN_OUTPUT): run make deploy first" >&2; exit 1; fi; \
+	arch=$$($(AWS_CLI) lambda get-function-configuration --function-name "$$name" \
+		--query 'Architectures[0]' --output text) || exit 1; \
+	if [ "$$arch" != "$(FN_ARCH)" ]; then \
+		echo "$$name runs on $$arch but LAMBDA_ARCH=$(LAMBDA_ARCH) builds $(FN_ARCH)" >&2; exit 1; fi; \
+	echo "$(FN) -> $$name"; \
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda deploy --binary-path $(FN_BOOTSTRAP) "$$name"
 
 cluster: $(DEPLOY_TOOLS) ## Deploy infra/cluster.yaml for LEADERBOARD=10|20 (PARAMS="K=V ..." overrides)
 	$(AWS_CLI) cloudformation deploy --template-file infra/cluster.yaml --stack-name $(CLUSTER_STACK) \

@@ -56,17 +56,15 @@ const MOTO_SKIPS: [&str; 4] = [
 ];
 
 fn deploy(moto: &MotoServer, stack: &str, parameters: &[&str]) -> Value {
-    let out = run(Command::new(venv_tool("python"))
-        .arg(root().join("tests/e2e/tools/cfn.py"))
-        .arg("deploy")
-        .arg(root().join("infra/app.yaml"))
-        .arg(stack)
-        .args(parameters)
-        .env("AWS_ENDPOINT_URL", moto.endpoint())
-        .env("AWS_ACCESS_KEY_ID", "testing")
-        .env("AWS_SECRET_ACCESS_KEY", "testing")
-        .env("AWS_DEFAULT_REGION", "us-east-1")
-        .env("AWS_EC2_METADATA_DISABLED", "true"));
+    let out = run(moto_env(
+        Command::new(venv_tool("python"))
+            .arg(root().join("tests/e2e/tools/cfn.py"))
+            .arg("deploy")
+            .arg(root().join("infra/app.yaml"))
+            .arg(stack)
+            .args(parameters),
+        moto,
+    ));
     serde_json::from_str(&out).expect("cfn.py prints JSON")
 }
 
@@ -382,6 +380,130 @@ fn each_function_runs_the_bootstrap_on_al2023_within_its_tasks_timeout() {
         let memory: u64 = APP.text(f, &["MemorySize"]).unwrap().parse().unwrap();
         assert!((128..=1024).contains(&memory), "{f}: {memory} MB");
     }
+}
+
+/// Moto's environment for a tool run by hand (a boto3 script, make, cargo lambda).
+fn moto_env<'a>(command: &'a mut Command, moto: &MotoServer) -> &'a mut Command {
+    command
+        .env("AWS_ENDPOINT_URL", moto.endpoint())
+        .env("AWS_ACCESS_KEY_ID", "testing")
+        .env("AWS_SECRET_ACCESS_KEY", "testing")
+        .env("AWS_DEFAULT_REGION", "us-east-1")
+        .env("AWS_REGION", "us-east-1")
+        .env("AWS_EC2_METADATA_DISABLED", "true")
+}
+
+/// A function's configuration and tags on moto, as boto3 reads them.
+fn function_state(moto: &MotoServer, name: &str) -> Value {
+    let script = "import boto3, json, sys\n\
+        l = boto3.client('lambda')\n\
+        c = l.get_function_configuration(FunctionName=sys.argv[1])\n\
+        c.pop('ResponseMetadata')\n\
+        t = l.list_tags(Resource=c['FunctionArn'])['Tags']\n\
+        print(json.dumps({'configuration': c, 'tags': t}, default=str))";
+    let out = run(moto_env(
+        Command::new(venv_tool("python")).args(["-c", script, name]),
+        moto,
+    ));
+    serde_json::from_str(&out).unwrap()
+}
+
+/// `make deploy-function` in the repository, against moto.
+fn deploy_function(moto: &MotoServer, args: &[&str]) -> std::process::Output {
+    moto_env(Command::new("make").current_dir(root()), moto)
+        .arg("--no-print-directory")
+        .arg("deploy-function")
+        .args(args)
+        .output()
+        .expect("make runs")
+}
+
+/// `make deploy-function FN=intake` ships new code to the function the stack created and
+/// changes nothing the template owns. Moto's Lambda stores functions without running them, so
+/// the function's own debug binary stands for the release bootstrap `make build` would give.
+#[test]
+#[ignore = "needs moto and the venvs"]
+fn deploy_function_ships_code_only_to_the_stacks_function() {
+    let moto = MotoServer::start().expect("moto starts");
+    let report = deploy(&moto, "leaderboard", &["EvalAiAccountId=210987654321"]);
+    assert_eq!(report["status"], "CREATE_COMPLETE");
+    let outputs = run(moto_env(
+        Command::new(venv_tool("python")).args([
+            "-c",
+            "import boto3, json; print(json.dumps({o['OutputKey']: o['OutputValue'] for o in \
+             boto3.client('cloudformation').describe_stacks(StackName='leaderboard')\
+             ['Stacks'][0]['Outputs']}))",
+        ]),
+        &moto,
+    ));
+    let outputs: Value = serde_json::from_str(&outputs).unwrap();
+    let name = outputs["IntakeFunctionName"]
+        .as_str()
+        .expect("the stack names the function");
+    let before = function_state(&moto, name);
+
+    let target = std::env::var_os("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root().join("target"));
+    run(Command::new(env!("CARGO"))
+        .args(["build", "-q", "-p", "intake"])
+        .current_dir(root()));
+    let binary = target.join("debug/intake");
+    let bootstrap = format!("BOOTSTRAP={}", binary.display());
+    let out = deploy_function(&moto, &["FN=intake", &bootstrap]);
+    let text = format!(
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains(&format!("intake -> {name}")), "{text}");
+
+    let after = function_state(&moto, name);
+    let (b, a) = (&before["configuration"], &after["configuration"]);
+    assert_ne!(b["CodeSha256"], a["CodeSha256"], "the code changed");
+    let code = [
+        "CodeSha256",
+        "CodeSize",
+        "LastModified",
+        "RevisionId",
+        "Version",
+    ];
+    let settings = |c: &Value| -> BTreeMap<String, Value> {
+        c.as_object()
+            .unwrap()
+            .iter()
+            .filter(|(k, _)| !code.contains(&k.as_str()))
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect()
+    };
+    assert_eq!(
+        settings(b),
+        settings(a),
+        "role, environment, memory, timeout... unchanged"
+    );
+    assert!(settings(b).contains_key("Role") && settings(b).contains_key("Environment"));
+    assert_eq!(before["tags"], after["tags"]);
+
+    // Refused before anything is shipped: an unknown function, a build for the other
+    // architecture, a stack that does not exist.
+    let unknown = deploy_function(&moto, &["FN=bogus"]);
+    assert_eq!(unknown.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&unknown.stderr).contains("intake launch monitor"));
+    let arm = deploy_function(&moto, &["FN=intake", &bootstrap, "LAMBDA_ARCH=arm64"]);
+    assert!(!arm.status.success());
+    assert!(
+        String::from_utf8_lossy(&arm.stderr).contains("runs on x86_64 but LAMBDA_ARCH=arm64"),
+        "{}",
+        String::from_utf8_lossy(&arm.stderr)
+    );
+    let missing = deploy_function(&moto, &["FN=intake", &bootstrap, "STACK=no-such-stack"]);
+    assert!(!missing.status.success());
+    assert_eq!(
+        function_state(&moto, name)["configuration"]["CodeSha256"],
+        a["CodeSha256"],
+        "the refused runs shipped nothing"
+    );
 }
 
 #[test]
