@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function cluster cluster-manifests
+.PHONY: help venv lint-venv test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -20,13 +20,23 @@ $(VENV_STAMP): tests/requirements.txt
 
 venv: $(VENV_STAMP) ## Install the emulators (pinned moto[server]) into .venv
 
+LINT_VENV := .venv-lint
+LINT_STAMP := $(LINT_VENV)/.installed
+
+$(LINT_STAMP): tests/lint-requirements.txt
+	$(PYTHON) -m venv $(LINT_VENV)
+	$(LINT_VENV)/bin/pip install --quiet --disable-pip-version-check -r tests/lint-requirements.txt
+	touch $@
+
+lint-venv: $(LINT_STAMP) ## Install the policy linters (pinned checkov, parliament) into .venv-lint
+
 .PHONY: kubectl
 kubectl: ## Install kubectl (Debian's kubernetes-client) when it is missing
 	@command -v kubectl >/dev/null || { sudo=; [ "$$(id -u)" = 0 ] || sudo=sudo; \
 		$$sudo apt-get update -qq && \
 		$$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq kubernetes-client; }
 
-test: venv kubectl ## The whole suite, emulator tests included (README's and CI's command)
+test: venv lint-venv kubectl ## The whole suite, emulator tests included (README's and CI's command)
 	$(CARGO) test --workspace --all-targets -- --include-ignored
 	$(CARGO) test --workspace --doc
 
@@ -157,6 +167,6 @@ bench-functions: build ## Cold start + one invocation of each Lambda as a proces
 bench-stack: venv ## Start-up of moto + fake EvalAI + local Kubernetes API (target < 5 s)
 	$(CARGO) test --quiet -p local-stack --bench startup -- --bench
 
-clean: ## Remove build output and the venv
+clean: ## Remove build output and the venvs
 	$(CARGO) clean
-	rm -rf $(VENV)
+	rm -rf $(VENV) $(LINT_VENV)

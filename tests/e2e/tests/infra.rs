@@ -23,6 +23,17 @@ fn venv_tool(name: &str) -> PathBuf {
     tool
 }
 
+/// A policy linter from `.venv-lint` (tests/lint-requirements.txt).
+fn lint_tool(name: &str) -> PathBuf {
+    let tool = root().join(".venv-lint/bin").join(name);
+    assert!(
+        tool.exists(),
+        "{} is missing: run `make lint-venv`",
+        tool.display()
+    );
+    tool
+}
+
 fn run(command: &mut Command) -> String {
     let out = command.output().expect("the tool runs");
     assert!(
@@ -504,6 +515,147 @@ fn deploy_function_ships_code_only_to_the_stacks_function() {
         a["CodeSha256"],
         "the refused runs shipped nothing"
     );
+}
+
+/// parliament on every IAM policy of both templates, as CloudFormation receives them (app.yaml
+/// after the SAM transform): unknown actions, resources no action can match, needless `*`.
+#[test]
+#[ignore = "needs the venvs"]
+fn parliament_finds_nothing_in_any_policy_of_either_template() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfn = root().join("tests/e2e/tools/cfn.py");
+    let mut files = Vec::new();
+    for (command, template) in [("transform", "app.yaml"), ("json", "cluster.yaml")] {
+        let json = run(Command::new(venv_tool("python"))
+            .arg(&cfn)
+            .arg(command)
+            .arg(root().join("infra").join(template))
+            .env("AWS_DEFAULT_REGION", "us-east-1"));
+        let path = dir.path().join(template).with_extension("json");
+        std::fs::write(&path, json).unwrap();
+        files.push(path);
+    }
+    let out = Command::new(lint_tool("python"))
+        .arg(root().join("tests/e2e/tools/iam_lint.py"))
+        .args(&files)
+        .output()
+        .unwrap();
+    let report: Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|_| panic!("iam_lint.py: {}", String::from_utf8_lossy(&out.stderr)));
+    assert!(
+        report["policies"].as_u64().unwrap() >= 15,
+        "only {} policies found: is the scan broken?",
+        report["policies"]
+    );
+    assert!(
+        out.status.success(),
+        "parliament's findings (fix, or suppress in the resource's Metadata with a reason):\n{:#}",
+        report
+    );
+}
+
+/// checkov on both templates and the cluster manifests, with `infra/checkov.yaml`'s
+/// deployment-wide skips; every skip carries its reason.
+#[test]
+#[ignore = "needs the venvs"]
+fn checkov_passes_the_templates_and_the_cluster_manifests() {
+    let config = root().join("infra/checkov.yaml");
+    let text = std::fs::read_to_string(&config).unwrap();
+    for line in text.lines().filter(|l| l.trim_start().starts_with("- CKV")) {
+        let reason = line.split_once('#').map(|(_, r)| r.trim()).unwrap_or("");
+        assert!(
+            reason.len() > 20,
+            "infra/checkov.yaml skips without a reason: {line}"
+        );
+    }
+    let mut files = vec![
+        root().join("infra/app.yaml"),
+        root().join("infra/cluster.yaml"),
+    ];
+    let mut manifests: Vec<PathBuf> = std::fs::read_dir(root().join("infra/k8s"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    manifests.sort();
+    files.extend(manifests);
+    let report = checkov(&files);
+    assert_eq!(report.len(), 2, "both frameworks ran: {report:?}");
+}
+
+/// checkov on the Jobs as rendered (the golden files `crates/jobs/tests/render.rs` keeps equal
+/// to the renderer's output), beside the namespace and NetworkPolicy they run under.
+#[test]
+#[ignore = "needs the venvs"]
+fn checkov_passes_the_rendered_jobs() {
+    let golden = root().join("crates/jobs/tests/golden");
+    let files = [
+        golden.join("leaderboard-20.yaml"),
+        golden.join("leaderboard-10.yaml"),
+        root().join("infra/k8s/namespace.yaml"),
+        root().join("infra/k8s/network-policy.yaml"),
+    ];
+    let report = checkov(&files);
+    let passed = report[0]["summary"]["passed"].as_u64().unwrap_or(0);
+    assert!(
+        passed > 100,
+        "only {passed} checks passed: were the Jobs read?"
+    );
+}
+
+/// checkov on `files` with the deployment's config: no failed check, and every inline skip
+/// with a reason. The reports, one per framework.
+fn checkov(files: &[PathBuf]) -> Vec<Value> {
+    let mut command = Command::new(lint_tool("checkov"));
+    command
+        .arg("--config-file")
+        .arg(root().join("infra/checkov.yaml"))
+        .args(["--output", "json"]);
+    for f in files {
+        command.arg("--file").arg(f);
+    }
+    let out = command.output().unwrap();
+    let parsed: Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|_| panic!("checkov: {}", String::from_utf8_lossy(&out.stderr)));
+    let reports = match parsed {
+        Value::Array(reports) => reports,
+        one => vec![one],
+    };
+    let mut problems = Vec::new();
+    for report in &reports {
+        for f in report["results"]["failed_checks"]
+            .as_array()
+            .into_iter()
+            .flatten()
+        {
+            problems.push(format!(
+                "{} {} {}: {}",
+                f["check_id"].as_str().unwrap_or(""),
+                f["file_path"].as_str().unwrap_or(""),
+                f["resource"].as_str().unwrap_or(""),
+                f["check_name"].as_str().unwrap_or("")
+            ));
+        }
+        for s in report["results"]["skipped_checks"]
+            .as_array()
+            .into_iter()
+            .flatten()
+        {
+            let comment = s["check_result"]["suppress_comment"].as_str().unwrap_or("");
+            if comment.len() < 20 || comment == "No comment provided" {
+                problems.push(format!(
+                    "{} on {} is skipped without a reason",
+                    s["check_id"].as_str().unwrap_or(""),
+                    s["resource"].as_str().unwrap_or("")
+                ));
+            }
+        }
+    }
+    assert!(
+        problems.is_empty() && out.status.success(),
+        "checkov (fix, or skip inline with a reason):\n{}",
+        problems.join("\n")
+    );
+    reports
 }
 
 #[test]

@@ -1,6 +1,7 @@
 """infra/app.yaml as `sam deploy` handles it, offline: package, transform, deploy to moto.
 
     cfn.py transform TEMPLATE                 print the transformed template (JSON)
+    cfn.py json TEMPLATE                      print a template without a transform as JSON
     cfn.py deploy TEMPLATE STACK [K=V ...]    package to moto's S3, transform, create the
                                               stack on moto's CloudFormation (AWS_ENDPOINT_URL),
                                               print {status, resources, tables} as JSON
@@ -92,6 +93,9 @@ def main(argv):
     command, path = argv[1], argv[2]
     if command == "transform":
         print(json.dumps(translated(path, {}), indent=1, sort_keys=True))
+        return 0
+    if command == "json":
+        print(json.dumps(load(path), indent=1, sort_keys=True))
         return 0
     stack = argv[3]
     parameters = dict(a.split("=", 1) for a in argv[4:])
