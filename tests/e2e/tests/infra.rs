@@ -453,13 +453,13 @@ fn deploy_function_ships_code_only_to_the_stacks_function() {
         .expect("the stack names the function");
     let before = function_state(&moto, name);
 
-    let target = std::env::var_os("CARGO_TARGET_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| root().join("target"));
+    // This test runs from `<target>/debug/deps/`; the function's binary lands in `<target>/debug/`.
+    let exe = std::env::current_exe().unwrap();
+    let debug = exe.parent().and_then(Path::parent).unwrap().to_owned();
     run(Command::new(env!("CARGO"))
         .args(["build", "-q", "-p", "intake"])
         .current_dir(root()));
-    let binary = target.join("debug/intake");
+    let binary = debug.join("intake");
     let bootstrap = format!("BOOTSTRAP={}", binary.display());
     let out = deploy_function(&moto, &["FN=intake", &bootstrap]);
     let text = format!(
