@@ -180,7 +180,7 @@ async fn invoke(
 }
 
 fn binaries(target: &Path, release: bool) -> Vec<(&'static str, PathBuf)> {
-    ["intake", "launch", "monitor", "finalize"]
+    ["intake", "launch", "monitor", "finalize", "wake", "sweep"]
         .into_iter()
         .map(|f| {
             let lambda = target.join("lambda").join(f).join("bootstrap");
@@ -213,7 +213,7 @@ fn main() {
             .current_dir(&root)
             .args([
                 "build", "--quiet", "-p", "intake", "-p", "launch", "-p", "monitor", "-p",
-                "finalize",
+                "finalize", "-p", "wake", "-p", "sweep",
             ])
             .status()
             .unwrap();
@@ -247,10 +247,24 @@ fn main() {
                 "intake" => json!({"message": message, "execution": "bench"}),
                 "launch" => json!({"submission": state["intake"]["submission"]}),
                 "monitor" => json!({"submission": state["intake"]["submission"], "run": state["run"]}),
-                _ => json!({"state": state}),
+                "finalize" => json!({"state": state}),
+                // A results file of submission 1 landed (S3 -> EventBridge -> SQS), one record.
+                "wake" => json!({"Records": [{
+                    "messageId": "bench-1", "receiptHandle": "r", "eventSource": "aws:sqs",
+                    "attributes": {}, "messageAttributes": {},
+                    "body": json!({"version": "0", "source": "aws.s3", "detail-type": "Object Created",
+                                   "detail": {"bucket": {"name": "leaderboard-20-results"},
+                                              "object": {"key": "1/agent/partial_agent_results1.json"}}})
+                        .to_string(),
+                }]}),
+                // The schedule's event: the sweep reads EvalAI's cancels of every challenge.
+                _ => json!({}),
             };
             let measured = invoke(function, binary, &env, event).await;
             assert_eq!(measured.outcome, "response", "{function}: {}", measured.output);
+            if *function == "wake" {
+                assert_eq!(measured.output, json!({"batchItemFailures": []}), "the wake counted it");
+            }
             match *function {
                 "intake" => state["intake"] = measured.output.clone(),
                 "launch" | "monitor" => state["run"] = measured.output.clone(),
