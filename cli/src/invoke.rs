@@ -127,7 +127,7 @@ pub async fn run(args: Invoke) -> Result<u8> {
         }
         Err(error) => {
             outln!("{}", pretty(&error_object(&error)));
-            eprintln!("lbctl: {name} raised `{}`", error.name());
+            errln!("lbctl: {name} raised `{}`", error.name());
             Ok(1)
         }
     }

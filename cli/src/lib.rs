@@ -72,14 +72,14 @@ where
     let runtime = match tokio::runtime::Runtime::new() {
         Ok(runtime) => runtime,
         Err(e) => {
-            eprintln!("{name}: cannot start the async runtime: {e}");
+            errln!("{name}: cannot start the async runtime: {e}");
             return std::process::ExitCode::from(1);
         }
     };
     match runtime.block_on(run) {
         Ok(code) => std::process::ExitCode::from(code),
         Err(e) => {
-            eprintln!("{name}: {}", describe(&e));
+            errln!("{name}: {}", describe(&e));
             std::process::ExitCode::from(exit_code(&e))
         }
     }

@@ -103,7 +103,7 @@ pub async fn logs(args: Logs) -> Result<u8> {
     }
     let Some(store) = store else {
         if args.follow && !found.records.is_empty() {
-            eprintln!("lbctl: no logs yet for submission `{id}`; waiting for them");
+            errln!("lbctl: no logs yet for submission `{id}`; waiting for them");
         } else {
             return Err(CliError::NotFound(format!(
                 "submission `{id}` has no logs in {}",
@@ -197,12 +197,12 @@ async fn follow_from(
         }
         if done {
             let status = record.map(|r| r.status().to_owned()).unwrap_or_default();
-            eprintln!("lbctl: submission {id} ended `{status}`");
+            errln!("lbctl: submission {id} ended `{status}`");
             return Ok(0);
         }
         tokio::time::sleep(Duration::from_secs(args.interval)).await;
     }
-    eprintln!(
+    errln!(
         "lbctl: stopped following after {} hours",
         MAX_FOLLOW.as_secs() / 3600
     );

@@ -113,7 +113,7 @@ async fn markers(deployment: &Deployment, submission: u64) -> Result<Vec<Markers
             }
             Err(e) => {
                 let error = crate::describe(&anyhow::Error::new(e));
-                eprintln!("lbctl: warning: listing the markers under `{location}` failed: {error}");
+                errln!("lbctl: warning: listing the markers under `{location}` failed: {error}");
                 (Vec::new(), Some(error))
             }
         };
@@ -129,7 +129,7 @@ async fn markers(deployment: &Deployment, submission: u64) -> Result<Vec<Markers
 
 fn warn_truncated(found: &Found) {
     for table in &found.truncated {
-        eprintln!(
+        errln!(
             "lbctl: warning: stopped reading `{table}` after {} pages; the answer may be incomplete",
             crate::deployment::MAX_SCAN_PAGES
         );

@@ -1,6 +1,6 @@
-//! Standard output that a closed reader (`lbctl list | head -1`) ends quietly instead of
-//! panicking: `println!` panics on a broken pipe, and lbctl keeps no unsafe code to reset
-//! SIGPIPE.
+//! Standard output and error that a closed reader (`lbctl list | head -1`, `lbctl ... 2>&1 |
+//! head -0`) ends quietly instead of panicking: `println!` and `eprintln!` panic on a broken
+//! pipe, and lbctl keeps no unsafe code to reset SIGPIPE.
 
 use std::io::{self, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -28,9 +28,16 @@ pub fn write(args: std::fmt::Arguments<'_>, newline: bool) {
     if let Err(e) = result {
         CLOSED.store(true, Ordering::Relaxed);
         if e.kind() != io::ErrorKind::BrokenPipe {
-            eprintln!("lbctl: cannot write to standard output: {e}");
+            write_err(format_args!("lbctl: cannot write to standard output: {e}"));
         }
     }
+}
+
+/// Writes `args` and a newline to standard error; a closed or failing standard error drops
+/// it (there is nowhere left to say so).
+pub fn write_err(args: std::fmt::Arguments<'_>) {
+    let mut err = io::stderr().lock();
+    let _ = err.write_fmt(args).and_then(|()| err.write_all(b"\n"));
 }
 
 /// Whether standard output's reader went away.
@@ -46,6 +53,14 @@ macro_rules! outln {
     };
     ($($arg:tt)*) => {
         $crate::output::write(format_args!($($arg)*), true)
+    };
+}
+
+/// `eprintln!` that survives a closed standard error.
+#[macro_export]
+macro_rules! errln {
+    ($($arg:tt)*) => {
+        $crate::output::write_err(format_args!($($arg)*))
     };
 }
 

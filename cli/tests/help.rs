@@ -236,3 +236,48 @@ fn submit_print_input_prints_the_pipes_batch_for_the_console() {
     let bare = lb_domain::submission::SubmissionMessage::from_pipe(&printed[0]).unwrap();
     assert_eq!(bare, message, "the element typed alone is the same message");
 }
+
+/// `lbctl ... 2>&1 | head -0`: both streams closed before the first byte. The command ends with
+/// its own exit code, never a panic (101).
+#[test]
+fn closed_stdout_and_stderr_end_with_the_commands_own_exit_code() {
+    let cases: [(&[&str], i32); 3] = [
+        // Our own usage error, written to stderr by lbctl.
+        (
+            &[
+                "submit",
+                "--challenge",
+                "1",
+                "--phase",
+                "1",
+                "--submission",
+                "1",
+            ],
+            2,
+        ),
+        // clap's.
+        (&["status", "0"], 2),
+        // Help, on stdout.
+        (&["--help"], 0),
+    ];
+    for (args, code) in cases {
+        let mut child = common::lbctl_command(args, &[])
+            .stdin(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        drop(child.stdout.take());
+        drop(child.stderr.take());
+        let deadline = std::time::Instant::now() + common::CALL_TIMEOUT;
+        let status = loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                break status;
+            }
+            assert!(
+                std::time::Instant::now() < deadline,
+                "lbctl {args:?} did not end"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        };
+        assert_eq!(status.code(), Some(code), "lbctl {args:?}");
+    }
+}
