@@ -65,6 +65,25 @@ fn wanted(key: &str, worker: Option<u32>, recorder: bool) -> bool {
     }
 }
 
+/// The workers (pair ids) with an agent or simulator log among `keys`.
+fn workers_with_logs<'a>(
+    keys: impl IntoIterator<Item = &'a str>,
+) -> std::collections::BTreeSet<u32> {
+    keys.into_iter()
+        .filter_map(|key| {
+            let rel = key.strip_prefix("logs/")?;
+            let n = rel
+                .strip_prefix("agent/agent")
+                .and_then(|r| r.split_once('/').map(|(n, _)| n))
+                .or_else(|| {
+                    rel.strip_prefix("simulator/simulator")?
+                        .strip_suffix(".log")
+                })?;
+            n.parse().ok()
+        })
+        .collect()
+}
+
 fn is_recording(key: &str) -> bool {
     key.contains("/recorder/") || key.ends_with(".log.rec")
 }
@@ -97,6 +116,20 @@ pub async fn logs(args: Logs) -> Result<u8> {
             .await
             .map_err(|e| CliError::aws(format!("listing the logs of `{id}` in `{bucket}`"), e))?;
         if !listed.is_empty() {
+            // A worker with no log says so, unless following (its logs may come).
+            let workers = workers_with_logs(listed.iter().map(|(key, _)| key.as_str()));
+            if let Some(n) = args.worker.filter(|n| !args.follow && !workers.contains(n)) {
+                let have: Vec<String> = workers.iter().map(u32::to_string).collect();
+                return Err(CliError::NotFound(format!(
+                    "submission `{id}` has no logs of worker {n} in `s3://{bucket}/{id}/logs/` \
+                     (workers with logs: {})",
+                    if have.is_empty() {
+                        "none".into()
+                    } else {
+                        have.join(", ")
+                    }
+                )));
+            }
             store = Some(candidate);
             break;
         }
@@ -212,6 +245,22 @@ async fn follow_from(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_workers_with_logs_are_read_off_the_agent_and_simulator_keys() {
+        let keys = [
+            "logs/agent/agent1/agent.log",
+            "logs/agent/agent12/recorder/RouteScenario_0.log",
+            "logs/simulator/simulator3.log",
+            "logs/simulator/simulatorX.log",
+            "logs/logcopy/logcopy-0.log",
+            "agent/partial_agent_results2.json",
+        ];
+        assert_eq!(
+            workers_with_logs(keys).into_iter().collect::<Vec<_>>(),
+            [1, 3, 12]
+        );
+    }
 
     #[test]
     fn a_worker_sees_its_own_logs_and_logcopys_and_recordings_only_when_asked() {

@@ -48,8 +48,10 @@ pub struct List {
     #[arg(long, value_name = "TEAM")]
     pub team: Option<String>,
     /// Only this status (`SUBMITTED`, `RESUMING`, `RUNNING`, `FINISHED`, `FAILED`, `CANCELLED`;
-    /// case-insensitive).
-    #[arg(long, value_name = "STATUS")]
+    /// case-insensitive). Another word is a usage error, not an empty list.
+    #[arg(long, value_name = "STATUS", ignore_case = true, value_parser = [
+        "SUBMITTED", "RESUMING", "RUNNING", "FINISHED", "FAILED", "CANCELLED",
+    ])]
     pub status: Option<String>,
     /// Most submissions shown (the newest).
     #[arg(long, default_value_t = 50, value_parser = clap::value_parser!(u64).range(1..=100_000))]

@@ -281,3 +281,17 @@ fn closed_stdout_and_stderr_end_with_the_commands_own_exit_code() {
         assert_eq!(status.code(), Some(code), "lbctl {args:?}");
     }
 }
+
+/// A status filter no record can have is a usage error naming the ones there are, not an
+/// empty list; the known ones are accepted in any case.
+#[test]
+fn list_refuses_a_status_no_record_can_have() {
+    let out = lbctl(&["list", "--status", "BOGUS"], &[], None);
+    assert_eq!(out.status.code(), Some(2), "{}", show(&out));
+    let err = stderr(&out);
+    assert!(err.contains("BOGUS") && err.contains("CANCELLED"), "{err}");
+    // `failed` passes the parser: it fails later, for want of an AWS region, not as usage.
+    let out = lbctl(&["list", "--status", "failed"], &[], None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(stderr(&out).contains("no AWS region"), "{}", show(&out));
+}

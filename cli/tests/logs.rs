@@ -85,6 +85,17 @@ async fn logs_prints_each_workers_logs_and_follows_them_until_the_end() {
         "{text}"
     );
 
+    // A worker with no log at all says so instead of printing only logcopy's.
+    let out = lbctl(&["logs", "1", "--worker", "99"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("no logs of worker 99")
+            && stderr(&out).contains("workers with logs: 1, 2"),
+        "{}",
+        show(&out)
+    );
+    assert!(stdout(&out).is_empty(), "{}", show(&out));
+
     let out = lbctl(&["logs", "1", "--recorder"], &env, None);
     assert!(
         stdout(&out).contains("==> logs/agent/agent1/recorder/RouteScenario_0.log <== (6 bytes, a recording: not printed)"),
