@@ -6,11 +6,14 @@ use k8s_openapi::jiff::Timestamp;
 
 pub use lb_domain::autoscaler::{Outlook, ScaleUpWord, COMPONENT, NOT_TRIGGERED, TRIGGERED};
 
-/// The latest autoscaler word among `events` about the pod with uid `pod_uid`.
+/// The latest autoscaler word among `events` about the pod with uid `pod_uid`. Only the
+/// autoscaler's own events count: anyone allowed to create events could write one with its
+/// reasons, and a false `NotTriggerScaleUp` would fail a pod that only waits.
 pub fn latest_word(events: &[Event], pod_uid: &str) -> Option<ScaleUpWord> {
     events
         .iter()
         .filter(|e| e.involved_object.uid.as_deref() == Some(pod_uid))
+        .filter(|e| from_the_autoscaler(e))
         .filter(|e| matches!(e.reason.as_deref(), Some(NOT_TRIGGERED | TRIGGERED)))
         .map(|e| ScaleUpWord {
             reason: e.reason.clone().unwrap_or_default(),
@@ -18,6 +21,13 @@ pub fn latest_word(events: &[Event], pod_uid: &str) -> Option<ScaleUpWord> {
             at: last_said(e),
         })
         .max_by_key(|w| w.at)
+}
+
+/// Whether the autoscaler emitted `e`: client-go's core/v1 recorder names it in
+/// `source.component`, an events.k8s.io/v1 recorder in `reportingComponent`.
+fn from_the_autoscaler(e: &Event) -> bool {
+    let source = e.source.as_ref().and_then(|s| s.component.as_deref());
+    source == Some(COMPONENT) || e.reporting_component.as_deref() == Some(COMPONENT)
 }
 
 /// When an event was last emitted: `series.lastObservedTime` (events.k8s.io/v1 recorders),
@@ -43,17 +53,41 @@ fn last_said(e: &Event) -> Option<Timestamp> {
 mod tests {
     use super::*;
 
+    fn event_from(component: &str, uid: &str, reason: &str, message: &str, at: &str) -> Event {
+        serde_json::from_value(serde_json::json!({
+            "metadata": {"name": format!("p.{at}"), "namespace": "leaderboard"},
+            "involvedObject": {"kind": "Pod", "name": "p", "uid": uid},
+            "reason": reason, "message": message, "type": "Normal",
+            "source": {"component": component},
+            "count": 3, "firstTimestamp": "2026-11-24T09:00:00Z", "lastTimestamp": at,
+        }))
+        .unwrap()
+    }
+
+    #[test]
+    fn an_event_with_the_autoscalers_reason_from_anyone_else_is_not_its_word() {
+        let said = "2026-11-24T09:05:00Z";
+        let impostor = event_from(
+            "my-controller",
+            "u1",
+            NOT_TRIGGERED,
+            "pod didn't trigger scale-up: 1 max node group size reached",
+            said,
+        );
+        assert_eq!(latest_word(std::slice::from_ref(&impostor), "u1"), None);
+        let mut reported: Event = event_from("", "u1", TRIGGERED, "pod triggered scale-up", said);
+        reported.source = None;
+        reported.reporting_component = Some(COMPONENT.into());
+        assert_eq!(
+            latest_word(&[impostor, reported], "u1").unwrap().reason,
+            TRIGGERED
+        );
+    }
+
     #[test]
     fn the_latest_word_about_the_pod_counts() {
         let event = |uid: &str, reason: &str, message: &str, at: &str| -> Event {
-            serde_json::from_value(serde_json::json!({
-                "metadata": {"name": format!("p.{at}"), "namespace": "leaderboard"},
-                "involvedObject": {"kind": "Pod", "name": "p", "uid": uid},
-                "reason": reason, "message": message, "type": "Normal",
-                "source": {"component": COMPONENT},
-                "count": 3, "firstTimestamp": "2026-11-24T09:00:00Z", "lastTimestamp": at,
-            }))
-            .unwrap()
+            event_from(COMPONENT, uid, reason, message, at)
         };
         let events = [
             event(
