@@ -7,8 +7,9 @@ use std::path::PathBuf;
 
 use clap::Args;
 use lb_aws::s3::SubmissionStore;
+use lb_domain::finalize::rescore_refusal;
 use lb_domain::plan::{plan, PlanInput};
-use lb_domain::results::{EvalAiFiles, Leaderboard, RouteSubset};
+use lb_domain::results::{EvalAiFiles, RouteSubset};
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::results::merge_partials;
@@ -132,16 +133,13 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
     if !args.post {
         return Ok(0);
     }
-    post(
-        &deployment,
-        &args,
-        &record,
-        phase,
-        complete,
-        &files,
-        leaderboard,
-    )
-    .await
+    let invalid = merged.and_then(|m| m.invalid_reason);
+    if let Some(why) = rescore_refusal(record.status(), complete, progress, invalid) {
+        return Err(CliError::Refused(format!(
+            "submission `{id}`: {why}; nothing is posted"
+        )));
+    }
+    post(&deployment, &args, &record, phase, &files).await
 }
 
 async fn one_record(deployment: &Deployment, args: &Rescore) -> Result<Record> {
@@ -196,9 +194,7 @@ async fn post(
     args: &Rescore,
     record: &Record,
     phase: u64,
-    complete: bool,
     files: &EvalAiFiles,
-    leaderboard: Leaderboard,
 ) -> Result<u8> {
     let id = args.submission;
     if record.status() == "CANCELLED" {
@@ -206,11 +202,7 @@ async fn post(
             "submission `{id}` was cancelled: its participant's word is final, nothing is posted"
         )));
     }
-    let status = if complete {
-        SubmissionStatus::Finished
-    } else {
-        SubmissionStatus::Failed
-    };
+    let status = SubmissionStatus::Finished;
     if !args.yes && !confirm(id, status)? {
         outln!("nothing posted");
         return Ok(1);
@@ -226,13 +218,7 @@ async fn post(
         status,
         result: files.results_json(),
         stdout: files.stdout.clone(),
-        stderr: if complete {
-            String::new()
-        } else {
-            format!(
-                "rescored by the operators: not every planned route of leaderboard {leaderboard} has its records"
-            )
-        },
+        stderr: String::new(),
         metadata: files.metadata.clone().unwrap_or_else(|| "{}".into()),
     };
     let at = SubmissionRef {

@@ -11,6 +11,11 @@ use lb_domain::testutil::results_fixtures_dir;
 const CASE: &str = "a_4workers_20routes_finished";
 
 async fn put(sdk: &aws_config::SdkConfig, submission: u64, status: &str) {
+    put_workers(sdk, submission, status, 4).await
+}
+
+/// The record, and the fixture's files of workers 1 to `files` (of 4).
+async fn put_workers(sdk: &aws_config::SdkConfig, submission: u64, status: &str, files: u32) {
     let text = |v: &str| AttributeValue::S(v.into());
     aws_sdk_dynamodb::Client::new(sdk)
         .put_item()
@@ -26,7 +31,7 @@ async fn put(sdk: &aws_config::SdkConfig, submission: u64, status: &str) {
         .await
         .unwrap();
     let s3 = lb_aws::s3_client(sdk);
-    for worker in 1..=4 {
+    for worker in 1..=files {
         let body = std::fs::read(
             results_fixtures_dir()
                 .join(CASE)
@@ -115,6 +120,29 @@ async fn rescore_merges_the_workers_files_into_the_fixtures_evalai_files_and_pos
     assert_eq!(out.status.code(), Some(1), "{}", show(&out));
     assert!(stderr(&out).contains("cancelled"), "{}", show(&out));
     assert_eq!(stack.fake().submission(2).unwrap().status, "submitted");
+
+    // A submission an execution still holds is left to its Finalize; a merge missing routes
+    // has no score to post. Neither asks, neither posts.
+    put(&stack.sdk, 3, "RUNNING").await;
+    put_workers(&stack.sdk, 4, "FAILED", 2).await;
+    for (id, why) in [
+        ("3", "record is `RUNNING`"),
+        ("4", "not complete (10 of 20 records)"),
+    ] {
+        let before = stack.fake().requests().len();
+        let out = lbctl(
+            &["rescore", id, "--post", "--challenge", "1", "--yes"],
+            &env,
+            None,
+        );
+        assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+        assert!(stderr(&out).contains(why), "{}", show(&out));
+        assert_eq!(
+            stack.fake().requests().len(),
+            before,
+            "{id}: EvalAI was not asked"
+        );
+    }
 
     // --post without --challenge is a usage error; an unknown submission is named.
     let out = lbctl(&["rescore", "1", "--post"], &env, None);

@@ -95,6 +95,32 @@ pub fn outcome(facts: &Facts<'_>) -> Outcome {
     }
 }
 
+/// Why `lbctl rescore --post` must not post, if it must not: a submission an execution still
+/// holds gets its final status from that execution's Finalize (which never replaces a final
+/// status, so one posted first would stand instead of the real one), and only a complete, valid merge is a result worth replacing a final
+/// status with. `record_status` is the record's (`RUNNING`, ...); `invalid` is the validation's
+/// reason when it set the entry `Invalid`.
+pub fn rescore_refusal(
+    record_status: &str,
+    complete: bool,
+    progress: (u64, u64),
+    invalid: Option<&str>,
+) -> Option<String> {
+    if matches!(record_status, "SUBMITTED" | "RESUMING" | "RUNNING") {
+        return Some(format!(
+            "its record is `{record_status}`: the execution that holds it posts the final status \
+             (lbctl cancel it, or wait for it to end)"
+        ));
+    }
+    if !complete {
+        return Some(format!(
+            "the merge is not complete ({} of {} records): there is no score to post",
+            progress.0, progress.1
+        ));
+    }
+    invalid.map(|reason| format!("the merge is complete but invalid: {reason}"))
+}
+
 /// The error a Catch put at `$.error`, in words: Lambda's `Cause` is a JSON text holding
 /// `errorMessage`.
 pub fn caught_error(state: &Value) -> Option<String> {
@@ -444,6 +470,49 @@ mod tests {
             "execution `b` holds the submission now"
         );
         assert!(superseded(None, "a").is_some());
+    }
+
+    #[test]
+    fn rescore_posts_only_a_complete_valid_merge_of_a_submission_no_execution_holds() {
+        let cases: [(&str, bool, Option<&str>, Option<&str>); 7] = [
+            ("FAILED", true, None, None),
+            ("FINISHED", true, None, None),
+            (
+                "RUNNING",
+                true,
+                None,
+                Some("`RUNNING`: the execution that holds it"),
+            ),
+            ("SUBMITTED", true, None, Some("`SUBMITTED`")),
+            ("RESUMING", true, None, Some("`RESUMING`")),
+            (
+                "FAILED",
+                false,
+                None,
+                Some("not complete (3 of 20 records)"),
+            ),
+            (
+                "FAILED",
+                true,
+                Some("a route was run twice"),
+                Some("invalid: a route was run twice"),
+            ),
+        ];
+        for (status, complete, invalid, refused) in cases {
+            let got = rescore_refusal(
+                status,
+                complete,
+                (if complete { 20 } else { 3 }, 20),
+                invalid,
+            );
+            match (refused, got) {
+                (None, None) => {}
+                (Some(part), Some(text)) => assert!(text.contains(part), "{status}: {text}"),
+                (want, got) => {
+                    panic!("{status} {complete} {invalid:?}: want {want:?}, got {got:?}")
+                }
+            }
+        }
     }
 
     #[test]
