@@ -102,17 +102,62 @@ pub fn cut_with_note(
     std::borrow::Cow::Owned(format!("{kept}{note}"))
 }
 
-/// A bidirectional control or a zero-width character: invisible, yet it can reorder or hide
-/// what a terminal shows.
+/// A character a terminal shows as nothing, or as a line break, yet which can reorder, hide or
+/// fake what is shown: by Unicode property, not a hand list, so every such character of the
+/// Unicode version compiled in counts. Default_Ignorable_Code_Point (zero-width characters,
+/// bidirectional controls, tag characters, Hangul fillers, variation selectors, U+034F,
+/// U+00AD, U+180E, ...), and the general categories Cf (format), Zl and Zp (U+2028, U+2029).
 pub fn is_invisible_format(c: char) -> bool {
-    matches!(c,
-        '\u{200b}'..='\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2060}'..='\u{2064}'
-        | '\u{2066}'..='\u{2069}' | '\u{feff}' | '\u{061c}')
+    use icu_properties::props::{DefaultIgnorableCodePoint, GeneralCategory};
+    use icu_properties::{CodePointMapData, CodePointSetData};
+    if c.is_ascii() {
+        return false;
+    }
+    CodePointSetData::new::<DefaultIgnorableCodePoint>().contains(c)
+        || matches!(
+            CodePointMapData::<GeneralCategory>::new().get(c),
+            GeneralCategory::Format
+                | GeneralCategory::LineSeparator
+                | GeneralCategory::ParagraphSeparator
+        )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn invisible_characters_are_found_by_property_and_visible_ones_kept() {
+        let invisible = [
+            '\u{200b}',
+            '\u{200f}',
+            '\u{202e}',
+            '\u{2066}',
+            '\u{feff}',
+            '\u{061c}',
+            '\u{e0041}', // a tag character
+            '\u{2028}',
+            '\u{2029}', // line and paragraph separators
+            '\u{3164}',
+            '\u{115f}',
+            '\u{ffa0}', // Hangul fillers
+            '\u{180e}',
+            '\u{034f}',
+            '\u{00ad}',
+            '\u{fe0f}',
+            '\u{2064}',
+        ];
+        for c in invisible {
+            assert!(is_invisible_format(c), "U+{:04X} passes", c as u32);
+        }
+        for c in ['a', ' ', 'é', 'ß', 'Ж', '中', '한', '\u{1f600}', '-', '_'] {
+            assert!(!is_invisible_format(c), "U+{:04X} is visible", c as u32);
+        }
+        assert_eq!(
+            printable("Team\u{e0041}\u{2028}One\u{3164}\u{ad}"),
+            "TeamOne"
+        );
+    }
 
     #[test]
     fn a_cut_keeps_the_start_and_the_note_within_the_bound() {
