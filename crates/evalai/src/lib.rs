@@ -344,10 +344,11 @@ impl EvalAiClient {
             }
             other => other?,
         };
-        let items = body.as_array().ok_or_else(|| {
-            EvalAiError::InvalidResponse("the submission list is not a JSON list".into())
-        })?;
-        items.iter().map(Submission::from_json).collect()
+        let (submissions, skipped) = submissions_of(&body)?;
+        for problem in skipped {
+            warn!(challenge, %status, %problem, "a malformed submission in EvalAI's list, skipped");
+        }
+        Ok(submissions)
     }
 
     /// The image of a submission whose message had none: the docker `input_file` JSON.
@@ -859,6 +860,48 @@ fn refuse_write(current: SubmissionStatus) -> Option<WriteOutcome> {
     current
         .is_final()
         .then_some(WriteOutcome::AlreadyFinal(current))
+}
+
+/// The submissions of a listing, element by element: participants write much of each element
+/// (the metadata, the method fields), so one malformed element is skipped and named, never the
+/// reason the whole list (every other cancel of the challenge) goes unread.
+fn submissions_of(body: &Value) -> Result<(Vec<Submission>, Vec<String>)> {
+    let items = body.as_array().ok_or_else(|| {
+        EvalAiError::InvalidResponse("the submission list is not a JSON list".into())
+    })?;
+    let mut submissions = Vec::with_capacity(items.len());
+    let mut skipped = Vec::new();
+    for (index, item) in items.iter().enumerate() {
+        match Submission::from_json(item) {
+            Ok(s) => submissions.push(s),
+            Err(e) => skipped.push(format!("element {index} (id {}): {e}", item["id"])),
+        }
+    }
+    Ok((submissions, skipped))
+}
+
+#[cfg(test)]
+mod listing_tests {
+    use super::*;
+
+    #[test]
+    fn a_malformed_element_is_skipped_and_named_and_the_rest_of_the_list_kept() {
+        let good = |id: u64| {
+            serde_json::json!({"id": id, "participant_team": 1, "participant_team_name": "T",
+                               "challenge_phase": 1, "created_by": 2, "status": "cancelled",
+                               "submitted_at": "2026-11-24T10:00:00Z", "job_name": []})
+        };
+        let mut bad = good(8);
+        bad["participant_team_name"] = serde_json::json!(12);
+        let body = serde_json::json!([good(7), bad, good(9), "not an object"]);
+        let (kept, skipped) = submissions_of(&body).unwrap();
+        assert_eq!(kept.iter().map(|s| s.id).collect::<Vec<_>>(), [7, 9]);
+        assert_eq!(skipped.len(), 2, "{skipped:?}");
+        assert!(
+            skipped[0].contains("element 1 (id 8)") && skipped[0].contains("participant_team_name")
+        );
+        assert!(submissions_of(&serde_json::json!({"results": []})).is_err());
+    }
 }
 
 #[cfg(test)]
