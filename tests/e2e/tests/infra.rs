@@ -13,22 +13,22 @@ fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
+/// A tool of the emulators' `.venv` (tests/requirements.txt).
 fn venv_tool(name: &str) -> PathBuf {
-    let tool = root().join(".venv/bin").join(name);
-    assert!(
-        tool.exists(),
-        "{} is missing: run `make venv`",
-        tool.display()
-    );
-    tool
+    installed(".venv", "venv", name)
 }
 
 /// A policy linter from `.venv-lint` (tests/lint-requirements.txt).
 fn lint_tool(name: &str) -> PathBuf {
-    let tool = root().join(".venv-lint/bin").join(name);
+    installed(".venv-lint", "lint-venv", name)
+}
+
+/// `<venv>/bin/<name>`, which `make <target>` installs.
+fn installed(venv: &str, target: &str, name: &str) -> PathBuf {
+    let tool = root().join(venv).join("bin").join(name);
     assert!(
         tool.exists(),
-        "{} is missing: run `make lint-venv`",
+        "{} is missing: run `make {target}`",
         tool.display()
     );
     tool
