@@ -139,7 +139,7 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
             "submission `{id}`: {why}; nothing is posted"
         )));
     }
-    post(&deployment, &args, &record, phase, &files).await
+    post(&deployment, &args, phase, &files).await
 }
 
 async fn one_record(deployment: &Deployment, args: &Rescore) -> Result<Record> {
@@ -192,16 +192,10 @@ fn write_files(dir: &std::path::Path, merged: Option<String>, files: &EvalAiFile
 async fn post(
     deployment: &Deployment,
     args: &Rescore,
-    record: &Record,
     phase: u64,
     files: &EvalAiFiles,
 ) -> Result<u8> {
     let id = args.submission;
-    if record.status() == "CANCELLED" {
-        return Err(CliError::Refused(format!(
-            "submission `{id}` was cancelled: its participant's word is final, nothing is posted"
-        )));
-    }
     let status = SubmissionStatus::Finished;
     if !args.yes && !confirm(id, status)? {
         outln!("nothing posted");

@@ -95,7 +95,8 @@ pub fn outcome(facts: &Facts<'_>) -> Outcome {
     }
 }
 
-/// Why `lbctl rescore --post` must not post, if it must not: a submission an execution still
+/// Why `lbctl rescore --post` must not post, if it must not: a cancelled submission stays
+/// cancelled; a submission an execution still
 /// holds gets its final status from that execution's Finalize (which never replaces a final
 /// status, so one posted first would stand instead of the real one), and only a complete, valid merge is a result worth replacing a final
 /// status with. `record_status` is the record's (`RUNNING`, ...); `invalid` is the validation's
@@ -106,6 +107,9 @@ pub fn rescore_refusal(
     progress: (u64, u64),
     invalid: Option<&str>,
 ) -> Option<String> {
+    if record_status == "CANCELLED" {
+        return Some("it was cancelled: its participant's word is final".into());
+    }
     if matches!(record_status, "SUBMITTED" | "RESUMING" | "RUNNING") {
         return Some(format!(
             "its record is `{record_status}`: the execution that holds it posts the final status \
