@@ -7,10 +7,14 @@
 //! The table is ours alone (the stack creates it). Partition key `queue` (S, the leaderboard:
 //! `"2.0"`), sort key `key` (S):
 //! - `submission#<id>`: an entry: `submission_id`, `team_id`, `arrived_ms` (N), `state` (S:
-//!   `waiting`, `admitted`, `running`), `expires_at` (N, DynamoDB TTL) past any queue time
-//!   and evaluation, so an entry whose run never reached Finalize goes by itself.
-//! - `team#<id>`: a team's holds: `holders` (SS of submission ids). A holder whose entry is
-//!   gone (its TTL, an operator) is dropped when it would keep the team from its place.
+//!   `waiting`, `admitted`, `running`), `execution` (S, the execution that queued it last),
+//!   `expires_at` (N, DynamoDB TTL) past any queue time and evaluation.
+//! - `team#<id>`: a team's holds: `holders` (SS of submission ids).
+//!
+//! Admission decides on the holders as they are when it writes, never on an earlier read of
+//! the queue: the hold is conditional on the set's size, and a holder whose entry is gone
+//! (its TTL, an operator) is dropped by a transaction conditional on the entry still being
+//! gone. A holder whose execution ended without Finalize is the reaper's to release.
 
 use std::collections::HashMap;
 
@@ -94,6 +98,23 @@ fn entry_of(item: &HashMap<String, AttributeValue>) -> Result<Entry> {
     })
 }
 
+/// A transaction one of whose conditions refused it (rather than a failure to retry).
+fn transaction_refused<R>(
+    e: &aws_sdk_dynamodb::error::SdkError<
+        aws_sdk_dynamodb::operation::transact_write_items::TransactWriteItemsError,
+        R,
+    >,
+) -> bool {
+    use aws_sdk_dynamodb::operation::transact_write_items::TransactWriteItemsError;
+    match e.as_service_error() {
+        Some(TransactWriteItemsError::TransactionCanceledException(c)) => c
+            .cancellation_reasons()
+            .iter()
+            .any(|r| r.code() == Some("ConditionalCheckFailed")),
+        _ => false,
+    }
+}
+
 impl AdmissionTable {
     /// The table named `table`.
     pub fn new(client: Client, table: impl Into<String>) -> Self {
@@ -103,10 +124,13 @@ impl AdmissionTable {
         }
     }
 
-    /// Puts `entry` in `queue` unless it is there already, and returns it as stored: a retried
-    /// Launch keeps the first arrival, hence its place.
-    pub async fn enqueue(&self, queue: &str, entry: &Entry) -> Result<Entry> {
+    /// Puts `entry` in `queue` for `execution` unless it is there already, and returns it as
+    /// stored: a retried Launch keeps the first arrival, hence its place. An entry already
+    /// there from another execution (a resume of a run that never reached Finalize) becomes
+    /// this execution's, so the reaper of the old one leaves it alone.
+    pub async fn enqueue(&self, queue: &str, entry: &Entry, execution: &str) -> Result<Entry> {
         let mut item = entry_key(queue, entry.submission_id);
+        item.insert("execution".into(), s(execution));
         item.insert("submission_id".into(), n(entry.submission_id));
         item.insert("team_id".into(), n(entry.team_id));
         item.insert("arrived_ms".into(), n(entry.arrived_ms));
@@ -126,12 +150,44 @@ impl AdmissionTable {
             .await;
         match put {
             Ok(_) => Ok(entry.clone()),
-            Err(e) if condition_failed(&e) => self
-                .entry(queue, entry.submission_id)
-                .await?
-                .ok_or_else(|| malformed("the entry vanished while it was written".into())),
+            Err(e) if condition_failed(&e) => {
+                self.adopt(queue, entry.submission_id, execution).await?;
+                self.entry(queue, entry.submission_id)
+                    .await?
+                    .ok_or_else(|| malformed("the entry vanished while it was written".into()))
+            }
             Err(e) => Err(AwsError::sdk("dynamodb", "PutItem", e)),
         }
+    }
+
+    /// Makes an existing entry `execution`'s (nothing when it is already).
+    async fn adopt(&self, queue: &str, submission_id: u64, execution: &str) -> Result<()> {
+        let result = self
+            .client
+            .update_item()
+            .table_name(&self.table)
+            .set_key(Some(entry_key(queue, submission_id)))
+            .update_expression("SET #execution = :me")
+            .condition_expression("attribute_exists(#key) AND (attribute_not_exists(#execution) OR #execution <> :me)")
+            .expression_attribute_names("#execution", "execution")
+            .expression_attribute_names("#key", "key")
+            .expression_attribute_values(":me", s(execution))
+            .send()
+            .await;
+        match result {
+            Ok(_) => Ok(()),
+            Err(e) if condition_failed(&e) => Ok(()),
+            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
+        }
+    }
+
+    /// The execution that queued `submission_id` last (`None`: no entry, or one written before
+    /// entries named it).
+    pub async fn execution_of(&self, queue: &str, submission_id: u64) -> Result<Option<String>> {
+        Ok(self
+            .get(entry_key(queue, submission_id))
+            .await?
+            .and_then(|item| item.get("execution")?.as_s().ok().cloned()))
     }
 
     /// The item of `key`, read consistently.
@@ -194,55 +250,79 @@ impl AdmissionTable {
         Ok(entries)
     }
 
-    /// Admits `me` (waiting in `queue`) if its team holds fewer than `limit` places. Holds
-    /// whose entries are gone from `entries` (the queue as just read) are dropped first
-    /// when they would keep the team from its place.
-    pub async fn admit(
-        &self,
-        queue: &str,
-        me: &Entry,
-        limit: u32,
-        entries: &[Entry],
-    ) -> Result<Admit> {
+    /// Admits `me` (waiting in `queue`) if its team holds fewer than `limit` places. When the
+    /// team is full, holders whose entries are gone are dropped first, each by a transaction
+    /// conditional on its entry still being gone when the drop is written.
+    pub async fn admit(&self, queue: &str, me: &Entry, limit: u32) -> Result<Admit> {
         if me.state != EntryState::Waiting {
             return Ok(Admit::Admitted);
         }
         if self.try_admit(queue, me, limit).await? {
             return Ok(Admit::Admitted);
         }
-        let holders = self.holders(queue, me.team_id).await?;
-        let stale: Vec<String> = holders
-            .iter()
-            .filter(|id| {
-                !entries
-                    .iter()
-                    .any(|e| e.state != EntryState::Waiting && e.submission_id.to_string() == **id)
-            })
-            .cloned()
-            .collect();
-        if stale.is_empty() {
-            return Ok(Admit::Held);
+        let mut dropped = false;
+        for orphan in self.orphans(queue, me.team_id).await? {
+            dropped |= self.drop_orphan(queue, me.team_id, &orphan).await?;
         }
-        tracing::warn!(
-            team_id = me.team_id,
-            ?stale,
-            "dropping holds without an entry"
-        );
-        self.client
-            .update_item()
-            .table_name(&self.table)
-            .set_key(Some(team_key(queue, me.team_id)))
-            .update_expression("DELETE #holders :stale")
-            .expression_attribute_names("#holders", "holders")
-            .expression_attribute_values(":stale", AttributeValue::Ss(stale))
-            .send()
-            .await
-            .map_err(|e| AwsError::sdk("dynamodb", "UpdateItem", e))?;
-        Ok(if self.try_admit(queue, me, limit).await? {
+        Ok(if dropped && self.try_admit(queue, me, limit).await? {
             Admit::Admitted
         } else {
             Admit::Held
         })
+    }
+
+    /// The team's holders whose entries are gone, each entry read after the holders were.
+    pub async fn orphans(&self, queue: &str, team_id: u64) -> Result<Vec<String>> {
+        let mut orphans = Vec::new();
+        for holder in self.holders(queue, team_id).await? {
+            let Ok(id) = holder.parse::<u64>() else {
+                // Nothing we write: an operator's edit, never an entry's key.
+                orphans.push(holder);
+                continue;
+            };
+            if self.get(entry_key(queue, id)).await?.is_none() {
+                orphans.push(holder);
+            }
+        }
+        Ok(orphans)
+    }
+
+    /// Drops `holder` from the team's holds if its entry is still gone: `false` when the entry
+    /// came back meanwhile (a resume queued it again), and then the hold stays.
+    pub async fn drop_orphan(&self, queue: &str, team_id: u64, holder: &str) -> Result<bool> {
+        let gone = aws_sdk_dynamodb::types::ConditionCheck::builder()
+            .table_name(&self.table)
+            .set_key(Some(HashMap::from([
+                ("queue".to_string(), s(queue)),
+                ("key".to_string(), s(format!("submission#{holder}"))),
+            ])))
+            .condition_expression("attribute_not_exists(#key)")
+            .expression_attribute_names("#key", "key")
+            .build()
+            .map_err(|e| malformed(e.to_string()))?;
+        let drop = Update::builder()
+            .table_name(&self.table)
+            .set_key(Some(team_key(queue, team_id)))
+            .update_expression("DELETE #holders :holder")
+            .expression_attribute_names("#holders", "holders")
+            .expression_attribute_values(":holder", AttributeValue::Ss(vec![holder.to_string()]))
+            .build()
+            .map_err(|e| malformed(e.to_string()))?;
+        let result = self
+            .client
+            .transact_write_items()
+            .transact_items(TransactWriteItem::builder().condition_check(gone).build())
+            .transact_items(TransactWriteItem::builder().update(drop).build())
+            .send()
+            .await;
+        match result {
+            Ok(_) => {
+                tracing::warn!(team_id, holder, "dropped a hold whose entry is gone");
+                Ok(true)
+            }
+            Err(e) if transaction_refused(&e) => Ok(false),
+            Err(e) => Err(AwsError::sdk("dynamodb", "TransactWriteItems", e)),
+        }
     }
 
     /// The transaction: the team's hold and the entry's state, both or neither.
@@ -252,8 +332,10 @@ impl AdmissionTable {
             .table_name(&self.table)
             .set_key(Some(team_key(queue, me.team_id)))
             .update_expression("ADD #holders :me")
+            // A hold under its own id is its own (an earlier attempt, or a run of it that
+            // never gave its place back): taking it again takes no second place.
             .condition_expression(
-                "attribute_not_exists(#holders) OR (size(#holders) < :limit AND NOT contains(#holders, :id))",
+                "attribute_not_exists(#holders) OR contains(#holders, :id) OR size(#holders) < :limit",
             )
             .expression_attribute_names("#holders", "holders")
             .expression_attribute_values(":me", AttributeValue::Ss(vec![id.clone()]))
@@ -280,23 +362,12 @@ impl AdmissionTable {
             .await;
         match result {
             Ok(_) => Ok(true),
-            Err(e) => {
-                // A condition refused: the team is full (or the entry moved on: read again).
-                use aws_sdk_dynamodb::operation::transact_write_items::TransactWriteItemsError;
-                let refused = match e.as_service_error() {
-                    Some(TransactWriteItemsError::TransactionCanceledException(c)) => c
-                        .cancellation_reasons()
-                        .iter()
-                        .any(|r| r.code() == Some("ConditionalCheckFailed")),
-                    _ => false,
-                };
-                if refused {
-                    let now = self.entry(queue, me.submission_id).await?;
-                    Ok(now.is_some_and(|e| e.state != EntryState::Waiting))
-                } else {
-                    Err(AwsError::sdk("dynamodb", "TransactWriteItems", e))
-                }
+            // A condition refused: the team is full (or the entry moved on: read again).
+            Err(e) if transaction_refused(&e) => {
+                let now = self.entry(queue, me.submission_id).await?;
+                Ok(now.is_some_and(|e| e.state != EntryState::Waiting))
             }
+            Err(e) => Err(AwsError::sdk("dynamodb", "TransactWriteItems", e)),
         }
     }
 
@@ -311,6 +382,50 @@ impl AdmissionTable {
             .unwrap_or_default();
         holders.sort();
         Ok(holders)
+    }
+
+    /// Every team's holders in `queue`, by team id (a team item someone edited into another
+    /// shape is left out, and logged).
+    pub async fn holds(&self, queue: &str) -> Result<Vec<(u64, Vec<String>)>> {
+        let mut pages = self
+            .client
+            .query()
+            .table_name(&self.table)
+            .consistent_read(true)
+            .key_condition_expression("#queue = :queue AND begins_with(#key, :teams)")
+            .expression_attribute_names("#queue", "queue")
+            .expression_attribute_names("#key", "key")
+            .expression_attribute_values(":queue", s(queue))
+            .expression_attribute_values(":teams", s("team#"))
+            .into_paginator()
+            .send();
+        let mut holds = Vec::new();
+        let mut read = 0;
+        while let Some(page) = pages.next().await {
+            let page = page.map_err(|e| AwsError::sdk("dynamodb", "Query", e))?;
+            for item in page.items() {
+                let team = item
+                    .get("key")
+                    .and_then(|v| v.as_s().ok())
+                    .and_then(|k| k.strip_prefix("team#")?.parse::<u64>().ok());
+                let Some(team) = team else {
+                    tracing::warn!(?item, "team item skipped: its key is no team id");
+                    continue;
+                };
+                let mut holders = item
+                    .get("holders")
+                    .and_then(|v| v.as_ss().ok())
+                    .cloned()
+                    .unwrap_or_default();
+                holders.sort();
+                holds.push((team, holders));
+            }
+            read += 1;
+            if read >= MAX_PAGES {
+                break;
+            }
+        }
+        Ok(holds)
     }
 
     /// Marks the entry running (its first pair started). An entry that is not there (a run

@@ -122,13 +122,6 @@ fn waiting(submission_id: u64) -> Entry {
     }
 }
 
-fn admitted(submission_id: u64) -> Entry {
-    Entry {
-        state: EntryState::Admitted,
-        ..waiting(submission_id)
-    }
-}
-
 /// The entry as the table holds it after a refused transaction.
 fn entry_item(state: &str) -> Rule {
     let state = state.to_string();
@@ -157,16 +150,17 @@ async fn a_turn_is_one_transaction_on_the_team_s_count_and_the_entry_s_state() {
                 .collect();
             items.len() == 2
                 && conditions[0].contains("size(#holders) < :limit")
+                && conditions[0].contains("contains(#holders, :id)")
                 && conditions[1] == "#state = :waiting"
         })
         .then_output(|| TransactWriteItemsOutput::builder().build());
     let table = AdmissionTable::new(client(&[&both]), "admission");
-    let admit = table.admit("2.0", &waiting(3), 2, &[]).await.unwrap();
+    let admit = table.admit("2.0", &waiting(3), 2).await.unwrap();
     assert_eq!(admit, Admit::Admitted);
     assert_eq!(both.num_calls(), 1);
 
-    // The team is full: the transaction is cancelled, the entry still waits, and the holders
-    // are the team's admitted entries: held, nothing dropped.
+    // The team is full: the transaction is cancelled, the entry still waits, and each holder's
+    // entry is there: held, nothing dropped.
     let refused = mock!(Client::transact_write_items).then_error(|| {
         TransactWriteItemsError::TransactionCanceledException(
             TransactionCanceledException::builder()
@@ -188,17 +182,37 @@ async fn a_turn_is_one_transaction_on_the_team_s_count_and_the_entry_s_state() {
             )])))
             .build()
     });
-    let table = AdmissionTable::new(client(&[&refused, &still_waiting, &holders]), "admission");
-    let entries = [admitted(1), admitted(2), waiting(3)];
-    let admit = table.admit("2.0", &waiting(3), 2, &entries).await.unwrap();
+    let holder_entry = mock!(Client::get_item)
+        .match_requests(|r| {
+            r.key()
+                .and_then(|k| k.get("key"))
+                .is_some_and(|k| k == &s("submission#1") || k == &s("submission#2"))
+        })
+        .then_output(|| {
+            GetItemOutput::builder()
+                .set_item(Some(HashMap::from([("state".to_string(), s("running"))])))
+                .build()
+        });
+    let table = AdmissionTable::new(
+        client(&[
+            &refused,
+            &still_waiting,
+            &holders,
+            &holder_entry,
+            &holder_entry,
+        ]),
+        "admission",
+    );
+    let admit = table.admit("2.0", &waiting(3), 2).await.unwrap();
     assert_eq!(admit, Admit::Held);
     assert_eq!(
         (
             refused.num_calls(),
             still_waiting.num_calls(),
-            holders.num_calls()
+            holders.num_calls(),
+            holder_entry.num_calls()
         ),
-        (1, 1, 1)
+        (1, 1, 1, 2)
     );
 }
 

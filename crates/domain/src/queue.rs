@@ -66,24 +66,39 @@ pub fn arrival_ms(received_ms: Option<u64>, now: u64) -> u64 {
     received_ms.map_or(now * 1000, |ms| ms.min(now * 1000))
 }
 
-/// Whether `me` is its team's turn: no submission of its team that arrived earlier still waits.
-/// (The cap is the conditional write's to enforce; this keeps a team's own order.)
-pub fn team_turn(entries: &[Entry], me: &Entry) -> bool {
-    !entries.iter().any(|e| {
-        e.team_id == me.team_id
-            && e.submission_id != me.submission_id
-            && e.state == EntryState::Waiting
-            && e.before(me)
-    })
+/// Whether `me` may take one of its team's `free` places: fewer of its team's submissions that
+/// arrived earlier still wait than there are free places. A team's places go in its own
+/// arrival order, and every free place is offered at once: the oldest `free` waiting
+/// teammates may all take theirs, in whatever order their rounds come. (The cap is the
+/// conditional write's to enforce; this keeps a team's own order.)
+pub fn team_turn(entries: &[Entry], me: &Entry, free: u32) -> bool {
+    let older = entries
+        .iter()
+        .filter(|e| {
+            e.team_id == me.team_id
+                && e.submission_id != me.submission_id
+                && e.state == EntryState::Waiting
+                && e.before(me)
+        })
+        .count();
+    older < free as usize
 }
 
-/// The team's oldest waiting submission: the one whose turn comes when a place of `team_id`
-/// is given back.
-pub fn next_of_team(entries: &[Entry], team_id: u64) -> Option<&Entry> {
-    entries
+/// The team's `free` oldest waiting submissions: those whose turn it is when `free` places of
+/// `team_id` are open.
+pub fn next_of_team(entries: &[Entry], team_id: u64, free: u32) -> Vec<&Entry> {
+    let mut waiting: Vec<&Entry> = entries
         .iter()
         .filter(|e| e.team_id == team_id && e.state == EntryState::Waiting)
-        .min_by_key(|e| (e.arrived_ms, e.submission_id))
+        .collect();
+    waiting.sort_by_key(|e| (e.arrived_ms, e.submission_id));
+    waiting.truncate(free as usize);
+    waiting
+}
+
+/// How many of a team's `limit` places are open while it holds `held`.
+pub fn free_places(limit: u32, held: usize) -> u32 {
+    limit.saturating_sub(u32::try_from(held).unwrap_or(u32::MAX))
 }
 
 /// The submissions that arrived before `me` and have not started: those that start first,
@@ -156,15 +171,37 @@ mod tests {
             entry(3, 7, 300, EntryState::Waiting),
             entry(4, 8, 400, EntryState::Waiting),
         ];
-        assert!(team_turn(&entries, &entries[1]));
-        // Team 7's third waits for its second, whatever the cap says.
-        assert!(!team_turn(&entries, &entries[2]));
+        assert!(team_turn(&entries, &entries[1], 1));
+        // Team 7's third waits for its second while one place is open...
+        assert!(!team_turn(&entries, &entries[2], 1));
+        // ...but both go at once when two are, whichever round comes first.
+        assert!(team_turn(&entries, &entries[2], 2));
+        assert!(team_turn(&entries, &entries[1], 2));
+        // No open place: nobody's turn.
+        assert!(!team_turn(&entries, &entries[1], 0));
         // Team 8 is not held back by team 7's waiting submissions.
-        assert!(team_turn(&entries, &entries[3]));
-        // A place of team 7 freed is team 7's second's turn; team 9 has nobody waiting.
-        assert_eq!(next_of_team(&entries, 7).map(|e| e.submission_id), Some(2));
-        assert_eq!(next_of_team(&entries, 8).map(|e| e.submission_id), Some(4));
-        assert_eq!(next_of_team(&entries, 9), None);
+        assert!(team_turn(&entries, &entries[3], 1));
+        let ids = |team, free| -> Vec<u64> {
+            next_of_team(&entries, team, free)
+                .iter()
+                .map(|e| e.submission_id)
+                .collect()
+        };
+        // Places of team 7 freed are its oldest waiting ones' turn; team 9 has nobody waiting.
+        assert_eq!(ids(7, 1), [2]);
+        assert_eq!(ids(7, 2), [2, 3]);
+        assert_eq!(ids(7, 5), [2, 3]);
+        assert_eq!(ids(7, 0), Vec::<u64>::new());
+        assert_eq!(ids(8, 1), [4]);
+        assert_eq!(ids(9, 1), Vec::<u64>::new());
+    }
+
+    #[test]
+    fn free_places_never_go_below_zero() {
+        assert_eq!(free_places(2, 0), 2);
+        assert_eq!(free_places(2, 1), 1);
+        // More holders than the cap (the cap lowered while they ran): none free.
+        assert_eq!(free_places(2, 3), 0);
     }
 
     #[test]

@@ -28,7 +28,8 @@ pub struct Standing {
 }
 
 /// Puts `submission` in the queue if it is not there (arrived at `arrived_ms`), and admits it
-/// when its team holds fewer than `limit` and no older submission of its team waits.
+/// when its team holds fewer than `limit` and fewer older submissions of its team wait than
+/// places are open.
 pub async fn take_turn(
     table: &AdmissionTable,
     submission: &SubmissionInfo,
@@ -44,6 +45,7 @@ pub async fn take_turn(
                 arrived_ms,
                 state: EntryState::Waiting,
             },
+            &submission.execution,
         )
         .await?;
     let entries = table.entries(&submission.leaderboard).await?;
@@ -53,12 +55,17 @@ pub async fn take_turn(
         .find(|e| e.submission_id == me.submission_id)
         .cloned()
         .unwrap_or(me);
-    let admitted = me.state != EntryState::Waiting
-        || (queue::team_turn(&entries, &me)
-            && table
-                .admit(&submission.leaderboard, &me, limit, &entries)
-                .await?
-                == Admit::Admitted);
+    let admitted = me.state != EntryState::Waiting || {
+        // The holders are read after the queue, and the conditional write has the last word
+        // on the cap. With no place open the team's oldest still asks: `admit` then drops
+        // holds whose entries are gone.
+        let held = table
+            .holders(&submission.leaderboard, submission.team_id)
+            .await?
+            .len();
+        queue::team_turn(&entries, &me, queue::free_places(limit, held).max(1))
+            && table.admit(&submission.leaderboard, &me, limit).await? == Admit::Admitted
+    };
     Ok(Standing {
         admitted,
         ahead: queue::ahead(&entries, &me),
@@ -80,13 +87,11 @@ pub async fn ahead_of(table: &AdmissionTable, submission: &SubmissionInfo) -> Re
         .map(|me| queue::ahead(&entries, me)))
 }
 
-/// What [`wake_team_next`] did.
+/// What [`wake_team_next`] did for one of the team's waiting submissions.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Woken {
-    /// No submission of the team waits.
-    Nobody,
-    /// The team's next (this id) is not waiting on a token now (in a round, or not yet
-    /// parked): it asks for its turn at its round anyway.
+    /// It is not waiting on a token now (in a round, or not yet parked): it asks for its turn
+    /// at its round anyway.
     NotWaiting(u64),
     /// Its execution was woken.
     Delivered(u64),
@@ -94,26 +99,28 @@ pub enum Woken {
     Stale(u64),
 }
 
-/// Wakes the execution of team `team_id`'s oldest waiting submission in `leaderboard`, whose
-/// turn a place just given back is, so its Monitor round asks now instead of at its next poll
-/// (five minutes into a queue, half an hour into a long one), through the same
-/// [`WakeTable::wake`] the wake function uses.
+/// Wakes the executions of team `team_id`'s oldest waiting submissions in `leaderboard`, one
+/// per place open under `limit` (none when nobody waits or no place is open), so their
+/// Monitor rounds ask now instead of at their next poll (five minutes into a queue, half an
+/// hour into a long one), through the same [`WakeTable::wake`] the wake function uses. A
+/// failed report stops there with the error: the rest ask at their polls.
 pub async fn wake_team_next<C: Callbacks>(
     table: &AdmissionTable,
     wakes: &WakeTable,
     callbacks: &C,
-    leaderboard: &str,
-    team_id: u64,
+    (leaderboard, team_id, limit): (&str, u64, u32),
     now: u64,
-) -> Result<Woken> {
+) -> Result<Vec<Woken>> {
     let entries = table.entries(leaderboard).await?;
-    let Some(next) = queue::next_of_team(&entries, team_id) else {
-        return Ok(Woken::Nobody);
-    };
-    let id = next.submission_id;
-    Ok(match wakes.wake(id, now, callbacks).await? {
-        None => Woken::NotWaiting(id),
-        Some(Reported::Delivered) => Woken::Delivered(id),
-        Some(Reported::Stale) => Woken::Stale(id),
-    })
+    let held = table.holders(leaderboard, team_id).await?.len();
+    let mut woken = Vec::new();
+    for next in queue::next_of_team(&entries, team_id, queue::free_places(limit, held)) {
+        let id = next.submission_id;
+        woken.push(match wakes.wake(id, now, callbacks).await? {
+            None => Woken::NotWaiting(id),
+            Some(Reported::Delivered) => Woken::Delivered(id),
+            Some(Reported::Stale) => Woken::Stale(id),
+        });
+    }
+    Ok(woken)
 }

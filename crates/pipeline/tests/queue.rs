@@ -1,4 +1,4 @@
-//! A place given back wakes its team's next waiting submission, on moto's DynamoDB with the
+//! A place given back wakes its team's next waiting submissions, one per open place, on moto's DynamoDB with the
 //! stack's admission and wake tables and the state machine's own wait write.
 
 use test_support::{Answer, RecordingCallbacks};
@@ -44,14 +44,14 @@ async fn a_place_given_back_wakes_the_teams_oldest_waiting_submission() {
             .await
             .unwrap();
     }
-    let wake = |team| wake_team_next(&table, &wakes, &callbacks, "2.0", team, 1_000);
-    // Nobody of team 6 waits; team 5's next is 2, not parked on a token yet.
-    assert_eq!(wake(6).await.unwrap(), Woken::Nobody);
-    assert_eq!(wake(5).await.unwrap(), Woken::NotWaiting(2));
+    let wake = |team| wake_team_next(&table, &wakes, &callbacks, ("2.0", team, 1), 1_000);
+    // Nobody of team 6 waits; team 5 has no place open.
+    assert_eq!(wake(6).await.unwrap(), []);
+    assert_eq!(wake(5).await.unwrap(), []);
 
     // 2 and 3 park in the state machine's wait, each with its token.
     for (id, token) in [(2, "token-2"), (3, "token-3")] {
-        // The changes its Monitor round read (the wake above counted one for 2).
+        // The changes its Monitor round read.
         let seen = wakes.state(id).await.unwrap().changes;
         update_item(&client, wait_for_change(token, id, 7, seen))
             .await
@@ -62,10 +62,10 @@ async fn a_place_given_back_wakes_the_teams_oldest_waiting_submission() {
     callbacks.answer_next(Answer::Unreachable);
     assert!(wake(5).await.is_err(), "a failed report is an error");
     // The token went back: the next try delivers it.
-    assert_eq!(wake(5).await.unwrap(), Woken::Delivered(2));
+    assert_eq!(wake(5).await.unwrap(), [Woken::Delivered(2)]);
     assert_eq!(callbacks.delivered(), ["token-2"]);
     // Its token is taken: a second wake finds it not waiting, and 3 stays parked.
-    assert_eq!(wake(5).await.unwrap(), Woken::NotWaiting(2));
+    assert_eq!(wake(5).await.unwrap(), [Woken::NotWaiting(2)]);
     let parked: Vec<u64> = wakes
         .waiting()
         .await
@@ -86,4 +86,47 @@ async fn a_place_given_back_wakes_the_teams_oldest_waiting_submission() {
     };
     assert_eq!(state(2), Some(EntryState::Admitted));
     assert_eq!(state(3), Some(EntryState::Waiting));
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn every_place_given_back_is_offered_at_once() {
+    let (stack, _) = test_support::stack::provisioned().await;
+    let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    let table = AdmissionTable::new(client.clone(), ADMISSION_TABLE);
+    let wakes = WakeTable::new(client.clone(), WAKE_TABLE);
+    let callbacks = RecordingCallbacks::default();
+
+    // Team 8 holds both its places with 1 and 2; 3, 4 and 5 wait, each parked.
+    for (id, arrived) in [(1, 100), (2, 200), (3, 300), (4, 400), (5, 500)] {
+        take_turn(&table, &info(id, 8), arrived, 2).await.unwrap();
+    }
+    for id in [3, 4, 5] {
+        let seen = wakes.state(id).await.unwrap().changes;
+        update_item(
+            &client,
+            wait_for_change(&format!("token-{id}"), id, 7, seen),
+        )
+        .await
+        .expect("the wait's write");
+    }
+    // Both end (a cluster lost, say): both places are offered, to the two oldest.
+    table.release("2.0", 1, 8).await.unwrap();
+    table.release("2.0", 2, 8).await.unwrap();
+    let woken = wake_team_next(&table, &wakes, &callbacks, ("2.0", 8, 2), 1_000)
+        .await
+        .unwrap();
+    assert_eq!(woken, [Woken::Delivered(3), Woken::Delivered(4)]);
+    // Whichever round comes first, both take their places; 5 still waits its turn.
+    for id in [4, 3] {
+        let standing = take_turn(&table, &info(id, 8), id * 100, 2).await.unwrap();
+        assert!(standing.admitted, "{id} admitted");
+    }
+    assert!(
+        !take_turn(&table, &info(5, 8), 500, 2)
+            .await
+            .unwrap()
+            .admitted
+    );
+    assert_eq!(table.holders("2.0", 8).await.unwrap(), ["3", "4"]);
 }

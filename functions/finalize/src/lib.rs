@@ -452,7 +452,7 @@ async fn leave_queue<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) 
     Ok(())
 }
 
-/// Wakes the team's next waiting submission, whose turn the place just given back is (see
+/// Wakes the team's next waiting submissions, one per open place (see
 /// [`queue::wake_team_next`]). Best effort: a failure is logged, and its poll still comes.
 async fn wake_next<C: Callbacks>(
     deps: &Deps<C>,
@@ -460,12 +460,18 @@ async fn wake_next<C: Callbacks>(
     submission: &SubmissionInfo,
 ) {
     let Some(wakes) = &deps.wakes else { return };
+    let limit = match deps.clients.settings.target(submission.phase_id) {
+        Ok(target) => target.deployment.team_limit,
+        Err(e) => {
+            warn!(submission_id = submission.submission_id, error = %e, "cannot wake the team's next; its poll comes");
+            return;
+        }
+    };
     let woken = queue::wake_team_next(
         table,
         wakes,
         &deps.callbacks,
-        &submission.leaderboard,
-        submission.team_id,
+        (&submission.leaderboard, submission.team_id, limit),
         clients::now_epoch_seconds(),
     )
     .await;
@@ -473,7 +479,7 @@ async fn wake_next<C: Callbacks>(
         Ok(woken) => info!(
             submission_id = submission.submission_id,
             ?woken,
-            "the team's next submission"
+            "the team's next submissions"
         ),
         Err(e) => {
             warn!(submission_id = submission.submission_id, error = %e, "cannot wake the team's next; its poll comes")

@@ -41,6 +41,23 @@ pub struct MotoServer {
     addr: SocketAddr,
 }
 
+/// `moto_server` with DynamoDB's per-request atomicity (`python/moto_atomic.py` says why).
+const ATOMIC_SHIM: &str = include_str!("../python/moto_atomic.py");
+
+/// The interpreter a console script's `#!` line names (pip writes the venv's Python there).
+fn interpreter(script: &Path) -> Option<PathBuf> {
+    use std::io::BufRead;
+    let mut first = String::new();
+    std::io::BufReader::new(std::fs::File::open(script).ok()?)
+        .take(4096)
+        .read_line(&mut first)
+        .ok()?;
+    let line = first.strip_prefix("#!")?.trim();
+    // A single path: `#!/usr/bin/env python3` and the like are left to the script itself.
+    let python = PathBuf::from(line.split_whitespace().next()?);
+    (python.is_absolute() && python.is_file() && !line.contains(' ')).then_some(python)
+}
+
 impl MotoServer {
     /// Where `moto_server` may be, in the order looked at: `$LB_MOTO_SERVER` alone when set;
     /// else beside this program, in the `.venv` of the current directory or any parent (a
@@ -91,7 +108,18 @@ impl MotoServer {
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         let port = free_port().map_err(MotoError::Spawn)?;
         let addr = SocketAddr::from(([127, 0, 0, 1], port));
-        let child = Command::new(&exe)
+        let mut command = match interpreter(&exe) {
+            Some(python) => {
+                let mut c = Command::new(python);
+                c.args(["-c", ATOMIC_SHIM]);
+                c
+            }
+            None => {
+                tracing::warn!(exe = %exe.display(), "no Python interpreter named in its first line: moto's DynamoDB without per-request atomicity");
+                Command::new(&exe)
+            }
+        };
+        let child = command
             .args(["-H", "127.0.0.1", "-p", &port.to_string()])
             .stdin(Stdio::null())
             .stdout(Stdio::null())
@@ -207,4 +235,28 @@ fn looked(places: &[PathBuf]) -> String {
 fn workspace_root() -> PathBuf {
     // local/stack -> workspace root
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+#[cfg(test)]
+mod interpreter_tests {
+    use super::interpreter;
+
+    #[test]
+    fn the_interpreter_is_the_absolute_path_a_console_script_names() {
+        let dir = tempfile::tempdir().unwrap();
+        let script = dir.path().join("moto_server");
+        let python = std::env::current_exe().unwrap();
+        std::fs::write(&script, format!("#!{}\nimport sys\n", python.display())).unwrap();
+        assert_eq!(interpreter(&script), Some(python));
+        for first in [
+            "#!/usr/bin/env python3\n",
+            "import sys\n",
+            "#!relative/python\n",
+            "",
+        ] {
+            std::fs::write(&script, first).unwrap();
+            assert_eq!(interpreter(&script), None, "{first:?}");
+        }
+        assert_eq!(interpreter(&dir.path().join("absent")), None);
+    }
 }

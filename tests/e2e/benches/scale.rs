@@ -30,7 +30,7 @@ use std::time::{Duration, Instant};
 use fake_evalai::{Fixture, NewSubmission};
 use lb_aws::admission::AdmissionTable;
 use lb_aws::budget::BudgetTable;
-use lb_domain::queue::next_of_team;
+use lb_domain::queue::{free_places, next_of_team};
 use lb_domain::schedule::queue_wait;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{
@@ -268,7 +268,12 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
         .await
         .expect("release");
     let entries = queue.entries(LEADERBOARD).await.expect("the queue");
-    if let Some(next) = next_of_team(&entries, info.team_id) {
+    let held = queue
+        .holders(LEADERBOARD, info.team_id)
+        .await
+        .expect("the holders")
+        .len();
+    for next in next_of_team(&entries, info.team_id, free_places(TEAM_LIMIT, held)) {
         // NB: notify_one keeps the wake for a waiter between two polls, as the wake table's
         // count does for an execution between two waits.
         parked[&next.submission_id].notify_one();
