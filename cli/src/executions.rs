@@ -123,13 +123,7 @@ pub fn execution_name(submission: u64) -> String {
     format!("submission-{submission}-{now}")
 }
 
-/// The ARN of execution `name` of the state machine `arn`.
-pub fn execution_arn(state_machine: &str, name: &str) -> Option<String> {
-    let (head, machine) = state_machine.split_once(":stateMachine:")?;
-    // NB: a version or alias ARN (`name:1`) has executions under the plain name.
-    let machine = machine.split(':').next()?;
-    Some(format!("{head}:execution:{machine}:{name}"))
-}
+pub use lb_aws::executions::execution_arn;
 
 fn image_ok(image: &str) -> Result<()> {
     if image.trim().is_empty()
@@ -393,22 +387,6 @@ mod tests {
         assert!(name
             .chars()
             .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_'));
-    }
-
-    #[test]
-    fn the_execution_arn_follows_the_state_machine_arn() {
-        assert_eq!(
-            execution_arn(
-                "arn:aws:states:us-east-1:123456789012:stateMachine:submission",
-                "submission-7-1"
-            )
-            .as_deref(),
-            Some("arn:aws:states:us-east-1:123456789012:execution:submission:submission-7-1")
-        );
-        assert_eq!(
-            execution_arn("arn:aws:states:us-east-1:1:stateMachine:submission:3", "x").as_deref(),
-            Some("arn:aws:states:us-east-1:1:execution:submission:x")
-        );
     }
 
     #[test]

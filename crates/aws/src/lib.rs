@@ -10,6 +10,7 @@ pub mod budget;
 pub mod dynamo;
 pub mod eks;
 mod error;
+pub mod executions;
 pub mod s3;
 pub mod secrets;
 pub mod tasks;

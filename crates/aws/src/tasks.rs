@@ -37,6 +37,11 @@ impl StepFunctions {
     pub fn new(client: aws_sdk_sfn::Client) -> Self {
         StepFunctions { client }
     }
+
+    /// The client, for the other calls of this API.
+    pub(crate) fn client(&self) -> &aws_sdk_sfn::Client {
+        &self.client
+    }
 }
 
 impl Callbacks for StepFunctions {

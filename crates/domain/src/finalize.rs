@@ -182,6 +182,12 @@ pub fn participant_reason(error: &str) -> String {
     // The participant's own results: the message names the file, field or route to fix.
     if crate::results::ResultsError::names().contains(&name) {
         format!("the evaluation failed: {error}")
+    } else if let Some((_, cause)) = error
+        .split_once(": ")
+        .filter(|_| crate::reaper::ERROR_NAMES.contains(&name))
+    {
+        // The reaper's own words about how the execution ended: nothing internal in them.
+        format!("{cause}, not because of your agent; the organisers have been alerted")
     } else {
         format!(
             "the evaluation failed because of an error on the evaluation service's side \

@@ -11,6 +11,7 @@ pub mod plan;
 pub mod protocol;
 pub mod py;
 pub mod queue;
+pub mod reaper;
 pub mod resources;
 pub mod results;
 pub mod schedule;

@@ -250,16 +250,34 @@ impl Template {
             if policy.is_some_and(|name| p["PolicyName"].as_str() != Some(name)) {
                 continue;
             }
-            let statements = &p["PolicyDocument"]["Statement"];
-            for s in statements.as_sequence().into_iter().flatten() {
-                out.push(Statement {
-                    effect: s["Effect"].as_str().unwrap_or_default().to_string(),
-                    actions: self.list(&s["Action"]),
-                    resources: self.list(&s["Resource"]),
-                });
+            self.push_statements(&p["PolicyDocument"], &mut out);
+        }
+        // Policies of their own attached to the role (one that names a resource which itself
+        // depends on the role's function would otherwise make a dependency cycle).
+        let root = self.root();
+        for (_, resource) in root["Resources"].as_mapping().into_iter().flatten() {
+            let props = &resource["Properties"];
+            let attached = resource["Type"].as_str() == Some("AWS::IAM::Policy")
+                && policy.is_none_or(|name| props["PolicyName"].as_str() == Some(name))
+                && self
+                    .list(&props["Roles"])
+                    .iter()
+                    .any(|r| r.trim_matches(['<', '>']) == role);
+            if attached {
+                self.push_statements(&props["PolicyDocument"], &mut out);
             }
         }
         Ok(out)
+    }
+
+    fn push_statements(&self, document: &Value, out: &mut Vec<Statement>) {
+        for s in document["Statement"].as_sequence().into_iter().flatten() {
+            out.push(Statement {
+                effect: s["Effect"].as_str().unwrap_or_default().to_string(),
+                actions: self.list(&s["Action"]),
+                resources: self.list(&s["Resource"]),
+            });
+        }
     }
 
     /// The parameters whose value is `value`.

@@ -85,16 +85,24 @@ pub enum FnError {
     /// A sweep did what it could; these challenges or wake-ups failed (the next sweep retries).
     #[error("{}", .0.join("; "))]
     SweepIncomplete(Vec<String>),
+    /// An event from EventBridge is not the one the rule delivers.
+    #[error("invalid event: {0}")]
+    Event(String),
+    /// The reaper's pass over the held places did what it could; these failed (the next pass
+    /// retries).
+    #[error("{}", .0.join("; "))]
+    ReconcileIncomplete(Vec<String>),
 }
 
 lb_domain::error_names!(FnError {
-    Input | RunState => "InvalidInput";
+    Input | RunState | Event => "InvalidInput";
     Output => "OutputNotSerializable";
     Config => "InvalidConfiguration";
     DeadlineExceeded => "DeadlineExceeded" [transient];
     PhaseMismatch => "PhaseMismatch";
     // The next minute's sweep tries again: no state machine retries it.
     SweepIncomplete => "SweepIncomplete";
+    ReconcileIncomplete => "ReconcileIncomplete";
 } wraps {
     Message => MessageError;
     Settings => SettingsError;

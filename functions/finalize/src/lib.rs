@@ -6,8 +6,11 @@
 //! failed before its claim must not touch a submission another execution is evaluating.
 //! Every step is idempotent, so the state machine can retry it.
 
+pub mod reaper;
+
+use aws_lambda_events::event::eventbridge::EventBridgeEvent;
+use lb_aws::executions::Executions;
 use lb_pipeline::serve::{Function, Invocation};
-use std::future::Future;
 use std::time::Duration;
 
 use aws_config::SdkConfig;
@@ -125,12 +128,53 @@ impl Invocation for FinalizeInput {
     }
 }
 
-impl<C: Callbacks> Function for Deps<C> {
+/// What Finalize is asked: by the state machine, or as the reaper (`reaper`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(untagged)]
+pub enum Request {
+    /// The state machine's Finalize task.
+    State(FinalizeInput),
+    /// The scheduled pass over held places.
+    Reconcile(reaper::ReconcileInput),
+    /// Step Functions' "Execution Status Change", through EventBridge.
+    Event(EventBridgeEvent<Value>),
+}
+
+impl Invocation for Request {
+    fn submission_id(&self) -> Option<u64> {
+        match self {
+            Request::State(input) => input.submission_id(),
+            _ => None,
+        }
+    }
+    fn execution(&self) -> Option<&str> {
+        match self {
+            Request::State(input) => input.execution(),
+            _ => None,
+        }
+    }
+}
+
+/// What Finalize answers each [`Request`].
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Response {
+    /// To the state machine.
+    Finalized(FinalizeOutput),
+    /// What the reaper did, execution by execution.
+    Reaped(Vec<reaper::Reaped>),
+}
+
+impl<C: Callbacks + Executions> Function for Deps<C> {
     const NAME: &'static str = "finalize";
-    type Input = FinalizeInput;
-    type Output = FinalizeOutput;
-    fn handle(&self, input: FinalizeInput) -> impl Future<Output = Result<FinalizeOutput>> {
-        handle(input, self)
+    type Input = Request;
+    type Output = Response;
+    async fn handle(&self, input: Request) -> Result<Response> {
+        Ok(match input {
+            Request::State(input) => Response::Finalized(handle(input, self).await?),
+            Request::Reconcile(input) => Response::Reaped(reaper::reconcile(input, self).await?),
+            Request::Event(event) => Response::Reaped(vec![reaper::on_event(event, self).await?]),
+        })
     }
 }
 

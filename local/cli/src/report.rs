@@ -56,6 +56,21 @@ pub struct RunReport {
     pub seconds: f64,
     /// What the fake EvalAI saw of every submission (none against another EvalAI).
     pub queue: Option<QueueReport>,
+    /// The reaper's answers for the executions that ended without Finalize.
+    pub reaped: Vec<Value>,
+    /// What the (first) run left once everything ended.
+    pub left_behind: LeftBehind,
+}
+
+/// What a run left behind it.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct LeftBehind {
+    /// Its Jobs still on the cluster (`None`: the cluster was not read).
+    pub jobs: Option<usize>,
+    /// Places held in its leaderboard's queue, every team's.
+    pub places_held: Option<usize>,
+    /// Its record's status.
+    pub record_status: Option<String>,
 }
 
 /// `agent_results.json` in numbers.
@@ -102,6 +117,9 @@ impl RunReport {
             outln!("caught error   {caught}");
         }
         outln!("EvalAI status  {}", self.evalai_status);
+        for answer in &self.reaped {
+            outln!("reaper         {answer}");
+        }
         if let Some(queue) = &self.queue {
             // Every request took from the shared budget first: EvalAI never had to throttle.
             outln!(

@@ -46,6 +46,11 @@ pub enum Scenario {
     /// autoscaler says no node group could hold the pods, FAILED at once naming the instance
     /// type (a configuration problem of the leaderboard), none of the participant's time used.
     NoNode,
+    /// An operator stops the execution (StopExecution) after its first Monitor round: the
+    /// reaper (Finalize, on Step Functions' status-change event, which local mode delivers as
+    /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
+    /// `failed` with the reason and writes the final record.
+    Stop,
 }
 
 impl Scenario {
@@ -53,7 +58,9 @@ impl Scenario {
         match self {
             Scenario::Happy | Scenario::Crash | Scenario::Hang => "finished",
             Scenario::Cancel => "cancelled",
-            Scenario::Unpullable | Scenario::CrashLoop | Scenario::NoNode => "failed",
+            Scenario::Unpullable | Scenario::CrashLoop | Scenario::NoNode | Scenario::Stop => {
+                "failed"
+            }
         }
     }
 }
@@ -323,6 +330,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         .with_callbacks(late.clone());
     finalize.delete_wait = Duration::from_secs(60);
     let finalize = Arc::new(finalize);
+    let reaper_deps = finalize.clone();
     // The summary reads the outcome from EvalAI with the functions' own client.
     let evalai = intake.evalai.clone();
     let tasks = TaskMap::new()
@@ -455,6 +463,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     )
     .map_err(|e| anyhow::anyhow!("{e}"))?;
     late.bind(executor.clone());
+    // Step Functions' "Execution Status Change" events go to Finalize as the reaper, as the
+    // deployment's EventBridge rule sends them.
+    let reaper = spawn_reaper(&executor, reaper_deps);
     // S3's events and the cancel sweep wake the waiting execution, as in the deployment.
     let relays = crate::relay::spawn(
         &stack.sdk,
@@ -481,6 +492,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         executions.push((*id, *team, execution));
     }
+    if args.scenario == Scenario::Stop {
+        stop_after_first_round(&executor, executions[0].2.arn(), &rounds, &acted);
+    }
     if many {
         say(
             started,
@@ -505,6 +519,11 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         }
         results.push(result);
     }
+    let ended_without_finalize = results
+        .iter()
+        .filter(|r| lb_domain::reaper::REAPED_STATUSES.contains(&r.status.as_str()))
+        .count();
+    let reaped = reaper.collect(ended_without_finalize).await;
     let result = results.remove(0);
     let ended = Instant::now();
     let wake_messages = relays.wake_messages.load(Ordering::Relaxed);
@@ -584,6 +603,15 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         pod_logs: stack.workdir.path().join("pods"),
         seconds: started.elapsed().as_secs_f64(),
         queue,
+        reaped,
+        left_behind: left_behind(
+            &stack.sdk,
+            &settings,
+            &args.leaderboard,
+            &kubeconfig,
+            (arrivals[0].1, submission),
+        )
+        .await,
     };
     report.print(&args, &stack.moto.endpoint(), latency.as_ref(), many);
     if let Some(path) = &args.report {
@@ -663,6 +691,116 @@ async fn merged_summary(
         routes: per_route.len(),
         per_route: per_route.values().copied().collect(),
     })
+}
+
+/// The reaper's deliveries and what it answered.
+struct Reaper {
+    answers: tokio::sync::mpsc::UnboundedReceiver<Value>,
+}
+
+impl Reaper {
+    /// The answers to the first `count` ended executions (bounded: a reaper that never
+    /// answers is reported as such, not waited on forever).
+    async fn collect(mut self, count: usize) -> Vec<Value> {
+        let mut answers = Vec::new();
+        while answers.len() < count {
+            match tokio::time::timeout(Duration::from_secs(600), self.answers.recv()).await {
+                Ok(Some(answer)) => answers.push(answer),
+                Ok(None) | Err(_) => {
+                    answers.push(serde_json::json!({"error": "the reaper did not answer"}));
+                    break;
+                }
+            }
+        }
+        answers
+    }
+}
+
+/// Delivers every execution's status change to `finalize` (which leaves alone those that
+/// reached it) and keeps the answers of those that ended without it.
+fn spawn_reaper(
+    executor: &Executor,
+    finalize: Arc<finalize::Deps<local_stack::events::LateCallbacks>>,
+) -> Reaper {
+    let mut changes = executor.status_changes();
+    let (tx, answers) = tokio::sync::mpsc::unbounded_channel();
+    tokio::spawn(async move {
+        while let Some(event) = changes.recv().await {
+            let status = event["detail"]["status"]
+                .as_str()
+                .unwrap_or_default()
+                .to_string();
+            if !lb_domain::reaper::REAPED_STATUSES.contains(&status.as_str()) {
+                continue;
+            }
+            let answer = match lb_pipeline::serve::call(&*finalize, event).await {
+                Ok(out) => out,
+                Err(e) => serde_json::json!({"error": e.chain()}),
+            };
+            let _ = tx.send(answer);
+        }
+    });
+    Reaper { answers }
+}
+
+/// Stops execution `arn` once its first Monitor round began (the stop scenario's act).
+fn stop_after_first_round(
+    executor: &Executor,
+    arn: &str,
+    rounds: &Arc<AtomicU64>,
+    acted: &Arc<AtomicBool>,
+) {
+    let (executor, arn, rounds, acted) = (
+        executor.clone(),
+        arn.to_string(),
+        rounds.clone(),
+        acted.clone(),
+    );
+    tokio::spawn(async move {
+        while rounds.load(Ordering::SeqCst) < 1 {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        // After the round: the run has Jobs and its team a place.
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        if executor.stop(&arn) {
+            acted.store(true, Ordering::SeqCst);
+        }
+    });
+}
+
+/// What an ended run left: its Jobs, its team's places, its record's status.
+async fn left_behind(
+    sdk: &aws_config::SdkConfig,
+    settings: &lb_domain::settings::Settings,
+    leaderboard: &str,
+    kubeconfig: &std::path::Path,
+    (team, submission): (u64, u64),
+) -> crate::report::LeftBehind {
+    let mut left = crate::report::LeftBehind::default();
+    if let Ok(cluster) = lb_cluster::Cluster::from_kubeconfig(kubeconfig, None).await {
+        left.jobs = cluster
+            .list(&submission.to_string())
+            .await
+            .ok()
+            .map(|(jobs, _)| jobs.len());
+    }
+    let dynamo = aws_sdk_dynamodb::Client::new(sdk);
+    let queue =
+        lb_aws::admission::AdmissionTable::new(dynamo.clone(), local_stack::stack::ADMISSION_TABLE);
+    if let Ok(holds) = queue.holds(leaderboard).await {
+        left.places_held = Some(holds.iter().map(|(_, h)| h.len()).sum());
+    }
+    if let Some(table) = settings
+        .leaderboards
+        .get(leaderboard)
+        .map(|l| &l.submissions_table)
+    {
+        let records = lb_aws::dynamo::SubmissionsTable::new(dynamo, table);
+        if let Ok(Some(standing)) = records.standing(team, submission).await {
+            left.record_status = standing.status;
+        }
+    }
+    left
 }
 
 fn settings_bucket(settings: &lb_domain::settings::Settings, leaderboard: &str) -> String {

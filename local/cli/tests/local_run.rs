@@ -68,6 +68,7 @@ fn every_scenario_ends_as_expected() {
         ("unpullable", "FAILED"),
         ("crash-loop", "FAILED"),
         ("no-node", "FAILED"),
+        ("stop", "FAILED"),
     ] {
         let started = Instant::now();
         let (report, stdout) = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
@@ -114,6 +115,20 @@ fn every_scenario_ends_as_expected() {
                         && stderr.contains("please contact the organizers"),
                     "{report}"
                 );
+            }
+            "stop" => {
+                // Stopped mid-run, the execution never reached Finalize: the reaper did its
+                // work on the status-change event, and nothing of the run is left.
+                assert_eq!(text(&report, "execution"), "ABORTED", "{report}");
+                assert!(
+                    stderr.contains("stopped by an operator before it finished"),
+                    "{report}"
+                );
+                assert_eq!(report["reaped"][0][0]["outcome"], "FAILED", "{report}");
+                let left = &report["left_behind"];
+                assert_eq!(left["jobs"], 0, "{report}");
+                assert_eq!(left["places_held"], 0, "{report}");
+                assert_eq!(left["record_status"], "FAILED", "{report}");
             }
             _ => assert!(report["evalai_stderr"].is_null(), "{scenario}: {report}"),
         }

@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 
 use aws_config::SdkConfig;
 use aws_sdk_sqs::types::MessageSystemAttributeName;
+use lb_aws::executions::{Described, Executions};
 use lb_aws::tasks::{Callbacks, Reported};
 use local_stepfunctions::{CallbackError, Executor};
 use serde_json::Value;
@@ -234,6 +235,31 @@ impl Callbacks for ExecutorCallbacks {
     }
 }
 
+impl Executions for ExecutorCallbacks {
+    async fn describe(&self, arn: &str) -> lb_aws::Result<Option<Described>> {
+        Ok(self.0.describe(arn).map(|d| Described {
+            status: d.status.map_or("RUNNING", |s| s.as_str()).to_string(),
+            error: d.error,
+        }))
+    }
+
+    async fn last_state(&self, arn: &str) -> lb_aws::Result<Option<Value>> {
+        // What GetExecutionHistory in reverse order shows first of a state entered or left.
+        Ok(self.0.history_of(arn).and_then(|history| {
+            history.iter().rev().find_map(|event| {
+                let key = if event.event_type.is_state_entered() {
+                    "input"
+                } else if event.event_type.is_state_exited() {
+                    "output"
+                } else {
+                    return None;
+                };
+                event.details.get(key).cloned()
+            })
+        }))
+    }
+}
+
 /// [`ExecutorCallbacks`] for a handler made before its executor (the task map the executor
 /// runs holds the handlers): tokens reported before [`LateCallbacks::bind`] are stale (no
 /// execution can be waiting on a token of an executor that does not exist yet).
@@ -256,6 +282,22 @@ impl Callbacks for LateCallbacks {
                     .await
             }
             None => Ok(Reported::Stale),
+        }
+    }
+}
+
+impl Executions for LateCallbacks {
+    async fn describe(&self, arn: &str) -> lb_aws::Result<Option<Described>> {
+        match self.0.get() {
+            Some(executor) => ExecutorCallbacks(executor.clone()).describe(arn).await,
+            None => Ok(None),
+        }
+    }
+
+    async fn last_state(&self, arn: &str) -> lb_aws::Result<Option<Value>> {
+        match self.0.get() {
+            Some(executor) => ExecutorCallbacks(executor.clone()).last_state(arn).await,
+            None => Ok(None),
         }
     }
 }

@@ -1,17 +1,17 @@
 //! Runs a loaded state machine: the states' semantics, retries and catchers, the context
 //! object, scaled time, the deadline and cancellation.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeSet, HashMap};
 use std::fmt;
 use std::future::Future;
 use std::pin::Pin;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use lb_asl::{Env, RandomSource, ReferencePath};
 use serde_json::{json, Map, Value};
 use time::OffsetDateTime;
-use tokio::sync::watch;
+use tokio::sync::{mpsc, watch};
 use tokio::task::{JoinHandle, JoinSet};
 
 use crate::callback::{CallbackError, Callbacks, Outcome, Pending};
@@ -170,6 +170,89 @@ pub struct Executor {
     tasks: Arc<dyn Tasks>,
     options: Arc<Options>,
     callbacks: Arc<Callbacks>,
+    known: Arc<Known>,
+}
+
+/// The executions this executor started, by ARN, as `DescribeExecution`,
+/// `GetExecutionHistory` and `StopExecution` find them; and who hears of their ends.
+#[derive(Default)]
+struct Known {
+    executions: Mutex<HashMap<String, Started>>,
+    listeners: Mutex<Vec<mpsc::UnboundedSender<Value>>>,
+}
+
+struct Started {
+    recorder: Arc<Recorder>,
+    cancel: watch::Sender<bool>,
+}
+
+/// An execution as `DescribeExecution` tells it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Described {
+    /// `None` while it runs.
+    pub status: Option<Status>,
+    /// The error it failed or timed out with.
+    pub error: Option<String>,
+}
+
+impl Known {
+    fn with<T>(&self, arn: &str, f: impl FnOnce(&Started) -> T) -> Option<T> {
+        let executions = self
+            .executions
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        executions.get(arn).map(f)
+    }
+
+    /// Sends the "Execution Status Change" event of an ended execution to every listener
+    /// (those gone are forgotten).
+    fn ended(&self, event: Value) {
+        let mut listeners = self
+            .listeners
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        listeners.retain(|l| l.send(event.clone()).is_ok());
+    }
+}
+
+/// The EventBridge event Step Functions sends when an execution ends ("Step Functions
+/// Execution Status Change", in the Step Functions developer guide's "Automating Step
+/// Functions event delivery with EventBridge"): `detail` carries the execution's ARN, its
+/// state machine's, its name, status, start and stop dates in epoch milliseconds, its input
+/// as JSON text, and the error and cause of a failure.
+pub fn status_change_event(
+    result: &ExecutionResult,
+    state_machine_arn: &str,
+    input: &Value,
+) -> Value {
+    let epoch_ms = |t: OffsetDateTime| (t.unix_timestamp_nanos() / 1_000_000) as i64;
+    let region = result.execution_arn.split(':').nth(3).unwrap_or_default();
+    let account = result.execution_arn.split(':').nth(4).unwrap_or_default();
+    let name = result.execution_arn.rsplit(':').next().unwrap_or_default();
+    json!({
+        "version": "0",
+        "id": format!("{}-{}", name, epoch_ms(result.stop_date)),
+        "detail-type": "Step Functions Execution Status Change",
+        "source": "aws.states",
+        "account": account,
+        "time": timestamp::format(result.stop_date),
+        "region": region,
+        "resources": [result.execution_arn],
+        "detail": {
+            "executionArn": result.execution_arn,
+            "stateMachineArn": state_machine_arn,
+            "name": name,
+            "status": result.status.as_str(),
+            "startDate": epoch_ms(result.start_date),
+            "stopDate": epoch_ms(result.stop_date),
+            "input": input.to_string(),
+            "inputDetails": {"included": true},
+            "output": result.output.as_ref().map(Value::to_string),
+            "outputDetails": result.output.as_ref().map(|_| json!({"included": true})),
+            "error": result.error,
+            "cause": result.cause,
+        }
+    })
 }
 
 impl fmt::Debug for Executor {
@@ -196,7 +279,53 @@ impl Executor {
             tasks: Arc::new(tasks),
             options: Arc::new(options),
             callbacks: Arc::new(Callbacks::default()),
+            known: Arc::default(),
         })
+    }
+
+    /// Every "Execution Status Change" event of the executions started from now on (see
+    /// [`status_change_event`]), as EventBridge would deliver them to a rule's target.
+    pub fn status_changes(&self) -> mpsc::UnboundedReceiver<Value> {
+        let (tx, rx) = mpsc::unbounded_channel();
+        self.known
+            .listeners
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(tx);
+        rx
+    }
+
+    /// `DescribeExecution`: `None` for an ARN this executor never started.
+    pub fn describe(&self, arn: &str) -> Option<Described> {
+        self.known.with(arn, |started| {
+            let history = started.recorder.snapshot();
+            let end = history
+                .iter()
+                .rev()
+                .find(|e| e.event_type.is_execution_end());
+            Described {
+                status: end.map(|e| match e.event_type {
+                    EventType::ExecutionSucceeded => Status::Succeeded,
+                    EventType::ExecutionAborted => Status::Aborted,
+                    EventType::ExecutionTimedOut => Status::TimedOut,
+                    _ => Status::Failed,
+                }),
+                error: end.and_then(|e| e.error().map(str::to_owned)),
+            }
+        })
+    }
+
+    /// `GetExecutionHistory`: `None` for an ARN this executor never started.
+    pub fn history_of(&self, arn: &str) -> Option<Vec<HistoryEvent>> {
+        self.known.with(arn, |started| started.recorder.snapshot())
+    }
+
+    /// `StopExecution`: the execution ends `ABORTED` (running handlers are dropped); `false`
+    /// for an ARN this executor never started.
+    pub fn stop(&self, arn: &str) -> bool {
+        self.known
+            .with(arn, |started| started.cancel.send_replace(true))
+            .is_some()
     }
 
     /// `SendTaskSuccess`: the waiting `.waitForTaskToken` task of `token` succeeds with
@@ -305,16 +434,33 @@ impl Executor {
         .min();
         let root = state_machine.definition.root.clone();
         tracing::info!(execution = %name, state_machine = %state_machine.name(), "execution started");
-        let join = runtime.spawn(execute(
+        self.known
+            .executions
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(
+                execution_arn.clone(),
+                Started {
+                    recorder: recorder.clone(),
+                    cancel: cancel.clone(),
+                },
+            );
+        let known = self.known.clone();
+        let execution = execute(
             run,
             root,
-            input,
+            input.clone(),
             role_arn,
             cancelled,
             deadline,
             execution_arn.clone(),
             start_date,
-        ));
+        );
+        let join = runtime.spawn(async move {
+            let result = execution.await;
+            known.ended(status_change_event(&result, &state_machine_arn, &input));
+            result
+        });
         Ok(Execution {
             arn: execution_arn,
             name: name.to_owned(),
@@ -373,7 +519,8 @@ impl Execution {
         self.recorder.snapshot()
     }
 
-    /// Stops the execution (status `ABORTED`); running handlers are dropped.
+    /// Stops the execution (status `ABORTED`); running handlers are dropped. (The same as
+    /// [`Executor::stop`] with its ARN.)
     pub fn cancel(&self) {
         self.cancel.send_replace(true);
     }

@@ -56,7 +56,9 @@ mod timestamp;
 pub use callback::CallbackError;
 pub use definition::StateMachine;
 pub use error::{LoadError, OptionsError, StartError};
-pub use executor::{Execution, ExecutionResult, Executor, Options, Status};
+pub use executor::{
+    status_change_event, Described, Execution, ExecutionResult, Executor, Options, Status,
+};
 pub use history::{EventCallback, EventStream, EventType, HistoryEvent};
 pub use runtime::{
     STATES_ALL, STATES_DATA_LIMIT_EXCEEDED, STATES_HEARTBEAT_TIMEOUT, STATES_RUNTIME,

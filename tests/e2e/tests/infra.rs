@@ -136,15 +136,17 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     );
     assert_eq!(count("AWS::StepFunctions::StateMachine"), 1);
     assert_eq!(count("AWS::Logs::LogGroup"), 7);
-    // The wake path (the rule on the buckets' events, the queue's mapping to the function)
-    // and the sweep's schedule.
-    assert_eq!(count("AWS::Events::Rule"), 2);
+    // The wake path (the rule on the buckets' events, the queue's mapping to the function),
+    // the sweep's schedule, and the reaper's two (executions' status changes, the pass over
+    // held places), both to Finalize, whose role they may not name (a cycle): its own policy.
+    assert_eq!(count("AWS::Events::Rule"), 4);
+    assert_eq!(count("AWS::IAM::Policy"), 1);
     assert_eq!(count("AWS::Lambda::EventSourceMapping"), 1);
     // The types moto skips are declared all the same (so the real deployment has them).
     let declared_count = |kind: &str| declared.values().filter(|k| *k == kind).count();
     assert_eq!(declared_count("AWS::Pipes::Pipe"), 1);
     assert_eq!(declared_count("AWS::SecretsManager::Secret"), 2);
-    assert_eq!(declared_count("AWS::CloudWatch::Alarm"), 4);
+    assert_eq!(declared_count("AWS::CloudWatch::Alarm"), 5);
 
     // The original system's key schemas: strings, team_id first.
     for (table, sort) in [
@@ -223,11 +225,25 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
         );
     }
     let rules = report["rules"].as_array().unwrap();
-    assert_eq!(rules.len(), 2, "{rules:?}");
-    let wake = rules
-        .iter()
-        .find(|r| !r["pattern"].as_object().unwrap().is_empty())
-        .unwrap();
+    assert_eq!(rules.len(), 4, "{rules:?}");
+    let rule = |id: &str| {
+        rules
+            .iter()
+            .find(|r| r["name"].as_str().unwrap().contains(id))
+            .unwrap_or_else(|| panic!("no {id}: {rules:?}"))
+    };
+    let wake = rule("-WakeRule-");
+    // The reaper hears only this state machine's endings that can leave a run behind.
+    let reaper = &rule("-ReaperRule-")["pattern"];
+    assert_eq!(reaper["source"], serde_json::json!(["aws.states"]));
+    assert_eq!(
+        reaper["detail"]["status"],
+        serde_json::json!(["FAILED", "TIMED_OUT", "ABORTED"])
+    );
+    assert!(reaper["detail"]["stateMachineArn"][0]
+        .as_str()
+        .unwrap()
+        .contains(":stateMachine:leaderboard-SubmissionStateMachine-"));
     let pattern = &wake["pattern"];
     assert_eq!(
         pattern["detail"]["bucket"]["name"],

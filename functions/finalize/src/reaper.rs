@@ -1,0 +1,242 @@
+//! Finalize as the reaper: for an execution that ended without reaching Finalize (stopped,
+//! timed out, failed outside every Catch, or whose Finalize never completed), the same work
+//! Finalize does, on the last state the execution carried. Two requests bring it here: Step
+//! Functions' "Execution Status Change" event (FAILED, TIMED_OUT, ABORTED) through an
+//! EventBridge rule, and a scheduled pass over the held places whose executions no longer
+//! run (an event lost, a place held from before the rule existed).
+
+use aws_lambda_events::event::eventbridge::EventBridgeEvent;
+use lb_aws::admission::AdmissionTable;
+use lb_aws::executions::{execution_arn, Executions};
+use lb_aws::tasks::Callbacks;
+use lb_domain::reaper::{self, Verdict, REAPED_STATUSES};
+use lb_pipeline::{queue, FnError, Result};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use tracing::{error, info, warn};
+
+use crate::{handle, Deps, FinalizeInput};
+
+/// The event's `detail-type` for an execution's change of status.
+pub const STATUS_CHANGE: &str = "Step Functions Execution Status Change";
+
+/// The scheduled pass's input (the rule's constant `Input`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReconcileInput {
+    /// What to check.
+    pub reconcile: Reconcile,
+}
+
+/// The state machine whose executions hold places.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Reconcile {
+    /// Its ARN.
+    pub state_machine: String,
+}
+
+/// What the reaper did with one execution.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Reaped {
+    /// The execution's ARN.
+    pub execution: String,
+    /// How it ended.
+    pub status: String,
+    /// Finalize's status for it (`UNCLAIMED`, `SUPERSEDED`, a final one), or `left` when
+    /// nothing was to be done.
+    pub outcome: String,
+}
+
+/// The fields of a status change's `detail` the reaper reads, validated.
+struct Ended<'a> {
+    arn: &'a str,
+    status: &'a str,
+    error: Option<&'a str>,
+}
+
+fn ended(event: &EventBridgeEvent<Value>) -> Result<Ended<'_>> {
+    let bad = |what: String| FnError::Event(what);
+    if event.detail_type != STATUS_CHANGE || event.source != "aws.states" {
+        return Err(bad(format!(
+            "expected `{STATUS_CHANGE}` from `aws.states`, got `{}` from `{}`",
+            event.detail_type.escape_debug(),
+            event.source.escape_debug()
+        )));
+    }
+    let text = |name: &str| event.detail.get(name).and_then(Value::as_str);
+    let arn = text("executionArn")
+        .filter(|a| a.starts_with("arn:") && a.contains(":states:") && a.contains(":execution:"))
+        .ok_or_else(|| bad("`detail.executionArn` is not an execution ARN".into()))?;
+    let status = text("status").ok_or_else(|| bad("`detail.status` is missing".into()))?;
+    Ok(Ended {
+        arn,
+        status,
+        error: text("error"),
+    })
+}
+
+/// An "Execution Status Change" event: the execution reaped when it ended without Finalize.
+pub async fn on_event<C: Callbacks + Executions>(
+    event: EventBridgeEvent<Value>,
+    deps: &Deps<C>,
+) -> Result<Reaped> {
+    let ended = ended(&event)?;
+    if !REAPED_STATUSES.contains(&ended.status) {
+        // The rule asks only for these; anything else is not ours to act on.
+        return Ok(left(ended.arn, ended.status));
+    }
+    reap(deps, ended.arn, ended.status, ended.error).await
+}
+
+fn left(arn: &str, status: &str) -> Reaped {
+    Reaped {
+        execution: arn.to_string(),
+        status: status.to_string(),
+        outcome: "left".into(),
+    }
+}
+
+/// Finishes execution `arn`, which ended with `status`, as Finalize would have.
+pub async fn reap<C: Callbacks + Executions>(
+    deps: &Deps<C>,
+    arn: &str,
+    status: &str,
+    error: Option<&str>,
+) -> Result<Reaped> {
+    let state = deps.callbacks.last_state(arn).await?;
+    let (name, cause) = match reaper::verdict(status, error, state.as_ref()) {
+        Verdict::Leave => return Ok(left(arn, status)),
+        Verdict::Reap { error, cause } => (error, cause),
+    };
+    let Some(state) = state else {
+        warn!(
+            execution = arn,
+            status, "no state recorded: nothing claimed to finish"
+        );
+        return Ok(left(arn, status));
+    };
+    let state = reaper::finalize_state(state, name, &cause);
+    let out = handle(FinalizeInput { state }, deps).await?;
+    // Alarmed through the state machine's ExecutionsAborted/TimedOut/Failed metrics; this
+    // line says what the reaper did about it.
+    error!(
+        execution = arn,
+        status,
+        outcome = out.status.as_str(),
+        reason = %cause,
+        "reaped an execution that ended without Finalize"
+    );
+    Ok(Reaped {
+        execution: arn.to_string(),
+        status: status.to_string(),
+        outcome: out.status,
+    })
+}
+
+/// The scheduled pass: every held place whose execution no longer runs is reaped (its place
+/// given back by Finalize), and a place whose execution Step Functions does not know is
+/// given back directly. Failures are collected; the next pass retries them.
+pub async fn reconcile<C: Callbacks + Executions>(
+    input: ReconcileInput,
+    deps: &Deps<C>,
+) -> Result<Vec<Reaped>> {
+    let machine = input.reconcile.state_machine;
+    if execution_arn(&machine, "x").is_none() {
+        return Err(FnError::Event(format!(
+            "`reconcile.state_machine` is not a state machine ARN: `{}`",
+            machine.escape_debug()
+        )));
+    }
+    let Some(table) = &deps.clients.admission else {
+        return Ok(Vec::new());
+    };
+    let mut reaped = Vec::new();
+    let mut failed = Vec::new();
+    for (queue, leaderboard) in &deps.clients.settings.leaderboards {
+        let limit = leaderboard.team_limit;
+        for (team, holders) in table.holds(queue).await? {
+            for holder in holders {
+                match check(deps, table, &machine, (queue, team, limit), &holder).await {
+                    Ok(Some(done)) => reaped.push(done),
+                    Ok(None) => {}
+                    Err(e) => failed.push(format!("{queue} place of `{holder}`: {e}")),
+                }
+            }
+        }
+    }
+    info!(
+        reaped = reaped.len(),
+        failed = failed.len(),
+        "held places checked"
+    );
+    if failed.is_empty() {
+        Ok(reaped)
+    } else {
+        Err(FnError::ReconcileIncomplete(failed))
+    }
+}
+
+/// One held place: `None` when its execution runs (or it names none: a place from before
+/// entries named their execution, left to its TTL).
+async fn check<C: Callbacks + Executions>(
+    deps: &Deps<C>,
+    table: &AdmissionTable,
+    machine: &str,
+    (queue, team, limit): (&str, u64, u32),
+    holder: &str,
+) -> Result<Option<Reaped>> {
+    let Ok(id) = holder.parse::<u64>() else {
+        return Ok(None);
+    };
+    let Some(name) = table.execution_of(queue, id).await? else {
+        return Ok(None);
+    };
+    let Some(arn) = execution_arn(machine, &name) else {
+        return Ok(None);
+    };
+    match deps.callbacks.describe(&arn).await? {
+        Some(d) if d.status == "RUNNING" => Ok(None),
+        Some(d) => {
+            let mut done = reap(deps, &arn, &d.status, d.error.as_deref()).await?;
+            if done.outcome == "left" {
+                // Ended and nothing to finish, yet still holding: Finalize ran but its
+                // release did not.
+                give_back(deps, table, (queue, team, limit), id).await?;
+                done.outcome = "released".into();
+            }
+            Ok(Some(done))
+        }
+        None => {
+            warn!(submission_id = id, execution = %arn, "a place held by an execution Step Functions does not know: given back");
+            give_back(deps, table, (queue, team, limit), id).await?;
+            Ok(Some(Reaped {
+                execution: arn,
+                status: "UNKNOWN".into(),
+                outcome: "released".into(),
+            }))
+        }
+    }
+}
+
+/// Gives `id`'s place back and wakes the team's next waiting submissions (best effort: their
+/// polls come anyway).
+async fn give_back<C: Callbacks>(
+    deps: &Deps<C>,
+    table: &AdmissionTable,
+    (queue, team, limit): (&str, u64, u32),
+    id: u64,
+) -> Result<()> {
+    table.release(queue, id, team).await?;
+    if let Some(wakes) = &deps.wakes {
+        let now = lb_pipeline::clients::now_epoch_seconds();
+        match queue::wake_team_next(table, wakes, &deps.callbacks, (queue, team, limit), now).await
+        {
+            Ok(woken) => info!(submission_id = id, ?woken, "the team's next submissions"),
+            Err(e) => {
+                warn!(submission_id = id, error = %e, "cannot wake the team's next; its poll comes")
+            }
+        }
+    }
+    Ok(())
+}
