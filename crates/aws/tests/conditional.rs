@@ -182,25 +182,20 @@ async fn a_turn_is_one_transaction_on_the_team_s_count_and_the_entry_s_state() {
             )])))
             .build()
     });
-    let holder_entry = mock!(Client::get_item)
-        .match_requests(|r| {
-            r.key()
-                .and_then(|k| k.get("key"))
-                .is_some_and(|k| k == &s("submission#1") || k == &s("submission#2"))
-        })
-        .then_output(|| {
-            GetItemOutput::builder()
-                .set_item(Some(HashMap::from([("state".to_string(), s("running"))])))
-                .build()
-        });
+    let holder_entry = |id: &'static str| {
+        mock!(Client::get_item)
+            .match_requests(move |r| {
+                r.key().and_then(|k| k.get("key")) == Some(&s(&format!("submission#{id}")))
+            })
+            .then_output(|| {
+                GetItemOutput::builder()
+                    .set_item(Some(HashMap::from([("state".to_string(), s("running"))])))
+                    .build()
+            })
+    };
+    let (first, second) = (holder_entry("1"), holder_entry("2"));
     let table = AdmissionTable::new(
-        client(&[
-            &refused,
-            &still_waiting,
-            &holders,
-            &holder_entry,
-            &holder_entry,
-        ]),
+        client(&[&refused, &still_waiting, &holders, &first, &second]),
         "admission",
     );
     let admit = table.admit("2.0", &waiting(3), 2).await.unwrap();
@@ -210,7 +205,7 @@ async fn a_turn_is_one_transaction_on_the_team_s_count_and_the_entry_s_state() {
             refused.num_calls(),
             still_waiting.num_calls(),
             holders.num_calls(),
-            holder_entry.num_calls()
+            first.num_calls() + second.num_calls()
         ),
         (1, 1, 1, 2)
     );
