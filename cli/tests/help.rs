@@ -122,21 +122,20 @@ fn every_subcommand_documents_its_arguments() {
     }
 }
 
+/// `lbctl submit` with everything but the state machine.
+const SUBMIT_WITHOUT_MACHINE: &[&str] = &[
+    "submit",
+    "--challenge",
+    "1",
+    "--phase",
+    "1",
+    "--submission",
+    "1",
+];
+
 #[test]
 fn submit_without_a_state_machine_is_a_usage_error_naming_both_sources() {
-    let out = lbctl(
-        &[
-            "submit",
-            "--challenge",
-            "1",
-            "--phase",
-            "1",
-            "--submission",
-            "1",
-        ],
-        &[],
-        None,
-    );
+    let out = lbctl(SUBMIT_WITHOUT_MACHINE, &[], None);
     assert_eq!(out.status.code(), Some(2), "{}", show(&out));
     let err = stderr(&out);
     assert!(
@@ -243,18 +242,7 @@ fn submit_print_input_prints_the_pipes_batch_for_the_console() {
 fn closed_stdout_and_stderr_end_with_the_commands_own_exit_code() {
     let cases: [(&[&str], i32); 3] = [
         // Our own usage error, written to stderr by lbctl.
-        (
-            &[
-                "submit",
-                "--challenge",
-                "1",
-                "--phase",
-                "1",
-                "--submission",
-                "1",
-            ],
-            2,
-        ),
+        (SUBMIT_WITHOUT_MACHINE, 2),
         // clap's.
         (&["status", "0"], 2),
         // Help, on stdout.

@@ -98,6 +98,18 @@ fn entry_of(item: &HashMap<String, AttributeValue>) -> Result<Entry> {
     })
 }
 
+/// A team item's holders, sorted (none when the item or its set is absent: DynamoDB removes
+/// a set emptied by `DELETE`).
+fn holders_of(item: Option<&HashMap<String, AttributeValue>>) -> Vec<String> {
+    let mut holders = item
+        .and_then(|item| item.get("holders"))
+        .and_then(|v| v.as_ss().ok())
+        .cloned()
+        .unwrap_or_default();
+    holders.sort();
+    holders
+}
+
 /// A transaction one of whose conditions refused it (rather than a failure to retry).
 fn transaction_refused<R>(
     e: &aws_sdk_dynamodb::error::SdkError<
@@ -216,34 +228,46 @@ impl AdmissionTable {
             .transpose()
     }
 
-    /// Every entry of `queue`, in arrival order, read consistently. An entry someone edited
-    /// into another shape is left out (and logged), not a reason to stop the queue.
-    pub async fn entries(&self, queue: &str) -> Result<Vec<Entry>> {
+    /// Every item of `queue` whose key begins with `prefix`, read consistently, at most
+    /// [`MAX_PAGES`] pages.
+    async fn items_with_prefix(
+        &self,
+        queue: &str,
+        prefix: &str,
+    ) -> Result<Vec<HashMap<String, AttributeValue>>> {
         let mut pages = self
             .client
             .query()
             .table_name(&self.table)
             .consistent_read(true)
-            .key_condition_expression("#queue = :queue AND begins_with(#key, :entries)")
+            .key_condition_expression("#queue = :queue AND begins_with(#key, :prefix)")
             .expression_attribute_names("#queue", "queue")
             .expression_attribute_names("#key", "key")
             .expression_attribute_values(":queue", s(queue))
-            .expression_attribute_values(":entries", s("submission#"))
+            .expression_attribute_values(":prefix", s(prefix))
             .into_paginator()
             .send();
-        let mut entries = Vec::new();
+        let mut items = Vec::new();
         let mut read = 0;
         while let Some(page) = pages.next().await {
             let page = page.map_err(|e| AwsError::sdk("dynamodb", "Query", e))?;
-            for item in page.items() {
-                match entry_of(item) {
-                    Ok(entry) => entries.push(entry),
-                    Err(e) => tracing::warn!(error = %e, "admission entry skipped"),
-                }
-            }
+            items.extend(page.items().iter().cloned());
             read += 1;
             if read >= MAX_PAGES {
                 break;
+            }
+        }
+        Ok(items)
+    }
+
+    /// Every entry of `queue`, in arrival order, read consistently. An entry someone edited
+    /// into another shape is left out (and logged), not a reason to stop the queue.
+    pub async fn entries(&self, queue: &str) -> Result<Vec<Entry>> {
+        let mut entries = Vec::new();
+        for item in self.items_with_prefix(queue, "submission#").await? {
+            match entry_of(&item) {
+                Ok(entry) => entries.push(entry),
+                Err(e) => tracing::warn!(error = %e, "admission entry skipped"),
             }
         }
         entries.sort_by_key(|e| (e.arrived_ms, e.submission_id));
@@ -374,56 +398,23 @@ impl AdmissionTable {
     /// The submission ids a team holds places for.
     pub async fn holders(&self, queue: &str, team_id: u64) -> Result<Vec<String>> {
         let item = self.get(team_key(queue, team_id)).await?;
-        let mut holders = item
-            .as_ref()
-            .and_then(|item| item.get("holders"))
-            .and_then(|v| v.as_ss().ok())
-            .cloned()
-            .unwrap_or_default();
-        holders.sort();
-        Ok(holders)
+        Ok(holders_of(item.as_ref()))
     }
 
     /// Every team's holders in `queue`, by team id (a team item someone edited into another
     /// shape is left out, and logged).
     pub async fn holds(&self, queue: &str) -> Result<Vec<(u64, Vec<String>)>> {
-        let mut pages = self
-            .client
-            .query()
-            .table_name(&self.table)
-            .consistent_read(true)
-            .key_condition_expression("#queue = :queue AND begins_with(#key, :teams)")
-            .expression_attribute_names("#queue", "queue")
-            .expression_attribute_names("#key", "key")
-            .expression_attribute_values(":queue", s(queue))
-            .expression_attribute_values(":teams", s("team#"))
-            .into_paginator()
-            .send();
         let mut holds = Vec::new();
-        let mut read = 0;
-        while let Some(page) = pages.next().await {
-            let page = page.map_err(|e| AwsError::sdk("dynamodb", "Query", e))?;
-            for item in page.items() {
-                let team = item
-                    .get("key")
-                    .and_then(|v| v.as_s().ok())
-                    .and_then(|k| k.strip_prefix("team#")?.parse::<u64>().ok());
-                let Some(team) = team else {
-                    tracing::warn!(?item, "team item skipped: its key is no team id");
-                    continue;
-                };
-                let mut holders = item
-                    .get("holders")
-                    .and_then(|v| v.as_ss().ok())
-                    .cloned()
-                    .unwrap_or_default();
-                holders.sort();
-                holds.push((team, holders));
-            }
-            read += 1;
-            if read >= MAX_PAGES {
-                break;
-            }
+        for item in self.items_with_prefix(queue, "team#").await? {
+            let team = item
+                .get("key")
+                .and_then(|v| v.as_s().ok())
+                .and_then(|k| k.strip_prefix("team#")?.parse::<u64>().ok());
+            let Some(team) = team else {
+                tracing::warn!(?item, "team item skipped: its key is no team id");
+                continue;
+            };
+            holds.push((team, holders_of(Some(&item))));
         }
         Ok(holds)
     }

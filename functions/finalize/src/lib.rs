@@ -128,9 +128,10 @@ impl Invocation for FinalizeInput {
     }
 }
 
-/// What Finalize is asked: by the state machine, or as the reaper (`reaper`).
-#[derive(Debug, Clone, Deserialize)]
-#[serde(untagged)]
+/// What Finalize is asked: by the state machine, or as the reaper (`reaper`). Told apart by
+/// their one distinguishing key, so a malformed one is refused with its own field's error
+/// (an untagged enum would only say that nothing matched).
+#[derive(Debug, Clone)]
 pub enum Request {
     /// The state machine's Finalize task.
     State(FinalizeInput),
@@ -138,6 +139,27 @@ pub enum Request {
     Reconcile(reaper::ReconcileInput),
     /// Step Functions' "Execution Status Change", through EventBridge.
     Event(EventBridgeEvent<Value>),
+}
+
+impl<'de> Deserialize<'de> for Request {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        use serde::de::Error;
+        let value = Value::deserialize(d)?;
+        let has = |key: &str| value.get(key).is_some();
+        if has("state") {
+            FinalizeInput::deserialize(value).map(Request::State)
+        } else if has("reconcile") {
+            reaper::ReconcileInput::deserialize(value).map(Request::Reconcile)
+        } else if has("detail-type") {
+            EventBridgeEvent::deserialize(value).map(Request::Event)
+        } else {
+            return Err(D::Error::custom(
+                "expected the state machine's `{\"state\": ...}`, the schedule's \
+                 `{\"reconcile\": ...}` or an EventBridge event with a `detail-type`",
+            ));
+        }
+        .map_err(D::Error::custom)
+    }
 }
 
 impl Invocation for Request {
@@ -579,4 +601,26 @@ async fn post<C: Callbacks>(
         WriteOutcome::Cancelled => Posted::Cancelled,
         WriteOutcome::AlreadyFinal(stands) => Posted::AlreadyFinal(stands),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Request;
+    use serde_json::json;
+
+    #[test]
+    fn each_request_is_told_apart_by_its_key_and_a_bad_one_names_its_field() {
+        let state = serde_json::from_value::<Request>(json!({"state": {"intake": {}}}));
+        assert!(matches!(state, Ok(Request::State(_))));
+        let reconcile =
+            json!({"reconcile": {"state_machine": "arn:aws:states:us-east-1:1:stateMachine:s"}});
+        assert!(matches!(
+            serde_json::from_value::<Request>(reconcile),
+            Ok(Request::Reconcile(_))
+        ));
+        let extra = serde_json::from_value::<Request>(json!({"state": {}, "extra": 1}));
+        assert!(extra.unwrap_err().to_string().contains("extra"));
+        let none = serde_json::from_value::<Request>(json!({"nothing": 1}));
+        assert!(none.unwrap_err().to_string().contains("detail-type"));
+    }
 }

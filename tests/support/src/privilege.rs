@@ -113,7 +113,8 @@ pub fn has_type(symbols: &str, module: &str, type_name: &str) -> bool {
 /// the operation it is (`PutItem`, `UpdateItem`, `DeleteItem`, `ConditionCheckItem`: "Using
 /// IAM with DynamoDB transactions", DynamoDB developer guide). Ours (`lb_aws::admission`) are
 /// `Update`s, and the same module calls `UpdateItem` directly too, so the action is counted;
-/// the one `ConditionCheck` (`AdmissionTable::drop_orphan`) is counted by [`needed_actions`].
+/// a `ConditionCheck` item has no operation of its own and is counted by [`needed_actions`]
+/// from its builder's code.
 pub fn iam_action(service: &str, operation: &str) -> Option<String> {
     let pascal: String = operation
         .split('_')
@@ -144,7 +145,9 @@ pub fn needed_actions(symbols: &str) -> BTreeSet<String> {
         .iter()
         .filter_map(|(s, o)| iam_action(s, o))
         .collect();
-    if symbols.contains("ConditionCheck") && has_type(symbols, "AdmissionTable", "drop_orphan") {
+    // `aws_sdk_dynamodb::types::ConditionCheck::builder`, mangled: only code that builds a
+    // transaction's condition check links it.
+    if symbols.contains("16aws_sdk_dynamodb5types16_condition_check14ConditionCheck7builder") {
         needed.insert("dynamodb:ConditionCheckItem".into());
     }
     needed
