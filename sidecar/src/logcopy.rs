@@ -104,6 +104,9 @@ pub struct PassStats {
     pub same_content: usize,
     /// Files that could not be read (they are tried again next pass).
     pub unreadable: usize,
+    /// Files left alone: another pair's results or markers, or names the protocol does not
+    /// define.
+    pub not_ours: usize,
 }
 
 /// The uploader's state.
@@ -132,6 +135,13 @@ impl<'a> Logcopy<'a> {
             dev,
             tracker: Tracker::default(),
         })
+    }
+
+    /// Whether this Job's logcopy uploads the file (`lb_domain::protocol::uploads`): its own
+    /// pairs' results and markers and the logs, never another pair's objects or files the
+    /// protocol does not name.
+    fn ours(&self, rel: &str) -> bool {
+        protocol::uploads(rel, &self.cfg.pairs, self.cfg.common.job_index)
     }
 
     fn key(&self, rel: &str) -> String {
@@ -201,6 +211,9 @@ impl<'a> Logcopy<'a> {
     pub async fn wake_pass(&mut self) -> Result<usize, S3Error> {
         let mut uploaded = 0;
         for entry in tree::scan_wake_worthy(&self.cfg.logs_root, self.dev) {
+            if !self.ours(&entry.rel) {
+                continue;
+            }
             let last = self.tracker.get(&entry.rel).copied();
             if tree::action(last.as_ref(), &entry.meta) == Action::Skip {
                 continue;
@@ -256,6 +269,10 @@ impl<'a> Logcopy<'a> {
             ..PassStats::default()
         };
         for entry in &entries {
+            if !self.ours(&entry.rel) {
+                stats.not_ours += 1;
+                continue;
+            }
             let last = self.tracker.get(&entry.rel).copied();
             if tree::action(last.as_ref(), &entry.meta) == Action::Skip {
                 continue;
@@ -286,6 +303,7 @@ impl<'a> Logcopy<'a> {
             uploaded_bytes = stats.uploaded_bytes,
             same_content = stats.same_content,
             unreadable = stats.unreadable,
+            not_ours = stats.not_ours,
             tracked = self.tracker.len(),
             elapsed_ms = started.elapsed().as_millis() as u64,
             "logcopy pass"

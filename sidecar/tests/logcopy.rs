@@ -109,14 +109,16 @@ fn results_and_markers_are_sent_within_seconds_and_logs_keep_their_period() {
         "logs/agent/agent1/agent.log",
         b"route 0\nroute 1\n",
     );
-    write(vols.status().as_path(), "agent-1.start1", b"");
+    write(vols.status().as_path(), "simulator-1.start1", b"");
     // Not wake-worthy: a file next to the results that is not one.
     write(vols.root(), "agent/notes.json", b"{}");
     // Sent long before the next full pass (how soon is a benchmark's to measure).
     wait_until("the results file and the marker in S3", LIMIT, || {
         moto.get(&key("agent/partial_agent_results1.json"))
             .is_some()
-            && moto.get(&key("containers-status/agent-1.start1")).is_some()
+            && moto
+                .get(&key("containers-status/simulator-1.start1"))
+                .is_some()
     });
     assert_eq!(lc.events("logcopy pass").len(), 1, "no full pass meanwhile");
     // The log and the other file wait for the next full pass (120 s away).
@@ -145,6 +147,59 @@ fn results_and_markers_are_sent_within_seconds_and_logs_keep_their_period() {
         moto.get(&key("logs/agent/agent1/agent.log")).unwrap(),
         b"route 0\nroute 1\n"
     );
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn another_pairs_results_and_markers_and_unnamed_files_never_leave_the_pod() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    // This Job runs pair 1. Its participant's code writes pair 2's results and markers, a
+    // cancel of its own, and files the protocol does not name, rewritten often.
+    write(
+        vols.root(),
+        "agent/partial_agent_results1.json",
+        b"{\"mine\": 1}",
+    );
+    write(
+        vols.root(),
+        "agent/partial_agent_results2.json",
+        b"{\"forged\": 1}",
+    );
+    write(vols.status().as_path(), "simulator-1.start1", b"");
+    write(vols.status().as_path(), "agent-2.done", b"");
+    write(vols.status().as_path(), "simulation.cancel", b"");
+    write(vols.status().as_path(), "flood.txt", b"1");
+    write(vols.root(), "agent_results.json", b"{}");
+    let mut lc = logcopy(&vols, &moto, None, &[]);
+    let first = lc.wait_event("logcopy pass", LIMIT, |_| true);
+    assert_eq!(first["fields"]["not_ours"], 5, "{}", lc.log());
+    // Rewritten many times between passes: still nothing of it leaves.
+    for n in 0..20 {
+        write(
+            vols.status().as_path(),
+            "flood.txt",
+            format!("{n}").as_bytes(),
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    lc.signal(Signal::SIGTERM);
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+    assert!(moto
+        .get(&key("agent/partial_agent_results1.json"))
+        .is_some());
+    assert!(moto
+        .get(&key("containers-status/simulator-1.start1"))
+        .is_some());
+    for foreign in [
+        "agent/partial_agent_results2.json",
+        "containers-status/agent-2.done",
+        "containers-status/simulation.cancel",
+        "containers-status/flood.txt",
+        "agent_results.json",
+    ] {
+        assert!(moto.get(&key(foreign)).is_none(), "{foreign} was uploaded");
+    }
 }
 
 #[test]

@@ -172,8 +172,9 @@ impl AdmissionTable {
         }
     }
 
-    /// Makes an existing entry `execution`'s (nothing when it is already).
-    async fn adopt(&self, queue: &str, submission_id: u64, execution: &str) -> Result<()> {
+    /// Makes an existing entry `execution`'s (nothing when it is already, or when there is no
+    /// entry): a resume's new execution, or the execution a long run continued as.
+    pub async fn adopt(&self, queue: &str, submission_id: u64, execution: &str) -> Result<()> {
         let result = self
             .client
             .update_item()

@@ -22,6 +22,33 @@ pub struct Described {
     pub status: String,
     /// The error it failed with, if any.
     pub error: Option<String>,
+    /// The execution its run continued as, when it ended to start one
+    /// (`lb_domain::history::continued_as` of its output).
+    pub continued_as: Option<String>,
+}
+
+/// The most continuations [`current`] follows: a run's chain is under 100 executions long,
+/// and the queue entry names the newest within a round of its start.
+const MAX_HOPS: usize = 8;
+
+/// The execution a run is in now, from one of its executions `arn`: that one while it runs or
+/// when it ended for good, else the one it continued as (followed a few hops at most). `None`
+/// when Step Functions does not know `arn`.
+pub async fn current<E: Executions>(
+    executions: &E,
+    arn: &str,
+) -> Result<Option<(String, Described)>> {
+    let mut arn = arn.to_string();
+    for _ in 0..MAX_HOPS {
+        let Some(described) = executions.describe(&arn).await? else {
+            return Ok(None);
+        };
+        match described.continued_as.clone() {
+            Some(next) if described.status == "SUCCEEDED" => arn = next,
+            _ => return Ok(Some((arn, described))),
+        }
+    }
+    Ok(executions.describe(&arn).await?.map(|d| (arn, d)))
 }
 
 /// Where executions are read.
@@ -51,10 +78,17 @@ impl Executions for StepFunctions {
             .send()
             .await;
         match out {
-            Ok(out) => Ok(Some(Described {
-                status: out.status().as_str().to_string(),
-                error: out.error().map(str::to_owned),
-            })),
+            Ok(out) => {
+                let output: Option<Value> = out.output().and_then(|t| serde_json::from_str(t).ok());
+                Ok(Some(Described {
+                    status: out.status().as_str().to_string(),
+                    error: out.error().map(str::to_owned),
+                    continued_as: output
+                        .as_ref()
+                        .and_then(lb_domain::history::continued_as)
+                        .map(str::to_owned),
+                }))
+            }
             Err(e)
                 if matches!(
                     e.as_service_error(),
@@ -101,7 +135,52 @@ impl Executions for StepFunctions {
 
 #[cfg(test)]
 mod tests {
-    use super::execution_arn;
+    use super::{current, execution_arn, Described, Executions};
+    use std::collections::HashMap;
+
+    /// Executions as a map from ARN to (status, continued as).
+    struct Known(HashMap<String, (&'static str, Option<String>)>);
+
+    impl Executions for Known {
+        async fn describe(&self, arn: &str) -> crate::Result<Option<Described>> {
+            Ok(self.0.get(arn).map(|(status, next)| Described {
+                status: status.to_string(),
+                error: None,
+                continued_as: next.clone(),
+            }))
+        }
+        async fn last_state(&self, _: &str) -> crate::Result<Option<serde_json::Value>> {
+            Ok(None)
+        }
+    }
+
+    #[tokio::test]
+    async fn a_continued_run_is_followed_to_the_execution_it_runs_in() {
+        let known = Known(HashMap::from([
+            ("a".into(), ("SUCCEEDED", Some("a-c1".into()))),
+            ("a-c1".into(), ("SUCCEEDED", Some("a-c2".into()))),
+            ("a-c2".into(), ("RUNNING", None)),
+            ("done".into(), ("SUCCEEDED", None)),
+            ("failed".into(), ("FAILED", Some("never".into()))),
+            ("lost".into(), ("SUCCEEDED", Some("gone".into()))),
+        ]));
+        let at = |arn: &'static str| {
+            let known = &known;
+            async move {
+                current(known, arn)
+                    .await
+                    .unwrap()
+                    .map(|(arn, d)| (arn, d.status))
+            }
+        };
+        assert_eq!(at("a").await, Some(("a-c2".into(), "RUNNING".into())));
+        assert_eq!(at("done").await, Some(("done".into(), "SUCCEEDED".into())));
+        // Only a success continues: a failure is judged as itself.
+        assert_eq!(at("failed").await, Some(("failed".into(), "FAILED".into())));
+        // A continuation Step Functions does not know: as for an unknown execution.
+        assert_eq!(at("lost").await, None);
+        assert_eq!(at("nobody").await, None);
+    }
 
     #[test]
     fn the_execution_arn_follows_the_state_machine_arn() {

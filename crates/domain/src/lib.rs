@@ -4,6 +4,7 @@ pub mod autoscaler;
 pub mod cluster;
 pub mod errors;
 pub mod finalize;
+pub mod history;
 pub mod intake;
 pub mod logtail;
 pub mod monitor;

@@ -128,8 +128,9 @@ pub fn pair_of_results_name(name: &str) -> Option<PairId> {
 }
 
 /// The submission whose Monitor an S3 object key should wake, if the key is one: a worker's
-/// results file (`<id>/agent/partial_agent_results<ID>.json`) or a status marker
-/// (`<id>/containers-status/<name>`). Logs and everything else wait for the next round.
+/// results file (`<id>/agent/partial_agent_results<ID>.json`) or a status marker of the
+/// protocol (`<id>/containers-status/<marker>`). Logs, other names in the status directory
+/// and everything else wait for the next round.
 ///
 /// Keys come from S3 events for the results buckets, written by logcopy (and so by whatever
 /// the participant's container left in the shared directories): anything else is `None`.
@@ -148,11 +149,27 @@ pub fn wakes_submission(key: &str) -> Option<u64> {
         .strip_prefix(STATUS_DIR)
         .and_then(|r| r.strip_prefix('/'))
     {
-        !name.is_empty() && !name.contains('/')
+        Marker::parse(name).is_some()
     } else {
         false
     };
     wakes.then_some(submission)
+}
+
+/// Whether the logcopy of the Job `job` running `pairs` uploads the file at `rel` (relative to
+/// the logs volume): under `agent/` only these pairs' results files, under `containers-status/`
+/// only the markers of these pairs and of this Job's logcopy (never the cancel marker: the
+/// Monitor writes it), the logs under `logs/`, and nothing else. The volume is written by the
+/// participant's code: another pair's results or markers, or files the protocol does not name,
+/// would otherwise overwrite another pair's objects or wake the execution for nothing.
+pub fn uploads(rel: &str, pairs: &[PairId], job: u32) -> bool {
+    let (dir, name) = rel.split_once('/').unwrap_or(("", rel));
+    match dir {
+        AGENT_DIR => pair_of_results_name(name).is_some_and(|pair| pairs.contains(&pair)),
+        STATUS_DIR => Marker::parse(name).is_some_and(|m| m.belongs_to_job(pairs, job)),
+        LOGS_DIR => !name.is_empty(),
+        _ => false,
+    }
 }
 
 /// `simulator/simulator<ID>.log`: CARLA's output, relative to the logs directory.
@@ -601,6 +618,9 @@ mod tests {
             ("42/logs/simulator/simulator1.log", None),
             ("42/containers-status/", None),
             ("42/containers-status/deep/x", None),
+            // A file the protocol does not name, however often it changes.
+            ("42/containers-status/flood.txt", None),
+            ("42/containers-status/agent-1.don", None),
             ("42/evalai/results.json", None),
             ("abc/containers-status/x", None),
             ("/containers-status/x", None),
@@ -609,6 +629,36 @@ mod tests {
             ("", None),
         ] {
             assert_eq!(wakes_submission(key), wakes, "{key}");
+        }
+    }
+
+    #[test]
+    fn logcopy_uploads_only_its_own_pairs_results_and_markers_and_the_logs() {
+        let (pairs, job) = ([3, 4], 1);
+        for (rel, up) in [
+            ("agent/partial_agent_results3.json", true),
+            ("agent/partial_agent_results4.json", true),
+            ("containers-status/agent-3.done", true),
+            ("containers-status/simulator-4.crash2", true),
+            ("containers-status/simulator-4.start1", true),
+            ("containers-status/logcopy-1.done", true),
+            ("logs/simulator/simulator3.log", true),
+            ("logs/agent/agent3/recorder/route0.log", true),
+            // Another pair's (another pod's) results and markers: never over its objects.
+            ("agent/partial_agent_results1.json", false),
+            ("containers-status/agent-1.done", false),
+            ("containers-status/logcopy-0.done", false),
+            // The Monitor's word, not the pod's.
+            ("containers-status/simulation.cancel", false),
+            // Names the protocol does not define.
+            ("containers-status/flood.txt", false),
+            ("agent/notes.txt", false),
+            ("agent_results.json", false),
+            ("evalai/results.json", false),
+            ("logs", false),
+            ("", false),
+        ] {
+            assert_eq!(uploads(rel, &pairs, job), up, "{rel}");
         }
     }
 

@@ -1,19 +1,13 @@
 //! When the Monitor runs: when something changed (a results file or marker in S3, a cancel
 //! on EvalAI wakes the waiting execution), and otherwise after a safety-net interval that
-//! grows with the evaluation's age, so a 72-hour evaluation stays far inside Step Functions'
-//! 25,000-event history limit whatever its routes do.
-//!
-//! The state machine's history arithmetic (the pipeline's tests) counts the events of a round
-//! from the definition and checks the worst case (an event per route) and the quiet case
-//! (safety net only) against [`HISTORY_BUDGET`].
+//! grows with the evaluation's age; never sooner than [`MIN_ROUND_INTERVAL`] after the last
+//! round. A quiet 72-hour evaluation fits one execution's history; a busy one continues as new
+//! executions (`crate::history`).
 
 use std::time::Duration;
 
 /// The longest evaluation we run; the Jobs' `activeDeadlineSeconds` matches it.
 pub const MAX_EVALUATION: Duration = Duration::from_secs(72 * 3600);
-
-/// History events a [`MAX_EVALUATION`] run may take, its worst case included.
-pub const HISTORY_BUDGET: u64 = 2_000;
 
 /// The first wait after launch: pods need time to pull images and start CARLA.
 pub const FIRST_WAIT: Duration = Duration::from_secs(30);
@@ -24,6 +18,12 @@ pub const FIRST_WAIT: Duration = Duration::from_secs(30);
 /// (`lb_evalai::budget`), which skips a routine update rather than exceed the host token's
 /// limit.
 pub const PARTIAL_UPDATE_INTERVAL: Duration = Duration::from_secs(20);
+
+/// The least time between two Monitor rounds, whatever wakes the loop: every round is
+/// followed by a hold at least this long, so a pod that changes its files many times a second
+/// costs at most a round each time this elapses (`lb_domain::history` bounds what those rounds
+/// cost one execution).
+pub const MIN_ROUND_INTERVAL: Duration = Duration::from_secs(10);
 
 /// How long the Monitor waits when it could not read the wake count (it then polls instead).
 pub const POLL_WITHOUT_WAKE: Duration = Duration::from_secs(60);
@@ -49,9 +49,7 @@ pub fn safety_net(elapsed: Duration) -> Duration {
 /// How long a submission held by its team's cap waits before it asks for its turn again,
 /// `waited` after it arrived: a safety net, since Finalize wakes the team's next submission
 /// when it gives a place back. Five minutes (the participant's place note is refreshed at
-/// that pace too), half an hour after the first day, so that the longest queue
-/// `max_queue_hours` allows (336 hours) and the longest evaluation fit one execution's
-/// history (the pipeline's tests count them).
+/// that pace too), half an hour after the first day.
 pub fn queue_wait(waited: Duration) -> Duration {
     Duration::from_secs(match waited.as_secs() {
         0..86_400 => 300,

@@ -246,6 +246,61 @@ pub struct MonitorState {
     /// record's `start_time` is that moment. Unset while the Jobs wait for capacity (`queued`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub started_at: Option<u64>,
+    /// This execution's history so far, an upper bound in events (`lb_domain::history`).
+    #[serde(default)]
+    pub events: u64,
+    /// The execution `events` counts for; a round in another one (a continuation's first)
+    /// starts the count again.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub execution: Option<String>,
+    /// Continuations so far: the next is named `<lineage>-c<generation + 1>`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub generation: u32,
+    /// The execution the run continues as (`continued`): `ContinueAsNew` starts it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub continue_as: Option<String>,
+    /// The queue entry still names an earlier execution of this run: the reaper's pass reads
+    /// it, so each round tries to name this one until it did.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub handover: bool,
+}
+
+fn is_zero(n: &u32) -> bool {
+    *n == 0
+}
+
+impl MonitorState {
+    /// A run's first state: `wait_seconds` until the first round, the wake item kept until
+    /// `expires_at`, `total` routes to run, counted in `execution`'s history from `events`.
+    pub fn starting(
+        wait_seconds: u64,
+        expires_at: u64,
+        total: u64,
+        execution: &str,
+        events: u64,
+    ) -> MonitorState {
+        MonitorState {
+            state: RunPhase::Running,
+            wait_seconds,
+            hold_seconds: 0,
+            seen: 0,
+            poll: false,
+            expires_at,
+            updated_at: None,
+            status_read_at: None,
+            rounds: 0,
+            fingerprint: None,
+            progress: (0, total),
+            reason: None,
+            unreachable_since: None,
+            started_at: None,
+            events,
+            execution: Some(execution.to_owned()),
+            generation: 0,
+            continue_as: None,
+            handover: false,
+        }
+    }
 }
 
 /// The run's phase.
@@ -262,6 +317,9 @@ pub enum RunPhase {
     Cancelled,
     /// Held by its team's cap until now: Launch creates its Jobs next.
     Admitted,
+    /// This execution's history is near its budget: the run goes on in the execution
+    /// `continue_as` names, started with this state.
+    Continued,
 }
 
 #[cfg(test)]
@@ -272,19 +330,8 @@ mod tests {
     fn a_reason_is_cut_to_its_bound_whoever_built_it() {
         let mut monitor = MonitorState {
             state: RunPhase::Failed,
-            wait_seconds: 0,
-            hold_seconds: 0,
-            seen: 0,
-            poll: false,
-            expires_at: 0,
-            updated_at: None,
-            status_read_at: None,
-            rounds: 1,
-            fingerprint: None,
-            progress: (0, 1),
             reason: Some("é".repeat(100_000)),
-            unreachable_since: None,
-            started_at: None,
+            ..MonitorState::starting(0, 0, 1, "exec-1", 0)
         };
         let text = serde_json::to_value(&monitor).unwrap()["reason"]
             .as_str()

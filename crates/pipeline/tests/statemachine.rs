@@ -5,7 +5,8 @@
 use std::collections::{BTreeSet, HashSet};
 use std::path::PathBuf;
 
-use lb_domain::schedule::{quiet_rounds, HISTORY_BUDGET, MAX_EVALUATION};
+use lb_domain::history;
+use lb_domain::schedule::{quiet_rounds, MAX_EVALUATION, MIN_ROUND_INTERVAL};
 use lb_pipeline::FnError;
 use serde_json::{Map, Value};
 
@@ -44,6 +45,10 @@ const BUILT_IN: &[&str] = &[
     "DynamoDb.ThrottlingException",
     "DynamoDb.RequestLimitExceededException",
     "DynamoDb.InternalServerErrorException",
+    // ContinueAsNew's StartExecution (the optimized Step Functions integration): the API's
+    // errors under the service's prefix, as the Java SDK names its exceptions.
+    "StepFunctions.ExecutionLimitExceededException",
+    "StepFunctions.AWSStepFunctionsException",
 ];
 
 /// A Task that invokes one of our functions (the others are service integrations).
@@ -122,7 +127,10 @@ fn every_task_is_a_function_of_this_repository_and_is_caught() {
             continue;
         }
         if !invokes_function(state) {
-            assert_eq!(name, "WaitForChange", "an unexpected service integration");
+            assert!(
+                ["WaitForChange", "ContinueAsNew"].contains(&name.as_str()),
+                "an unexpected service integration: {name}"
+            );
             continue;
         }
         let resource = state["Resource"].as_str().unwrap();
@@ -200,7 +208,8 @@ fn every_state_is_reachable_and_every_transition_lands() {
 /// TaskStateEntered, LambdaFunctionScheduled, LambdaFunctionStarted, LambdaFunctionSucceeded,
 /// TaskStateExited; a callback Task adds TaskSubmitted to TaskScheduled, TaskStarted and its
 /// end (TaskSucceeded, or TaskTimedOut caught); one whose write fails has no TaskSubmitted;
-/// Wait and Choice are entered and exited.
+/// Wait, Choice and Pass are entered and exited; Succeed and Fail are entered (their exit and
+/// the execution's end are counted with them: 2).
 fn events(states: &Map<String, Value>, name: &str) -> u64 {
     let state = &states[name];
     match state["Type"].as_str().unwrap() {
@@ -214,82 +223,95 @@ fn events(states: &Map<String, Value>, name: &str) -> u64 {
         }
         "Task" => 5,
         "Wait" | "Choice" | "Pass" => 2,
-        "Succeed" | "Fail" => 1,
+        "Succeed" | "Fail" => 2,
         other => panic!("unexpected state type {other}"),
     }
 }
 
-#[test]
-fn a_72_hour_evaluation_stays_under_2000_history_events_however_its_routes_go() {
-    let def = definition();
-    let states = states(&def);
-    let sum = |names: &[&str]| names.iter().map(|s| events(states, s)).sum::<u64>();
-    // Every path of the loop the definition has, checked against the counts below.
-    assert_eq!(states["Monitor"]["Next"], "Next?");
-    assert_eq!(states["Hold"]["Next"], "WaitForChange");
-    assert_eq!(states["WaitForChange"]["Next"], "Monitor");
-    // A quiet round: the safety net's timeout ends the wait.
-    let quiet = sum(&["Next?", "WaitForChange", "Monitor"]);
-    // A round woken by a change that updated EvalAI: the hold, then the wait.
-    let woken = sum(&["Next?", "Hold", "WaitForChange", "Monitor"]);
-    // A change during the Monitor or the hold: the wait's write fails (one event fewer) and
-    // the Monitor runs at once.
-    let missed = sum(&["Next?", "Hold", "Monitor"]) + events(states, "WaitForChange") - 1;
-    assert_eq!((quiet, woken, missed), (13, 15, 14));
-    let once = 2 /* ExecutionStarted, ExecutionSucceeded */
-        + sum(&["OneSubmission?", "Unbatch", "Intake", "Eligible?", "Launch", "Finalize", "Failed?", "Done"]);
-    // A retried Lambda adds LambdaFunctionScheduled/Started/Failed: allow 20 retries a run.
-    let retries = 20 * 3;
-    let safety_net = quiet_rounds(MAX_EVALUATION);
-    // Quiet: nothing but the safety net for 72 hours.
-    let quiet_total = once + safety_net * quiet + retries;
-    // Worst: an event for each of 100 routes, each costing a round of its own (no two in one
-    // burst), on top of every safety-net round (a timeout needs a whole interval without
-    // events, so there are never more than in the quiet case).
-    let routes = 100;
-    let worst_total = once + routes * woken.max(missed) + safety_net * quiet + retries;
-    println!(
-        "quiet: {once} once + {safety_net} rounds x {quiet} + {retries} retries = {quiet_total}"
-    );
-    println!(
-        "worst: {once} once + {routes} routes x {} + {safety_net} rounds x {quiet} + {retries} retries = {worst_total}",
-        woken.max(missed)
-    );
-    assert_eq!((once, safety_net), (26, 29));
-    assert_eq!((quiet_total, worst_total), (463, 1963));
-    assert!(worst_total < HISTORY_BUDGET, "{worst_total}");
-    // Today's loop took 517 rounds of 9 events (4,739 in all) whatever happened.
+/// A state's retries at most: the sum of its retriers' `MaxAttempts` (3 when unset).
+fn max_retries(states: &Map<String, Value>, name: &str) -> u64 {
+    states[name]["Retry"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|r| r["MaxAttempts"].as_u64().unwrap_or(3))
+        .sum()
+}
+
+/// A state's events at their worst: every retry adds its scheduled, started and failed.
+fn worst(states: &Map<String, Value>, name: &str) -> u64 {
+    events(states, name) + history::RETRY_EVENTS * max_retries(states, name)
 }
 
 #[test]
-fn the_longest_wait_for_a_turn_and_the_longest_evaluation_fit_one_history() {
+fn the_history_bounds_hold_for_the_deployed_definition() {
     let def = definition();
     let states = states(&def);
-    let sum = |names: &[&str]| names.iter().map(|s| events(states, s)).sum::<u64>();
-    // The turn comes: the Choice sends the run back to create its Jobs.
-    let choices = states["Next?"]["Choices"].as_array().unwrap();
-    assert_eq!(choices[0]["StringEquals"], "admitted");
-    assert_eq!(choices[0]["Next"], "LaunchAdmitted");
-    assert_eq!(states["LaunchAdmitted"]["Next"], "Next?");
+    let sum = |names: &[&str]| names.iter().map(|s| worst(states, s)).sum::<u64>();
+    // Every path of the loop, and where the budget's arithmetic enters it.
+    assert_eq!(states["Monitor"]["Next"], "Next?");
+    assert_eq!(states["Hold"]["Next"], "WaitForChange");
+    assert_eq!(states["WaitForChange"]["Next"], "Monitor");
+    assert_eq!(states["PollInstead"]["Next"], "Monitor");
+    assert_eq!(states["Resume"]["Next"], "Hold");
+    assert_eq!(states["ContinueAsNew"]["Next"], "Continued");
     assert_eq!(
-        states["LaunchAdmitted"]["Parameters"]["queue.$"],
-        "$.run.queue"
+        states["Monitor"]["Parameters"]["retries.$"],
+        "$$.State.RetryCount"
     );
-    // A waiting round is a quiet round (its wait is the queue's safety net); the longest queue
-    // the settings allow (336 hours) at the queue's pace, woken at most once a round.
-    let round = sum(&["Next?", "WaitForChange", "Monitor"]);
-    let mut waited = std::time::Duration::ZERO;
-    let mut rounds = 0u64;
-    while waited < std::time::Duration::from_secs(336 * 3600) {
-        waited += lb_domain::schedule::queue_wait(waited);
-        rounds += 1;
-    }
-    let queue = rounds * round + sum(&["Next?", "LaunchAdmitted"]);
-    println!("queue: {rounds} rounds x {round} = {queue}");
-    assert!(
-        queue + HISTORY_BUDGET < 25_000,
-        "Step Functions' limit is 25,000 events: {queue} + {HISTORY_BUDGET}"
+    assert_eq!(
+        states["LaunchAdmitted"]["Parameters"]["events.$"],
+        "$.run.monitor.events"
     );
+    assert_eq!(max_retries(states, "Monitor"), history::MONITOR_MAX_RETRIES);
+    // The first execution until its first round: started, then every state with every retry.
+    let opening = 1 + sum(&["OneSubmission?", "Unbatch", "Intake", "Eligible?", "Launch"]);
+    let resumed = 1 + sum(&["OneSubmission?", "Resume"]);
+    // A round: the Choice, the hold, the wait with its retries and, when it fails, the poll,
+    // then the Monitor (its own retries counted from `$$.State.RetryCount`).
+    let round = sum(&["Next?", "Hold", "WaitForChange", "PollInstead"]) + events(states, "Monitor");
+    let admitted = sum(&["Next?", "LaunchAdmitted"]);
+    // The worst ending: the continuation fails after its retries and Finalize runs with all of
+    // its own; the Choice after it and the end.
+    let closing = sum(&[
+        "Next?",
+        "ContinueAsNew",
+        "Finalize",
+        "Failed?",
+        "PipelineFailed",
+    ]);
+    let counted = (opening, resumed, round, admitted, closing);
+    println!("opening, resumed, round, admitted, closing: {counted:?}");
+    assert!(opening <= history::OPENING_EVENTS, "{counted:?}");
+    assert!(resumed <= history::RESUMED_EVENTS, "{counted:?}");
+    assert!(round <= history::ROUND_EVENTS, "{counted:?}");
+    assert!(admitted <= history::ADMITTED_EVENTS, "{counted:?}");
+    assert!(closing <= history::CLOSING_EVENTS, "{counted:?}");
+}
+
+#[test]
+fn a_quiet_72_hour_evaluation_fits_one_execution() {
+    // Nothing but the safety net for 72 hours: no continuation.
+    let rounds = quiet_rounds(MAX_EVALUATION);
+    let events = history::OPENING_EVENTS + rounds * history::round_events(0);
+    assert_eq!(rounds, 29);
+    assert!(!history::continue_due(events, history::EXECUTION_BUDGET));
+}
+
+#[test]
+fn the_worst_72_hours_cost_a_bounded_chain_of_executions() {
+    // A round at most every MIN_ROUND_INTERVAL, whatever wakes the loop: each round is
+    // followed by a hold at least that long.
+    let rounds = MAX_EVALUATION.as_secs() / MIN_ROUND_INTERVAL.as_secs();
+    let per_execution = history::rounds_per_execution(history::EXECUTION_BUDGET);
+    let executions = rounds.div_ceil(per_execution);
+    // Transitions billed per round: Next?, Hold, WaitForChange, Monitor.
+    let transitions = rounds * 4;
+    println!(
+        "worst 72 h: {rounds} rounds, {per_execution} per execution, {executions} executions, \
+         {transitions} state transitions"
+    );
+    assert_eq!((rounds, per_execution, executions), (25_920, 319, 82));
 }
 
 #[test]

@@ -7,7 +7,7 @@
 
 use aws_lambda_events::event::eventbridge::EventBridgeEvent;
 use lb_aws::admission::AdmissionTable;
-use lb_aws::executions::{execution_arn, Executions};
+use lb_aws::executions::{self, execution_arn, Executions};
 use lb_aws::tasks::Callbacks;
 use lb_domain::reaper::{self, Verdict, REAPED_STATUSES};
 use lb_pipeline::{queue, FnError, Result};
@@ -195,9 +195,11 @@ async fn check<C: Callbacks + Executions>(
     let Some(arn) = execution_arn(machine, &name) else {
         return Ok(None);
     };
-    match deps.callbacks.describe(&arn).await? {
-        Some(d) if d.status == "RUNNING" => Ok(None),
-        Some(d) => {
+    // A run that continued as a new execution names it in its entry once its first round ran:
+    // until then the entry's execution ended to start it, and the one it runs in now is judged.
+    match executions::current(&deps.callbacks, &arn).await? {
+        Some((_, d)) if d.status == "RUNNING" => Ok(None),
+        Some((arn, d)) => {
             let mut done = reap(deps, &arn, &d.status, d.error.as_deref()).await?;
             if done.outcome == "left" {
                 // Ended and nothing to finish, yet still holding: Finalize ran but its

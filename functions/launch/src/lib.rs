@@ -9,6 +9,7 @@
 
 use aws_config::SdkConfig;
 use lb_aws::admission::AdmissionTable;
+use lb_domain::history;
 use lb_domain::plan::{plan, Plan, PlanInput};
 use lb_domain::schedule::queue_wait;
 use lb_domain::schedule::FIRST_WAIT;
@@ -16,9 +17,7 @@ use lb_domain::settings::{Settings, Target};
 use lb_evalai::{EvalAiClient, SubmissionRef, WriteOutcome};
 use lb_jobs::{render_plan, JobSettings};
 use lb_pipeline::cluster::Clusters;
-use lb_pipeline::payload::{
-    MonitorState, PairRoutes, QueueState, RunPhase, RunState, SubmissionInfo,
-};
+use lb_pipeline::payload::{MonitorState, PairRoutes, QueueState, RunState, SubmissionInfo};
 use lb_pipeline::serve::{Function, Invocation};
 use lb_pipeline::{clients, queue, FunctionConfig, Result};
 use std::future::Future;
@@ -81,6 +80,14 @@ pub struct LaunchInput {
     /// time.
     #[serde(default)]
     pub queue: Option<QueueState>,
+    /// This execution's history so far, as the Monitor counted it (`LaunchAdmitted`): the
+    /// count goes on from there (`lb_domain::history`).
+    #[serde(default)]
+    pub events: Option<u64>,
+    /// `$$.Execution.Name`: whose history `events` counts (a continued run's execution is not
+    /// the one that claimed the submission).
+    #[serde(default)]
+    pub execution: Option<String>,
 }
 
 impl Invocation for LaunchInput {
@@ -114,6 +121,16 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         .queue
         .unwrap_or_else(|| QueueState::arriving(arrived_ms / 1000));
     let prepared = prepare(deps, &target, &submission)?;
+    // This execution's events so far: the opening the first time, the Monitor's count and
+    // this Launch after a wait for the turn.
+    let events = match input.events {
+        None => history::OPENING_EVENTS,
+        Some(counted) => counted + history::ADMITTED_EVENTS,
+    };
+    let execution = input
+        .execution
+        .unwrap_or_else(|| submission.execution.clone());
+    let history = (execution.as_str(), events);
     let at = SubmissionRef {
         challenge: submission.challenge_id,
         phase: submission.phase_id,
@@ -133,7 +150,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
                 mark_queued(deps, at, "").await?;
             }
             place.admitted = false;
-            let mut run = prepared.run_state(0, now, place);
+            let mut run = prepared.run_state(0, now, place, history);
             run.monitor.wait_seconds = queue_wait(Duration::ZERO).as_secs();
             return Ok(run);
         }
@@ -144,7 +161,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
     // the record's start time), so time spent waiting for a GPU is not the participant's.
     mark_queued(deps, at, &names.join(",")).await?;
     let jobs = names.len() as u32;
-    Ok(prepared.run_state(jobs, clients::now_epoch_seconds(), place))
+    Ok(prepared.run_state(jobs, clients::now_epoch_seconds(), place, history))
 }
 
 /// What a submission's run is made of, decided before anything is created: the routes over
@@ -241,29 +258,21 @@ async fn mark_queued(deps: &Deps, at: SubmissionRef, names: &str) -> Result<()> 
 
 impl Prepared {
     /// A run's first state: `jobs` Jobs launched (none while it waits for its turn) at `now`.
-    fn run_state(self, jobs: u32, now: u64, queue: QueueState) -> RunState {
+    fn run_state(self, jobs: u32, now: u64, queue: QueueState, history: (&str, u64)) -> RunState {
+        let (execution, events) = history;
         RunState {
             jobs,
             pairs: self.pairs,
             repetitions: self.settings.repetitions,
             launched_at: now,
             queue,
-            monitor: MonitorState {
-                state: RunPhase::Running,
-                wait_seconds: FIRST_WAIT.as_secs(),
-                hold_seconds: 0,
-                seen: 0,
-                poll: false,
-                expires_at: now + lb_aws::wake::RETENTION_SECONDS,
-                updated_at: None,
-                status_read_at: None,
-                rounds: 0,
-                fingerprint: None,
-                progress: (0, self.total),
-                reason: None,
-                unreachable_since: None,
-                started_at: None,
-            },
+            monitor: MonitorState::starting(
+                FIRST_WAIT.as_secs(),
+                now + lb_aws::wake::RETENTION_SECONDS,
+                self.total,
+                execution,
+                events,
+            ),
         }
     }
 }

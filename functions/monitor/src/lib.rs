@@ -12,7 +12,9 @@
 //! participant's cancel becomes the S3 cancel marker; a hopeless run (image that cannot be
 //! pulled, unschedulable, out of retries) ends with a reason the participant can act on.
 //! Transient trouble with EvalAI or S3 skips this round's part instead of failing a run that
-//! may last three days.
+//! may last three days. Every round is followed by a hold of at least `MIN_ROUND_INTERVAL`,
+//! and counts its history events: near the budget, the run continues as a new execution
+//! (`lb_domain::history`).
 
 use lb_pipeline::serve::{Function, Invocation};
 use std::future::Future;
@@ -23,10 +25,11 @@ use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
 use lb_aws::wake::{WakeState, WakeTable, RETENTION_SECONDS};
 use lb_cluster::{Verdict, VerdictPolicy};
+use lb_domain::history;
 use lb_domain::monitor::{self, StatusRead};
 use lb_domain::protocol::Marker;
 use lb_domain::results::Leaderboard;
-use lb_domain::schedule::{queue_wait, safety_net, POLL_WITHOUT_WAKE};
+use lb_domain::schedule::{queue_wait, safety_net, MIN_ROUND_INTERVAL, POLL_WITHOUT_WAKE};
 use lb_domain::settings::Target;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{EvalAiError, PartialUpdate, Priority, SubmissionRef, WriteOutcome};
@@ -48,6 +51,8 @@ pub struct Deps {
     pub policy: VerdictPolicy,
     /// The wake table.
     pub wake: WakeTable,
+    /// The events one execution may take before the run continues as a new one.
+    pub history_budget: u64,
 }
 
 impl Deps {
@@ -70,6 +75,7 @@ impl Deps {
             clients,
             policy: VerdictPolicy::default(),
             wake,
+            history_budget: history::EXECUTION_BUDGET,
         })
     }
 }
@@ -82,6 +88,12 @@ pub struct MonitorInput {
     pub submission: SubmissionInfo,
     /// As Launch or the previous round left it.
     pub run: RunState,
+    /// `$$.Execution.Name`: the execution this round runs in (its history is counted).
+    #[serde(default)]
+    pub execution: Option<String>,
+    /// `$$.State.RetryCount`: attempts of this round that failed before this one.
+    #[serde(default)]
+    pub retries: u64,
 }
 
 impl Invocation for MonitorInput {
@@ -116,17 +128,62 @@ async fn observe(
     Ok(cluster.with_policy(policy).observe(&id.to_string()).await?)
 }
 
-/// One monitor round: the wake count, the cluster, the queue note, the results and EvalAI's
-/// status, then the cluster's verdict (`lb_domain::monitor` has the round's rules).
+/// One monitor round, then whether the run goes on in this execution: a round whose count
+/// of events leaves no room for another continues as a new execution (`lb_domain::history`).
 pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     let MonitorInput {
         submission,
         mut run,
+        execution,
+        retries,
     } = input;
+    let now = clients::now_epoch_seconds();
+    begin_round(&mut run, now, execution.as_deref(), retries);
+    if run.monitor.handover {
+        hand_over(deps, &submission, &mut run).await;
+    }
+    // Boxed: the round's future is large, and nested in the runtime's it overflows the
+    // compiler's layout depth.
+    let mut run = Box::pin(round(&submission, run, deps, now)).await?;
+    let monitor = &mut run.monitor;
+    if monitor.state == RunPhase::Running
+        && history::continue_due(monitor.events, deps.history_budget)
+    {
+        monitor.generation += 1;
+        let next = history::continuation_name(&submission.execution, monitor.generation);
+        info!(submission_id = submission.submission_id, events = monitor.events, %next, "history budget reached: continuing as a new execution");
+        monitor.continue_as = Some(next);
+        monitor.state = RunPhase::Continued;
+    }
+    Ok(run)
+}
+
+/// The queue entry names the execution the reaper's pass checks: a continuation names itself
+/// there (until then the pass follows the ended execution's output to it). Tried each round
+/// until it is done.
+async fn hand_over(deps: &Deps, submission: &SubmissionInfo, run: &mut RunState) {
+    let (Some(table), Some(execution)) = (&deps.clients.admission, &run.monitor.execution) else {
+        run.monitor.handover = false;
+        return;
+    };
+    let id = submission.submission_id;
+    match table.adopt(&submission.leaderboard, id, execution).await {
+        Ok(()) => run.monitor.handover = false,
+        Err(e) => warn!(submission_id = id, error = %e, "queue entry not handed over this round"),
+    }
+}
+
+/// One monitor round: the wake count, the cluster, the queue note, the results and EvalAI's
+/// status, then the cluster's verdict (`lb_domain::monitor` has the round's rules).
+async fn round(
+    submission: &SubmissionInfo,
+    mut run: RunState,
+    deps: &Deps,
+    now: u64,
+) -> Result<RunState> {
+    let submission = submission.clone();
     let id = submission.submission_id;
     let target = deps.clients.settings.target(submission.phase_id)?;
-    let now = clients::now_epoch_seconds();
-    begin_round(&mut run, now);
     let wake = read_wake(deps, id, &mut run).await?;
     if !run.queue.admitted {
         return waiting_round(deps, &submission, run, wake, target.deployment, now).await;
@@ -184,15 +241,26 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     Ok(run)
 }
 
-/// A round's defaults: the safety net's timeout for the next wait, no hold, no poll.
-fn begin_round(run: &mut RunState, now: u64) {
+/// A round's defaults: the safety net's timeout for the next wait, the least hold, no poll;
+/// and the round counted in this execution's history.
+fn begin_round(run: &mut RunState, now: u64, execution: Option<&str>, retries: u64) {
     let elapsed = Duration::from_secs(now.saturating_sub(run.launched_at));
     let monitor = &mut run.monitor;
     monitor.rounds += 1;
+    monitor.state = RunPhase::Running;
+    monitor.continue_as = None;
     monitor.wait_seconds = safety_net(elapsed).as_secs();
-    monitor.hold_seconds = 0;
+    monitor.hold_seconds = MIN_ROUND_INTERVAL.as_secs();
     monitor.poll = false;
     monitor.expires_at = now + RETENTION_SECONDS;
+    if let Some(execution) = execution {
+        if let Some(entered) = history::entering(monitor.execution.as_deref(), execution) {
+            monitor.execution = Some(execution.to_owned());
+            monitor.events = entered.events;
+            monitor.handover = entered.continued;
+        }
+    }
+    monitor.events += history::round_events(retries);
 }
 
 /// The wake count before anything else: a change after this read makes the next wait end at
@@ -550,7 +618,7 @@ async fn send_changed_results(
         Ok(WriteOutcome::Written) => {
             run.monitor.fingerprint = Some(snapshot.fingerprint);
             run.monitor.updated_at = Some(now);
-            run.monitor.hold_seconds = interval;
+            run.monitor.hold_seconds = run.monitor.hold_seconds.max(interval);
             Ok(Some(SubmissionStatus::PartiallyEvaluated))
         }
         Ok(WriteOutcome::Cancelled) => Ok(Some(SubmissionStatus::Cancelled)),

@@ -95,8 +95,21 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
     );
     assert_eq!(deps.wakes.state(43).await.unwrap().changes, 1, "counted");
 
+    // A name the protocol does not define wakes nobody and is not even counted, however
+    // often it comes.
+    let flood: Vec<(String, String)> = (0..20)
+        .map(|i| (format!("f{i}"), event_for("42/containers-status/flood.txt")))
+        .collect();
+    let flood: Vec<(&str, String)> = flood.iter().map(|(m, e)| (m.as_str(), e.clone())).collect();
+    assert_eq!(run(&deps, &flood).await, failures(&[]));
+    assert_eq!(deps.wakes.state(42).await.unwrap().changes, 1);
+
     // An event after the wake found no token: it only counts.
-    run(&deps, &[("m8", event_for("42/containers-status/x"))]).await;
+    run(
+        &deps,
+        &[("m8", event_for("42/containers-status/simulator-1.start0"))],
+    )
+    .await;
     assert_eq!(deps.callbacks.reported().len(), 1);
     assert_eq!(deps.wakes.state(42).await.unwrap().changes, 2);
 
@@ -133,7 +146,7 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
         .await
         .unwrap();
     deps.callbacks.answer_always(Answer::Stale);
-    let response = run(&deps, &[("m12", event_for("42/containers-status/y"))]).await;
+    let response = run(&deps, &[("m12", event_for("42/containers-status/agent-1.crash0"))]).await;
     assert_eq!(response, failures(&[]));
     assert_eq!(deps.wakes.state(42).await.unwrap().changes, 5);
 
@@ -145,7 +158,7 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
     let response = run(
         &broken,
         &[
-            ("m13", event_for("42/containers-status/z")),
+            ("m13", event_for("42/containers-status/agent-1.done")),
             ("m14", event_for("42/logs/x.log")),
         ],
     )

@@ -22,8 +22,12 @@ pub struct RunReport {
     pub ok: bool,
     /// The (first) execution's status.
     pub execution: String,
-    /// Its history's length.
+    /// The longest history among its executions.
     pub history_events: usize,
+    /// Its executions: the first and those its run continued as.
+    pub executions: usize,
+    /// Monitor rounds of the whole run.
+    pub rounds: u64,
     /// The execution's own error and cause, when it failed.
     pub error: Option<String>,
     /// The error a Catch routed to Finalize (the execution succeeded, the submission failed).
@@ -105,11 +109,21 @@ impl RunReport {
     /// The summary a person reads at the end of the run.
     pub fn print(&self, args: &LocalRun, moto: &str, latency: Option<&Latency>, many: bool) {
         outln!();
-        outln!(
-            "execution      {} ({} history events)",
-            self.execution,
-            self.history_events
-        );
+        if self.executions > 1 {
+            outln!(
+                "execution      {} after {} executions ({} rounds, at most {} history events each)",
+                self.execution,
+                self.executions,
+                self.rounds,
+                self.history_events
+            );
+        } else {
+            outln!(
+                "execution      {} ({} history events)",
+                self.execution,
+                self.history_events
+            );
+        }
         if let Some(error) = &self.error {
             outln!("error          {error}");
         }

@@ -46,6 +46,11 @@ pub enum Scenario {
     /// autoscaler says no node group could hold the pods, FAILED at once naming the instance
     /// type (a configuration problem of the leaderboard), none of the participant's time used.
     NoNode,
+    /// Every agent rewrites a file in its status directory and its own results file several
+    /// times a second for the whole run: only the protocol's files wake the execution, rounds
+    /// come no sooner than the least interval, and a history near its budget continues as a
+    /// new execution. FINISHED.
+    WakeFlood,
     /// An operator stops the execution (StopExecution) after its first Monitor round: the
     /// reaper (Finalize, on Step Functions' status-change event, which local mode delivers as
     /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
@@ -56,7 +61,7 @@ pub enum Scenario {
 impl Scenario {
     fn expected(self) -> &'static str {
         match self {
-            Scenario::Happy | Scenario::Crash | Scenario::Hang => "finished",
+            Scenario::Happy | Scenario::Crash | Scenario::Hang | Scenario::WakeFlood => "finished",
             Scenario::Cancel => "cancelled",
             Scenario::Unpullable | Scenario::CrashLoop | Scenario::NoNode | Scenario::Stop => {
                 "failed"
@@ -111,6 +116,10 @@ pub struct LocalRun {
     /// The cancel scenario: the participant cancels when this Monitor round ends.
     #[arg(long, default_value_t = 1)]
     pub cancel_after_round: u64,
+    /// The events one execution may take before the run continues as a new execution (the
+    /// deployment's is 10,000; a small one rehearses continuations in a short run).
+    #[arg(long, default_value_t = lb_domain::history::EXECUTION_BUDGET, value_parser = clap::value_parser!(u64).range(lb_domain::history::MIN_BUDGET..=lb_domain::history::EXECUTION_BUDGET))]
+    pub history_budget: u64,
     /// Wall-clock limit of the whole run, in seconds.
     #[arg(long, default_value_t = 600)]
     pub timeout: u64,
@@ -147,6 +156,9 @@ pub struct LocalRun {
 
 const IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local";
 const UNPULLABLE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:never-pushed";
+/// How often a flooding agent rewrites its files (the wake-flood scenario): the issue's
+/// reproduction rewrote one four times a second.
+const FLOOD_HZ: u32 = 4;
 /// The node type of the no-node scenario: not the one the local settings name.
 const OTHER_INSTANCE_TYPE: &str = "g6.xlarge";
 
@@ -243,6 +255,11 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     if args.scenario == Scenario::NoNode {
         behaviour.node_instance_type = Some(OTHER_INSTANCE_TYPE.into());
     }
+    if args.scenario == Scenario::WakeFlood {
+        behaviour
+            .evaluator_env
+            .insert("FAKE_EVALUATOR_FLOOD_HZ".into(), FLOOD_HZ.to_string());
+    }
     let record_log = stack.workdir.path().join("record-writes.log");
     if args.latency {
         behaviour.evaluator_env.insert(
@@ -321,6 +338,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let mut monitor = monitor::Deps::load(&stack.sdk, &config, clusters()).await?;
     // The autoscaler's word is believed after minutes on EKS; local-kube's is final at once.
     monitor.policy.never_fits_grace = Duration::from_secs(2);
+    monitor.history_budget = args.history_budget;
     let monitor = Arc::new(monitor);
     // Finalize wakes a team's next submission through the executor, which the task map below
     // is made for: bound once it exists.
@@ -350,8 +368,8 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             let deps = finalize.clone();
             async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
         });
-    // The wake table's wait, on moto's DynamoDB.
-    let tasks = local_stack::integrations::with_services(tasks, &stack.sdk);
+    // The wake table's wait, on moto's DynamoDB; a continuation, on the executor.
+    let tasks = local_stack::integrations::with_services(tasks, &stack.sdk, late.clone());
 
     let mut substitutions: HashMap<String, String> = ["Intake", "Launch", "Monitor", "Finalize"]
         .iter()
@@ -506,8 +524,10 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         );
     }
     let mut results = Vec::new();
+    let mut chains = Vec::new();
     for (id, team, execution) in executions {
-        let result = execution.wait().await;
+        let (result, lengths) = follow(&executor, execution.wait().await).await;
+        chains.push(lengths);
         if many {
             say(
                 started,
@@ -568,7 +588,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                 .as_ref()
                 .is_none_or(|q| !many || q.submissions.iter().all(|s| s.status == expected)),
         execution: result.status.as_str().to_string(),
-        history_events: result.history.len(),
+        history_events: chains[0].iter().copied().max().unwrap_or_default(),
+        executions: chains[0].len(),
+        rounds: rounds.load(Ordering::SeqCst),
         error: result
             .error
             .as_ref()
@@ -639,6 +661,36 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         );
         Ok(1)
     }
+}
+
+/// The most executions one run is followed through (72 hours at the least round interval
+/// take fewer than 100).
+const MAX_CHAIN: usize = 200;
+
+/// An execution's result followed through the executions its run continued as: how the last
+/// one ended, with every history in order (for the stages); and each history's length.
+async fn follow(
+    executor: &Executor,
+    mut result: local_stepfunctions::ExecutionResult,
+) -> (local_stepfunctions::ExecutionResult, Vec<usize>) {
+    let mut lengths = vec![result.history.len()];
+    while lengths.len() < MAX_CHAIN {
+        let next = (result.status == local_stepfunctions::Status::Succeeded)
+            .then_some(result.output.as_ref())
+            .flatten()
+            .and_then(lb_domain::history::continued_as)
+            .map(str::to_owned);
+        let Some(next) = next else { break };
+        let Some(mut continued) = executor.wait_for(&next).await else {
+            break;
+        };
+        lengths.push(continued.history.len());
+        let mut history = std::mem::take(&mut result.history);
+        history.append(&mut continued.history);
+        continued.history = history;
+        result = continued;
+    }
+    (result, lengths)
 }
 
 /// Each team's number of submissions, checked against --submissions.

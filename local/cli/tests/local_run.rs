@@ -142,6 +142,74 @@ fn every_scenario_ends_as_expected() {
 
 #[test]
 #[ignore = "needs moto"]
+fn a_wake_flood_costs_rounds_at_the_least_interval_and_continues_under_its_budget() {
+    let _one = one_at_a_time();
+    // Every agent rewrites a status file and its results file 4 times a second; a small
+    // history budget makes the run continue as new executions within seconds.
+    let budget = lb_domain::history::MIN_BUDGET;
+    let (report, stdout) = local_run(
+        &[
+            "--scenario",
+            "wake-flood",
+            "--history-budget",
+            &budget.to_string(),
+            "--route-seconds",
+            "1",
+            "--timeout",
+            "240",
+        ],
+        &[],
+    );
+    assert_eq!(text(&report, "evalai_status"), "finished", "{report}");
+    assert_eq!(report["ok"], true, "{report}");
+    assert_eq!(report["merged"]["records"], 20, "{report}");
+    // Continued at least once, and no execution's history came near its budget.
+    let executions = report["executions"].as_u64().unwrap();
+    assert!(executions >= 2, "{report}\n{stdout}");
+    assert!(stdout.contains("stage ContinueAsNew"), "{stdout}");
+    let longest = report["history_events"].as_u64().unwrap();
+    assert!(longest < budget, "{longest} events: {report}");
+    assert_rounds_bounded(&report, 0.05);
+
+    // At production pacing (nothing scaled), with the deployment's budget: FINISHED in one
+    // execution, a round per least interval at most while the wake function sees dozens of
+    // uploads.
+    let (report, _) = local_run(
+        &[
+            "--scenario",
+            "wake-flood",
+            "--time-scale",
+            "1",
+            "--route-seconds",
+            "4",
+            "--timeout",
+            "240",
+        ],
+        &[],
+    );
+    assert_eq!(text(&report, "evalai_status"), "finished", "{report}");
+    assert_eq!(report["merged"]["records"], 20, "{report}");
+    assert_rounds_bounded(&report, 1.0);
+    assert!(
+        report["wake_messages"].as_u64().unwrap() > 2 * report["rounds"].as_u64().unwrap(),
+        "{report}"
+    );
+}
+
+/// Each round is followed by the least interval (scaled by `time_scale`): the rounds are
+/// bounded by the run's length, however often the files change.
+fn assert_rounds_bounded(report: &Value, time_scale: f64) {
+    let hold = lb_domain::schedule::MIN_ROUND_INTERVAL.as_secs_f64() * time_scale;
+    let seconds = report["seconds"].as_f64().unwrap();
+    let rounds = report["rounds"].as_u64().unwrap();
+    assert!(
+        (rounds as f64) <= seconds / hold + 1.0,
+        "{rounds} rounds in {seconds} s: {report}"
+    );
+}
+
+#[test]
+#[ignore = "needs moto"]
 fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
     let _one = one_at_a_time();
     let (report, _) = local_run(

@@ -240,6 +240,11 @@ impl Executions for ExecutorCallbacks {
         Ok(self.0.describe(arn).map(|d| Described {
             status: d.status.map_or("RUNNING", |s| s.as_str()).to_string(),
             error: d.error,
+            continued_as: d
+                .output
+                .as_ref()
+                .and_then(lb_domain::history::continued_as)
+                .map(str::to_owned),
         }))
     }
 
@@ -270,6 +275,11 @@ impl LateCallbacks {
     /// Reports from now on go to `executor`.
     pub fn bind(&self, executor: Executor) {
         let _ = self.0.set(executor);
+    }
+
+    /// The executor, once bound.
+    pub fn executor(&self) -> Option<&Executor> {
+        self.0.get()
     }
 }
 

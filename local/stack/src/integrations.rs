@@ -1,6 +1,7 @@
 //! The AWS service integrations the state machine calls directly, played for the embedded
-//! executor by moto: the Task's Parameters go to the API as written, its errors come back
-//! under the names Step Functions gives them.
+//! executor by moto (DynamoDB) and by the executor itself (Step Functions): the Task's
+//! Parameters go to the API as written, its errors come back under the names Step Functions
+//! gives them.
 //!
 //! Followed: the developer guide's "AWS SDK integrations" (parameters are the API's, in
 //! PascalCase; an error is `<Service>.<Error>` in PascalCase with the `Exception` suffix, so
@@ -13,10 +14,15 @@ use aws_config::SdkConfig;
 use aws_sdk_dynamodb::error::ProvideErrorMetadata;
 use aws_sdk_dynamodb::types::{AttributeValue, ReturnValue};
 use local_stepfunctions::{TaskError, TaskMap};
+
+use crate::events::LateCallbacks;
 use serde_json::{json, Map, Value};
 
 /// The handler key of the wake table's wait.
 pub const DYNAMODB_UPDATE_ITEM: &str = "aws-sdk:dynamodb:updateItem";
+
+/// The handler key of `ContinueAsNew` (the optimized Step Functions integration).
+pub const STATES_START_EXECUTION: &str = "states:startExecution";
 
 /// The `WaitForChange` state's Parameters of the deployed definition as Step Functions
 /// resolves them for a submission's wait (token, execution `submission-<id>-a`), with the
@@ -45,12 +51,49 @@ pub fn wait_for_change(token: &str, submission_id: u64, challenge: u64, seen: u6
     params
 }
 
-/// `tasks` with the integrations the deployed definition uses, against `sdk` (moto).
-pub fn with_services(tasks: TaskMap, sdk: &SdkConfig) -> TaskMap {
+/// `tasks` with the integrations the deployed definition uses: DynamoDB against `sdk`
+/// (moto), Step Functions against the executor `executor` is bound to.
+pub fn with_services(tasks: TaskMap, sdk: &SdkConfig, executor: LateCallbacks) -> TaskMap {
     let client = aws_sdk_dynamodb::Client::new(sdk);
-    tasks.with(DYNAMODB_UPDATE_ITEM, move |params: Value| {
-        let client = client.clone();
-        async move { update_item(&client, params).await }
+    tasks
+        .with(DYNAMODB_UPDATE_ITEM, move |params: Value| {
+            let client = client.clone();
+            async move { update_item(&client, params).await }
+        })
+        .with(STATES_START_EXECUTION, move |params: Value| {
+            let executor = executor.clone();
+            async move { start_execution(&executor, params) }
+        })
+}
+
+/// `StartExecution` with the Task's parameters (`StateMachineArn`, `Name`, `Input` as JSON or
+/// as its text), errors named as the optimized integration names them
+/// (`StepFunctions.<Error>Exception`).
+pub fn start_execution(executor: &LateCallbacks, params: Value) -> Result<Value, TaskError> {
+    let refuse =
+        |problem: String| TaskError::new("StepFunctions.InvalidExecutionInputException", problem);
+    let text = |key: &str| {
+        params[key]
+            .as_str()
+            .ok_or_else(|| refuse(format!("`{key}` must be a string")))
+    };
+    let machine = text("StateMachineArn")?;
+    let name = text("Name")?;
+    let input = match &params["Input"] {
+        Value::String(text) => {
+            serde_json::from_str(text).map_err(|e| refuse(format!("`Input` is not JSON: {e}")))?
+        }
+        Value::Null => json!({}),
+        value => value.clone(),
+    };
+    let executor = executor
+        .executor()
+        .ok_or_else(|| TaskError::new("StepFunctions.AWSStepFunctionsException", "no executor"))?;
+    executor.start_execution(machine, name, input).map_err(|e| {
+        TaskError::new(
+            format!("StepFunctions.{}Exception", e.name()),
+            e.to_string(),
+        )
     })
 }
 

@@ -136,6 +136,19 @@ pub enum StartError {
     /// `start` was called outside a Tokio runtime.
     #[error("an execution must be started from within a Tokio runtime")]
     NoRuntime,
+    /// `StartExecution`: the name is taken by an execution that ended, or by a running one
+    /// with another input (the same name and input is the running one, not an error).
+    #[error("execution `{name}` already exists")]
+    ExecutionAlreadyExists {
+        /// The name asked for.
+        name: String,
+    },
+    /// `StartExecution`: no state machine of that ARN ran here.
+    #[error("state machine `{arn}` does not exist")]
+    StateMachineDoesNotExist {
+        /// The ARN asked for.
+        arn: String,
+    },
 }
 
 impl StartError {
@@ -145,6 +158,8 @@ impl StartError {
             StartError::InvalidName { .. } => "InvalidName",
             StartError::InputTooLarge { .. } => "InvalidExecutionInput",
             StartError::NoRuntime => "NoRuntime",
+            StartError::ExecutionAlreadyExists { .. } => "ExecutionAlreadyExists",
+            StartError::StateMachineDoesNotExist { .. } => "StateMachineDoesNotExist",
         }
     }
 }

@@ -179,11 +179,17 @@ pub struct Executor {
 struct Known {
     executions: Mutex<HashMap<String, Started>>,
     listeners: Mutex<Vec<mpsc::UnboundedSender<Value>>>,
+    /// The state machines executions were started of, by ARN (for `StartExecution`).
+    machines: Mutex<HashMap<String, StateMachine>>,
 }
 
 struct Started {
     recorder: Arc<Recorder>,
     cancel: watch::Sender<bool>,
+    input: Value,
+    start_date: OffsetDateTime,
+    /// Its result once it ended.
+    ended: watch::Receiver<Option<ExecutionResult>>,
 }
 
 /// An execution as `DescribeExecution` tells it.
@@ -193,6 +199,8 @@ pub struct Described {
     pub status: Option<Status>,
     /// The error it failed or timed out with.
     pub error: Option<String>,
+    /// Its output, once it succeeded.
+    pub output: Option<Value>,
 }
 
 impl Known {
@@ -311,6 +319,9 @@ impl Executor {
                     _ => Status::Failed,
                 }),
                 error: end.and_then(|e| e.error().map(str::to_owned)),
+                output: end
+                    .filter(|e| e.event_type == EventType::ExecutionSucceeded)
+                    .and_then(|e| e.details.get("output").cloned()),
             }
         })
     }
@@ -435,6 +446,12 @@ impl Executor {
         let root = state_machine.definition.root.clone();
         tracing::info!(execution = %name, state_machine = %state_machine.name(), "execution started");
         self.known
+            .machines
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(state_machine_arn.clone(), state_machine.clone());
+        let (ended_tx, ended) = watch::channel(None);
+        self.known
             .executions
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
@@ -443,6 +460,9 @@ impl Executor {
                 Started {
                     recorder: recorder.clone(),
                     cancel: cancel.clone(),
+                    input: input.clone(),
+                    start_date,
+                    ended,
                 },
             );
         let known = self.known.clone();
@@ -459,6 +479,7 @@ impl Executor {
         let join = runtime.spawn(async move {
             let result = execution.await;
             known.ended(status_change_event(&result, &state_machine_arn, &input));
+            ended_tx.send_replace(Some(result.clone()));
             result
         });
         Ok(Execution {
@@ -468,6 +489,70 @@ impl Executor {
             cancel,
             join,
         })
+    }
+
+    /// `StartExecution` as the API answers it, for a state machine this executor has run an
+    /// execution of: `{ExecutionArn, StartDate}` (the date in epoch seconds, as the optimized
+    /// integration returns it). A name already taken is the same execution when it still runs
+    /// with the same input (the call is idempotent), and `ExecutionAlreadyExists` otherwise
+    /// (API reference, `StartExecution`).
+    pub fn start_execution(
+        &self,
+        state_machine_arn: &str,
+        name: &str,
+        input: Value,
+    ) -> Result<Value, StartError> {
+        let machine = self
+            .known
+            .machines
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(state_machine_arn)
+            .cloned()
+            .ok_or_else(|| StartError::StateMachineDoesNotExist {
+                arn: state_machine_arn.to_owned(),
+            })?;
+        let arn = format!(
+            "arn:aws:states:{}:{}:execution:{}:{name}",
+            self.options.region,
+            self.options.account_id,
+            machine.name()
+        );
+        let response = |start: OffsetDateTime| {
+            json!({
+                "ExecutionArn": arn,
+                "StartDate": start.unix_timestamp_nanos() as f64 / 1e9,
+            })
+        };
+        let taken = self.known.with(&arn, |started| {
+            let running = started.ended.borrow().is_none();
+            (running && started.input == input).then_some(started.start_date)
+        });
+        match taken {
+            Some(Some(start)) => return Ok(response(start)),
+            Some(None) => {
+                return Err(StartError::ExecutionAlreadyExists {
+                    name: name.to_owned(),
+                })
+            }
+            None => {}
+        }
+        let execution = self.start(&machine, name, input)?;
+        let start = self
+            .known
+            .with(execution.arn(), |started| started.start_date)
+            .unwrap_or_else(OffsetDateTime::now_utc);
+        // Detached: it runs on; its end is found through `wait_for`.
+        drop(execution);
+        Ok(response(start))
+    }
+
+    /// The result of execution `arn` once it ended (`None` for an ARN this executor never
+    /// started).
+    pub async fn wait_for(&self, arn: &str) -> Option<ExecutionResult> {
+        let mut ended = self.known.with(arn, |started| started.ended.clone())?;
+        let result = ended.wait_for(Option::is_some).await.ok()?.clone();
+        result
     }
 
     /// Starts an execution and waits for its result.

@@ -94,6 +94,10 @@ fn tasks(script: Script) -> (TaskMap, Stages) {
     let map = TaskMap::new()
         // The wake table's write: nothing wakes the wait, its timeout ends it.
         .with("aws-sdk:dynamodb:updateItem", |_| async { Ok(json!({})) })
+        // No run of these scripts continues (the continuation's own test has its handler).
+        .with("states:startExecution", |_| async {
+            Err(TaskError::new("StepFunctions.AWSStepFunctionsException", "not here"))
+        })
         .with("IntakeFunctionArn", move |input: Value| {
             intake.record(&input);
             let action = s.action;
@@ -180,9 +184,12 @@ fn the_definition_loads_with_its_five_substitutions() {
         .map(|f| (f.name.clone(), f.substitution.clone()))
         .collect();
     functions.sort();
-    // The wake table's wait is the service integration; the table's name is the fifth.
+    // The wake table's wait and the continuation are the service integrations; the table's
+    // name is the fifth substitution.
     let wait = functions.remove(0);
     assert_eq!(wait, ("aws-sdk:dynamodb:updateItem".to_owned(), None));
+    let start = functions.pop().unwrap();
+    assert_eq!(start, ("states:startExecution".to_owned(), None));
     assert_eq!(
         functions,
         ["finalize", "intake", "launch", "monitor"].map(|s| (
@@ -191,7 +198,7 @@ fn the_definition_loads_with_its_five_substitutions() {
         ))
     );
     assert_eq!(sm.start_at(), "OneSubmission?");
-    assert_eq!(sm.state_names().len(), 18);
+    assert_eq!(sm.state_names().len(), 21);
     let (all, _) = tasks(Script::default());
     let executor = Executor::new(all, options(1.0)).unwrap();
     assert!(executor.missing_tasks(&sm).is_empty());
@@ -200,7 +207,7 @@ fn the_definition_loads_with_its_five_substitutions() {
         options(1.0),
     )
     .unwrap();
-    assert_eq!(executor.missing_tasks(&sm).len(), 4);
+    assert_eq!(executor.missing_tasks(&sm).len(), 5);
     // Without the substitutions it cannot load.
     let definition: Value = serde_json::from_str(DEFINITION).unwrap();
     let err = StateMachine::load(&definition, &HashMap::new()).unwrap_err();
@@ -479,4 +486,142 @@ async fn the_bare_message_typed_in_the_console_runs_as_the_pipes_batch_of_one() 
     );
     assert_eq!(stages.finalize.count(), 1);
     assert_eq!(r.output.unwrap()["final"]["status"], "FINISHED");
+}
+
+/// A Monitor that asks to continue every `per_execution` rounds of one execution, and ends
+/// the run after `total` rounds; StartExecution played by the executor itself.
+fn continuing_tasks(
+    per_execution: u64,
+    total: u64,
+    executor: Arc<std::sync::OnceLock<Executor>>,
+) -> TaskMap {
+    let (base, _) = tasks(Script::default());
+    let rounds = Arc::new(AtomicUsize::new(0));
+    base.with("MonitorFunctionArn", move |input: Value| {
+        let round = rounds.fetch_add(1, Ordering::SeqCst) as u64 + 1;
+        let mut run = input["run"].clone();
+        let execution = input["execution"].as_str().unwrap_or_default().to_owned();
+        // Rounds of this execution: a new execution's first round starts the count.
+        let mine = if run["monitor"]["execution"] == execution.as_str() {
+            run["monitor"]["in_execution"].as_u64().unwrap_or(0) + 1
+        } else {
+            1
+        };
+        let generation = run["monitor"]["generation"].as_u64().unwrap_or(0);
+        let lineage = input["submission"]["execution"]
+            .as_str()
+            .unwrap_or_default()
+            .to_owned();
+        run["monitor"] = json!({
+            "state": "running", "wait_seconds": 60, "hold_seconds": 1, "seen": 0,
+            "expires_at": 1, "execution": execution, "in_execution": mine,
+            "generation": generation,
+        });
+        if round >= total {
+            run["monitor"]["state"] = json!("finished");
+        } else if mine >= per_execution {
+            run["monitor"]["state"] = json!("continued");
+            run["monitor"]["generation"] = json!(generation + 1);
+            run["monitor"]["continue_as"] = json!(format!("{lineage}-c{}", generation + 1));
+        }
+        async move { Ok(run) }
+    })
+    .with("states:startExecution", move |params: Value| {
+        let executor = executor.clone();
+        async move {
+            let executor = executor.get().expect("bound");
+            let arn = params["StateMachineArn"].as_str().unwrap_or_default();
+            let name = params["Name"].as_str().unwrap_or_default();
+            executor
+                .start_execution(arn, name, params["Input"].clone())
+                .map_err(|e| {
+                    TaskError::new(
+                        format!("StepFunctions.{}Exception", e.name()),
+                        e.to_string(),
+                    )
+                })
+        }
+    })
+}
+
+#[tokio::test]
+async fn a_long_run_continues_as_new_executions_of_the_same_state_machine() {
+    let bound = Arc::new(std::sync::OnceLock::new());
+    let executor = Executor::new(continuing_tasks(3, 8, bound.clone()), options(0.001)).unwrap();
+    bound.set(executor.clone()).unwrap();
+    let first = executor.start(&machine(), "sub-99", pipe_batch()).unwrap();
+    let mut result = first.wait().await;
+    let mut chain = vec![result.clone()];
+    while let Some(next) = result
+        .output
+        .as_ref()
+        .and_then(|o| o["ExecutionArn"].as_str())
+        .map(str::to_owned)
+    {
+        result = executor
+            .wait_for(&next)
+            .await
+            .expect("the continuation ran");
+        chain.push(result.clone());
+        assert!(chain.len() <= 4, "the chain does not end");
+    }
+    // Rounds 1-3 in the first, 4-6 in the second, 7-8 in the third, which finalizes.
+    assert_eq!(chain.len(), 3);
+    for (n, r) in chain.iter().enumerate() {
+        assert_eq!(
+            r.status,
+            Status::Succeeded,
+            "{n}: {:?} {:?}",
+            r.error,
+            r.cause
+        );
+    }
+    assert!(chain[2].execution_arn.ends_with(":submission:sub-99-c2"));
+    // Each earlier one ends in `Continued` with StartExecution's answer as its output.
+    for r in &chain[..2] {
+        assert_eq!(r.states_entered().last(), Some(&"Continued"));
+        let out = r.output.as_ref().unwrap();
+        assert!(out["StartDate"].is_number(), "{out}");
+    }
+    // A continuation resumes the loop with the run's state: no Intake, no Launch.
+    let entered = chain[1].states_entered();
+    assert_eq!(
+        entered[..4],
+        ["OneSubmission?", "Resume", "Hold", "WaitForChange"]
+    );
+    assert!(!entered.contains(&"Intake") && !entered.contains(&"Launch"));
+    assert_eq!(chain[2].states_entered().last(), Some(&"Done"));
+    // The run's state went along: the Monitor of the second saw the first's count.
+    let input = chain[1].history[0].details["input"].clone();
+    let input: Value = match input {
+        Value::String(text) => serde_json::from_str(&text).unwrap(),
+        other => other,
+    };
+    assert_eq!(input["continued"]["from"], "sub-99");
+    assert_eq!(
+        input["continued"]["intake"]["submission"]["execution"],
+        "sub-99"
+    );
+    assert_eq!(
+        input["continued"]["run"]["monitor"]["continue_as"],
+        "sub-99-c1"
+    );
+    // StartExecution's name rules: the same name and input while it runs is that execution;
+    // another input, or a name of an execution that ended, is refused.
+    let arn = chain[0]
+        .execution_arn
+        .replace(":execution:", ":stateMachine:");
+    let arn = arn.rsplit_once(':').unwrap().0;
+    let err = executor
+        .start_execution(arn, "sub-99-c1", json!({}))
+        .unwrap_err();
+    assert_eq!(err.name(), "ExecutionAlreadyExists");
+    let err = executor
+        .start_execution(
+            "arn:aws:states:us-east-1:123456789012:stateMachine:other",
+            "x",
+            json!({}),
+        )
+        .unwrap_err();
+    assert_eq!(err.name(), "StateMachineDoesNotExist");
 }

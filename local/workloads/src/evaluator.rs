@@ -155,6 +155,18 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
         Ok(start) => start,
         Err(exit) => return exit,
     };
+    if let Some(hz) = run.cfg.faults.flood_hz {
+        tracing::warn!(
+            hz,
+            "injected flood: rewriting a status file and the results file"
+        );
+        let faults = &run.cfg.faults;
+        tokio::spawn(crate::faults::flood(
+            faults.status_dir.clone(),
+            run.cfg.args.checkpoint.clone(),
+            hz,
+        ));
+    }
     for cfg in plan.iter().skip(start) {
         if let Some(exit) = run.route(cfg, &mut carla, &mut signals).await {
             return exit;

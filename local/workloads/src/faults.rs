@@ -285,6 +285,13 @@ pub struct EvaluatorFaults {
     /// record's write is appended as `<epoch ms> <route index>`, and the final write as
     /// `<epoch ms> global` (what `lbctl local run --latency` measures from).
     pub record_log: Option<PathBuf>,
+    /// `FAKE_EVALUATOR_FLOOD_HZ` (1 to 50): this many times a second for the whole run,
+    /// rewrite a file of its own in the status directory (`LB_STATUS_DIR`, default
+    /// `/tmp/status`) and its results file with the same records (a trailing newline on and
+    /// off), as a participant's code can.
+    pub flood_hz: Option<u32>,
+    /// The status directory the flood writes to.
+    pub status_dir: PathBuf,
 }
 
 impl EvaluatorFaults {
@@ -313,7 +320,45 @@ impl EvaluatorFaults {
             record_log: env
                 .non_empty("FAKE_EVALUATOR_RECORD_LOG")
                 .map(PathBuf::from),
+            flood_hz: env_value(env, "FAKE_EVALUATOR_FLOOD_HZ", |v| {
+                v.parse::<u32>()
+                    .ok()
+                    .filter(|hz| (1..=50).contains(hz))
+                    .ok_or_else(|| "not a whole number from 1 to 50".to_string())
+            })?,
+            status_dir: env
+                .non_empty("LB_STATUS_DIR")
+                .map_or_else(|| PathBuf::from("/tmp/status"), PathBuf::from),
         })
+    }
+}
+
+/// Rewrites `status_dir/flood.txt` and the results file `checkpoint` `hz` times a second,
+/// forever (the flood fault). The results keep their records: only a trailing newline comes
+/// and goes, so every rewrite is new content for logcopy. Each rewrite is a read and an atomic
+/// replace with no await between them, so on the evaluator's single thread it never loses one
+/// of the evaluator's own writes.
+pub async fn flood(status_dir: PathBuf, checkpoint: PathBuf, hz: u32) {
+    let period = Duration::from_secs_f64(1.0 / f64::from(hz.max(1)));
+    let junk = status_dir.join("flood.txt");
+    let mut count = 0u64;
+    loop {
+        tokio::time::sleep(period).await;
+        count += 1;
+        if let Err(error) = std::fs::write(&junk, format!("{count}\n")) {
+            tracing::debug!(%error, "flood: cannot write the status file");
+        }
+        if let Ok(text) = std::fs::read_to_string(&checkpoint) {
+            let body = text.trim_end_matches('\n');
+            let next = if text.ends_with('\n') {
+                body.to_owned()
+            } else {
+                format!("{body}\n")
+            };
+            if let Err(error) = crate::records::write_atomic(&checkpoint, next.as_bytes()) {
+                tracing::debug!(%error, "flood: cannot rewrite the results file");
+            }
+        }
     }
 }
 

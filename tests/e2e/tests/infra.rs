@@ -140,7 +140,7 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     // the sweep's schedule, and the reaper's two (executions' status changes, the pass over
     // held places), both to Finalize, whose role they may not name (a cycle): its own policy.
     assert_eq!(count("AWS::Events::Rule"), 4);
-    assert_eq!(count("AWS::IAM::Policy"), 1);
+    assert_eq!(count("AWS::IAM::Policy"), 2);
     assert_eq!(count("AWS::Lambda::EventSourceMapping"), 1);
     // The types moto skips are declared all the same (so the real deployment has them).
     let declared_count = |kind: &str| declared.values().filter(|k| *k == kind).count();
@@ -785,6 +785,32 @@ fn the_state_machine_role_invokes_the_four_functions_only() {
     assert_eq!(allowed.len(), 1);
     let targets: BTreeSet<_> = tasks().keys().map(|f| format!("<{f}.Arn>")).collect();
     assert_eq!(allowed["lambda:InvokeFunction"], targets);
+}
+
+#[test]
+fn the_state_machine_may_start_only_itself_to_continue_a_run() {
+    let statements = APP
+        .role_statements("StateMachineRole", Some("continue-as-new"))
+        .unwrap();
+    let allowed = test_support::privilege::allowed(&statements);
+    assert_eq!(allowed.len(), 1, "{allowed:?}");
+    assert_eq!(
+        allowed["states:StartExecution"],
+        BTreeSet::from(["<SubmissionStateMachine>".to_string()])
+    );
+    // The one Task that needs it.
+    let definition: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("statemachine/submission.asl.json")).unwrap(),
+    )
+    .unwrap();
+    let starts: Vec<_> = definition["States"]
+        .as_object()
+        .unwrap()
+        .iter()
+        .filter(|(_, s)| s["Resource"] == "arn:aws:states:::states:startExecution")
+        .map(|(name, s)| (name.as_str(), s["Parameters"]["StateMachineArn.$"].clone()))
+        .collect();
+    assert_eq!(starts, [("ContinueAsNew", "$$.StateMachine.Id".into())]);
 }
 
 /// The (api group, resource, verb) triples `crates/cluster` can call, read from its source:

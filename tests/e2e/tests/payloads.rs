@@ -108,6 +108,11 @@ fn run(phase: RunPhase) -> RunState {
             reason: Some(worst(MAX_REASON_BYTES * 4)),
             unreachable_since: Some(u64::MAX),
             started_at: Some(u64::MAX),
+            events: u64::MAX,
+            execution: Some("e".repeat(80)),
+            generation: u32::MAX,
+            continue_as: Some("c".repeat(80)),
+            handover: true,
         },
     }
 }

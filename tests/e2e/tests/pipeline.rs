@@ -98,6 +98,8 @@ impl Harness {
             launch::LaunchInput {
                 submission: submission.clone(),
                 queue: None,
+                events: None,
+                execution: None,
             },
             &self.launch,
         )
@@ -124,6 +126,8 @@ impl Harness {
                 monitor::MonitorInput {
                     submission: submission.clone(),
                     run,
+                    execution: None,
+                    retries: 0,
                 },
                 &self.monitor,
             )
@@ -351,6 +355,8 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
         monitor::MonitorInput {
             submission: submission.clone(),
             run: again,
+            execution: None,
+            retries: 0,
         },
         &h.monitor,
     )
@@ -427,6 +433,8 @@ async fn a_participant_cancel_ends_cancelled_with_the_jobs_gone() {
             monitor::MonitorInput {
                 submission: submission.clone(),
                 run,
+                execution: None,
+                retries: 0,
             },
             &h.monitor,
         )
@@ -605,6 +613,8 @@ async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() 
             monitor::MonitorInput {
                 submission: submission.clone(),
                 run,
+                execution: None,
+                retries: 0,
             },
             &unreachable,
         )
@@ -632,6 +642,8 @@ async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() 
         monitor::MonitorInput {
             submission: submission.clone(),
             run: fresh,
+            execution: None,
+            retries: 0,
         },
         &deps,
     )
