@@ -212,6 +212,9 @@ pub struct PairConfig {
     pub handoff_dir: PathBuf,
     /// `LB_GPU_FROM_AGENT`: the simulator renders on the agent's GPU.
     pub gpu_from_agent: bool,
+    /// `LB_GPU_PIN_DIR`: where the simulator keeps the GPU it took over, for the pod's later
+    /// attempts (a volume only simulators mount).
+    pub gpu_pin_dir: PathBuf,
 }
 
 impl PairConfig {
@@ -248,6 +251,10 @@ impl PairConfig {
             stop_grace: e.seconds(env::STOP_GRACE_SECONDS, 10.0, true)?,
             handoff_dir: e.path(crate::handoff::DIR_VAR, Some(crate::handoff::DEFAULT_DIR))?,
             gpu_from_agent: e.flag(crate::handoff::FROM_AGENT_VAR)?,
+            gpu_pin_dir: e.path(
+                crate::handoff::PIN_DIR_VAR,
+                Some(crate::handoff::DEFAULT_PIN_DIR),
+            )?,
         })
     }
 }

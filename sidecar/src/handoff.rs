@@ -13,6 +13,13 @@
 //! --query-gpu=index,uuid --format=csv,noheader` (PCI bus order) and replaces `{gpu_index}` in
 //! CARLA's arguments and environment. The original 2.0 Jobs did the same.
 //!
+//! **Once per pod.** The handoff volume is one the participant's code can write, so the
+//! simulator reads it only at its first take-over, which comes before any of that code runs
+//! (the agent starts its evaluator only after this attempt's start marker, which the simulator
+//! writes once CARLA is up on the GPU it took). It keeps the UUID in `$LB_GPU_PIN_DIR/gpu-<ID>`,
+//! a volume only simulators mount, and every later attempt of the pod renders on that GPU
+//! whatever the handoff file says by then. Nothing it logs names another GPU of the node.
+//!
 //! **The port.** Every pod has its own network, so CARLA's port (`CARLA_PORT`, 2000) is free;
 //! where it is not (pods sharing one network, as on `local-kube`, or a leftover process), the
 //! simulator's sidecar takes the first free one of `CARLA_PORT + 100*k`, puts it in place of
@@ -41,6 +48,10 @@ pub const DIR_VAR: &str = "LB_HANDOFF_DIR";
 const PORT_CANDIDATES: u16 = 50;
 /// Distance between candidates (CARLA also takes the two ports after its own).
 const PORT_STRIDE: u16 = 100;
+/// Where the simulator keeps the GPU it took over (a volume only simulators mount).
+pub const DEFAULT_PIN_DIR: &str = "/tmp/gpu-pin";
+/// `LB_GPU_PIN_DIR`: that folder.
+pub const PIN_DIR_VAR: &str = "LB_GPU_PIN_DIR";
 /// `LB_GPU_FROM_AGENT`: the simulator takes its GPU from the agent.
 pub const FROM_AGENT_VAR: &str = "LB_GPU_FROM_AGENT";
 /// Set by the device plugin in the container holding the GPU.
@@ -62,14 +73,18 @@ pub enum GpuError {
     /// `nvidia-smi` could not be run or failed.
     #[error("nvidia-smi: {0}")]
     Query(String),
-    /// The agent's GPU is not among this container's GPUs.
-    #[error("GPU `{uuid}` is not among the GPUs nvidia-smi lists here ({listed})")]
+    /// The agent's GPU is not among this container's GPUs. The others are counted, never
+    /// named: the simulator's log is the participant's to read.
+    #[error("GPU `{uuid}` is not among the {listed} GPU(s) nvidia-smi lists here")]
     NotOnNode {
         /// The handed-over UUID.
         uuid: String,
-        /// What nvidia-smi listed.
-        listed: String,
+        /// How many nvidia-smi listed.
+        listed: usize,
     },
+    /// The GPU could not be kept for the pod's later attempts.
+    #[error("cannot keep the GPU in `{0}`: {1}")]
+    Pin(PathBuf, String),
 }
 
 /// The one GPU UUID in a `NVIDIA_VISIBLE_DEVICES` value or handoff file.
@@ -106,14 +121,7 @@ pub fn index_of(uuid: &str, csv: &str) -> Result<u32, GpuError> {
         .map(|(index, _)| *index)
         .ok_or_else(|| GpuError::NotOnNode {
             uuid: uuid.to_owned(),
-            listed: if rows.is_empty() {
-                "none".into()
-            } else {
-                rows.iter()
-                    .map(|(i, id)| format!("{i}: {id}"))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            },
+            listed: rows.len(),
         })
 }
 
@@ -199,16 +207,42 @@ pub fn hand_over(dir: &Path, pair: u32, visible: Option<&str>) -> Result<Option<
     Ok(Some(uuid))
 }
 
-/// The simulator's side: waits (at most `wait`) for the agent's handoff, then asks
-/// `nvidia-smi` for the GPU's index. `None` when SIGTERM came first.
+/// The simulator's side: the pair's GPU UUID and its index (`nvidia-smi`). `None` when
+/// SIGTERM came first.
 pub async fn take_over(
-    dir: &Path,
+    dirs: (&Path, &Path),
     pair: u32,
     wait: Duration,
     poll: Duration,
     signals: &mut Signals,
 ) -> Result<Option<(String, u32)>, GpuError> {
-    let path = handoff_path(dir, pair);
+    let Some(uuid) = pinned_gpu(dirs, pair, wait, poll, signals).await? else {
+        return Ok(None);
+    };
+    let csv = query().await?;
+    Ok(Some((uuid.clone(), index_of(&uuid, &csv)?)))
+}
+
+/// The pin file of pair `pair`.
+pub fn pin_path(dir: &Path, pair: u32) -> PathBuf {
+    dir.join(format!("gpu-{pair}"))
+}
+
+/// The pair's GPU UUID: the one pinned at the pod's first take-over, or else the agent's
+/// handoff (waited for at most `wait` in `dirs.0`), pinned now in `dirs.1` before it is used.
+/// `None` when SIGTERM came first.
+pub async fn pinned_gpu(
+    (handoff_dir, pin_dir): (&Path, &Path),
+    pair: u32,
+    wait: Duration,
+    poll: Duration,
+    signals: &mut Signals,
+) -> Result<Option<String>, GpuError> {
+    let pin = pin_path(pin_dir, pair);
+    if let Some(text) = read_small(&pin) {
+        return one_uuid(&text).map(Some);
+    }
+    let path = handoff_path(handoff_dir, pair);
     let until = Instant::now() + wait;
     let uuid = loop {
         if let Some(text) = read_small(&path) {
@@ -221,8 +255,13 @@ pub async fn take_over(
             return Ok(None);
         }
     };
-    let csv = query().await?;
-    Ok(Some((uuid.clone(), index_of(&uuid, &csv)?)))
+    // NB: write then rename, so a later attempt never reads half a UUID.
+    let tmp = pin_dir.join(format!(".gpu-{pair}.tmp"));
+    std::fs::create_dir_all(pin_dir)
+        .and_then(|()| std::fs::write(&tmp, &uuid))
+        .and_then(|()| std::fs::rename(&tmp, &pin))
+        .map_err(|e| GpuError::Pin(pin.clone(), e.to_string()))?;
+    Ok(Some(uuid))
 }
 
 fn read_small(path: &Path) -> Option<String> {
@@ -289,12 +328,20 @@ mod tests {
         let csv = format!("index, uuid\n0, GPU-aaaa\n1, {UUID}\n2, GPU-cccc\n");
         assert_eq!(index_of(UUID, &csv).unwrap(), 1);
         assert_eq!(index_of("GPU-cccc", "0, GPU-aaaa\n3, GPU-cccc").unwrap(), 3);
+        // The error names the GPU asked for and counts the others without naming them.
         let err = index_of("GPU-ffff", &csv).unwrap_err().to_string();
         assert!(
-            err.contains("GPU-ffff") && err.contains("1: GPU-8f6b"),
+            err.contains("GPU-ffff") && err.contains("3 GPU(s)"),
             "{err}"
         );
-        assert!(index_of(UUID, "").unwrap_err().to_string().contains("none"));
+        assert!(
+            !err.contains("GPU-8f6b") && !err.contains("GPU-aaaa"),
+            "{err}"
+        );
+        assert!(index_of(UUID, "")
+            .unwrap_err()
+            .to_string()
+            .contains(" 0 GPU"));
     }
 
     #[test]
@@ -337,6 +384,40 @@ mod tests {
         assert_eq!(announced_port(dir.path(), 1), None);
         announce_port(dir.path(), 1, picked).unwrap();
         assert_eq!(announced_port(dir.path(), 1), Some(picked));
+    }
+
+    #[tokio::test]
+    async fn the_first_take_over_pins_the_gpu_and_a_planted_handoff_never_moves_it() {
+        let (handoff, pin) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        let dirs = (handoff.path(), pin.path());
+        let mut signals = Signals::install().unwrap();
+        let (wait, poll) = (Duration::from_millis(200), Duration::from_millis(10));
+        // No handoff in time: no GPU (a crash of that attempt), nothing pinned.
+        let err = pinned_gpu(dirs, 1, wait, poll, &mut signals)
+            .await
+            .unwrap_err();
+        assert!(matches!(err, GpuError::NoHandoff(..)), "{err}");
+        assert!(!pin_path(pin.path(), 1).exists());
+        // The agent's handoff, before any participant code: taken and pinned.
+        hand_over(handoff.path(), 1, Some(UUID)).unwrap();
+        let got = pinned_gpu(dirs, 1, wait, poll, &mut signals).await.unwrap();
+        assert_eq!(got.as_deref(), Some(UUID));
+        assert_eq!(read_small(&pin_path(pin.path(), 1)).unwrap(), UUID);
+        // The participant's code plants another GPU (or garbage), crashes, and the next
+        // attempt of the simulator renders on the pinned one.
+        let other = "GPU-00000000-0000-0000-0000-000000000002";
+        for planted in [other, "GPU-$(reboot)", ""] {
+            std::fs::write(handoff_path(handoff.path(), 1), planted).unwrap();
+            let got = pinned_gpu(dirs, 1, wait, poll, &mut signals).await.unwrap();
+            assert_eq!(got.as_deref(), Some(UUID), "{planted}");
+        }
+        std::fs::remove_file(handoff_path(handoff.path(), 1)).unwrap();
+        let got = pinned_gpu(dirs, 1, wait, poll, &mut signals).await.unwrap();
+        assert_eq!(got.as_deref(), Some(UUID));
+        // A malformed handoff at the first take-over is refused, and not pinned.
+        std::fs::write(handoff_path(handoff.path(), 2), "all").unwrap();
+        assert!(pinned_gpu(dirs, 2, wait, poll, &mut signals).await.is_err());
+        assert!(!pin_path(pin.path(), 2).exists());
     }
 
     #[test]

@@ -62,8 +62,8 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
 
     let log = cfg.logs_dir.join(protocol::simulator_log(id));
     let gpu = if cfg.gpu_from_agent {
-        match handoff::take_over(&cfg.handoff_dir, id, cfg.start_wait, cfg.poll, &mut signals).await
-        {
+        let dirs = (cfg.handoff_dir.as_path(), cfg.gpu_pin_dir.as_path());
+        match handoff::take_over(dirs, id, cfg.start_wait, cfg.poll, &mut signals).await {
             Ok(Some((uuid, index))) => {
                 info!(pair = id, %uuid, index, "rendering on the agent's GPU");
                 Some(index)

@@ -269,7 +269,12 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_four_jobs_of_one_pair() {
                 ("/tmp/logs".into(), "logs".into(), "logs".into()),
                 ("/opt/lb".into(), "lb-bin".into(), String::new()),
                 ("/dev/shm".into(), "dshm".into(), String::new()),
-                ("/tmp/handoff".into(), "handoff".into(), String::new()),
+                // The pair's own handoff folder; the GPU pin is the simulator's alone.
+                (
+                    "/tmp/handoff".into(),
+                    "handoff".into(),
+                    format!("pair-{id}")
+                ),
                 (
                     "/workspace/leaderboard".into(),
                     "leaderboard".into(),
@@ -295,7 +300,21 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_four_jobs_of_one_pair() {
                 ("/opt/lb".into(), "lb-bin".into(), String::new()),
             ]
         );
-        assert!(mounts(sim).contains(&("/tmp/handoff".into(), "handoff".into(), String::new())));
+        let handoff = (
+            "/tmp/handoff".into(),
+            "handoff".into(),
+            format!("pair-{id}"),
+        );
+        assert!(mounts(sim).contains(&handoff));
+        let pin = (
+            "/tmp/gpu-pin".into(),
+            "gpu-pin".into(),
+            format!("pair-{id}"),
+        );
+        assert!(mounts(sim).contains(&pin));
+        assert!(!mounts(agent)
+            .iter()
+            .any(|(_, volume, _)| volume == "gpu-pin"));
     }
 
     let job = &jobs[3];

@@ -146,7 +146,11 @@ async fn a_burst_wakes_its_execution_once_and_a_failed_report_comes_back() {
         .await
         .unwrap();
     deps.callbacks.answer_always(Answer::Stale);
-    let response = run(&deps, &[("m12", event_for("42/containers-status/agent-1.crash0"))]).await;
+    let response = run(
+        &deps,
+        &[("m12", event_for("42/containers-status/agent-1.crash0"))],
+    )
+    .await;
     assert_eq!(response, failures(&[]));
     assert_eq!(deps.wakes.state(42).await.unwrap().changes, 5);
 
