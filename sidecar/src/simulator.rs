@@ -66,6 +66,12 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
         match handoff::take_over(dirs, id, cfg.start_wait, cfg.poll, &mut signals).await {
             Ok(Some((uuid, index))) => {
                 info!(pair = id, %uuid, index, "rendering on the agent's GPU");
+                // The pair's own GPU only, by index: the log is the participant's to read.
+                if let Ok(f) = crate::supervise::open_log(&log) {
+                    let line =
+                        format!("simulator {id} attempt {attempt}: rendering on GPU {index}");
+                    crate::supervise::note(&f, &line);
+                }
                 Some(index)
             }
             Ok(None) => {

@@ -42,6 +42,8 @@ pub struct RunReport {
     pub scores: Option<Value>,
     /// The merged results file in numbers.
     pub merged: Option<Merged>,
+    /// The GPU index each attempt of each pair's simulator rendered on, by pair (from its log).
+    pub simulator_gpus: std::collections::BTreeMap<u32, Vec<u32>>,
     /// Results files and markers S3's events brought to the wake function.
     pub wake_messages: u64,
     /// Times the cancel sweep woke the execution.

@@ -51,6 +51,13 @@ pub enum Scenario {
     /// come no sooner than the least interval, and a history near its budget continues as a
     /// new execution. FINISHED.
     WakeFlood,
+    /// Every other pair's agent writes pair 2's results file and done marker in its own pod:
+    /// none of it leaves the pod, pair 2's honest results stand, FINISHED.
+    Forge,
+    /// Every agent plants another GPU's UUID in its pair's handoff and crashes once: each
+    /// simulator renders on its own pair's GPU at every attempt, FINISHED (a node of 4 GPUs
+    /// unless --gpus says otherwise).
+    PlantGpu,
     /// An operator stops the execution (StopExecution) after its first Monitor round: the
     /// reaper (Finalize, on Step Functions' status-change event, which local mode delivers as
     /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
@@ -61,7 +68,12 @@ pub enum Scenario {
 impl Scenario {
     fn expected(self) -> &'static str {
         match self {
-            Scenario::Happy | Scenario::Crash | Scenario::Hang | Scenario::WakeFlood => "finished",
+            Scenario::Happy
+            | Scenario::Crash
+            | Scenario::Hang
+            | Scenario::WakeFlood
+            | Scenario::Forge
+            | Scenario::PlantGpu => "finished",
             Scenario::Cancel => "cancelled",
             Scenario::Unpullable | Scenario::CrashLoop | Scenario::NoNode | Scenario::Stop => {
                 "failed"
@@ -254,6 +266,20 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     }
     if args.scenario == Scenario::NoNode {
         behaviour.node_instance_type = Some(OTHER_INSTANCE_TYPE.into());
+    }
+    if args.scenario == Scenario::Forge {
+        behaviour
+            .evaluator_env
+            .insert("FAKE_EVALUATOR_FORGE_PAIR".into(), "2".into());
+    }
+    if args.scenario == Scenario::PlantGpu {
+        // Two of the node's GPUs: at least one is another pair's.
+        let planted = [0, 1].map(local_kube::gpu_uuid).join(",");
+        behaviour.node_gpus = Some(args.gpus.unwrap_or(4));
+        behaviour.evaluator_env.extend([
+            ("FAKE_EVALUATOR_PLANT_GPU".into(), planted),
+            ("FAKE_EVALUATOR_ONCE_DIR".into(), once.display().to_string()),
+        ]);
     }
     if args.scenario == Scenario::WakeFlood {
         behaviour
@@ -611,6 +637,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             .and_then(|s| s.leaderboard.first())
             .map(|row| row.result.clone()),
         merged: merged_summary(&stack.sdk, &bucket, submission).await,
+        simulator_gpus: simulator_gpus(&stack.sdk, &bucket, submission, args.workers).await,
         wake_messages,
         sweep_wakes,
         unreachable_rounds: unreachable_rounds.load(Ordering::SeqCst),
@@ -714,6 +741,47 @@ fn team_sizes(args: &LocalRun) -> anyhow::Result<Vec<u32>> {
 
 /// `agent_results.json` summed up: its records and how many each route has (Leaderboard 1.0
 /// runs every route 5 times under one id).
+/// The GPU each attempt of each pair's simulator rendered on, by pair, as its log in S3 notes
+/// them (`simulator <ID> attempt <N>: rendering on GPU <index>`).
+async fn simulator_gpus(
+    sdk: &aws_config::SdkConfig,
+    bucket: &str,
+    submission: u64,
+    pairs: u32,
+) -> BTreeMap<u32, Vec<u32>> {
+    let mut gpus = BTreeMap::new();
+    for pair in 1..=pairs {
+        let key = format!(
+            "{submission}/{}/{}",
+            lb_domain::protocol::LOGS_DIR,
+            lb_domain::protocol::simulator_log(pair)
+        );
+        let object = lb_aws::s3_client(sdk)
+            .get_object()
+            .bucket(bucket)
+            .key(key)
+            .send()
+            .await;
+        let Ok(object) = object else { continue };
+        let Ok(bytes) = object.body.collect().await else {
+            continue;
+        };
+        let text = String::from_utf8_lossy(&bytes.into_bytes()).into_owned();
+        let indices: Vec<u32> = text
+            .lines()
+            .filter_map(|line| {
+                line.split_once(": rendering on GPU ")?
+                    .1
+                    .trim()
+                    .parse()
+                    .ok()
+            })
+            .collect();
+        gpus.insert(pair, indices);
+    }
+    gpus
+}
+
 async fn merged_summary(
     sdk: &aws_config::SdkConfig,
     bucket: &str,

@@ -60,6 +60,7 @@ fn every_scenario_ends_as_expected() {
     let _one = one_at_a_time();
     // lbctl finds the sidecar and the fakes next to itself.
     // One at a time: local Jobs share the host's CARLA ports.
+    let mut happy_scores = Value::Null;
     for (scenario, expected) in [
         ("happy", "FINISHED"),
         ("crash", "FINISHED"),
@@ -69,6 +70,8 @@ fn every_scenario_ends_as_expected() {
         ("crash-loop", "FAILED"),
         ("no-node", "FAILED"),
         ("stop", "FAILED"),
+        ("forge", "FINISHED"),
+        ("plant-gpu", "FINISHED"),
     ] {
         let started = Instant::now();
         let (report, stdout) = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
@@ -130,7 +133,31 @@ fn every_scenario_ends_as_expected() {
                 assert_eq!(left["places_held"], 0, "{report}");
                 assert_eq!(left["record_status"], "FAILED", "{report}");
             }
-            _ => assert!(report["evalai_stderr"].is_null(), "{scenario}: {report}"),
+            "happy" => happy_scores = report["scores"].clone(),
+            "forge" => {
+                // Pair 2's results as pair 2 wrote them: the same scores as the happy run,
+                // although the other pairs' pods wrote its file and done marker last.
+                assert_eq!(report["merged"]["records"], 20, "{report}");
+                assert_eq!(report["scores"], happy_scores, "{report}");
+            }
+            "plant-gpu" => {
+                // Every pair crashed once after planting another GPU; each simulator's
+                // attempts all rendered on its own pair's GPU.
+                let gpus = report["simulator_gpus"].as_object().unwrap();
+                assert_eq!(gpus.len(), 4, "{report}");
+                for (pair, attempts) in gpus {
+                    let attempts = attempts.as_array().unwrap();
+                    assert!(attempts.len() >= 2, "pair {pair}: {report}");
+                    assert!(
+                        attempts.iter().all(|a| a == &attempts[0]),
+                        "pair {pair}: {report}"
+                    );
+                }
+            }
+            _ => {}
+        }
+        if !["crash-loop", "unpullable", "no-node", "stop"].contains(&scenario) {
+            assert!(report["evalai_stderr"].is_null(), "{scenario}: {report}");
         }
         assert!(
             started.elapsed().as_secs() < 60,

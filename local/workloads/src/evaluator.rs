@@ -155,6 +155,9 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
         Ok(start) => start,
         Err(exit) => return exit,
     };
+    if let Some(exit) = run.tamper() {
+        return exit;
+    }
     if let Some(hz) = run.cfg.faults.flood_hz {
         tracing::warn!(
             hz,
@@ -174,6 +177,9 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
     }
     run.global()
 }
+
+/// How long a forging evaluator waits after its last route before its last forgery.
+const FORGE_LAST_WORD: Duration = Duration::from_secs(3);
 
 struct Run {
     cfg: EvaluatorConfig,
@@ -518,7 +524,73 @@ impl Run {
     }
 
     /// The end of a complete run: global statistics, `Finished`, exit 0.
+    /// The tampering faults, before the first route: another pair's results file and done
+    /// marker written beside this pair's own (`FAKE_EVALUATOR_FORGE_PAIR`), another GPU planted
+    /// in the pair's handoff, then a crash (`FAKE_EVALUATOR_PLANT_GPU`, once).
+    fn tamper(&self) -> Option<Exit> {
+        self.forge();
+        let faults = &self.cfg.faults;
+        let planted = faults
+            .plant_gpu
+            .iter()
+            .find(|uuid| Some(uuid.as_str()) != faults.own_gpu.as_deref())?;
+        let handoff = faults.handoff_file.as_ref()?;
+        if !self.once.armed("plant-gpu") {
+            return None;
+        }
+        self.once.mark("plant-gpu");
+        if let Err(error) = std::fs::write(handoff, planted) {
+            tracing::warn!(%error, path = %handoff.display(), "cannot plant the GPU");
+        }
+        tracing::warn!(%planted, "injected: another GPU planted in the handoff, then a crash");
+        self.traceback(
+            &[("main", "crashed = leaderboard_evaluator.run(arguments)")],
+            &format!("RuntimeError: fake-evaluator: planted {planted} (FAKE_EVALUATOR_PLANT_GPU)"),
+        );
+        Some(Exit::Traceback)
+    }
+
+    /// Writes pair `FAKE_EVALUATOR_FORGE_PAIR`'s results file (this pair's records, outside
+    /// that pair's routes) and its done marker, as a participant's code can in its own pod.
+    fn forge(&self) {
+        let Some(other) = self
+            .cfg
+            .faults
+            .forge_pair
+            .filter(|other| Some(*other) != self.cfg.faults.pair_id)
+        else {
+            return;
+        };
+        let Some(dir) = self.cfg.args.checkpoint.parent() else {
+            return;
+        };
+        let forged = dir.join(lb_domain::protocol::partial_results_name(other));
+        let marker = lb_domain::protocol::Marker::Done {
+            role: lb_domain::protocol::Role::Agent,
+            pair: other,
+        };
+        let written = records::write_atomic(&forged, self.checkpoint.to_json().as_bytes())
+            .map_err(|e| e.to_string())
+            .and_then(|()| {
+                std::fs::write(self.cfg.faults.status_dir.join(marker.to_string()), b"")
+                    .map_err(|e| e.to_string())
+            });
+        match written {
+            Ok(()) => tracing::warn!(
+                pair = other,
+                "injected: another pair's results and done marker forged"
+            ),
+            Err(error) => tracing::warn!(%error, "cannot forge another pair's files"),
+        }
+    }
+
     fn global(&mut self) -> Exit {
+        // The forger's last word, a while after every route of its own: later than the forged
+        // pair's own last write, so that, were it uploaded, it would stand.
+        if self.cfg.faults.forge_pair.is_some() {
+            std::thread::sleep(FORGE_LAST_WORD);
+        }
+        self.forge();
         say(&bold("> Registering the global statistics"));
         let (merged, mut text) = match self.checkpoint.finish(self.sensors_initialized) {
             Ok(done) => done,

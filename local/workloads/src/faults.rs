@@ -292,6 +292,20 @@ pub struct EvaluatorFaults {
     pub flood_hz: Option<u32>,
     /// The status directory the flood writes to.
     pub status_dir: PathBuf,
+    /// `FAKE_EVALUATOR_FORGE_PAIR=<ID>`: before its first route and after its last, the
+    /// evaluator of every other pair writes pair `<ID>`'s results file (its own records) and
+    /// `agent-<ID>.done` beside its own, as a participant's code can in its pod.
+    pub forge_pair: Option<u32>,
+    /// This pair (`LB_PAIR_ID`).
+    pub pair_id: Option<u32>,
+    /// `FAKE_EVALUATOR_PLANT_GPU=<UUID>[,<UUID>...]`: once (with a once directory), write the
+    /// first of these that is not this container's own GPU into the pair's GPU handoff
+    /// (`$LB_HANDOFF_DIR/gpu-$LB_PAIR_ID`, default `/tmp/handoff`), then crash.
+    pub plant_gpu: Vec<String>,
+    /// This container's GPU (`NVIDIA_VISIBLE_DEVICES`).
+    pub own_gpu: Option<String>,
+    /// The pair's GPU handoff file.
+    pub handoff_file: Option<PathBuf>,
 }
 
 impl EvaluatorFaults {
@@ -329,6 +343,22 @@ impl EvaluatorFaults {
             status_dir: env
                 .non_empty("LB_STATUS_DIR")
                 .map_or_else(|| PathBuf::from("/tmp/status"), PathBuf::from),
+            forge_pair: env_value(env, "FAKE_EVALUATOR_FORGE_PAIR", |v| {
+                v.parse::<u32>()
+                    .ok()
+                    .filter(|id| *id > 0)
+                    .ok_or_else(|| "not a pair id (1 or more)".to_string())
+            })?,
+            plant_gpu: env
+                .non_empty("FAKE_EVALUATOR_PLANT_GPU")
+                .map(|v| v.split(',').map(|u| u.trim().to_owned()).collect())
+                .unwrap_or_default(),
+            own_gpu: env.non_empty("NVIDIA_VISIBLE_DEVICES").map(str::to_owned),
+            pair_id: env.non_empty("LB_PAIR_ID").and_then(|p| p.parse().ok()),
+            handoff_file: env.non_empty("LB_PAIR_ID").map(|pair| {
+                let dir = env.non_empty("LB_HANDOFF_DIR").unwrap_or("/tmp/handoff");
+                PathBuf::from(dir).join(format!("gpu-{pair}"))
+            }),
         })
     }
 }
