@@ -340,6 +340,8 @@ const KNOWN_ATTRIBUTES: &[&str] = &[
     "results",
     "error",
     "claimed_by",
+    "recordings_found",
+    "recordings_expected",
 ];
 
 /// A DynamoDB value as plain JSON (numbers as numbers when they fit).

@@ -331,6 +331,17 @@ fn print_record(record: &Record) {
     if let Some(error) = record.text("error") {
         outln!("  {:<12} {}", "error", clean(error));
     }
+    if let Some((found, expected)) = recordings(record) {
+        let note = if found < expected {
+            format!(
+                " ({} route(s) without a CARLA recording: these scores cannot be audited; docs/security.md)",
+                expected - found
+            )
+        } else {
+            String::new()
+        };
+        outln!("  {:<12} {found}/{expected}{note}", "recordings");
+    }
     for (key, value) in record.extra_attributes() {
         outln!("  {:<12} {value}", clean(key));
     }
@@ -436,6 +447,9 @@ pub async fn list(args: List) -> Result<u8> {
     if matching.len() > shown.len() {
         outln!("... {} more (raise --limit)", matching.len() - shown.len());
     }
+    if shown.iter().any(|r| unaudited(r)) {
+        outln!("* some routes have no CARLA recording: the scores cannot be audited (lbctl status <submission>)");
+    }
     Ok(0)
 }
 
@@ -479,6 +493,19 @@ fn short_age(age: time::Duration) -> String {
     }
 }
 
+/// A result's routes with their CARLA recording, and its routes (FINISHED records only).
+fn recordings(record: &Record) -> Option<(u64, u64)> {
+    Some((
+        record.number("recordings_found")?,
+        record.number("recordings_expected")?,
+    ))
+}
+
+/// A FINISHED result some of whose routes lack their recording.
+fn unaudited(record: &Record) -> bool {
+    recordings(record).is_some_and(|(found, expected)| found < expected)
+}
+
 fn list_line(record: &Record, queue: Option<usize>, age: Option<time::Duration>) -> String {
     let text = |key: &str| record.text(key).map(clean).unwrap_or_else(|| "-".into());
     let number = |key: &str| {
@@ -491,7 +518,11 @@ fn list_line(record: &Record, queue: Option<usize>, age: Option<time::Duration>)
         "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7}  {:<23} {}",
         number("submission_id"),
         clean(&record.leaderboard),
-        text("submission_status"),
+        format!(
+            "{}{}",
+            text("submission_status"),
+            if unaudited(record) { "*" } else { "" }
+        ),
         queue.map_or_else(|| "-".to_string(), |q| q.to_string()),
         age.map_or_else(|| "-".to_string(), short_age),
         shorten(&team, 28),

@@ -135,6 +135,9 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
                 "end_time",
                 AttributeValue::S("2026-01-02 00:00:00 UTC".into()),
             ),
+            // Two of its routes have no CARLA recording (Finalize counted them).
+            ("recordings_found", AttributeValue::N("18".into())),
+            ("recordings_expected", AttributeValue::N("20".into())),
         ],
     )
     .await;
@@ -159,6 +162,16 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
     ] {
         assert!(text.contains(expected), "`{expected}` missing:\n{text}");
     }
+
+    // A FINISHED result some of whose routes have no recording says so.
+    let out = lbctl(&["status", "102"], &env, None);
+    assert!(
+        stdout(&out).contains("recordings   18/20 (2 route(s) without a CARLA recording: these scores cannot be audited"),
+        "{}",
+        show(&out)
+    );
+    let out = lbctl(&["status", "101"], &env, None);
+    assert!(!stdout(&out).contains("recordings"), "{}", show(&out));
 
     let out = lbctl(&["status", "102", "--json"], &env, None);
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
@@ -186,6 +199,12 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
     assert_eq!(list_ids(&stdout(&out)), [103, 102, 101], "{}", show(&out));
     assert!(stdout(&out).starts_with("SUBMISSION"), "{}", show(&out));
+    assert!(stdout(&out).contains(" FINISHED* "), "{}", show(&out));
+    assert!(
+        stdout(&out).contains("* some routes have no CARLA recording"),
+        "{}",
+        show(&out)
+    );
 
     let out = lbctl(&["list", "--running"], &env, None);
     assert_eq!(list_ids(&stdout(&out)), [103, 101], "{}", show(&out));

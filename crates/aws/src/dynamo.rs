@@ -113,6 +113,9 @@ pub struct FinalRecord {
     pub progress: (u64, u64),
     /// Why it failed, readable.
     pub error: Option<String>,
+    /// Routes with their CARLA recording / routes of the result (FINISHED only): what an
+    /// operator can audit (`lb_domain::audit`).
+    pub recordings: Option<(u64, u64)>,
 }
 
 /// The submissions table.
@@ -373,15 +376,30 @@ impl SubmissionsTable {
             names.insert(format!("#m{i}"), attribute.to_string());
             values.insert(format!(":m{i}"), s(value.as_deref().unwrap_or(UNKNOWN)));
         }
-        let mut expression = format!("SET {}", set.join(", "));
+        let mut remove = Vec::new();
         names.insert("#error".into(), "error".into());
         match &record.error {
             Some(error) => {
-                expression.push_str(", #error = :error");
+                set.push("#error = :error".into());
                 values.insert(":error".into(), s(error));
             }
             // A resumed submission that now finishes must not keep the old run's error.
-            None => expression.push_str(" REMOVE #error"),
+            None => remove.push("#error"),
+        }
+        names.insert("#found".into(), "recordings_found".into());
+        names.insert("#expected".into(), "recordings_expected".into());
+        match record.recordings {
+            Some((found, expected)) => {
+                set.push("#found = :found, #expected = :expected".into());
+                values.insert(":found".into(), n(found));
+                values.insert(":expected".into(), n(expected));
+            }
+            // Nor an old run's count of recordings.
+            None => remove.extend(["#found", "#expected"]),
+        }
+        let mut expression = format!("SET {}", set.join(", "));
+        if !remove.is_empty() {
+            expression.push_str(&format!(" REMOVE {}", remove.join(", ")));
         }
         names.insert("#claimed_by".into(), "claimed_by".into());
         names.insert("#status".into(), "submission_status".into());

@@ -143,6 +143,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         metrics: vec![("driving_score", None)],
         progress: (5, 20),
         error: Some("CARLA crashed too often".into()),
+        recordings: Some((4, 5)),
     };
     // Only the execution holding the claim writes the final record, and only once.
     assert!(!table.finish(7, 42, "exec-2", &failed).await.unwrap());
@@ -162,6 +163,8 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         text("-"),
         "a metric EvalAI never got"
     );
+    assert_eq!(item["recordings_found"], AttributeValue::N("4".into()));
+    assert_eq!(item["recordings_expected"], AttributeValue::N("5".into()));
     // Now a resume may claim it, and its finish clears the old error and stores every metric.
     assert_eq!(
         table.claim(&record("exec-4", true)).await.unwrap(),
@@ -191,6 +194,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
                 metrics: metrics.clone(),
                 progress: (20, 20),
                 error: None,
+                recordings: None,
             },
         )
         .await
@@ -206,6 +210,8 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(item["end_time"], text("2026-11-21 08:00:00 UTC"));
     assert_eq!(item["team_name"], text("Team 🚗 One"));
     assert!(!item.contains_key("error"));
+    // Nor the old run's count of recordings, when this one has none.
+    assert!(!item.contains_key("recordings_found") && !item.contains_key("recordings_expected"));
     for (attribute, value) in metrics {
         assert_eq!(item[attribute], text(&value.unwrap()), "{attribute}");
     }

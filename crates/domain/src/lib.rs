@@ -1,5 +1,6 @@
 //! Pure domain core of the CARLA Leaderboard evaluation backend: no AWS, Kubernetes or Lambda.
 
+pub mod audit;
 pub mod autoscaler;
 pub mod cluster;
 pub mod errors;

@@ -29,6 +29,8 @@ pub struct Snapshot {
     pub finished_pairs: Vec<u32>,
     /// (DynamoDB attribute, value) per metric.
     pub metrics: Vec<(&'static str, Num)>,
+    /// The merged records' route ids, in order (what the recordings are checked against).
+    pub route_ids: Vec<String>,
 }
 
 /// The workers' files as one listing found them.
@@ -122,6 +124,9 @@ pub async fn collect_listed(
     } = merge_partials(store, &partials, leaderboard, &pairs, repetitions).await?;
     let files = EvalAiFiles::generate(merged.as_ref(), leaderboard);
     let merged_json = merged.as_ref().map(|m| m.to_json());
+    let route_ids = merged.as_ref().map_or_else(Vec::new, |m| {
+        m.records.iter().map(|r| r.route_id.raw.clone()).collect()
+    });
     let metrics = metrics(&files, leaderboard);
     store
         .put_evalai_files(&EvalAiObjects {
@@ -139,6 +144,7 @@ pub async fn collect_listed(
         complete,
         finished_pairs,
         metrics,
+        route_ids,
     })
 }
 

@@ -19,6 +19,9 @@ use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
+use std::collections::HashSet;
+
+use lb_domain::audit;
 use lb_domain::finalize::{self, Outcome, Posted};
 use lb_domain::logtail::{participant_tail, MAX_TAIL_CHARS};
 use lb_domain::protocol::{self, LOGS_DIR};
@@ -314,7 +317,8 @@ async fn finish_run<C: Callbacks>(
     };
     let posted = post(deps, at, outcome.status, snapshot.as_ref(), stdout, stderr).await?;
     let outcome = finalize::settle(outcome, posted);
-    let record = final_record(&target, &store, &outcome, snapshot.as_ref(), error.clone());
+    let mut record = final_record(&target, &store, &outcome, snapshot.as_ref(), error.clone());
+    record.recordings = recordings(&store, &outcome, snapshot.as_ref()).await;
     if !table
         .finish(submission.team_id, id, &submission.execution, &record)
         .await?
@@ -496,7 +500,45 @@ fn final_record(
             .collect(),
         progress: snapshot.map_or((0, 0), |s| s.progress),
         error: error.or_else(|| outcome.reason.clone()),
+        recordings: None,
     }
+}
+
+/// What operators can audit of a FINISHED result: how many of its routes have their CARLA
+/// recording in S3 (`lb_domain::audit`). `None` for another outcome, or when the logs could
+/// not be listed (the record then says nothing rather than something wrong).
+async fn recordings(
+    store: &SubmissionStore,
+    outcome: &Outcome,
+    snapshot: Option<&Snapshot>,
+) -> Option<(u64, u64)> {
+    if outcome.status != SubmissionStatus::Finished {
+        return None;
+    }
+    let snapshot = snapshot?;
+    let logs = match store.logs().await {
+        Ok(logs) => logs,
+        Err(e) => {
+            warn!(error = %e, "logs not listed: the recordings are not counted");
+            return None;
+        }
+    };
+    let present: HashSet<&str> = logs
+        .iter()
+        .filter(|(_, size)| *size > 0)
+        .filter_map(|(key, _)| audit::recording_of(key))
+        .collect();
+    let expected = audit::expected_recordings(snapshot.route_ids.iter().map(String::as_str));
+    let counted = audit::audit(&expected, &present);
+    if !counted.complete() {
+        warn!(
+            found = counted.found,
+            expected = counted.expected,
+            missing = ?counted.missing,
+            "FINISHED without every route's CARLA recording: these scores cannot be audited"
+        );
+    }
+    Some((counted.found, counted.expected))
 }
 
 /// Gives the team its place back and takes the submission out of its leaderboard's queue,

@@ -77,6 +77,8 @@ pub struct LeftBehind {
     pub places_held: Option<usize>,
     /// Its record's status.
     pub record_status: Option<String>,
+    /// Its record's routes with a CARLA recording, and its routes (FINISHED only).
+    pub recordings: Option<(u64, u64)>,
 }
 
 /// `agent_results.json` in numbers.

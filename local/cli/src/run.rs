@@ -919,6 +919,10 @@ async fn left_behind(
         if let Ok(Some(standing)) = records.standing(team, submission).await {
             left.record_status = standing.status;
         }
+        if let Ok(Some(item)) = records.get(team, submission).await {
+            let number = |key: &str| item.get(key)?.as_n().ok()?.parse::<u64>().ok();
+            left.recordings = number("recordings_found").zip(number("recordings_expected"));
+        }
     }
     left
 }

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use serde_json::Value;
+use serde_json::{json, Value};
 use std::process::Command;
 use std::sync::{Mutex, OnceLock};
 use std::time::Instant;
@@ -133,7 +133,15 @@ fn every_scenario_ends_as_expected() {
                 assert_eq!(left["places_held"], 0, "{report}");
                 assert_eq!(left["record_status"], "FAILED", "{report}");
             }
-            "happy" => happy_scores = report["scores"].clone(),
+            "happy" => {
+                happy_scores = report["scores"].clone();
+                // Every route's recording is in S3, and the record says so.
+                assert_eq!(
+                    report["left_behind"]["recordings"],
+                    json!([20, 20]),
+                    "{report}"
+                );
+            }
             "forge" => {
                 // Pair 2's results as pair 2 wrote them: the same scores as the happy run,
                 // although the other pairs' pods wrote its file and done marker last.
