@@ -111,6 +111,14 @@ pub fn ahead(entries: &[Entry], me: &Entry) -> u32 {
         .count() as u32
 }
 
+/// The count a participant is shown, `now` counted and `shown` shown before: never more than
+/// before. Places only move up in arrival order, but the count is read at different moments
+/// (waiting for the team's turn, then for a GPU) and an entry whose execution ended lingers
+/// until the reaper's pass; a participant who saw 3 must not see 4 next.
+pub fn shown_ahead(shown: Option<u32>, now: u32) -> u32 {
+    shown.map_or(now, |before| before.min(now))
+}
+
 /// What holds a queued submission back, for its participant and the operator.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Hold {
@@ -142,6 +150,14 @@ pub fn describe(ahead: u32, hold: Hold) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_count_shown_never_goes_up() {
+        assert_eq!(shown_ahead(None, 4), 4);
+        assert_eq!(shown_ahead(Some(3), 4), 3);
+        assert_eq!(shown_ahead(Some(3), 1), 1);
+        assert_eq!(shown_ahead(Some(0), 2), 0);
+    }
 
     #[test]
     fn a_place_is_when_evalai_received_it_never_later_than_now() {

@@ -336,6 +336,7 @@ async fn queue_note(
     let note = match (&deps.clients.admission, run.monitor.started_at) {
         (Some(table), None) => match queue::ahead_of(table, submission).await {
             Ok(ahead) => ahead.map(|ahead| {
+                let ahead = lb_domain::queue::shown_ahead(run.queue.shown, ahead);
                 let text = lb_domain::queue::describe(ahead, lb_domain::queue::Hold::Capacity);
                 Some((ahead, text))
             }),
@@ -486,8 +487,9 @@ async fn waiting_round(
         run.monitor.state = RunPhase::Admitted;
         return Ok(run);
     }
-    let note = lb_domain::queue::describe(standing.ahead, standing.hold);
-    if show_place(deps, at, &mut run, Some((standing.ahead, note)), now).await?
+    let ahead = lb_domain::queue::shown_ahead(run.queue.shown, standing.ahead);
+    let note = lb_domain::queue::describe(ahead, standing.hold);
+    if show_place(deps, at, &mut run, Some((ahead, note)), now).await?
         == Some(SubmissionStatus::Cancelled)
     {
         run.monitor.state = RunPhase::Cancelled;
