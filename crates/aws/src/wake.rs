@@ -51,6 +51,8 @@ pub struct Waiting {
     pub submission_id: u64,
     /// Its EvalAI challenge.
     pub challenge: u64,
+    /// EvalAI's `submitted_at` (epoch seconds), when the wait stored one.
+    pub submitted_at: Option<u64>,
 }
 
 /// The wake table.
@@ -236,7 +238,7 @@ impl WakeTable {
             .client
             .scan()
             .table_name(&self.table)
-            .projection_expression("submission_id, #challenge")
+            .projection_expression("submission_id, #challenge, submitted_at")
             .filter_expression("attribute_exists(#token) AND attribute_not_exists(#cancel)")
             .expression_attribute_names("#challenge", "challenge")
             .expression_attribute_names("#cancel", "cancel")
@@ -255,6 +257,7 @@ impl WakeTable {
                     out.push(Waiting {
                         submission_id,
                         challenge,
+                        submitted_at: number(item, "submitted_at").filter(|t| *t > 0),
                     });
                 }
             }

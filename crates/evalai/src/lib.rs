@@ -331,10 +331,25 @@ impl EvalAiClient {
         challenge: u64,
         status: SubmissionStatus,
     ) -> Result<Vec<Submission>> {
-        let url = format!(
+        self.submissions_with_status_since(challenge, status, None)
+            .await
+    }
+
+    /// The same, only those EvalAI received at or after `since` (epoch seconds; its
+    /// `submitted_after` filter): a list that does not grow with the challenge's history.
+    pub async fn submissions_with_status_since(
+        &self,
+        challenge: u64,
+        status: SubmissionStatus,
+        since: Option<u64>,
+    ) -> Result<Vec<Submission>> {
+        let mut url = format!(
             "{}/api/jobs/challenge/{challenge}/submission/?status={status}",
             self.base
         );
+        if let Some(after) = since.and_then(iso_utc) {
+            url.push_str(&format!("&submitted_after={after}"));
+        }
         let ask = Ask::new(self.priority, 1);
         let body = match self.send(Method::GET, &url, None, challenge, ask).await {
             Err(EvalAiError::NotFound(_)) => {
@@ -902,6 +917,20 @@ mod listing_tests {
         );
         assert!(submissions_of(&serde_json::json!({"results": []})).is_err());
     }
+}
+
+/// `2026-11-26T04:31:05Z`: epoch seconds as EvalAI's datetime filters read them.
+fn iso_utc(epoch: u64) -> Option<String> {
+    let t = time::OffsetDateTime::from_unix_timestamp(i64::try_from(epoch).ok()?).ok()?;
+    Some(format!(
+        "{:04}-{:02}-{:02}T{:02}:{:02}:{:02}Z",
+        t.year(),
+        u8::from(t.month()),
+        t.day(),
+        t.hour(),
+        t.minute(),
+        t.second()
+    ))
 }
 
 #[cfg(test)]

@@ -121,6 +121,11 @@ pub struct SubmissionInfo {
     /// `None` for a resume (it arrives again now) or when EvalAI did not say.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub arrived_ms: Option<u64>,
+    /// EvalAI's `submitted_at` in epoch seconds, a resume's too (0 when EvalAI did not say):
+    /// the wait stores it, so the cancel sweep asks EvalAI only for what came since the
+    /// oldest submission waiting.
+    #[serde(default)]
+    pub submitted_at: u64,
 }
 
 /// The run as Launch started it and the Monitor carries it along (`$.run`).

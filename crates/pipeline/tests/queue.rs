@@ -26,6 +26,7 @@ fn info(submission_id: u64, team_id: u64) -> SubmissionInfo {
         resuming: false,
         execution: format!("exec-{submission_id}"),
         arrived_ms: None,
+        submitted_at: 0,
     }
 }
 

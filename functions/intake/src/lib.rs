@@ -150,6 +150,7 @@ fn described(
         execution,
         // A resume arrives anew; a new submission's place is when EvalAI received it.
         arrived_ms: submission.submitted_ms.filter(|_| !resuming),
+        submitted_at: submission.submitted_ms.map_or(0, |ms| ms / 1000),
     })
 }
 

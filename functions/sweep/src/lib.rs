@@ -13,7 +13,7 @@ use std::future::Future;
 
 use aws_config::SdkConfig;
 use lb_aws::tasks::{Callbacks, Reported, StepFunctions};
-use lb_aws::wake::WakeTable;
+use lb_aws::wake::{Waiting, WakeTable};
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::EvalAiClient;
 use lb_pipeline::{clients, FnError, FunctionConfig, Result};
@@ -86,6 +86,7 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
             .or_default()
             .insert(w.submission_id);
     }
+    let since = oldest_by_challenge(&waiting);
     let mut sweep = Sweep {
         waiting: waiting.len(),
         challenges: by_challenge.len(),
@@ -95,7 +96,11 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
     for (challenge, ours) in by_challenge {
         let cancelled = match deps
             .evalai
-            .submissions_with_status(challenge, SubmissionStatus::Cancelled)
+            .submissions_with_status_since(
+                challenge,
+                SubmissionStatus::Cancelled,
+                since.get(&challenge).copied().flatten(),
+            )
             .await
         {
             Ok(list) => list,
@@ -137,6 +142,21 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
     Ok(sweep)
 }
 
+/// Per challenge, when EvalAI received the oldest submission waiting (epoch seconds): its
+/// cancelled submissions from then on are all the sweep needs. `None` for a challenge with a
+/// wait that stored no arrival (the whole list then).
+fn oldest_by_challenge(waiting: &[Waiting]) -> BTreeMap<u64, Option<u64>> {
+    let mut oldest: BTreeMap<u64, Option<u64>> = BTreeMap::new();
+    for w in waiting {
+        let slot = oldest.entry(w.challenge).or_insert(w.submitted_at);
+        *slot = match (*slot, w.submitted_at) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            _ => None,
+        };
+    }
+    oldest
+}
+
 /// Flags the cancel and reports the token it took; `true` when an execution was woken.
 async fn wake<C: Callbacks>(deps: &Deps<C>, id: u64) -> lb_aws::Result<bool> {
     // `None`: flagged already, or the wait ended meanwhile (the Monitor reads the status
@@ -156,5 +176,32 @@ async fn wake<C: Callbacks>(deps: &Deps<C>, id: u64) -> lb_aws::Result<bool> {
             }
             Err(e)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_challenge_is_asked_from_its_oldest_waiting_arrival() {
+        let w = |submission_id, challenge, submitted_at| Waiting {
+            submission_id,
+            challenge,
+            submitted_at,
+        };
+        let oldest = oldest_by_challenge(&[
+            w(1, 7, Some(300)),
+            w(2, 7, Some(100)),
+            w(3, 7, Some(200)),
+            w(4, 8, Some(50)),
+            w(5, 8, None),
+            w(6, 9, None),
+        ]);
+        // Challenge 8 has a wait without an arrival: its whole list, as before.
+        assert_eq!(
+            oldest,
+            BTreeMap::from([(7, Some(100)), (8, None), (9, None)])
+        );
     }
 }

@@ -4,7 +4,7 @@
 use test_support::{Answer, RecordingCallbacks};
 
 use fake_evalai::NewSubmission;
-use local_stack::integrations::{update_item, wait_for_change};
+use local_stack::integrations::{update_item, wait_for_change, wait_for_change_since};
 use sweep::Deps;
 
 #[tokio::test]
@@ -28,14 +28,25 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
     };
     let (a, b, c) = (new(), new(), new());
     let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
-    // a and b wait; c does not (its execution is in a Monitor round, or not ours).
+    // a and b wait; c does not (its execution is in a Monitor round, or not ours). Each wait
+    // stores when EvalAI received its submission.
+    let mut arrivals = Vec::new();
     for (id, token) in [(a, "token-a"), (b, "token-b")] {
-        update_item(&client, wait_for_change(token, id, 1, 0))
+        let at = deps
+            .evalai
+            .submission(id)
+            .await
+            .unwrap()
+            .submitted_ms
+            .unwrap()
+            / 1000;
+        arrivals.push(at);
+        update_item(&client, wait_for_change_since(token, id, 1, 0, at))
             .await
             .unwrap();
     }
 
-    // Nothing cancelled: one request, no wake.
+    // Nothing cancelled: one request, for what came since the oldest waiting, no wake.
     let before = fake.requests().len();
     let sweep = sweep::handle(&deps).await.unwrap();
     assert_eq!((sweep.waiting, sweep.challenges), (2, 1));
@@ -43,7 +54,21 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
     let requests = fake.requests()[before..].to_vec();
     assert_eq!(requests.len(), 1, "{requests:?}");
     assert_eq!(requests[0].path, "/api/jobs/challenge/1/submission/");
-    assert_eq!(requests[0].query.as_deref(), Some("status=cancelled"));
+    let oldest =
+        time::OffsetDateTime::from_unix_timestamp(*arrivals.iter().min().unwrap() as i64).unwrap();
+    let after = format!(
+        "{:04}-{:02}-{:02}T{:02}:{:02}:{:02}Z",
+        oldest.year(),
+        u8::from(oldest.month()),
+        oldest.day(),
+        oldest.hour(),
+        oldest.minute(),
+        oldest.second()
+    );
+    assert_eq!(
+        requests[0].query.as_deref(),
+        Some(format!("status=cancelled&submitted_after={after}").as_str())
+    );
 
     // a and c cancel: only a is waiting, so only a's token is reported, once.
     fake.cancel(a).unwrap();

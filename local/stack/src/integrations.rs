@@ -28,6 +28,17 @@ pub const STATES_START_EXECUTION: &str = "states:startExecution";
 /// resolves them for a submission's wait (token, execution `submission-<id>-a`), with the
 /// table named [`crate::stack::WAKE_TABLE`]: what tests write to stand for a waiting execution.
 pub fn wait_for_change(token: &str, submission_id: u64, challenge: u64, seen: u64) -> Value {
+    wait_for_change_since(token, submission_id, challenge, seen, 0)
+}
+
+/// The same for a submission EvalAI received at `submitted_at` (epoch seconds; 0: not known).
+pub fn wait_for_change_since(
+    token: &str,
+    submission_id: u64,
+    challenge: u64,
+    seen: u64,
+    submitted_at: u64,
+) -> Value {
     let definition: Value =
         serde_json::from_str(include_str!("../../../statemachine/submission.asl.json"))
             .expect("the deployed definition is JSON");
@@ -36,7 +47,7 @@ pub fn wait_for_change(token: &str, submission_id: u64, challenge: u64, seen: u6
         .expect("the definition has WaitForChange");
     let flow = lb_asl::DataFlow::from_state(state).expect("WaitForChange's data flow");
     let input = json!({
-        "intake": {"submission": {"submission_id": submission_id, "challenge_id": challenge}},
+        "intake": {"submission": {"submission_id": submission_id, "challenge_id": challenge, "submitted_at": submitted_at}},
         "run": {"monitor": {"seen": seen, "expires_at": 1_900_000_000u64, "wait_seconds": 60}}
     });
     let context = json!({

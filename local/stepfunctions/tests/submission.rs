@@ -102,7 +102,7 @@ fn tasks(script: Script) -> (TaskMap, Stages) {
             intake.record(&input);
             let action = s.action;
             async move {
-                let submission = json!({"submission_id": input["message"]["submission_pk"], "challenge_id": input["message"]["challenge_pk"], "execution": input["execution"]});
+                let submission = json!({"submission_id": input["message"]["submission_pk"], "challenge_id": input["message"]["challenge_pk"], "execution": input["execution"], "submitted_at": 0});
                 Ok(json!({"action": action, "submission": submission}))
             }
         })

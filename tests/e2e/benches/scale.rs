@@ -357,6 +357,7 @@ async fn main() {
             resuming: false,
             execution: format!("bench-{id}"),
             arrived_ms: None,
+            submitted_at: 0,
         };
         // Arrivals in submission-id order (EvalAI's), spread over the first minutes.
         let arrival = scaled(arriving * 60.0 * seed as f64 / f64::from(count));

@@ -68,6 +68,7 @@ fn submission() -> SubmissionInfo {
         // Step Functions execution names are at most 80 characters.
         execution: "e".repeat(80),
         arrived_ms: Some(u64::MAX),
+        submitted_at: u64::MAX,
     }
 }
 
