@@ -22,7 +22,7 @@ pub use error::CliError;
 pub use executions::{execution_name, pipe_input, Resume, StateMachineArgs, Submit};
 pub use invoke::{error_object, Function, Invoke};
 pub use logs::Logs;
-pub use ops::{Cancel, List, Status};
+pub use ops::{Cancel, List, Release, Status};
 pub use rescore::Rescore;
 pub use watch::Watch;
 
@@ -116,6 +116,9 @@ pub enum Command {
     /// Cancel a running submission: write the S3 cancel marker its Jobs mirror; Finalize then
     /// reports CANCELLED.
     Cancel(Cancel),
+    /// Give back a submission's place in its team's share of a leaderboard's queue (a place
+    /// whose run ended without giving it back); asks for the id to be typed back.
+    Release(Release),
     /// Start a state machine execution for a submission, with the input the EventBridge Pipe
     /// gives it.
     Submit(Submit),
@@ -146,6 +149,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Status(args) => ops::status(args).await?,
         Command::List(args) => ops::list(args).await?,
         Command::Cancel(args) => ops::cancel(args).await?,
+        Command::Release(args) => ops::release(args).await?,
         Command::Submit(args) => executions::submit(args).await?,
         Command::Resume(args) => executions::resume(args).await?,
         Command::Rescore(args) => rescore::rescore(args).await?,

@@ -79,6 +79,26 @@ pub struct Cancel {
     pub deployment: DeploymentArgs,
 }
 
+/// `lbctl release` options.
+#[derive(Debug, Clone, Args)]
+pub struct Release {
+    /// EvalAI submission id.
+    #[arg(value_parser = evalai_id())]
+    pub submission: u64,
+    /// Only this leaderboard's queue.
+    #[arg(long, value_name = "LEADERBOARD")]
+    pub leaderboard: Option<String>,
+    /// Release it even while its record says its run is in flight (its team may then hold
+    /// more evaluations than its cap).
+    #[arg(long)]
+    pub force: bool,
+    /// Do not ask for confirmation.
+    #[arg(long)]
+    pub yes: bool,
+    #[command(flatten)]
+    pub deployment: DeploymentArgs,
+}
+
 /// The markers of one submission in one leaderboard's bucket.
 #[derive(Debug, Clone)]
 struct Markers {
@@ -619,6 +639,80 @@ pub async fn cancel(args: Cancel) -> Result<u8> {
 
 fn pretty(value: &Value) -> String {
     serde_json::to_string_pretty(value).unwrap_or_else(|_| value.to_string())
+}
+
+/// `lbctl release`: gives back a place in its team's share of a leaderboard's queue by hand
+/// (the reaper's pass does it within minutes for an execution that ended; this is for when an
+/// operator cannot wait). Refused while the submission's record is in flight, unless --force;
+/// asks for the id to be typed back, unless --yes.
+pub async fn release(args: Release) -> Result<u8> {
+    let deployment = Deployment::load(&args.deployment).await?;
+    let Some(table) = &deployment.admission else {
+        return Err(CliError::Usage(
+            "releasing a place needs the admission table: --admission-table (the stack output `AdmissionTable`)".into(),
+        ));
+    };
+    let id = args.submission;
+    let only = args.leaderboard.as_deref();
+    let mut held = Vec::new();
+    for (name, _) in deployment.leaderboards(only)? {
+        let holds = table
+            .holds(name)
+            .await
+            .map_err(|e| CliError::aws(format!("reading the places of leaderboard {name}"), e))?;
+        for (team, holders) in holds {
+            if holders.iter().any(|h| *h == id.to_string()) {
+                held.push((name.to_string(), team));
+            }
+        }
+    }
+    if held.is_empty() {
+        return Err(CliError::NotFound(format!(
+            "submission `{id}` holds no place in {}",
+            tables(&deployment, only)
+        )));
+    }
+    let found = deployment.records(only, ScanFilter::Submission(id)).await?;
+    let in_flight: Vec<String> = found
+        .records
+        .iter()
+        .filter(|r| !r.is_final())
+        .map(|r| format!("{} in `{}`", clean(r.status()), r.table))
+        .collect();
+    if !in_flight.is_empty() && !args.force {
+        return Err(CliError::Refused(format!(
+            "submission `{id}` is in flight ({}): its run holds this place; `lbctl cancel {id}` ends it (--force releases the place anyway, and its team may then exceed its cap)",
+            in_flight.join(", ")
+        )));
+    }
+    for (leaderboard, team) in &held {
+        let execution = table.execution_of(leaderboard, id).await.ok().flatten();
+        outln!(
+            "submission {id} holds a place of team {team} in leaderboard {leaderboard} (queued by execution {})",
+            execution.as_deref().map_or_else(|| "-".into(), clean)
+        );
+    }
+    let question = format!("give back the place of submission {id}");
+    if !args.yes
+        && !crate::output::confirm_id(&question, id).map_err(|e| {
+            CliError::Usage(format!("no confirmation could be read ({e}); pass --yes"))
+        })?
+    {
+        errln!("not released");
+        return Ok(1);
+    }
+    for (leaderboard, team) in held {
+        table.release(&leaderboard, id, team).await.map_err(|e| {
+            CliError::aws(
+                format!("releasing the place in leaderboard {leaderboard}"),
+                e,
+            )
+        })?;
+        outln!(
+            "released: team {team}'s next waiting submission in leaderboard {leaderboard} takes the place at its next round"
+        );
+    }
+    Ok(0)
 }
 
 #[cfg(test)]

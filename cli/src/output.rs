@@ -71,3 +71,14 @@ macro_rules! out {
         $crate::output::write(format_args!($($arg)*), false)
     };
 }
+
+/// Asks `question` on the terminal and reads the answer: `true` only when the operator typed
+/// `id` back (anything else, or an empty line, is a no). `Err` when no answer can be read.
+pub fn confirm_id(question: &str, id: u64) -> io::Result<bool> {
+    use io::BufRead;
+    write(format_args!("{question}? type its id to confirm: "), false);
+    let _ = io::stdout().flush();
+    let mut line = String::new();
+    io::stdin().lock().read_line(&mut line)?;
+    Ok(line.trim() == id.to_string())
+}

@@ -2,7 +2,6 @@
 //! functions use, shown (and written with `--out`), and with `--post` sent to EvalAI as the
 //! final update.
 
-use std::io::{BufRead, Write};
 use std::path::PathBuf;
 
 use clap::Args;
@@ -243,12 +242,8 @@ async fn post(
 
 /// Asks on the terminal; anything but the submission id typed back is a no.
 fn confirm(id: u64, status: SubmissionStatus) -> Result<bool> {
-    out!("send these files to EvalAI as the final `{status}` update of submission {id}? type its id to confirm: ");
-    let _ = std::io::stdout().flush();
-    let mut line = String::new();
-    std::io::stdin()
-        .lock()
-        .read_line(&mut line)
-        .map_err(|e| CliError::Usage(format!("no confirmation could be read ({e}); pass --yes")))?;
-    Ok(line.trim() == id.to_string())
+    let question =
+        format!("send these files to EvalAI as the final `{status}` update of submission {id}");
+    crate::output::confirm_id(&question, id)
+        .map_err(|e| CliError::Usage(format!("no confirmation could be read ({e}); pass --yes")))
 }

@@ -594,3 +594,69 @@ async fn a_reader_that_stops_early_ends_the_output_not_the_command_with_a_panic(
         assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
     }
 }
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn release_gives_back_a_leaked_place_after_its_id_is_typed_back() {
+    use lb_domain::queue::{Entry, EntryState};
+    let (stack, mut env) = common::stack(Fixture::default()).await;
+    env.push((
+        "LB_ADMISSION_TABLE",
+        local_stack::stack::ADMISSION_TABLE.to_string(),
+    ));
+    let table = lb_aws::admission::AdmissionTable::new(
+        aws_sdk_dynamodb::Client::new(&stack.sdk),
+        local_stack::stack::ADMISSION_TABLE,
+    );
+    // 301's run ended without giving its place back; 302 still runs.
+    for (id, status) in [(301, "FAILED"), (302, "RUNNING")] {
+        put_record(&stack.sdk, TABLE_20, 5, id, status, &[]).await;
+        let entry = Entry {
+            submission_id: id,
+            team_id: 5,
+            arrived_ms: 1_000 * id,
+            state: EntryState::Waiting,
+        };
+        table
+            .enqueue("2.0", &entry, &format!("exec-{id}"))
+            .await
+            .unwrap();
+        let admitted = table.admit("2.0", &entry, 2).await.unwrap();
+        assert_eq!(admitted, lb_aws::admission::Admit::Admitted);
+    }
+    let holders = || async { table.holders("2.0", 5).await.unwrap() };
+
+    // A wrong answer (or none) releases nothing.
+    let out = lbctl(&["release", "301"], &env, Some("30\n"));
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stdout(&out)
+            .contains("holds a place of team 5 in leaderboard 2.0 (queued by execution exec-301)"),
+        "{}",
+        show(&out)
+    );
+    assert!(stderr(&out).contains("not released"), "{}", show(&out));
+    assert_eq!(holders().await.len(), 2);
+
+    // Its id typed back: released.
+    let out = lbctl(&["release", "301"], &env, Some("301\n"));
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert_eq!(holders().await, ["302"]);
+    assert_eq!(table.entry("2.0", 301).await.unwrap(), None);
+
+    // A running submission's place is refused without --force; nothing held is not found.
+    let out = lbctl(&["release", "302", "--yes"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("is in flight (RUNNING"),
+        "{}",
+        show(&out)
+    );
+    assert_eq!(holders().await, ["302"]);
+    let out = lbctl(&["release", "301", "--yes"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(stderr(&out).contains("holds no place"), "{}", show(&out));
+    let out = lbctl(&["release", "302", "--yes", "--force"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert!(holders().await.is_empty());
+}
