@@ -356,51 +356,7 @@ impl SubmissionsTable {
         claimed_by: &str,
         record: &FinalRecord,
     ) -> Result<bool> {
-        let mut set = vec![
-            "submission_status = :status".to_string(),
-            "end_time = :end".to_string(),
-            "results = :results".to_string(),
-            "routes_done = :done".to_string(),
-            "routes_total = :total".to_string(),
-        ];
-        let mut values = HashMap::from([
-            (":status".to_string(), s(record.status.as_str())),
-            (":end".to_string(), s(&record.end_time)),
-            (":results".to_string(), s(&record.results)),
-            (":done".to_string(), n(record.progress.0)),
-            (":total".to_string(), n(record.progress.1)),
-        ]);
-        let mut names = HashMap::new();
-        for (i, (attribute, value)) in record.metrics.iter().enumerate() {
-            set.push(format!("#m{i} = :m{i}"));
-            names.insert(format!("#m{i}"), attribute.to_string());
-            values.insert(format!(":m{i}"), s(value.as_deref().unwrap_or(UNKNOWN)));
-        }
-        let mut remove = Vec::new();
-        names.insert("#error".into(), "error".into());
-        match &record.error {
-            Some(error) => {
-                set.push("#error = :error".into());
-                values.insert(":error".into(), s(error));
-            }
-            // A resumed submission that now finishes must not keep the old run's error.
-            None => remove.push("#error"),
-        }
-        names.insert("#found".into(), "recordings_found".into());
-        names.insert("#expected".into(), "recordings_expected".into());
-        match record.recordings {
-            Some((found, expected)) => {
-                set.push("#found = :found, #expected = :expected".into());
-                values.insert(":found".into(), n(found));
-                values.insert(":expected".into(), n(expected));
-            }
-            // Nor an old run's count of recordings.
-            None => remove.extend(["#found", "#expected"]),
-        }
-        let mut expression = format!("SET {}", set.join(", "));
-        if !remove.is_empty() {
-            expression.push_str(&format!(" REMOVE {}", remove.join(", ")));
-        }
+        let (expression, mut names, mut values) = final_update(record);
         names.insert("#claimed_by".into(), "claimed_by".into());
         names.insert("#status".into(), "submission_status".into());
         values.insert(":me".into(), s(claimed_by));
@@ -432,6 +388,63 @@ impl SubmissionsTable {
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
         }
     }
+}
+
+/// The final record's update: every attribute it sets, the error and the recordings' count
+/// removed when the record has none (a resumed submission must not keep an older run's).
+type Update = (
+    String,
+    HashMap<String, String>,
+    HashMap<String, AttributeValue>,
+);
+
+fn final_update(record: &FinalRecord) -> Update {
+    let mut set = vec![
+        "submission_status = :status".to_string(),
+        "end_time = :end".to_string(),
+        "results = :results".to_string(),
+        "routes_done = :done".to_string(),
+        "routes_total = :total".to_string(),
+    ];
+    let mut values = HashMap::from([
+        (":status".to_string(), s(record.status.as_str())),
+        (":end".to_string(), s(&record.end_time)),
+        (":results".to_string(), s(&record.results)),
+        (":done".to_string(), n(record.progress.0)),
+        (":total".to_string(), n(record.progress.1)),
+    ]);
+    let mut names = HashMap::new();
+    for (i, (attribute, value)) in record.metrics.iter().enumerate() {
+        set.push(format!("#m{i} = :m{i}"));
+        names.insert(format!("#m{i}"), attribute.to_string());
+        values.insert(format!(":m{i}"), s(value.as_deref().unwrap_or(UNKNOWN)));
+    }
+    let mut remove = Vec::new();
+    names.insert("#error".into(), "error".into());
+    match &record.error {
+        Some(error) => {
+            set.push("#error = :error".into());
+            values.insert(":error".into(), s(error));
+        }
+        // A resumed submission that now finishes must not keep the old run's error.
+        None => remove.push("#error"),
+    }
+    names.insert("#found".into(), "recordings_found".into());
+    names.insert("#expected".into(), "recordings_expected".into());
+    match record.recordings {
+        Some((found, expected)) => {
+            set.push("#found = :found, #expected = :expected".into());
+            values.insert(":found".into(), n(found));
+            values.insert(":expected".into(), n(expected));
+        }
+        // Nor an old run's count of recordings.
+        None => remove.extend(["#found", "#expected"]),
+    }
+    let mut expression = format!("SET {}", set.join(", "));
+    if !remove.is_empty() {
+        expression.push_str(&format!(" REMOVE {}", remove.join(", ")));
+    }
+    (expression, names, values)
 }
 
 /// Who holds a submission's record, and how it stands.

@@ -239,14 +239,22 @@ impl Cluster {
             }
         };
         debug!(message = %status.message, "job exists; checking whose it is");
-        let existing = match self.call("get job", api.get(&name)).await? {
+        self.adopt(job, name, submission_id).await
+    }
+
+    /// A Job of this name exists already: adopted when it is this submission's and this
+    /// execution's (a retried Launch); an earlier execution's is deleted and the launch retried
+    /// once it is gone; another submission's is refused.
+    async fn adopt(&self, job: &Job, name: String, submission_id: String) -> Result<Launched> {
+        let terminating = |name: String, submission_id: String| ClusterError::JobTerminating {
+            job: name,
+            submission_id,
+        };
+        let existing = match self.call("get job", self.jobs().get(&name)).await? {
             Ok(j) => j,
+            // NB: it was deleted between our create and get; the next attempt creates it.
             Err(kube::Error::Api(s)) if s.is_not_found() => {
-                // NB: it was deleted between our create and get; the next attempt creates it.
-                return Err(ClusterError::JobTerminating {
-                    job: name,
-                    submission_id,
-                });
+                return Err(terminating(name, submission_id))
             }
             Err(e) => {
                 return Err(ClusterError::from_kube(
@@ -273,10 +281,7 @@ impl Cluster {
         }
         if existing.metadata.deletion_timestamp.is_some() {
             // A resume launched while the previous run's Job is still being deleted.
-            return Err(ClusterError::JobTerminating {
-                job: name,
-                submission_id,
-            });
+            return Err(terminating(name, submission_id));
         }
         let ours = labels::execution_of(job.metadata.labels.as_ref());
         let theirs = labels::execution_of(existing.metadata.labels.as_ref());
@@ -289,24 +294,8 @@ impl Cluster {
                     execution = theirs,
                     "job of an earlier execution; deleting it to launch ours"
                 );
-                match self
-                    .call("delete job", api.delete(&name, &DeleteParams::foreground()))
-                    .await?
-                {
-                    Ok(_) => {}
-                    Err(kube::Error::Api(s)) if s.is_not_found() => {}
-                    Err(e) => {
-                        return Err(ClusterError::from_kube(
-                            "delete job",
-                            &format!("Job `{name}`"),
-                            e,
-                        ))
-                    }
-                }
-                return Err(ClusterError::JobTerminating {
-                    job: name,
-                    submission_id,
-                });
+                self.delete_job(&name).await?;
+                return Err(terminating(name, submission_id));
             }
         }
         let uid = existing.metadata.uid.clone();
@@ -325,6 +314,44 @@ impl Cluster {
             adopted: true,
             already_ended,
         })
+    }
+
+    /// Deletes Job `name` in the foreground: `false` when it was gone already.
+    async fn delete_job(&self, name: &str) -> Result<bool> {
+        let deleted = self
+            .call(
+                "delete job",
+                self.jobs().delete(name, &DeleteParams::foreground()),
+            )
+            .await?;
+        match deleted {
+            Ok(_) => Ok(true),
+            Err(kube::Error::Api(s)) if s.is_not_found() => Ok(false),
+            Err(e) => Err(ClusterError::from_kube(
+                "delete job",
+                &format!("Job `{name}`"),
+                e,
+            )),
+        }
+    }
+
+    /// Deletes Pod `name`: `false` when it was gone already.
+    async fn delete_pod(&self, name: &str) -> Result<bool> {
+        let deleted = self
+            .call(
+                "delete pod",
+                self.pods().delete(name, &DeleteParams::default()),
+            )
+            .await?;
+        match deleted {
+            Ok(_) => Ok(true),
+            Err(kube::Error::Api(s)) if s.is_not_found() => Ok(false),
+            Err(e) => Err(ClusterError::from_kube(
+                "delete pod",
+                &format!("Pod `{name}`"),
+                e,
+            )),
+        }
     }
 
     /// The Job's name and submission id, once it is known to be trackable.
@@ -452,7 +479,6 @@ impl Cluster {
             .await?
             .map_err(|e| ClusterError::from_kube("list jobs", "", e))?;
         let mut deleted = Deleted::default();
-        let foreground = DeleteParams::foreground();
         for job in jobs
             .items
             .iter()
@@ -461,19 +487,10 @@ impl Cluster {
             let Some(name) = job.metadata.name.clone() else {
                 continue;
             };
-            match self
-                .call("delete job", self.jobs().delete(&name, &foreground))
-                .await?
-            {
-                Ok(_) => deleted.jobs.push(name),
-                Err(kube::Error::Api(s)) if s.is_not_found() => deleted.already_gone.push(name),
-                Err(e) => {
-                    return Err(ClusterError::from_kube(
-                        "delete job",
-                        &format!("Job `{name}`"),
-                        e,
-                    ))
-                }
+            if self.delete_job(&name).await? {
+                deleted.jobs.push(name);
+            } else {
+                deleted.already_gone.push(name);
             }
         }
         let pods = self
@@ -495,22 +512,10 @@ impl Cluster {
             let Some(name) = pod.metadata.name.clone() else {
                 continue;
             };
-            match self
-                .call(
-                    "delete pod",
-                    self.pods().delete(&name, &DeleteParams::default()),
-                )
-                .await?
-            {
-                Ok(_) => deleted.orphan_pods.push(name),
-                Err(kube::Error::Api(s)) if s.is_not_found() => deleted.already_gone.push(name),
-                Err(e) => {
-                    return Err(ClusterError::from_kube(
-                        "delete pod",
-                        &format!("Pod `{name}`"),
-                        e,
-                    ))
-                }
+            if self.delete_pod(&name).await? {
+                deleted.orphan_pods.push(name);
+            } else {
+                deleted.already_gone.push(name);
             }
         }
         info!(

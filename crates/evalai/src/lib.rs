@@ -514,24 +514,32 @@ impl EvalAiClient {
         at: SubmissionRef,
         update: &FinalUpdate,
     ) -> Result<WriteOutcome> {
-        if !matches!(
-            update.status,
-            SubmissionStatus::Finished | SubmissionStatus::Failed | SubmissionStatus::Cancelled
-        ) {
-            return Err(EvalAiError::InvalidResult(format!(
-                "`{}` is not a final status",
-                update.status
-            )));
-        }
-        if update.status == SubmissionStatus::Finished {
-            validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
-        }
+        check_final(update)?;
         // Read, write, read back.
         let ask = Ask::new(Priority::Urgent, 3);
         let current = self.read_submission(at.submission, ask).await?;
         if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
         }
+        let outcome = self.put_final(at, update).await?;
+        if outcome == WriteOutcome::Written {
+            let after = self
+                .read_submission(at.submission, Ask::new(Priority::Urgent, 1))
+                .await?;
+            if after.status != update.status {
+                return Err(EvalAiError::NotConfirmed {
+                    expected: update.status,
+                    found: after.status,
+                });
+            }
+        }
+        Ok(outcome)
+    }
+
+    /// The final update's PUT. The final status must reach EvalAI: a refused body (413 from
+    /// the proxy, a 400 from the view) gets one more try with only the status, the result and
+    /// the reason, which EvalAI accepts whatever the participant's output was.
+    async fn put_final(&self, at: SubmissionRef, update: &FinalUpdate) -> Result<WriteOutcome> {
         let url = format!(
             "{}/api/jobs/challenge/{}/update_submission/",
             self.base, at.challenge
@@ -557,13 +565,11 @@ impl EvalAiClient {
             &bounded_text(&update.stderr, MAX_TEXT_BYTES),
             &bounded_metadata(&update.metadata, MAX_METADATA_BYTES),
         );
-        let outcome = match self
-            .write(Method::PUT, &url, full, at, update.status, Priority::Urgent)
+        let (status, urgent) = (update.status, Priority::Urgent);
+        match self
+            .write(Method::PUT, &url, full, at, status, urgent)
             .await
         {
-            // The final status must reach EvalAI: a refused body (413 from the proxy, a 400
-            // from the view) gets one more try with only the status, the result and the
-            // reason, which EvalAI accepts whatever the participant's output was.
             Err(EvalAiError::Rejected { status, message }) => {
                 warn!(
                     submission_id = at.submission,
@@ -576,30 +582,11 @@ impl EvalAiClient {
                     &bounded_text(&update.stderr, 4 * 1024),
                     "{}",
                 );
-                self.write(
-                    Method::PUT,
-                    &url,
-                    minimal,
-                    at,
-                    update.status,
-                    Priority::Urgent,
-                )
-                .await?
+                self.write(Method::PUT, &url, minimal, at, update.status, urgent)
+                    .await
             }
-            other => other?,
-        };
-        if outcome == WriteOutcome::Written {
-            let after = self
-                .read_submission(at.submission, Ask::new(Priority::Urgent, 1))
-                .await?;
-            if after.status != update.status {
-                return Err(EvalAiError::NotConfirmed {
-                    expected: update.status,
-                    found: after.status,
-                });
-            }
+            other => other,
         }
-        Ok(outcome)
     }
 
     /// One write with its retries. After a 5xx or a timeout the write may have landed
@@ -718,35 +705,47 @@ impl EvalAiClient {
                 )))
             });
         }
-        let message = model::error_message(&text);
-        Err(match status {
-            StatusCode::TOO_MANY_REQUESTS => Failure::Retry {
-                reason: retry::Reason::Throttled,
-                after: Some(retry_after.unwrap_or(Duration::from_secs(60))),
-            },
-            s if s.is_server_error() => Failure::Retry {
-                reason: retry::Reason::Unavailable(format!("{s}: {message}")),
-                after: None,
-            },
-            StatusCode::NOT_FOUND => Failure::Final(EvalAiError::NotFound(id)),
-            StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
-                Failure::Final(EvalAiError::Unauthorized {
-                    status: status.as_u16(),
-                    message,
-                })
-            }
-            s if s.is_redirection() => Failure::Final(EvalAiError::Rejected {
-                status: s.as_u16(),
-                message: format!(
-                    "redirected to `{}`: the URL is wrong (trailing slash?)",
-                    location.unwrap_or_default()
-                ),
-            }),
-            s => Failure::Final(EvalAiError::Rejected {
-                status: s.as_u16(),
+        Err(failure(status, &text, retry_after, location, id))
+    }
+}
+
+/// What a refused request means: retried (throttled, a server error) or final, with EvalAI's
+/// own words.
+fn failure(
+    status: StatusCode,
+    text: &str,
+    retry_after: Option<Duration>,
+    location: Option<String>,
+    id: u64,
+) -> Failure {
+    let message = model::error_message(text);
+    match status {
+        StatusCode::TOO_MANY_REQUESTS => Failure::Retry {
+            reason: retry::Reason::Throttled,
+            after: Some(retry_after.unwrap_or(Duration::from_secs(60))),
+        },
+        s if s.is_server_error() => Failure::Retry {
+            reason: retry::Reason::Unavailable(format!("{s}: {message}")),
+            after: None,
+        },
+        StatusCode::NOT_FOUND => Failure::Final(EvalAiError::NotFound(id)),
+        StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
+            Failure::Final(EvalAiError::Unauthorized {
+                status: status.as_u16(),
                 message,
-            }),
-        })
+            })
+        }
+        s if s.is_redirection() => Failure::Final(EvalAiError::Rejected {
+            status: s.as_u16(),
+            message: format!(
+                "redirected to `{}`: the URL is wrong (trailing slash?)",
+                location.unwrap_or_default()
+            ),
+        }),
+        s => Failure::Final(EvalAiError::Rejected {
+            status: s.as_u16(),
+            message,
+        }),
     }
 }
 
@@ -917,6 +916,23 @@ mod listing_tests {
         );
         assert!(submissions_of(&serde_json::json!({"results": []})).is_err());
     }
+}
+
+/// A final update's status is final, and a FINISHED one carries a valid result.
+fn check_final(update: &FinalUpdate) -> Result<()> {
+    if !matches!(
+        update.status,
+        SubmissionStatus::Finished | SubmissionStatus::Failed | SubmissionStatus::Cancelled
+    ) {
+        return Err(EvalAiError::InvalidResult(format!(
+            "`{}` is not a final status",
+            update.status
+        )));
+    }
+    if update.status == SubmissionStatus::Finished {
+        validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
+    }
+    Ok(())
 }
 
 /// `2026-11-26T04:31:05Z`: epoch seconds as EvalAI's datetime filters read them.
