@@ -132,39 +132,11 @@ impl GlobalRecord {
 /// skips them; `opts.expected` is what keeps such a result from counting as final.
 pub fn merge(files: Vec<ResultsFile>, opts: MergeOptions) -> Result<MergeOutcome, ResultsError> {
     let lb = opts.leaderboard;
-
-    // Step 1: route ids, totals and the sensors check.
-    let mut sensors: Option<&ResultsFile> = None;
-    let mut total_records: u64 = 0;
-    let mut total_progress: u64 = 0;
-    for file in &files {
-        total_records += file.records.len() as u64;
-        total_progress = total_progress.saturating_add(file.progress.1);
-        if !file.sensors.is_empty() {
-            match sensors {
-                None => sensors = Some(file),
-                Some(first) if first.sensors != file.sensors => {
-                    return Err(ResultsError::SensorMismatch {
-                        first: first.source.clone(),
-                        file: file.source.clone(),
-                    })
-                }
-                Some(_) => {}
-            }
-        }
-    }
-    if let Some(expected) = opts.expected.map(Expected::records) {
-        if total_records > expected {
-            return Err(ResultsError::UnexpectedRecords {
-                found: total_records as usize,
-                expected,
-            });
-        }
-        // NB: a worker whose file is missing contributes no progress; the plan knows better.
-        total_progress = total_progress.max(expected);
-    }
-
-    let sensors = sensors.map(|f| f.sensors.clone()).unwrap_or_default();
+    let Totals {
+        records: total_records,
+        progress: total_progress,
+        sensors,
+    } = file_totals(&files, opts.expected.map(Expected::records))?;
 
     // Step 2: concatenate and stably sort by (route, repetition).
     let mut records: Vec<RouteRecord> = Vec::with_capacity(total_records as usize);
@@ -216,6 +188,54 @@ pub fn merge(files: Vec<ResultsFile>, opts: MergeOptions) -> Result<MergeOutcome
     Ok(MergeOutcome {
         complete: merged.global.is_some(),
         merged,
+    })
+}
+
+/// What step 1 of the merge finds over the workers' files.
+struct Totals {
+    /// Records of every file.
+    records: u64,
+    /// Records planned: the files' own totals, or the plan's when larger.
+    progress: u64,
+    /// The agent's sensors (every file that names them names the same).
+    sensors: Vec<String>,
+}
+
+/// Step 1: route totals and the sensors check; `expected` records (the plan's) bound them.
+fn file_totals(files: &[ResultsFile], expected: Option<u64>) -> Result<Totals, ResultsError> {
+    let mut sensors: Option<&ResultsFile> = None;
+    let mut total_records: u64 = 0;
+    let mut total_progress: u64 = 0;
+    for file in files {
+        total_records += file.records.len() as u64;
+        total_progress = total_progress.saturating_add(file.progress.1);
+        if !file.sensors.is_empty() {
+            match sensors {
+                None => sensors = Some(file),
+                Some(first) if first.sensors != file.sensors => {
+                    return Err(ResultsError::SensorMismatch {
+                        first: first.source.clone(),
+                        file: file.source.clone(),
+                    })
+                }
+                Some(_) => {}
+            }
+        }
+    }
+    if let Some(expected) = expected {
+        if total_records > expected {
+            return Err(ResultsError::UnexpectedRecords {
+                found: total_records as usize,
+                expected,
+            });
+        }
+        // NB: a worker whose file is missing contributes no progress; the plan knows better.
+        total_progress = total_progress.max(expected);
+    }
+    Ok(Totals {
+        records: total_records,
+        progress: total_progress,
+        sensors: sensors.map(|f| f.sensors.clone()).unwrap_or_default(),
     })
 }
 
@@ -330,48 +350,8 @@ fn global_v2(merged: &mut Merged, total_routes: u64) {
     let means = means.map(|m| py::round(m, ROUND_DIGITS_SCORE));
     let (total_length, duration_game, duration_system) = totals(records);
 
-    // Sample standard deviation around the rounded means.
-    let std_dev = if total_routes == 1 {
-        [StdDev::Value(Num::Int(0)); 3]
-    } else {
-        let mut sums = [0.0f64; 3];
-        for r in records {
-            for ((sum, key), mean) in sums.iter_mut().zip(SCORE_KEYS).zip(means) {
-                let diff = score_of(r, key).as_f64() - mean;
-                *sum += diff * diff;
-            }
-        }
-        sums.map(|s| {
-            StdDev::Value(Num::Float(py::round(
-                (s / (total_routes - 1) as f64).sqrt(),
-                ROUND_DIGITS,
-            )))
-        })
-    };
-
-    // Infractions per km driven; off-road is the km driven off-road, not a rate.
-    let kinds = Leaderboard::V2.infraction_kinds();
-    let mut km_driven = 0.0f64;
-    let mut sums: Vec<Num> = vec![Num::Int(0); kinds.len()];
-    for r in records {
-        km_driven += r.meta.route_length.as_f64() / 1000.0 * r.scores.score_route.as_f64() / 100.0;
-        for (sum, kind) in sums.iter_mut().zip(kinds) {
-            *sum = *sum + infraction_value(r, kind);
-        }
-    }
-    let km_driven = km_driven.max(0.001);
-    let infractions: Vec<(&'static str, Num)> = kinds
-        .iter()
-        .zip(sums)
-        .map(|(kind, sum)| {
-            let value = if *kind == "outside_route_lanes" {
-                sum.as_f64()
-            } else {
-                sum.as_f64() / km_driven
-            };
-            (*kind, Num::Float(py::round(value, ROUND_DIGITS)))
-        })
-        .collect();
+    let std_dev = std_devs(records, means, total_routes);
+    let infractions = infractions_per_km(records);
 
     let global = GlobalRecord {
         status,
@@ -410,6 +390,53 @@ fn global_v2(merged: &mut Merged, total_routes: u64) {
     }
     merged.global = Some(global);
     set_entry_status(merged, entry_status);
+}
+
+/// The scores' sample standard deviations around the rounded `means`, as the official 2.0
+/// merge computes them (0 for a single route).
+fn std_devs(records: &[RouteRecord], means: [f64; 3], total_routes: u64) -> [StdDev; 3] {
+    if total_routes == 1 {
+        return [StdDev::Value(Num::Int(0)); 3];
+    }
+    let mut sums = [0.0f64; 3];
+    for r in records {
+        for ((sum, key), mean) in sums.iter_mut().zip(SCORE_KEYS).zip(means) {
+            let diff = score_of(r, key).as_f64() - mean;
+            *sum += diff * diff;
+        }
+    }
+    sums.map(|s| {
+        StdDev::Value(Num::Float(py::round(
+            (s / (total_routes - 1) as f64).sqrt(),
+            ROUND_DIGITS,
+        )))
+    })
+}
+
+/// Infractions per km driven; off-road is the km driven off-road, not a rate.
+fn infractions_per_km(records: &[RouteRecord]) -> Vec<(&'static str, Num)> {
+    let kinds = Leaderboard::V2.infraction_kinds();
+    let mut km_driven = 0.0f64;
+    let mut sums: Vec<Num> = vec![Num::Int(0); kinds.len()];
+    for r in records {
+        km_driven += r.meta.route_length.as_f64() / 1000.0 * r.scores.score_route.as_f64() / 100.0;
+        for (sum, kind) in sums.iter_mut().zip(kinds) {
+            *sum = *sum + infraction_value(r, kind);
+        }
+    }
+    let km_driven = km_driven.max(0.001);
+    kinds
+        .iter()
+        .zip(sums)
+        .map(|(kind, sum)| {
+            let value = if *kind == "outside_route_lanes" {
+                sum.as_f64()
+            } else {
+                sum.as_f64() / km_driven
+            };
+            (*kind, Num::Float(py::round(value, ROUND_DIGITS)))
+        })
+        .collect()
 }
 
 /// The metres off-road in a route's first off-road message (its 9th space-separated word),

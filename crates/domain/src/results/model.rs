@@ -532,117 +532,17 @@ fn validate(
     leaderboard: Leaderboard,
     subset: Option<RouteSubset>,
 ) -> Result<ResultsFile, ResultsError> {
-    let invalid = |field: String, problem: String| ResultsError::Invalid {
-        file: source.to_owned(),
-        field,
-        problem,
-    };
-    let progress = match raw.checkpoint.progress.as_slice() {
-        [] => (0, 0),
-        [done, total] => (
-            count(*done).ok_or_else(|| {
-                invalid(
-                    "_checkpoint.progress[0]".into(),
-                    "is not a non-negative integer".into(),
-                )
-            })?,
-            count(*total).ok_or_else(|| {
-                invalid(
-                    "_checkpoint.progress[1]".into(),
-                    "is not a non-negative integer".into(),
-                )
-            })?,
-        ),
-        other => {
-            return Err(invalid(
-                "_checkpoint.progress".into(),
-                format!("has {} elements, expected `[done, total]`", other.len()),
-            ))
-        }
-    };
+    let progress = progress_of(source, &raw.checkpoint.progress)?;
     for (i, sensor) in raw.sensors.iter().enumerate() {
-        check_label(sensor, true).map_err(|p| invalid(format!("sensors[{i}]"), p))?;
+        check_label(sensor, true).map_err(|p| invalid(source, format!("sensors[{i}]"), p))?;
     }
-    let kinds = leaderboard.infraction_kinds();
-    let mut records = Vec::with_capacity(raw.checkpoint.records.len());
-    for (i, r) in raw.checkpoint.records.into_iter().enumerate() {
-        let field = |name: &str| format!("_checkpoint.records[{i}].{name}");
-        let route_id = RouteId::parse(&r.route_id, leaderboard).ok_or_else(|| {
-            invalid(
-                field("route_id"),
-                format!(
-                    "`{}` is not of the form `{}`",
-                    shown(&r.route_id),
-                    leaderboard.route_id_form()
-                ),
-            )
-        })?;
-        if let Some(subset) = subset {
-            if !subset.contains(route_id.route) {
-                return Err(ResultsError::OutsideSubset {
-                    file: source.to_owned(),
-                    route_id: route_id.raw,
-                    subset,
-                });
-            }
-        }
-        let index = match r.index {
-            Num::Int(i) if (i as f64).abs() <= MAX_NUMBER => i,
-            _ => return Err(invalid(field("index"), "is not an integer".into())),
-        };
-        check_label(&r.status, false).map_err(|p| invalid(field("status"), p))?;
-        if let Some(n) = r.num_infractions {
-            non_negative(n).map_err(|p| invalid(field("num_infractions"), p))?;
-        }
-        for kind in kinds {
-            if !r.infractions.0.iter().any(|(k, _)| k.0 == *kind) {
-                return Err(invalid(
-                    field("infractions"),
-                    format!("has no `{kind}` list"),
-                ));
-            }
-        }
-        if let Some((kind, msg)) = r
-            .infractions
-            .0
-            .iter()
-            .find_map(|(k, msgs)| msgs.iter().find(|m| m.len() > 64 * 1024).map(|m| (k, m)))
-        {
-            return Err(invalid(
-                field(&format!("infractions.{kind}")),
-                format!("holds a {}-byte message", msg.len()),
-            ));
-        }
-        for (name, value) in [
-            ("scores.score_route", r.scores.score_route),
-            ("scores.score_penalty", r.scores.score_penalty),
-            ("scores.score_composed", r.scores.score_composed),
-            ("meta.route_length", r.meta.route_length),
-            ("meta.duration_game", r.meta.duration_game),
-            ("meta.duration_system", r.meta.duration_system),
-        ] {
-            non_negative(value).map_err(|p| invalid(field(name), p))?;
-        }
-        // The official evaluator's ranges: completion and the composed score are percentages,
-        // the penalty a product of factors in (0, 1]. A score outside them would be published
-        // as the participant wrote it.
-        for (name, value, max) in [
-            ("scores.score_route", r.scores.score_route, 100.0),
-            ("scores.score_composed", r.scores.score_composed, 100.0),
-            ("scores.score_penalty", r.scores.score_penalty, 1.0),
-        ] {
-            within(value, max).map_err(|p| invalid(field(name), p))?;
-        }
-        records.push(RouteRecord {
-            index,
-            route_id,
-            status: r.status,
-            num_infractions: r.num_infractions,
-            infractions: r.infractions.0.into_iter().map(|(k, v)| (k.0, v)).collect(),
-            scores: r.scores,
-            meta: r.meta,
-        });
-    }
+    let records = raw
+        .checkpoint
+        .records
+        .into_iter()
+        .enumerate()
+        .map(|(i, r)| validate_record(source, i, r, leaderboard, subset))
+        .collect::<Result<Vec<_>, _>>()?;
     Ok(ResultsFile {
         source: source.to_owned(),
         progress,
@@ -653,6 +553,121 @@ fn validate(
             .global_record
             .is_some_and(|g| !g.0.is_empty()),
         entry_status: raw.entry_status,
+    })
+}
+
+/// A field of a results file that breaks a rule.
+fn invalid(source: &str, field: String, problem: String) -> ResultsError {
+    ResultsError::Invalid {
+        file: source.to_owned(),
+        field,
+        problem,
+    }
+}
+
+/// `_checkpoint.progress`: `[done, total]`, or empty (nothing yet).
+fn progress_of(source: &str, progress: &[Num]) -> Result<(u64, u64), ResultsError> {
+    let at = |i: usize| {
+        invalid(
+            source,
+            format!("_checkpoint.progress[{i}]"),
+            "is not a non-negative integer".into(),
+        )
+    };
+    match progress {
+        [] => Ok((0, 0)),
+        [done, total] => Ok((
+            count(*done).ok_or_else(|| at(0))?,
+            count(*total).ok_or_else(|| at(1))?,
+        )),
+        other => Err(invalid(
+            source,
+            "_checkpoint.progress".into(),
+            format!("has {} elements, expected `[done, total]`", other.len()),
+        )),
+    }
+}
+
+/// Record `i` of a results file, checked against what the official evaluator can write for
+/// a route of the worker's `subset`.
+fn validate_record(
+    source: &str,
+    i: usize,
+    r: RawRecord,
+    leaderboard: Leaderboard,
+    subset: Option<RouteSubset>,
+) -> Result<RouteRecord, ResultsError> {
+    let field = |name: &str| format!("_checkpoint.records[{i}].{name}");
+    let bad = |name: &str, problem: String| invalid(source, field(name), problem);
+    let route_id = RouteId::parse(&r.route_id, leaderboard).ok_or_else(|| {
+        bad(
+            "route_id",
+            format!(
+                "`{}` is not of the form `{}`",
+                shown(&r.route_id),
+                leaderboard.route_id_form()
+            ),
+        )
+    })?;
+    if let Some(subset) = subset.filter(|s| !s.contains(route_id.route)) {
+        return Err(ResultsError::OutsideSubset {
+            file: source.to_owned(),
+            route_id: route_id.raw,
+            subset,
+        });
+    }
+    let index = match r.index {
+        Num::Int(i) if (i as f64).abs() <= MAX_NUMBER => i,
+        _ => return Err(bad("index", "is not an integer".into())),
+    };
+    check_label(&r.status, false).map_err(|p| bad("status", p))?;
+    if let Some(n) = r.num_infractions {
+        non_negative(n).map_err(|p| bad("num_infractions", p))?;
+    }
+    for kind in leaderboard.infraction_kinds() {
+        if !r.infractions.0.iter().any(|(k, _)| k.0 == *kind) {
+            return Err(bad("infractions", format!("has no `{kind}` list")));
+        }
+    }
+    if let Some((kind, msg)) = r
+        .infractions
+        .0
+        .iter()
+        .find_map(|(k, msgs)| msgs.iter().find(|m| m.len() > 64 * 1024).map(|m| (k, m)))
+    {
+        return Err(bad(
+            &format!("infractions.{kind}"),
+            format!("holds a {}-byte message", msg.len()),
+        ));
+    }
+    for (name, value) in [
+        ("scores.score_route", r.scores.score_route),
+        ("scores.score_penalty", r.scores.score_penalty),
+        ("scores.score_composed", r.scores.score_composed),
+        ("meta.route_length", r.meta.route_length),
+        ("meta.duration_game", r.meta.duration_game),
+        ("meta.duration_system", r.meta.duration_system),
+    ] {
+        non_negative(value).map_err(|p| bad(name, p))?;
+    }
+    // The official evaluator's ranges: completion and the composed score are percentages,
+    // the penalty a product of factors in (0, 1]. A score outside them would be published
+    // as the participant wrote it.
+    for (name, value, max) in [
+        ("scores.score_route", r.scores.score_route, 100.0),
+        ("scores.score_composed", r.scores.score_composed, 100.0),
+        ("scores.score_penalty", r.scores.score_penalty, 1.0),
+    ] {
+        within(value, max).map_err(|p| bad(name, p))?;
+    }
+    Ok(RouteRecord {
+        index,
+        route_id,
+        status: r.status,
+        num_infractions: r.num_infractions,
+        infractions: r.infractions.0.into_iter().map(|(k, v)| (k.0, v)).collect(),
+        scores: r.scores,
+        meta: r.meta,
     })
 }
 
