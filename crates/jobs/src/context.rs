@@ -9,9 +9,9 @@
 use std::collections::BTreeMap;
 
 use lb_domain::plan::{
-    is_dns_label, is_label_value, label_value, Plan, COMPONENT_LABEL, COMPONENT_SUBMISSION,
-    EXECUTION_LABEL, JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY, MANAGED_BY_LABEL,
-    SUBMISSION_LABEL, TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
+    is_dns_label, is_label_value, label_value, JobPlan, Plan, COMPONENT_LABEL,
+    COMPONENT_SUBMISSION, EXECUTION_LABEL, JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY,
+    MANAGED_BY_LABEL, SUBMISSION_LABEL, TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
 };
 use lb_domain::resources::{Allotment, PairAllotment};
 use lb_domain::results::Leaderboard;
@@ -624,6 +624,101 @@ fn printable(text: &str, max_chars: usize) -> String {
         .collect()
 }
 
+impl AwsContext {
+    /// What the Job's init and logcopy need of AWS.
+    fn of(settings: &JobSettings) -> AwsContext {
+        AwsContext {
+            region: settings.region.clone(),
+            bucket: settings.bucket.clone(),
+            role_arn: settings.s3_role_arn.clone(),
+            token_file: format!("{AWS_TOKEN_DIR}/token"),
+        }
+    }
+}
+
+impl KubernetesContext {
+    /// Where and how long the Job runs.
+    fn of(settings: &JobSettings) -> KubernetesContext {
+        KubernetesContext {
+            namespace: settings.namespace.clone(),
+            service_account: settings.service_account.clone(),
+            instance_type: settings.instance_type.clone(),
+            backoff_limit: settings.backoff_limit,
+            active_deadline_seconds: settings.active_deadline_seconds,
+            ttl_seconds_after_finished: settings.ttl_seconds_after_finished,
+            termination_grace_seconds: settings.termination_grace_seconds,
+        }
+    }
+}
+
+/// Job `job_index` of `plan`, once the submission and the settings are known to fit it.
+fn checked_job<'a>(
+    leaderboard: Leaderboard,
+    plan: &'a Plan,
+    job_index: u32,
+    submission: &SubmissionInfo,
+    settings: &JobSettings,
+) -> Result<&'a JobPlan, ContextError> {
+    if plan.submission_id != submission.submission_id {
+        return Err(invalid(
+            "submission_id",
+            submission.submission_id,
+            format!("the plan is for submission {}", plan.submission_id),
+        ));
+    }
+    let Some(job) = plan.jobs.get(job_index as usize) else {
+        return Err(invalid(
+            "job_index",
+            job_index,
+            format!("the plan has {} Job(s)", plan.jobs.len()),
+        ));
+    };
+    let track_ok = !submission.track.is_empty()
+        && submission.track.len() <= 63
+        && submission
+            .track
+            .bytes()
+            .all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'_');
+    if !track_ok {
+        return Err(invalid(
+            "track",
+            &submission.track,
+            "expected a track codename of uppercase letters, digits and `_`",
+        ));
+    }
+    if leaderboard == Leaderboard::V1 && settings.scenarios_file.is_empty() {
+        return Err(invalid(
+            "scenarios_file",
+            "",
+            "Leaderboard 1.0 needs a scenarios file",
+        ));
+    }
+    Ok(job)
+}
+
+/// The labels of a Job and its pods: what selects a submission's, a team's and an
+/// execution's objects.
+fn job_labels(
+    leaderboard: Leaderboard,
+    job: &JobPlan,
+    submission: &SubmissionInfo,
+) -> BTreeMap<String, String> {
+    [
+        (COMPONENT_LABEL, COMPONENT_SUBMISSION.to_owned()),
+        (MANAGED_BY_LABEL, MANAGED_BY.to_owned()),
+        (SUBMISSION_LABEL, submission.submission_id.to_string()),
+        (TEAM_ID_LABEL, submission.team_id.to_string()),
+        (TEAM_LABEL, label_value(&submission.team_name)),
+        (JOB_INDEX_LABEL, job.index.to_string()),
+        (LEADERBOARD_LABEL, leaderboard.as_str().to_owned()),
+        (TRACK_LABEL, label_value(&submission.track)),
+        (EXECUTION_LABEL, label_value(&submission.execution)),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_owned(), v))
+    .collect()
+}
+
 impl JobContext {
     /// Builds the context of Job `job_index` of `plan`, validating every input.
     pub fn build(
@@ -634,40 +729,7 @@ impl JobContext {
         settings: &JobSettings,
     ) -> Result<JobContext, ContextError> {
         check_settings(settings)?;
-        if plan.submission_id != submission.submission_id {
-            return Err(invalid(
-                "submission_id",
-                submission.submission_id,
-                format!("the plan is for submission {}", plan.submission_id),
-            ));
-        }
-        let Some(job) = plan.jobs.get(job_index as usize) else {
-            return Err(invalid(
-                "job_index",
-                job_index,
-                format!("the plan has {} Job(s)", plan.jobs.len()),
-            ));
-        };
-        let track_ok = !submission.track.is_empty()
-            && submission.track.len() <= 63
-            && submission
-                .track
-                .bytes()
-                .all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'_');
-        if !track_ok {
-            return Err(invalid(
-                "track",
-                &submission.track,
-                "expected a track codename of uppercase letters, digits and `_`",
-            ));
-        }
-        if leaderboard == Leaderboard::V1 && settings.scenarios_file.is_empty() {
-            return Err(invalid(
-                "scenarios_file",
-                "",
-                "Leaderboard 1.0 needs a scenarios file",
-            ));
-        }
+        let job = checked_job(leaderboard, plan, job_index, submission, settings)?;
         let images = ImagesContext {
             carla: check_image("CARLA image", &settings.carla_image)?,
             private_contents: check_image(
@@ -677,20 +739,7 @@ impl JobContext {
             participant: check_image("participant image", &submission.participant_image)?,
         };
         let team_label = label_value(&submission.team_name);
-        let labels: BTreeMap<String, String> = [
-            (COMPONENT_LABEL, COMPONENT_SUBMISSION.to_owned()),
-            (MANAGED_BY_LABEL, MANAGED_BY.to_owned()),
-            (SUBMISSION_LABEL, submission.submission_id.to_string()),
-            (TEAM_ID_LABEL, submission.team_id.to_string()),
-            (TEAM_LABEL, team_label.clone()),
-            (JOB_INDEX_LABEL, job.index.to_string()),
-            (LEADERBOARD_LABEL, leaderboard.as_str().to_owned()),
-            (TRACK_LABEL, label_value(&submission.track)),
-            (EXECUTION_LABEL, label_value(&submission.execution)),
-        ]
-        .into_iter()
-        .map(|(k, v)| (k.to_owned(), v))
-        .collect();
+        let labels = job_labels(leaderboard, job, submission);
         Ok(JobContext {
             leaderboard: leaderboard.as_str().to_owned(),
             submission_id: submission.submission_id,
@@ -718,21 +767,8 @@ impl JobContext {
                 scenarios_file: settings.scenarios_file.clone(),
                 repetitions: settings.repetitions,
             },
-            aws: AwsContext {
-                region: settings.region.clone(),
-                bucket: settings.bucket.clone(),
-                role_arn: settings.s3_role_arn.clone(),
-                token_file: format!("{AWS_TOKEN_DIR}/token"),
-            },
-            kubernetes: KubernetesContext {
-                namespace: settings.namespace.clone(),
-                service_account: settings.service_account.clone(),
-                instance_type: settings.instance_type.clone(),
-                backoff_limit: settings.backoff_limit,
-                active_deadline_seconds: settings.active_deadline_seconds,
-                ttl_seconds_after_finished: settings.ttl_seconds_after_finished,
-                termination_grace_seconds: settings.termination_grace_seconds,
-            },
+            aws: AwsContext::of(settings),
+            kubernetes: KubernetesContext::of(settings),
             resources: ResourcesContext {
                 simulator: settings.resources.simulator.into(),
                 agent: ContainerResources::from(settings.resources.agent).with_gpu(),
