@@ -428,6 +428,72 @@ impl CallParser<'_> {
 /// Load-time checks: arity and the rules that literal arguments already break.
 fn check(call: &Call) -> Result<(), String> {
     use Function::*;
+    check_arity(call)?;
+    let f = call.function;
+    let args = Literals(call);
+    match f {
+        Format => check_format(call)?,
+        StringToJson | Base64Encode | Base64Decode => args.string(0, "the argument")?,
+        JsonToString => {
+            if !matches!(call.args[0], Arg::Path(_)) {
+                return Err(format!("{f}: the argument must be a path"));
+            }
+        }
+        ArrayPartition => {
+            args.not_array(0, "the first argument")?;
+            if args
+                .number(1, "the chunk size")?
+                .is_some_and(|size| size <= 0)
+            {
+                return Err(format!("{f}: the chunk size must be a positive integer"));
+            }
+        }
+        ArrayContains | ArrayLength | ArrayUnique => args.not_array(0, "the first argument")?,
+        ArrayGetItem => {
+            args.not_array(0, "the first argument")?;
+            if args.number(1, "the index")?.is_some_and(|index| index < 0) {
+                return Err(format!("{f}: the index must not be negative"));
+            }
+        }
+        ArrayRange => {
+            args.number(0, "the first element")?;
+            args.number(1, "the last element")?;
+            if args.number(2, "the step")? == Some(0) {
+                return Err(format!("{f}: the step must not be zero"));
+            }
+        }
+        Hash => {
+            args.string(0, "the data")?;
+            if let Some(alg) = args.lit(1) {
+                if !alg.as_str().is_some_and(|a| HASH_ALGORITHMS.contains(&a)) {
+                    return Err(format!(
+                        "{f}: the algorithm must be one of {}",
+                        HASH_ALGORITHMS.join(", ")
+                    ));
+                }
+            }
+        }
+        JsonMerge => check_json_merge(&args)?,
+        MathRandom => {
+            args.number(0, "the start")?;
+            args.number(1, "the end")?;
+            args.number(2, "the seed")?;
+        }
+        MathAdd => {
+            args.number(0, "the first argument")?;
+            args.number(1, "the second argument")?;
+        }
+        StringSplit => {
+            args.string(0, "the string")?;
+            args.string(1, "the delimiters")?;
+        }
+        Array | Uuid => {}
+    }
+    Ok(())
+}
+
+/// The call has as many arguments as its function takes.
+fn check_arity(call: &Call) -> Result<(), String> {
     let f = call.function;
     let n = call.args.len();
     let (min, max) = f.arity();
@@ -439,120 +505,89 @@ fn check(call: &Call) -> Result<(), String> {
         };
         return Err(format!("{f} takes {expected} argument(s), got {n}"));
     }
-    let lit = |i: usize| call.args.get(i).and_then(Arg::literal);
-    let not_array = |i: usize, what: &str| -> Result<(), String> {
-        match lit(i) {
-            Some(v) => Err(format!("{f}: {what} must be an array, got {}", kind(&v))),
-            None => Ok(()),
+    Ok(())
+}
+
+/// `States.Format`: a literal template has one `{}` per value after it.
+fn check_format(call: &Call) -> Result<(), String> {
+    let f = call.function;
+    let n = call.args.len();
+    Literals(call).string(0, "the template (first argument)")?;
+    if let Some(Arg::Str { pieces, .. }) = call.args.first() {
+        let slots = pieces.iter().filter(|p| **p == Piece::Slot).count();
+        if slots != n - 1 {
+            return Err(format!(
+                "{f}: the template has {slots} `{{}}` but {} value(s) follow it",
+                n - 1
+            ));
         }
-    };
-    let number = |i: usize, what: &str| -> Result<Option<i64>, String> {
-        match lit(i) {
-            Some(v) => round(&v, what).map(Some).map_err(|e| format!("{f}: {e}")),
-            None => Ok(None),
-        }
-    };
-    let string = |i: usize, what: &str| -> Result<(), String> {
-        match lit(i) {
-            Some(Value::String(_)) | None => Ok(()),
-            Some(v) => Err(format!("{f}: {what} must be a string, got {}", kind(&v))),
-        }
-    };
-    match f {
-        Format => {
-            string(0, "the template (first argument)")?;
-            if let Some(Arg::Str { pieces, .. }) = call.args.first() {
-                let slots = pieces.iter().filter(|p| **p == Piece::Slot).count();
-                if slots != n - 1 {
-                    return Err(format!(
-                        "{f}: the template has {slots} `{{}}` but {} value(s) follow it",
-                        n - 1
-                    ));
-                }
-            }
-        }
-        StringToJson | Base64Encode | Base64Decode => string(0, "the argument")?,
-        JsonToString => {
-            if !matches!(call.args[0], Arg::Path(_)) {
-                return Err(format!("{f}: the argument must be a path"));
-            }
-        }
-        ArrayPartition => {
-            not_array(0, "the first argument")?;
-            if let Some(size) = number(1, "the chunk size")? {
-                if size <= 0 {
-                    return Err(format!("{f}: the chunk size must be a positive integer"));
-                }
-            }
-        }
-        ArrayContains | ArrayLength | ArrayUnique => not_array(0, "the first argument")?,
-        ArrayGetItem => {
-            not_array(0, "the first argument")?;
-            if let Some(index) = number(1, "the index")? {
-                if index < 0 {
-                    return Err(format!("{f}: the index must not be negative"));
-                }
-            }
-        }
-        ArrayRange => {
-            number(0, "the first element")?;
-            number(1, "the last element")?;
-            if number(2, "the step")? == Some(0) {
-                return Err(format!("{f}: the step must not be zero"));
-            }
-        }
-        Hash => {
-            string(0, "the data")?;
-            if let Some(alg) = lit(1) {
-                if !alg.as_str().is_some_and(|a| HASH_ALGORITHMS.contains(&a)) {
-                    return Err(format!(
-                        "{f}: the algorithm must be one of {}",
-                        HASH_ALGORITHMS.join(", ")
-                    ));
-                }
-            }
-        }
-        JsonMerge => {
-            for i in 0..2 {
-                if let Some(v) = lit(i) {
-                    return Err(format!(
-                        "{f}: argument {} must be an object, got {}",
-                        i + 1,
-                        kind(&v)
-                    ));
-                }
-            }
-            match lit(2) {
-                None | Some(Value::Bool(false)) => {}
-                Some(Value::Bool(true)) => {
-                    return Err(format!(
-                        "{f}: only shallow merging is supported; the third argument must be false"
-                    ))
-                }
-                Some(v) => {
-                    return Err(format!(
-                        "{f}: the third argument must be the boolean false, got {}",
-                        kind(&v)
-                    ))
-                }
-            }
-        }
-        MathRandom => {
-            number(0, "the start")?;
-            number(1, "the end")?;
-            number(2, "the seed")?;
-        }
-        MathAdd => {
-            number(0, "the first argument")?;
-            number(1, "the second argument")?;
-        }
-        StringSplit => {
-            string(0, "the string")?;
-            string(1, "the delimiters")?;
-        }
-        Array | Uuid => {}
     }
     Ok(())
+}
+
+/// `States.JsonMerge`: two objects (no literal is one), and a shallow merge.
+fn check_json_merge(args: &Literals<'_>) -> Result<(), String> {
+    let f = args.0.function;
+    for i in 0..2 {
+        if let Some(v) = args.lit(i) {
+            return Err(format!(
+                "{f}: argument {} must be an object, got {}",
+                i + 1,
+                kind(&v)
+            ));
+        }
+    }
+    match args.lit(2) {
+        None | Some(Value::Bool(false)) => Ok(()),
+        Some(Value::Bool(true)) => Err(format!(
+            "{f}: only shallow merging is supported; the third argument must be false"
+        )),
+        Some(v) => Err(format!(
+            "{f}: the third argument must be the boolean false, got {}",
+            kind(&v)
+        )),
+    }
+}
+
+/// A call's literal arguments, for the checks at load time (a path's value is only known
+/// when the state runs).
+struct Literals<'a>(&'a Call);
+
+impl Literals<'_> {
+    fn lit(&self, i: usize) -> Option<Value> {
+        self.0.args.get(i).and_then(Arg::literal)
+    }
+
+    fn not_array(&self, i: usize, what: &str) -> Result<(), String> {
+        match self.lit(i) {
+            Some(v) => Err(format!(
+                "{}: {what} must be an array, got {}",
+                self.0.function,
+                kind(&v)
+            )),
+            None => Ok(()),
+        }
+    }
+
+    fn number(&self, i: usize, what: &str) -> Result<Option<i64>, String> {
+        match self.lit(i) {
+            Some(v) => round(&v, what)
+                .map(Some)
+                .map_err(|e| format!("{}: {e}", self.0.function)),
+            None => Ok(None),
+        }
+    }
+
+    fn string(&self, i: usize, what: &str) -> Result<(), String> {
+        match self.lit(i) {
+            Some(Value::String(_)) | None => Ok(()),
+            Some(v) => Err(format!(
+                "{}: {what} must be a string, got {}",
+                self.0.function,
+                kind(&v)
+            )),
+        }
+    }
 }
 
 /// Rounds a number to the nearest integer, halves up, as Java's `Math.round` (and so Step
@@ -657,216 +692,242 @@ fn run(
 ) -> Result<Value, String> {
     use Function::*;
     Ok(match f {
-        Format => {
-            let rest = args.split_off(1);
-            let pieces = match template {
-                Some(pieces) => pieces.to_vec(),
-                None => {
-                    let text = string(&args[0], "the template (first argument)")?;
-                    let mut pieces = Vec::new();
-                    for (i, part) in text.split("{}").enumerate() {
-                        if i > 0 {
-                            pieces.push(Piece::Slot);
-                        }
-                        pieces.push(Piece::Text(part.to_owned()));
-                    }
-                    pieces
-                }
-            };
-            let slots = pieces.iter().filter(|p| **p == Piece::Slot).count();
-            if slots != rest.len() {
-                return Err(format!(
-                    "the template has {slots} `{{}}` but {} value(s) follow it",
-                    rest.len()
-                ));
-            }
-            let mut values = rest.iter();
-            let mut out = String::new();
-            for piece in &pieces {
-                match piece {
-                    Piece::Text(t) => out.push_str(t),
-                    Piece::Slot => {
-                        out.push_str(&format_value(values.next().unwrap_or(&Value::Null)))
-                    }
-                }
-            }
-            Value::String(out)
-        }
+        Format => states_format(&mut args, template)?,
         StringToJson => {
             let text = string(&args[0], "the argument")?;
             serde_json::from_str(text).map_err(|e| format!("the string is not valid JSON: {e}"))?
         }
         JsonToString => Value::String(args[0].to_string()),
         Array => Value::Array(args),
-        ArrayPartition => {
-            let items = array(&args[0], "the first argument")?;
-            let size = round(&args[1], "the chunk size")?;
-            if size <= 0 {
-                return Err(format!(
-                    "the chunk size must be a positive integer, got {size}"
-                ));
-            }
-            let size = usize::try_from(size).unwrap_or(usize::MAX);
-            Value::Array(
-                items
-                    .chunks(size)
-                    .map(|chunk| Value::Array(chunk.to_vec()))
-                    .collect(),
-            )
-        }
+        ArrayPartition => array_partition(&args)?,
         ArrayContains => {
             let items = array(&args[0], "the first argument")?;
             Value::Bool(items.iter().any(|item| json_eq(item, &args[1])))
         }
-        ArrayRange => {
-            let first = i128::from(round(&args[0], "the first element")?);
-            let last = i128::from(round(&args[1], "the last element")?);
-            let step = i128::from(round(&args[2], "the step")?);
-            if step == 0 {
-                return Err("the step must not be zero".into());
-            }
-            let count = if (step > 0 && first <= last) || (step < 0 && first >= last) {
-                (last - first) / step + 1
-            } else {
-                0
-            };
-            if count > MAX_RANGE_ITEMS {
-                return Err(format!(
-                    "the range has {count} items, over the limit of {MAX_RANGE_ITEMS}"
-                ));
-            }
-            Value::Array(
-                (0..count)
-                    .map(|k| Value::from((first + k * step) as i64))
-                    .collect(),
-            )
-        }
-        ArrayGetItem => {
-            let items = array(&args[0], "the first argument")?;
-            let index = round(&args[1], "the index")?;
-            usize::try_from(index)
-                .ok()
-                .and_then(|i| items.get(i))
-                .cloned()
-                .ok_or_else(|| {
-                    format!(
-                        "the index {index} is out of bounds for an array of {} item(s)",
-                        items.len()
-                    )
-                })?
-        }
+        ArrayRange => array_range(&args)?,
+        ArrayGetItem => array_get_item(&args)?,
         ArrayLength => Value::from(array(&args[0], "the argument")?.len()),
-        ArrayUnique => {
-            let items = array(&args[0], "the argument")?;
-            let mut unique: Vec<Value> = Vec::with_capacity(items.len());
-            for item in items {
-                if !unique.iter().any(|u| json_eq(u, item)) {
-                    unique.push(item.clone());
-                }
-            }
-            Value::Array(unique)
-        }
+        ArrayUnique => array_unique(&args)?,
         Base64Encode => {
             let text = bounded(&args[0], "the string to encode")?;
             Value::String(base64::engine::general_purpose::STANDARD.encode(text))
         }
-        Base64Decode => {
-            let text = bounded(&args[0], "the string to decode")?;
-            let bytes = base64::engine::general_purpose::STANDARD
-                .decode(text)
-                .map_err(|e| format!("the string is not valid base64: {e}"))?;
-            Value::String(
-                String::from_utf8(bytes)
-                    .map_err(|_| "the decoded data is not UTF-8 text".to_owned())?,
-            )
-        }
-        Hash => {
-            use sha2::Digest as _;
-            let data = bounded(&args[0], "the data")?.as_bytes();
-            let algorithm = string(&args[1], "the algorithm")?;
-            Value::String(match algorithm {
-                "MD5" => hex(&md5::Md5::digest(data)),
-                "SHA-1" => hex(&sha1::Sha1::digest(data)),
-                "SHA-256" => hex(&sha2::Sha256::digest(data)),
-                "SHA-384" => hex(&sha2::Sha384::digest(data)),
-                "SHA-512" => hex(&sha2::Sha512::digest(data)),
-                other => {
-                    return Err(format!(
-                        "unknown algorithm `{other}`, expected one of {}",
-                        HASH_ALGORITHMS.join(", ")
-                    ))
-                }
-            })
-        }
-        JsonMerge => {
-            match &args[2] {
-                Value::Bool(false) => {}
-                Value::Bool(true) => {
-                    return Err(
-                        "only shallow merging is supported; the third argument must be false"
-                            .into(),
-                    )
-                }
-                other => {
-                    return Err(format!(
-                        "the third argument must be the boolean false, got {}",
-                        kind(other)
-                    ))
-                }
-            }
-            let second = args.swap_remove(1);
-            let first = args.swap_remove(0);
-            match (first, second) {
-                (Value::Object(mut a), Value::Object(b)) => {
-                    a.extend(b);
-                    Value::Object(a)
-                }
-                (a, b) => {
-                    let bad = if a.is_object() { (2, b) } else { (1, a) };
-                    return Err(format!(
-                        "argument {} must be an object, got {}",
-                        bad.0,
-                        kind(&bad.1)
-                    ));
-                }
-            }
-        }
-        MathRandom => {
-            let start = int32(&args[0], "the start")?;
-            let end = int32(&args[1], "the end")?;
-            if start >= end {
-                return Err(format!(
-                    "the start ({start}) must be less than the end ({end})"
-                ));
-            }
-            let span = (end - start) as u64;
-            let draw = match args.get(2) {
-                Some(seed) => {
-                    let seed = round(seed, "the seed")?;
-                    RandomSource::seeded(seed as u64).below(span)
-                }
-                None => random.below(span),
-            };
-            Value::from(start + draw as i64)
-        }
+        Base64Decode => base64_decode(&args)?,
+        Hash => hash(&args)?,
+        JsonMerge => json_merge(args)?,
+        MathRandom => math_random(&args, random)?,
         MathAdd => {
             let a = int32(&args[0], "the first argument")?;
             let b = int32(&args[1], "the second argument")?;
             Value::from(a + b)
         }
-        StringSplit => {
-            let text = string(&args[0], "the string")?;
-            let delimiters = string(&args[1], "the delimiters")?;
-            if delimiters.is_empty() {
-                return Err("the delimiters must not be empty".into());
-            }
-            Value::Array(
-                text.split(|c| delimiters.contains(c))
-                    .filter(|part| !part.is_empty())
-                    .map(|part| Value::String(part.to_owned()))
-                    .collect(),
-            )
-        }
+        StringSplit => string_split(&args)?,
         Uuid => Value::String(random.uuid_v4()),
     })
+}
+
+/// `States.Format`: the template's `{}` filled with the values after it.
+fn states_format(args: &mut Vec<Value>, template: Option<&[Piece]>) -> Result<Value, String> {
+    let rest = args.split_off(1);
+    let pieces = match template {
+        Some(pieces) => pieces.to_vec(),
+        None => {
+            let text = string(&args[0], "the template (first argument)")?;
+            let mut pieces = Vec::new();
+            for (i, part) in text.split("{}").enumerate() {
+                if i > 0 {
+                    pieces.push(Piece::Slot);
+                }
+                pieces.push(Piece::Text(part.to_owned()));
+            }
+            pieces
+        }
+    };
+    let slots = pieces.iter().filter(|p| **p == Piece::Slot).count();
+    if slots != rest.len() {
+        return Err(format!(
+            "the template has {slots} `{{}}` but {} value(s) follow it",
+            rest.len()
+        ));
+    }
+    let mut values = rest.iter();
+    let mut out = String::new();
+    for piece in &pieces {
+        match piece {
+            Piece::Text(t) => out.push_str(t),
+            Piece::Slot => out.push_str(&format_value(values.next().unwrap_or(&Value::Null))),
+        }
+    }
+    Ok(Value::String(out))
+}
+
+/// `States.ArrayPartition`.
+fn array_partition(args: &[Value]) -> Result<Value, String> {
+    let items = array(&args[0], "the first argument")?;
+    let size = round(&args[1], "the chunk size")?;
+    if size <= 0 {
+        return Err(format!(
+            "the chunk size must be a positive integer, got {size}"
+        ));
+    }
+    let size = usize::try_from(size).unwrap_or(usize::MAX);
+    Ok(Value::Array(
+        items
+            .chunks(size)
+            .map(|chunk| Value::Array(chunk.to_vec()))
+            .collect(),
+    ))
+}
+
+/// `States.ArrayRange`: at most `MAX_RANGE_ITEMS` items.
+fn array_range(args: &[Value]) -> Result<Value, String> {
+    let first = i128::from(round(&args[0], "the first element")?);
+    let last = i128::from(round(&args[1], "the last element")?);
+    let step = i128::from(round(&args[2], "the step")?);
+    if step == 0 {
+        return Err("the step must not be zero".into());
+    }
+    let count = if (step > 0 && first <= last) || (step < 0 && first >= last) {
+        (last - first) / step + 1
+    } else {
+        0
+    };
+    if count > MAX_RANGE_ITEMS {
+        return Err(format!(
+            "the range has {count} items, over the limit of {MAX_RANGE_ITEMS}"
+        ));
+    }
+    Ok(Value::Array(
+        (0..count)
+            .map(|k| Value::from((first + k * step) as i64))
+            .collect(),
+    ))
+}
+
+/// `States.ArrayGetItem`.
+fn array_get_item(args: &[Value]) -> Result<Value, String> {
+    let items = array(&args[0], "the first argument")?;
+    let index = round(&args[1], "the index")?;
+    usize::try_from(index)
+        .ok()
+        .and_then(|i| items.get(i))
+        .cloned()
+        .ok_or_else(|| {
+            format!(
+                "the index {index} is out of bounds for an array of {} item(s)",
+                items.len()
+            )
+        })
+}
+
+/// `States.ArrayUnique`: the first of equal items kept, in order.
+fn array_unique(args: &[Value]) -> Result<Value, String> {
+    let items = array(&args[0], "the argument")?;
+    let mut unique: Vec<Value> = Vec::with_capacity(items.len());
+    for item in items {
+        if !unique.iter().any(|u| json_eq(u, item)) {
+            unique.push(item.clone());
+        }
+    }
+    Ok(Value::Array(unique))
+}
+
+/// `States.Base64Decode`: the decoded bytes as UTF-8 text.
+fn base64_decode(args: &[Value]) -> Result<Value, String> {
+    let text = bounded(&args[0], "the string to decode")?;
+    let bytes = base64::engine::general_purpose::STANDARD
+        .decode(text)
+        .map_err(|e| format!("the string is not valid base64: {e}"))?;
+    Ok(Value::String(String::from_utf8(bytes).map_err(|_| {
+        "the decoded data is not UTF-8 text".to_owned()
+    })?))
+}
+
+/// `States.Hash`: the data's digest in lowercase hex.
+fn hash(args: &[Value]) -> Result<Value, String> {
+    use sha2::Digest as _;
+    let data = bounded(&args[0], "the data")?.as_bytes();
+    let algorithm = string(&args[1], "the algorithm")?;
+    Ok(Value::String(match algorithm {
+        "MD5" => hex(&md5::Md5::digest(data)),
+        "SHA-1" => hex(&sha1::Sha1::digest(data)),
+        "SHA-256" => hex(&sha2::Sha256::digest(data)),
+        "SHA-384" => hex(&sha2::Sha384::digest(data)),
+        "SHA-512" => hex(&sha2::Sha512::digest(data)),
+        other => {
+            return Err(format!(
+                "unknown algorithm `{other}`, expected one of {}",
+                HASH_ALGORITHMS.join(", ")
+            ))
+        }
+    }))
+}
+
+/// `States.JsonMerge`, shallow only.
+fn json_merge(mut args: Vec<Value>) -> Result<Value, String> {
+    match &args[2] {
+        Value::Bool(false) => {}
+        Value::Bool(true) => {
+            return Err(
+                "only shallow merging is supported; the third argument must be false".into(),
+            )
+        }
+        other => {
+            return Err(format!(
+                "the third argument must be the boolean false, got {}",
+                kind(other)
+            ))
+        }
+    }
+    let second = args.swap_remove(1);
+    let first = args.swap_remove(0);
+    Ok(match (first, second) {
+        (Value::Object(mut a), Value::Object(b)) => {
+            a.extend(b);
+            Value::Object(a)
+        }
+        (a, b) => {
+            let bad = if a.is_object() { (2, b) } else { (1, a) };
+            return Err(format!(
+                "argument {} must be an object, got {}",
+                bad.0,
+                kind(&bad.1)
+            ));
+        }
+    })
+}
+
+/// `States.MathRandom`: in `[start, end)`, from the seed when one is given.
+fn math_random(args: &[Value], random: &RandomSource) -> Result<Value, String> {
+    let start = int32(&args[0], "the start")?;
+    let end = int32(&args[1], "the end")?;
+    if start >= end {
+        return Err(format!(
+            "the start ({start}) must be less than the end ({end})"
+        ));
+    }
+    let span = (end - start) as u64;
+    let draw = match args.get(2) {
+        Some(seed) => {
+            let seed = round(seed, "the seed")?;
+            RandomSource::seeded(seed as u64).below(span)
+        }
+        None => random.below(span),
+    };
+    Ok(Value::from(start + draw as i64))
+}
+
+/// `States.StringSplit`: on any of the delimiter characters, empty parts dropped.
+fn string_split(args: &[Value]) -> Result<Value, String> {
+    let text = string(&args[0], "the string")?;
+    let delimiters = string(&args[1], "the delimiters")?;
+    if delimiters.is_empty() {
+        return Err("the delimiters must not be empty".into());
+    }
+    Ok(Value::Array(
+        text.split(|c| delimiters.contains(c))
+            .filter(|part| !part.is_empty())
+            .map(|part| Value::String(part.to_owned()))
+            .collect(),
+    ))
 }

@@ -340,3 +340,82 @@ fn a_placeholder_or_a_glob_is_not_a_path_and_a_relative_path_resolves_from_its_f
         root().join("sidecar")
     );
 }
+
+/// The longest a function of the shipped libraries may be: a reader takes in one screen.
+const MAX_FUNCTION_LINES: usize = 80;
+
+/// The functions of a Rust source (outside its `#[cfg(test)]` module) longer than `max`
+/// lines, as (name, lines): a rustfmt-formatted item ends at the first `}` back at the
+/// indentation its `fn` line starts at.
+fn long_functions(source: &str, max: usize) -> Vec<(String, usize)> {
+    let lines: Vec<&str> = source.lines().collect();
+    let mut long = Vec::new();
+    let mut i = 0;
+    while i < lines.len() {
+        let line = lines[i];
+        if line.trim_start().starts_with("#[cfg(test)]") {
+            break;
+        }
+        let body = line.trim_start();
+        let indent = line.len() - body.len();
+        let head = ["pub(crate) ", "pub ", "async ", "const ", "unsafe "]
+            .iter()
+            .fold(body, |b, p| b.strip_prefix(p).unwrap_or(b));
+        let head = head.strip_prefix("async ").unwrap_or(head);
+        let Some(name) = head.strip_prefix("fn ") else {
+            i += 1;
+            continue;
+        };
+        let name: String = name
+            .chars()
+            .take_while(|c| c.is_alphanumeric() || *c == '_')
+            .collect();
+        // A signature without a body (a trait's) ends in `;`.
+        let Some(open) = (i..lines.len()).find(|&k| {
+            let t = lines[k].trim_end();
+            t.ends_with('{') || t.ends_with(';')
+        }) else {
+            break;
+        };
+        if lines[open].trim_end().ends_with(';') {
+            i = open + 1;
+            continue;
+        }
+        let close = (open + 1..lines.len())
+            .find(|&k| {
+                let l = lines[k];
+                l.len() > indent && l[..indent].trim().is_empty() && l[indent..].starts_with('}')
+            })
+            .unwrap_or(lines.len() - 1);
+        if close - i + 1 > max {
+            long.push((name, close - i + 1));
+        }
+        i = close + 1;
+    }
+    long
+}
+
+#[test]
+fn no_function_of_the_shared_crates_is_longer_than_a_screen() {
+    let long: Vec<String> = files(&["rs"])
+        .into_iter()
+        .filter(|(_, rel)| rel.starts_with("crates/") && rel.contains("/src/"))
+        .flat_map(|(path, rel)| {
+            let source = std::fs::read_to_string(path).unwrap();
+            long_functions(&source, MAX_FUNCTION_LINES)
+                .into_iter()
+                .map(move |(name, n)| format!("{rel}: `{name}` has {n} lines"))
+        })
+        .collect();
+    assert!(long.is_empty(), "split these:\n{}", long.join("\n"));
+}
+
+#[test]
+fn a_long_function_is_found_and_a_test_module_is_not_counted() {
+    let body = "    let x = 1;\n".repeat(80);
+    let source = format!(
+        "/// Short.\npub fn short() -> u8 {{\n    1\n}}\n\npub async fn long() {{\n{body}}}\n\ntrait T {{\n    fn sig(&self);\n}}\n\n#[cfg(test)]\nmod tests {{\n    fn huge() {{\n{body}{body}    }}\n}}\n"
+    );
+    assert_eq!(long_functions(&source, 80), [("long".to_string(), 82)]);
+    assert!(long_functions(&source, 82).is_empty());
+}
