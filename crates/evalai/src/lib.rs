@@ -935,23 +935,26 @@ fn check_final(update: &FinalUpdate) -> Result<()> {
     Ok(())
 }
 
-/// `2026-11-26T04:31:05Z`: epoch seconds as EvalAI's datetime filters read them.
+/// `2026-11-26T04:31:05Z`: epoch seconds as EvalAI's datetime filters read them (RFC 3339,
+/// which Django's `parse_datetime` reads).
 fn iso_utc(epoch: u64) -> Option<String> {
     let t = time::OffsetDateTime::from_unix_timestamp(i64::try_from(epoch).ok()?).ok()?;
-    Some(format!(
-        "{:04}-{:02}-{:02}T{:02}:{:02}:{:02}Z",
-        t.year(),
-        u8::from(t.month()),
-        t.day(),
-        t.hour(),
-        t.minute(),
-        t.second()
-    ))
+    t.format(&time::format_description::well_known::Rfc3339)
+        .ok()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_bound_is_written_as_evalai_reads_it() {
+        assert_eq!(iso_utc(0).as_deref(), Some("1970-01-01T00:00:00Z"));
+        assert_eq!(
+            iso_utc(1_795_000_000).as_deref(),
+            Some("2026-11-18T11:06:40Z")
+        );
+    }
 
     #[test]
     fn the_queue_note_keeps_the_participants_keys_and_never_reshapes_them() {

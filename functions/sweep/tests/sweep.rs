@@ -54,17 +54,11 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
     let requests = fake.requests()[before..].to_vec();
     assert_eq!(requests.len(), 1, "{requests:?}");
     assert_eq!(requests[0].path, "/api/jobs/challenge/1/submission/");
-    let oldest =
-        time::OffsetDateTime::from_unix_timestamp(*arrivals.iter().min().unwrap() as i64).unwrap();
-    let after = format!(
-        "{:04}-{:02}-{:02}T{:02}:{:02}:{:02}Z",
-        oldest.year(),
-        u8::from(oldest.month()),
-        oldest.day(),
-        oldest.hour(),
-        oldest.minute(),
-        oldest.second()
-    );
+    let oldest = *arrivals.iter().min().unwrap() as i64;
+    let after = time::OffsetDateTime::from_unix_timestamp(oldest)
+        .unwrap()
+        .format(&time::format_description::well_known::Rfc3339)
+        .unwrap();
     assert_eq!(
         requests[0].query.as_deref(),
         Some(format!("status=cancelled&submitted_after={after}").as_str())
