@@ -181,12 +181,11 @@ async fn round(
     deps: &Deps,
     now: u64,
 ) -> Result<RunState> {
-    let submission = submission.clone();
     let id = submission.submission_id;
     let target = deps.clients.settings.target(submission.phase_id)?;
     let wake = read_wake(deps, id, &mut run).await?;
     if !run.queue.admitted {
-        return waiting_round(deps, &submission, run, wake, target.deployment, now).await;
+        return waiting_round(deps, submission, run, wake, target.deployment, now).await;
     }
     let observation = match observe_round(deps, &target, id, &mut run, now).await? {
         Seen::Ended => return Ok(run),
@@ -194,16 +193,16 @@ async fn round(
         Seen::Unreachable => None,
     };
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
-    let at = submission_ref(&submission);
+    let at = submission_ref(submission);
     // The first pair started: now the submission runs, for EvalAI and for the record (before
     // any partial update, which a later `running` would otherwise undo).
     if let Some(observation) = &observation {
         if run.monitor.started_at.is_none() && lb_cluster::observe::started(&observation.jobs) {
-            mark_started(deps, &submission, observation, &mut run, now).await?;
+            mark_started(deps, submission, observation, &mut run, now).await?;
         }
     }
     // Only a cancel the note found ends the round here; any other word is left to the rest.
-    let mut evalai_status = queue_note(deps, &submission, at, &mut run, now)
+    let mut evalai_status = queue_note(deps, submission, at, &mut run, now)
         .await?
         .filter(|s| *s == SubmissionStatus::Cancelled);
     if evalai_status.is_none() {
@@ -230,7 +229,7 @@ async fn round(
         judge(
             deps,
             &target,
-            &submission,
+            submission,
             &store,
             &mut run,
             observation.verdict,
