@@ -6,15 +6,15 @@
 //! `RECORD_PATH`, output to `logs/agent/agent<ID>/agent.log`; stop it when it is silent for
 //! `LB_MAX_IDLE_SECONDS`, when the simulator crashed, on SIGTERM, or on cancel (exit 0); then
 //! judge its results file (missing, unreadable, invalid or without a `global_record` ->
-//! `agent-<ID>.crash<CRASH_ID>`, exit 1; else `agent-<ID>.done`, exit 0) and wait (bounded)
-//! for the simulator's marker.
+//! `agent-<ID>.crash<CRASH_ID>`, exit 1, or exit 3 when the image cannot run the evaluator at
+//! all; else `agent-<ID>.done`, exit 0) and wait (bounded) for the simulator's marker.
 
 use std::fs;
 use std::io::{self, Read};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use lb_domain::protocol::{self, agent_step, env, partner_finished, AgentStep, Marker, Role};
+use lb_domain::protocol::{self, agent_step, env, exit, partner_finished, AgentStep, Marker, Role};
 use lb_domain::results::{read_worker_file, WorkerFile, MAX_FILE_BYTES};
 use tracing::{info, warn};
 
@@ -23,7 +23,7 @@ use crate::handoff;
 use crate::pair::{self, write_marker, PairError, PairOutcome};
 use crate::signals::{Signals, Wake};
 use crate::status::StatusDir;
-use crate::supervise::{become_subreaper, Supervised};
+use crate::supervise::{become_subreaper, ChildExit, Supervised};
 
 /// Runs the subcommand with the configuration from the environment.
 pub fn run(command: &[String]) -> Result<PairOutcome, PairError> {
@@ -103,6 +103,15 @@ fn read_limited(path: &Path) -> io::Result<Option<Vec<u8>>> {
     file.take(MAX_FILE_BYTES as u64 + 1)
         .read_to_end(&mut bytes)?;
     Ok(Some(bytes))
+}
+
+/// Whether a spawn error is the image's own (no such program, or not executable), which no
+/// new pod can change.
+fn image_cannot_run(e: &io::Error) -> bool {
+    matches!(
+        e.kind(),
+        io::ErrorKind::NotFound | io::ErrorKind::PermissionDenied
+    )
 }
 
 /// Whether a run resumes: after an earlier crash of this container, or over partial results.
@@ -195,11 +204,21 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
         ),
         (env::RECORD_PATH, paths.recorder.display().to_string()),
     ];
-    let mut child =
-        Supervised::spawn(command, &envs, &paths.log, true).map_err(|source| PairError::Spawn {
-            program: command.first().cloned().unwrap_or_default(),
-            source,
-        })?;
+    let mut child = match Supervised::spawn(command, &envs, &paths.log, true) {
+        Ok(child) => child,
+        // The participant's image has no such program: every new pod would fail the same way.
+        Err(source) if image_cannot_run(&source) => {
+            warn!(pair = id, error = %source, "the image cannot run the evaluator");
+            write_marker(&status, crash)?;
+            return Ok(PairOutcome::Unrunnable);
+        }
+        Err(source) => {
+            return Err(PairError::Spawn {
+                program: command.first().cloned().unwrap_or_default(),
+                source,
+            })
+        }
+    };
     info!(pair = id, attempt, resume = resuming, "evaluator started");
     child.note(&format!(
         "agent {id} attempt {attempt}: evaluator started on routes {}{}",
@@ -208,10 +227,12 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
     ));
 
     let mut terminated = false;
+    let mut ended = None;
     loop {
         if let Some(exit) = child.try_exit() {
             info!(pair = id, %exit, "evaluator ended");
             child.note(&format!("evaluator ended ({exit})"));
+            ended = Some(exit);
             break;
         }
         match agent_step(&pair::view(&status, id, attempt), true) {
@@ -272,7 +293,15 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
             warn!(pair = id, attempt, reason = %why, "results incomplete: crash");
             child.note(&format!("crash: {why}"));
             write_marker(&status, crash)?;
-            PairOutcome::Crashed
+            match ended {
+                Some(ChildExit::Code(code)) if exit::shell_cannot_run(code) => {
+                    child.note(&format!(
+                        "the image cannot run the evaluator (the shell's exit code {code}): no retry can help"
+                    ));
+                    PairOutcome::Unrunnable
+                }
+                _ => PairOutcome::Crashed,
+            }
         }
     };
     if terminated {

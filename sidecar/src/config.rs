@@ -342,8 +342,6 @@ pub struct LogcopyConfig {
     pub pairs: Vec<PairId>,
     /// `LB_PERIOD_SECONDS`.
     pub period: Duration,
-    /// `LB_BACKOFF_LIMIT`: the Job's `backoffLimit`, when known.
-    pub backoff_limit: Option<u32>,
 }
 
 impl LogcopyConfig {
@@ -355,11 +353,6 @@ impl LogcopyConfig {
             logs_root: e.path(env::LOGS_ROOT, Some("/logs"))?,
             pairs: e.pairs()?,
             period: e.seconds(env::PERIOD_SECONDS, 10.0, false)?,
-            backoff_limit: e.parsed(env::BACKOFF_LIMIT, Some(None), |t| {
-                t.parse::<u32>()
-                    .map(Some)
-                    .map_err(|_| "expected a whole number".into())
-            })?,
         })
     }
 }
@@ -549,7 +542,7 @@ mod tests {
     }
 
     #[test]
-    fn logcopy_reads_pairs_bucket_and_the_optional_backoff_limit() {
+    fn logcopy_reads_pairs_and_bucket() {
         let vars = [
             ("LB_SUBMISSION_ID", "42"),
             ("LB_JOB_INDEX", "1"),
@@ -562,7 +555,6 @@ mod tests {
             let c = LogcopyConfig::read(e).unwrap();
             assert_eq!(c.pairs, vec![5, 6, 7, 8]);
             assert_eq!(c.period, Duration::from_secs(10));
-            assert_eq!(c.backoff_limit, None);
             assert_eq!(c.logs_root, PathBuf::from("/logs"));
             assert_eq!(c.aws.endpoint_url, None);
         });
@@ -570,11 +562,6 @@ mod tests {
         bad[4] = ("LB_S3_BUCKET", "Bad_Bucket");
         with(&bad, |e| {
             assert_eq!(LogcopyConfig::read(e).unwrap_err().var, "LB_S3_BUCKET");
-        });
-        let mut limit = vars.to_vec();
-        limit.push(("LB_BACKOFF_LIMIT", "8"));
-        with(&limit, |e| {
-            assert_eq!(LogcopyConfig::read(e).unwrap().backoff_limit, Some(8));
         });
     }
 

@@ -60,6 +60,16 @@ pub enum InitError {
 }
 
 impl InitError {
+    /// The container's exit code: a malformed environment fails every pod alike
+    /// (`lb_domain::protocol::exit::MISCONFIGURED`).
+    pub fn exit_code(&self) -> std::process::ExitCode {
+        let code = match self {
+            InitError::Env(_) => lb_domain::protocol::exit::MISCONFIGURED,
+            _ => lb_domain::protocol::exit::CRASHED,
+        };
+        std::process::ExitCode::from(code)
+    }
+
     /// Stable name for scripts and logs.
     pub fn name(&self) -> &'static str {
         match self {

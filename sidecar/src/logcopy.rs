@@ -57,6 +57,16 @@ pub enum LogcopyError {
 }
 
 impl LogcopyError {
+    /// The container's exit code: a malformed environment fails every pod alike
+    /// (`lb_domain::protocol::exit::MISCONFIGURED`).
+    pub fn exit_code(&self) -> std::process::ExitCode {
+        let code = match self {
+            LogcopyError::Env(_) => lb_domain::protocol::exit::MISCONFIGURED,
+            _ => lb_domain::protocol::exit::CRASHED,
+        };
+        std::process::ExitCode::from(code)
+    }
+
     /// Stable name for scripts and logs.
     pub fn name(&self) -> &'static str {
         match self {
@@ -154,7 +164,6 @@ impl<'a> Logcopy<'a> {
             pairs = ?self.cfg.pairs,
             period = ?self.cfg.period,
             bucket = %self.s3.bucket(),
-            backoff_limit = ?self.cfg.backoff_limit,
             "logcopy started"
         );
         let mut failures = 0u32;
@@ -172,7 +181,7 @@ impl<'a> Logcopy<'a> {
                 }
             }
             let markers = self.status.markers().unwrap_or_default();
-            if let Some(end) = job_end(&markers, &self.cfg.pairs, self.cfg.backoff_limit) {
+            if let Some(end) = job_end(&markers, &self.cfg.pairs) {
                 return self.finish(end, signals).await;
             }
             let pause = backoff(self.cfg.period, failures);
@@ -366,7 +375,8 @@ impl<'a> Logcopy<'a> {
         Ok(Some(meta.size))
     }
 
-    /// The Job is over: final upload (retried until it gets through, bounded), done marker.
+    /// This pod's part is over: final upload (retried until it gets through, bounded), then
+    /// the done marker when the Job is over for good.
     async fn finish(
         &mut self,
         end: JobEnd,
@@ -388,6 +398,9 @@ impl<'a> Logcopy<'a> {
         loop {
             let attempt = async {
                 self.pass().await?;
+                if !end.closes_job() {
+                    return Ok(());
+                }
                 // NB: written after the final pass so it never precedes what it vouches for.
                 if let Err(e) = self.status.write(marker) {
                     warn!(error = %e, "cannot write the done marker locally");
@@ -403,7 +416,7 @@ impl<'a> Logcopy<'a> {
             match result {
                 None => return self.terminated().await,
                 Some(Ok(())) => {
-                    info!(?end, %marker, "logcopy done");
+                    info!(?end, done_marker = end.closes_job(), "logcopy done");
                     return Ok(LogcopyEnd::Job(end));
                 }
                 Some(Err(e)) => {

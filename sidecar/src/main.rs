@@ -8,32 +8,36 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     sidecar::telemetry::init();
     match cli.command {
-        Command::Merge(args) => finish(sidecar::merge::run(&args), |e| e.name()),
-        Command::Init => finish(sidecar::init::run().map(|_| ()), |e| e.name()),
-        Command::Simulator(args) => exit(sidecar::simulator::run(&args.command), |e| e.name()),
-        Command::Agent(args) => exit(sidecar::agent::run(&args.command), |e| e.name()),
-        Command::Logcopy => finish(sidecar::logcopy::run().map(|_| ()), |e| e.name()),
+        Command::Merge(args) => finish(sidecar::merge::run(&args), |e| {
+            (e.name(), ExitCode::FAILURE)
+        }),
+        Command::Init => finish(sidecar::init::run().map(|_| ()), |e| {
+            (e.name(), e.exit_code())
+        }),
+        Command::Simulator(args) => exit(sidecar::simulator::run(&args.command)),
+        Command::Agent(args) => exit(sidecar::agent::run(&args.command)),
+        Command::Logcopy => finish(sidecar::logcopy::run().map(|_| ()), |e| {
+            (e.name(), e.exit_code())
+        }),
     }
 }
 
-fn exit<E: Display>(
-    result: Result<sidecar::pair::PairOutcome, E>,
-    name: fn(&E) -> &'static str,
-) -> ExitCode {
+fn exit(result: Result<sidecar::pair::PairOutcome, sidecar::pair::PairError>) -> ExitCode {
     match result {
         Ok(outcome) => outcome.exit_code(),
-        Err(err) => report(&err, name),
+        Err(err) => report(&err, |e| (e.name(), e.exit_code())),
     }
 }
 
-fn finish<E: Display>(result: Result<(), E>, name: fn(&E) -> &'static str) -> ExitCode {
+fn finish<E: Display>(result: Result<(), E>, how: fn(&E) -> (&'static str, ExitCode)) -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
-        Err(err) => report(&err, name),
+        Err(err) => report(&err, how),
     }
 }
 
-fn report<E: Display>(err: &E, name: fn(&E) -> &'static str) -> ExitCode {
-    eprintln!("lb-sidecar: {}: {err}", name(err));
-    ExitCode::FAILURE
+fn report<E: Display>(err: &E, how: fn(&E) -> (&'static str, ExitCode)) -> ExitCode {
+    let (name, code) = how(err);
+    eprintln!("lb-sidecar: {name}: {err}");
+    code
 }

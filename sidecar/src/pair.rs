@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
-use lb_domain::protocol::{Marker, Markers, PairId, PairView};
+use lb_domain::protocol::{exit, Marker, Markers, PairId, PairView};
 use tracing::warn;
 
 use crate::config::EnvError;
@@ -16,18 +16,22 @@ use crate::status::StatusDir;
 pub enum PairOutcome {
     /// Done marker written: exit 0.
     Done,
-    /// Crash marker written: exit 1, so Kubernetes restarts the container (a resume).
+    /// Crash marker written: exit 1; the pod fails and a new pod of the Job resumes.
     Crashed,
+    /// Crash marker written, and the participant's image cannot run the evaluator at all:
+    /// exit 3, which the Jobs' Pod failure policy turns into the end of the Job.
+    Unrunnable,
     /// The submission was cancelled: exit 0 without a marker.
     Cancelled,
 }
 
 impl PairOutcome {
-    /// The container's exit code.
+    /// The container's exit code (`lb_domain::protocol::exit`).
     pub fn exit_code(self) -> ExitCode {
         match self {
             PairOutcome::Done | PairOutcome::Cancelled => ExitCode::SUCCESS,
-            PairOutcome::Crashed => ExitCode::FAILURE,
+            PairOutcome::Crashed => ExitCode::from(exit::CRASHED),
+            PairOutcome::Unrunnable => ExitCode::from(exit::IMAGE_UNUSABLE),
         }
     }
 }
@@ -64,6 +68,15 @@ pub enum PairError {
 }
 
 impl PairError {
+    /// The container's exit code: a malformed environment is the Job's and fails every pod
+    /// alike (`lb_domain::protocol::exit::MISCONFIGURED`); the rest may pass on a new pod.
+    pub fn exit_code(&self) -> ExitCode {
+        match self {
+            PairError::Env(_) => ExitCode::from(exit::MISCONFIGURED),
+            _ => ExitCode::from(exit::CRASHED),
+        }
+    }
+
     /// Stable name for scripts and logs.
     pub fn name(&self) -> &'static str {
         match self {

@@ -8,6 +8,7 @@ use jiff::Timestamp;
 use serde::{Deserialize, Serialize};
 
 use crate::autoscaler::{Outlook, ScaleUpWord};
+use crate::protocol::exit;
 
 /// Waiting reasons that mean an image will not arrive by waiting.
 const PULL_FAILURES: [&str; 4] = [
@@ -268,6 +269,8 @@ pub enum FailureKind {
     BackoffLimitExceeded,
     /// A Job ran longer than its active deadline.
     DeadlineExceeded,
+    /// A container ended in a way no retry can change (the Pod failure policy's `FailJob`).
+    NotRetriable,
     /// A Job failed for another reason.
     JobFailed,
     /// A Job of the submission does not exist.
@@ -285,6 +288,7 @@ impl FailureKind {
             FailureKind::NoNodeFits => "NoNodeFits",
             FailureKind::BackoffLimitExceeded => "BackoffLimitExceeded",
             FailureKind::DeadlineExceeded => "DeadlineExceeded",
+            FailureKind::NotRetriable => "NotRetriable",
             FailureKind::JobFailed => "JobFailed",
             FailureKind::JobsMissing => "JobsMissing",
         }
@@ -634,24 +638,6 @@ fn job_failed(job: &JobView) -> Verdict {
     let JobState::Failed { reason, message } = &job.state else {
         return Verdict::Running;
     };
-    let restarts: Vec<String> = job
-        .pods
-        .iter()
-        .flat_map(|p| &p.containers)
-        .filter(|c| c.restart_count > 0)
-        .map(|c| match &c.last_exit {
-            Some(e) => format!(
-                "{} restarted {}x, last exit code {}",
-                c.name, c.restart_count, e.exit_code
-            ),
-            None => format!("{} restarted {}x", c.name, c.restart_count),
-        })
-        .collect();
-    let restarts = if restarts.is_empty() {
-        String::new()
-    } else {
-        format!("; {}", restarts.join(", "))
-    };
     let detail = if message.is_empty() {
         reason.clone()
     } else {
@@ -660,11 +646,17 @@ fn job_failed(job: &JobView) -> Verdict {
     let (kind, what) = match reason.as_str() {
         "BackoffLimitExceeded" => (
             FailureKind::BackoffLimitExceeded,
-            "its containers failed more often than the retry limit allows",
+            "its pods failed more often than the retry limit allows",
         ),
         "DeadlineExceeded" => (
             FailureKind::DeadlineExceeded,
             "it ran longer than the time limit of an evaluation",
+        ),
+        "PodFailurePolicy" => (
+            FailureKind::NotRetriable,
+            failjob_exit_code(message)
+                .and_then(exit::meaning)
+                .unwrap_or("a container ended in a way no retry can change"),
         ),
         _ => (FailureKind::JobFailed, "Kubernetes marked it failed"),
     };
@@ -673,9 +665,58 @@ fn job_failed(job: &JobView) -> Verdict {
         job: Some(job.name.clone()),
         container: None,
         message: format!(
-            "the evaluation Job `{}` failed: {what} ({detail}{restarts})",
-            job.name
+            "the evaluation Job `{}` failed: {what} ({detail}{})",
+            job.name,
+            failures(job)
         ),
+    }
+}
+
+/// The exit code in the Job controller's `FailJob` message ("Container agent-1 for pod
+/// ns/name failed with exit code 3 matching FailJob rule at index 1").
+fn failjob_exit_code(message: &str) -> Option<i32> {
+    let (_, rest) = message.split_once("failed with exit code ")?;
+    rest.split(' ').next()?.parse().ok()
+}
+
+/// How the Job's pods failed: the count, and the failed exits of its last failed pod (every
+/// crash ends a pod: `restartPolicy: Never`), or the in-place restarts of older Jobs.
+fn failures(job: &JobView) -> String {
+    let mut parts = Vec::new();
+    if job.failed > 0 {
+        parts.push(format!("{} failed pod(s)", job.failed));
+    }
+    let last_failed = job.pods.iter().rev().find(|p| p.phase == "Failed");
+    let exits: Vec<String> = last_failed
+        .into_iter()
+        .flat_map(|p| &p.containers)
+        .filter_map(|c| match &c.state {
+            ContainerState::Terminated(e) if e.exit_code != 0 => {
+                Some(format!("{} exit code {}", c.name, e.exit_code))
+            }
+            _ => None,
+        })
+        .collect();
+    if !exits.is_empty() {
+        parts.push(format!("the last: {}", exits.join(", ")));
+    }
+    parts.extend(
+        job.pods
+            .iter()
+            .flat_map(|p| &p.containers)
+            .filter(|c| c.restart_count > 0)
+            .map(|c| match &c.last_exit {
+                Some(e) => format!(
+                    "{} restarted {}x, last exit code {}",
+                    c.name, c.restart_count, e.exit_code
+                ),
+                None => format!("{} restarted {}x", c.name, c.restart_count),
+            }),
+    );
+    if parts.is_empty() {
+        String::new()
+    } else {
+        format!("; {}", parts.join(", "))
     }
 }
 
@@ -793,6 +834,49 @@ mod tests {
             Verdict::Finished => Some(None),
             Verdict::Failed { kind, .. } => Some(Some(kind)),
         }
+    }
+
+    #[test]
+    fn an_exit_no_retry_can_change_ends_the_submission_at_once_saying_why() {
+        let failed_pod = pod(
+            "Failed",
+            vec![container(
+                "agent-1",
+                ContainerState::Terminated(Exit {
+                    exit_code: 3,
+                    reason: Some("Error".into()),
+                    message: None,
+                    finished_at: None,
+                }),
+            )],
+        );
+        let failjob = JobState::Failed {
+            reason: "PodFailurePolicy".into(),
+            message: "Container agent-1 for pod submissions/lb-7-team-0-x2z9q failed with exit code 3 matching FailJob rule at index 1".into(),
+        };
+        let jobs = vec![
+            job("job-0", failjob, vec![failed_pod]),
+            job("job-1", JobState::Running, vec![]),
+        ];
+        match verdict(&jobs, at(9, 5), &VerdictPolicy::default()) {
+            Verdict::Failed { kind, message, .. } => {
+                assert_eq!(kind, FailureKind::NotRetriable);
+                assert!(
+                    message.contains("your image cannot run the Leaderboard evaluator"),
+                    "{message}"
+                );
+                assert!(
+                    message.contains("the last: agent-1 exit code 3"),
+                    "{message}"
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(
+            failjob_exit_code("failed with exit code 78 matching"),
+            Some(78)
+        );
+        assert_eq!(failjob_exit_code("Pod ns/p has condition X matching"), None);
     }
 
     #[test]

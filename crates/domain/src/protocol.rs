@@ -84,8 +84,6 @@ pub mod env {
     pub const S3_BUCKET: &str = "LB_S3_BUCKET";
     /// Upload period, seconds (default 10); logcopy.
     pub const PERIOD_SECONDS: &str = "LB_PERIOD_SECONDS";
-    /// The Job's `backoffLimit`; logcopy finishes when the pairs' restarts reach it.
-    pub const BACKOFF_LIMIT: &str = "LB_BACKOFF_LIMIT";
     /// `1` when EvalAI said `resuming`: init removes the cancel marker.
     pub const PARTICIPANT_RESUME: &str = "LB_PARTICIPANT_RESUME";
     /// Official Leaderboard sources in the private-contents image; init.
@@ -551,17 +549,27 @@ pub enum JobEnd {
     Cancelled,
     /// Every pair is done.
     AllDone,
-    /// The pairs' restarts reached the Job's `backoffLimit` and no pair is still running:
-    /// Kubernetes will not restart anything any more.
-    OutOfRetries,
+    /// Every pair of this pod has ended its attempt and at least one crashed. Nothing
+    /// restarts inside a pod (`restartPolicy: Never`): the pod ends, and the Job controller
+    /// decides whether a new pod resumes the pairs.
+    AttemptOver,
 }
 
-/// Decides whether a Job is over, from its status markers.
+impl JobEnd {
+    /// Whether the Job is over for good, so logcopy vouches for it with `logcopy-<J>.done`.
+    /// After [`JobEnd::AttemptOver`] a new pod may follow, whose init removes the marker
+    /// anyway, and the Monitor would take it for the end of the Job.
+    pub fn closes_job(self) -> bool {
+        matches!(self, JobEnd::Cancelled | JobEnd::AllDone)
+    }
+}
+
+/// Decides whether this pod's part of a Job is over, from its status markers.
 ///
-/// With `restartPolicy: OnFailure` the Job controller fails a Job once the restarts of its
-/// containers reach `backoffLimit` (any restart when the limit is 0). Every failed exit of a
-/// pair's container leaves one crash marker, so the crash markers count the restarts.
-pub fn job_end(markers: &Markers, pairs: &[PairId], backoff_limit: Option<u32>) -> Option<JobEnd> {
+/// Every failed exit of a pair's container leaves one crash marker, and both containers of a
+/// pair end the attempt together, so a pair whose last attempt has both crash markers has
+/// nothing left running in this pod.
+pub fn job_end(markers: &Markers, pairs: &[PairId]) -> Option<JobEnd> {
     if markers.contains(&Marker::Cancel) {
         return Some(JobEnd::Cancelled);
     }
@@ -569,17 +577,46 @@ pub fn job_end(markers: &Markers, pairs: &[PairId], backoff_limit: Option<u32>) 
     if states.iter().all(|s| *s == PairState::Done) {
         return Some(JobEnd::AllDone);
     }
-    let limit = backoff_limit?;
-    let restarts: u64 = pairs
-        .iter()
-        .map(|&p| {
-            u64::from(markers.crash_count(Role::Simulator, p))
-                + u64::from(markers.crash_count(Role::Agent, p))
-        })
-        .sum();
-    let exhausted = restarts >= u64::from(limit.max(1));
     let settled = states.iter().all(|s| *s != PairState::Running);
-    (exhausted && settled).then_some(JobEnd::OutOfRetries)
+    settled.then_some(JobEnd::AttemptOver)
+}
+
+/// The exit codes of the sidecar's simulator and agent commands: the Jobs' Pod failure
+/// policy ends a Job at once on [`exit::FAIL_JOB`], because the next pod would run the same
+/// image with the same environment and fail the same way; every other failed exit counts
+/// against the Job's `backoffLimit`.
+pub mod exit {
+    /// The attempt ended without finished results (crash marker written): a new pod
+    /// resumes after the last completed route.
+    pub const CRASHED: u8 = 1;
+    /// The participant's image cannot run the Leaderboard evaluator at all: its shell or
+    /// `python3` is missing or not executable (the shell's 127 and 126).
+    pub const IMAGE_UNUSABLE: u8 = 3;
+    /// The container's environment, which the Job template sets, is incomplete or malformed
+    /// (`sysexits.h`'s `EX_CONFIG`).
+    pub const MISCONFIGURED: u8 = 78;
+    /// The codes of the Pod failure policy's `FailJob` rule, in increasing order (the API
+    /// server requires it).
+    pub const FAIL_JOB: [u8; 2] = [IMAGE_UNUSABLE, MISCONFIGURED];
+
+    /// Whether the wrapped evaluator's exit code is the shell's "command not found" (127) or
+    /// "found but not executable" (126).
+    pub fn shell_cannot_run(code: i32) -> bool {
+        matches!(code, 126 | 127)
+    }
+
+    /// What a Job failed by the `FailJob` rule tells the participant, by exit code.
+    pub fn meaning(code: i32) -> Option<&'static str> {
+        match u8::try_from(code).ok()? {
+            IMAGE_UNUSABLE => Some(
+                "your image cannot run the Leaderboard evaluator (`bash` or `python3` is missing or not executable in it); a retry would fail the same way, so none was made. Check that the image runs `bash -c 'python3 --version'`",
+            ),
+            MISCONFIGURED => Some(
+                "the evaluation's own configuration is incomplete (a leaderboard setting, not your submission); please contact the organizers",
+            ),
+            _ => None,
+        }
+    }
 }
 
 /// Parses `LB_PAIRS`: a comma list of distinct positive pair IDs, at least one.
@@ -843,7 +880,7 @@ mod tests {
     fn a_job_ends_when_every_pair_is_done_or_on_cancel() {
         let pairs = [1, 2];
         let half = markers(&["simulator-1.done", "agent-1.done", "agent-2.done"]);
-        assert_eq!(job_end(&half, &pairs, None), None);
+        assert_eq!(job_end(&half, &pairs), None);
         let all = markers(&[
             "simulator-1.done",
             "agent-1.done",
@@ -851,46 +888,46 @@ mod tests {
             "simulator-2.done",
             "simulator-3.crash0",
         ]);
-        assert_eq!(job_end(&all, &pairs, None), Some(JobEnd::AllDone));
+        assert_eq!(job_end(&all, &pairs), Some(JobEnd::AllDone));
+        assert!(JobEnd::AllDone.closes_job());
         let cancelled = markers(&["simulation.cancel"]);
-        assert_eq!(
-            job_end(&cancelled, &pairs, Some(8)),
-            Some(JobEnd::Cancelled)
-        );
+        assert_eq!(job_end(&cancelled, &pairs), Some(JobEnd::Cancelled));
+        assert!(JobEnd::Cancelled.closes_job());
     }
 
     #[test]
-    fn a_job_is_out_of_retries_when_restarts_reach_the_backoff_limit_and_nothing_runs() {
+    fn a_pod_is_over_once_every_pair_ended_its_attempt_and_one_crashed() {
         let pairs = [1, 2];
-        let mut m = markers(&[
-            "simulator-1.done",
-            "agent-1.done",
-            "simulator-2.crash0",
-            "agent-2.crash0",
-        ]);
-        assert_eq!(job_end(&m, &pairs, Some(4)), None, "2 restarts of 4");
-        assert_eq!(job_end(&m, &pairs, None), None, "no limit known");
-        m.insert(Marker::Crash {
-            role: Role::Simulator,
-            pair: 2,
-            crash_id: 1,
-        });
+        let mut m = markers(&["simulator-1.done", "agent-1.done", "simulator-2.crash0"]);
         assert_eq!(
             m.pair_state(2),
             PairState::Running,
-            "agent has not ended yet"
+            "the agent has not ended"
         );
-        assert_eq!(job_end(&m, &pairs, Some(3)), None, "pair 2 still running");
+        assert_eq!(job_end(&m, &pairs), None);
         m.insert(Marker::Crash {
             role: Role::Agent,
             pair: 2,
-            crash_id: 1,
+            crash_id: 0,
         });
-        assert_eq!(m.pair_state(2), PairState::Crashed { attempts: 2 });
-        assert_eq!(job_end(&m, &pairs, Some(4)), Some(JobEnd::OutOfRetries));
-        assert_eq!(job_end(&m, &pairs, Some(5)), None);
-        let one = markers(&["simulator-1.crash0", "agent-1.crash0"]);
-        assert_eq!(job_end(&one, &[1], Some(0)), Some(JobEnd::OutOfRetries));
+        assert_eq!(job_end(&m, &pairs), Some(JobEnd::AttemptOver));
+        assert!(!JobEnd::AttemptOver.closes_job(), "a new pod may follow");
+        let running = markers(&["simulator-1.crash0", "agent-1.crash0"]);
+        assert_eq!(job_end(&running, &[1, 2]), None, "pair 2 still runs");
+    }
+
+    #[test]
+    fn only_exits_no_retry_can_change_fail_the_job_at_once() {
+        assert!(exit::FAIL_JOB.windows(2).all(|w| w[0] < w[1]));
+        assert!(!exit::FAIL_JOB.contains(&exit::CRASHED));
+        assert!(!exit::FAIL_JOB.contains(&0));
+        for code in exit::FAIL_JOB {
+            assert!(exit::meaning(i32::from(code)).is_some(), "{code}");
+        }
+        assert_eq!(exit::meaning(1), None);
+        assert_eq!(exit::meaning(137), None, "a SIGKILL (OOM) is retried");
+        assert!(exit::shell_cannot_run(127) && exit::shell_cannot_run(126));
+        assert!(!exit::shell_cannot_run(1));
     }
 
     #[test]

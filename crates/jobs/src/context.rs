@@ -140,8 +140,8 @@ pub struct JobSettings {
     pub carla_image: String,
     /// Init/logcopy image (official code, private routes, the sidecar).
     pub private_contents_image: String,
-    /// Job `backoffLimit`: container restarts across the Job before it fails (each
-    /// crash-resume restarts a simulator and an agent: 8 allows four resumes).
+    /// Job `backoffLimit`: failed pods before the Job fails. Each crash ends a pod and the next
+    /// one resumes (a disrupted pod is not counted): 4 allows four resumes.
     pub backoff_limit: u32,
     /// Job `activeDeadlineSeconds`.
     pub active_deadline_seconds: u64,
@@ -198,7 +198,7 @@ impl JobSettings {
             instance_type: deployment.instance_type.clone(),
             carla_image: deployment.images.carla.clone(),
             private_contents_image: deployment.images.private_contents.clone(),
-            backoff_limit: 8,
+            backoff_limit: 4,
             active_deadline_seconds: 4 * 24 * 3600,
             ttl_seconds_after_finished: 24 * 3600,
             termination_grace_seconds: 60,
@@ -299,6 +299,8 @@ pub struct KubernetesContext {
     pub instance_type: String,
     /// `backoffLimit`.
     pub backoff_limit: u32,
+    /// The `FailJob` rule's exit codes (`lb_domain::protocol::exit::FAIL_JOB`).
+    pub fail_job_exit_codes: Vec<u8>,
     /// `activeDeadlineSeconds`.
     pub active_deadline_seconds: u64,
     /// `ttlSecondsAfterFinished`.
@@ -644,6 +646,7 @@ impl KubernetesContext {
             service_account: settings.service_account.clone(),
             instance_type: settings.instance_type.clone(),
             backoff_limit: settings.backoff_limit,
+            fail_job_exit_codes: lb_domain::protocol::exit::FAIL_JOB.to_vec(),
             active_deadline_seconds: settings.active_deadline_seconds,
             ttl_seconds_after_finished: settings.ttl_seconds_after_finished,
             termination_grace_seconds: settings.termination_grace_seconds,

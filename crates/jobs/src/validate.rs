@@ -8,9 +8,10 @@
 
 use std::collections::{BTreeMap, HashSet};
 
-use k8s_openapi::api::batch::v1::Job;
+use k8s_openapi::api::batch::v1::{Job, JobSpec};
 use k8s_openapi::api::core::v1::{Container, PodSpec};
 use lb_domain::plan::{is_dns_label, is_label_key, is_label_value, SUBMISSION_LABEL};
+use lb_domain::protocol::exit;
 use serde_json::Value;
 
 use crate::RenderError;
@@ -163,12 +164,55 @@ fn check_labels(labels: Option<&BTreeMap<String, String>>, at: &str) -> Result<(
     Ok(())
 }
 
+/// The rules of a pair's Job on failures: a failed pod is replaced by a new one (which
+/// resumes) only once it has stopped, a disrupted pod is never counted, and the exits no
+/// retry can change fail the Job at once (`lb_domain::protocol::exit`).
+fn check_failure_policy(spec: &JobSpec) -> Result<(), RenderError> {
+    if spec.pod_replacement_policy.as_deref() != Some("Failed") {
+        return Err(spec_error(
+            "spec.podReplacementPolicy",
+            "must be `Failed`: a new pod never runs beside one that is still stopping (two evaluators writing one results file)",
+        ));
+    }
+    let rules = spec
+        .pod_failure_policy
+        .as_ref()
+        .map(|p| p.rules.as_slice())
+        .unwrap_or_default();
+    let ignores_disruption = rules.first().is_some_and(|r| {
+        r.action == "Ignore"
+            && r.on_pod_conditions.iter().flatten().any(|c| {
+                c.type_ == "DisruptionTarget" && c.status.as_deref().unwrap_or("True") == "True"
+            })
+    });
+    if !ignores_disruption {
+        return Err(spec_error(
+            "spec.podFailurePolicy.rules[0]",
+            "must be `Ignore` on the `DisruptionTarget` condition: a pod lost to a reclaimed or drained node is no failure of the participant's",
+        ));
+    }
+    let want: Vec<i32> = exit::FAIL_JOB.iter().map(|&c| i32::from(c)).collect();
+    let fails_job = rules.iter().any(|r| {
+        r.action == "FailJob"
+            && r.on_exit_codes
+                .as_ref()
+                .is_some_and(|e| e.operator == "In" && e.values == want)
+    });
+    if !fails_job {
+        return Err(spec_error(
+            "spec.podFailurePolicy.rules",
+            format!("must end the Job (`FailJob`) on the exit codes {want:?} (lb_domain::protocol::exit)"),
+        ));
+    }
+    Ok(())
+}
+
 fn check_pod(pod: &PodSpec) -> Result<(), RenderError> {
     const AT: &str = "spec.template.spec";
-    if pod.restart_policy.as_deref() != Some("OnFailure") {
+    if pod.restart_policy.as_deref() != Some("Never") {
         return Err(spec_error(
             format!("{AT}.restartPolicy"),
-            "must be `OnFailure` (crash-resume restarts containers in place)",
+            "must be `Never` (a crash ends the pod, and a new pod resumes; the Pod failure policy needs it)",
         ));
     }
     if pod.automount_service_account_token != Some(false) {
@@ -353,6 +397,7 @@ pub fn check_job(rendered: &Value) -> Result<Job, RenderError> {
         .as_ref()
         .ok_or_else(|| spec_error("spec.template.spec", "the Pod template has no spec"))?;
     check_pod(pod)?;
+    check_failure_policy(spec)?;
     Ok(job)
 }
 
@@ -367,11 +412,16 @@ mod tests {
             "kind": "Job",
             "metadata": {"name": "lb-1-team-0", "labels": {SUBMISSION_LABEL: "1"}},
             "spec": {
-                "backoffLimit": 8,
+                "backoffLimit": 4,
+                "podReplacementPolicy": "Failed",
+                "podFailurePolicy": {"rules": [
+                    {"action": "Ignore", "onPodConditions": [{"type": "DisruptionTarget", "status": "True"}]},
+                    {"action": "FailJob", "onExitCodes": {"operator": "In", "values": [3, 78]}}
+                ]},
                 "template": {
                     "metadata": {"labels": {SUBMISSION_LABEL: "1"}},
                     "spec": {
-                        "restartPolicy": "OnFailure",
+                        "restartPolicy": "Never",
                         "automountServiceAccountToken": false,
                         "containers": [{
                             "name": "agent-1", "image": "x",
@@ -443,7 +493,25 @@ mod tests {
             ),
             (
                 "spec.template.spec.restartPolicy",
-                Box::new(|d| d["spec"]["template"]["spec"]["restartPolicy"] = json!("Never")),
+                Box::new(|d| d["spec"]["template"]["spec"]["restartPolicy"] = json!("OnFailure")),
+            ),
+            (
+                "spec.podReplacementPolicy",
+                Box::new(|d| d["spec"]["podReplacementPolicy"] = json!("TerminatingOrFailed")),
+            ),
+            (
+                "spec.podFailurePolicy.rules[0]",
+                Box::new(|d| {
+                    d["spec"]["podFailurePolicy"]["rules"][0]["onPodConditions"][0]["type"] =
+                        json!("ConfigIssue")
+                }),
+            ),
+            (
+                "spec.podFailurePolicy.rules",
+                Box::new(|d| {
+                    d["spec"]["podFailurePolicy"]["rules"][1]["onExitCodes"]["values"] =
+                        json!([1, 3, 78])
+                }),
             ),
             (
                 "spec.template.spec.automountServiceAccountToken",

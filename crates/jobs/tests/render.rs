@@ -178,9 +178,23 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_four_jobs_of_one_pair() {
 
         // Each pair its own retry budget; pairs share nodes (no anti-affinity).
         let spec = job.spec.as_ref().unwrap();
-        assert_eq!(spec.backoff_limit, Some(8));
+        assert_eq!(spec.backoff_limit, Some(4));
         assert_eq!(spec.active_deadline_seconds, Some(4 * 24 * 3600));
-        assert_eq!(pod(job).restart_policy.as_deref(), Some("OnFailure"));
+        assert_eq!(pod(job).restart_policy.as_deref(), Some("Never"));
+        // A disrupted pod is never counted; the exits no retry can change end the Job.
+        assert_eq!(spec.pod_replacement_policy.as_deref(), Some("Failed"));
+        let rules = &spec.pod_failure_policy.as_ref().unwrap().rules;
+        assert_eq!(rules[0].action, "Ignore");
+        let on = &rules[0].on_pod_conditions.as_ref().unwrap()[0];
+        assert_eq!(
+            (on.type_.as_str(), on.status.as_deref()),
+            ("DisruptionTarget", Some("True"))
+        );
+        assert_eq!(rules[1].action, "FailJob");
+        assert_eq!(rules[1].on_exit_codes.as_ref().unwrap().values, [3, 78]);
+        assert!(env(container(job, "logcopy"))
+            .get("LB_BACKOFF_LIMIT")
+            .is_none());
         assert_eq!(pod(job).automount_service_account_token, Some(false));
         assert_eq!(pod(job).enable_service_links, Some(false));
         assert!(pod(job).affinity.is_none(), "{:?}", pod(job).affinity);
@@ -325,7 +339,6 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_four_jobs_of_one_pair() {
     assert_eq!(e["LB_PAIRS"], "4");
     assert_eq!(e["LB_S3_BUCKET"], "leaderboard-20-results");
     assert_eq!(e["LB_PERIOD_SECONDS"], "10");
-    assert_eq!(e["LB_BACKOFF_LIMIT"], "8");
     assert_eq!(e["AWS_REGION"], "us-west-2");
     assert_eq!(
         e["AWS_ROLE_ARN"],
@@ -812,8 +825,8 @@ fn a_misplaced_or_unknown_kubernetes_field_fails_to_load_with_its_path() {
         "{msg}"
     );
     let broken = LEADERBOARD_20.replace(
-        "        restartPolicy: OnFailure",
         "        restartPolicy: Never",
+        "        restartPolicy: OnFailure",
     );
     let msg = JobTemplate::parse("broken", &broken)
         .unwrap_err()

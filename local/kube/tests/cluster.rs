@@ -1614,3 +1614,192 @@ async fn containers_get_their_own_gpus_by_uuid_and_nvidia_smi_lists_the_visible_
         [0, 1, 2].map(|i| format!("{i}, {}", uuid(i)))
     );
 }
+
+/// A pair's Job as the templates make it: `restartPolicy: Never`, a disrupted pod ignored, the
+/// sidecar's exits no retry can change ending the Job at once, a new pod only once the old one
+/// has failed. The pod counts its attempts in `dir` and takes 1 s to stop on SIGTERM.
+fn pair_job(name: &str, dir: &Path, backoff_limit: u32, exit: u32) -> Job {
+    job(&format!(
+        r#"
+metadata: {{name: {name}}}
+spec:
+  backoffLimit: {backoff_limit}
+  podReplacementPolicy: Failed
+  podFailurePolicy:
+    rules:
+    - action: Ignore
+      onPodConditions: [{{type: DisruptionTarget, status: "True"}}]
+    - action: FailJob
+      onExitCodes: {{operator: In, values: [3, 78]}}
+  template:
+    spec:
+      restartPolicy: Never
+      terminationGracePeriodSeconds: 5
+      containers:
+      - name: agent-1
+        image: busybox
+        command: [sh, -c]
+        args: ['echo x >> {d}/attempts; echo $$$$ > {d}/pid; trap "sleep 1; exit 1" TERM; if [ {exit} -ne 0 ]; then exit {exit}; fi; sleep 300 & wait']
+"#,
+        d = dir.display()
+    ))
+}
+
+fn disruption(pod: &Pod) -> Option<(String, String)> {
+    let c = pod
+        .status
+        .as_ref()?
+        .conditions
+        .iter()
+        .flatten()
+        .find(|c| c.type_ == "DisruptionTarget" && c.status == "True")?;
+    Some((c.reason.clone()?, c.message.clone()?))
+}
+
+#[tokio::test]
+async fn an_evicted_pod_is_replaced_once_it_has_stopped_without_counting_against_backoff_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let (lk, client) = start(Config::default()).await;
+    let jobs: Api<Job> = Api::namespaced(client.clone(), "default");
+    let pods: Api<Pod> = Api::namespaced(client, "default");
+    // backoffLimit 0: a single counted failure would fail the Job.
+    jobs.create(
+        &PostParams::default(),
+        &pair_job("reclaimed", dir.path(), 0, 0),
+    )
+    .await
+    .unwrap();
+    read_pid(&dir.path().join("pid")).await;
+    let first = one_pod(&pods, "reclaimed").await.metadata.name.unwrap();
+    let path = format!("/api/v1/namespaces/default/pods/{first}/eviction");
+    let body = format!(
+        r#"{{"apiVersion":"policy/v1","kind":"Eviction","metadata":{{"name":"{first}","namespace":"default"}}}}"#
+    );
+    let (code, status) = raw(&lk, reqwest::Method::POST, &path, None, Some(&body)).await;
+    assert_eq!(
+        (code, status["status"].as_str()),
+        (201, Some("Success")),
+        "{status}"
+    );
+
+    // Terminating, with the condition the API server writes; no replacement beside it.
+    let evicted = pods.get(&first).await.unwrap();
+    assert!(evicted.metadata.deletion_timestamp.is_some());
+    assert_eq!(
+        disruption(&evicted),
+        Some((
+            "EvictionByEvictionAPI".into(),
+            "Eviction API: evicting".into()
+        ))
+    );
+    assert_eq!(
+        pods_of(&pods, "reclaimed").await.len(),
+        1,
+        "no pod beside a terminating one"
+    );
+
+    let second = eventually("a replacement pod", || async {
+        let now = pods_of(&pods, "reclaimed").await;
+        now.into_iter()
+            .filter_map(|p| p.metadata.name)
+            .find(|n| *n != first)
+    })
+    .await;
+    assert_ne!(second, first);
+    eventually("the second attempt", || async {
+        let attempts = std::fs::read_to_string(dir.path().join("attempts")).ok()?;
+        (attempts.lines().count() == 2).then_some(())
+    })
+    .await;
+    let job = jobs.get("reclaimed").await.unwrap();
+    let status = job.status.unwrap();
+    assert_eq!(
+        status.failed.unwrap_or(0),
+        0,
+        "the eviction is not a failure"
+    );
+    assert!(condition(&jobs.get("reclaimed").await.unwrap(), "Failed").is_none());
+    // The evicted pod is gone once counted; its finalizer went with it.
+    assert!(pods.get_opt(&first).await.unwrap().is_none());
+    jobs.delete("reclaimed", &DeleteParams::background())
+        .await
+        .unwrap();
+
+    // A pod failing by itself counts, and with backoffLimit 0 that fails the Job.
+    let (code, _) = raw(
+        &lk,
+        reqwest::Method::POST,
+        "/api/v1/namespaces/default/pods/nope/eviction",
+        None,
+        Some(r#"{"apiVersion":"policy/v1","kind":"Eviction","metadata":{"name":"nope"}}"#),
+    )
+    .await;
+    assert_eq!(code, 404);
+}
+
+#[tokio::test]
+async fn a_fail_job_exit_ends_the_job_at_once_with_the_rule_in_its_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_lk, client) = start(Config::default()).await;
+    let jobs: Api<Job> = Api::namespaced(client.clone(), "default");
+    let pods: Api<Pod> = Api::namespaced(client, "default");
+    jobs.create(
+        &PostParams::default(),
+        &pair_job("unrunnable", dir.path(), 4, 3),
+    )
+    .await
+    .unwrap();
+    let failed = wait_condition(&jobs, "unrunnable", "Failed").await;
+    let cond = condition(&failed, "Failed").unwrap();
+    assert_eq!(cond.reason.as_deref(), Some("PodFailurePolicy"));
+    let pod = one_pod(&pods, "unrunnable").await.metadata.name.unwrap();
+    assert_eq!(
+        cond.message.as_deref(),
+        Some(format!("Container agent-1 for pod default/{pod} failed with exit code 3 matching FailJob rule at index 1").as_str())
+    );
+    assert_eq!(failed.status.unwrap().failed, Some(1));
+    let attempts = std::fs::read_to_string(dir.path().join("attempts")).unwrap();
+    assert_eq!(attempts.lines().count(), 1, "no retry of 4 was made");
+
+    // Exit 1 is an ordinary crash: counted, and a new pod follows.
+    jobs.create(
+        &PostParams::default(),
+        &pair_job("crashes", dir.path(), 1, 1),
+    )
+    .await
+    .unwrap();
+    let failed = wait_condition(&jobs, "crashes", "Failed").await;
+    assert_eq!(
+        condition(&failed, "Failed").unwrap().reason.as_deref(),
+        Some("BackoffLimitExceeded")
+    );
+    assert_eq!(failed.status.unwrap().failed, Some(2));
+}
+
+#[tokio::test]
+async fn a_failure_policy_needs_restart_policy_never_as_the_real_server_says() {
+    let (lk, _client) = start(Config::default()).await;
+    let dir = tempfile::tempdir().unwrap();
+    let mut bad = serde_json::to_value(pair_job("bad", dir.path(), 1, 0)).unwrap();
+    bad["spec"]["template"]["spec"]["restartPolicy"] = "OnFailure".into();
+    bad["spec"]["podFailurePolicy"]["rules"][1]["onExitCodes"]["values"] =
+        serde_json::json!([78, 3]);
+    let (code, status) = raw(
+        &lk,
+        reqwest::Method::POST,
+        "/apis/batch/v1/namespaces/default/jobs",
+        None,
+        Some(&bad.to_string()),
+    )
+    .await;
+    assert_eq!(code, 422, "{status}");
+    let message = status["message"].as_str().unwrap();
+    assert!(
+        message.contains(r#"spec.template.spec.restartPolicy: Invalid value: "OnFailure": only "Never" is supported when podFailurePolicy is specified"#),
+        "{message}"
+    );
+    assert!(
+        message.contains("spec.podFailurePolicy.rules[1].onExitCodes.values[1]: Invalid value: 3: must be ordered"),
+        "{message}"
+    );
+}

@@ -77,6 +77,22 @@ fn resource(
     r
 }
 
+/// `pods/eviction`, as the real server lists it: the subresource's kind is policy/v1's.
+fn eviction() -> Value {
+    let mut r = resource(
+        "pods/eviction",
+        "",
+        "Eviction",
+        true,
+        &["create"],
+        &[],
+        false,
+    );
+    r["group"] = json!("policy");
+    r["version"] = json!("v1");
+    r
+}
+
 /// GET /api/v1
 pub async fn core_v1() -> Response {
     json(
@@ -88,6 +104,7 @@ pub async fn core_v1() -> Response {
                 resource("events", "event", "Event", true, &["list"], &["ev"], false),
                 resource("namespaces", "namespace", "Namespace", false, &["get", "list"], &["ns"], false),
                 resource("pods", "pod", "Pod", true, &["delete", "get", "list", "watch"], &["po"], true),
+                eviction(),
                 resource("pods/log", "", "Pod", true, &["get"], &[], false),
                 resource("pods/status", "", "Pod", true, &["get"], &[], false),
             ],

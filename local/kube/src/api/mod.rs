@@ -268,6 +268,10 @@ pub fn router(state: AppState) -> Router {
             get(objects::get_named::<Pod>),
         )
         .route("/api/v1/namespaces/{ns}/pods/{name}/log", get(pods::log))
+        .route(
+            "/api/v1/namespaces/{ns}/pods/{name}/eviction",
+            axum::routing::post(pods::evict),
+        )
         .route("/apis/batch/v1/jobs", get(objects::list_everywhere::<Job>))
         .route(
             "/apis/batch/v1/namespaces/{ns}/jobs",

@@ -15,6 +15,7 @@ use super::jobs::delete_options;
 use super::objects::{into_response, text, to_json};
 use super::watch::stream_response;
 use super::{int_param, json, truthy, AppState, Params};
+use crate::objects::pod::set_disruption_target;
 use crate::status::{go_quote, ApiError, PODS};
 use crate::store::ObjKey;
 
@@ -54,6 +55,62 @@ pub async fn delete(
         let grace = opts.grace;
         tokio::spawn(async move { rt.delete_pod(&key, grace).await });
         Ok(json(axum::http::StatusCode::OK, &to_json(&marked)))
+    })();
+    into_response(result)
+}
+
+/// POST /api/v1/namespaces/{ns}/pods/{name}/eviction (`policy/v1` Eviction): what a drain
+/// does to each pod of a node (`kubectl drain`; EKS managed node groups on a Spot
+/// interruption or rebalance recommendation). No PodDisruptionBudget exists here, so every
+/// eviction is allowed: the pod gets the `DisruptionTarget` condition (reason
+/// `EvictionByEvictionAPI`, message `Eviction API: evicting`) and is deleted gracefully
+/// (Kubernetes docs, "API-initiated Eviction"; "Pod disruption conditions"). A pod that has
+/// finished is just deleted.
+pub async fn evict(
+    State(state): State<AppState>,
+    Path((ns, name)): Path<(String, String)>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Response {
+    let result = (|| {
+        state.check("create", &PODS, &ns, Some(&name))?;
+        let eviction = super::decode_body(&headers, &body)?;
+        let named = eviction["metadata"]["name"].as_str().unwrap_or_default();
+        if named != name {
+            return Err(ApiError::bad_request(
+                "name in URL does not match name in Eviction object",
+            ));
+        }
+        let grace = eviction["deleteOptions"]["gracePeriodSeconds"]
+            .as_i64()
+            .map(|s| Duration::from_secs(s.max(0) as u64));
+        let key = ObjKey::new(&ns, &name);
+        let pod = state
+            .rt
+            .store
+            .get::<Pod>(&key)
+            .ok_or_else(|| ApiError::not_found(&PODS, &name))?;
+        let finished = matches!(
+            pod.status.as_ref().and_then(|s| s.phase.as_deref()),
+            Some("Succeeded" | "Failed")
+        );
+        if !finished && pod.metadata.deletion_timestamp.is_none() {
+            state.rt.store.update::<Pod>(&key, |p| {
+                set_disruption_target(
+                    p.status.get_or_insert_with(Default::default),
+                    "EvictionByEvictionAPI",
+                    "Eviction API: evicting",
+                );
+            });
+        }
+        state.rt.mark_pod_deleted(&key, grace);
+        let rt = state.rt.clone();
+        tokio::spawn(async move { rt.delete_pod(&key, grace).await });
+        let done = serde_json::json!({
+            "kind": "Status", "apiVersion": "v1", "metadata": {},
+            "status": "Success", "code": 201
+        });
+        Ok(json(axum::http::StatusCode::CREATED, &done))
     })();
     into_response(result)
 }

@@ -265,7 +265,7 @@ pub fn refresh_status(status: &mut PodStatus, restart_policy: &str) {
             )
         }
     };
-    status.conditions = Some(vec![
+    let mut conditions = vec![
         condition(
             &old,
             "PodReadyToStartContainers",
@@ -278,7 +278,34 @@ pub fn refresh_status(status: &mut PodStatus, restart_policy: &str) {
         ready("Ready"),
         ready("ContainersReady"),
         condition(&old, "PodScheduled", true, None, None, &now),
-    ]);
+    ];
+    // Conditions others wrote (the API server's or the control plane's `DisruptionTarget`)
+    // stay as they are: the kubelet owns only its own.
+    let own: Vec<String> = conditions.iter().map(|c| c.type_.clone()).collect();
+    conditions.extend(old.into_values().filter(|c| !own.contains(&c.type_)));
+    status.conditions = Some(conditions);
+}
+
+/// The condition the control plane adds to a pod it is about to take away (Kubernetes docs,
+/// "Pod disruption conditions"): `reason` says who, e.g. `EvictionByEvictionAPI` with the
+/// message `Eviction API: evicting`. An existing one keeps its transition time.
+pub fn set_disruption_target(status: &mut PodStatus, reason: &str, message: &str) {
+    let conditions = status.conditions.get_or_insert_with(Vec::new);
+    if conditions
+        .iter()
+        .any(|c| c.type_ == "DisruptionTarget" && c.status == "True")
+    {
+        return;
+    }
+    conditions.retain(|c| c.type_ != "DisruptionTarget");
+    conditions.push(PodCondition {
+        type_: "DisruptionTarget".into(),
+        status: "True".into(),
+        reason: Some(reason.into()),
+        message: Some(message.into()),
+        last_transition_time: Some(time_now()),
+        ..Default::default()
+    });
 }
 
 /// Whether the pod counts as ready for the Job's `ready` count.

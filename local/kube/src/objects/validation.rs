@@ -3,7 +3,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use k8s_openapi::api::batch::v1::Job;
+use k8s_openapi::api::batch::v1::{Job, JobSpec};
 use k8s_openapi::api::core::v1::{Container, PodSpec, Volume};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector as LabelSelectorSpec;
 
@@ -235,9 +235,7 @@ pub fn validate_job(job: &Job, uid: &str) -> Vec<FieldError> {
     {
         local_kube_refuses("spec.completionMode", "Indexed Jobs", &mut errs);
     }
-    if spec.pod_failure_policy.is_some() {
-        local_kube_refuses("spec.podFailurePolicy", "pod failure policies", &mut errs);
-    }
+    replacement_and_failure_policies(spec, &mut errs);
     if spec.success_policy.is_some() {
         local_kube_refuses("spec.successPolicy", "success policies", &mut errs);
     }
@@ -260,6 +258,130 @@ pub fn validate_job(job: &Job, uid: &str) -> Vec<FieldError> {
         Some(pod) => validate_pod_spec(pod, "spec.template.spec", &mut errs),
     }
     errs
+}
+
+/// `validatePodFailurePolicy` and the rules tying it to the restart and replacement policies
+/// (`pkg/apis/batch/validation`): `restartPolicy: Never`, `podReplacementPolicy: Failed`, at
+/// most 20 rules, each with exactly one requirement and a known action, exit codes in
+/// increasing order without duplicates, no 0 under `In`, a container name of the template.
+fn replacement_and_failure_policies(spec: &JobSpec, errs: &mut Vec<FieldError>) {
+    let replacement = spec.pod_replacement_policy.as_deref();
+    if let Some(r) = replacement.filter(|r| !["Failed", "TerminatingOrFailed"].contains(r)) {
+        errs.push(FieldError::not_supported(
+            "spec.podReplacementPolicy",
+            r,
+            &["Failed", "TerminatingOrFailed"],
+        ));
+    }
+    let Some(policy) = &spec.pod_failure_policy else {
+        return;
+    };
+    if let Some(r) = replacement.filter(|r| *r != "Failed") {
+        errs.push(FieldError::not_supported(
+            "spec.podReplacementPolicy",
+            r,
+            &["Failed"],
+        ));
+    }
+    let template = spec.template.spec.as_ref();
+    let restart = template
+        .and_then(|t| t.restart_policy.as_deref())
+        .unwrap_or_default();
+    if restart != "Never" {
+        errs.push(FieldError::invalid(
+            "spec.template.spec.restartPolicy",
+            restart,
+            "only \"Never\" is supported when podFailurePolicy is specified",
+        ));
+    }
+    let names: BTreeSet<&str> = template
+        .map(|t| {
+            t.containers
+                .iter()
+                .chain(t.init_containers.iter().flatten())
+                .map(|c| c.name.as_str())
+                .collect()
+        })
+        .unwrap_or_default();
+    if policy.rules.len() > 20 {
+        errs.push(FieldError::forbidden(
+            "spec.podFailurePolicy.rules",
+            format!("must have at most 20 items (got {})", policy.rules.len()),
+        ));
+    }
+    for (i, rule) in policy.rules.iter().enumerate() {
+        failure_policy_rule(
+            rule,
+            &format!("spec.podFailurePolicy.rules[{i}]"),
+            &names,
+            errs,
+        );
+    }
+}
+
+fn failure_policy_rule(
+    rule: &k8s_openapi::api::batch::v1::PodFailurePolicyRule,
+    at: &str,
+    containers: &BTreeSet<&str>,
+    errs: &mut Vec<FieldError>,
+) {
+    if !["FailJob", "Ignore", "Count"].contains(&rule.action.as_str()) {
+        errs.push(FieldError::not_supported(
+            format!("{at}.action"),
+            &rule.action,
+            &["Count", "FailJob", "Ignore"],
+        ));
+    }
+    match (&rule.on_exit_codes, &rule.on_pod_conditions) {
+        (Some(_), Some(_)) => errs.push(FieldError::forbidden(
+            at,
+            "specifying both OnExitCodes and OnPodConditions is not supported",
+        )),
+        (None, None) => errs.push(FieldError::required(
+            at,
+            "specifying one of OnExitCodes and OnPodConditions is required",
+        )),
+        _ => {}
+    }
+    if let Some(codes) = &rule.on_exit_codes {
+        let here = format!("{at}.onExitCodes");
+        if !["In", "NotIn"].contains(&codes.operator.as_str()) {
+            errs.push(FieldError::not_supported(
+                format!("{here}.operator"),
+                &codes.operator,
+                &["In", "NotIn"],
+            ));
+        }
+        if let Some(name) = codes
+            .container_name
+            .as_deref()
+            .filter(|n| !containers.contains(n))
+        {
+            errs.push(FieldError::invalid(
+                format!("{here}.containerName"),
+                name,
+                "must be one of the container or initContainer names in the pod template",
+            ));
+        }
+        for (j, &v) in codes.values.iter().enumerate() {
+            let path = format!("{here}.values[{j}]");
+            if v == 0 && codes.operator == "In" {
+                // NB: Go renders an integer value without quotes.
+                errs.push(FieldError::invalid_raw(
+                    path,
+                    "0",
+                    "must not be 0 for the In operator",
+                ));
+            } else if j > 0 && codes.values[j - 1] >= v {
+                let detail = if codes.values[j - 1] == v {
+                    "duplicate"
+                } else {
+                    "must be ordered"
+                };
+                errs.push(FieldError::invalid_raw(path, v.to_string(), detail));
+            }
+        }
+    }
 }
 
 fn volume_sources(v: &Volume) -> Vec<String> {

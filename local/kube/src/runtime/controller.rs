@@ -1,7 +1,9 @@
 //! The job controller of one Job: creates pods, counts successes, failures and restarts as the
-//! real controller does, enforces backoffLimit and activeDeadlineSeconds, writes Job status.
+//! real controller does, honours the Pod failure policy and the pod replacement policy,
+//! enforces backoffLimit and activeDeadlineSeconds, writes Job status, and drops the tracking
+//! finalizer of every pod it has counted.
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -11,8 +13,10 @@ use tokio::sync::{watch, Notify};
 use tokio::time::Instant;
 use tracing::{info, warn};
 
+use super::failure_policy::{self, Outcome, POD_FAILURE_POLICY};
 use super::Runtime;
 use crate::objects::pod::{controller_uid, is_ready, phase_of, pod_for_job, restarts};
+use crate::objects::JOB_TRACKING_FINALIZER;
 use crate::store::{time_now, ObjKey};
 
 const COMPLETIONS_REACHED: (&str, &str) = (
@@ -75,10 +79,14 @@ struct Controller {
     started: Instant,
     /// Uids of pods seen Succeeded.
     succeeded: HashSet<String>,
-    /// Uids of pods seen Failed, or gone before finishing (deleted while running).
+    /// Uids of pods whose failure counts against backoffLimit.
     failed: HashSet<String>,
-    /// Uids of pods not yet seen finished.
-    unfinished: HashSet<String>,
+    /// Uids of failed pods an `Ignore` rule of the Pod failure policy matched.
+    ignored: HashSet<String>,
+    /// Pods not yet seen finished, as last seen (a pod gone before finishing is judged so).
+    unfinished: HashMap<String, Pod>,
+    /// The message of the first `FailJob` rule a failed pod matched.
+    fail_job: Option<String>,
     failed_seen: i32,
     next_pod_at: Option<Instant>,
 }
@@ -98,7 +106,9 @@ pub async fn run(
         started: Instant::now(),
         succeeded: HashSet::new(),
         failed: HashSet::new(),
-        unfinished: HashSet::new(),
+        ignored: HashSet::new(),
+        unfinished: HashMap::new(),
+        fail_job: None,
         failed_seen: 0,
         next_pod_at: None,
     };
@@ -136,19 +146,25 @@ impl Controller {
     }
 
     /// Counts pods as the real controller does: finished pods stay counted after they are
-    /// removed, and a pod that disappears before finishing counts as failed.
+    /// removed, and a pod that disappears before finishing counts as failed. A failed pod is
+    /// judged by the Pod failure policy. With `podReplacementPolicy: Failed` a terminating pod
+    /// holds its place until it has failed; otherwise it counts as failed at once (Kubernetes
+    /// docs, "Delayed creation of replacement pods").
     fn counts(&mut self, job: &Job) -> Counts {
         let ns = self.key.namespace.clone();
         let uid = self.uid.clone();
         let (pods, _) = self.rt.store.list::<Pod>(Some(&ns), |p| {
             controller_uid(p).as_deref() == Some(uid.as_str())
         });
-        let on_failure = job
+        let spec = job.spec.clone().unwrap_or_default();
+        let on_failure = spec
+            .template
             .spec
             .as_ref()
-            .and_then(|s| s.template.spec.as_ref())
             .and_then(|s| s.restart_policy.as_deref())
             == Some("OnFailure");
+        let only_failed = spec.pod_replacement_policy.as_deref() == Some("Failed");
+        let policy = spec.pod_failure_policy.as_ref();
         let mut c = Counts {
             active: Vec::new(),
             terminating: 0,
@@ -165,40 +181,105 @@ impl Controller {
                 "Succeeded" => {
                     self.unfinished.remove(&pod_uid);
                     self.succeeded.insert(pod_uid);
+                    self.release(&p);
                 }
                 "Failed" => {
                     self.unfinished.remove(&pod_uid);
-                    self.failed.insert(pod_uid);
+                    self.judge(&p, policy);
+                    self.release(&p);
                 }
                 _ if p.metadata.deletion_timestamp.is_some() => {
-                    self.unfinished.insert(pod_uid);
                     c.terminating += 1;
+                    if only_failed {
+                        self.unfinished.insert(pod_uid, p);
+                    } else {
+                        self.unfinished.remove(&pod_uid);
+                        self.judge(&p, policy);
+                    }
                 }
                 _ => {
-                    self.unfinished.insert(pod_uid);
                     if is_ready(&p) {
                         c.ready += 1;
                     }
                     if on_failure {
                         c.restarts += restarts(&p);
                     }
+                    self.unfinished.insert(pod_uid, p.clone());
                     c.active.push(p);
                 }
             }
         }
         let vanished: Vec<String> = self
             .unfinished
-            .iter()
+            .keys()
             .filter(|u| !present.contains(*u))
             .cloned()
             .collect();
         for u in vanished {
-            self.unfinished.remove(&u);
-            self.failed.insert(u);
+            if let Some(last) = self.unfinished.remove(&u) {
+                self.judge(&last, policy);
+            }
         }
         c.succeeded = self.succeeded.len() as i32;
         c.failed = self.failed.len() as i32;
         c
+    }
+
+    /// Judges a failed pod once: ignored, counted, or counted and failing the Job.
+    fn judge(&mut self, pod: &Pod, policy: Option<&k8s_openapi::api::batch::v1::PodFailurePolicy>) {
+        let uid = pod.metadata.uid.clone().unwrap_or_default();
+        if self.failed.contains(&uid) || self.ignored.contains(&uid) {
+            return;
+        }
+        let name = pod.metadata.name.as_deref().unwrap_or_default();
+        match failure_policy::outcome(policy, pod) {
+            Outcome::Ignore => {
+                info!(job = %self.key.name, pod = name, "pod failure ignored by the Pod failure policy");
+                self.ignored.insert(uid);
+            }
+            Outcome::Count => {
+                self.failed.insert(uid);
+            }
+            Outcome::FailJob(message) => {
+                info!(job = %self.key.name, pod = name, %message, "pod failure fails the job");
+                self.failed.insert(uid);
+                self.fail_job.get_or_insert(message);
+            }
+        }
+    }
+
+    /// Drops the tracking finalizer of a pod counted as finished; a pod being deleted is then
+    /// gone, as the API server removes an object whose last finalizer went.
+    fn release(&self, pod: &Pod) {
+        let tracked = pod
+            .metadata
+            .finalizers
+            .iter()
+            .flatten()
+            .any(|f| f == JOB_TRACKING_FINALIZER);
+        if !tracked {
+            return;
+        }
+        let key = ObjKey::of(&pod.metadata);
+        let uid = pod.metadata.uid.clone();
+        let released = self.rt.store.update::<Pod>(&key, |p| {
+            if p.metadata.uid == uid {
+                if let Some(f) = p.metadata.finalizers.as_mut() {
+                    f.retain(|x| x != JOB_TRACKING_FINALIZER);
+                }
+                if p.metadata.finalizers.as_ref().is_some_and(Vec::is_empty) {
+                    p.metadata.finalizers = None;
+                }
+            }
+        });
+        let gone = released.is_some_and(|p| {
+            p.metadata.uid == uid
+                && p.metadata.deletion_timestamp.is_some()
+                && p.metadata.finalizers.is_none()
+        });
+        if gone {
+            self.rt.store.remove::<Pod>(&key);
+        }
     }
 
     fn write_status(&self, counts: &Counts, extra: impl FnOnce(&mut JobStatus)) {
@@ -247,7 +328,12 @@ impl Controller {
                 } else {
                     counts.restarts >= backoff_limit
                 };
-            let new = if complete {
+            let new = if let Some(message) = self.fail_job.clone() {
+                Some(condition(
+                    "FailureTarget",
+                    (POD_FAILURE_POLICY, message.as_str()),
+                ))
+            } else if complete {
                 Some(condition("SuccessCriteriaMet", COMPLETIONS_REACHED))
             } else if counts.failed > backoff_limit || restarts_exceeded {
                 Some(condition("FailureTarget", BACKOFF_LIMIT))
@@ -286,7 +372,10 @@ impl Controller {
             None if counts.succeeded > 0 => 0,
             None => parallelism,
         };
-        let occupied = counts.active.len() as i32 + counts.terminating;
+        // NB: a terminating pod holds its place only under `podReplacementPolicy: Failed`.
+        let only_failed = spec.pod_replacement_policy.as_deref() == Some("Failed");
+        let occupied =
+            counts.active.len() as i32 + if only_failed { counts.terminating } else { 0 };
         if occupied >= want {
             return;
         }
@@ -330,6 +419,7 @@ impl Controller {
         for d in deletions {
             let _ = d.await;
         }
+        // NB: counts() releases every finished pod: nothing is left for a controller that stops.
         let counts = self.counts(job);
         let reason = target.reason.clone().unwrap_or_default();
         let message = target.message.clone().unwrap_or_default();

@@ -22,7 +22,6 @@ use super::{scheduler, Runtime};
 use crate::imagemap::Pull;
 use crate::objects::names::random_u64;
 use crate::objects::pod::{refresh_status, waiting};
-use crate::objects::JOB_TRACKING_FINALIZER;
 use crate::store::{time_now, ObjKey};
 
 /// Stop request: `None` keeps running; `Some(grace)` terminates with that grace period.
@@ -158,14 +157,6 @@ impl PodWorker {
             let status = pod.status.get_or_insert_with(Default::default);
             f(status);
             refresh_status(status, &policy);
-            if matches!(status.phase.as_deref(), Some("Succeeded" | "Failed")) {
-                if let Some(f) = pod.metadata.finalizers.as_mut() {
-                    f.retain(|x| x != JOB_TRACKING_FINALIZER);
-                }
-                if pod.metadata.finalizers.as_ref().is_some_and(Vec::is_empty) {
-                    pod.metadata.finalizers = None;
-                }
-            }
         });
         if let Some(owner) = &self.owner {
             self.rt.notify_job(owner);

@@ -4,6 +4,7 @@ pub mod controller;
 pub mod env;
 pub mod events;
 pub mod expand;
+pub mod failure_policy;
 pub mod kubelet;
 pub mod mounts;
 pub mod process;
@@ -362,19 +363,65 @@ impl Runtime {
                 warn!(dir = %dir.display(), error = %e, "cannot remove pod directory");
             }
         }
-        // NB: only the incarnation we stopped is removed, not a new pod of the same name.
-        let same = self
+        // NB: only the incarnation we stopped is touched, not a new pod of the same name.
+        let current = self
             .store
             .get::<Pod>(key)
-            .is_some_and(|p| p.metadata.uid.as_deref() == Some(uid.as_str()));
-        if same {
-            self.store.remove::<Pod>(key);
+            .filter(|p| p.metadata.uid.as_deref() == Some(uid.as_str()));
+        if let Some(current) = current {
+            if self.counted_by_its_job(&current) {
+                // The kubelet moves a deleted pod to a terminal phase; the Job controller
+                // counts it, then drops its finalizer, and only then is the object gone
+                // (Kubernetes docs, "Pod disruption conditions"; "Job tracking with finalizers").
+                self.store.update::<Pod>(key, |p| {
+                    let status = p.status.get_or_insert_with(Default::default);
+                    if !matches!(status.phase.as_deref(), Some("Succeeded" | "Failed")) {
+                        status.phase = Some("Failed".into());
+                    }
+                });
+            } else {
+                self.store.remove::<Pod>(key);
+            }
         }
         lock(&self.events).forget(&uid);
         if let Some(owner) = controller_uid(&pod) {
             self.notify_job(&owner);
         }
         info!(pod = %key.name, "pod deleted");
+    }
+
+    /// Whether a pod still waits for its Job's controller to count it: it carries the Job's
+    /// tracking finalizer and its Job runs (a deleted or finished Job's controller lets its
+    /// pods go, as the real one removes the finalizers of orphans).
+    fn counted_by_its_job(&self, pod: &Pod) -> bool {
+        let tracked = pod
+            .metadata
+            .finalizers
+            .iter()
+            .flatten()
+            .any(|f| f == crate::objects::JOB_TRACKING_FINALIZER);
+        let Some(owner) = pod
+            .metadata
+            .owner_references
+            .iter()
+            .flatten()
+            .find(|r| r.controller == Some(true) && r.kind == "Job")
+        else {
+            return false;
+        };
+        let ns = pod.metadata.namespace.as_deref().unwrap_or_default();
+        let job = self.store.get::<Job>(&ObjKey::new(ns, &owner.name));
+        let running = job.is_some_and(|j| {
+            let finished = j
+                .status
+                .iter()
+                .flat_map(|s| s.conditions.iter().flatten())
+                .any(|c| (c.type_ == "Complete" || c.type_ == "Failed") && c.status == "True");
+            j.metadata.uid.as_deref() == Some(owner.uid.as_str())
+                && j.metadata.deletion_timestamp.is_none()
+                && !finished
+        });
+        tracked && running
     }
 
     fn owned_pods(&self, namespace: &str, uid: &str) -> Vec<ObjKey> {
