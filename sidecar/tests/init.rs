@@ -134,7 +134,11 @@ fn init_names_a_missing_source_variable() {
         .env("AWS_REGION", "us-east-1")
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(1));
+    assert_eq!(
+        out.status.code(),
+        Some(78),
+        "a malformed environment: no new pod can help"
+    );
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
         err.contains("lb-sidecar: InvalidEnvironment: `LB_SOURCE_LEADERBOARD` is not set"),

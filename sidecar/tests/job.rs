@@ -133,7 +133,6 @@ fn a_job_with_init_a_pair_and_logcopy_completes_and_leaves_its_results_in_s3() {
     lc_env.extend([
         ("LB_PAIRS", "1".to_owned()),
         ("LB_PERIOD_SECONDS", "1".to_owned()),
-        ("LB_BACKOFF_LIMIT", "4".to_owned()),
     ]);
     let evaluator = format!(
         "{} --port=${{CARLA_PORT}} --traffic-manager-port=${{CARLA_TM_PORT}} --agent=${{TEAM_AGENT}} \
@@ -159,8 +158,13 @@ fn a_job_with_init_a_pair_and_logcopy_completes_and_leaves_its_results_in_s3() {
         "metadata": {"name": name},
         "spec": {
             "backoffLimit": 4,
+            "podReplacementPolicy": "Failed",
+            "podFailurePolicy": {"rules": [
+                {"action": "Ignore", "onPodConditions": [{"type": "DisruptionTarget", "status": "True"}]},
+                {"action": "FailJob", "onExitCodes": {"operator": "In", "values": [3, 78]}}
+            ]},
             "template": {"spec": {
-                "restartPolicy": "OnFailure",
+                "restartPolicy": "Never",
                 "volumes": [
                     {"name": "logs", "emptyDir": {}},
                     {"name": "lb-bin", "emptyDir": {}},

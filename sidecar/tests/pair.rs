@@ -227,11 +227,48 @@ fn a_bad_variable_is_named_and_nothing_starts() {
     let vols = Volumes::new();
     let pair = Pair::new(10, "0-4").with("LB_PAIR_ID", "zero");
     let mut agent = pair.agent(&vols);
-    assert_eq!(agent.wait(LIMIT).code(), Some(1));
+    assert_eq!(
+        agent.wait(LIMIT).code(),
+        Some(78),
+        "EX_CONFIG: the Job fails at once"
+    );
     let log = agent.log();
     assert!(
         log.contains("lb-sidecar: InvalidEnvironment: `LB_PAIR_ID` is `zero`"),
         "{log}"
     );
     assert!(vols.markers().is_empty());
+}
+
+#[test]
+fn an_image_that_cannot_run_the_evaluator_exits_3_so_the_job_fails_at_once() {
+    // The shell finds no `python3` (127), and an image without the shell at all.
+    let commands: [&[&str]; 2] = [
+        &[
+            "bash",
+            "-c",
+            "exec python3-not-in-this-image -u evaluator.py",
+        ],
+        &["/image/has/no/bash", "-c", "true"],
+    ];
+    for (i, command) in commands.into_iter().enumerate() {
+        let vols = Volumes::new();
+        let pair = Pair::new(1, "0-4");
+        let mut sim = pair.simulator(&vols);
+        let mut agent = pair.agent_running(&vols, command);
+        assert_eq!(agent.wait(LIMIT).code(), Some(3), "{i}: {}", agent.log());
+        // The crash marker ends the simulator's side too, so the pod ends.
+        assert_eq!(sim.wait(LIMIT).code(), Some(1), "{i}: {}", sim.log());
+        assert!(vols.marker("agent-1.crash0"), "{i}");
+    }
+}
+
+#[test]
+fn an_evaluator_that_fails_by_itself_is_an_ordinary_crash() {
+    let vols = Volumes::new();
+    let pair = Pair::new(1, "0-4");
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent_running(&vols, &["bash", "-c", "exit 2"]);
+    assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
 }

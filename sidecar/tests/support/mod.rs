@@ -184,6 +184,13 @@ impl Pair {
         Proc::spawn(self.command(vols, &args), "simulator")
     }
 
+    /// `lb-sidecar agent -- COMMAND...`: an agent whose image runs something else.
+    pub fn agent_running(&self, vols: &Volumes, command: &[&str]) -> Proc {
+        let mut args = vec!["agent".to_owned(), "--".to_owned()];
+        args.extend(command.iter().map(|a| (*a).to_owned()));
+        Proc::spawn(self.command(vols, &args), "agent")
+    }
+
     /// `lb-sidecar agent -- bash -c '<evaluator command>'` as the template writes it.
     pub fn agent(&self, vols: &Volumes) -> Proc {
         let evaluator = format!(
