@@ -561,11 +561,12 @@ fn check_bounds(s: &JobSettings) -> Result<(), ContextError> {
             0,
             30 * 24 * 3600,
         ),
+        // A Spot node gives two minutes' notice: the drain and the grace period fit in it.
         (
             "termination_grace_seconds",
             s.termination_grace_seconds.into(),
             1,
-            3600,
+            110,
         ),
         ("repetitions", s.repetitions.into(), 1, 100),
         (

@@ -44,6 +44,8 @@ pub struct RunReport {
     pub merged: Option<Merged>,
     /// The GPU index each attempt of each pair's simulator rendered on, by pair (from its log).
     pub simulator_gpus: std::collections::BTreeMap<u32, Vec<u32>>,
+    /// The spot scenario's reclaim: what was evicted and what the Jobs made of it.
+    pub reclaim: Option<crate::reclaim::ReclaimReport>,
     /// Results files and markers S3's events brought to the wake function.
     pub wake_messages: u64,
     /// Times the cancel sweep woke the execution.
@@ -179,6 +181,15 @@ impl RunReport {
         }
         if let Some(merged) = &self.merged {
             outln!("merged         {}", merged.line());
+        }
+        if let Some(r) = &self.reclaim {
+            outln!(
+                "reclaim        {} pod(s) evicted, {} with DisruptionTarget; retries used {}; {} route(s) run again",
+                r.evicted.len(),
+                r.disrupted.len(),
+                r.retries_used,
+                r.routes_run_again
+            );
         }
         if let Some(m) = latency {
             let secs = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}s"));

@@ -22,6 +22,9 @@ use local_stepfunctions::{
 };
 use serde_json::{json, Value};
 
+/// The least seconds per route of the spot scenario: the drain must land mid-route.
+const SPOT_ROUTE_SECONDS: f64 = 1.5;
+
 /// The deployed definition, embedded so `lbctl` runs from anywhere.
 const DEFINITION: &str = include_str!("../../../statemachine/submission.asl.json");
 
@@ -58,6 +61,11 @@ pub enum Scenario {
     /// simulator renders on its own pair's GPU at every attempt, FINISHED (a node of 4 GPUs
     /// unless --gpus says otherwise).
     PlantGpu,
+    /// The node is reclaimed mid-route (a Spot interruption: the managed node group drains it
+    /// through the Eviction API): every pod gets the `DisruptionTarget` condition and a new
+    /// pod replaces it once it has stopped, without using a retry; each interrupted route runs
+    /// again once. FINISHED (routes of at least 1.5 s, so that the drain lands mid-route).
+    Spot,
     /// An operator stops the execution (StopExecution) after its first Monitor round: the
     /// reaper (Finalize, on Step Functions' status-change event, which local mode delivers as
     /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
@@ -73,7 +81,8 @@ impl Scenario {
             | Scenario::Hang
             | Scenario::WakeFlood
             | Scenario::Forge
-            | Scenario::PlantGpu => "finished",
+            | Scenario::PlantGpu
+            | Scenario::Spot => "finished",
             Scenario::Cancel => "cancelled",
             Scenario::Unpullable | Scenario::CrashLoop | Scenario::NoNode | Scenario::Stop => {
                 "failed"
@@ -253,6 +262,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         node_gpus: args.gpus,
         ..Behaviour::default()
     };
+    if args.scenario == Scenario::Spot {
+        behaviour.route_seconds = args.route_seconds.max(SPOT_ROUTE_SECONDS);
+    }
     if args.scenario == Scenario::Hang {
         behaviour.evaluator_env = BTreeMap::from([
             ("FAKE_EVALUATOR_HANG_AT_ROUTE".into(), "1".into()),
@@ -417,8 +429,14 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let rounds = Arc::new(AtomicU64::new(0));
     // Rounds that found the cluster's API out of reach (their verdict skipped).
     let unreachable_rounds = Arc::new(AtomicU64::new(0));
-    // The crash scenario has acted once CARLA was killed; the others have nothing to do.
-    let acted = Arc::new(AtomicBool::new(args.scenario != Scenario::Crash));
+    // The crash scenario has acted once CARLA was killed, the spot one once the node was
+    // drained; the others have nothing to do.
+    let acted = Arc::new(AtomicBool::new(
+        args.scenario != Scenario::Crash && args.scenario != Scenario::Spot,
+    ));
+    let reclaim = (args.scenario == Scenario::Spot)
+        .then(|| crate::reclaim::Reclaim::spawn(kubeconfig.clone(), submission, acted.clone()));
+    let reclaim_cue = reclaim.as_ref().map(|r| r.cue());
     // When the participant cancelled (the cancel scenario), to time how long the Jobs outlive it.
     let cancelled_at: Arc<std::sync::Mutex<Option<Instant>>> = Arc::default();
     let fake = stack.fake_evalai.as_ref().map(|f| f.url());
@@ -437,6 +455,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         let cancelled_at = cancelled_at.clone();
         let scenario = args.scenario;
         let cancel_after = args.cancel_after_round;
+        let reclaim_cue = reclaim_cue.clone();
         Arc::new(move |event: &HistoryEvent| {
             if many {
                 // Many executions: the per-round lines of each would drown the summary.
@@ -479,6 +498,13 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                         at.get_or_insert_with(Instant::now);
                     }
                     cancel_on(fake.as_deref(), submission);
+                }
+                // A route is under way: the node goes now (once; the watcher ignores more).
+                if let Some(cue) = reclaim_cue
+                    .as_ref()
+                    .filter(|_| output["progress"][0].as_u64() >= Some(1))
+                {
+                    cue.notify_one();
                 }
                 say(
                     started,
@@ -572,6 +598,21 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let reaped = reaper.collect(ended_without_finalize).await;
     let result = results.remove(0);
     let ended = Instant::now();
+    let reclaim = match reclaim {
+        Some(watcher) => {
+            let mut report = watcher.finish().await;
+            let logs = agent_logs(
+                &stack.sdk,
+                &settings_bucket(&settings, &args.leaderboard),
+                submission,
+                args.workers,
+            )
+            .await;
+            crate::reclaim::count_route_runs(&logs, &mut report);
+            Some(report)
+        }
+        None => None,
+    };
     let wake_messages = relays.wake_messages.load(Ordering::Relaxed);
     let sweep_wakes = relays.sweep_wakes.load(Ordering::Relaxed);
     drop(relays);
@@ -609,6 +650,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         scenario: format!("{:?}", args.scenario),
         expected,
         ok: acted.load(Ordering::SeqCst)
+            && reclaim
+                .as_ref()
+                .is_none_or(crate::reclaim::ReclaimReport::as_expected)
             && status_on_evalai == expected
             && queue
                 .as_ref()
@@ -638,6 +682,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             .map(|row| row.result.clone()),
         merged: merged_summary(&stack.sdk, &bucket, submission).await,
         simulator_gpus: simulator_gpus(&stack.sdk, &bucket, submission, args.workers).await,
+        reclaim,
         wake_messages,
         sweep_wakes,
         unreachable_rounds: unreachable_rounds.load(Ordering::SeqCst),
@@ -780,6 +825,36 @@ async fn simulator_gpus(
         gpus.insert(pair, indices);
     }
     gpus
+}
+
+/// Each pair's agent log in S3 (`logs/agent/agent<ID>/agent.log`), which every new pod of the
+/// pair continues.
+async fn agent_logs(
+    sdk: &aws_config::SdkConfig,
+    bucket: &str,
+    submission: u64,
+    pairs: u32,
+) -> Vec<String> {
+    let mut logs = Vec::new();
+    for pair in 1..=pairs {
+        let key = format!(
+            "{submission}/{}/{}/agent.log",
+            lb_domain::protocol::LOGS_DIR,
+            lb_domain::protocol::agent_logs_dir(pair)
+        );
+        let object = lb_aws::s3_client(sdk)
+            .get_object()
+            .bucket(bucket)
+            .key(key)
+            .send()
+            .await;
+        if let Ok(object) = object {
+            if let Ok(bytes) = object.body.collect().await {
+                logs.push(String::from_utf8_lossy(&bytes.into_bytes()).into_owned());
+            }
+        }
+    }
+    logs
 }
 
 async fn merged_summary(

@@ -72,6 +72,7 @@ fn every_scenario_ends_as_expected() {
         ("stop", "FAILED"),
         ("forge", "FINISHED"),
         ("plant-gpu", "FINISHED"),
+        ("spot", "FINISHED"),
     ] {
         let started = Instant::now();
         let (report, stdout) = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
@@ -161,6 +162,28 @@ fn every_scenario_ends_as_expected() {
                         "pair {pair}: {report}"
                     );
                 }
+            }
+            "spot" => {
+                // Every pod evicted mid-route was replaced without using a retry; each pair's
+                // interrupted route ran again once and no route was lost.
+                let reclaim = &report["reclaim"];
+                let evicted = reclaim["evicted"].as_array().unwrap();
+                assert!(!evicted.is_empty(), "{report}");
+                for pod in evicted {
+                    let pod = pod.as_str().unwrap();
+                    assert_eq!(
+                        reclaim["disrupted"][pod], "EvictionByEvictionAPI",
+                        "{report}"
+                    );
+                }
+                assert_eq!(reclaim["retries_used"], 0, "{report}");
+                let runs = reclaim["route_runs"].as_object().unwrap();
+                assert_eq!(runs.len(), 20, "{report}");
+                assert!(runs.values().all(|n| n == 1 || n == 2), "{report}");
+                let again = reclaim["routes_run_again"].as_u64().unwrap();
+                assert!((1..=evicted.len() as u64).contains(&again), "{report}");
+                assert_eq!(report["merged"]["records"], 20, "{report}");
+                assert_eq!(report["scores"].is_null(), false, "{report}");
             }
             _ => {}
         }

@@ -1,0 +1,203 @@
+//! A Spot reclaim rehearsed on the local cluster: the node is drained as an EKS managed node
+//! group drains a Spot node on its interruption notice (every pod evicted through the Eviction
+//! API), and what the Jobs make of it is watched until the run ends.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use k8s_openapi::api::core::v1::Pod;
+use kube::api::{Api, EvictParams};
+use serde::Serialize;
+use tokio::sync::{watch, Notify};
+use tokio::task::JoinHandle;
+
+/// How often the Jobs and pods are looked at.
+const LOOK_EVERY: Duration = Duration::from_millis(200);
+
+/// What the reclaim did and what followed.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ReclaimReport {
+    /// The pods the drain evicted.
+    pub evicted: Vec<String>,
+    /// Every pod seen with the `DisruptionTarget` condition, with the condition's reason.
+    pub disrupted: BTreeMap<String, String>,
+    /// The most failed pods one of the submission's Jobs counted: its retries used.
+    pub retries_used: i32,
+    /// Runs of each route (`RouteScenario_<i>`), from the agents' logs in S3.
+    pub route_runs: BTreeMap<String, u32>,
+    /// Routes that ran more than once.
+    pub routes_run_again: usize,
+}
+
+impl ReclaimReport {
+    /// What a reclaim should come to: pods evicted, each with the condition the API server
+    /// writes, no retry used, and no route run more than twice (the interrupted one again).
+    pub fn as_expected(&self) -> bool {
+        !self.evicted.is_empty()
+            && self
+                .evicted
+                .iter()
+                .all(|p| self.disrupted.get(p).map(String::as_str) == Some("EvictionByEvictionAPI"))
+            && self.retries_used == 0
+            && self.route_runs.values().all(|n| *n <= 2)
+    }
+}
+
+/// The watcher, waiting for its cue to drain the node.
+pub struct Reclaim {
+    cue: Arc<Notify>,
+    stop: watch::Sender<bool>,
+    task: JoinHandle<ReclaimReport>,
+}
+
+impl Reclaim {
+    /// Starts watching the submission's Jobs; `acted` is set once the node was drained.
+    pub fn spawn(kubeconfig: PathBuf, submission: u64, acted: Arc<AtomicBool>) -> Reclaim {
+        let cue = Arc::new(Notify::new());
+        let (stop, stopped) = watch::channel(false);
+        let task = tokio::spawn(watch_and_drain(
+            kubeconfig,
+            submission,
+            cue.clone(),
+            stopped,
+            acted,
+        ));
+        Reclaim { cue, stop, task }
+    }
+
+    /// The cue: a route is under way, drain the node now.
+    pub fn cue(&self) -> Arc<Notify> {
+        self.cue.clone()
+    }
+
+    /// Stops watching and says what happened.
+    pub async fn finish(self) -> ReclaimReport {
+        let _ = self.stop.send(true);
+        self.task.await.unwrap_or_default()
+    }
+}
+
+async fn watch_and_drain(
+    kubeconfig: PathBuf,
+    submission: u64,
+    cue: Arc<Notify>,
+    mut stopped: watch::Receiver<bool>,
+    acted: Arc<AtomicBool>,
+) -> ReclaimReport {
+    let mut report = ReclaimReport::default();
+    let Ok(cluster) = lb_cluster::Cluster::from_kubeconfig(&kubeconfig, None).await else {
+        return report;
+    };
+    let pods: Option<Api<Pod>> = async {
+        let kc = kube::config::Kubeconfig::read_from(&kubeconfig).ok()?;
+        let options = kube::config::KubeConfigOptions::default();
+        let config = kube::Config::from_custom_kubeconfig(kc, &options)
+            .await
+            .ok()?;
+        let client = kube::Client::try_from(config).ok()?;
+        Some(Api::namespaced(client, cluster.namespace()))
+    }
+    .await;
+    let Some(pods) = pods else { return report };
+    let mut cued = false;
+    loop {
+        tokio::select! {
+            () = cue.notified(), if !cued => {
+                cued = true;
+                report.evicted = drain(&cluster, &pods, submission).await;
+                acted.store(!report.evicted.is_empty(), Ordering::SeqCst);
+            }
+            _ = stopped.changed() => return report,
+            () = tokio::time::sleep(LOOK_EVERY) => look(&cluster, submission, &mut report).await,
+        }
+    }
+}
+
+/// Evicts every running pod of the submission, as `kubectl drain` and the node group do.
+async fn drain(cluster: &lb_cluster::Cluster, api: &Api<Pod>, submission: u64) -> Vec<String> {
+    let Ok((_, pods)) = cluster.list(&submission.to_string()).await else {
+        return Vec::new();
+    };
+    let mut evicted = Vec::new();
+    for pod in pods {
+        let running = pod.status.as_ref().and_then(|s| s.phase.as_deref()) == Some("Running");
+        let Some(name) = pod.metadata.name.filter(|_| running) else {
+            continue;
+        };
+        if pod.metadata.deletion_timestamp.is_some() {
+            continue;
+        }
+        match api.evict(&name, &EvictParams::default()).await {
+            Ok(_) => evicted.push(name),
+            Err(e) => cli::outln!("           scenario: evicting {name} failed: {e}"),
+        }
+    }
+    cli::outln!(
+        "           scenario: the node is reclaimed: {} pod(s) evicted",
+        evicted.len()
+    );
+    evicted
+}
+
+async fn look(cluster: &lb_cluster::Cluster, submission: u64, report: &mut ReclaimReport) {
+    let Ok((jobs, pods)) = cluster.list(&submission.to_string()).await else {
+        return;
+    };
+    for job in &jobs {
+        let failed = job.status.as_ref().and_then(|s| s.failed).unwrap_or(0);
+        report.retries_used = report.retries_used.max(failed);
+    }
+    for pod in &pods {
+        let disruption = pod
+            .status
+            .as_ref()
+            .and_then(|s| s.conditions.as_ref())
+            .and_then(|cs| {
+                cs.iter()
+                    .find(|c| c.type_ == "DisruptionTarget" && c.status == "True")
+            });
+        if let (Some(c), Some(name)) = (disruption, &pod.metadata.name) {
+            report
+                .disrupted
+                .insert(name.clone(), c.reason.clone().unwrap_or_default());
+        }
+    }
+}
+
+/// Counts the runs of each route in the agents' logs (`========= Preparing RouteScenario_3
+/// (repetition 0) =========`), which a new pod continues.
+pub fn count_route_runs(logs: &[String], report: &mut ReclaimReport) {
+    for log in logs {
+        for line in log.lines() {
+            let Some(rest) = line.split("Preparing ").nth(1) else {
+                continue;
+            };
+            let route = rest.split_whitespace().next().unwrap_or_default();
+            if route.starts_with("RouteScenario_") {
+                *report.route_runs.entry(route.to_owned()).or_default() += 1;
+            }
+        }
+    }
+    report.routes_run_again = report.route_runs.values().filter(|n| **n > 1).count();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_route_prepared_twice_ran_again() {
+        let mut report = ReclaimReport::default();
+        let logs = [
+            "========= Preparing RouteScenario_0 (repetition 0) =========\nagent 1 attempt 0\n========= Preparing RouteScenario_1 (repetition 0) =========\n========= Preparing RouteScenario_1 (repetition 0) =========\n".to_owned(),
+            "========= Preparing RouteScenario_5 (repetition 0) =========\n".to_owned(),
+        ];
+        count_route_runs(&logs, &mut report);
+        assert_eq!(report.route_runs["RouteScenario_1"], 2);
+        assert_eq!(report.route_runs.len(), 3);
+        assert_eq!(report.routes_run_again, 1);
+    }
+}
