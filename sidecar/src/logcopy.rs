@@ -435,11 +435,23 @@ impl<'a> Logcopy<'a> {
         }
     }
 
-    /// SIGTERM: wait briefly for the pairs' last markers, then one bounded final upload.
+    /// SIGTERM (a drained or reclaimed node, a deleted Job): while the pairs stop (bounded),
+    /// their results files and markers go to S3 as soon as they change, so that the next pod
+    /// resumes after the last route that finished here even if this pod is killed early;
+    /// then one bounded final upload of everything.
     async fn terminated(&mut self) -> Result<LogcopyEnd, LogcopyError> {
         let started = Instant::now();
-        info!("SIGTERM: final upload");
+        info!("SIGTERM: results and markers as they change, then the final upload");
         while started.elapsed() < TERM_SETTLE {
+            // NB: at every look, not only the first: a route that finishes while the pair
+            // stops must not wait for the final upload, which a short grace may never allow.
+            let left = TERM_SETTLE.saturating_sub(started.elapsed());
+            match tokio::time::timeout(left, self.wake_pass()).await {
+                Ok(Ok(0)) => {}
+                Ok(Ok(n)) => info!(uploaded = n, "results and markers uploaded"),
+                Ok(Err(e)) => warn!(error = %e, "results and markers not uploaded; retrying"),
+                Err(_) => warn!("the results and markers upload ran out of time"),
+            }
             let markers = self.status.markers().unwrap_or_default();
             let settled = markers.contains(&Marker::Cancel)
                 || self

@@ -5,13 +5,14 @@
 //! `simulator-<ID>.start<CRASH_ID>`; then agent done -> stop CARLA, `simulator-<ID>.done`,
 //! exit 0; agent crashed -> stop, this attempt's crash marker, exit 1; CARLA died (or never
 //! became ready) -> `simulator-<ID>.crash<CRASH_ID>`, wait (bounded) for the agent, exit 1;
-//! cancel -> stop, exit 0. SIGTERM stops CARLA and writes the marker the pair's state calls for.
+//! cancel -> stop, exit 0. SIGTERM stops CARLA once the agent has ended its side (bounded) and
+//! writes the marker the pair's state calls for.
 //! With `LB_GPU_FROM_AGENT`, CARLA starts only once the agent handed over its GPU
 //! (`crate::handoff`); no GPU in time is a crash of this attempt.
 
 use std::time::Instant;
 
-use lb_domain::protocol::{self, simulator_step, Marker, Role, SimulatorStep};
+use lb_domain::protocol::{self, partner_finished, simulator_step, Marker, Role, SimulatorStep};
 use tracing::{info, warn};
 
 use crate::config::{process_env, Env, PairConfig};
@@ -172,8 +173,19 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
             }
         }
         if signals.sleep(cfg.poll).await == Wake::Terminate {
-            info!(pair = id, "SIGTERM: stopping CARLA");
-            child.note("SIGTERM: stopping CARLA");
+            // The whole pod is stopping (a drained node): CARLA stays until the agent has
+            // stopped the evaluator (bounded), so that the evaluator never records the route
+            // in progress as a simulation crash, which would make the next pod run the route
+            // before it again too.
+            info!(pair = id, "SIGTERM: CARLA stops once the evaluator has");
+            child.note("SIGTERM: CARLA stops once the evaluator has");
+            let until = Instant::now() + cfg.stop_grace + cfg.poll * 2;
+            while Instant::now() < until
+                && child.try_exit().is_none()
+                && !partner_finished(&pair::view(&status, id, attempt), Role::Simulator)
+            {
+                tokio::time::sleep(cfg.poll).await;
+            }
             child.stop(cfg.stop_grace).await;
             return match simulator_step(&pair::view(&status, id, attempt)) {
                 SimulatorStep::AgentDone => {

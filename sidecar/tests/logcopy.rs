@@ -229,6 +229,25 @@ fn sigterm_makes_a_final_upload_and_exits_cleanly_without_the_done_marker() {
 
 #[test]
 #[ignore = "needs moto"]
+fn on_sigterm_the_results_reach_s3_at_once_even_if_the_pod_is_killed_soon_after() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    let results = "agent/partial_agent_results1.json";
+    write(vols.root(), results, b"{\"routes\": 1}");
+    // A long period and no wake check yet: only SIGTERM's own upload can send it in time.
+    let mut lc = logcopy(&vols, &moto, None, &[("LB_PERIOD_SECONDS", "30")]);
+    lc.wait_event("logcopy pass", LIMIT, |_| true);
+    write(vols.root(), results, b"{\"routes\": 2}");
+    lc.signal(Signal::SIGTERM);
+    // The pairs never settle, and the pod is killed before logcopy's next look (1 s).
+    std::thread::sleep(Duration::from_millis(500));
+    lc.signal(Signal::SIGKILL);
+    lc.wait(LIMIT);
+    assert_eq!(moto.get(&key(results)).unwrap(), b"{\"routes\": 2}");
+}
+
+#[test]
+#[ignore = "needs moto"]
 fn an_s3_outage_loses_nothing() {
     let moto = Moto::start();
     let proxy = Proxy::start(moto.server.addr());

@@ -15,9 +15,6 @@ pub use lb_domain::cluster::{
     JobView, Observation, PodView, Unschedulable, Verdict, VerdictPolicy,
 };
 
-/// The well-known node label of a node's EC2 instance type.
-const INSTANCE_TYPE_LABEL: &str = "node.kubernetes.io/instance-type";
-
 /// The uid of a pod worth asking the Cluster Autoscaler about: one unschedulable for at
 /// least `never_fits_grace`. The pairs of a submission request alike, so one pod speaks for
 /// all, and a submission that schedules costs no extra call.
@@ -175,15 +172,18 @@ fn pod_view(pod: &Pod) -> PodView {
             .iter()
             .map(|c| container_view(c, statuses.get(c.name.as_str()).copied(), false)),
     );
-    let instance_type = spec
+    let node_selector = spec
         .node_selector
         .as_ref()
-        .and_then(|s| s.get(INSTANCE_TYPE_LABEL))
-        .cloned();
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            let pairs: Vec<String> = s.iter().map(|(k, v)| format!("{k}={v}")).collect();
+            pairs.join(",")
+        });
     PodView {
         name: name_of(&pod.metadata),
         uid: pod.metadata.uid.clone(),
-        instance_type,
+        node_selector,
         autoscaler: None,
         job: owning_job(&pod.metadata),
         phase: status.phase.unwrap_or_else(|| "Unknown".into()),
@@ -695,7 +695,7 @@ mod tests {
         );
         assert!(
             message.contains(
-                "no node group of the evaluation cluster offers the instance type `g5.12xlarge`"
+                "no node group of the evaluation cluster offers the nodes this leaderboard runs on (`node.kubernetes.io/instance-type=g5.12xlarge`)"
             ) && message.contains("not of your submission")
                 && message.contains("used none of your time"),
             "{message}"
@@ -1020,14 +1020,15 @@ mod tests {
             .as_mut()
             .unwrap()
         {
-            c.reason = Some("PodFailurePolicy".into());
-            c.message = Some("Container agent-1 for pod x failed with exit code 42 matching FailJob rule at index 0".into());
+            c.reason = Some("MaxFailedIndexesExceeded".into());
+            c.message =
+                Some("Job has exceeded the specified maximal number of failed indexes".into());
         }
         let obs = observe_at_945(&jobs, &pods);
         let (kind, _, _, message) = failed(&obs);
         assert_eq!(kind, FailureKind::JobFailed);
         assert!(
-            message.contains("PodFailurePolicy: Container agent-1"),
+            message.contains("MaxFailedIndexesExceeded: Job has exceeded"),
             "{message}"
         );
     }

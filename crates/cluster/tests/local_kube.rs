@@ -507,7 +507,7 @@ async fn a_pod_no_node_could_ever_hold_fails_and_a_pod_waiting_for_room_waits() 
     for (sub, expect) in [
         (
             "5103",
-            "no node group of the evaluation cluster offers the instance type `g6.xlarge`",
+            "no node group of the evaluation cluster offers the nodes this leaderboard runs on (`node.kubernetes.io/instance-type=g6.xlarge`)",
         ),
         (
             "5104",

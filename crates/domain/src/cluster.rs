@@ -148,9 +148,9 @@ pub struct PodView {
     /// Its uid.
     #[serde(default)]
     pub uid: Option<String>,
-    /// The instance type its `nodeSelector` asks for.
+    /// Its `nodeSelector` as `key=value,...` (the GPU model, the capacity type when pinned).
     #[serde(default)]
-    pub instance_type: Option<String>,
+    pub node_selector: Option<String>,
     /// Set while the scheduler cannot place it.
     pub unschedulable: Option<Unschedulable>,
     /// The Cluster Autoscaler's latest word on it, when asked (see [`needs_autoscaler_word`]).
@@ -548,9 +548,9 @@ fn never_fits(
         .iter()
         .filter_map(|r| r.split_once("Insufficient ").map(|(_, what)| what))
         .collect();
-    let what = match (&pod.instance_type, selector) {
-        (Some(instance_type), true) => format!(
-            "no node group of the evaluation cluster offers the instance type `{instance_type}` this leaderboard runs on"
+    let what = match (&pod.node_selector, selector) {
+        (Some(labels), true) => format!(
+            "no node group of the evaluation cluster offers the nodes this leaderboard runs on (`{labels}`)"
         ),
         _ if !too_large.is_empty() => format!(
             "its pods request more {} than a node of any node group of the evaluation cluster has",
@@ -778,7 +778,7 @@ mod tests {
             start_time: Some(at(9, 0)),
             terminating: false,
             uid: Some("uid".into()),
-            instance_type: None,
+            node_selector: None,
             unschedulable: None,
             autoscaler: None,
             containers,

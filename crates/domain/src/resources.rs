@@ -66,6 +66,25 @@ pub fn capacity(instance_type: &str) -> Option<NodeCapacity> {
         })
 }
 
+/// The node label every GPU node carries with its GPU model (`infra/cluster.yaml` sets it on
+/// the node groups): the Jobs select nodes by it, so a pair runs on any instance type of that
+/// GPU model, on Spot or on-demand capacity alike.
+pub const GPU_MODEL_LABEL: &str = "leaderboard.carla.org/gpu-model";
+
+/// The GPU model of an instance family, as the node label names it (EC2 instance type
+/// specifications, accelerated computing: G4dn NVIDIA T4, G5 A10G, G6 L4, G6e L40S, P3 V100).
+pub fn gpu_model(instance_type: &str) -> Option<&'static str> {
+    let family = instance_type.split('.').next()?;
+    match family {
+        "g4dn" => Some("nvidia-t4"),
+        "g5" => Some("nvidia-a10g"),
+        "g6" => Some("nvidia-l4"),
+        "g6e" => Some("nvidia-l40s"),
+        "p3" => Some("nvidia-v100"),
+        _ => None,
+    }
+}
+
 /// CPU (millicores) and memory (MiB) of one container, requested and limited alike.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Allotment {
@@ -192,6 +211,21 @@ impl PairShare {
             agent: allot(self.agent),
             shm_mib: (self.shm_gib * 1024.0).round() as u32,
         }
+    }
+}
+
+#[cfg(test)]
+mod gpu_model_tests {
+    use super::*;
+
+    #[test]
+    fn every_known_instance_type_has_a_gpu_model_by_its_family() {
+        for (name, ..) in KNOWN {
+            assert!(gpu_model(name).is_some(), "{name}");
+        }
+        assert_eq!(gpu_model("g5.48xlarge"), gpu_model("g5.12xlarge"));
+        assert_ne!(gpu_model("g6.12xlarge"), gpu_model("g6e.12xlarge"));
+        assert_eq!(gpu_model("m6i.large"), None);
     }
 }
 

@@ -5,7 +5,7 @@
 
 use std::collections::BTreeMap;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use crate::py::Num;
 use crate::resources::{self, PairShare};
@@ -74,8 +74,19 @@ pub struct LeaderboardSettings {
     pub qualifier_table: String,
     /// Container images.
     pub images: Images,
-    /// Node instance type (the Jobs' node selector).
+    /// The instance type whose share of a node each pair gets (`pair_resources` by default)
+    /// and whose GPU model the Jobs ask for. Pairs run on any node of that GPU model
+    /// (`infra/cluster.yaml`'s node groups), never on one instance type name.
     pub instance_type: String,
+    /// The GPU model the Jobs select nodes by (`lb_domain::resources::GPU_MODEL_LABEL`); by
+    /// default the instance type's (required for a type `lb_domain::resources` does not know).
+    #[serde(default)]
+    pub gpu_model: Option<String>,
+    /// Which capacity the pairs may run on: `on-demand`, `spot`, or `spot-then-on-demand` (the
+    /// default: the cluster autoscaler adds Spot nodes first, on-demand ones when it cannot).
+    /// `on-demand` pins the final days of a challenge to capacity that is never reclaimed.
+    #[serde(default)]
+    pub capacity: Capacity,
     /// GPUs per node: the number of simulator-agent pairs one Job holds.
     pub gpus_per_node: u32,
     /// Per track codename.
@@ -110,7 +121,60 @@ pub struct LeaderboardSettings {
     pub partial_update_seconds: u64,
 }
 
+/// Which EC2 capacity a leaderboard's pairs run on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Capacity {
+    /// On-demand nodes only.
+    OnDemand,
+    /// Spot nodes only (reclaimed nodes cost a route, never a retry).
+    Spot,
+    /// Whatever the cluster autoscaler adds: Spot first (its priority expander), then
+    /// on-demand.
+    #[default]
+    SpotThenOnDemand,
+}
+
+impl Capacity {
+    /// The label EKS managed node groups put on their nodes with the capacity type.
+    pub const LABEL: &'static str = "eks.amazonaws.com/capacityType";
+
+    /// The value of [`Capacity::LABEL`] the pairs must have, when pinned.
+    pub fn node_label(self) -> Option<&'static str> {
+        match self {
+            Capacity::OnDemand => Some("ON_DEMAND"),
+            Capacity::Spot => Some("SPOT"),
+            Capacity::SpotThenOnDemand => None,
+        }
+    }
+}
+
 impl LeaderboardSettings {
+    /// The GPU model the Jobs ask for: the operator's, else the instance type's.
+    pub fn gpu_model(&self) -> Result<String, (&'static str, String)> {
+        match (&self.gpu_model, resources::gpu_model(&self.instance_type)) {
+            (Some(model), _) => Ok(model.clone()),
+            (None, Some(model)) => Ok(model.to_owned()),
+            (None, None) => Err((
+                "gpu_model",
+                format!(
+                    "`{}` is not a GPU instance type whose GPU model the defaults know: set `gpu_model`",
+                    self.instance_type
+                ),
+            )),
+        }
+    }
+
+    /// The node labels the pairs require: the GPU model, and the capacity type when pinned.
+    pub fn node_selector(&self) -> Result<BTreeMap<String, String>, (&'static str, String)> {
+        let mut selector =
+            BTreeMap::from([(resources::GPU_MODEL_LABEL.to_owned(), self.gpu_model()?)]);
+        if let Some(capacity) = self.capacity.node_label() {
+            selector.insert(Capacity::LABEL.to_owned(), capacity.to_owned());
+        }
+        Ok(selector)
+    }
+
     /// What each pair gets: the operator's `pair_resources`, checked against the node, or
     /// the instance type's default share.
     pub fn pair_share(&self) -> Result<PairShare, (&'static str, String)> {
@@ -341,6 +405,14 @@ impl LeaderboardSettings {
         if let Err((field, problem)) = self.pair_share() {
             return invalid(field, &problem);
         }
+        if let Err((field, problem)) = self.gpu_model() {
+            return invalid(field, &problem);
+        }
+        if let Some(model) = &self.gpu_model {
+            if !crate::plan::is_label_value(model) || model.is_empty() {
+                return invalid("gpu_model", "must be a non-empty Kubernetes label value");
+            }
+        }
         if let Some((track, _)) = self
             .tracks
             .iter()
@@ -545,7 +617,7 @@ mod tests {
         assert_eq!((share.simulator.cpu, share.agent.memory_gib), (4.0, 24.0));
         let own = EXAMPLE.replace(
             r#""instance_type": "g5.12xlarge", "gpus_per_node": 4,"#,
-            r#""instance_type": "x9.large", "gpus_per_node": 2, "pair_resources": {
+            r#""instance_type": "x9.large", "gpu_model": "nvidia-x9", "gpus_per_node": 2, "pair_resources": {
                 "simulator": {"cpu": 3, "memory_gib": 12},
                 "agent": {"cpu": 5.5, "memory_gib": 20}, "shm_gib": 2},"#,
         );
@@ -554,6 +626,37 @@ mod tests {
             .unwrap();
         assert_eq!(share.allotment().agent.cpu_millis, 5500);
         assert_eq!(share.allotment().shm_mib, 2048);
+    }
+
+    #[test]
+    fn pairs_select_nodes_by_gpu_model_and_pinned_capacity() {
+        let settings = Settings::from_json(EXAMPLE).unwrap();
+        let board = &settings.leaderboards["2.0"];
+        assert_eq!(board.capacity, Capacity::SpotThenOnDemand, "the default");
+        assert_eq!(
+            board.node_selector().unwrap(),
+            BTreeMap::from([(
+                resources::GPU_MODEL_LABEL.to_owned(),
+                "nvidia-a10g".to_owned()
+            )])
+        );
+        let pinned = EXAMPLE.replace(
+            r#""gpus_per_node": 4,"#,
+            r#""gpus_per_node": 4, "capacity": "on-demand", "gpu_model": "nvidia-a10g-24gb","#,
+        );
+        let pinned = Settings::from_json(&pinned).unwrap();
+        let selector = pinned.leaderboards["2.0"].node_selector().unwrap();
+        assert_eq!(selector[Capacity::LABEL], "ON_DEMAND");
+        assert_eq!(selector[resources::GPU_MODEL_LABEL], "nvidia-a10g-24gb");
+        let spot = EXAMPLE.replace(
+            r#""gpus_per_node": 4,"#,
+            r#""gpus_per_node": 4, "capacity": "spot","#,
+        );
+        let spot = Settings::from_json(&spot).unwrap();
+        assert_eq!(
+            spot.leaderboards["2.0"].node_selector().unwrap()[Capacity::LABEL],
+            "SPOT"
+        );
     }
 
     #[test]
@@ -618,6 +721,29 @@ mod tests {
                         "agent": {"cpu": 8, "memory_gib": 24}, "shm_gib": 4},"#,
                 ),
                 "leaderboards.2.0.pair_resources",
+            ),
+            (
+                EXAMPLE.replace(
+                    r#""gpus_per_node": 4,"#,
+                    r#""gpus_per_node": 4, "capacity": "cheap","#,
+                ),
+                "leaderboards.2.0.capacity",
+            ),
+            (
+                EXAMPLE.replace(
+                    r#""gpus_per_node": 4,"#,
+                    r#""gpus_per_node": 4, "gpu_model": "A10G / 24 GB","#,
+                ),
+                "leaderboards.2.0.gpu_model",
+            ),
+            (
+                EXAMPLE.replace(
+                    r#""instance_type": "g5.12xlarge", "gpus_per_node": 4,"#,
+                    r#""instance_type": "x9.large", "gpus_per_node": 2, "pair_resources": {
+                        "simulator": {"cpu": 3, "memory_gib": 12},
+                        "agent": {"cpu": 5.5, "memory_gib": 20}, "shm_gib": 2},"#,
+                ),
+                "leaderboards.2.0.gpu_model",
             ),
         ];
         for (text, path) in cases {

@@ -9,7 +9,7 @@
 use std::collections::BTreeMap;
 
 use lb_domain::plan::{
-    is_dns_label, is_label_value, label_value, JobPlan, Plan, COMPONENT_LABEL,
+    is_dns_label, is_label_key, is_label_value, label_value, JobPlan, Plan, COMPONENT_LABEL,
     COMPONENT_SUBMISSION, EXECUTION_LABEL, JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY,
     MANAGED_BY_LABEL, SUBMISSION_LABEL, TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
 };
@@ -134,8 +134,9 @@ pub struct JobSettings {
     pub region: String,
     /// Submissions bucket.
     pub bucket: String,
-    /// Node instance type (node selector).
-    pub instance_type: String,
+    /// The node labels a pair needs (`LeaderboardSettings::node_selector`): its GPU model, and
+    /// the capacity type when the leaderboard pins it.
+    pub node_selector: BTreeMap<String, String>,
     /// CARLA server image.
     pub carla_image: String,
     /// Init/logcopy image (official code, private routes, the sidecar).
@@ -182,6 +183,14 @@ impl JobSettings {
                 reason,
             })?
             .allotment();
+        let node_selector =
+            deployment
+                .node_selector()
+                .map_err(|(field, reason)| ContextError::InvalidSetting {
+                    field,
+                    value: deployment.instance_type.clone(),
+                    reason,
+                })?;
         let repetitions = leaderboard.repetitions();
         let scenarios = match leaderboard {
             Leaderboard::V1 => {
@@ -195,7 +204,7 @@ impl JobSettings {
             s3_role_arn: s3_role_arn.into(),
             region: region.into(),
             bucket: deployment.bucket.clone(),
-            instance_type: deployment.instance_type.clone(),
+            node_selector,
             carla_image: deployment.images.carla.clone(),
             private_contents_image: deployment.images.private_contents.clone(),
             backoff_limit: 4,
@@ -295,8 +304,8 @@ pub struct KubernetesContext {
     pub namespace: String,
     /// Service account (no role annotation; see [`JobSettings::service_account`]).
     pub service_account: String,
-    /// Node selector instance type.
-    pub instance_type: String,
+    /// The Pod's `nodeSelector`.
+    pub node_selector: BTreeMap<String, String>,
     /// `backoffLimit`.
     pub backoff_limit: u32,
     /// The `FailJob` rule's exit codes (`lb_domain::protocol::exit::FAIL_JOB`).
@@ -533,12 +542,21 @@ fn check_settings(s: &JobSettings) -> Result<(), ContextError> {
     if !bucket_ok {
         return Err(invalid("bucket", &s.bucket, "expected an S3 bucket name"));
     }
-    if s.instance_type.is_empty() || !is_label_value(&s.instance_type) {
+    if s.node_selector.is_empty() {
         return Err(invalid(
-            "instance_type",
-            &s.instance_type,
-            "expected an instance type such as `g5.12xlarge`",
+            "node_selector",
+            "",
+            "expected the GPU model label at least",
         ));
+    }
+    for (key, value) in &s.node_selector {
+        if !is_label_key(key) || !is_label_value(value) || value.is_empty() {
+            return Err(invalid(
+                "node_selector",
+                format!("{key}={value}"),
+                "expected a label key and a non-empty label value",
+            ));
+        }
     }
     check_bounds(s)
 }
@@ -645,7 +663,7 @@ impl KubernetesContext {
         KubernetesContext {
             namespace: settings.namespace.clone(),
             service_account: settings.service_account.clone(),
-            instance_type: settings.instance_type.clone(),
+            node_selector: settings.node_selector.clone(),
             backoff_limit: settings.backoff_limit,
             fail_job_exit_codes: lb_domain::protocol::exit::FAIL_JOB.to_vec(),
             active_deadline_seconds: settings.active_deadline_seconds,
@@ -816,6 +834,8 @@ impl JobContext {
                 private_contents: "registry.example.com/private-contents:1".into(),
             },
             instance_type: "g5.12xlarge".into(),
+            gpu_model: None,
+            capacity: Default::default(),
             gpus_per_node: 4,
             tracks: BTreeMap::new(),
             qualifier: Default::default(),

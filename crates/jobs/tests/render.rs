@@ -40,6 +40,8 @@ fn settings(leaderboard: Leaderboard) -> JobSettings {
             private_contents: PRIVATE.into(),
         },
         instance_type: "g5.12xlarge".into(),
+        gpu_model: None,
+        capacity: Default::default(),
         gpus_per_node: 4,
         tracks: BTreeMap::new(),
         qualifier: Default::default(),
@@ -192,9 +194,7 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_four_jobs_of_one_pair() {
         );
         assert_eq!(rules[1].action, "FailJob");
         assert_eq!(rules[1].on_exit_codes.as_ref().unwrap().values, [3, 78]);
-        assert!(env(container(job, "logcopy"))
-            .get("LB_BACKOFF_LIMIT")
-            .is_none());
+        assert!(!env(container(job, "logcopy")).contains_key("LB_BACKOFF_LIMIT"));
         assert_eq!(pod(job).automount_service_account_token, Some(false));
         assert_eq!(pod(job).enable_service_links, Some(false));
         assert!(pod(job).affinity.is_none(), "{:?}", pod(job).affinity);
@@ -202,9 +202,13 @@ fn a_20_route_4_worker_leaderboard_2_submission_is_four_jobs_of_one_pair() {
             pod(job).service_account_name.as_deref(),
             Some("submission-worker")
         );
+        // Any node of the GPU model, Spot or on-demand (the default capacity).
         assert_eq!(
-            pod(job).node_selector.as_ref().unwrap()["node.kubernetes.io/instance-type"],
-            "g5.12xlarge"
+            pod(job).node_selector.as_ref().unwrap(),
+            &BTreeMap::from([(
+                "leaderboard.carla.org/gpu-model".to_string(),
+                "nvidia-a10g".to_string()
+            )])
         );
     }
 
@@ -714,8 +718,10 @@ fn invalid_settings_are_named() {
         ),
         ("repetitions", Box::new(|s| s.repetitions = 0)),
         (
-            "instance_type",
-            Box::new(|s| s.instance_type = String::new()),
+            "node_selector",
+            Box::new(|s| {
+                s.node_selector.insert("x".into(), "-bad".into());
+            }),
         ),
         (
             "service_account",

@@ -34,9 +34,11 @@ pub struct ReclaimReport {
 
 impl ReclaimReport {
     /// What a reclaim should come to: pods evicted, each with the condition the API server
-    /// writes, no retry used, and no route run more than twice (the interrupted one again).
+    /// writes, no retry used, no route run more than twice, and at most one route per evicted
+    /// pod run again (the one it was in).
     pub fn as_expected(&self) -> bool {
         !self.evicted.is_empty()
+            && self.routes_run_again <= self.evicted.len()
             && self
                 .evicted
                 .iter()

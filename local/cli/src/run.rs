@@ -45,9 +45,9 @@ pub enum Scenario {
     /// The first pair's evaluator crashes at every attempt: out of retries, FAILED, and the
     /// participant's stderr shows the reason and the end of that agent's output.
     CrashLoop,
-    /// The cluster's node is of another instance type than the leaderboard names: the
-    /// autoscaler says no node group could hold the pods, FAILED at once naming the instance
-    /// type (a configuration problem of the leaderboard), none of the participant's time used.
+    /// The cluster's node has another GPU model than the leaderboard's: the autoscaler says no
+    /// node group could hold the pods, FAILED at once naming the labels the pods need (a
+    /// configuration problem of the leaderboard), none of the participant's time used.
     NoNode,
     /// Every agent rewrites a file in its status directory and its own results file several
     /// times a second for the whole run: only the protocol's files wake the execution, rounds
@@ -180,7 +180,7 @@ const UNPULLABLE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:
 /// How often a flooding agent rewrites its files (the wake-flood scenario): the issue's
 /// reproduction rewrote one four times a second.
 const FLOOD_HZ: u32 = 4;
-/// The node type of the no-node scenario: not the one the local settings name.
+/// The node type of the no-node scenario: not of the GPU model the local settings name.
 const OTHER_INSTANCE_TYPE: &str = "g6.xlarge";
 
 fn say(started: Instant, text: impl AsRef<str>) {
@@ -264,6 +264,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     };
     if args.scenario == Scenario::Spot {
         behaviour.route_seconds = args.route_seconds.max(SPOT_ROUTE_SECONDS);
+        behaviour.node_capacity = lb_domain::settings::Capacity::Spot;
     }
     if args.scenario == Scenario::Hang {
         behaviour.evaluator_env = BTreeMap::from([

@@ -67,6 +67,10 @@ pub struct Config {
     /// a pod's `nodeSelector` against the node's labels (a pod asking for another instance
     /// type waits `Unschedulable`); `None`: node selectors are not modelled.
     pub instance_type: Option<String>,
+    /// The node's further labels, as its node group sets them (a GPU model, EKS's
+    /// `eks.amazonaws.com/capacityType`). Any label set here also makes the scheduler honour
+    /// `nodeSelector`.
+    pub labels: std::collections::BTreeMap<String, String>,
     /// Record the Cluster Autoscaler's events on pods that wait, as for a cluster whose only
     /// node group is this node at its maximum size: `NotTriggerScaleUp` with
     /// `max node group size reached` for a pod a free node would hold, and the rejection
@@ -82,6 +86,8 @@ pub struct Node {
     pub gpus: Option<u32>,
     /// `Config::instance_type`.
     pub instance_type: Option<String>,
+    /// `Config::labels`.
+    pub labels: std::collections::BTreeMap<String, String>,
     /// `Config::autoscaler`.
     pub autoscaler: bool,
 }
@@ -92,6 +98,7 @@ impl Config {
         Node {
             gpus: self.gpus,
             instance_type: self.instance_type.clone(),
+            labels: self.labels.clone(),
             autoscaler: self.autoscaler,
         }
     }

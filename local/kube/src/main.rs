@@ -47,10 +47,21 @@ struct Args {
     /// honoured (default: node selectors not modelled).
     #[arg(long)]
     instance_type: Option<String>,
+    /// A further node label, `KEY=VALUE` (repeatable), as a node group sets them; pods'
+    /// `nodeSelector` is then honoured.
+    #[arg(long = "label", value_parser = parse_label)]
+    labels: Vec<(String, String)>,
     /// Record the Cluster Autoscaler's `NotTriggerScaleUp` events on waiting pods, as for a
     /// node group of this one node at its maximum size.
     #[arg(long)]
     autoscaler: bool,
+}
+
+fn parse_label(text: &str) -> Result<(String, String), String> {
+    let (key, value) = text
+        .split_once('=')
+        .ok_or_else(|| format!("`{text}` is not KEY=VALUE"))?;
+    Ok((key.to_owned(), value.to_owned()))
 }
 
 #[tokio::main]
@@ -89,6 +100,7 @@ async fn main() -> anyhow::Result<()> {
         },
         gpus: args.gpus,
         instance_type: args.instance_type,
+        labels: args.labels.into_iter().collect(),
         autoscaler: args.autoscaler,
         ..Config::default()
     };

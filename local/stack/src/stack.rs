@@ -227,10 +227,34 @@ impl Stack {
             .next()
             .filter(|first| types.all(|t| t == *first))
             .cloned();
+        let instance_type = behaviour.node_instance_type.clone().or(shared);
+        // The labels its node group gives it (infra/cluster.yaml): the GPU model of its
+        // instance type, and the capacity type EKS adds.
+        let labels = instance_type
+            .as_deref()
+            .and_then(lb_domain::resources::gpu_model)
+            .map(|model| {
+                std::collections::BTreeMap::from([
+                    (
+                        lb_domain::resources::GPU_MODEL_LABEL.to_owned(),
+                        model.to_owned(),
+                    ),
+                    (
+                        lb_domain::settings::Capacity::LABEL.to_owned(),
+                        behaviour
+                            .node_capacity
+                            .node_label()
+                            .unwrap_or("ON_DEMAND")
+                            .to_owned(),
+                    ),
+                ])
+            })
+            .unwrap_or_default();
         self.start_kube(local_kube::Config {
             images,
             gpus: behaviour.node_gpus,
-            instance_type: behaviour.node_instance_type.clone().or(shared),
+            instance_type,
+            labels,
             autoscaler: true,
             ..local_kube::Config::default()
         })

@@ -134,6 +134,9 @@ pub struct Behaviour {
     /// `nodeSelector` must match. `None`: the one every leaderboard of the settings names
     /// (not modelled when they differ).
     pub node_instance_type: Option<String>,
+    /// The local node's capacity type (`eks.amazonaws.com/capacityType`): on-demand unless
+    /// `Capacity::Spot`.
+    pub node_capacity: lb_domain::settings::Capacity,
 }
 
 impl Default for Behaviour {
@@ -144,6 +147,7 @@ impl Default for Behaviour {
             carla_env: BTreeMap::new(),
             node_gpus: None,
             node_instance_type: None,
+            node_capacity: lb_domain::settings::Capacity::OnDemand,
         }
     }
 }

@@ -250,7 +250,7 @@ impl Runtime {
             let uid = pod.metadata.uid.clone().unwrap_or_default();
             let spec = pod.spec.as_ref().unwrap_or(&no_spec);
             let need = scheduler::gpu_request(spec);
-            let selected = node.instance_type.is_none() || scheduler::selects(spec, &labels);
+            let selected = !scheduler::labels_modelled(node) || scheduler::selects(spec, &labels);
             if !selected || !scheduler::fits(node.gpus, allocations.in_use(), need) {
                 let message = if selected {
                     scheduler::INSUFFICIENT_GPU

@@ -168,7 +168,8 @@ pub fn mark_unschedulable(pod: &mut Pod, message: &str) {
     set_scheduled(pod, Some(message));
 }
 
-/// The labels of node `name`: the well-known ones a kubelet sets, and the instance type.
+/// The labels of node `name`: the well-known ones a kubelet sets, the instance type and the
+/// node group's.
 pub fn node_labels(name: &str, node: &Node) -> BTreeMap<String, String> {
     let mut labels = BTreeMap::from([
         ("kubernetes.io/hostname".to_owned(), name.to_owned()),
@@ -178,7 +179,13 @@ pub fn node_labels(name: &str, node: &Node) -> BTreeMap<String, String> {
     if let Some(t) = &node.instance_type {
         labels.insert(INSTANCE_TYPE_LABEL.to_owned(), t.clone());
     }
+    labels.extend(node.labels.clone());
     labels
+}
+
+/// Whether the node's labels are modelled, so that `nodeSelector` is honoured.
+pub fn labels_modelled(node: &Node) -> bool {
+    node.instance_type.is_some() || !node.labels.is_empty()
 }
 
 /// Whether a node with `labels` satisfies the pod's `nodeSelector` (every pair present).
@@ -279,6 +286,7 @@ mod tests {
         let node = Node {
             gpus: Some(4),
             instance_type: Some("g5.12xlarge".into()),
+            labels: Default::default(),
             autoscaler: true,
         };
         let labels = node_labels("local-kube", &node);
