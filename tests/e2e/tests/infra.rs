@@ -1141,3 +1141,107 @@ fn the_settings_example_is_valid_and_names_what_the_stacks_create() {
     }
     assert_eq!(settings.leaderboards.len(), 2);
 }
+
+/// The node group an Auto Scaling group name of the priority expander's configuration belongs
+/// to gets the highest priority one of whose expressions matches (kubernetes/autoscaler,
+/// `expander/priority`): managed node groups' groups are `eks-<node group>-<id>`.
+fn expander_priority(priorities: &BTreeMap<i64, Vec<String>>, group: &str) -> Option<i64> {
+    let asg = format!("eks-{group}-4ec6c5a2-1b7e-7f0b-52a4-000000000000");
+    priorities
+        .iter()
+        .rev()
+        .find(|(_, patterns)| {
+            patterns
+                .iter()
+                .any(|p| regex::Regex::new(p).unwrap().is_match(&asg))
+        })
+        .map(|(priority, _)| *priority)
+}
+
+#[test]
+fn the_autoscaler_grows_the_spot_gpu_group_first_and_both_groups_carry_the_gpu_model() {
+    let default = |p: &str| {
+        CLUSTER
+            .eval(&CLUSTER.root()["Parameters"][p]["Default"])
+            .unwrap()
+    };
+    let cluster = default("ClusterName");
+    let docs = k8s_docs("cluster-autoscaler.yaml");
+    let deployment = docs.iter().find(|d| d["kind"] == "Deployment").unwrap();
+    let args = deployment["spec"]["template"]["spec"]["containers"][0]["command"]
+        .as_array()
+        .unwrap();
+    assert!(
+        args.iter().any(|a| a == "--expander=priority,least-waste"),
+        "{args:?}"
+    );
+    let config = docs
+        .iter()
+        .find(|d| d["kind"] == "ConfigMap")
+        .expect("the priority expander's ConfigMap");
+    assert_eq!(
+        config["metadata"]["name"],
+        "cluster-autoscaler-priority-expander"
+    );
+    assert_eq!(config["metadata"]["namespace"], "kube-system");
+    let text = config["data"]["priorities"]
+        .as_str()
+        .unwrap()
+        .replace("${CLUSTER_NAME}", &cluster);
+    let priorities: BTreeMap<i64, Vec<String>> = serde_yaml::from_str(&text).unwrap();
+
+    // Each GPU group by its capacity type, with its name as EKS gives it.
+    let mut groups = BTreeMap::new();
+    for id in CLUSTER.resources_of("AWS::EKS::Nodegroup") {
+        let Ok(capacity) = CLUSTER.text(&id, &["CapacityType"]) else {
+            continue;
+        };
+        let name = CLUSTER.text(&id, &["NodegroupName"]).unwrap();
+        let labels = CLUSTER.property(&id, &["Labels"]).unwrap();
+        assert_eq!(
+            CLUSTER.eval(&labels[lb_domain::resources::GPU_MODEL_LABEL]),
+            Some(default("GpuModel")),
+            "{id}"
+        );
+        let types = CLUSTER.list(CLUSTER.property(&id, &["InstanceTypes"]).unwrap());
+        let types: Vec<String> = types
+            .iter()
+            .flat_map(|t| t.split(',').map(str::to_owned))
+            .collect();
+        groups.insert(capacity, (name, types));
+    }
+    let (spot, spot_types) = &groups["SPOT"];
+    let (on_demand, _) = &groups["ON_DEMAND"];
+    let spot_first = expander_priority(&priorities, spot).unwrap();
+    let then_on_demand = expander_priority(&priorities, on_demand).unwrap();
+    let others = expander_priority(&priorities, "SystemNodeGroup-Ab12Cd34").unwrap();
+    assert!(
+        spot_first > then_on_demand && then_on_demand > others,
+        "{priorities:?}"
+    );
+    assert!(spot_types.len() >= 2, "several Spot pools: {spot_types:?}");
+
+    // Every instance type of both groups has the settings' GPU model and at least its share
+    // of a node per GPU, so a pair gets the same requests on each.
+    let settings = std::fs::read_to_string(root().join("infra/settings.example.json")).unwrap();
+    let settings = lb_domain::settings::Settings::from_json(&settings).unwrap();
+    let board = &settings.leaderboards["2.0"];
+    assert_eq!(board.gpu_model().unwrap(), default("GpuModel"));
+    let shape = lb_domain::resources::capacity(&board.instance_type).unwrap();
+    for (_, types) in groups.values() {
+        for t in types {
+            assert_eq!(
+                lb_domain::resources::gpu_model(t),
+                Some(default("GpuModel").as_str()),
+                "{t}"
+            );
+            let node = lb_domain::resources::capacity(t).unwrap();
+            assert!(
+                node.vcpus / node.gpus >= shape.vcpus / shape.gpus
+                    && node.memory_gib / node.gpus >= shape.memory_gib / shape.gpus
+                    && node.gpus >= board.gpus_per_node,
+                "{t}"
+            );
+        }
+    }
+}
