@@ -144,11 +144,17 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
 
     // The pair's GPU, before anything of the participant's runs (crate::handoff).
     let visible = std::env::var(handoff::VISIBLE_DEVICES).ok();
-    match handoff::hand_over(&p.handoff_dir, id, visible.as_deref()) {
-        Ok(Some(uuid)) => info!(pair = id, %uuid, "GPU handed over to the simulator"),
-        Ok(None) => {}
-        Err(e) => warn!(pair = id, error = %e, "cannot hand the GPU over to the simulator"),
-    }
+    let handed = match handoff::hand_over(&p.handoff_dir, id, visible.as_deref()) {
+        Ok(Some(uuid)) => {
+            info!(pair = id, %uuid, "GPU handed over to the simulator");
+            Some(uuid)
+        }
+        Ok(None) => None,
+        Err(e) => {
+            warn!(pair = id, error = %e, "cannot hand the GPU over to the simulator");
+            None
+        }
+    };
 
     // Wait for this attempt's CARLA.
     let start_by = Instant::now() + p.start_wait;
@@ -225,6 +231,13 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
         p.routes_subset,
         if resuming { " (resuming)" } else { "" }
     ));
+    // The pair's own GPU (its agent's, which its code sees anyway): what the simulator's log
+    // says it rendered on can be checked against it.
+    if let Some(uuid) = &handed {
+        child.note(&format!(
+            "agent {id} attempt {attempt}: the pair's GPU is {uuid}"
+        ));
+    }
 
     let mut terminated = false;
     let mut ended = None;

@@ -44,6 +44,8 @@ pub struct RunReport {
     pub merged: Option<Merged>,
     /// The GPU index each attempt of each pair's simulator rendered on, by pair (from its log).
     pub simulator_gpus: std::collections::BTreeMap<u32, Vec<u32>>,
+    /// The GPU each attempt of each pair was given (its agent's), by pair (from its log).
+    pub agent_gpus: std::collections::BTreeMap<u32, Vec<u32>>,
     /// The spot scenario's reclaim: what was evicted and what the Jobs made of it.
     pub reclaim: Option<crate::reclaim::ReclaimReport>,
     /// Results files and markers S3's events brought to the wake function.

@@ -599,16 +599,16 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let reaped = reaper.collect(ended_without_finalize).await;
     let result = results.remove(0);
     let ended = Instant::now();
+    let logs = agent_logs(
+        &stack.sdk,
+        &settings_bucket(&settings, &args.leaderboard),
+        submission,
+        args.workers,
+    )
+    .await;
     let reclaim = match reclaim {
         Some(watcher) => {
             let mut report = watcher.finish().await;
-            let logs = agent_logs(
-                &stack.sdk,
-                &settings_bucket(&settings, &args.leaderboard),
-                submission,
-                args.workers,
-            )
-            .await;
             crate::reclaim::count_route_runs(&logs, &mut report);
             Some(report)
         }
@@ -683,6 +683,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             .map(|row| row.result.clone()),
         merged: merged_summary(&stack.sdk, &bucket, submission).await,
         simulator_gpus: simulator_gpus(&stack.sdk, &bucket, submission, args.workers).await,
+        agent_gpus: agent_gpus(&logs),
         reclaim,
         wake_messages,
         sweep_wakes,
@@ -821,6 +822,23 @@ async fn simulator_gpus(
                     .trim()
                     .parse()
                     .ok()
+            })
+            .collect();
+        gpus.insert(pair, indices);
+    }
+    gpus
+}
+
+/// The GPU index of each attempt's own GPU, by pair, as its agent's log notes it (`agent <ID>
+/// attempt <N>: the pair's GPU is <UUID>`), the UUIDs being the local node's.
+fn agent_gpus(logs: &[String]) -> BTreeMap<u32, Vec<u32>> {
+    let mut gpus = BTreeMap::new();
+    for (pair, log) in (1..).zip(logs) {
+        let indices: Vec<u32> = log
+            .lines()
+            .filter_map(|line| {
+                let uuid = line.split_once(": the pair's GPU is ")?.1.trim();
+                (0..local_kube::UNMODELLED_GPUS).find(|&i| local_kube::gpu_uuid(i) == uuid)
             })
             .collect();
         gpus.insert(pair, indices);

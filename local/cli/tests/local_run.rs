@@ -150,15 +150,20 @@ fn every_scenario_ends_as_expected() {
                 assert_eq!(report["scores"], happy_scores, "{report}");
             }
             "plant-gpu" => {
-                // Every pair crashed once after planting another GPU; each simulator's
-                // attempts all rendered on its own pair's GPU.
+                // Every pair crashed once after planting another GPU; at each attempt (each
+                // pod, which may be given another GPU) the simulator rendered on the GPU its
+                // own pair was given.
                 let gpus = report["simulator_gpus"].as_object().unwrap();
                 assert_eq!(gpus.len(), 4, "{report}");
                 for (pair, attempts) in gpus {
                     let attempts = attempts.as_array().unwrap();
                     assert!(attempts.len() >= 2, "pair {pair}: {report}");
-                    assert!(
-                        attempts.iter().all(|a| a == &attempts[0]),
+                    assert_eq!(
+                        attempts,
+                        &report["agent_gpus"][pair.as_str()]
+                            .as_array()
+                            .unwrap()
+                            .clone(),
                         "pair {pair}: {report}"
                     );
                 }
