@@ -287,6 +287,13 @@ fn pods(observation: &lb_cluster::Observation) -> Vec<PodLine> {
             for c in pod.containers.iter().filter(|c| c.restart_count > 0) {
                 let _ = write!(detail, " {}x{}", clean(&c.name), c.restart_count);
             }
+            if let Some(reason) = &pod.disruption {
+                let _ = write!(
+                    detail,
+                    " disrupted ({}): not counted, a new pod resumes",
+                    clean(reason)
+                );
+            }
             PodLine {
                 name: clean(&pod.name),
                 phase: clean(&pod.phase),

@@ -184,6 +184,7 @@ fn pod_view(pod: &Pod) -> PodView {
         name: name_of(&pod.metadata),
         uid: pod.metadata.uid.clone(),
         node_selector,
+        disruption: disruption(&status),
         autoscaler: None,
         job: owning_job(&pod.metadata),
         phase: status.phase.unwrap_or_else(|| "Unknown".into()),
@@ -195,6 +196,21 @@ fn pod_view(pod: &Pod) -> PodView {
         unschedulable,
         containers,
     }
+}
+
+/// The reason of a pod's `DisruptionTarget` condition: the control plane is taking it away (a
+/// drained or reclaimed node, preemption, an eviction), and its Job will not count it.
+fn disruption(status: &k8s_openapi::api::core::v1::PodStatus) -> Option<String> {
+    status
+        .conditions
+        .iter()
+        .flatten()
+        .find(|c| c.type_ == "DisruptionTarget" && c.status == "True")
+        .map(|c| {
+            c.reason
+                .clone()
+                .unwrap_or_else(|| "DisruptionTarget".into())
+        })
 }
 
 /// The scheduler's complaint in a pod's `PodScheduled=False`, reason `Unschedulable`.
@@ -878,6 +894,36 @@ mod tests {
         assert_eq!(obs.jobs[0].state, JobState::Complete);
         assert_eq!(obs.jobs[1].state, JobState::Running);
         assert_eq!(obs.jobs[1].pods[0].name, "lb-4242-team-77-1-r5t6y");
+    }
+
+    #[test]
+    fn a_pod_the_control_plane_takes_away_says_why() {
+        let (jobs, mut pods) = load(HALF_DONE);
+        let running = pods
+            .iter_mut()
+            .find(|p| p.metadata.name.as_deref() == Some("lb-4242-team-77-1-r5t6y"))
+            .unwrap();
+        running
+            .status
+            .as_mut()
+            .unwrap()
+            .conditions
+            .get_or_insert_with(Vec::new)
+            .push(
+                serde_json::from_value(serde_json::json!({
+                    "type": "DisruptionTarget", "status": "True",
+                    "reason": "EvictionByEvictionAPI", "message": "Eviction API: evicting"
+                }))
+                .unwrap(),
+            );
+        let obs = observe_at_945(&jobs, &pods);
+        let pod = &obs.jobs[1].pods[0];
+        assert_eq!(pod.disruption.as_deref(), Some("EvictionByEvictionAPI"));
+        assert_eq!(
+            obs.jobs[0].pods.iter().find_map(|p| p.disruption.clone()),
+            None
+        );
+        assert_eq!(obs.verdict, Verdict::Running, "a new pod resumes it");
     }
 
     #[test]

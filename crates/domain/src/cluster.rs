@@ -151,6 +151,10 @@ pub struct PodView {
     /// Its `nodeSelector` as `key=value,...` (the GPU model, the capacity type when pinned).
     #[serde(default)]
     pub node_selector: Option<String>,
+    /// The reason of its `DisruptionTarget` condition (`EvictionByEvictionAPI`, ...): the
+    /// control plane is taking it away, and its Job will not count it as a failure.
+    #[serde(default)]
+    pub disruption: Option<String>,
     /// Set while the scheduler cannot place it.
     pub unschedulable: Option<Unschedulable>,
     /// The Cluster Autoscaler's latest word on it, when asked (see [`needs_autoscaler_word`]).
@@ -779,6 +783,7 @@ mod tests {
             terminating: false,
             uid: Some("uid".into()),
             node_selector: None,
+            disruption: None,
             unschedulable: None,
             autoscaler: None,
             containers,
