@@ -405,13 +405,8 @@ impl LeaderboardSettings {
         if let Err((field, problem)) = self.pair_share() {
             return invalid(field, &problem);
         }
-        if let Err((field, problem)) = self.gpu_model() {
+        if let Err((field, problem)) = self.check_gpu_model() {
             return invalid(field, &problem);
-        }
-        if let Some(model) = &self.gpu_model {
-            if !crate::plan::is_label_value(model) || model.is_empty() {
-                return invalid("gpu_model", "must be a non-empty Kubernetes label value");
-            }
         }
         if let Some((track, _)) = self
             .tracks
@@ -425,6 +420,19 @@ impl LeaderboardSettings {
         }
         self.check_qualifier()
             .map_err(|(field, problem)| (format!("leaderboards.{name}.{field}"), problem))
+    }
+
+    /// A GPU model the Jobs can select by: the operator's, a label value, or the instance
+    /// type's.
+    fn check_gpu_model(&self) -> Result<(), (&'static str, String)> {
+        self.gpu_model()?;
+        match &self.gpu_model {
+            Some(model) if model.is_empty() || !crate::plan::is_label_value(model) => Err((
+                "gpu_model",
+                "must be a non-empty Kubernetes label value".into(),
+            )),
+            _ => Ok(()),
+        }
     }
 
     /// The qualifier's tracks name qualifier tracks, and its thresholds are finite and metrics.

@@ -786,8 +786,6 @@ fn team_sizes(args: &LocalRun) -> anyhow::Result<Vec<u32>> {
     Ok(args.teams.clone())
 }
 
-/// `agent_results.json` summed up: its records and how many each route has (Leaderboard 1.0
-/// runs every route 5 times under one id).
 /// The GPU each attempt of each pair's simulator rendered on, by pair, as its log in S3 notes
 /// them (`simulator <ID> attempt <N>: rendering on GPU <index>`).
 async fn simulator_gpus(
@@ -796,37 +794,30 @@ async fn simulator_gpus(
     submission: u64,
     pairs: u32,
 ) -> BTreeMap<u32, Vec<u32>> {
-    let mut gpus = BTreeMap::new();
-    for pair in 1..=pairs {
-        let key = format!(
-            "{submission}/{}/{}",
-            lb_domain::protocol::LOGS_DIR,
-            lb_domain::protocol::simulator_log(pair)
-        );
-        let object = lb_aws::s3_client(sdk)
-            .get_object()
-            .bucket(bucket)
-            .key(key)
-            .send()
-            .await;
-        let Ok(object) = object else { continue };
-        let Ok(bytes) = object.body.collect().await else {
-            continue;
-        };
-        let text = String::from_utf8_lossy(&bytes.into_bytes()).into_owned();
-        let indices: Vec<u32> = text
-            .lines()
-            .filter_map(|line| {
-                line.split_once(": rendering on GPU ")?
-                    .1
-                    .trim()
-                    .parse()
-                    .ok()
-            })
-            .collect();
-        gpus.insert(pair, indices);
-    }
-    gpus
+    let logs = pair_logs(
+        sdk,
+        bucket,
+        submission,
+        pairs,
+        lb_domain::protocol::simulator_log,
+    )
+    .await;
+    (1..)
+        .zip(logs)
+        .map(|(pair, text)| {
+            let indices: Vec<u32> = text
+                .lines()
+                .filter_map(|line| {
+                    line.split_once(": rendering on GPU ")?
+                        .1
+                        .trim()
+                        .parse()
+                        .ok()
+                })
+                .collect();
+            (pair, indices)
+        })
+        .collect()
 }
 
 /// The GPU index of each attempt's own GPU, by pair, as its agent's log notes it (`agent <ID>
@@ -854,12 +845,24 @@ async fn agent_logs(
     submission: u64,
     pairs: u32,
 ) -> Vec<String> {
+    let agent_log = |pair| format!("{}/agent.log", lb_domain::protocol::agent_logs_dir(pair));
+    pair_logs(sdk, bucket, submission, pairs, agent_log).await
+}
+
+/// One log of each pair from S3 (`logs/<rel(pair)>`), in pair order; empty when missing.
+async fn pair_logs(
+    sdk: &aws_config::SdkConfig,
+    bucket: &str,
+    submission: u64,
+    pairs: u32,
+    rel: impl Fn(u32) -> String,
+) -> Vec<String> {
     let mut logs = Vec::new();
     for pair in 1..=pairs {
         let key = format!(
-            "{submission}/{}/{}/agent.log",
+            "{submission}/{}/{}",
             lb_domain::protocol::LOGS_DIR,
-            lb_domain::protocol::agent_logs_dir(pair)
+            rel(pair)
         );
         let object = lb_aws::s3_client(sdk)
             .get_object()
@@ -867,15 +870,20 @@ async fn agent_logs(
             .key(key)
             .send()
             .await;
-        if let Ok(object) = object {
-            if let Ok(bytes) = object.body.collect().await {
-                logs.push(String::from_utf8_lossy(&bytes.into_bytes()).into_owned());
-            }
-        }
+        let text = match object {
+            Ok(object) => match object.body.collect().await {
+                Ok(bytes) => String::from_utf8_lossy(&bytes.into_bytes()).into_owned(),
+                Err(_) => String::new(),
+            },
+            Err(_) => String::new(),
+        };
+        logs.push(text);
     }
     logs
 }
 
+/// `agent_results.json` summed up: its records and how many each route has (Leaderboard 1.0
+/// runs every route 5 times under one id).
 async fn merged_summary(
     sdk: &aws_config::SdkConfig,
     bucket: &str,

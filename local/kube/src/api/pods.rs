@@ -31,11 +31,7 @@ pub async fn delete(
         state.check("delete", &PODS, &ns, Some(&name))?;
         let opts = delete_options(&p, &headers, &body)?;
         let key = ObjKey::new(&ns, &name);
-        let pod = state
-            .rt
-            .store
-            .get::<Pod>(&key)
-            .ok_or_else(|| ApiError::not_found(&PODS, &name))?;
+        let pod = existing(&state, &key)?;
         if let Some(want) = opts.uid.as_deref() {
             let uid = pod.metadata.uid.clone().unwrap_or_default();
             if want != uid {
@@ -50,10 +46,7 @@ pub async fn delete(
         if opts.dry_run {
             return Ok(json(axum::http::StatusCode::OK, &to_json(&pod)));
         }
-        let marked = state.rt.mark_pod_deleted(&key, opts.grace).unwrap_or(pod);
-        let rt = state.rt.clone();
-        let grace = opts.grace;
-        tokio::spawn(async move { rt.delete_pod(&key, grace).await });
+        let marked = delete_gracefully(&state, key, opts.grace).unwrap_or(pod);
         Ok(json(axum::http::StatusCode::OK, &to_json(&marked)))
     })();
     into_response(result)
@@ -85,11 +78,7 @@ pub async fn evict(
             .as_i64()
             .map(|s| Duration::from_secs(s.max(0) as u64));
         let key = ObjKey::new(&ns, &name);
-        let pod = state
-            .rt
-            .store
-            .get::<Pod>(&key)
-            .ok_or_else(|| ApiError::not_found(&PODS, &name))?;
+        let pod = existing(&state, &key)?;
         let finished = matches!(
             pod.status.as_ref().and_then(|s| s.phase.as_deref()),
             Some("Succeeded" | "Failed")
@@ -103,9 +92,7 @@ pub async fn evict(
                 );
             });
         }
-        state.rt.mark_pod_deleted(&key, grace);
-        let rt = state.rt.clone();
-        tokio::spawn(async move { rt.delete_pod(&key, grace).await });
+        delete_gracefully(&state, key, grace);
         let done = serde_json::json!({
             "kind": "Status", "apiVersion": "v1", "metadata": {},
             "status": "Success", "code": 201
@@ -113,6 +100,22 @@ pub async fn evict(
         Ok(json(axum::http::StatusCode::CREATED, &done))
     })();
     into_response(result)
+}
+
+fn existing(state: &AppState, key: &ObjKey) -> Result<Pod, ApiError> {
+    state
+        .rt
+        .store
+        .get::<Pod>(key)
+        .ok_or_else(|| ApiError::not_found(&PODS, &key.name))
+}
+
+/// Marks the pod deleted (returned as it is now) and terminates it in the background.
+fn delete_gracefully(state: &AppState, key: ObjKey, grace: Option<Duration>) -> Option<Pod> {
+    let marked = state.rt.mark_pod_deleted(&key, grace);
+    let rt = state.rt.clone();
+    tokio::spawn(async move { rt.delete_pod(&key, grace).await });
+    marked
 }
 
 fn status_of<'a>(pod: &'a Pod, container: &str) -> Option<&'a ContainerStatus> {
