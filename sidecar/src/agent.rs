@@ -7,7 +7,8 @@
 //! `LB_MAX_IDLE_SECONDS`, when the simulator crashed, on SIGTERM, or on cancel (exit 0); then
 //! judge its results file (missing, unreadable, invalid or without a `global_record` ->
 //! `agent-<ID>.crash<CRASH_ID>`, exit 1, or exit 3 when the image cannot run the evaluator at
-//! all; else `agent-<ID>.done`, exit 0) and wait (bounded) for the simulator's marker.
+//! all: not found, or the shell's 126/127 before any route ever finished; else
+//! `agent-<ID>.done`, exit 0) and wait (bounded) for the simulator's marker.
 
 use std::fs;
 use std::io::{self, Read};
@@ -90,6 +91,22 @@ pub fn judge(cfg: &AgentConfig, path: &Path) -> Verdict {
         }
         Err(e) => Verdict::Incomplete(format!("the results file is invalid: {} ({e})", e.name())),
     }
+}
+
+/// Whether the results file holds any finished route (of this or an earlier pod): the image
+/// did run the evaluator once.
+fn has_progress(cfg: &AgentConfig, path: &Path) -> bool {
+    let Ok(Some(bytes)) = read_limited(path) else {
+        return false;
+    };
+    let source = path.display().to_string();
+    let read = read_worker_file(
+        &source,
+        Some(&bytes),
+        cfg.pair.common.leaderboard,
+        Some(cfg.pair.routes_subset),
+    );
+    matches!(read, Ok(WorkerFile::Present(file)) if file.progress.0 > 0)
 }
 
 fn read_limited(path: &Path) -> io::Result<Option<Vec<u8>>> {
@@ -307,7 +324,9 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
             child.note(&format!("crash: {why}"));
             write_marker(&status, crash)?;
             match ended {
-                Some(ChildExit::Code(code)) if exit::shell_cannot_run(code) => {
+                Some(ChildExit::Code(code))
+                    if exit::shell_cannot_run(code) && !has_progress(cfg, &paths.checkpoint) =>
+                {
                     child.note(&format!(
                         "the image cannot run the evaluator (the shell's exit code {code}): no retry can help"
                     ));

@@ -51,7 +51,7 @@ pub enum InitError {
         #[source]
         source: io::Error,
     },
-    /// S3 failed (after the client's retries); the init container is restarted.
+    /// S3 failed (after the client's retries); the pod fails and the Job's next pod tries again.
     #[error(transparent)]
     S3(#[from] S3Error),
     /// The async runtime could not be set up.

@@ -59,7 +59,7 @@ fn carla_dying_mid_route_crashes_the_pair_and_the_rerun_resumes_every_route_once
     let partial = route_ids(&vols.checkpoint(2));
     assert!(partial.len() < 5, "the crash came mid-run: {partial:?}");
 
-    // The kubelet restarts both containers (restartPolicy OnFailure).
+    // Both run again on the same volumes (the protocol still counts attempts in one pod).
     let mut sim = pair.simulator(&vols);
     let mut agent = pair.agent(&vols);
     assert_eq!(agent.wait(LIMIT).code(), Some(0), "{}", agent.log());
@@ -269,6 +269,27 @@ fn an_evaluator_that_fails_by_itself_is_an_ordinary_crash() {
     let pair = Pair::new(1, "0-4");
     let mut sim = pair.simulator(&vols);
     let mut agent = pair.agent_running(&vols, &["bash", "-c", "exit 2"]);
+    assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
+
+    // A 127 once a route of the pair has finished: the image did run the evaluator, so the
+    // next pod may well pass; an ordinary crash.
+    let vols = Volumes::new();
+    let once = tempfile::tempdir().unwrap();
+    let pair = Pair::new(2, "5-9")
+        .with("FAKE_EVALUATOR_ROUTE_SECONDS", "0.5")
+        .with("FAKE_CARLA_CRASH_AFTER", "1.2")
+        .with("FAKE_CARLA_ONCE_DIR", once.path().display().to_string());
+    let (mut sim, mut agent) = (pair.simulator(&vols), pair.agent(&vols));
+    assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
+    assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
+    assert!(!route_ids(&vols.checkpoint(2)).is_empty());
+    // The next pod starts from the results alone, as init leaves them.
+    for marker in vols.markers() {
+        std::fs::remove_file(vols.status().join(marker)).unwrap();
+    }
+    let mut sim = pair.simulator(&vols);
+    let mut agent = pair.agent_running(&vols, &["bash", "-c", "exit 127"]);
     assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
     assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
 }
