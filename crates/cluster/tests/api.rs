@@ -483,7 +483,10 @@ async fn a_pod_waiting_past_the_grace_is_looked_up_in_the_autoscalers_events() {
     match &obs.verdict {
         Verdict::Failed { kind, message, .. } => {
             assert_eq!(*kind, FailureKind::NoNodeFits);
-            assert!(message.contains("instance type `g5.12xlarge`"), "{message}");
+            assert!(
+                message.contains("(`node.kubernetes.io/instance-type=g5.12xlarge`)"),
+                "{message}"
+            );
         }
         other => panic!("{other:?}"),
     }
