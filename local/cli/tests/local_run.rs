@@ -151,19 +151,17 @@ fn every_scenario_ends_as_expected() {
             }
             "plant-gpu" => {
                 // Every pair crashed once after planting another GPU; at each attempt (each
-                // pod, which may be given another GPU) the simulator rendered on the GPU its
-                // own pair was given.
+                // pod, which may be given another GPU) the simulator rendered on a GPU one of its
+                // own pair's agents was given.
                 let gpus = report["simulator_gpus"].as_object().unwrap();
                 assert_eq!(gpus.len(), 4, "{report}");
                 for (pair, attempts) in gpus {
                     let attempts = attempts.as_array().unwrap();
                     assert!(attempts.len() >= 2, "pair {pair}: {report}");
-                    assert_eq!(
-                        attempts,
-                        &report["agent_gpus"][pair.as_str()]
-                            .as_array()
-                            .unwrap()
-                            .clone(),
+                    let given = report["agent_gpus"][pair.as_str()].as_array().unwrap();
+                    assert!(!given.is_empty(), "pair {pair}: {report}");
+                    assert!(
+                        attempts.iter().all(|gpu| given.contains(gpu)),
                         "pair {pair}: {report}"
                     );
                 }
