@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use lb_domain::protocol::{self, agent_step, env, exit, partner_finished, AgentStep, Marker, Role};
-use lb_domain::results::{read_worker_file, WorkerFile, MAX_FILE_BYTES};
+use lb_domain::results::{read_worker_file, ResultsError, WorkerFile, MAX_FILE_BYTES};
 use tracing::{info, warn};
 
 use crate::config::{process_env, AgentConfig, Env};
@@ -68,45 +68,41 @@ pub enum Verdict {
     Incomplete(String),
 }
 
-/// Judges a results file as the protocol requires (`read_worker_file` with the subset).
-pub fn judge(cfg: &AgentConfig, path: &Path) -> Verdict {
-    let bytes = match read_limited(path) {
-        Ok(bytes) => bytes,
-        Err(e) => return Verdict::Incomplete(format!("cannot read the results file: {e}")),
-    };
+/// Reads the pair's results file as the protocol requires (`read_worker_file` with the
+/// subset); `Err` when it cannot even be read.
+fn read_results(cfg: &AgentConfig, path: &Path) -> io::Result<Result<WorkerFile, ResultsError>> {
+    let bytes = read_limited(path)?;
     let source = path.display().to_string();
-    match read_worker_file(
+    Ok(read_worker_file(
         &source,
         bytes.as_deref(),
         cfg.pair.common.leaderboard,
         Some(cfg.pair.routes_subset),
-    ) {
-        Ok(WorkerFile::Present(file)) if file.has_global_record => Verdict::Finished,
-        Ok(WorkerFile::Present(file)) => Verdict::Incomplete(format!(
+    ))
+}
+
+/// Judges a results file as the protocol requires.
+pub fn judge(cfg: &AgentConfig, path: &Path) -> Verdict {
+    match read_results(cfg, path) {
+        Err(e) => Verdict::Incomplete(format!("cannot read the results file: {e}")),
+        Ok(Ok(WorkerFile::Present(file))) if file.has_global_record => Verdict::Finished,
+        Ok(Ok(WorkerFile::Present(file))) => Verdict::Incomplete(format!(
             "the results file has no global record ({} of {} routes done)",
             file.progress.0, file.progress.1
         )),
-        Ok(WorkerFile::Empty(reason)) => {
+        Ok(Ok(WorkerFile::Empty(reason))) => {
             Verdict::Incomplete(format!("the results file is {reason}"))
         }
-        Err(e) => Verdict::Incomplete(format!("the results file is invalid: {} ({e})", e.name())),
+        Ok(Err(e)) => {
+            Verdict::Incomplete(format!("the results file is invalid: {} ({e})", e.name()))
+        }
     }
 }
 
 /// Whether the results file holds any finished route (of this or an earlier pod): the image
 /// did run the evaluator once.
 fn has_progress(cfg: &AgentConfig, path: &Path) -> bool {
-    let Ok(Some(bytes)) = read_limited(path) else {
-        return false;
-    };
-    let source = path.display().to_string();
-    let read = read_worker_file(
-        &source,
-        Some(&bytes),
-        cfg.pair.common.leaderboard,
-        Some(cfg.pair.routes_subset),
-    );
-    matches!(read, Ok(WorkerFile::Present(file)) if file.progress.0 > 0)
+    matches!(read_results(cfg, path), Ok(Ok(WorkerFile::Present(file))) if file.progress.0 > 0)
 }
 
 fn read_limited(path: &Path) -> io::Result<Option<Vec<u8>>> {

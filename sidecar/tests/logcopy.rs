@@ -386,10 +386,7 @@ fn logcopy_ends_the_pod_without_the_done_marker_once_every_pair_ended_its_attemp
 fn a_new_pod_resumes_from_s3_after_a_crash_and_appends_to_the_logs() {
     let moto = Moto::start();
     let once = tempfile::tempdir().unwrap();
-    let pair = Pair::new(1, "0-4")
-        .with("FAKE_EVALUATOR_ROUTE_SECONDS", "0.5")
-        .with("FAKE_CARLA_CRASH_AFTER", "1.2")
-        .with("FAKE_CARLA_ONCE_DIR", once.path().display().to_string());
+    let pair = Pair::new(1, "0-4").with_carla_crash(once.path());
 
     // Pod 1: CARLA crashes, then the pod is deleted (node lost): logcopy's final upload.
     let pod1 = Volumes::new();

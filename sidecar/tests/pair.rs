@@ -44,10 +44,7 @@ fn a_pair_runs_its_routes_and_both_write_done_markers() {
 fn carla_dying_mid_route_crashes_the_pair_and_the_rerun_resumes_every_route_once() {
     let vols = Volumes::new();
     let once = tempfile::tempdir().unwrap();
-    let pair = Pair::new(2, "5-9")
-        .with("FAKE_EVALUATOR_ROUTE_SECONDS", "0.5")
-        .with("FAKE_CARLA_CRASH_AFTER", "1.2")
-        .with("FAKE_CARLA_ONCE_DIR", once.path().display().to_string());
+    let pair = Pair::new(2, "5-9").with_carla_crash(once.path());
     let mut sim = pair.simulator(&vols);
     let mut agent = pair.agent(&vols);
     assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());
@@ -276,10 +273,7 @@ fn an_evaluator_that_fails_by_itself_is_an_ordinary_crash() {
     // next pod may well pass; an ordinary crash.
     let vols = Volumes::new();
     let once = tempfile::tempdir().unwrap();
-    let pair = Pair::new(2, "5-9")
-        .with("FAKE_EVALUATOR_ROUTE_SECONDS", "0.5")
-        .with("FAKE_CARLA_CRASH_AFTER", "1.2")
-        .with("FAKE_CARLA_ONCE_DIR", once.path().display().to_string());
+    let pair = Pair::new(2, "5-9").with_carla_crash(once.path());
     let (mut sim, mut agent) = (pair.simulator(&vols), pair.agent(&vols));
     assert_eq!(agent.wait(LIMIT).code(), Some(1), "{}", agent.log());
     assert_eq!(sim.wait(LIMIT).code(), Some(1), "{}", sim.log());

@@ -120,21 +120,15 @@ async fn watch_and_drain(
 
 /// Evicts every running pod of the submission, as `kubectl drain` and the node group do.
 async fn drain(cluster: &lb_cluster::Cluster, api: &Api<Pod>, submission: u64) -> Vec<String> {
-    let Ok((_, pods)) = cluster.list(&submission.to_string()).await else {
+    let Ok(seen) = cluster.observe(&submission.to_string()).await else {
         return Vec::new();
     };
     let mut evicted = Vec::new();
-    for pod in pods {
-        let running = pod.status.as_ref().and_then(|s| s.phase.as_deref()) == Some("Running");
-        let Some(name) = pod.metadata.name.filter(|_| running) else {
-            continue;
-        };
-        if pod.metadata.deletion_timestamp.is_some() {
-            continue;
-        }
-        match api.evict(&name, &EvictParams::default()).await {
-            Ok(_) => evicted.push(name),
-            Err(e) => cli::outln!("           scenario: evicting {name} failed: {e}"),
+    let pods = seen.jobs.iter().flat_map(|j| &j.pods);
+    for pod in pods.filter(|p| p.phase == "Running" && !p.terminating) {
+        match api.evict(&pod.name, &EvictParams::default()).await {
+            Ok(_) => evicted.push(pod.name.clone()),
+            Err(e) => cli::outln!("           scenario: evicting {} failed: {e}", pod.name),
         }
     }
     cli::outln!(
@@ -144,27 +138,18 @@ async fn drain(cluster: &lb_cluster::Cluster, api: &Api<Pod>, submission: u64) -
     evicted
 }
 
+/// The Jobs' failures counted so far, and the pods the control plane is taking away, as the
+/// Monitor observes them.
 async fn look(cluster: &lb_cluster::Cluster, submission: u64, report: &mut ReclaimReport) {
-    let Ok((jobs, pods)) = cluster.list(&submission.to_string()).await else {
+    let Ok(seen) = cluster.observe(&submission.to_string()).await else {
         return;
     };
-    for job in &jobs {
-        let failed = job.status.as_ref().and_then(|s| s.failed).unwrap_or(0);
-        report.retries_used = report.retries_used.max(failed);
-    }
-    for pod in &pods {
-        let disruption = pod
-            .status
-            .as_ref()
-            .and_then(|s| s.conditions.as_ref())
-            .and_then(|cs| {
-                cs.iter()
-                    .find(|c| c.type_ == "DisruptionTarget" && c.status == "True")
-            });
-        if let (Some(c), Some(name)) = (disruption, &pod.metadata.name) {
-            report
-                .disrupted
-                .insert(name.clone(), c.reason.clone().unwrap_or_default());
+    for job in &seen.jobs {
+        report.retries_used = report.retries_used.max(job.failed);
+        for pod in &job.pods {
+            if let Some(reason) = &pod.disruption {
+                report.disrupted.insert(pod.name.clone(), reason.clone());
+            }
         }
     }
 }

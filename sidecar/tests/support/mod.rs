@@ -133,6 +133,14 @@ impl Pair {
         self
     }
 
+    /// Routes of 0.5 s and a CARLA that dies 1.2 s in, once (the marker goes to `once`): the
+    /// first attempt crashes mid-run with a route or two done, the next one finishes.
+    pub fn with_carla_crash(self, once: &Path) -> Pair {
+        self.with("FAKE_EVALUATOR_ROUTE_SECONDS", "0.5")
+            .with("FAKE_CARLA_CRASH_AFTER", "1.2")
+            .with("FAKE_CARLA_ONCE_DIR", once.display().to_string())
+    }
+
     fn command(&self, vols: &Volumes, args: &[String]) -> Command {
         let mut c = Command::new(SIDECAR);
         c.args(args)

@@ -129,7 +129,8 @@ fn is_running(s: &ContainerStatus) -> bool {
     s.state.as_ref().is_some_and(|st| st.running.is_some())
 }
 
-fn terminated_code(s: &ContainerStatus) -> Option<i32> {
+/// The exit code of a container that has terminated.
+pub fn terminated_code(s: &ContainerStatus) -> Option<i32> {
     s.state
         .as_ref()
         .and_then(|st| st.terminated.as_ref())

@@ -63,6 +63,11 @@ fn interim(status: &JobStatus) -> Option<JobCondition> {
         .cloned()
 }
 
+/// `podReplacementPolicy: Failed`: a terminating pod holds its place until it has failed.
+fn replaces_only_failed(spec: &k8s_openapi::api::batch::v1::JobSpec) -> bool {
+    spec.pod_replacement_policy.as_deref() == Some("Failed")
+}
+
 struct Counts {
     active: Vec<Pod>,
     terminating: i32,
@@ -163,7 +168,7 @@ impl Controller {
             .as_ref()
             .and_then(|s| s.restart_policy.as_deref())
             == Some("OnFailure");
-        let only_failed = spec.pod_replacement_policy.as_deref() == Some("Failed");
+        let only_failed = replaces_only_failed(&spec);
         let policy = spec.pod_failure_policy.as_ref();
         let mut c = Counts {
             active: Vec::new(),
@@ -373,7 +378,7 @@ impl Controller {
             None => parallelism,
         };
         // NB: a terminating pod holds its place only under `podReplacementPolicy: Failed`.
-        let only_failed = spec.pod_replacement_policy.as_deref() == Some("Failed");
+        let only_failed = replaces_only_failed(&spec);
         let occupied =
             counts.active.len() as i32 + if only_failed { counts.terminating } else { 0 };
         if occupied >= want {

@@ -10,6 +10,8 @@
 use k8s_openapi::api::batch::v1::{PodFailurePolicy, PodFailurePolicyOnExitCodesRequirement};
 use k8s_openapi::api::core::v1::{ContainerStatus, Pod, PodStatus};
 
+use crate::objects::pod::terminated_code;
+
 /// The Job condition reason of a Job a `FailJob` rule ended.
 pub const POD_FAILURE_POLICY: &str = "PodFailurePolicy";
 
@@ -36,11 +38,7 @@ pub fn outcome(policy: Option<&PodFailurePolicy>, pod: &Pod) -> Outcome {
     for (index, rule) in policy.rules.iter().enumerate() {
         let matched = if let Some(codes) = &rule.on_exit_codes {
             matching_container(status, codes).map(|c| {
-                let code = c
-                    .state
-                    .as_ref()
-                    .and_then(|s| s.terminated.as_ref())
-                    .map_or(0, |t| t.exit_code);
+                let code = terminated_code(c).unwrap_or(0);
                 format!(
                     "Container {} for pod {ns}/{name} failed with exit code {code} matching {} rule at index {index}",
                     c.name, rule.action
@@ -80,12 +78,7 @@ fn matching_container<'a>(
 ) -> Option<&'a ContainerStatus> {
     let lists = [&status.container_statuses, &status.init_container_statuses];
     lists.into_iter().flatten().flatten().find(|c| {
-        let Some(code) = c
-            .state
-            .as_ref()
-            .and_then(|s| s.terminated.as_ref())
-            .map(|t| t.exit_code)
-        else {
+        let Some(code) = terminated_code(c) else {
             return false;
         };
         let named = req.container_name.as_ref().is_none_or(|n| *n == c.name);
