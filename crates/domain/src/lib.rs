@@ -3,6 +3,7 @@
 pub mod audit;
 pub mod autoscaler;
 pub mod cluster;
+pub mod cost;
 pub mod errors;
 pub mod finalize;
 pub mod history;

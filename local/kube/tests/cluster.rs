@@ -1803,3 +1803,34 @@ async fn a_failure_policy_needs_restart_policy_never_as_the_real_server_says() {
         "{message}"
     );
 }
+
+#[tokio::test]
+async fn the_node_shows_its_node_groups_labels_and_its_gpus() {
+    let mut labels = std::collections::BTreeMap::new();
+    labels.insert(
+        "eks.amazonaws.com/capacityType".to_string(),
+        "SPOT".to_string(),
+    );
+    let (_lk, client) = start(Config {
+        gpus: Some(4),
+        instance_type: Some("g5.12xlarge".into()),
+        labels,
+        ..Config::default()
+    })
+    .await;
+    let nodes: Api<k8s_openapi::api::core::v1::Node> = Api::all(client);
+    let list = nodes.list(&ListParams::default()).await.unwrap();
+    assert_eq!(list.items.len(), 1);
+    let name = list.items[0].metadata.name.clone().unwrap();
+    let node = nodes.get(&name).await.unwrap();
+    let labels = node.metadata.labels.unwrap();
+    assert_eq!(labels["eks.amazonaws.com/capacityType"], "SPOT");
+    assert_eq!(labels["node.kubernetes.io/instance-type"], "g5.12xlarge");
+    let status = node.status.unwrap();
+    assert_eq!(status.allocatable.unwrap()["nvidia.com/gpu"].0, "4");
+    let err = nodes.get("elsewhere").await.unwrap_err();
+    assert!(
+        err.to_string().contains(r#"nodes "elsewhere" not found"#),
+        "{err}"
+    );
+}

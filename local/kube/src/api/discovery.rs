@@ -103,6 +103,7 @@ pub async fn core_v1() -> Response {
             "resources": [
                 resource("events", "event", "Event", true, &["list"], &["ev"], false),
                 resource("namespaces", "namespace", "Namespace", false, &["get", "list"], &["ns"], false),
+                resource("nodes", "node", "Node", false, &["get", "list"], &["no"], false),
                 resource("pods", "pod", "Pod", true, &["delete", "get", "list", "watch"], &["po"], true),
                 eviction(),
                 resource("pods/log", "", "Pod", true, &["get"], &[], false),

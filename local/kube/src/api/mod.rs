@@ -2,6 +2,7 @@
 
 mod discovery;
 mod jobs;
+mod nodes;
 mod objects;
 mod pods;
 mod stream;
@@ -257,6 +258,8 @@ pub fn router(state: AppState) -> Router {
             "/api/v1/namespaces/{ns}/events",
             get(discovery::list_events),
         )
+        .route("/api/v1/nodes", get(nodes::list))
+        .route("/api/v1/nodes/{name}", get(nodes::get))
         .route("/api/v1/pods", get(objects::list_everywhere::<Pod>))
         .route("/api/v1/namespaces/{ns}/pods", get(objects::list_in::<Pod>))
         .route(
