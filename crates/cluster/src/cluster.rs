@@ -5,10 +5,11 @@ use std::path::Path;
 use std::time::Duration;
 
 use k8s_openapi::api::batch::v1::Job;
-use k8s_openapi::api::core::v1::{Event, Pod};
+use k8s_openapi::api::core::v1::{Event, Node, Pod};
 use k8s_openapi::jiff::Timestamp;
 use kube::api::{Api, DeleteParams, ListParams, PostParams};
 use kube::config::{KubeConfigOptions, Kubeconfig};
+use lb_domain::cost::NodeCapacity;
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info, instrument, warn};
 
@@ -183,6 +184,10 @@ impl Cluster {
 
     fn events(&self) -> Api<Event> {
         Api::namespaced(self.client.clone(), &self.namespace)
+    }
+
+    fn nodes(&self) -> Api<Node> {
+        Api::all(self.client.clone())
     }
 
     /// Runs one API call under the call bound.
@@ -443,6 +448,24 @@ impl Cluster {
                 Vec::new()
             }
         }
+    }
+
+    /// The instance type and capacity type of node `name`, from the labels its node group gives
+    /// it (`node.kubernetes.io/instance-type`, `eks.amazonaws.com/capacityType`): what a pod
+    /// on it costs. `None` when the node is gone (a reclaimed one goes soon after its pods).
+    pub async fn node_kind(&self, name: &str) -> Result<Option<(Option<String>, NodeCapacity)>> {
+        let node = self
+            .call("get node", self.nodes().get_opt(name))
+            .await?
+            .map_err(|e| ClusterError::from_kube("get node", name, e))?;
+        Ok(node.map(|node| {
+            let labels = node.metadata.labels.unwrap_or_default();
+            let instance_type = labels.get("node.kubernetes.io/instance-type").cloned();
+            let capacity = labels
+                .get(lb_domain::settings::Capacity::LABEL)
+                .map(String::as_str);
+            (instance_type, NodeCapacity::from_label(capacity))
+        }))
     }
 
     /// The submission's Jobs and Pods, as the server lists them.

@@ -862,6 +862,7 @@ fn cluster_calls() -> BTreeSet<(String, String, String)> {
             "jobs" => ("batch", "jobs"),
             "pods" => ("", "pods"),
             "events" => ("", "events"),
+            "nodes" => ("", "nodes"),
             other => panic!("an Api of `{other}`: add its group and resource here"),
         };
         calls.insert((
@@ -888,8 +889,10 @@ fn k8s_docs(file: &str) -> Vec<Value> {
 fn the_pipeline_role_grants_exactly_the_verbs_crates_cluster_uses() {
     let docs = k8s_docs("rbac.yaml");
     let role = docs.iter().find(|d| d["kind"] == "Role").unwrap();
+    let cluster_role = docs.iter().find(|d| d["kind"] == "ClusterRole").unwrap();
     let mut granted = BTreeSet::new();
-    for rule in role["rules"].as_array().unwrap() {
+    let rules = role["rules"].as_array().unwrap().iter();
+    for rule in rules.chain(cluster_role["rules"].as_array().unwrap()) {
         assert!(rule.get("resourceNames").is_none());
         for group in rule["apiGroups"].as_array().unwrap() {
             for resource in rule["resources"].as_array().unwrap() {
@@ -909,6 +912,15 @@ fn the_pipeline_role_grants_exactly_the_verbs_crates_cluster_uses() {
     let binding = docs.iter().find(|d| d["kind"] == "RoleBinding").unwrap();
     assert_eq!(binding["roleRef"]["name"], role["metadata"]["name"]);
     let group = binding["subjects"][0]["name"].as_str().unwrap();
+    let cluster_binding = docs
+        .iter()
+        .find(|d| d["kind"] == "ClusterRoleBinding")
+        .unwrap();
+    assert_eq!(
+        cluster_binding["roleRef"]["name"],
+        cluster_role["metadata"]["name"]
+    );
+    assert_eq!(cluster_binding["subjects"][0]["name"], group);
     let entries = CLUSTER.resources_of("AWS::EKS::AccessEntry");
     let principals: BTreeSet<String> = entries
         .iter()
@@ -960,8 +972,11 @@ fn names_agree_across_the_templates_the_manifests_and_the_code() {
         defaults(&CLUSTER, "ServiceAccount").as_deref(),
         Some(lb_jobs::context::SERVICE_ACCOUNT)
     );
+    let cluster_wide = ["ClusterRole", "ClusterRoleBinding"];
     for doc in rbac.iter().chain(&k8s_docs("network-policy.yaml")) {
-        assert_eq!(&doc["metadata"]["namespace"], namespace);
+        if !cluster_wide.contains(&doc["kind"].as_str().unwrap_or_default()) {
+            assert_eq!(&doc["metadata"]["namespace"], namespace);
+        }
     }
     // The cluster's defaults are the 2.0 leaderboard's names in the app stack.
     assert_eq!(
