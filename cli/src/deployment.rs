@@ -278,6 +278,28 @@ impl Record {
         }
     }
 
+    /// A non-negative amount stored as a number (`cost_usd`).
+    pub fn amount(&self, key: &str) -> Option<f64> {
+        match self.item.get(key)? {
+            AttributeValue::N(v) => v
+                .trim()
+                .parse()
+                .ok()
+                .filter(|v: &f64| v.is_finite() && *v >= 0.0),
+            _ => None,
+        }
+    }
+
+    /// The GPUs the run used so far (the Monitor writes them each round, Finalize at the end).
+    pub fn usage(&self) -> Option<Usage> {
+        Some(Usage {
+            gpu_seconds: self.number("gpu_seconds")?,
+            spot: self.number("gpu_seconds_spot").unwrap_or(0),
+            run_again: self.number("gpu_seconds_run_again").unwrap_or(0),
+            dollars: self.amount("cost_usd"),
+        })
+    }
+
     /// `submission_id`.
     pub fn submission_id(&self) -> Option<u64> {
         self.number("submission_id")
@@ -322,6 +344,59 @@ impl Record {
     }
 }
 
+/// A record's GPU usage and its estimated price.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Usage {
+    /// GPU-seconds held by its pods.
+    pub gpu_seconds: u64,
+    /// Of which on Spot capacity.
+    pub spot: u64,
+    /// Of which spent again on routes a reclaim interrupted.
+    pub run_again: u64,
+    /// Dollars, when every second had a price.
+    pub dollars: Option<f64>,
+}
+
+impl Usage {
+    /// Adds another record's usage (a team's total); the price is known only if both are.
+    pub fn add(self, other: Usage) -> Usage {
+        Usage {
+            gpu_seconds: self.gpu_seconds + other.gpu_seconds,
+            spot: self.spot + other.spot,
+            run_again: self.run_again + other.run_again,
+            dollars: self.dollars.zip(other.dollars).map(|(a, b)| a + b),
+        }
+    }
+
+    /// GPU-hours.
+    pub fn hours(&self) -> f64 {
+        self.gpu_seconds as f64 / 3600.0
+    }
+
+    /// `2.50 GPU-hours (1.20 on Spot, 0.10 run again after reclaims), about $3.10`.
+    pub fn describe(&self) -> String {
+        let hours = |s: u64| s as f64 / 3600.0;
+        let price = self.dollars.map_or_else(
+            || ", no price in the settings".into(),
+            |d| format!(", about ${d:.2}"),
+        );
+        format!(
+            "{:.2} GPU-hours ({:.2} on Spot, {:.2} run again after reclaims){price}",
+            self.hours(),
+            hours(self.spot),
+            hours(self.run_again)
+        )
+    }
+
+    /// The list's column: `2.50h $3.10`.
+    pub fn short(&self) -> String {
+        match self.dollars {
+            Some(d) => format!("{:.2}h ${d:.2}", self.hours()),
+            None => format!("{:.2}h", self.hours()),
+        }
+    }
+}
+
 /// Attributes Intake, Monitor and Finalize write besides the metrics.
 const KNOWN_ATTRIBUTES: &[&str] = &[
     "team_id",
@@ -342,6 +417,10 @@ const KNOWN_ATTRIBUTES: &[&str] = &[
     "claimed_by",
     "recordings_found",
     "recordings_expected",
+    "gpu_seconds",
+    "gpu_seconds_spot",
+    "gpu_seconds_run_again",
+    "cost_usd",
 ];
 
 /// A DynamoDB value as plain JSON (numbers as numbers when they fit).

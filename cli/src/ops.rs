@@ -7,7 +7,7 @@ use clap::Args;
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER, STATUS_DIR};
 use serde_json::{json, Value};
 
-use crate::deployment::{clean, Deployment, DeploymentArgs, Found, Record, ScanFilter};
+use crate::deployment::{clean, Deployment, DeploymentArgs, Found, Record, ScanFilter, Usage};
 use crate::error::{CliError, Result};
 
 /// Parses an EvalAI id: EvalAI's primary keys are positive Postgres integers.
@@ -348,6 +348,9 @@ fn print_record(record: &Record) {
     for (label, value) in rows {
         outln!("  {label:<12} {value}");
     }
+    if let Some(usage) = record.usage() {
+        outln!("  {:<12} {}", "GPUs", usage.describe());
+    }
     if let Some(error) = record.text("error") {
         outln!("  {:<12} {}", "error", clean(error));
     }
@@ -450,7 +453,7 @@ pub async fn list(args: List) -> Result<u8> {
         return Ok(0);
     }
     outln!(
-        "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7}  {:<23} ENDED",
+        "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7} {:>14}  {:<23} ENDED",
         "SUBMISSION",
         "LB",
         "STATUS",
@@ -459,6 +462,7 @@ pub async fn list(args: List) -> Result<u8> {
         "TEAM",
         "TRACK",
         "ROUTES",
+        "GPU COST",
         "SUBMITTED"
     );
     for record in shown {
@@ -466,6 +470,9 @@ pub async fn list(args: List) -> Result<u8> {
     }
     if matching.len() > shown.len() {
         outln!("... {} more (raise --limit)", matching.len() - shown.len());
+    }
+    for (team, usage) in team_usage(&matching) {
+        outln!("team {team}: {}", usage.describe());
     }
     if shown.iter().any(|r| unaudited(r)) {
         outln!("* some routes have no CARLA recording: the scores cannot be audited (lbctl status <submission>)");
@@ -535,7 +542,7 @@ fn list_line(record: &Record, queue: Option<usize>, age: Option<time::Duration>)
     };
     let team = format!("{} ({})", text("team_name"), number("team_id"));
     let line = format!(
-        "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7}  {:<23} {}",
+        "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7} {:>14}  {:<23} {}",
         number("submission_id"),
         clean(&record.leaderboard),
         format!(
@@ -548,10 +555,37 @@ fn list_line(record: &Record, queue: Option<usize>, age: Option<time::Duration>)
         shorten(&team, 28),
         shorten(&text("track_name"), 18),
         format!("{}/{}", number("routes_done"), number("routes_total")),
+        record.usage().map_or_else(|| "-".into(), |u| u.short()),
         text("submitted_time"),
         text("end_time"),
     );
     line.trim_end().to_string()
+}
+
+/// GPU usage added up per team over the listed records that have any, largest first.
+fn team_usage(records: &[&Record]) -> Vec<(String, Usage)> {
+    let mut teams: Vec<(String, Usage)> = Vec::new();
+    for record in records {
+        let Some(usage) = record.usage() else {
+            continue;
+        };
+        let team = format!(
+            "{} ({})",
+            record
+                .text("team_name")
+                .map(clean)
+                .unwrap_or_else(|| "-".into()),
+            record
+                .number("team_id")
+                .map_or_else(|| "-".into(), |n| n.to_string())
+        );
+        match teams.iter_mut().find(|(t, _)| *t == team) {
+            Some((_, total)) => *total = total.add(usage),
+            None => teams.push((team, usage)),
+        }
+    }
+    teams.sort_by(|a, b| b.1.gpu_seconds.cmp(&a.1.gpu_seconds).then(a.0.cmp(&b.0)));
+    teams
 }
 
 fn shorten(text: &str, width: usize) -> String {
@@ -749,6 +783,57 @@ mod tests {
         assert!(line.contains("5/20"), "{line}");
         assert!(!line.contains('\u{1b}'), "{line}");
         assert!(!line.contains('\u{202e}'), "{line}");
+    }
+
+    fn record(team: u64, usage: &[(&str, &str)]) -> Record {
+        let mut item: HashMap<String, AttributeValue> = [
+            ("team_id".to_string(), AttributeValue::N(team.to_string())),
+            (
+                "team_name".to_string(),
+                AttributeValue::S(format!("T{team}")),
+            ),
+        ]
+        .into_iter()
+        .collect();
+        for (k, v) in usage {
+            item.insert(k.to_string(), AttributeValue::N(v.to_string()));
+        }
+        Record {
+            leaderboard: "2.0".into(),
+            table: "t".into(),
+            item,
+        }
+    }
+
+    #[test]
+    fn gpu_usage_is_shown_per_submission_and_added_up_per_team() {
+        let priced = [
+            ("gpu_seconds", "7200"),
+            ("gpu_seconds_spot", "3600"),
+            ("gpu_seconds_run_again", "180"),
+            ("cost_usd", "2.05"),
+        ];
+        let a = record(1, &priced);
+        let b = record(1, &priced[..3]);
+        let c = record(2, &[("gpu_seconds", "36000"), ("cost_usd", "9.5")]);
+        let none = record(3, &[]);
+        assert_eq!(
+            a.usage().unwrap().describe(),
+            "2.00 GPU-hours (1.00 on Spot, 0.05 run again after reclaims), about $2.05"
+        );
+        assert!(list_line(&a, None, None).contains("2.00h $2.05"));
+        assert!(b
+            .usage()
+            .unwrap()
+            .describe()
+            .ends_with("no price in the settings"));
+        assert!(none.usage().is_none());
+        let teams = team_usage(&[&a, &b, &c, &none]);
+        assert_eq!(teams.len(), 2, "{teams:?}");
+        assert_eq!(teams[0].0, "T2 (2)");
+        assert_eq!(teams[1].1.gpu_seconds, 14_400);
+        assert_eq!(teams[1].1.run_again, 360);
+        assert_eq!(teams[1].1.dollars, None, "one of its runs had no price");
     }
 
     #[test]

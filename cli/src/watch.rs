@@ -73,6 +73,8 @@ struct Screen {
     scores: Vec<(String, f64)>,
     evalai_status: String,
     error: Option<String>,
+    /// GPU-hours and their price so far (`Usage::describe`).
+    usage: Option<String>,
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -176,6 +178,7 @@ async fn look(
                 .map_or("-".into(), |n| n.to_string())
         ),
         error: record.text("error").map(clean),
+        usage: record.usage().map(|u| u.describe()),
         ..Screen::default()
     };
     screen.stage = match screen.status.as_str() {
@@ -339,6 +342,9 @@ fn render(s: &Screen, tty: bool) -> String {
     );
     let _ = writeln!(out, "  EvalAI    {}", s.evalai_status);
     let _ = writeln!(out, "  routes    {}", s.routes);
+    if let Some(usage) = &s.usage {
+        let _ = writeln!(out, "  GPUs      {usage}");
+    }
     for w in &s.workers {
         let _ = writeln!(
             out,
@@ -381,6 +387,9 @@ fn summary(s: &Screen, watched: Duration) -> String {
     );
     let _ = writeln!(out, "  started {}, ended {}", s.started, s.ended);
     let _ = writeln!(out, "  routes {}", s.routes);
+    if let Some(usage) = &s.usage {
+        let _ = writeln!(out, "  GPUs {usage}");
+    }
     if !s.scores.is_empty() {
         for (label, value) in &s.scores {
             let _ = writeln!(out, "  {label:<20} {value}");

@@ -13,6 +13,8 @@ use std::collections::HashMap;
 use aws_sdk_dynamodb::types::AttributeValue;
 use aws_sdk_dynamodb::Client;
 
+use lb_domain::cost::Totals;
+
 use crate::{condition_failed, AwsError, Result};
 
 /// `submission_status` values of the record.
@@ -116,6 +118,8 @@ pub struct FinalRecord {
     /// Routes with their CARLA recording / routes of the result (FINISHED only): what an
     /// operator can audit (`lb_domain::audit`).
     pub recordings: Option<(u64, u64)>,
+    /// The GPUs it used and their price (a run from before the Monitor counted them: none).
+    pub usage: Option<Totals>,
 }
 
 /// The submissions table.
@@ -283,9 +287,9 @@ impl SubmissionsTable {
         }
     }
 
-    /// RUNNING, with the results location, the progress, and the first start time kept (the
-    /// original writes `-` until then). One write when the run had started before, two on the
-    /// round that starts it.
+    /// RUNNING, with the results location, the progress, the GPU usage so far, and the first
+    /// start time kept (the original writes `-` until then). One write when the run had
+    /// started before, two on the round that starts it.
     pub async fn mark_running(
         &self,
         team_id: u64,
@@ -293,18 +297,31 @@ impl SubmissionsTable {
         start_time: &str,
         results: &str,
         progress: (u64, u64),
+        usage: Option<&Totals>,
     ) -> Result<()> {
         let update = |first: bool| {
             let mut expression = "SET submission_status = :running, results = :results, routes_done = :done, routes_total = :total".to_string();
+            let (usage_set, usage_values) = usage.map(usage_update).unwrap_or_default();
+            for set in usage_set {
+                expression.push_str(", ");
+                expression.push_str(&set);
+            }
             let mut request = self
                 .client
                 .update_item()
                 .table_name(&self.table)
                 .set_key(Some(Self::key(team_id, submission_id)))
-                .expression_attribute_values(":running", s(RecordStatus::Running.as_str()))
-                .expression_attribute_values(":results", s(results))
-                .expression_attribute_values(":done", n(progress.0))
-                .expression_attribute_values(":total", n(progress.1));
+                .set_expression_attribute_values(Some(
+                    usage_values
+                        .into_iter()
+                        .chain([
+                            (":running".to_string(), s(RecordStatus::Running.as_str())),
+                            (":results".to_string(), s(results)),
+                            (":done".to_string(), n(progress.0)),
+                            (":total".to_string(), n(progress.1)),
+                        ])
+                        .collect(),
+                ));
             if first {
                 expression.push_str(", start_time = :start");
                 request = request
@@ -390,6 +407,26 @@ impl SubmissionsTable {
     }
 }
 
+/// The usage attributes (`SET` clauses and their values): GPU-seconds in all, on Spot, run
+/// again after a reclaim, and the estimate in dollars when every second had a price.
+fn usage_update(usage: &Totals) -> (Vec<String>, HashMap<String, AttributeValue>) {
+    let mut set = vec![
+        "gpu_seconds = :gpu".to_string(),
+        "gpu_seconds_spot = :gpu_spot".to_string(),
+        "gpu_seconds_run_again = :gpu_again".to_string(),
+    ];
+    let mut values = HashMap::from([
+        (":gpu".to_string(), n(usage.gpu_seconds)),
+        (":gpu_spot".to_string(), n(usage.spot)),
+        (":gpu_again".to_string(), n(usage.run_again)),
+    ]);
+    if let Some(dollars) = usage.dollars {
+        set.push("cost_usd = :cost".into());
+        values.insert(":cost".into(), n(format!("{dollars:.2}")));
+    }
+    (set, values)
+}
+
 /// The final record's update: every attribute it sets, the error and the recordings' count
 /// removed when the record has none (a resumed submission must not keep an older run's).
 type Update = (
@@ -439,6 +476,18 @@ fn final_update(record: &FinalRecord) -> Update {
         }
         // Nor an old run's count of recordings.
         None => remove.extend(["#found", "#expected"]),
+    }
+    match &record.usage {
+        Some(usage) => {
+            let (usage_set, usage_values) = usage_update(usage);
+            set.extend(usage_set);
+            values.extend(usage_values);
+        }
+        // Nor an old run's usage, when this one counted none.
+        None => remove.extend(["gpu_seconds", "gpu_seconds_spot", "gpu_seconds_run_again"]),
+    }
+    if record.usage.is_none_or(|u| u.dollars.is_none()) {
+        remove.push("cost_usd");
     }
     let mut expression = format!("SET {}", set.join(", "));
     if !remove.is_empty() {

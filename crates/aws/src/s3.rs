@@ -32,6 +32,8 @@ pub struct PartialObject {
     pub size: u64,
     /// ETag: tells whether it changed since the last look without downloading it.
     pub etag: String,
+    /// When it was last written (epoch seconds), as S3 lists it.
+    pub modified: Option<u64>,
 }
 
 /// The EvalAI files and the merged results, written together.
@@ -111,7 +113,7 @@ impl SubmissionStore {
                      relative,
                      size,
                      etag,
-                     ..
+                     modified,
                  }| {
                     let pair_id = protocol::pair_of_results_name(
                         relative
@@ -123,6 +125,7 @@ impl SubmissionStore {
                         pair_id,
                         size,
                         etag,
+                        modified: modified.and_then(|t| u64::try_from(t).ok()),
                     })
                 },
             )

@@ -116,21 +116,41 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     );
     // A resume while the first run is still going: refused too.
     table
-        .mark_running(7, 42, "2026-11-21 05:01:00 UTC", "s3://b/42", (0, 20))
+        .mark_running(7, 42, "2026-11-21 05:01:00 UTC", "s3://b/42", (0, 20), None)
         .await
         .unwrap();
     let item = table.get(7, 42).await.unwrap().unwrap();
     assert_eq!(item["submission_status"], text("RUNNING"));
     assert_eq!(item["start_time"], text("2026-11-21 05:01:00 UTC"));
     assert_eq!(item["results"], text("s3://b/42"));
-    // Later rounds keep the first start time.
+    // Later rounds keep the first start time, and record the GPUs used so far.
+    let usage = lb_domain::cost::Totals {
+        gpu_seconds: 7200,
+        spot: 3600,
+        run_again: 60,
+        dollars: Some(2.0468),
+    };
     table
-        .mark_running(7, 42, "2026-11-21 05:30:00 UTC", "s3://b/42", (4, 20))
+        .mark_running(
+            7,
+            42,
+            "2026-11-21 05:30:00 UTC",
+            "s3://b/42",
+            (4, 20),
+            Some(&usage),
+        )
         .await
         .unwrap();
     let item = table.get(7, 42).await.unwrap().unwrap();
     assert_eq!(item["start_time"], text("2026-11-21 05:01:00 UTC"));
     assert_eq!(item["routes_done"], AttributeValue::N("4".into()));
+    assert_eq!(item["gpu_seconds"], AttributeValue::N("7200".into()));
+    assert_eq!(item["gpu_seconds_spot"], AttributeValue::N("3600".into()));
+    assert_eq!(
+        item["gpu_seconds_run_again"],
+        AttributeValue::N("60".into())
+    );
+    assert_eq!(item["cost_usd"], AttributeValue::N("2.05".into()));
     assert!(matches!(
         table.claim(&record("exec-3", true)).await.unwrap(),
         Claim::Duplicate { .. }
@@ -144,6 +164,10 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         progress: (5, 20),
         error: Some("CARLA crashed too often".into()),
         recordings: Some((4, 5)),
+        usage: Some(lb_domain::cost::Totals {
+            dollars: None,
+            ..usage
+        }),
     };
     // Only the execution holding the claim writes the final record, and only once.
     assert!(!table.finish(7, 42, "exec-2", &failed).await.unwrap());
@@ -165,6 +189,8 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     );
     assert_eq!(item["recordings_found"], AttributeValue::N("4".into()));
     assert_eq!(item["recordings_expected"], AttributeValue::N("5".into()));
+    assert_eq!(item["gpu_seconds"], AttributeValue::N("7200".into()));
+    assert!(!item.contains_key("cost_usd"), "no price: no estimate");
     // Now a resume may claim it, and its finish clears the old error and stores every metric.
     assert_eq!(
         table.claim(&record("exec-4", true)).await.unwrap(),
@@ -174,7 +200,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(item["submission_status"], text("RESUMING"));
     assert_eq!(item["start_time"], text("-"), "the resume starts afresh");
     table
-        .mark_running(7, 42, "2026-11-21 07:00:00 UTC", "s3://b/42", (3, 20))
+        .mark_running(7, 42, "2026-11-21 07:00:00 UTC", "s3://b/42", (3, 20), None)
         .await
         .unwrap();
     let metrics: Vec<(&'static str, Option<String>)> = lb_domain::results::METRICS
@@ -195,6 +221,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
                 progress: (20, 20),
                 error: None,
                 recordings: None,
+                usage: None,
             },
         )
         .await
@@ -212,6 +239,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert!(!item.contains_key("error"));
     // Nor the old run's count of recordings, when this one has none.
     assert!(!item.contains_key("recordings_found") && !item.contains_key("recordings_expected"));
+    assert!(!item.contains_key("gpu_seconds"), "nor its usage");
     for (attribute, value) in metrics {
         assert_eq!(item[attribute], text(&value.unwrap()), "{attribute}");
     }

@@ -9,7 +9,7 @@ use k8s_openapi::api::core::v1::{Event, Node, Pod};
 use k8s_openapi::jiff::Timestamp;
 use kube::api::{Api, DeleteParams, ListParams, PostParams};
 use kube::config::{KubeConfigOptions, Kubeconfig};
-use lb_domain::cost::NodeCapacity;
+use lb_domain::cost::{CapacityType, NodeKind};
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info, instrument, warn};
 
@@ -450,21 +450,23 @@ impl Cluster {
         }
     }
 
-    /// The instance type and capacity type of node `name`, from the labels its node group gives
-    /// it (`node.kubernetes.io/instance-type`, `eks.amazonaws.com/capacityType`): what a pod
-    /// on it costs. `None` when the node is gone (a reclaimed one goes soon after its pods).
-    pub async fn node_kind(&self, name: &str) -> Result<Option<(Option<String>, NodeCapacity)>> {
+    /// What node `name` is, from the labels its node group gives it
+    /// (`node.kubernetes.io/instance-type`, `eks.amazonaws.com/capacityType`): what a pod on
+    /// it costs. `None` when the node is gone (a reclaimed one goes soon after its pods).
+    pub async fn node_kind(&self, name: &str) -> Result<Option<NodeKind>> {
         let node = self
             .call("get node", self.nodes().get_opt(name))
             .await?
             .map_err(|e| ClusterError::from_kube("get node", name, e))?;
         Ok(node.map(|node| {
             let labels = node.metadata.labels.unwrap_or_default();
-            let instance_type = labels.get("node.kubernetes.io/instance-type").cloned();
-            let capacity = labels
-                .get(lb_domain::settings::Capacity::LABEL)
-                .map(String::as_str);
-            (instance_type, NodeCapacity::from_label(capacity))
+            let label = |key: &str| labels.get(key).map(String::as_str);
+            NodeKind {
+                instance_type: label("node.kubernetes.io/instance-type")
+                    .unwrap_or("unknown")
+                    .to_string(),
+                capacity: CapacityType::from_label(label(lb_domain::settings::Capacity::LABEL)),
+            }
         }))
     }
 

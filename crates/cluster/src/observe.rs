@@ -185,6 +185,7 @@ fn pod_view(pod: &Pod) -> PodView {
         uid: pod.metadata.uid.clone(),
         node_selector,
         disruption: disruption(&status),
+        gpus: gpus(&spec),
         autoscaler: None,
         job: owning_job(&pod.metadata),
         phase: status.phase.unwrap_or_else(|| "Unknown".into()),
@@ -196,6 +197,16 @@ fn pod_view(pod: &Pod) -> PodView {
         unschedulable,
         containers,
     }
+}
+
+/// The GPUs a pod holds: its containers' `nvidia.com/gpu` limits added up (extended resources
+/// are requested by limit; init containers run before, on the same devices).
+fn gpus(spec: &k8s_openapi::api::core::v1::PodSpec) -> u32 {
+    spec.containers
+        .iter()
+        .filter_map(|c| c.resources.as_ref()?.limits.as_ref()?.get("nvidia.com/gpu"))
+        .filter_map(|q| q.0.trim().parse::<u32>().ok())
+        .sum()
 }
 
 /// The reason of a pod's `DisruptionTarget` condition: the control plane is taking it away (a

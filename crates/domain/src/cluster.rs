@@ -155,6 +155,9 @@ pub struct PodView {
     /// control plane is taking it away, and its Job will not count it as a failure.
     #[serde(default)]
     pub disruption: Option<String>,
+    /// The GPUs (`nvidia.com/gpu`) it holds while it runs: its containers' limits added up.
+    #[serde(default)]
+    pub gpus: u32,
     /// Set while the scheduler cannot place it.
     pub unschedulable: Option<Unschedulable>,
     /// The Cluster Autoscaler's latest word on it, when asked (see [`needs_autoscaler_word`]).
@@ -784,6 +787,7 @@ mod tests {
             uid: Some("uid".into()),
             node_selector: None,
             disruption: None,
+            gpus: 1,
             unschedulable: None,
             autoscaler: None,
             containers,

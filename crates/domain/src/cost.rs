@@ -1,87 +1,365 @@
 //! What a submission's evaluation cost: GPU-seconds from its pods' lifetimes, on Spot or
-//! on-demand capacity, the part spent again on routes a reclaim interrupted, and an estimate
-//! in dollars from the settings' price table.
+//! on-demand capacity, the part spent again on routes a reclaim interrupted, an estimate in
+//! dollars from the settings' price table, and the orchestration's own share beside it.
+//!
+//! The Monitor keeps a [`Ledger`] in the run's state: every round it charges each pod it sees
+//! from where the last round left it to its end (or to now), so a pod the control plane deletes
+//! between two rounds (an evicted one goes once its Job counted it) is not lost.
 
 use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
+use crate::cluster::{ContainerState, JobView};
+
 /// The capacity a pod's node was, from its `eks.amazonaws.com/capacityType` label.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
-pub enum NodeCapacity {
+pub enum CapacityType {
     /// `SPOT`.
     Spot,
     /// `ON_DEMAND`.
     OnDemand,
-    /// No label (a node outside a managed node group): priced as on-demand.
+    /// No label (a node outside a managed node group, or one gone before it was read): priced
+    /// as on-demand.
     Unknown,
 }
 
-impl NodeCapacity {
+impl CapacityType {
     /// From the node label's value.
-    pub fn from_label(value: Option<&str>) -> NodeCapacity {
+    pub fn from_label(value: Option<&str>) -> CapacityType {
         match value {
-            Some("SPOT") => NodeCapacity::Spot,
-            Some("ON_DEMAND") => NodeCapacity::OnDemand,
-            _ => NodeCapacity::Unknown,
+            Some("SPOT") => CapacityType::Spot,
+            Some("ON_DEMAND") => CapacityType::OnDemand,
+            _ => CapacityType::Unknown,
         }
     }
 }
 
-/// One pod of a submission as the Monitor saw it, in epoch seconds.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct PodSpan {
-    /// When it started running (the kubelet's `startTime`).
-    pub started_at: u64,
-    /// When it ended (its containers' last `finishedAt`), or when it was last seen running.
-    pub ended_at: u64,
-    /// GPUs it held.
-    pub gpus: u32,
-    /// Its node's instance type.
+/// What a node is, as its node group's labels say.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct NodeKind {
+    /// `node.kubernetes.io/instance-type`, `unknown` without one.
+    #[serde(rename = "type")]
     pub instance_type: String,
-    /// Its node's capacity type.
-    pub capacity: NodeCapacity,
-    /// Seconds it ran after its pairs' last finished route, when the control plane took it
-    /// away (`DisruptionTarget`): that work is done again by the next pod.
-    pub lost_seconds: Option<u64>,
+    /// Its capacity type.
+    pub capacity: CapacityType,
 }
 
-impl PodSpan {
-    /// Seconds it ran.
-    pub fn seconds(&self) -> u64 {
-        self.ended_at.saturating_sub(self.started_at)
+impl NodeKind {
+    /// A node that could not be read (gone, or no labels).
+    pub fn unknown() -> NodeKind {
+        NodeKind {
+            instance_type: "unknown".into(),
+            capacity: CapacityType::Unknown,
+        }
     }
 }
 
-/// GPU-seconds of one instance type and capacity.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct GpuSeconds {
+/// One pod as a Monitor round sees it, times in epoch seconds.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PodSeen {
+    /// Its Job's index (one pair per Job: pair ID = index + 1).
+    pub job: u32,
+    /// The kubelet's `startTime`.
+    pub started_at: u64,
+    /// Its containers' last `finishedAt` once it ended (`Succeeded`, `Failed`).
+    pub ended_at: Option<u64>,
+    /// GPUs its containers hold.
+    pub gpus: u32,
+    /// The node it runs on.
+    pub node: Option<String>,
+    /// It carries `DisruptionTarget`: the control plane is taking it away.
+    pub disrupted: bool,
+}
+
+/// The pods of an observation that ran, with what costs.
+/// Times are taken no later than `observed_at` (a node's clock ahead is not believed).
+pub fn pods_seen(jobs: &[JobView], observed_at: jiff::Timestamp) -> Vec<PodSeen> {
+    let epoch = |t: jiff::Timestamp| u64::try_from(t.min(observed_at).as_second()).unwrap_or(0);
+    let mut out = Vec::new();
+    for job in jobs {
+        let Some(index) = job.index else { continue };
+        for pod in &job.pods {
+            let Some(started_at) = pod.start_time.map(epoch) else {
+                continue;
+            };
+            let ended = matches!(pod.phase.as_str(), "Succeeded" | "Failed");
+            let finished = pod
+                .containers
+                .iter()
+                .filter_map(|c| match &c.state {
+                    ContainerState::Terminated(exit) => exit.finished_at.map(epoch),
+                    _ => None,
+                })
+                .max();
+            out.push(PodSeen {
+                job: index,
+                started_at,
+                // A pod that ended without a container's time (never ran one) ended at its start.
+                ended_at: ended.then(|| finished.unwrap_or(started_at).max(started_at)),
+                gpus: pod.gpus,
+                node: pod.node.clone(),
+                disrupted: pod.disruption.is_some(),
+            });
+        }
+    }
+    out
+}
+
+/// GPU-seconds on one kind of node.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct UsageLine {
+    /// The node kind.
+    #[serde(flatten)]
+    pub kind: NodeKind,
     /// Every second a GPU was held.
     pub held: u64,
     /// The part spent on routes a reclaim interrupted (run again by the next pod).
     pub run_again: u64,
 }
 
-/// What a submission's pods used, by instance type and capacity.
-pub type Usage = BTreeMap<(String, NodeCapacity), GpuSeconds>;
+/// Node kinds a ledger tells apart (the GPU node groups have a few instance types, on two
+/// capacity types).
+pub const MAX_LINES: usize = 16;
 
-/// Adds the pods' GPU-seconds up.
-pub fn usage(pods: &[PodSpan]) -> Usage {
-    let mut usage = Usage::new();
-    for pod in pods {
-        let gpus = u64::from(pod.gpus);
-        let entry = usage
-            .entry((pod.instance_type.clone(), pod.capacity))
-            .or_default();
-        entry.held += pod.seconds() * gpus;
-        entry.run_again += pod.lost_seconds.unwrap_or(0).min(pod.seconds()) * gpus;
+/// A submission's GPU usage so far: a line per node kind, and which Jobs had a pod running at
+/// the last round. It takes a few bytes per Job of the run's state: a pod is known by its Job
+/// and whether it started before the last round, and every pod running then was charged up
+/// to it.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Ledger {
+    /// By node kind.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub lines: Vec<UsageLine>,
+    /// One character per Job: `.` no pod running at the last round; `a` + n its pod ran on
+    /// the kind of line n; `A` + n the same, disrupted and its lost time counted.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub jobs: String,
+    /// GPUs of one pod (a pair's).
+    #[serde(default)]
+    pub gpus: u32,
+    /// When the last round counted (epoch seconds).
+    #[serde(default)]
+    pub last: u64,
+}
+
+/// The totals a record and `lbctl` show.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Totals {
+    /// GPU-seconds held.
+    pub gpu_seconds: u64,
+    /// Of which on Spot capacity.
+    pub spot: u64,
+    /// Of which spent again on routes a reclaim interrupted.
+    pub run_again: u64,
+    /// The estimate in dollars, when every GPU-second had a price.
+    pub dollars: Option<f64>,
+}
+
+/// A Job's pod at the last round: its line, and whether its disruption was counted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Running {
+    line: usize,
+    disrupted: bool,
+}
+
+impl Ledger {
+    /// Nothing counted yet.
+    pub fn is_empty(&self) -> bool {
+        self.lines.is_empty() && self.last == 0
     }
-    usage
+
+    fn running(&self, job: u32) -> Option<Running> {
+        let c = *self.jobs.as_bytes().get(job as usize)?;
+        match c {
+            b'a'..=b'z' => Some(Running {
+                line: usize::from(c - b'a'),
+                disrupted: false,
+            }),
+            b'A'..=b'Z' => Some(Running {
+                line: usize::from(c - b'A'),
+                disrupted: true,
+            }),
+            _ => None,
+        }
+    }
+
+    fn set_running(&mut self, job: u32, running: Option<Running>) {
+        let job = job as usize;
+        if self.jobs.len() <= job {
+            self.jobs
+                .extend(std::iter::repeat_n('.', job + 1 - self.jobs.len()));
+        }
+        // Lines are at most MAX_LINES (< 26): the offset fits a letter.
+        let c = match running {
+            None => '.',
+            Some(r) if r.disrupted => char::from(b'A' + r.line as u8),
+            Some(r) => char::from(b'a' + r.line as u8),
+        };
+        self.jobs
+            .replace_range(job..=job, c.encode_utf8(&mut [0; 4]));
+    }
+
+    /// Whether a pod seen now ran at the last round (and was charged up to it): its Job's, if
+    /// it started by then. A disrupted pod stays disrupted, so an undisrupted one is its
+    /// replacement even when it started within the last round's second.
+    fn continues(&self, pod: &PodSeen) -> Option<Running> {
+        self.running(pod.job)
+            .filter(|r| pod.started_at <= self.last && (pod.disrupted || !r.disrupted))
+    }
+
+    /// A pod that ended by the last round was counted then (a Job's ended pods stay listed
+    /// until the Job goes).
+    fn counted_before(&self, pod: &PodSeen) -> bool {
+        pod.ended_at.is_some_and(|end| end <= self.last)
+    }
+
+    /// Nodes whose kind this round needs: those of pods that started since the last round.
+    pub fn unknown_nodes(&self, pods: &[PodSeen]) -> Vec<String> {
+        let mut nodes: Vec<String> = pods
+            .iter()
+            .filter(|p| self.continues(p).is_none() && !self.counted_before(p))
+            .filter_map(|p| p.node.clone())
+            .collect();
+        nodes.sort();
+        nodes.dedup();
+        nodes
+    }
+
+    fn line(&mut self, kind: &NodeKind) -> usize {
+        let found = self.lines.iter().position(|l| &l.kind == kind);
+        // The run's state has room for a few kinds: beyond them, a kind is counted as unknown.
+        let kind = match found {
+            None if self.lines.len() + 1 >= MAX_LINES => &NodeKind::unknown(),
+            _ => kind,
+        };
+        match self.lines.iter().position(|l| &l.kind == kind) {
+            Some(i) => i,
+            None => {
+                self.lines.push(UsageLine {
+                    kind: kind.clone(),
+                    held: 0,
+                    run_again: 0,
+                });
+                self.lines.len() - 1
+            }
+        }
+    }
+
+    /// Charges `seconds` of one pod to its line, as run again too when `lost`.
+    fn charge(&mut self, line: usize, seconds: u64, gpus: u32, lost: bool) {
+        let gpu_seconds = seconds.saturating_mul(u64::from(gpus));
+        let line = &mut self.lines[line];
+        line.held = line.held.saturating_add(gpu_seconds);
+        if lost {
+            line.run_again = line.run_again.saturating_add(gpu_seconds);
+        }
+    }
+
+    /// One round at `now`: each pod seen is charged from the last round (or its start, if it
+    /// started since) to its end or to now. A pod that ran at the last round and is no longer
+    /// listed went between the two (a deleted one: evicted, reclaimed) and is charged up to now,
+    /// or up to its Job's next pod's start. A disrupted pod's time after its pair's last
+    /// results write (`results_at`, by Job index) is run again by the next pod.
+    pub fn account(
+        &mut self,
+        pods: &[PodSeen],
+        kinds: &BTreeMap<String, NodeKind>,
+        results_at: &BTreeMap<u32, u64>,
+        now: u64,
+    ) {
+        let mut pods: Vec<&PodSeen> = pods.iter().filter(|p| !self.counted_before(p)).collect();
+        pods.sort_by_key(|p| (p.job, p.started_at));
+        let mut handled = std::collections::BTreeSet::new();
+        for pod in pods {
+            let (from, mut running) = match self.continues(pod) {
+                Some(running) => (self.last, running),
+                None => {
+                    // The Job's earlier pod went unlisted: it ran until this one started.
+                    if let Some(gone) = self
+                        .running(pod.job)
+                        .filter(|_| !handled.contains(&pod.job))
+                    {
+                        let end = pod.started_at.clamp(self.last, now);
+                        self.charge(gone.line, end - self.last, self.gpus, gone.disrupted);
+                    }
+                    let kind = pod.node.as_ref().and_then(|n| kinds.get(n));
+                    let line = self.line(kind.unwrap_or(&NodeKind::unknown()));
+                    (
+                        pod.started_at,
+                        Running {
+                            line,
+                            disrupted: false,
+                        },
+                    )
+                }
+            };
+            self.gpus = pod.gpus;
+            let to = pod.ended_at.unwrap_or(now).min(now).max(from);
+            self.charge(running.line, to - from, pod.gpus, running.disrupted);
+            if pod.disrupted && !running.disrupted {
+                // Seen disrupted for the first time: everything since its pair's last results
+                // write is lost, what earlier rounds charged included.
+                let since = results_at
+                    .get(&pod.job)
+                    .map_or(pod.started_at, |&t| t.max(pod.started_at));
+                let lost = to.saturating_sub(since).saturating_mul(u64::from(pod.gpus));
+                let line = &mut self.lines[running.line];
+                line.run_again = line.run_again.saturating_add(lost);
+                running.disrupted = true;
+            }
+            let still = pod.ended_at.is_none().then_some(running);
+            self.set_running(pod.job, still);
+            handled.insert(pod.job);
+        }
+        // Pods of the last round neither seen nor replaced: gone between the two rounds.
+        for job in 0..self.jobs.len() as u32 {
+            if let Some(gone) = self.running(job).filter(|_| !handled.contains(&job)) {
+                self.charge(
+                    gone.line,
+                    now.saturating_sub(self.last),
+                    self.gpus,
+                    gone.disrupted,
+                );
+                self.set_running(job, None);
+            }
+        }
+        self.jobs.truncate(self.jobs.trim_end_matches('.').len());
+        self.last = self.last.max(now);
+    }
+
+    /// Finalize's last word: every pod still running is charged to `now` (the Jobs are deleted
+    /// next).
+    pub fn close_all(&mut self, now: u64) {
+        self.account(&[], &BTreeMap::new(), &BTreeMap::new(), now);
+    }
+
+    /// The totals over every line, priced by `prices`.
+    pub fn summary(&self, prices: &BTreeMap<String, InstancePrice>) -> Totals {
+        let estimate = self.estimate(prices);
+        Totals {
+            dollars: (estimate.unpriced_gpu_seconds == 0).then_some(estimate.dollars),
+            ..self.totals()
+        }
+    }
+
+    /// The totals over every line, unpriced.
+    pub fn totals(&self) -> Totals {
+        let mut totals = Totals::default();
+        for line in &self.lines {
+            totals.gpu_seconds += line.held;
+            totals.run_again += line.run_again;
+            if line.kind.capacity == CapacityType::Spot {
+                totals.spot += line.held;
+            }
+        }
+        totals
+    }
 }
 
 /// Dollars per hour of one instance type (the settings' `prices`).
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct InstancePrice {
     /// On-demand, dollars per instance-hour.
@@ -91,7 +369,7 @@ pub struct InstancePrice {
 }
 
 /// An estimate in dollars, and the GPU-seconds no price was known for.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Estimate {
     /// Dollars.
     pub dollars: f64,
@@ -99,67 +377,121 @@ pub struct Estimate {
     pub unpriced_gpu_seconds: u64,
 }
 
-/// Prices the usage: each GPU-second at its instance type's hourly price over its GPUs.
-pub fn estimate(usage: &Usage, prices: &BTreeMap<String, InstancePrice>) -> Estimate {
-    let mut out = Estimate::default();
-    for ((instance_type, capacity), seconds) in usage {
-        let gpus = crate::resources::capacity(instance_type).map(|c| c.gpus);
-        match (prices.get(instance_type), gpus) {
-            (Some(price), Some(gpus)) if gpus > 0 => {
-                let hourly = match capacity {
-                    NodeCapacity::Spot => price.spot,
-                    NodeCapacity::OnDemand | NodeCapacity::Unknown => price.on_demand,
-                };
-                out.dollars += hourly / f64::from(gpus) * seconds.held as f64 / 3600.0;
+impl Ledger {
+    /// Prices the usage: each GPU-second at its instance type's hourly price over its GPUs
+    /// (a pair's share of the node), Spot or on-demand as the node was.
+    pub fn estimate(&self, prices: &BTreeMap<String, InstancePrice>) -> Estimate {
+        let mut out = Estimate::default();
+        for line in &self.lines {
+            let kind = &line.kind;
+            let gpus = crate::resources::capacity(&kind.instance_type).map(|c| c.gpus);
+            match (prices.get(&kind.instance_type), gpus) {
+                (Some(price), Some(gpus)) if gpus > 0 => {
+                    let hourly = match kind.capacity {
+                        CapacityType::Spot => price.spot,
+                        CapacityType::OnDemand | CapacityType::Unknown => price.on_demand,
+                    };
+                    out.dollars += hourly / f64::from(gpus) * line.held as f64 / 3600.0;
+                }
+                _ => out.unpriced_gpu_seconds += line.held,
             }
-            _ => out.unpriced_gpu_seconds += seconds.held,
         }
+        out
     }
-    out
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn pod(start: u64, end: u64, capacity: NodeCapacity, lost: Option<u64>) -> PodSpan {
-        PodSpan {
+    fn pod(job: u32, start: u64, end: Option<u64>, node: &str, disrupted: bool) -> PodSeen {
+        PodSeen {
+            job,
             started_at: start,
             ended_at: end,
             gpus: 1,
-            instance_type: "g5.12xlarge".into(),
-            capacity,
-            lost_seconds: lost,
+            node: Some(node.into()),
+            disrupted,
         }
     }
 
-    #[test]
-    fn gpu_seconds_add_up_by_capacity_and_a_reclaim_counts_what_runs_again() {
-        let pods = [
-            pod(0, 3600, NodeCapacity::Spot, Some(600)),
-            pod(3700, 7300, NodeCapacity::Spot, None),
-            pod(0, 7200, NodeCapacity::OnDemand, None),
-            pod(100, 50, NodeCapacity::OnDemand, Some(10)),
-        ];
-        let usage = usage(&pods);
-        let spot = usage[&("g5.12xlarge".to_string(), NodeCapacity::Spot)];
-        assert_eq!(
-            spot,
-            GpuSeconds {
-                held: 7200,
-                run_again: 600
-            }
-        );
-        let on_demand = usage[&("g5.12xlarge".to_string(), NodeCapacity::OnDemand)];
-        assert_eq!(
-            on_demand,
-            GpuSeconds {
-                held: 7200,
-                run_again: 0
-            },
-            "a clock gone back counts 0"
-        );
+    fn kinds() -> BTreeMap<String, NodeKind> {
+        let kind = |capacity| NodeKind {
+            instance_type: "g5.12xlarge".into(),
+            capacity,
+        };
+        BTreeMap::from([
+            ("spot-a".to_string(), kind(CapacityType::Spot)),
+            ("od-a".to_string(), kind(CapacityType::OnDemand)),
+        ])
+    }
 
+    #[test]
+    fn rounds_charge_each_pod_once_from_start_to_end_whatever_they_see() {
+        let kinds = kinds();
+        let none = BTreeMap::new();
+        let mut ledger = Ledger::default();
+        let running = [pod(0, 100, None, "od-a", false)];
+        assert_eq!(ledger.unknown_nodes(&running), ["od-a"]);
+        ledger.account(&running, &kinds, &none, 400);
+        assert!(ledger.unknown_nodes(&running).is_empty(), "{ledger:?}");
+        ledger.account(&running, &kinds, &none, 1000);
+        // Ended at 1100; the next rounds still list it (a Job's pods stay until it goes).
+        for now in [1200, 1300] {
+            let ended = [pod(0, 100, Some(1100), "od-a", false)];
+            ledger.account(&ended, &kinds, &none, now);
+        }
+        // Another Job's pod started and ended between two rounds, on a node never read.
+        let brief = [pod(1, 1310, Some(1390), "gone", false)];
+        ledger.account(&brief, &kinds, &none, 1400);
+        assert_eq!(ledger.totals().gpu_seconds, 1000 + 80);
+        assert_eq!(ledger.lines[1].kind, NodeKind::unknown());
+        // A pod deleted between two rounds is charged up to the round that misses it.
+        ledger.account(&[pod(3, 1450, None, "od-a", false)], &kinds, &none, 1500);
+        assert_eq!(ledger.jobs, "...a");
+        ledger.account(&[], &kinds, &none, 1600);
+        assert_eq!(ledger.totals().gpu_seconds, 1080 + 150);
+        assert!(ledger.jobs.is_empty(), "{ledger:?}");
+        assert_eq!(ledger.totals().run_again, 0);
+    }
+
+    #[test]
+    fn a_reclaimed_pod_s_seconds_after_its_last_results_are_run_again() {
+        let kinds = kinds();
+        let mut ledger = Ledger::default();
+        let results = BTreeMap::from([(0, 700)]);
+        ledger.account(&[pod(0, 100, None, "spot-a", false)], &kinds, &results, 500);
+        ledger.account(&[pod(0, 100, None, "spot-a", true)], &kinds, &results, 900);
+        assert_eq!(ledger.totals().run_again, 200, "since the results at 700");
+        // Deleted once its Job counted it; the next pod started at 960 on an on-demand node.
+        ledger.account(&[pod(0, 960, None, "od-a", false)], &kinds, &results, 1000);
+        let totals = ledger.totals();
+        assert_eq!(totals.spot, 860, "{ledger:?}");
+        assert_eq!(totals.gpu_seconds, 860 + 40);
+        assert_eq!(totals.run_again, 260);
+        // A replacement that started within the last round's second is not the disrupted pod.
+        let mut same_second = Ledger::default();
+        same_second.account(&[pod(0, 100, None, "spot-a", true)], &kinds, &results, 900);
+        same_second.account(&[pod(0, 900, None, "spot-a", false)], &kinds, &results, 950);
+        assert_eq!(same_second.totals().run_again, 200);
+        assert_eq!(same_second.jobs, "a");
+        // Finalize charges what still runs; the undisrupted pod runs nothing again.
+        ledger.close_all(1100);
+        assert_eq!(ledger.totals().gpu_seconds, 860 + 140);
+        assert_eq!(ledger.totals().run_again, 260);
+        assert!(ledger.jobs.is_empty());
+    }
+
+    #[test]
+    fn the_estimate_prices_a_gpu_at_its_share_of_the_node_by_capacity() {
+        let kinds = kinds();
+        let mut ledger = Ledger::default();
+        let pods = [
+            pod(0, 0, Some(7200), "spot-a", false),
+            pod(1, 0, Some(7200), "od-a", false),
+            pod(2, 0, Some(3600), "gone", false),
+        ];
+        ledger.account(&pods, &kinds, &BTreeMap::new(), 7200);
         let prices = BTreeMap::from([(
             "g5.12xlarge".to_string(),
             InstancePrice {
@@ -167,24 +499,20 @@ mod tests {
                 spot: 2.0,
             },
         )]);
-        let e = estimate(&usage, &prices);
-        // Two GPU-hours at a quarter of each hourly price.
-        assert!(
-            (e.dollars - (2.0 * 2.0 / 4.0 + 2.0 * 5.672 / 4.0)).abs() < 1e-9,
-            "{e:?}"
-        );
-        assert_eq!(e.unpriced_gpu_seconds, 0);
-        let unpriced = estimate(&usage, &BTreeMap::new());
-        assert_eq!(unpriced.unpriced_gpu_seconds, 14_400);
+        let e = ledger.estimate(&prices);
+        // Two GPU-hours each at a quarter of the node's hourly price.
+        let expected = 2.0 * 2.0 / 4.0 + 2.0 * 5.672 / 4.0;
+        assert!((e.dollars - expected).abs() < 1e-9, "{e:?}");
+        assert_eq!(e.unpriced_gpu_seconds, 3600);
     }
 
     #[test]
     fn the_capacity_comes_from_the_node_label() {
-        assert_eq!(NodeCapacity::from_label(Some("SPOT")), NodeCapacity::Spot);
+        assert_eq!(CapacityType::from_label(Some("SPOT")), CapacityType::Spot);
         assert_eq!(
-            NodeCapacity::from_label(Some("ON_DEMAND")),
-            NodeCapacity::OnDemand
+            CapacityType::from_label(Some("ON_DEMAND")),
+            CapacityType::OnDemand
         );
-        assert_eq!(NodeCapacity::from_label(None), NodeCapacity::Unknown);
+        assert_eq!(CapacityType::from_label(None), CapacityType::Unknown);
     }
 }

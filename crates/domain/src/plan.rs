@@ -104,6 +104,11 @@ impl JobPlan {
     }
 }
 
+/// The Job index of pair `pair_id` (one pair per Job, pair IDs from 1).
+pub fn job_of_pair(pair_id: u32) -> Option<u32> {
+    pair_id.checked_sub(1)
+}
+
 /// The whole plan of one submission.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Plan {

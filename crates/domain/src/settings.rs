@@ -22,6 +22,10 @@ pub struct Settings {
     pub phases: BTreeMap<u64, PhaseSettings>,
     /// Per leaderboard (`"1.0"`, `"2.0"`): cluster, storage, images, tracks.
     pub leaderboards: BTreeMap<String, LeaderboardSettings>,
+    /// Dollars per instance-hour by EC2 instance type, on-demand and Spot: what a
+    /// submission's GPU-seconds are priced at (`lb_domain::cost`). Empty: no estimate.
+    #[serde(default)]
+    pub prices: BTreeMap<String, crate::cost::InstancePrice>,
 }
 
 /// EvalAI endpoint settings.
@@ -504,6 +508,30 @@ impl Target<'_> {
     }
 }
 
+/// A price is a GPU's share of its node's: the instance type must have a known GPU count, and
+/// both prices must be finite and not negative.
+fn check_price(
+    instance_type: &str,
+    price: &crate::cost::InstancePrice,
+) -> Result<(), (String, String)> {
+    let path = |field: &str| format!("prices.{instance_type}{field}");
+    if resources::capacity(instance_type).is_none_or(|c| c.gpus == 0) {
+        return Err((
+            path(""),
+            "is not a GPU instance type this version knows (crates/domain/src/resources.rs)".into(),
+        ));
+    }
+    for (field, value) in [(".on_demand", price.on_demand), (".spot", price.spot)] {
+        if !value.is_finite() || value < 0.0 {
+            return Err((
+                path(field),
+                format!("must be dollars per hour, not {value}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
 impl Settings {
     /// Parses and checks the secret's JSON text.
     pub fn from_json(text: &str) -> Result<Self, SettingsError> {
@@ -522,6 +550,9 @@ impl Settings {
         self.evalai.check().map_err(invalid)?;
         for (name, lb) in &self.leaderboards {
             lb.check(name).map_err(invalid)?;
+        }
+        for (instance_type, price) in &self.prices {
+            check_price(instance_type, price).map_err(invalid)?;
         }
         for (phase, p) in &self.phases {
             let Some(lb) = self.leaderboards.get(&p.leaderboard) else {
@@ -752,6 +783,20 @@ mod tests {
                         "agent": {"cpu": 5.5, "memory_gib": 20}, "shm_gib": 2},"#,
                 ),
                 "leaderboards.2.0.gpu_model",
+            ),
+            (
+                EXAMPLE.replace(
+                    r#""evalai": {"#,
+                    r#""prices": {"g5.12xlarge": {"on_demand": 5.672, "spot": -1}}, "evalai": {"#,
+                ),
+                "prices.g5.12xlarge.spot",
+            ),
+            (
+                EXAMPLE.replace(
+                    r#""evalai": {"#,
+                    r#""prices": {"m5.large": {"on_demand": 0.096, "spot": 0.04}}, "evalai": {"#,
+                ),
+                "prices.m5.large",
             ),
         ];
         for (text, path) in cases {

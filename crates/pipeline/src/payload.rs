@@ -268,6 +268,9 @@ pub struct MonitorState {
     /// it, so each round tries to name this one until it did.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub handover: bool,
+    /// The GPUs its pods held so far (`lb_domain::cost`).
+    #[serde(default, skip_serializing_if = "lb_domain::cost::Ledger::is_empty")]
+    pub usage: lb_domain::cost::Ledger,
 }
 
 fn is_zero(n: &u32) -> bool {
@@ -304,6 +307,7 @@ impl MonitorState {
             generation: 0,
             continue_as: None,
             handover: false,
+            usage: lb_domain::cost::Ledger::default(),
         }
     }
 }

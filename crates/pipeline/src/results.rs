@@ -41,6 +41,21 @@ pub struct Listing {
     partials: Vec<PartialObject>,
 }
 
+/// When each pair's results file was last written, by Job index (one pair per Job); empty
+/// when S3 cannot be listed (a reclaimed pod's whole life then counts as run again).
+pub async fn written(store: &SubmissionStore) -> std::collections::BTreeMap<u32, u64> {
+    match store.partials().await {
+        Ok(partials) => partials
+            .iter()
+            .filter_map(|p| Some((lb_domain::plan::job_of_pair(p.pair_id)?, p.modified?)))
+            .collect(),
+        Err(e) => {
+            warn!(error = %e, "results not listed: a reclaimed pod's time counts as run again");
+            std::collections::BTreeMap::new()
+        }
+    }
+}
+
 /// Lists the workers' files once.
 pub async fn list(store: &SubmissionStore) -> Result<Listing, FnError> {
     let partials = store.partials().await?;

@@ -19,6 +19,7 @@ use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
+use lb_domain::cost::Totals;
 use std::collections::HashSet;
 
 use lb_domain::audit;
@@ -319,6 +320,7 @@ async fn finish_run<C: Callbacks>(
     let outcome = finalize::settle(outcome, posted);
     let mut record = final_record(&target, &store, &outcome, snapshot.as_ref(), error.clone());
     record.recordings = recordings(&store, &outcome, snapshot.as_ref()).await;
+    record.usage = run.as_ref().map(|run| usage(deps, run));
     if !table
         .finish(submission.team_id, id, &submission.execution, &record)
         .await?
@@ -501,7 +503,16 @@ fn final_record(
         progress: snapshot.map_or((0, 0), |s| s.progress),
         error: error.or_else(|| outcome.reason.clone()),
         recordings: None,
+        usage: None,
     }
+}
+
+/// What the run's GPUs came to: the Monitor's count, with the pods still running at its last
+/// round charged until now (their Jobs were just deleted).
+fn usage<C: Callbacks>(deps: &Deps<C>, run: &RunState) -> Totals {
+    let mut ledger = run.monitor.usage.clone();
+    ledger.close_all(clients::now_epoch_seconds());
+    ledger.summary(&deps.clients.settings.prices)
 }
 
 /// What operators can audit of a FINISHED result: how many of its routes have their CARLA

@@ -17,6 +17,7 @@
 //! (`lb_domain::history`).
 
 use lb_pipeline::serve::{Function, Invocation};
+use std::collections::BTreeMap;
 use std::future::Future;
 use std::time::Duration;
 
@@ -25,6 +26,7 @@ use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
 use lb_aws::wake::{WakeState, WakeTable, RETENTION_SECONDS};
 use lb_cluster::{Verdict, VerdictPolicy};
+use lb_domain::cost::{self, Ledger, NodeKind};
 use lb_domain::history;
 use lb_domain::monitor::{self, StatusRead};
 use lb_domain::protocol::Marker;
@@ -114,18 +116,61 @@ impl Function for Deps {
     }
 }
 
-/// The submission's Jobs and pods as the cluster reports them now.
+/// The submission's Jobs and pods as the cluster reports them now, and what the nodes of the
+/// pods `usage` does not count yet are (`None`: a node could not be read this round, and the
+/// usage waits for the next).
 async fn observe(
     deps: &Deps,
     deployment: &lb_domain::settings::LeaderboardSettings,
     id: u64,
-) -> Result<lb_cluster::Observation> {
+    usage: &Ledger,
+) -> Result<(lb_cluster::Observation, Option<NodeKinds>)> {
     let policy = VerdictPolicy {
         queue_limit: Duration::from_secs(deployment.max_queue_hours * 3600),
         ..deps.policy
     };
-    let cluster = deps.clients.clusters.connect(deployment).await?;
-    Ok(cluster.with_policy(policy).observe(&id.to_string()).await?)
+    let cluster = deps
+        .clients
+        .clusters
+        .connect(deployment)
+        .await?
+        .with_policy(policy);
+    let observation = cluster.observe(&id.to_string()).await?;
+    let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
+    let mut kinds = NodeKinds::new();
+    for node in usage.unknown_nodes(&pods) {
+        match cluster.node_kind(&node).await {
+            Ok(kind) => {
+                kinds.insert(node, kind.unwrap_or_else(NodeKind::unknown));
+            }
+            Err(e) => {
+                warn!(submission_id = id, %node, error = %e, "node not read: GPU usage counted next round");
+                return Ok((observation, None));
+            }
+        }
+    }
+    Ok((observation, Some(kinds)))
+}
+
+/// Node name -> what it is.
+type NodeKinds = BTreeMap<String, NodeKind>;
+
+/// Charges this round's GPU time (`lb_domain::cost`). A disrupted pod's run-again seconds
+/// count from its pair's last results write, so S3 is listed only in a round that sees one.
+async fn count_usage(
+    store: &SubmissionStore,
+    observation: &lb_cluster::Observation,
+    kinds: &NodeKinds,
+    run: &mut RunState,
+) {
+    let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
+    let now = u64::try_from(observation.observed_at.as_second()).unwrap_or(0);
+    let results_at = if pods.iter().any(|p| p.disrupted) {
+        lb_pipeline::results::written(store).await
+    } else {
+        BTreeMap::new()
+    };
+    run.monitor.usage.account(&pods, kinds, &results_at, now);
 }
 
 /// One monitor round, then whether the run goes on in this execution: a round whose count
@@ -189,10 +234,18 @@ async fn round(
     }
     let observation = match observe_round(deps, &target, id, &mut run, now).await? {
         Seen::Ended => return Ok(run),
-        Seen::Observed(observation) => Some(observation),
+        Seen::Observed(observation, kinds) => Some((observation, kinds)),
         Seen::Unreachable => None,
     };
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
+    let observation = match observation {
+        Some((observation, Some(kinds))) => {
+            count_usage(&store, &observation, &kinds, &mut run).await;
+            Some(observation)
+        }
+        Some((observation, None)) => Some(observation),
+        None => None,
+    };
     let at = submission_ref(submission);
     // The first pair started: now the submission runs, for EvalAI and for the record (before
     // any partial update, which a later `running` would otherwise undo).
@@ -283,7 +336,7 @@ async fn read_wake(deps: &Deps, id: u64, run: &mut RunState) -> Result<WakeState
 
 /// What the round saw of the cluster.
 enum Seen {
-    Observed(lb_cluster::Observation),
+    Observed(lb_cluster::Observation, Option<NodeKinds>),
     /// Out of reach this round: the verdict is skipped, the Jobs run on without it.
     Unreachable,
     /// Out of reach for longer than the leaderboard allows: the run has ended.
@@ -300,10 +353,10 @@ async fn observe_round(
     run: &mut RunState,
     now: u64,
 ) -> Result<Seen> {
-    let e = match observe(deps, target.deployment, id).await {
-        Ok(observation) => {
+    let e = match observe(deps, target.deployment, id, &run.monitor.usage).await {
+        Ok((observation, kinds)) => {
             run.monitor.unreachable_since = None;
-            return Ok(Seen::Observed(observation.expect_jobs(run.jobs)));
+            return Ok(Seen::Observed(observation.expect_jobs(run.jobs), kinds));
         }
         Err(e) if e.is_transient() => e,
         Err(e) => return Err(e),
@@ -381,7 +434,15 @@ async fn judge(
                 let table = SubmissionsTable::new(deps.clients.dynamo.clone(), table);
                 let (time, location) = (clients::now_record_time(), store.location());
                 let progress = run.monitor.progress;
-                let marked = table.mark_running(submission.team_id, id, &time, &location, progress);
+                let usage = run.monitor.usage.summary(&deps.clients.settings.prices);
+                let marked = table.mark_running(
+                    submission.team_id,
+                    id,
+                    &time,
+                    &location,
+                    progress,
+                    Some(&usage),
+                );
                 if let Err(e) = marked.await {
                     warn!(submission_id = id, error = %e, "progress not recorded this round");
                 }

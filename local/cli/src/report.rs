@@ -83,6 +83,8 @@ pub struct LeftBehind {
     pub record_status: Option<String>,
     /// Its record's routes with a CARLA recording, and its routes (FINISHED only).
     pub recordings: Option<(u64, u64)>,
+    /// Its record's GPU usage: `gpu_seconds`, `spot`, `run_again`, `cost_usd`.
+    pub usage: Option<Value>,
 }
 
 /// `agent_results.json` in numbers.
@@ -183,6 +185,16 @@ impl RunReport {
         }
         if let Some(merged) = &self.merged {
             outln!("merged         {}", merged.line());
+        }
+        if let Some(usage) = &self.left_behind.usage {
+            outln!(
+                "GPUs           {} GPU-seconds ({} on Spot, {} run again), about ${} (time scale {})",
+                usage["gpu_seconds"],
+                usage["spot"],
+                usage["run_again"],
+                usage["cost_usd"],
+                args.time_scale
+            );
         }
         if let Some(r) = &self.reclaim {
             outln!(

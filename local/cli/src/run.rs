@@ -1024,6 +1024,15 @@ async fn left_behind(
         if let Ok(Some(item)) = records.get(team, submission).await {
             let number = |key: &str| item.get(key)?.as_n().ok()?.parse::<u64>().ok();
             left.recordings = number("recordings_found").zip(number("recordings_expected"));
+            let amount = |key: &str| item.get(key)?.as_n().ok()?.parse::<f64>().ok();
+            left.usage = number("gpu_seconds").map(|gpu_seconds| {
+                serde_json::json!({
+                    "gpu_seconds": gpu_seconds,
+                    "spot": number("gpu_seconds_spot"),
+                    "run_again": number("gpu_seconds_run_again"),
+                    "cost_usd": amount("cost_usd"),
+                })
+            });
         }
     }
     left

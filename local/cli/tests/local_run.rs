@@ -142,6 +142,12 @@ fn every_scenario_ends_as_expected() {
                     json!([20, 20]),
                     "{report}"
                 );
+                // Four pairs' GPUs for the run's seconds, on-demand, none run again, priced.
+                let usage = &report["left_behind"]["usage"];
+                assert!(usage["gpu_seconds"].as_u64().unwrap() >= 4, "{report}");
+                assert_eq!(usage["spot"], 0, "{report}");
+                assert_eq!(usage["run_again"], 0, "{report}");
+                assert!(usage["cost_usd"].as_f64().is_some(), "{report}");
             }
             "forge" => {
                 // Pair 2's results as pair 2 wrote them: the same scores as the happy run,
@@ -187,6 +193,14 @@ fn every_scenario_ends_as_expected() {
                 assert!((1..=evicted.len() as u64).contains(&again), "{report}");
                 assert_eq!(report["merged"]["records"], 20, "{report}");
                 assert_eq!(report["scores"], happy_scores, "{report}");
+                // All of it on the Spot node; what was run again (the seconds after each
+                // evicted pod's last results, under a second each with these short routes)
+                // is part of it.
+                let usage = &report["left_behind"]["usage"];
+                let held = usage["gpu_seconds"].as_u64().unwrap();
+                assert!(held > 0, "{report}");
+                assert_eq!(usage["spot"].as_u64().unwrap(), held, "{report}");
+                assert!(usage["run_again"].as_u64().unwrap() < held, "{report}");
             }
             _ => {}
         }

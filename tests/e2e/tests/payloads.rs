@@ -3,6 +3,7 @@
 //! which no Catch handles): every field at its bound, every string made of the character
 //! JSON escapes longest, run through `statemachine/submission.asl.json` in the executor.
 
+use lb_domain::cost::{CapacityType, Ledger, NodeKind, UsageLine};
 use std::collections::{BTreeMap, HashMap};
 
 use lb_domain::plan::{MAX_ROUTES, MAX_WORKERS};
@@ -114,7 +115,29 @@ fn run(phase: RunPhase) -> RunState {
             generation: u32::MAX,
             continue_as: Some("c".repeat(80)),
             handover: true,
+            usage: worst_usage(),
         },
+    }
+}
+
+/// The most a run's GPU count holds: every kind it tells apart, with a label value's longest
+/// instance type, and a pod running in every Job.
+fn worst_usage() -> Ledger {
+    let lines = (0..lb_domain::cost::MAX_LINES)
+        .map(|i| UsageLine {
+            kind: NodeKind {
+                instance_type: format!("{i:x}").repeat(63),
+                capacity: CapacityType::OnDemand,
+            },
+            held: u64::MAX,
+            run_again: u64::MAX,
+        })
+        .collect();
+    Ledger {
+        lines,
+        jobs: "P".repeat(MAX_WORKERS as usize),
+        gpus: u32::MAX,
+        last: u64::MAX,
     }
 }
 
