@@ -175,6 +175,8 @@ fn tables(deployment: &Deployment, only: Option<&str>) -> String {
 struct Place {
     /// Submissions that arrived before it and have not started.
     ahead: u32,
+    /// Evaluations running in its leaderboard.
+    running: u32,
     /// Waiting for its team's place, admitted (its pods wait for a GPU), or running.
     state: lb_domain::queue::EntryState,
 }
@@ -212,11 +214,16 @@ async fn places(
             .entries(name)
             .await
             .map_err(|e| CliError::aws(format!("reading the queue of leaderboard {name}"), e))?;
+        let running = entries
+            .iter()
+            .filter(|e| e.state == lb_domain::queue::EntryState::Running)
+            .count() as u32;
         for entry in &entries {
             out.insert(
                 (name.to_string(), entry.submission_id),
                 Place {
                     ahead: lb_domain::queue::ahead(&entries, entry),
+                    running,
                     state: entry.state,
                 },
             );
@@ -421,12 +428,20 @@ pub async fn list(args: List) -> Result<u8> {
             .position(|(_, q)| *q == id)
             .map(|i| i + 1)
     };
+    let estimates = estimates(&deployment, shown, &places).await;
+    let estimate = |r: &Record| {
+        estimates
+            .get(&(r.leaderboard.clone(), r.submission_id()?))
+            .copied()
+    };
     if args.json {
         let out: Vec<Value> = shown
             .iter()
             .map(|r| {
                 let mut v = r.to_json();
                 v["queue_position"] = json!(position(r));
+                v["estimated_start_seconds"] =
+                    estimate(r).map_or(Value::Null, |e| json!({"low": e.low, "high": e.high}));
                 v["queue"] = place(r).map_or(Value::Null, Place::to_json);
                 v["age_seconds"] = json!(age(r, now).map(|d| d.whole_seconds()));
                 v
@@ -453,11 +468,12 @@ pub async fn list(args: List) -> Result<u8> {
         return Ok(0);
     }
     outln!(
-        "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7} {:>14}  {:<23} ENDED",
+        "{:<10} {:<4} {:<9} {:>5} {:>9} {:>6} {:<28} {:<18} {:>7} {:>14}  {:<23} ENDED",
         "SUBMISSION",
         "LB",
         "STATUS",
         "QUEUE",
+        "STARTS IN",
         "AGE",
         "TEAM",
         "TRACK",
@@ -466,7 +482,8 @@ pub async fn list(args: List) -> Result<u8> {
         "SUBMITTED"
     );
     for record in shown {
-        outln!("{}", list_line(record, position(record), age(record, now)));
+        let queue = (position(record), estimate(record));
+        outln!("{}", list_line(record, queue, age(record, now)));
     }
     if matching.len() > shown.len() {
         outln!("... {} more (raise --limit)", matching.len() - shown.len());
@@ -533,7 +550,62 @@ fn unaudited(record: &Record) -> bool {
     recordings(record).is_some_and(|(found, expected)| found < expected)
 }
 
-fn list_line(record: &Record, queue: Option<usize>, age: Option<time::Duration>) -> String {
+/// The estimated start of every shown submission whose pods wait for a GPU, from its
+/// leaderboard's running evaluations and its track's pace (none where it cannot be read).
+async fn estimates(
+    deployment: &Deployment,
+    shown: &[&Record],
+    places: &HashMap<(String, u64), Place>,
+) -> HashMap<(String, u64), lb_domain::queue::StartEstimate> {
+    let mut out = HashMap::new();
+    let Some(table) = &deployment.admission else {
+        return out;
+    };
+    let mut paces: HashMap<(String, String), Vec<u64>> = HashMap::new();
+    for record in shown {
+        let (Some(id), Some(track)) = (record.submission_id(), record.text("track_name")) else {
+            continue;
+        };
+        let key = (record.leaderboard.clone(), id);
+        let Some(place) = places.get(&key) else {
+            continue;
+        };
+        if place.state != lb_domain::queue::EntryState::Admitted {
+            continue;
+        }
+        let pace_key = (record.leaderboard.clone(), track.to_string());
+        if !paces.contains_key(&pace_key) {
+            let pace = table
+                .pace(&record.leaderboard, track)
+                .await
+                .unwrap_or_default();
+            paces.insert(pace_key.clone(), pace);
+        }
+        if let Some(e) =
+            lb_domain::queue::estimate_start(place.ahead, place.running, &paces[&pace_key])
+        {
+            out.insert(key, e);
+        }
+    }
+    out
+}
+
+/// `~40m`, `1h-3h`: an estimated start in a column.
+fn short_estimate(e: lb_domain::queue::StartEstimate) -> String {
+    let minutes = |s: u64| s.div_ceil(60).max(1);
+    let (low, high) = (minutes(e.low), minutes(e.high));
+    if high <= 90 {
+        format!("{low}-{high}m")
+    } else {
+        format!("{}-{}h", low / 60, high.div_ceil(60))
+    }
+}
+
+fn list_line(
+    record: &Record,
+    (queue, estimate): (Option<usize>, Option<lb_domain::queue::StartEstimate>),
+    age: Option<time::Duration>,
+) -> String {
     let text = |key: &str| record.text(key).map(clean).unwrap_or_else(|| "-".into());
     let number = |key: &str| {
         record
@@ -542,7 +614,7 @@ fn list_line(record: &Record, queue: Option<usize>, age: Option<time::Duration>)
     };
     let team = format!("{} ({})", text("team_name"), number("team_id"));
     let line = format!(
-        "{:<10} {:<4} {:<9} {:>5} {:>6} {:<28} {:<18} {:>7} {:>14}  {:<23} {}",
+        "{:<10} {:<4} {:<9} {:>5} {:>9} {:>6} {:<28} {:<18} {:>7} {:>14}  {:<23} {}",
         number("submission_id"),
         clean(&record.leaderboard),
         format!(
@@ -551,6 +623,7 @@ fn list_line(record: &Record, queue: Option<usize>, age: Option<time::Duration>)
             if unaudited(record) { "*" } else { "" }
         ),
         queue.map_or_else(|| "-".to_string(), |q| q.to_string()),
+        estimate.map_or_else(|| "-".to_string(), short_estimate),
         age.map_or_else(|| "-".to_string(), short_age),
         shorten(&team, 28),
         shorten(&text("track_name"), 18),
@@ -775,11 +848,17 @@ mod tests {
             .map(|(k, v)| (k.to_string(), v))
             .collect(),
         };
-        let line = list_line(&record, None, Some(time::Duration::minutes(135)));
+        let line = list_line(&record, (None, None), Some(time::Duration::minutes(135)));
         assert!(
-            line.starts_with("12         2.0  RUNNING       -  2h15m"),
+            line.starts_with("12         2.0  RUNNING       -         -  2h15m"),
             "{line}"
         );
+        let estimate = lb_domain::queue::StartEstimate {
+            low: 600,
+            high: 2400,
+        };
+        let line = list_line(&record, (Some(3), Some(estimate)), None);
+        assert!(line.contains("    3    10-40m"), "{line}");
         assert!(line.contains("5/20"), "{line}");
         assert!(!line.contains('\u{1b}'), "{line}");
         assert!(!line.contains('\u{202e}'), "{line}");
@@ -821,7 +900,7 @@ mod tests {
             a.usage().unwrap().describe(),
             "2.00 GPU-hours (1.00 on Spot, 0.05 run again after reclaims), about $2.05"
         );
-        assert!(list_line(&a, None, None).contains("2.00h $2.05"));
+        assert!(list_line(&a, (None, None), None).contains("2.00h $2.05"));
         assert!(b
             .usage()
             .unwrap()

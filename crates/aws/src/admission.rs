@@ -10,6 +10,8 @@
 //!   `waiting`, `admitted`, `running`), `execution` (S, the execution that queued it last),
 //!   `expires_at` (N, DynamoDB TTL) past any queue time and evaluation.
 //! - `team#<id>`: a team's holds: `holders` (SS of submission ids).
+//! - `pace#<track>`: `durations` (L of N): the seconds its latest evaluations ran, oldest first
+//!   (`lb_domain::queue::RECENT_DURATIONS` of them), for the queue note's estimated start.
 //!
 //! Admission decides on the holders as they are when it writes, never on an earlier read of
 //! the queue: the hold is conditional on the set's size, and a holder whose entry is gone
@@ -53,6 +55,13 @@ fn s(value: impl Into<String>) -> AttributeValue {
 
 fn n(value: u64) -> AttributeValue {
     AttributeValue::N(value.to_string())
+}
+
+fn pace_key(queue: &str, track: &str) -> HashMap<String, AttributeValue> {
+    HashMap::from([
+        ("queue".to_string(), s(queue)),
+        ("key".to_string(), s(format!("pace#{track}"))),
+    ])
 }
 
 fn entry_key(queue: &str, submission_id: u64) -> HashMap<String, AttributeValue> {
@@ -440,6 +449,49 @@ impl AdmissionTable {
             Err(e) if condition_failed(&e) => Ok(()),
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
         }
+    }
+
+    /// The seconds the latest evaluations of `track` ran, most recent first.
+    pub async fn pace(&self, queue: &str, track: &str) -> Result<Vec<u64>> {
+        let item = self
+            .client
+            .get_item()
+            .table_name(&self.table)
+            .set_key(Some(pace_key(queue, track)))
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "GetItem", e))?;
+        let durations = item
+            .item()
+            .and_then(|i| i.get("durations"))
+            .and_then(|d| d.as_l().ok())
+            .map(|l| {
+                l.iter()
+                    .filter_map(|v| v.as_n().ok()?.parse().ok())
+                    .collect::<Vec<u64>>()
+            })
+            .unwrap_or_default();
+        Ok(durations.into_iter().rev().collect())
+    }
+
+    /// Adds an evaluation of `track` that ran `seconds` to its pace, keeping the latest
+    /// [`RECENT_DURATIONS`](lb_domain::queue::RECENT_DURATIONS). Two at once may keep one of
+    /// the two: the pace is an estimate's input, not a record.
+    pub async fn record_pace(&self, queue: &str, track: &str, seconds: u64) -> Result<()> {
+        let mut durations = self.pace(queue, track).await?;
+        durations.truncate(lb_domain::queue::RECENT_DURATIONS - 1);
+        durations.insert(0, seconds);
+        let list = durations.iter().rev().map(|&d| n(d)).collect();
+        let mut item = pace_key(queue, track);
+        item.insert("durations".into(), AttributeValue::L(list));
+        self.client
+            .put_item()
+            .table_name(&self.table)
+            .set_item(Some(item))
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "PutItem", e))?;
+        Ok(())
     }
 
     /// Gives the submission's team its place back and takes the submission out of the queue;

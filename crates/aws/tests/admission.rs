@@ -230,6 +230,17 @@ async fn arrival_survives_a_retry_and_starts_move_the_queue_forward() {
         table.holds(QUEUE).await.unwrap(),
         [(1, vec!["1".to_string()])]
     );
+    // The track's pace: the latest durations, most recent first, beside the entries.
+    assert!(table.pace(QUEUE, "SENSORS").await.unwrap().is_empty());
+    let recent = lb_domain::queue::RECENT_DURATIONS as u64;
+    for seconds in 1..=recent + 3 {
+        table.record_pace(QUEUE, "SENSORS", seconds).await.unwrap();
+    }
+    let pace = table.pace(QUEUE, "SENSORS").await.unwrap();
+    assert_eq!(pace.len() as u64, recent);
+    assert_eq!((pace[0], *pace.last().unwrap()), (recent + 3, 4));
+    assert!(table.pace(QUEUE, "MAP").await.unwrap().is_empty());
+    assert_eq!(table.entries(QUEUE).await.unwrap().len(), 3, "not an entry");
 }
 
 #[tokio::test]

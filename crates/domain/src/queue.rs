@@ -147,9 +147,112 @@ pub fn describe(ahead: u32, hold: Hold) -> String {
     format!("{queue}; {why}")
 }
 
+/// Evaluations whose durations an estimate reads, most recent first: enough to follow a
+/// track's pace, few enough to follow it when it changes.
+pub const RECENT_DURATIONS: usize = 20;
+
+/// When a queued submission may start, seconds from now: a range, never a promise.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StartEstimate {
+    /// The earliest it likely starts.
+    pub low: u64,
+    /// The latest it likely starts.
+    pub high: u64,
+}
+
+impl StartEstimate {
+    /// The middle of the range: what the estimate's error is measured from.
+    pub fn middle(&self) -> u64 {
+        (self.low + self.high) / 2
+    }
+}
+
+/// The estimated start of a submission with `ahead` submissions before it, while `running`
+/// evaluations hold the places it waits for, from the `recent` durations (seconds) of its
+/// track's evaluations. Each running evaluation frees its place once per evaluation, so places
+/// free at `running` per duration: it starts after `ahead + 1` have freed, between
+/// `ahead` of them at the track's quick pace (the lower quartile) and `ahead + 1` at its slow
+/// one (the upper quartile). `None` without a duration to go by or with nothing running (an
+/// idle cluster starts it as soon as a node is up).
+pub fn estimate_start(ahead: u32, running: u32, recent: &[u64]) -> Option<StartEstimate> {
+    if recent.is_empty() || running == 0 {
+        return None;
+    }
+    let mut sorted: Vec<u64> = recent.iter().take(RECENT_DURATIONS).copied().collect();
+    sorted.sort_unstable();
+    let quartile = |q: usize| sorted[(sorted.len() - 1) * q / 4];
+    let (quick, slow) = (quartile(1), quartile(3));
+    let running = u64::from(running);
+    Some(StartEstimate {
+        low: u64::from(ahead) * quick / running,
+        high: (u64::from(ahead) + 1) * slow / running,
+    })
+}
+
+/// The estimate in the participant's words: "about 40 minutes", "between 1 and 3 hours".
+pub fn describe_estimate(estimate: StartEstimate) -> String {
+    let minutes = |s: u64| s.div_ceil(60).max(1);
+    let (low, high) = (minutes(estimate.low), minutes(estimate.high));
+    let span = if high <= 90 {
+        if high - low <= high / 4 {
+            format!("about {high} minutes")
+        } else {
+            format!("between {} and {high} minutes", low.min(high))
+        }
+    } else {
+        let hours = |m: u64| m.div_ceil(60);
+        let (low, high) = (low / 60, hours(high));
+        if low == 0 {
+            format!("within {high} hours")
+        } else if low == high || high - low <= high / 4 {
+            format!("about {high} hours")
+        } else {
+            format!("between {low} and {high} hours")
+        }
+    };
+    format!("it should start {span} from now (an estimate from this track's recent evaluations)")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_start_estimate_reads_the_track_s_pace_over_the_places_running() {
+        let hour = 3600;
+        // Durations of one to two hours, four places turning over.
+        let recent: Vec<u64> = (0..8).map(|i| hour + i * hour / 7).collect();
+        let first = estimate_start(0, 4, &recent).unwrap();
+        assert_eq!(first.low, 0, "next in line may start at once");
+        assert!(first.high <= hour / 2, "{first:?}");
+        let tenth = estimate_start(9, 4, &recent).unwrap();
+        assert!(tenth.low >= 2 * hour && tenth.high <= 5 * hour, "{tenth:?}");
+        assert!(tenth.low < tenth.middle() && tenth.middle() < tenth.high);
+        assert_eq!(estimate_start(3, 0, &recent), None, "nothing to go by");
+        assert_eq!(estimate_start(3, 4, &[]), None);
+        // Only the most recent count.
+        let mut changed = vec![600; RECENT_DURATIONS];
+        changed.extend([100 * hour; 10]);
+        assert!(estimate_start(1, 1, &changed).unwrap().high < hour);
+    }
+
+    #[test]
+    fn the_estimate_reads_as_a_range_or_about_never_a_promise() {
+        let words = |low, high| describe_estimate(StartEstimate { low, high });
+        assert!(
+            words(0, 1500).contains("between 1 and 25 minutes"),
+            "{}",
+            words(0, 1500)
+        );
+        assert!(
+            words(2300, 2400).contains("about 40 minutes"),
+            "{}",
+            words(2300, 2400)
+        );
+        assert!(words(3 * 3600, 5 * 3600).contains("between 3 and 5 hours"));
+        assert!(words(600, 3 * 3600).contains("within 3 hours"));
+        assert!(words(0, 60).contains("estimate"));
+    }
 
     #[test]
     fn the_count_shown_never_goes_up() {

@@ -78,13 +78,43 @@ pub async fn take_turn(
 }
 
 /// How many are ahead of an admitted submission whose pods wait (its entry as the queue shows
-/// it; `None` when it has none: a run from before the queue).
-pub async fn ahead_of(table: &AdmissionTable, submission: &SubmissionInfo) -> Result<Option<u32>> {
+/// it; `None` when it has none: a run from before the queue), and how many run.
+pub async fn ahead_of(
+    table: &AdmissionTable,
+    submission: &SubmissionInfo,
+) -> Result<Option<(u32, u32)>> {
     let entries = table.entries(&submission.leaderboard).await?;
+    let running = entries
+        .iter()
+        .filter(|e| e.state == EntryState::Running)
+        .count() as u32;
     Ok(entries
         .iter()
         .find(|e| e.submission_id == submission.submission_id)
-        .map(|me| queue::ahead(&entries, me)))
+        .map(|me| (queue::ahead(&entries, me), running)))
+}
+
+/// The queue note's words for a submission `ahead` of which wait, while `running` run: the
+/// place, what holds it, and its estimated start from its track's pace (none when the pace
+/// cannot be read: the note goes without it).
+pub async fn note(
+    table: &AdmissionTable,
+    submission: &SubmissionInfo,
+    (ahead, running): (u32, u32),
+    hold: Hold,
+) -> String {
+    let place = queue::describe(ahead, hold);
+    let pace = match table.pace(&submission.leaderboard, &submission.track).await {
+        Ok(pace) => pace,
+        Err(e) => {
+            tracing::warn!(submission_id = submission.submission_id, error = %e, "pace not read: no estimate in the note");
+            Vec::new()
+        }
+    };
+    match queue::estimate_start(ahead, running, &pace) {
+        Some(estimate) => format!("{place}; {}", queue::describe_estimate(estimate)),
+        None => place,
+    }
 }
 
 /// What [`wake_team_next`] did for one of the team's waiting submissions.

@@ -337,6 +337,9 @@ async fn finish_run<C: Callbacks>(
         status = record.status.as_str(),
         "finalized"
     );
+    if record.status == RecordStatus::Finished {
+        record_pace(deps, submission, run.as_ref()).await;
+    }
     leave_queue(deps, submission).await?;
     Ok(ended(record.status.as_str().into(), outcome.reason))
 }
@@ -569,6 +572,28 @@ async fn leave_queue<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) 
         wake_next(deps, table, submission).await;
     }
     Ok(())
+}
+
+/// A finished evaluation's duration, from its first pair's start, joins its track's pace (the
+/// queue note's estimate). Best effort: a failure is logged.
+async fn record_pace<C: Callbacks>(
+    deps: &Deps<C>,
+    submission: &SubmissionInfo,
+    run: Option<&RunState>,
+) {
+    let (Some(table), Some(started)) = (
+        &deps.clients.admission,
+        run.and_then(|r| r.monitor.started_at),
+    ) else {
+        return;
+    };
+    let seconds = clients::now_epoch_seconds().saturating_sub(started);
+    let recorded = table
+        .record_pace(&submission.leaderboard, &submission.track, seconds)
+        .await;
+    if let Err(e) = recorded {
+        warn!(submission_id = submission.submission_id, error = %e, "pace not recorded");
+    }
 }
 
 /// Wakes the team's next waiting submissions, one per open place (see

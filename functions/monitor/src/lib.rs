@@ -387,11 +387,13 @@ async fn queue_note(
     // `None`: nothing to do this round (no queue, no entry, or the queue not read).
     let note = match (&deps.clients.admission, run.monitor.started_at) {
         (Some(table), None) => match queue::ahead_of(table, submission).await {
-            Ok(ahead) => ahead.map(|ahead| {
+            Ok(Some((ahead, running))) => {
                 let ahead = lb_domain::queue::shown_ahead(run.queue.shown, ahead);
-                let text = lb_domain::queue::describe(ahead, lb_domain::queue::Hold::Capacity);
-                Some((ahead, text))
-            }),
+                let hold = lb_domain::queue::Hold::Capacity;
+                let text = queue::note(table, submission, (ahead, running), hold).await;
+                Some(Some((ahead, text)))
+            }
+            Ok(None) => None,
             Err(e) => {
                 warn!(submission_id = at.submission, error = %e, "queue not read this round");
                 None

@@ -30,6 +30,7 @@ use std::time::{Duration, Instant};
 use fake_evalai::{Fixture, NewSubmission};
 use lb_aws::admission::AdmissionTable;
 use lb_aws::budget::BudgetTable;
+use lb_domain::cost::{PodSeen, Totals};
 use lb_domain::queue::{free_places, next_of_team};
 use lb_domain::schedule::queue_wait;
 use lb_domain::submission::SubmissionStatus;
@@ -96,6 +97,12 @@ struct Seen {
     skipped: u32,
     /// Records that reached EvalAI only with the final update.
     in_final: u32,
+    /// The start estimated when it was queued, real-life seconds after its arrival.
+    predicted_start: Option<f64>,
+    /// Its pods' GPU time, real-life seconds, as the Monitor counts it.
+    usage: lb_domain::cost::Ledger,
+    /// Times its pairs were reclaimed.
+    reclaims: u32,
 }
 
 /// An urgent write as the pipeline makes it: the function fails when EvalAI's budget stays
@@ -130,6 +137,36 @@ struct World {
     parked: Arc<BTreeMap<u64, Notify>>,
     /// Shortest and longest evaluation, real-life minutes.
     minutes: (f64, f64),
+    /// Spot or on-demand GPUs, and the reclaims.
+    capacity: Arc<Capacity>,
+    /// The durations (real-life seconds) of the evaluations that ended, most recent last.
+    recent: Arc<std::sync::Mutex<Vec<u64>>>,
+}
+
+/// The rush's capacity: all on-demand, or Spot first (up to `spot_gpus` in use) then
+/// on-demand, where a Spot pair is reclaimed mid-evaluation with `reclaim_chance`.
+struct Capacity {
+    spot_gpus: usize,
+    spot_in_use: std::sync::Mutex<usize>,
+    reclaim_chance: f64,
+}
+
+impl Capacity {
+    /// Whether GPUs just taken are Spot ones (the autoscaler's priority: Spot while it has any).
+    fn take(&self, gpus: usize) -> bool {
+        let mut in_use = self.spot_in_use.lock().unwrap();
+        let spot = *in_use + gpus <= self.spot_gpus;
+        if spot {
+            *in_use += gpus;
+        }
+        spot
+    }
+
+    fn give_back(&self, gpus: usize, spot: bool) {
+        if spot {
+            *self.spot_in_use.lock().unwrap() -= gpus;
+        }
+    }
 }
 
 async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Duration) -> Seen {
@@ -139,6 +176,8 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
         gpus,
         parked,
         minutes,
+        capacity,
+        recent,
     } = world;
     let at = SubmissionRef {
         challenge: info.challenge_id,
@@ -164,6 +203,9 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
         let standing = take_turn(&queue, &info, arrived_ms, TEAM_LIMIT)
             .await
             .expect("take a turn");
+        if seen.predicted_start.is_none() {
+            seen.predicted_start = Some(predict(&queue, &recent, standing.ahead).await);
+        }
         if standing.admitted {
             break;
         }
@@ -185,7 +227,12 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
         .expect("holders")
         .len();
     // The scheduler: its pairs' GPUs, oldest pending first; `running` once it has them.
-    let held = gpus.acquire_many(PAIRS).await.expect("the cluster is up");
+    let mut held = gpus
+        .clone()
+        .acquire_many_owned(PAIRS)
+        .await
+        .expect("the cluster is up");
+    let mut spot = capacity.take(PAIRS as usize);
     seen.start_wait = arrived.elapsed().as_secs_f64() * SCALE;
     urgent("mark running", &mut seen.retries, || {
         client.mark_running(at, &job)
@@ -196,8 +243,21 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
         .await
         .expect("mark running in the queue");
     let started = Instant::now();
-    // Routes take 1 to 4 minutes.
-    let ends = started + scaled(60.0 * rng.between(minutes.0, minutes.1));
+    let real_now = |at: Instant| (at - arrived).as_secs_f64() * SCALE;
+    let kind = |spot: bool| lb_domain::cost::NodeKind {
+        instance_type: "g5.12xlarge".into(),
+        capacity: if spot {
+            lb_domain::cost::CapacityType::Spot
+        } else {
+            lb_domain::cost::CapacityType::OnDemand
+        },
+    };
+    let mut pod_started = started;
+    let mut last_record = started;
+    let mut ends = started + scaled(60.0 * rng.between(minutes.0, minutes.1));
+    // A Spot pair may be reclaimed once, somewhere in its evaluation.
+    let mut reclaim_at = (spot && rng.next() < capacity.reclaim_chance)
+        .then(|| started + (ends - started).mul_f64(rng.next()));
     let mut next_record = started + scaled(rng.between(60.0, 240.0));
     let mut pending: Vec<Instant> = Vec::new();
     let mut last_update: Option<Instant> = None;
@@ -214,7 +274,36 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
         }
         if now >= next_record {
             pending.push(next_record);
+            last_record = next_record;
             next_record += scaled(rng.between(60.0, 240.0));
+        }
+        if reclaim_at.is_some_and(|t| now >= t) {
+            // The node goes: the pods stop, the route in progress is lost, and new pods wait
+            // for GPUs again (behind whoever waits now) and run that route again.
+            reclaim_at = None;
+            seen.reclaims += 1;
+            let pods: Vec<PodSeen> = (0..PAIRS)
+                .map(|job| pod_span(job, (real_now(pod_started), real_now(now)), spot, true))
+                .collect();
+            let results_at = (0..PAIRS)
+                .map(|job| (job, real_now(last_record) as u64))
+                .collect();
+            seen.usage
+                .account(&pods, &kinds(&kind), &results_at, real_now(now) as u64);
+            capacity.give_back(PAIRS as usize, spot);
+            drop(held);
+            held = gpus
+                .clone()
+                .acquire_many_owned(PAIRS)
+                .await
+                .expect("the cluster is up");
+            spot = capacity.take(PAIRS as usize);
+            let resumed = Instant::now();
+            let lost = now - last_record;
+            ends += (resumed - now) + lost;
+            next_record += (resumed - now) + lost;
+            pod_started = resumed;
+            continue;
         }
         let due = last_update.is_none_or(|t| now >= t + scaled(INTERVAL))
             && retry_at.is_none_or(|t| now >= t);
@@ -237,8 +326,8 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
                 other => panic!("partial update of {}: {other:?}", at.submission),
             }
         }
-        // The next thing that can happen: a record, or the update's slot.
-        let mut wake = next_record.min(ends);
+        // The next thing that can happen: a record, a reclaim, or the update's slot.
+        let mut wake = next_record.min(ends).min(reclaim_at.unwrap_or(ends));
         if !pending.is_empty() {
             let slot = [last_update.map(|t| t + scaled(INTERVAL)), retry_at]
                 .into_iter()
@@ -262,6 +351,17 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
     seen.final_delay = Some((Instant::now() - ends).as_secs_f64() * SCALE);
     // Finalize: the Jobs go (their GPUs free), the team's place last, and the team's next
     // waiting submission is woken.
+    let pods: Vec<PodSeen> = (0..PAIRS)
+        .map(|job| pod_span(job, (real_now(pod_started), real_now(ends)), spot, false))
+        .collect();
+    let end = real_now(ends) as u64;
+    seen.usage
+        .account(&pods, &kinds(&kind), &BTreeMap::new(), end);
+    recent
+        .lock()
+        .unwrap()
+        .push(((ends - started).as_secs_f64() * SCALE) as u64);
+    capacity.give_back(PAIRS as usize, spot);
     drop(held);
     queue
         .release(LEADERBOARD, info.submission_id, info.team_id)
@@ -281,6 +381,42 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
     seen
 }
 
+/// The estimate the queue note shows at its arrival (`lb_domain::queue::estimate_start`): the
+/// submissions ahead, the evaluations running, the durations of the latest that ended.
+async fn predict(queue: &AdmissionTable, recent: &std::sync::Mutex<Vec<u64>>, ahead: u32) -> f64 {
+    let entries = queue.entries(LEADERBOARD).await.expect("the queue");
+    let running = entries
+        .iter()
+        .filter(|e| e.state == lb_domain::queue::EntryState::Running)
+        .count() as u32;
+    let latest: Vec<u64> = recent.lock().unwrap().iter().rev().copied().collect();
+    // Nothing to go by (the rush's first minutes): the estimate is "soon".
+    lb_domain::queue::estimate_start(ahead, running, &latest).map_or(0.0, |e| e.middle() as f64)
+}
+
+/// One pair's pod from `start` to `end` (real-life seconds since its arrival) on a node of its
+/// capacity (named by it), reclaimed or ended.
+fn pod_span(job: u32, (start, end): (f64, f64), spot: bool, reclaimed: bool) -> PodSeen {
+    PodSeen {
+        job,
+        started_at: start as u64,
+        ended_at: Some(end as u64),
+        gpus: 1,
+        node: Some(if spot { "spot" } else { "on-demand" }.into()),
+        disrupted: reclaimed,
+    }
+}
+
+/// The node kinds of [`pod_span`]'s nodes.
+fn kinds(
+    kind: &dyn Fn(bool) -> lb_domain::cost::NodeKind,
+) -> BTreeMap<String, lb_domain::cost::NodeKind> {
+    BTreeMap::from([
+        ("spot".into(), kind(true)),
+        ("on-demand".into(), kind(false)),
+    ])
+}
+
 fn quantile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
         return f64::NAN;
@@ -289,9 +425,50 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
     sorted[rank - 1]
 }
 
+/// How the rush's GPUs are bought.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Mode {
+    /// Every GPU on-demand.
+    OnDemand,
+    /// Spot first, up to this share of the GPUs (what the Spot market has), then on-demand;
+    /// each Spot evaluation is reclaimed once mid-run with this chance.
+    SpotThenOnDemand {
+        spot_share: f64,
+        reclaim_chance: f64,
+    },
+}
+
+impl Mode {
+    fn name(self) -> &'static str {
+        match self {
+            Mode::OnDemand => "on-demand",
+            Mode::SpotThenOnDemand { .. } => "spot-then-on-demand",
+        }
+    }
+}
+
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() {
     let full = std::env::args().any(|a| a == "--bench");
+    // One Spot evaluation in ten loses a route to a reclaim: far more than AWS's Spot Instance
+    // Advisor's worst bucket (more than 20% of a pool's instances interrupted in a month, well
+    // under 0.1% an hour) gives an evaluation of a few hours, so the run-again cost is not
+    // flattered. Three quarters of the GPUs from Spot: a g5 pool seldom has a whole rush's.
+    let spot = Mode::SpotThenOnDemand {
+        spot_share: 0.75,
+        reclaim_chance: 0.1,
+    };
+    let on_demand = rush(full, Mode::OnDemand).await;
+    let spot = rush(full, spot).await;
+    println!(
+        "compared       spot-then-on-demand costs {:.0}% of on-demand for the same rush: the same budget buys {:.1}x the evaluations",
+        spot * 100.0 / on_demand,
+        on_demand / spot
+    );
+}
+
+/// One rush on the capacity `mode` buys; returns its estimated GPU cost in dollars.
+async fn rush(full: bool, mode: Mode) -> f64 {
     // (submissions, teams, GPUs, minutes over which they arrive, evaluation minutes)
     let (count, teams, gpus, arriving, minutes): (u32, u32, usize, f64, (f64, f64)) = if full {
         (200, 40, 160, 15.0, (3.0, 8.0))
@@ -314,6 +491,32 @@ async fn main() {
     let budget = Arc::new(BudgetTable::new(dynamo.clone(), BUDGET_TABLE, policy));
     let queue = Arc::new(AdmissionTable::new(dynamo, ADMISSION_TABLE));
     let cluster = Arc::new(Semaphore::new(gpus));
+    let capacity = Arc::new(match mode {
+        Mode::OnDemand => Capacity {
+            spot_gpus: 0,
+            spot_in_use: Default::default(),
+            reclaim_chance: 0.0,
+        },
+        Mode::SpotThenOnDemand {
+            spot_share,
+            reclaim_chance,
+        } => Capacity {
+            spot_gpus: (gpus as f64 * spot_share) as usize,
+            spot_in_use: Default::default(),
+            reclaim_chance,
+        },
+    });
+    // The track's durations before the rush (its recent evaluations), spread over its range.
+    let before: Vec<u64> = (0..lb_domain::queue::RECENT_DURATIONS)
+        .map(|i| {
+            let share = i as f64 / (lb_domain::queue::RECENT_DURATIONS - 1) as f64;
+            (60.0 * (minutes.0 + (minutes.1 - minutes.0) * share)) as u64
+        })
+        .collect();
+    let recent = Arc::new(std::sync::Mutex::new(before));
+    let prices = lb_domain::settings::Settings::from_json(LOCAL_SETTINGS)
+        .expect("the local settings")
+        .prices;
 
     let started = Instant::now();
     let mut arrivals = Rng(0x5EED);
@@ -377,6 +580,8 @@ async fn main() {
             gpus: cluster.clone(),
             parked: parked.clone(),
             minutes,
+            capacity: capacity.clone(),
+            recent: recent.clone(),
         };
         tasks.push(tokio::spawn(submission(world, info, seed, arrival)));
     }
@@ -386,8 +591,21 @@ async fn main() {
     let mut start = Vec::new();
     let mut most_held = 0;
     let (mut updates, mut skipped, mut in_final, mut retries, mut woken) = (0, 0, 0, 0, 0);
+    let (mut usage, mut reclaims, mut estimate_errors) = (Totals::default(), 0, Vec::new());
+    let mut cost = 0.0;
     for task in tasks {
         let seen = task.await.unwrap();
+        let totals = seen.usage.summary(&prices);
+        usage.gpu_seconds += totals.gpu_seconds;
+        usage.spot += totals.spot;
+        usage.run_again += totals.run_again;
+        cost += totals
+            .dollars
+            .expect("the local settings price g5.12xlarge");
+        reclaims += seen.reclaims;
+        if let Some(predicted) = seen.predicted_start {
+            estimate_errors.push((predicted - seen.start_wait).abs());
+        }
         delays.extend(seen.record_delays);
         finals.extend(seen.final_delay);
         admission.push(seen.admission_wait);
@@ -463,6 +681,28 @@ async fn main() {
         start.last().copied().unwrap_or(f64::NAN) / 60.0,
     );
 
+    estimate_errors.sort_by(f64::total_cmp);
+    let hours = |s: u64| s as f64 / 3600.0;
+    println!(
+        "GPUs ({})  {} finished; {:.1} GPU-hours ({:.1} on Spot), {:.2} run again after {reclaims} reclaims; about ${cost:.0}",
+        mode.name(),
+        finals.len(),
+        hours(usage.gpu_seconds),
+        hours(usage.spot),
+        hours(usage.run_again),
+    );
+    println!(
+        "estimate       predicted -> actual start error p50 {:.1} min, p90 {:.1} min (arrival -> running p50 {:.1} min)",
+        quantile(&estimate_errors, 0.5) / 60.0,
+        quantile(&estimate_errors, 0.9) / 60.0,
+        quantile(&start, 0.5) / 60.0,
+    );
+    if let Mode::SpotThenOnDemand { .. } = mode {
+        assert!(usage.spot > 0, "no Spot GPU was used");
+        assert!(usage.run_again < usage.gpu_seconds / 10, "{usage:?}");
+    } else {
+        assert_eq!((usage.spot, usage.run_again), (0, 0));
+    }
     assert_eq!(throttled, 0, "EvalAI throttled {throttled} requests");
     assert!(
         busiest <= LIMIT as usize,
@@ -474,4 +714,5 @@ async fn main() {
         "a team held {most_held} places"
     );
     assert!(updates > 0);
+    cost
 }
