@@ -155,6 +155,7 @@ impl Deployment {
             wake_table: None,
             budget_table: token.budget_table.clone(),
             admission_table: None,
+            memory_mb: 0,
         };
         lb_pipeline::clients::evalai(&self.sdk, &config, &self.settings).await
     }
@@ -297,6 +298,7 @@ impl Record {
             spot: self.number("gpu_seconds_spot").unwrap_or(0),
             run_again: self.number("gpu_seconds_run_again").unwrap_or(0),
             dollars: self.amount("cost_usd"),
+            orchestration: self.amount("orchestration_usd"),
         })
     }
 
@@ -355,6 +357,8 @@ pub struct Usage {
     pub run_again: u64,
     /// Dollars, when every second had a price.
     pub dollars: Option<f64>,
+    /// The orchestration's dollars (state transitions, Lambda, DynamoDB), once counted.
+    pub orchestration: Option<f64>,
 }
 
 impl Usage {
@@ -365,6 +369,10 @@ impl Usage {
             spot: self.spot + other.spot,
             run_again: self.run_again + other.run_again,
             dollars: self.dollars.zip(other.dollars).map(|(a, b)| a + b),
+            orchestration: match (self.orchestration, other.orchestration) {
+                (Some(a), Some(b)) => Some(a + b),
+                (a, b) => a.or(b),
+            },
         }
     }
 
@@ -373,15 +381,19 @@ impl Usage {
         self.gpu_seconds as f64 / 3600.0
     }
 
-    /// `2.50 GPU-hours (1.20 on Spot, 0.10 run again after reclaims), about $3.10`.
+    /// `2.50 GPU-hours (1.20 on Spot, 0.10 run again after reclaims), about $3.10;
+    /// orchestration about $0.0120`.
     pub fn describe(&self) -> String {
         let hours = |s: u64| s as f64 / 3600.0;
         let price = self.dollars.map_or_else(
             || ", no price in the settings".into(),
             |d| format!(", about ${d:.2}"),
         );
+        let orchestration = self
+            .orchestration
+            .map_or_else(String::new, |d| format!("; orchestration about ${d:.4}"));
         format!(
-            "{:.2} GPU-hours ({:.2} on Spot, {:.2} run again after reclaims){price}",
+            "{:.2} GPU-hours ({:.2} on Spot, {:.2} run again after reclaims){price}{orchestration}",
             self.hours(),
             hours(self.spot),
             hours(self.run_again)
@@ -421,6 +433,8 @@ const KNOWN_ATTRIBUTES: &[&str] = &[
     "gpu_seconds_spot",
     "gpu_seconds_run_again",
     "cost_usd",
+    "orchestration_usd",
+    "state_transitions",
 ];
 
 /// A DynamoDB value as plain JSON (numbers as numbers when they fit).

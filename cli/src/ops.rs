@@ -894,7 +894,14 @@ mod tests {
         ];
         let a = record(1, &priced);
         let b = record(1, &priced[..3]);
-        let c = record(2, &[("gpu_seconds", "36000"), ("cost_usd", "9.5")]);
+        let c = record(
+            2,
+            &[
+                ("gpu_seconds", "36000"),
+                ("cost_usd", "9.5"),
+                ("orchestration_usd", "0.0125"),
+            ],
+        );
         let none = record(3, &[]);
         assert_eq!(
             a.usage().unwrap().describe(),
@@ -910,6 +917,14 @@ mod tests {
         let teams = team_usage(&[&a, &b, &c, &none]);
         assert_eq!(teams.len(), 2, "{teams:?}");
         assert_eq!(teams[0].0, "T2 (2)");
+        assert!(
+            teams[0]
+                .1
+                .describe()
+                .ends_with("about $9.50; orchestration about $0.0125"),
+            "{}",
+            teams[0].1.describe()
+        );
         assert_eq!(teams[1].1.gpu_seconds, 14_400);
         assert_eq!(teams[1].1.run_again, 360);
         assert_eq!(teams[1].1.dollars, None, "one of its runs had no price");

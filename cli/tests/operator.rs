@@ -138,6 +138,13 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
             // Two of its routes have no CARLA recording (Finalize counted them).
             ("recordings_found", AttributeValue::N("18".into())),
             ("recordings_expected", AttributeValue::N("20".into())),
+            // Its GPUs, as Finalize wrote them.
+            ("gpu_seconds", AttributeValue::N("28800".into())),
+            ("gpu_seconds_spot", AttributeValue::N("21600".into())),
+            ("gpu_seconds_run_again", AttributeValue::N("900".into())),
+            ("cost_usd", AttributeValue::N("5.62".into())),
+            ("orchestration_usd", AttributeValue::N("0.0312".into())),
+            ("state_transitions", AttributeValue::N("1180".into())),
         ],
     )
     .await;
@@ -170,8 +177,19 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
         "{}",
         show(&out)
     );
+    assert!(
+        stdout(&out).contains("GPUs         8.00 GPU-hours (6.00 on Spot, 0.25 run again after reclaims), about $5.62; orchestration about $0.0312"),
+        "{}",
+        show(&out)
+    );
+    assert!(
+        !stdout(&out).contains("state_transitions"),
+        "{}",
+        show(&out)
+    );
     let out = lbctl(&["status", "101"], &env, None);
     assert!(!stdout(&out).contains("recordings"), "{}", show(&out));
+    assert!(!stdout(&out).contains("GPU-hours"), "{}", show(&out));
 
     let out = lbctl(&["status", "102", "--json"], &env, None);
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
@@ -264,7 +282,18 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
         "{listed}"
     );
     let out = lbctl(&["list"], &env, None);
-    assert!(stdout(&out).contains(" QUEUE    AGE "), "{}", show(&out));
+    assert!(
+        stdout(&out).contains(" QUEUE STARTS IN    AGE "),
+        "{}",
+        show(&out)
+    );
+    // Each team's GPUs under the list, and each submission's in its column.
+    assert!(stdout(&out).contains("8.00h $5.62"), "{}", show(&out));
+    assert!(
+        stdout(&out).contains("team Team 2 (2): 8.00 GPU-hours"),
+        "{}",
+        show(&out)
+    );
     // Filters: a team by id or name, a status in any case.
     let out = lbctl(&["list", "--team", "3"], &env, None);
     assert_eq!(list_ids(&stdout(&out)), [105, 104], "{}", show(&out));

@@ -408,7 +408,8 @@ impl SubmissionsTable {
 }
 
 /// The usage attributes (`SET` clauses and their values): GPU-seconds in all, on Spot, run
-/// again after a reclaim, and the estimate in dollars when every second had a price.
+/// again after a reclaim, the estimate in dollars when every second had a price, and the
+/// orchestration's own when counted.
 fn usage_update(usage: &Totals) -> (Vec<String>, HashMap<String, AttributeValue>) {
     let mut set = vec![
         "gpu_seconds = :gpu".to_string(),
@@ -423,6 +424,12 @@ fn usage_update(usage: &Totals) -> (Vec<String>, HashMap<String, AttributeValue>
     if let Some(dollars) = usage.dollars {
         set.push("cost_usd = :cost".into());
         values.insert(":cost".into(), n(format!("{dollars:.2}")));
+    }
+    if let Some(orchestration) = usage.orchestration {
+        set.push("orchestration_usd = :orchestration, state_transitions = :transitions".into());
+        let dollars = orchestration.dollars();
+        values.insert(":orchestration".into(), n(format!("{dollars:.4}")));
+        values.insert(":transitions".into(), n(orchestration.transitions));
     }
     (set, values)
 }
@@ -484,7 +491,13 @@ fn final_update(record: &FinalRecord) -> Update {
             values.extend(usage_values);
         }
         // Nor an old run's usage, when this one counted none.
-        None => remove.extend(["gpu_seconds", "gpu_seconds_spot", "gpu_seconds_run_again"]),
+        None => remove.extend([
+            "gpu_seconds",
+            "gpu_seconds_spot",
+            "gpu_seconds_run_again",
+            "orchestration_usd",
+            "state_transitions",
+        ]),
     }
     if record.usage.is_none_or(|u| u.dollars.is_none()) {
         remove.push("cost_usd");

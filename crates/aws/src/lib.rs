@@ -63,3 +63,46 @@ pub fn s3_client(config: &SdkConfig) -> aws_sdk_s3::Client {
         .build();
     aws_sdk_s3::Client::from_conf(s3)
 }
+
+/// The DynamoDB requests a function's clients sent (attempts, retries included): what its
+/// share of the orchestration's cost counts. A Lambda runs one invocation at a time, so the
+/// difference across a handler is that invocation's.
+#[derive(Debug, Clone, Default)]
+pub struct RequestCount(std::sync::Arc<std::sync::atomic::AtomicU64>);
+
+impl RequestCount {
+    /// Requests so far.
+    pub fn get(&self) -> u64 {
+        self.0.load(std::sync::atomic::Ordering::Relaxed)
+    }
+}
+
+/// Adds one to a [`RequestCount`] before every attempt a client sends.
+#[derive(Debug)]
+struct Counting(RequestCount);
+
+impl aws_sdk_dynamodb::config::Intercept for Counting {
+    fn name(&self) -> &'static str {
+        "RequestCount"
+    }
+
+    fn read_before_attempt(
+        &self,
+        _context: &aws_sdk_dynamodb::config::interceptors::BeforeTransmitInterceptorContextRef<'_>,
+        _components: &aws_sdk_dynamodb::config::RuntimeComponents,
+        _cfg: &mut aws_sdk_dynamodb::config::ConfigBag,
+    ) -> std::result::Result<(), aws_sdk_dynamodb::error::BoxError> {
+        (self.0)
+            .0
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        Ok(())
+    }
+}
+
+/// A DynamoDB client whose requests `count` counts.
+pub fn dynamo_client(config: &SdkConfig, count: &RequestCount) -> aws_sdk_dynamodb::Client {
+    let conf = aws_sdk_dynamodb::config::Builder::from(config)
+        .interceptor(Counting(count.clone()))
+        .build();
+    aws_sdk_dynamodb::Client::from_conf(conf)
+}

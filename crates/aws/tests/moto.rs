@@ -129,6 +129,12 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         spot: 3600,
         run_again: 60,
         dollars: Some(2.0468),
+        orchestration: Some(lb_domain::cost::Orchestration {
+            transitions: 400,
+            invocations: 100,
+            mb_ms: 100 * 512 * 1000,
+            dynamo_requests: 1000,
+        }),
     };
     table
         .mark_running(
@@ -151,6 +157,12 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         AttributeValue::N("60".into())
     );
     assert_eq!(item["cost_usd"], AttributeValue::N("2.05".into()));
+    // 400 transitions $0.01, 100 invocations, 50 GB-seconds $0.00083, 1,000 requests.
+    assert_eq!(
+        item["orchestration_usd"],
+        AttributeValue::N("0.0115".into())
+    );
+    assert_eq!(item["state_transitions"], AttributeValue::N("400".into()));
     assert!(matches!(
         table.claim(&record("exec-3", true)).await.unwrap(),
         Claim::Duplicate { .. }

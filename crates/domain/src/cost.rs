@@ -155,6 +155,8 @@ pub struct Totals {
     pub run_again: u64,
     /// The estimate in dollars, when every GPU-second had a price.
     pub dollars: Option<f64>,
+    /// What the orchestration did for it, when counted.
+    pub orchestration: Option<Orchestration>,
 }
 
 /// A Job's pod at the last round: its line, and whether its disruption was counted.
@@ -358,6 +360,115 @@ impl Ledger {
     }
 }
 
+/// What the orchestration did for one submission: Step Functions state transitions, Lambda
+/// invocations and memory-time, DynamoDB requests. Each stage adds its own.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Orchestration {
+    /// State transitions (Standard workflows bill each, retries included).
+    #[serde(default)]
+    pub transitions: u64,
+    /// Lambda invocations.
+    #[serde(default)]
+    pub invocations: u64,
+    /// Lambda memory-time, MB-milliseconds (billed per GB-second).
+    #[serde(default)]
+    pub mb_ms: u64,
+    /// DynamoDB requests (on-demand tables bill each).
+    #[serde(default)]
+    pub dynamo_requests: u64,
+}
+
+/// The list prices the orchestration is estimated at, US East (N. Virginia):
+/// - Step Functions Standard: $0.025 per 1,000 state transitions
+///   (aws.amazon.com/step-functions/pricing);
+/// - Lambda, x86: $0.20 per million requests and $0.0000166667 per GB-second
+///   (aws.amazon.com/lambda/pricing);
+/// - DynamoDB on-demand: $0.625 per million write request units (aws.amazon.com/dynamodb/pricing/on-demand);
+///   every request is priced as a write, most of ours are (a read costs a fifth of it).
+pub mod list_prices {
+    /// Dollars per state transition.
+    pub const TRANSITION: f64 = 0.025 / 1_000.0;
+    /// Dollars per Lambda invocation.
+    pub const INVOCATION: f64 = 0.20 / 1_000_000.0;
+    /// Dollars per GB-second of Lambda.
+    pub const GB_SECOND: f64 = 0.000_016_666_7;
+    /// Dollars per DynamoDB request.
+    pub const DYNAMO_REQUEST: f64 = 0.625 / 1_000_000.0;
+}
+
+impl Orchestration {
+    /// One Lambda invocation of `memory_mb` that ran `millis` and sent `dynamo_requests`,
+    /// with the `transitions` it causes.
+    pub fn invocation(transitions: u64, memory_mb: u32, millis: u64, dynamo_requests: u64) -> Self {
+        Orchestration {
+            transitions,
+            invocations: 1,
+            mb_ms: u64::from(memory_mb).saturating_mul(millis),
+            dynamo_requests,
+        }
+    }
+
+    /// Its estimate in dollars at the [`list_prices`].
+    pub fn dollars(&self) -> f64 {
+        let gb_seconds = self.mb_ms as f64 / 1024.0 / 1000.0;
+        self.transitions as f64 * list_prices::TRANSITION
+            + self.invocations as f64 * list_prices::INVOCATION
+            + gb_seconds * list_prices::GB_SECOND
+            + self.dynamo_requests as f64 * list_prices::DYNAMO_REQUEST
+    }
+}
+
+impl std::ops::Add for Orchestration {
+    type Output = Orchestration;
+
+    fn add(self, other: Orchestration) -> Orchestration {
+        Orchestration {
+            transitions: self.transitions.saturating_add(other.transitions),
+            invocations: self.invocations.saturating_add(other.invocations),
+            mb_ms: self.mb_ms.saturating_add(other.mb_ms),
+            dynamo_requests: self.dynamo_requests.saturating_add(other.dynamo_requests),
+        }
+    }
+}
+
+/// Where the state machine goes after a task (`Next?` in `statemachine/submission.asl.json`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum After {
+    /// The run goes on: `PollInstead` when polling, else `Hold` (if it holds) and
+    /// `WaitForChange`.
+    Wait {
+        /// It polls.
+        poll: bool,
+        /// It holds first.
+        hold: bool,
+    },
+    /// `LaunchAdmitted`, which counts itself.
+    Launch,
+    /// `ContinueAsNew`, `Continued`, then the next execution's `OneSubmission?`, `Resume`,
+    /// `Hold` and `WaitForChange`.
+    Continue,
+    /// `Finalize`, which counts itself and the two states after it.
+    Finalize,
+}
+
+/// State transitions before Launch: `OneSubmission?`, `Unbatch`, `Intake`, `Eligible?`.
+pub const OPENING_TRANSITIONS: u64 = 4;
+
+/// State transitions of Finalize and after it: `Finalize`, `Failed?`, `Done`.
+pub const CLOSING_TRANSITIONS: u64 = 3;
+
+/// The state transitions a task (Launch, LaunchAdmitted, Monitor) and its retries cause up to
+/// the next task: itself, `Next?` and the states it leads to.
+pub fn task_transitions(retries: u64, after: After) -> u64 {
+    let next = match after {
+        After::Wait { poll: true, .. } => 1,
+        After::Wait { hold, .. } => 1 + u64::from(hold),
+        After::Launch | After::Finalize => 0,
+        After::Continue => 6,
+    };
+    1 + retries + 1 + next
+}
+
 /// Dollars per hour of one instance type (the settings' `prices`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -504,6 +615,30 @@ mod tests {
         let expected = 2.0 * 2.0 / 4.0 + 2.0 * 5.672 / 4.0;
         assert!((e.dollars - expected).abs() < 1e-9, "{e:?}");
         assert_eq!(e.unpriced_gpu_seconds, 3600);
+    }
+
+    #[test]
+    fn the_orchestration_is_priced_per_transition_request_and_gb_second() {
+        // A thousand rounds of four transitions, each a second of a 512 MB Lambda with ten
+        // DynamoDB requests.
+        let round = Orchestration::invocation(4, 512, 1000, 10);
+        let run = (0..1000).fold(Orchestration::default(), |sum, _| sum + round);
+        assert_eq!(run.transitions, 4000);
+        assert_eq!(run.mb_ms, 512_000_000);
+        let expected = 4000.0 * 0.000_025
+            + 1000.0 * 0.000_000_2
+            + 500.0 * 0.000_016_666_7
+            + 10_000.0 * 0.000_000_625;
+        assert!((run.dollars() - expected).abs() < 1e-9, "{}", run.dollars());
+        assert!(run.dollars() < 0.12, "cents, beside GPU-hours of dollars");
+        // A round that holds and waits: Monitor, Next?, Hold, WaitForChange.
+        let waits = After::Wait {
+            poll: false,
+            hold: true,
+        };
+        assert_eq!(task_transitions(0, waits), 4);
+        assert_eq!(task_transitions(2, After::Finalize), 4, "retries count");
+        assert_eq!(task_transitions(0, After::Continue), 8);
     }
 
     #[test]

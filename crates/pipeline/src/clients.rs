@@ -3,6 +3,7 @@
 use aws_config::SdkConfig;
 use lb_aws::admission::AdmissionTable;
 use lb_aws::budget::BudgetTable;
+use lb_aws::RequestCount;
 use lb_domain::settings::Settings;
 use lb_evalai::{AuthScheme, BudgetPolicy, EvalAiClient, RetryPolicy};
 
@@ -22,6 +23,16 @@ pub async fn evalai(
     config: &FunctionConfig,
     settings: &Settings,
 ) -> Result<EvalAiClient, FnError> {
+    evalai_counted(sdk, config, settings, &RequestCount::default()).await
+}
+
+/// [`evalai`], the budget's requests counted in `count`.
+pub async fn evalai_counted(
+    sdk: &SdkConfig,
+    config: &FunctionConfig,
+    settings: &Settings,
+    count: &RequestCount,
+) -> Result<EvalAiClient, FnError> {
     let secrets = aws_sdk_secretsmanager::Client::new(sdk);
     let token = lb_aws::secrets::load_token(&secrets, &config.token_secret).await?;
     let scheme = match settings.evalai.auth_scheme.as_str() {
@@ -40,16 +51,25 @@ pub async fn evalai(
     let policy = BudgetPolicy::evalai(settings.evalai.requests_per_minute).ok_or_else(|| {
         FnError::Config("evalai.requests_per_minute is too small to share".into())
     })?;
-    let budget = BudgetTable::new(aws_sdk_dynamodb::Client::new(sdk), table, policy);
+    let budget = BudgetTable::new(lb_aws::dynamo_client(sdk, count), table, policy);
     Ok(client.with_budget(std::sync::Arc::new(budget)))
 }
 
 /// The admission table, when the function has one.
 pub fn admission(sdk: &SdkConfig, config: &FunctionConfig) -> Option<AdmissionTable> {
+    admission_counted(sdk, config, &RequestCount::default())
+}
+
+/// [`admission`], its requests counted in `count`.
+pub fn admission_counted(
+    sdk: &SdkConfig,
+    config: &FunctionConfig,
+    count: &RequestCount,
+) -> Option<AdmissionTable> {
     config
         .admission_table
         .as_ref()
-        .map(|table| AdmissionTable::new(aws_sdk_dynamodb::Client::new(sdk), table))
+        .map(|table| AdmissionTable::new(lb_aws::dynamo_client(sdk, count), table))
 }
 
 /// Now, in the records' time format (the original's `2024-03-07 10:31:02 UTC`).
@@ -86,6 +106,10 @@ pub struct RunClients {
     pub dynamo: aws_sdk_dynamodb::Client,
     /// The leaderboards' queues, when configured.
     pub admission: Option<AdmissionTable>,
+    /// The DynamoDB requests of these clients (the orchestration's cost).
+    pub dynamo_requests: RequestCount,
+    /// The function's memory, MB (its invocations' cost per second).
+    pub memory_mb: u32,
 }
 
 impl RunClients {
@@ -97,14 +121,17 @@ impl RunClients {
         clusters: Clusters,
     ) -> Result<RunClients, FnError> {
         let settings = settings(sdk, config).await?;
-        let evalai = evalai(sdk, config, &settings).await?;
+        let count = RequestCount::default();
+        let evalai = evalai_counted(sdk, config, &settings, &count).await?;
         Ok(RunClients {
             settings,
             evalai,
             clusters,
             s3: lb_aws::s3_client(sdk),
-            dynamo: aws_sdk_dynamodb::Client::new(sdk),
-            admission: admission(sdk, config),
+            dynamo: lb_aws::dynamo_client(sdk, &count),
+            admission: admission_counted(sdk, config, &count),
+            dynamo_requests: count,
+            memory_mb: config.memory_mb,
         })
     }
 }

@@ -20,6 +20,9 @@ pub struct FunctionConfig {
     /// admits and the Monitor and Finalize move a submission on; unset, nothing is queued
     /// (every submission is admitted at once: a tool run by hand).
     pub admission_table: Option<String>,
+    /// `AWS_LAMBDA_FUNCTION_MEMORY_SIZE` (the runtime sets it): the function's memory in MB,
+    /// what its invocations cost per second; Lambda's default, 128, where it is not set.
+    pub memory_mb: u32,
 }
 
 impl FunctionConfig {
@@ -41,6 +44,9 @@ impl FunctionConfig {
             wake_table: lookup("LB_WAKE_TABLE").filter(|v| !v.trim().is_empty()),
             budget_table: lookup("LB_BUDGET_TABLE").filter(|v| !v.trim().is_empty()),
             admission_table: lookup("LB_ADMISSION_TABLE").filter(|v| !v.trim().is_empty()),
+            memory_mb: lookup("AWS_LAMBDA_FUNCTION_MEMORY_SIZE")
+                .and_then(|v| v.trim().parse().ok())
+                .unwrap_or(128),
         })
     }
 }

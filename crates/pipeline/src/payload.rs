@@ -271,6 +271,25 @@ pub struct MonitorState {
     /// The GPUs its pods held so far (`lb_domain::cost`).
     #[serde(default, skip_serializing_if = "lb_domain::cost::Ledger::is_empty")]
     pub usage: lb_domain::cost::Ledger,
+    /// What the orchestration did for it so far (every stage since its Intake).
+    #[serde(default)]
+    pub orchestration: lb_domain::cost::Orchestration,
+}
+
+impl MonitorState {
+    /// Where the state machine goes after the task that left this state.
+    pub fn after(&self) -> lb_domain::cost::After {
+        use lb_domain::cost::After;
+        match self.state {
+            RunPhase::Running => After::Wait {
+                poll: self.poll,
+                hold: self.hold_seconds > 0,
+            },
+            RunPhase::Admitted => After::Launch,
+            RunPhase::Continued => After::Continue,
+            _ => After::Finalize,
+        }
+    }
 }
 
 fn is_zero(n: &u32) -> bool {
@@ -308,6 +327,7 @@ impl MonitorState {
             continue_as: None,
             handover: false,
             usage: lb_domain::cost::Ledger::default(),
+            orchestration: lb_domain::cost::Orchestration::default(),
         }
     }
 }

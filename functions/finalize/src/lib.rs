@@ -19,7 +19,7 @@ use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
-use lb_domain::cost::Totals;
+use lb_domain::cost::{self, Orchestration, Totals};
 use std::collections::HashSet;
 
 use lb_domain::audit;
@@ -275,6 +275,10 @@ async fn finish_run<C: Callbacks>(
     error: Option<String>,
 ) -> Result<FinalizeOutput> {
     let id = submission.submission_id;
+    let began = (
+        std::time::Instant::now(),
+        deps.clients.dynamo_requests.get(),
+    );
     let target = deps.clients.settings.target(submission.phase_id)?;
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
     let submissions = &target.deployment.submissions_table;
@@ -320,7 +324,7 @@ async fn finish_run<C: Callbacks>(
     let outcome = finalize::settle(outcome, posted);
     let mut record = final_record(&target, &store, &outcome, snapshot.as_ref(), error.clone());
     record.recordings = recordings(&store, &outcome, snapshot.as_ref()).await;
-    record.usage = run.as_ref().map(|run| usage(deps, run));
+    record.usage = run.as_ref().map(|run| usage(deps, run, began));
     if !table
         .finish(submission.team_id, id, &submission.execution, &record)
         .await?
@@ -511,11 +515,22 @@ fn final_record(
 }
 
 /// What the run's GPUs came to: the Monitor's count, with the pods still running at its last
-/// round charged until now (their Jobs were just deleted).
-fn usage<C: Callbacks>(deps: &Deps<C>, run: &RunState) -> Totals {
+/// round charged until now (their Jobs were just deleted); and the orchestration's, this
+/// Finalize (since `began`, with the DynamoDB requests counted then) and the states after it
+/// included.
+fn usage<C: Callbacks>(deps: &Deps<C>, run: &RunState, began: (std::time::Instant, u64)) -> Totals {
     let mut ledger = run.monitor.usage.clone();
     ledger.close_all(clients::now_epoch_seconds());
-    ledger.summary(&deps.clients.settings.prices)
+    let this = Orchestration::invocation(
+        cost::CLOSING_TRANSITIONS,
+        deps.clients.memory_mb,
+        u64::try_from(began.0.elapsed().as_millis()).unwrap_or(u64::MAX),
+        deps.clients.dynamo_requests.get().saturating_sub(began.1),
+    );
+    Totals {
+        orchestration: Some(run.monitor.orchestration + this),
+        ..ledger.summary(&deps.clients.settings.prices)
+    }
 }
 
 /// What operators can audit of a FINISHED result: how many of its routes have their CARLA

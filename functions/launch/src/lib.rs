@@ -9,6 +9,7 @@
 
 use aws_config::SdkConfig;
 use lb_aws::admission::AdmissionTable;
+use lb_domain::cost::{self, Orchestration};
 use lb_domain::history;
 use lb_domain::plan::{plan, Plan, PlanInput};
 use lb_domain::schedule::queue_wait;
@@ -41,6 +42,10 @@ pub struct Deps {
     pub timers: Option<lb_jobs::Timers>,
     /// The leaderboards' queues (`None`: every submission is admitted at once).
     pub admission: Option<AdmissionTable>,
+    /// This function's memory, MB, and its DynamoDB requests: its share of the orchestration.
+    pub memory_mb: u32,
+    /// The DynamoDB requests of its clients.
+    pub dynamo_requests: lb_aws::RequestCount,
 }
 
 impl Deps {
@@ -58,14 +63,17 @@ impl Deps {
         clusters: Clusters,
     ) -> Result<Deps> {
         let settings = clients::settings(sdk, config).await?;
-        let evalai = clients::evalai(sdk, config, &settings).await?;
+        let count = lb_aws::RequestCount::default();
+        let evalai = clients::evalai_counted(sdk, config, &settings, &count).await?;
         Ok(Deps {
             settings,
             evalai,
             clusters,
             region: sdk.region().map(|r| r.to_string()).unwrap_or_default(),
             timers: None,
-            admission: clients::admission(sdk, config),
+            admission: clients::admission_counted(sdk, config, &count),
+            memory_mb: config.memory_mb,
+            dynamo_requests: count,
         })
     }
 }
@@ -88,6 +96,10 @@ pub struct LaunchInput {
     /// the one that claimed the submission).
     #[serde(default)]
     pub execution: Option<String>,
+    /// What the orchestration did for the run while it waited for its turn
+    /// (`LaunchAdmitted`).
+    #[serde(default)]
+    pub orchestration: Option<Orchestration>,
 }
 
 impl Invocation for LaunchInput {
@@ -109,8 +121,31 @@ impl Function for Deps {
 }
 
 /// Creates the submission's Jobs and starts its run state, or, when its team holds all its
-/// places, starts the run state of a submission waiting for its turn.
+/// places, starts the run state of a submission waiting for its turn; the run's orchestration
+/// counted so far, this Launch's share added (and Intake's transitions the first time).
 pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
+    let (began, requests) = (std::time::Instant::now(), deps.dynamo_requests.get());
+    let before = match input.orchestration {
+        Some(counted) => counted,
+        // Intake's invocation and the states before Launch.
+        None => Orchestration {
+            transitions: cost::OPENING_TRANSITIONS,
+            invocations: 1,
+            ..Orchestration::default()
+        },
+    };
+    let mut run = launch(input, deps).await?;
+    let this = Orchestration::invocation(
+        cost::task_transitions(0, run.monitor.after()),
+        deps.memory_mb,
+        u64::try_from(began.elapsed().as_millis()).unwrap_or(u64::MAX),
+        deps.dynamo_requests.get().saturating_sub(requests),
+    );
+    run.monitor.orchestration = before + this;
+    Ok(run)
+}
+
+async fn launch(input: LaunchInput, deps: &Deps) -> Result<RunState> {
     let submission = input.submission;
     let target = deps.settings.target(submission.phase_id)?;
     let now = clients::now_epoch_seconds();

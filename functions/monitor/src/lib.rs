@@ -183,6 +183,10 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         retries,
     } = input;
     let now = clients::now_epoch_seconds();
+    let (began, requests) = (
+        std::time::Instant::now(),
+        deps.clients.dynamo_requests.get(),
+    );
     begin_round(&mut run, now, execution.as_deref(), retries);
     if run.monitor.handover {
         hand_over(deps, &submission, &mut run).await;
@@ -200,6 +204,14 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         monitor.continue_as = Some(next);
         monitor.state = RunPhase::Continued;
     }
+    // This round's share of the orchestration, up to the next task.
+    let round = cost::Orchestration::invocation(
+        cost::task_transitions(retries, run.monitor.after()),
+        deps.clients.memory_mb,
+        u64::try_from(began.elapsed().as_millis()).unwrap_or(u64::MAX),
+        deps.clients.dynamo_requests.get().saturating_sub(requests),
+    );
+    run.monitor.orchestration = run.monitor.orchestration + round;
     Ok(run)
 }
 

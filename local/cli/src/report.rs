@@ -28,6 +28,8 @@ pub struct RunReport {
     pub executions: usize,
     /// Monitor rounds of the whole run.
     pub rounds: u64,
+    /// States entered over its executions (each a billed state transition).
+    pub state_transitions: usize,
     /// The execution's own error and cause, when it failed.
     pub error: Option<String>,
     /// The error a Catch routed to Finalize (the execution succeeded, the submission failed).
@@ -188,12 +190,14 @@ impl RunReport {
         }
         if let Some(usage) = &self.left_behind.usage {
             outln!(
-                "GPUs           {} GPU-seconds ({} on Spot, {} run again), about ${} (time scale {})",
+                "GPUs           {} GPU-seconds ({} on Spot, {} run again), about ${} (time scale {}); orchestration about ${} ({} state transitions)",
                 usage["gpu_seconds"],
                 usage["spot"],
                 usage["run_again"],
                 usage["cost_usd"],
-                args.time_scale
+                args.time_scale,
+                usage["orchestration_usd"],
+                usage["state_transitions"],
             );
         }
         if let Some(r) = &self.reclaim {

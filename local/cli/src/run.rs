@@ -662,6 +662,11 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         history_events: chains[0].iter().copied().max().unwrap_or_default(),
         executions: chains[0].len(),
         rounds: rounds.load(Ordering::SeqCst),
+        state_transitions: result
+            .history
+            .iter()
+            .filter(|e| e.event_type.as_str().ends_with("StateEntered"))
+            .count(),
         error: result
             .error
             .as_ref()
@@ -1031,6 +1036,8 @@ async fn left_behind(
                     "spot": number("gpu_seconds_spot"),
                     "run_again": number("gpu_seconds_run_again"),
                     "cost_usd": amount("cost_usd"),
+                    "orchestration_usd": amount("orchestration_usd"),
+                    "state_transitions": number("state_transitions"),
                 })
             });
         }

@@ -148,6 +148,15 @@ fn every_scenario_ends_as_expected() {
                 assert_eq!(usage["spot"], 0, "{report}");
                 assert_eq!(usage["run_again"], 0, "{report}");
                 assert!(usage["cost_usd"].as_f64().is_some(), "{report}");
+                // Every state the executions entered was counted by the stage that caused it.
+                assert_eq!(
+                    usage["state_transitions"], report["state_transitions"],
+                    "{report}"
+                );
+                assert!(
+                    usage["orchestration_usd"].as_f64().unwrap() > 0.0,
+                    "{report}"
+                );
             }
             "forge" => {
                 // Pair 2's results as pair 2 wrote them: the same scores as the happy run,
@@ -203,6 +212,14 @@ fn every_scenario_ends_as_expected() {
                 assert!(usage["run_again"].as_u64().unwrap() < held, "{report}");
             }
             _ => {}
+        }
+        // Every state the executions entered was counted by the stage that caused it, however
+        // the run went (no task was retried in these).
+        if ["happy", "spot", "cancel", "crash-loop"].contains(&scenario) {
+            assert_eq!(
+                report["left_behind"]["usage"]["state_transitions"], report["state_transitions"],
+                "{scenario}: {report}"
+            );
         }
         if !["crash-loop", "unpullable", "no-node", "stop"].contains(&scenario) {
             assert!(report["evalai_stderr"].is_null(), "{scenario}: {report}");

@@ -38,6 +38,8 @@ pub fn function_config() -> lb_pipeline::FunctionConfig {
         wake_table: Some(WAKE_TABLE.into()),
         budget_table: Some(BUDGET_TABLE.into()),
         admission_table: Some(ADMISSION_TABLE.into()),
+        // The template's Monitor and Finalize, which take most of a run's Lambda time.
+        memory_mb: 512,
     }
 }
 /// The settings of local runs and tests: phase 1 is Leaderboard 2.0 SENSORS (20 routes, 4

@@ -116,6 +116,12 @@ fn run(phase: RunPhase) -> RunState {
             continue_as: Some("c".repeat(80)),
             handover: true,
             usage: worst_usage(),
+            orchestration: lb_domain::cost::Orchestration {
+                transitions: u64::MAX,
+                invocations: u64::MAX,
+                mb_ms: u64::MAX,
+                dynamo_requests: u64::MAX,
+            },
         },
     }
 }

@@ -100,6 +100,7 @@ impl Harness {
                 queue: None,
                 events: None,
                 execution: None,
+                orchestration: None,
             },
             &self.launch,
         )
