@@ -111,6 +111,15 @@ pub fn ahead(entries: &[Entry], me: &Entry) -> u32 {
         .count() as u32
 }
 
+/// The submissions of `me`'s team that arrived before it and still wait for a place: those its
+/// team's places go to first.
+pub fn team_ahead(entries: &[Entry], me: &Entry) -> u32 {
+    entries
+        .iter()
+        .filter(|e| e.team_id == me.team_id && e.state == EntryState::Waiting && e.before(me))
+        .count() as u32
+}
+
 /// The count a participant is shown, `now` counted and `shown` shown before: never more than
 /// before. Places only move up in arrival order, but the count is read at different moments
 /// (waiting for the team's turn, then for a GPU) and an entry whose execution ended lingers
@@ -189,6 +198,13 @@ pub fn estimate_start(ahead: u32, running: u32, recent: &[u64]) -> Option<StartE
     })
 }
 
+/// The estimated start of a submission its team's cap holds back: its team's `limit` places
+/// free at the track's pace, and its team's `team_ahead` older waiting submissions take them
+/// first ([`estimate_start`] over the team's places).
+pub fn estimate_team_turn(team_ahead: u32, limit: u32, recent: &[u64]) -> Option<StartEstimate> {
+    estimate_start(team_ahead, limit, recent)
+}
+
 /// The estimate in the participant's words: "about 40 minutes", "between 1 and 3 hours".
 pub fn describe_estimate(estimate: StartEstimate) -> String {
     let minutes = |s: u64| s.div_ceil(60).max(1);
@@ -234,6 +250,26 @@ mod tests {
         let mut changed = vec![600; RECENT_DURATIONS];
         changed.extend([100 * hour; 10]);
         assert!(estimate_start(1, 1, &changed).unwrap().high < hour);
+    }
+
+    #[test]
+    fn a_submission_its_team_holds_back_waits_for_its_team_s_places() {
+        let entries = [
+            entry(1, 7, 100, EntryState::Running),
+            entry(2, 7, 150, EntryState::Running),
+            entry(3, 8, 200, EntryState::Waiting),
+            entry(4, 7, 300, EntryState::Waiting),
+            entry(5, 7, 400, EntryState::Waiting),
+        ];
+        assert_eq!(
+            team_ahead(&entries, &entries[4]),
+            1,
+            "its teammate 4, not team 8's"
+        );
+        assert_eq!(team_ahead(&entries, &entries[3]), 0);
+        let recent = [3600; 4];
+        let turn = estimate_team_turn(1, 2, &recent).unwrap();
+        assert_eq!((turn.low, turn.high), (1800, 3600));
     }
 
     #[test]

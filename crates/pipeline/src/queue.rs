@@ -23,6 +23,8 @@ pub struct Standing {
     pub admitted: bool,
     /// Submissions that arrived before it and have not started.
     pub ahead: u32,
+    /// Its team's submissions that arrived before it and wait for a place.
+    pub team_ahead: u32,
     /// What holds it back.
     pub hold: Hold,
 }
@@ -69,6 +71,7 @@ pub async fn take_turn(
     Ok(Standing {
         admitted,
         ahead: queue::ahead(&entries, &me),
+        team_ahead: queue::team_ahead(&entries, &me),
         hold: if admitted {
             Hold::Capacity
         } else {
@@ -94,13 +97,13 @@ pub async fn ahead_of(
         .map(|me| (queue::ahead(&entries, me), running)))
 }
 
-/// The queue note's words for a submission `ahead` of which wait, while `running` run: the
-/// place, what holds it, and its estimated start from its track's pace (none when the pace
-/// cannot be read: the note goes without it).
+/// The queue note's words for a submission `ahead` of which wait (`team_ahead` of its own
+/// team), while `running` run: the place, what holds it, and its estimated start from its
+/// track's pace (none when the pace cannot be read: the note goes without it).
 pub async fn note(
     table: &AdmissionTable,
     submission: &SubmissionInfo,
-    (ahead, running): (u32, u32),
+    (ahead, team_ahead, running): (u32, u32, u32),
     hold: Hold,
 ) -> String {
     let place = queue::describe(ahead, hold);
@@ -111,7 +114,11 @@ pub async fn note(
             Vec::new()
         }
     };
-    match queue::estimate_start(ahead, running, &pace) {
+    let estimate = match hold {
+        Hold::TeamLimit { limit } => queue::estimate_team_turn(team_ahead, limit, &pace),
+        Hold::Capacity => queue::estimate_start(ahead, running, &pace),
+    };
+    match estimate {
         Some(estimate) => format!("{place}; {}", queue::describe_estimate(estimate)),
         None => place,
     }

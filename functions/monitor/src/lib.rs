@@ -402,7 +402,7 @@ async fn queue_note(
             Ok(Some((ahead, running))) => {
                 let ahead = lb_domain::queue::shown_ahead(run.queue.shown, ahead);
                 let hold = lb_domain::queue::Hold::Capacity;
-                let text = queue::note(table, submission, (ahead, running), hold).await;
+                let text = queue::note(table, submission, (ahead, 0, running), hold).await;
                 Some(Some((ahead, text)))
             }
             Ok(None) => None,
@@ -562,7 +562,8 @@ async fn waiting_round(
         return Ok(run);
     }
     let ahead = lb_domain::queue::shown_ahead(run.queue.shown, standing.ahead);
-    let note = lb_domain::queue::describe(ahead, standing.hold);
+    let place = (ahead, standing.team_ahead, 0);
+    let note = queue::note(table, submission, place, standing.hold).await;
     if show_place(deps, at, &mut run, Some((ahead, note)), now).await?
         == Some(SubmissionStatus::Cancelled)
     {

@@ -204,7 +204,7 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
             .await
             .expect("take a turn");
         if seen.predicted_start.is_none() {
-            seen.predicted_start = Some(predict(&queue, &recent, standing.ahead).await);
+            seen.predicted_start = Some(predict(&queue, &recent, &standing).await);
         }
         if standing.admitted {
             break;
@@ -381,17 +381,30 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
     seen
 }
 
-/// The estimate the queue note shows at its arrival (`lb_domain::queue::estimate_start`): the
-/// submissions ahead, the evaluations running, the durations of the latest that ended.
-async fn predict(queue: &AdmissionTable, recent: &std::sync::Mutex<Vec<u64>>, ahead: u32) -> f64 {
+/// The estimate the queue note shows at its arrival (`lb_pipeline::queue::note`): its team's
+/// turn when its team's cap holds it, else the submissions ahead over the evaluations running;
+/// from the durations of the latest that ended.
+async fn predict(
+    queue: &AdmissionTable,
+    recent: &std::sync::Mutex<Vec<u64>>,
+    standing: &lb_pipeline::queue::Standing,
+) -> f64 {
     let entries = queue.entries(LEADERBOARD).await.expect("the queue");
     let running = entries
         .iter()
         .filter(|e| e.state == lb_domain::queue::EntryState::Running)
         .count() as u32;
     let latest: Vec<u64> = recent.lock().unwrap().iter().rev().copied().collect();
-    // Nothing to go by (the rush's first minutes): the estimate is "soon".
-    lb_domain::queue::estimate_start(ahead, running, &latest).map_or(0.0, |e| e.middle() as f64)
+    let estimate = match standing.hold {
+        lb_domain::queue::Hold::TeamLimit { limit } => {
+            lb_domain::queue::estimate_team_turn(standing.team_ahead, limit, &latest)
+        }
+        lb_domain::queue::Hold::Capacity => {
+            lb_domain::queue::estimate_start(standing.ahead, running, &latest)
+        }
+    };
+    // Nothing running yet (the rush's first minutes): the estimate is "soon".
+    estimate.map_or(0.0, |e| e.middle() as f64)
 }
 
 /// One pair's pod from `start` to `end` (real-life seconds since its arrival) on a node of its
