@@ -116,15 +116,15 @@ impl Function for Deps {
     }
 }
 
-/// The submission's Jobs and pods as the cluster reports them now, and what the nodes of the
-/// pods `usage` does not count yet are (`None`: a node could not be read this round, and the
-/// usage waits for the next).
+/// The submission's Jobs and pods as the cluster reports them now, and its pods as the GPU
+/// count takes them with what the nodes `usage` does not know yet are (`None`: a node could
+/// not be read this round, and the count waits for the next).
 async fn observe(
     deps: &Deps,
     deployment: &lb_domain::settings::LeaderboardSettings,
     id: u64,
     usage: &Ledger,
-) -> Result<(lb_cluster::Observation, Option<NodeKinds>)> {
+) -> Result<(lb_cluster::Observation, Option<PodsOnNodes>)> {
     let policy = VerdictPolicy {
         queue_limit: Duration::from_secs(deployment.max_queue_hours * 3600),
         ..deps.policy
@@ -149,28 +149,32 @@ async fn observe(
             }
         }
     }
-    Ok((observation, Some(kinds)))
+    Ok((observation, Some(PodsOnNodes { pods, kinds })))
 }
 
 /// Node name -> what it is.
 type NodeKinds = BTreeMap<String, NodeKind>;
 
-/// Charges this round's GPU time (`lb_domain::cost`). A disrupted pod's run-again seconds
+/// A round's pods as the GPU count takes them, and the kinds of the nodes new ones run on.
+struct PodsOnNodes {
+    pods: Vec<cost::PodSeen>,
+    kinds: NodeKinds,
+}
+
+/// Charges this round's GPU time up to `now`, when the pods were listed (`lb_domain::cost`). A disrupted pod's run-again seconds
 /// count from its pair's last results write, so S3 is listed only in a round that sees one.
 async fn count_usage(
     store: &SubmissionStore,
-    observation: &lb_cluster::Observation,
-    kinds: &NodeKinds,
+    now: u64,
+    PodsOnNodes { pods, kinds }: &PodsOnNodes,
     run: &mut RunState,
 ) {
-    let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
-    let now = u64::try_from(observation.observed_at.as_second()).unwrap_or(0);
     let results_at = if pods.iter().any(|p| p.disrupted) {
         lb_pipeline::results::written(store).await
     } else {
         BTreeMap::new()
     };
-    run.monitor.usage.account(&pods, kinds, &results_at, now);
+    run.monitor.usage.account(pods, kinds, &results_at, now);
 }
 
 /// One monitor round, then whether the run goes on in this execution: a round whose count
@@ -246,13 +250,14 @@ async fn round(
     }
     let observation = match observe_round(deps, &target, id, &mut run, now).await? {
         Seen::Ended => return Ok(run),
-        Seen::Observed(observation, kinds) => Some((observation, kinds)),
+        Seen::Observed(seen) => Some(*seen),
         Seen::Unreachable => None,
     };
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
     let observation = match observation {
-        Some((observation, Some(kinds))) => {
-            count_usage(&store, &observation, &kinds, &mut run).await;
+        Some((observation, Some(counted))) => {
+            let observed_at = u64::try_from(observation.observed_at.as_second()).unwrap_or(0);
+            count_usage(&store, observed_at, &counted, &mut run).await;
             Some(observation)
         }
         Some((observation, None)) => Some(observation),
@@ -348,7 +353,7 @@ async fn read_wake(deps: &Deps, id: u64, run: &mut RunState) -> Result<WakeState
 
 /// What the round saw of the cluster.
 enum Seen {
-    Observed(lb_cluster::Observation, Option<NodeKinds>),
+    Observed(Box<(lb_cluster::Observation, Option<PodsOnNodes>)>),
     /// Out of reach this round: the verdict is skipped, the Jobs run on without it.
     Unreachable,
     /// Out of reach for longer than the leaderboard allows: the run has ended.
@@ -368,7 +373,8 @@ async fn observe_round(
     let e = match observe(deps, target.deployment, id, &run.monitor.usage).await {
         Ok((observation, kinds)) => {
             run.monitor.unreachable_since = None;
-            return Ok(Seen::Observed(observation.expect_jobs(run.jobs), kinds));
+            let observation = observation.expect_jobs(run.jobs);
+            return Ok(Seen::Observed(Box::new((observation, kinds))));
         }
         Err(e) if e.is_transient() => e,
         Err(e) => return Err(e),
