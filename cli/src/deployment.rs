@@ -297,6 +297,7 @@ impl Record {
             gpu_seconds: self.number("gpu_seconds")?,
             spot: self.number("gpu_seconds_spot").unwrap_or(0),
             run_again: self.number("gpu_seconds_run_again").unwrap_or(0),
+            lost: self.number("seconds_lost_to_reclaims").unwrap_or(0),
             dollars: self.amount("cost_usd"),
             orchestration: self.amount("orchestration_usd"),
         })
@@ -355,6 +356,8 @@ pub struct Usage {
     pub spot: u64,
     /// Of which spent again on routes a reclaim interrupted.
     pub run_again: u64,
+    /// Seconds reclaims cost the evaluation (not counted against its time limit).
+    pub lost: u64,
     /// Dollars, when every second had a price.
     pub dollars: Option<f64>,
     /// The orchestration's dollars (state transitions, Lambda, DynamoDB), once counted.
@@ -368,6 +371,7 @@ impl Usage {
             gpu_seconds: self.gpu_seconds + other.gpu_seconds,
             spot: self.spot + other.spot,
             run_again: self.run_again + other.run_again,
+            lost: self.lost + other.lost,
             dollars: self.dollars.zip(other.dollars).map(|(a, b)| a + b),
             orchestration: match (self.orchestration, other.orchestration) {
                 (Some(a), Some(b)) => Some(a + b),
@@ -382,7 +386,8 @@ impl Usage {
     }
 
     /// `2.50 GPU-hours (1.20 on Spot, 0.10 run again after reclaims), about $3.10;
-    /// orchestration about $0.0120`.
+    /// orchestration about $0.0120; 12 minutes lost to reclaims, not counted against the time
+    /// limit`.
     pub fn describe(&self) -> String {
         let hours = |s: u64| s as f64 / 3600.0;
         let price = self.dollars.map_or_else(
@@ -392,8 +397,15 @@ impl Usage {
         let orchestration = self
             .orchestration
             .map_or_else(String::new, |d| format!("; orchestration about ${d:.4}"));
+        let lost = match self.lost {
+            0 => String::new(),
+            s => format!(
+                "; {} minutes lost to reclaims, not counted against the time limit",
+                s.div_ceil(60)
+            ),
+        };
         format!(
-            "{:.2} GPU-hours ({:.2} on Spot, {:.2} run again after reclaims){price}{orchestration}",
+            "{:.2} GPU-hours ({:.2} on Spot, {:.2} run again after reclaims){price}{orchestration}{lost}",
             self.hours(),
             hours(self.spot),
             hours(self.run_again)
@@ -432,6 +444,7 @@ const KNOWN_ATTRIBUTES: &[&str] = &[
     "gpu_seconds",
     "gpu_seconds_spot",
     "gpu_seconds_run_again",
+    "seconds_lost_to_reclaims",
     "cost_usd",
     "orchestration_usd",
     "state_transitions",

@@ -894,6 +894,19 @@ mod tests {
         ];
         let a = record(1, &priced);
         let b = record(1, &priced[..3]);
+        let reclaimed = record(
+            1,
+            &[("gpu_seconds", "60"), ("seconds_lost_to_reclaims", "601")],
+        );
+        assert!(
+            reclaimed
+                .usage()
+                .unwrap()
+                .describe()
+                .ends_with("; 11 minutes lost to reclaims, not counted against the time limit"),
+            "{}",
+            reclaimed.usage().unwrap().describe()
+        );
         let c = record(
             2,
             &[

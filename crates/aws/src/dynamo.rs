@@ -408,18 +408,20 @@ impl SubmissionsTable {
 }
 
 /// The usage attributes (`SET` clauses and their values): GPU-seconds in all, on Spot, run
-/// again after a reclaim, the estimate in dollars when every second had a price, and the
+/// again after a reclaim, the evaluation's seconds lost to reclaims, the estimate in dollars when every second had a price, and the
 /// orchestration's own when counted.
 fn usage_update(usage: &Totals) -> (Vec<String>, HashMap<String, AttributeValue>) {
     let mut set = vec![
         "gpu_seconds = :gpu".to_string(),
         "gpu_seconds_spot = :gpu_spot".to_string(),
         "gpu_seconds_run_again = :gpu_again".to_string(),
+        "seconds_lost_to_reclaims = :lost".to_string(),
     ];
     let mut values = HashMap::from([
         (":gpu".to_string(), n(usage.gpu_seconds)),
         (":gpu_spot".to_string(), n(usage.spot)),
         (":gpu_again".to_string(), n(usage.run_again)),
+        (":lost".to_string(), n(usage.lost)),
     ]);
     if let Some(dollars) = usage.dollars {
         set.push("cost_usd = :cost".into());
@@ -495,6 +497,7 @@ fn final_update(record: &FinalRecord) -> Update {
             "gpu_seconds",
             "gpu_seconds_spot",
             "gpu_seconds_run_again",
+            "seconds_lost_to_reclaims",
             "orchestration_usd",
             "state_transitions",
         ]),

@@ -128,6 +128,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         gpu_seconds: 7200,
         spot: 3600,
         run_again: 60,
+        lost: 240,
         dollars: Some(2.0468),
         orchestration: Some(lb_domain::cost::Orchestration {
             transitions: 400,
@@ -155,6 +156,10 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(
         item["gpu_seconds_run_again"],
         AttributeValue::N("60".into())
+    );
+    assert_eq!(
+        item["seconds_lost_to_reclaims"],
+        AttributeValue::N("240".into())
     );
     assert_eq!(item["cost_usd"], AttributeValue::N("2.05".into()));
     // 400 transitions $0.01, 100 invocations, 50 GB-seconds $0.00083, 1,000 requests.

@@ -7,7 +7,7 @@ use std::time::Duration;
 use k8s_openapi::api::batch::v1::Job;
 use k8s_openapi::api::core::v1::{Event, Node, Pod};
 use k8s_openapi::jiff::Timestamp;
-use kube::api::{Api, DeleteParams, ListParams, PostParams};
+use kube::api::{Api, DeleteParams, ListParams, Patch, PatchParams, PostParams};
 use kube::config::{KubeConfigOptions, Kubeconfig};
 use lb_domain::cost::{CapacityType, NodeKind};
 use serde::{Deserialize, Serialize};
@@ -468,6 +468,33 @@ impl Cluster {
                 capacity: CapacityType::from_label(label(lb_domain::settings::Capacity::LABEL)),
             }
         }))
+    }
+
+    /// Sets Job `name`'s `activeDeadlineSeconds` to `seconds` (a merge patch: the field is
+    /// mutable, and the Job controller re-arms its timer when it changes). `Ok(false)` when
+    /// the Job is gone.
+    pub async fn extend_deadline(&self, name: &str, seconds: u64) -> Result<bool> {
+        let patch = Patch::Merge(serde_json::json!({
+            "spec": { "activeDeadlineSeconds": seconds }
+        }));
+        let patched = self
+            .call(
+                "patch job",
+                self.jobs().patch(name, &PatchParams::default(), &patch),
+            )
+            .await?;
+        match patched {
+            Ok(_) => {
+                info!(job = name, seconds, "Job deadline extended");
+                Ok(true)
+            }
+            Err(kube::Error::Api(s)) if s.is_not_found() => Ok(false),
+            Err(e) => Err(ClusterError::from_kube(
+                "patch job",
+                &format!("Job `{name}`"),
+                e,
+            )),
+        }
     }
 
     /// The submission's Jobs and Pods, as the server lists them.

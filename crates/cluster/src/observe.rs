@@ -136,6 +136,11 @@ fn job_view(job: &Job) -> JobView {
         start_time: ts(&status.start_time),
         completion_time: ts(&status.completion_time),
         terminating: job.metadata.deletion_timestamp.is_some(),
+        deadline: job
+            .spec
+            .as_ref()
+            .and_then(|s| s.active_deadline_seconds)
+            .and_then(|d| u64::try_from(d).ok()),
         pods: Vec::new(),
     }
 }

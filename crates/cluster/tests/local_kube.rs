@@ -260,6 +260,34 @@ async fn delete_all_leaves_nothing_and_is_idempotent() {
 }
 
 #[tokio::test]
+async fn a_job_s_deadline_is_extended_in_place_and_a_gone_job_says_so() {
+    let (_lk, cluster, _dir) = start(Config::default()).await;
+    let mut j = job(
+        "5006",
+        0,
+        "Never",
+        2,
+        &[("simulator-1", "busybox", "sleep 60")],
+    );
+    j.spec.as_mut().unwrap().active_deadline_seconds = Some(345_600);
+    bounded(cluster.create_or_adopt(&j)).await.unwrap();
+    let name = "lb-5006-team-77-0";
+    let extended = bounded(cluster.extend_deadline(name, 345_600 + 900)).await;
+    assert!(extended.unwrap());
+    let seen = observe_until(&cluster, "5006", "the new deadline", |o| {
+        o.jobs.iter().any(|j| j.deadline == Some(345_600 + 900))
+    })
+    .await;
+    assert!(
+        matches!(seen.jobs[0].state, JobState::Pending | JobState::Running),
+        "{seen:?}"
+    );
+    bounded(cluster.delete_all("5006", None)).await.unwrap();
+    let gone = bounded(cluster.extend_deadline("lb-5006-team-77-9", 1)).await;
+    assert!(!gone.unwrap(), "no such Job");
+}
+
+#[tokio::test]
 async fn a_same_named_job_of_another_submission_is_refused() {
     let (_lk, cluster, _dir) = start(Config::default()).await;
     let mine = job(

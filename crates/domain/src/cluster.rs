@@ -101,6 +101,9 @@ pub struct JobView {
     pub completion_time: Option<Timestamp>,
     /// Whether it is being deleted.
     pub terminating: bool,
+    /// Its `activeDeadlineSeconds`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub deadline: Option<u64>,
     /// Its Pods, by name.
     pub pods: Vec<PodView>,
 }
@@ -806,6 +809,7 @@ mod tests {
             start_time: Some(at(9, 0)),
             completion_time: None,
             terminating: false,
+            deadline: None,
             pods,
         }
     }

@@ -71,6 +71,8 @@ pub struct PodSeen {
     pub node: Option<String>,
     /// It carries `DisruptionTarget`: the control plane is taking it away.
     pub disrupted: bool,
+    /// It ended `Succeeded`.
+    pub succeeded: bool,
 }
 
 /// The pods of an observation that ran, with what costs.
@@ -101,6 +103,7 @@ pub fn pods_seen(jobs: &[JobView], observed_at: jiff::Timestamp) -> Vec<PodSeen>
                 gpus: pod.gpus,
                 node: pod.node.clone(),
                 disrupted: pod.disruption.is_some(),
+                succeeded: pod.phase == "Succeeded",
             });
         }
     }
@@ -127,13 +130,18 @@ pub const MAX_LINES: usize = 16;
 /// the last round. It takes a few bytes per Job of the run's state: a pod is known by its Job
 /// and whether it started before the last round, and every pod running then was charged up
 /// to it.
+///
+/// It also keeps the time reclaims cost the evaluation, which is not the participant's: the
+/// stretches in which at least one of its Jobs was catching up, from its pair's last results
+/// write before the reclaim (what runs again) to its next pod's start.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Ledger {
     /// By node kind.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub lines: Vec<UsageLine>,
     /// One character per Job: `.` no pod running at the last round; `a` + n its pod ran on
-    /// the kind of line n; `A` + n the same, disrupted and its lost time counted.
+    /// the kind of line n; `A` + n the same, disrupted and its lost time counted; `-` its
+    /// disrupted pod went and no next pod started yet.
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub jobs: String,
     /// GPUs of one pod (a pair's).
@@ -142,6 +150,20 @@ pub struct Ledger {
     /// When the last round counted (epoch seconds).
     #[serde(default)]
     pub last: u64,
+    /// Seconds of the closed stretches in which a Job caught up on a reclaim.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub lost: u64,
+    /// When the open stretch began, while a Job catches up (epoch seconds).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lost_since: Option<u64>,
+    /// When the last closed stretch ended: the next begins no earlier, so no second counts
+    /// twice.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub lost_until: u64,
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
 }
 
 /// The totals a record and `lbctl` show.
@@ -153,6 +175,8 @@ pub struct Totals {
     pub spot: u64,
     /// Of which spent again on routes a reclaim interrupted.
     pub run_again: u64,
+    /// Seconds reclaims cost the evaluation (not counted against its time limit).
+    pub lost: u64,
     /// The estimate in dollars, when every GPU-second had a price.
     pub dollars: Option<f64>,
     /// What the orchestration did for it, when counted.
@@ -164,6 +188,17 @@ pub struct Totals {
 struct Running {
     line: usize,
     disrupted: bool,
+}
+
+/// Where a Job stands at the end of a round.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum JobMark {
+    /// No pod running.
+    Idle,
+    /// A pod running.
+    Running(Running),
+    /// Its disrupted pod went; its next one has not started.
+    Reclaimed,
 }
 
 impl Ledger {
@@ -187,17 +222,27 @@ impl Ledger {
         }
     }
 
-    fn set_running(&mut self, job: u32, running: Option<Running>) {
+    /// Whether the Job is catching up on a reclaim: its disrupted pod still goes, or went and
+    /// its next one has not started.
+    fn catching_up(&self, job: u32) -> bool {
+        matches!(
+            self.jobs.as_bytes().get(job as usize),
+            Some(b'A'..=b'Z' | b'-')
+        )
+    }
+
+    fn set_mark(&mut self, job: u32, mark: JobMark) {
         let job = job as usize;
         if self.jobs.len() <= job {
             self.jobs
                 .extend(std::iter::repeat_n('.', job + 1 - self.jobs.len()));
         }
         // Lines are at most MAX_LINES (< 26): the offset fits a letter.
-        let c = match running {
-            None => '.',
-            Some(r) if r.disrupted => char::from(b'A' + r.line as u8),
-            Some(r) => char::from(b'a' + r.line as u8),
+        let c = match mark {
+            JobMark::Idle => '.',
+            JobMark::Reclaimed => '-',
+            JobMark::Running(r) if r.disrupted => char::from(b'A' + r.line as u8),
+            JobMark::Running(r) => char::from(b'a' + r.line as u8),
         };
         self.jobs
             .replace_range(job..=job, c.encode_utf8(&mut [0; 4]));
@@ -263,7 +308,8 @@ impl Ledger {
     /// started since) to its end or to now. A pod that ran at the last round and is no longer
     /// listed went between the two (a deleted one: evicted, reclaimed) and is charged up to now,
     /// or up to its Job's next pod's start. A disrupted pod's time after its pair's last
-    /// results write (`results_at`, by Job index) is run again by the next pod.
+    /// results write (`results_at`, by Job index) is run again by the next pod, and is lost
+    /// time until that pod starts.
     pub fn account(
         &mut self,
         pods: &[PodSeen],
@@ -274,6 +320,8 @@ impl Ledger {
         let mut pods: Vec<&PodSeen> = pods.iter().filter(|p| !self.counted_before(p)).collect();
         pods.sort_by_key(|p| (p.job, p.started_at));
         let mut handled = std::collections::BTreeSet::new();
+        // The latest start of a pod that ended a Job's catching up.
+        let mut resumed: Option<u64> = None;
         for pod in pods {
             let (from, mut running) = match self.continues(pod) {
                 Some(running) => (self.last, running),
@@ -285,6 +333,9 @@ impl Ledger {
                     {
                         let end = pod.started_at.clamp(self.last, now);
                         self.charge(gone.line, end - self.last, self.gpus, gone.disrupted);
+                    }
+                    if self.catching_up(pod.job) && !pod.disrupted {
+                        resumed = resumed.max(Some(pod.started_at.min(now)));
                     }
                     let kind = pod.node.as_ref().and_then(|n| kinds.get(n));
                     let line = self.line(kind.unwrap_or(&NodeKind::unknown()));
@@ -310,9 +361,21 @@ impl Ledger {
                 let line = &mut self.lines[running.line];
                 line.run_again = line.run_again.saturating_add(lost);
                 running.disrupted = true;
+                self.begin_lost(since.min(now));
             }
-            let still = pod.ended_at.is_none().then_some(running);
-            self.set_running(pod.job, still);
+            let mark = match pod.ended_at {
+                None => JobMark::Running(running),
+                Some(_) if running.disrupted && !pod.succeeded => JobMark::Reclaimed,
+                // A disrupted pod that succeeded finished its pair's routes: its Job caught up
+                // when it ended.
+                Some(end) => {
+                    if running.disrupted {
+                        resumed = resumed.max(Some(end.min(now)));
+                    }
+                    JobMark::Idle
+                }
+            };
+            self.set_mark(pod.job, mark);
             handled.insert(pod.job);
         }
         // Pods of the last round neither seen nor replaced: gone between the two rounds.
@@ -324,11 +387,41 @@ impl Ledger {
                     self.gpus,
                     gone.disrupted,
                 );
-                self.set_running(job, None);
+                let mark = if gone.disrupted {
+                    JobMark::Reclaimed
+                } else {
+                    JobMark::Idle
+                };
+                self.set_mark(job, mark);
             }
         }
         self.jobs.truncate(self.jobs.trim_end_matches('.').len());
         self.last = self.last.max(now);
+        if !(0..self.jobs.len() as u32).any(|job| self.catching_up(job)) {
+            self.end_lost(resumed.unwrap_or(now));
+        }
+    }
+
+    /// A Job starts catching up on work lost since `since`: the open stretch begins then, or
+    /// earlier if it already began, and never before the last one ended.
+    fn begin_lost(&mut self, since: u64) {
+        let since = since.max(self.lost_until);
+        self.lost_since = Some(self.lost_since.map_or(since, |open| open.min(since)));
+    }
+
+    /// No Job catches up any more, since `at`: the open stretch closes.
+    fn end_lost(&mut self, at: u64) {
+        if let Some(open) = self.lost_since.take() {
+            let at = at.max(open);
+            self.lost = self.lost.saturating_add(at - open);
+            self.lost_until = at;
+        }
+    }
+
+    /// Seconds reclaims cost the evaluation up to `now`: the closed stretches and the open one.
+    pub fn lost_at(&self, now: u64) -> u64 {
+        let open = self.lost_since.map_or(0, |t| now.saturating_sub(t));
+        self.lost.saturating_add(open)
     }
 
     /// Finalize's last word: every pod still running is charged to `now` (the Jobs are deleted
@@ -348,7 +441,10 @@ impl Ledger {
 
     /// The totals over every line, unpriced.
     pub fn totals(&self) -> Totals {
-        let mut totals = Totals::default();
+        let mut totals = Totals {
+            lost: self.lost_at(self.last),
+            ..Totals::default()
+        };
         for line in &self.lines {
             totals.gpu_seconds += line.held;
             totals.run_again += line.run_again;
@@ -523,6 +619,7 @@ mod tests {
             gpus: 1,
             node: Some(node.into()),
             disrupted,
+            succeeded: false,
         }
     }
 
@@ -580,17 +677,80 @@ mod tests {
         assert_eq!(totals.spot, 860, "{ledger:?}");
         assert_eq!(totals.gpu_seconds, 860 + 40);
         assert_eq!(totals.run_again, 260);
+        assert_eq!(
+            ledger.lost_at(1000),
+            260,
+            "from the results at 700 to the next pod"
+        );
         // A replacement that started within the last round's second is not the disrupted pod.
         let mut same_second = Ledger::default();
         same_second.account(&[pod(0, 100, None, "spot-a", true)], &kinds, &results, 900);
         same_second.account(&[pod(0, 900, None, "spot-a", false)], &kinds, &results, 950);
         assert_eq!(same_second.totals().run_again, 200);
         assert_eq!(same_second.jobs, "a");
+        assert_eq!((same_second.lost, same_second.lost_since), (200, None));
         // Finalize charges what still runs; the undisrupted pod runs nothing again.
         ledger.close_all(1100);
         assert_eq!(ledger.totals().gpu_seconds, 860 + 140);
         assert_eq!(ledger.totals().run_again, 260);
         assert!(ledger.jobs.is_empty());
+    }
+
+    #[test]
+    fn time_lost_to_reclaims_counts_once_however_many_jobs_catch_up_at_once() {
+        let kinds = kinds();
+        let mut ledger = Ledger::default();
+        let results = BTreeMap::from([(0, 700), (1, 650)]);
+        let both = |disrupted| {
+            [
+                pod(0, 100, None, "spot-a", disrupted),
+                pod(1, 100, None, "spot-a", disrupted),
+            ]
+        };
+        ledger.account(&both(false), &kinds, &results, 600);
+        assert_eq!(ledger.lost_at(600), 0);
+        // One node reclaimed: both pairs lose what followed their last results.
+        ledger.account(&both(true), &kinds, &results, 900);
+        assert_eq!(
+            ledger.lost_at(900),
+            250,
+            "since the earlier results, at 650"
+        );
+        // Deleted; no next pod yet: the stretch stays open.
+        ledger.account(&[], &kinds, &results, 1000);
+        assert_eq!(ledger.jobs, "--");
+        assert_eq!(ledger.lost_at(1000), 350);
+        // Job 0 starts again at 1100; Job 1 still waits for a GPU.
+        ledger.account(&[pod(0, 1100, None, "od-a", false)], &kinds, &results, 1200);
+        assert_eq!(ledger.lost_at(1200), 550);
+        let both_back = [
+            pod(0, 1100, None, "od-a", false),
+            pod(1, 1300, None, "od-a", false),
+        ];
+        ledger.account(&both_back, &kinds, &results, 1400);
+        assert_eq!((ledger.lost, ledger.lost_since), (650, None), "650 to 1300");
+        assert_eq!(ledger.lost_at(5000), 650);
+        // A later reclaim whose lost work began before the last stretch ended counts from its end.
+        let results = BTreeMap::from([(0, 1250), (1, 1350)]);
+        let again = [
+            pod(0, 1100, None, "od-a", true),
+            pod(1, 1300, None, "od-a", false),
+        ];
+        ledger.account(&again, &kinds, &results, 1500);
+        let back = [
+            pod(0, 1550, None, "od-a", false),
+            pod(1, 1300, None, "od-a", false),
+        ];
+        ledger.account(&back, &kinds, &results, 1600);
+        assert_eq!(ledger.lost, 650 + 250, "1300 to 1550");
+        // A disrupted pod that succeeded finished its routes: its Job caught up when it ended.
+        let (mut done, none) = (Ledger::default(), BTreeMap::new());
+        done.account(&[pod(0, 100, None, "spot-a", true)], &kinds, &none, 900);
+        let mut ended = pod(0, 100, Some(950), "spot-a", true);
+        ended.succeeded = true;
+        done.account(&[ended], &kinds, &none, 1000);
+        assert_eq!((done.lost, done.lost_since), (950 - 100, None));
+        assert!(done.jobs.is_empty());
     }
 
     #[test]

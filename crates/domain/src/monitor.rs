@@ -4,7 +4,8 @@
 
 use std::time::Duration;
 
-use crate::schedule::{MAX_EVALUATION, STATUS_FALLBACK};
+use crate::cluster::{JobState, JobView};
+use crate::schedule::{JOB_DEADLINE, MAX_EVALUATION, STATUS_FALLBACK};
 
 /// Why the run ends after the cluster's API was out of reach since `since` (epoch seconds):
 /// only an outage of `bound_hours` or more does; a shorter one skips the round's verdict while
@@ -34,16 +35,31 @@ pub fn queue_limit_ends_wait(waited: u64, max_queue_hours: u64, team_limit: u32)
 }
 
 /// Why a running evaluation ends: it ran longer than [`MAX_EVALUATION`], counted from its start
-/// (time spent queued is not the participant's).
-pub fn overran(started_at: Option<u64>, now: u64) -> Option<String> {
+/// without the `lost` seconds reclaims cost it (time spent queued or catching up after a
+/// reclaimed node is not the participant's).
+pub fn overran(started_at: Option<u64>, lost: u64, now: u64) -> Option<String> {
+    let hours = MAX_EVALUATION.as_secs() / 3600;
     started_at
-        .filter(|&t| now.saturating_sub(t) > MAX_EVALUATION.as_secs())
-        .map(|_| {
-            format!(
-                "the evaluation ran longer than the {} hours allowed",
-                MAX_EVALUATION.as_secs() / 3600
-            )
+        .filter(|&t| now.saturating_sub(t).saturating_sub(lost) > MAX_EVALUATION.as_secs())
+        .map(|_| match lost / 60 {
+            0 => format!("the evaluation ran longer than the {hours} hours allowed"),
+            minutes => format!(
+                "the evaluation ran longer than the {hours} hours allowed (not counting the \
+                 {minutes} minutes it lost to reclaimed GPU nodes)"
+            ),
         })
+}
+
+/// The Jobs whose `activeDeadlineSeconds` should grow, and to what: every Job still running
+/// keeps [`JOB_DEADLINE`] plus the `lost` seconds (closed stretches) reclaims cost, so the
+/// backstop stays as far past the participant's limit as it was.
+pub fn deadlines_to_extend(jobs: &[JobView], lost: u64) -> Vec<(&str, u64)> {
+    let wanted = JOB_DEADLINE.as_secs().saturating_add(lost);
+    jobs.iter()
+        .filter(|j| !j.terminating && matches!(j.state, JobState::Pending | JobState::Running))
+        .filter(|j| j.deadline.is_some_and(|d| d < wanted))
+        .map(|j| (j.name.as_str(), wanted))
+        .collect()
 }
 
 /// Why EvalAI's status is read this round, if it is.
@@ -115,9 +131,54 @@ mod tests {
     #[test]
     fn the_evaluation_s_time_counts_from_its_start_not_from_the_queue() {
         let max = MAX_EVALUATION.as_secs();
-        assert_eq!(overran(None, 10 * max), None);
-        assert_eq!(overran(Some(100), 100 + max), None);
-        assert!(overran(Some(100), 101 + max).unwrap().contains("72 hours"));
+        assert_eq!(overran(None, 0, 10 * max), None);
+        assert_eq!(overran(Some(100), 0, 100 + max), None);
+        assert_eq!(
+            overran(Some(100), 0, 101 + max).unwrap(),
+            "the evaluation ran longer than the 72 hours allowed"
+        );
+    }
+
+    #[test]
+    fn time_lost_to_reclaims_is_not_the_participant_s() {
+        let max = MAX_EVALUATION.as_secs();
+        assert_eq!(overran(Some(100), 3000, 3100 + max), None);
+        assert_eq!(
+            overran(Some(100), 3000, 3101 + max).unwrap(),
+            "the evaluation ran longer than the 72 hours allowed (not counting the 50 minutes \
+             it lost to reclaimed GPU nodes)"
+        );
+    }
+
+    #[test]
+    fn running_jobs_deadlines_grow_by_the_lost_time_once() {
+        let job = |name: &str, state, deadline| JobView {
+            name: name.into(),
+            index: Some(0),
+            state,
+            active: 1,
+            ready: 1,
+            succeeded: 0,
+            failed: 0,
+            start_time: None,
+            completion_time: None,
+            terminating: false,
+            deadline,
+            pods: Vec::new(),
+        };
+        let base = JOB_DEADLINE.as_secs();
+        let jobs = [
+            job("running", JobState::Running, Some(base)),
+            job("pending", JobState::Pending, Some(base + 100)),
+            job("extended", JobState::Running, Some(base + 600)),
+            job("done", JobState::Complete, Some(base)),
+            job("none", JobState::Running, None),
+        ];
+        assert!(deadlines_to_extend(&jobs, 0).is_empty());
+        assert_eq!(
+            deadlines_to_extend(&jobs, 600),
+            [("running", base + 600), ("pending", base + 600)]
+        );
     }
 
     #[test]

@@ -6,8 +6,13 @@
 
 use std::time::Duration;
 
-/// The longest evaluation we run; the Jobs' `activeDeadlineSeconds` matches it.
+/// The longest evaluation we run, not counting what reclaimed nodes cost it.
 pub const MAX_EVALUATION: Duration = Duration::from_secs(72 * 3600);
+
+/// The Jobs' own `activeDeadlineSeconds`, counted from their creation: a backstop a day past
+/// [`MAX_EVALUATION`] for when the orchestration is gone. The Monitor extends it by the time
+/// reclaims cost the evaluation.
+pub const JOB_DEADLINE: Duration = Duration::from_secs(MAX_EVALUATION.as_secs() + 24 * 3600);
 
 /// The first wait after launch: pods need time to pull images and start CARLA.
 pub const FIRST_WAIT: Duration = Duration::from_secs(30);

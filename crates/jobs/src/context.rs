@@ -208,7 +208,7 @@ impl JobSettings {
             carla_image: deployment.images.carla.clone(),
             private_contents_image: deployment.images.private_contents.clone(),
             backoff_limit: 4,
-            active_deadline_seconds: 4 * 24 * 3600,
+            active_deadline_seconds: lb_domain::schedule::JOB_DEADLINE.as_secs(),
             ttl_seconds_after_finished: 24 * 3600,
             termination_grace_seconds: 60,
             repetitions,

@@ -26,6 +26,7 @@ use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
 use lb_aws::wake::{WakeState, WakeTable, RETENTION_SECONDS};
 use lb_cluster::{Verdict, VerdictPolicy};
+use lb_domain::cluster::JobView;
 use lb_domain::cost::{self, Ledger, NodeKind};
 use lb_domain::history;
 use lb_domain::monitor::{self, StatusRead};
@@ -136,6 +137,7 @@ async fn observe(
         .await?
         .with_policy(policy);
     let observation = cluster.observe(&id.to_string()).await?;
+    extend_deadlines(&cluster, &observation.jobs, usage, id).await;
     let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
     let mut kinds = NodeKinds::new();
     for node in usage.unknown_nodes(&pods) {
@@ -150,6 +152,22 @@ async fn observe(
         }
     }
     Ok((observation, Some(PodsOnNodes { pods, kinds })))
+}
+
+/// The Jobs' own deadline grows by the time reclaims cost the evaluation (the stretches closed
+/// by the last round), as the participant's limit does. A patch that fails is tried again next
+/// round: the value set does not depend on what the Job has.
+async fn extend_deadlines(
+    cluster: &lb_cluster::Cluster,
+    jobs: &[JobView],
+    usage: &Ledger,
+    id: u64,
+) {
+    for (job, seconds) in monitor::deadlines_to_extend(jobs, usage.lost) {
+        if let Err(e) = cluster.extend_deadline(job, seconds).await {
+            warn!(submission_id = id, job, error = %e, "Job deadline not extended this round");
+        }
+    }
 }
 
 /// Node name -> what it is.
@@ -441,7 +459,7 @@ async fn judge(
     match verdict {
         Verdict::Running => match (
             run.monitor.started_at,
-            monitor::overran(run.monitor.started_at, now),
+            monitor::overran(run.monitor.started_at, run.monitor.usage.lost_at(now), now),
         ) {
             (_, Some(reason)) => {
                 run.monitor.state = RunPhase::Failed;

@@ -1035,6 +1035,7 @@ async fn left_behind(
                     "gpu_seconds": gpu_seconds,
                     "spot": number("gpu_seconds_spot"),
                     "run_again": number("gpu_seconds_run_again"),
+                    "lost_to_reclaims": number("seconds_lost_to_reclaims"),
                     "cost_usd": amount("cost_usd"),
                     "orchestration_usd": amount("orchestration_usd"),
                     "state_transitions": number("state_transitions"),

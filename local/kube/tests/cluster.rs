@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use k8s_openapi::api::batch::v1::Job;
 use k8s_openapi::api::core::v1::{ContainerStatus, Pod};
-use kube::api::{Api, DeleteParams, ListParams, LogParams, PostParams};
+use kube::api::{Api, DeleteParams, ListParams, LogParams, Patch, PatchParams, PostParams};
 use kube::config::{KubeConfigOptions, Kubeconfig};
 use kube::Client;
 use local_kube::{Config, ImageMap, LocalKube};
@@ -436,6 +436,55 @@ spec:
     );
     assert!(!alive(pid), "the container process was killed");
     assert!(pods_of(&pods, "too-slow").await.is_empty());
+}
+
+#[tokio::test]
+async fn a_patched_deadline_is_the_one_the_job_controller_keeps() {
+    let (_lk, client) = start(Config::default()).await;
+    let jobs: Api<Job> = Api::namespaced(client.clone(), "default");
+    let manifest = r#"
+metadata: {name: extended}
+spec:
+  activeDeadlineSeconds: 2
+  template:
+    spec:
+      restartPolicy: Never
+      terminationGracePeriodSeconds: 1
+      containers:
+      - {name: c, image: busybox, command: [sleep, "60"]}
+"#;
+    jobs.create(&PostParams::default(), &job(manifest))
+        .await
+        .unwrap();
+    let merge = |patch: Value| Patch::Merge(patch);
+    let longer = merge(serde_json::json!({"spec": {"activeDeadlineSeconds": 600}}));
+    let patched = jobs
+        .patch("extended", &PatchParams::default(), &longer)
+        .await
+        .unwrap();
+    assert_eq!(patched.spec.unwrap().active_deadline_seconds, Some(600));
+    assert_eq!(patched.metadata.generation, Some(2));
+    // Past the old deadline, the Job still runs.
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let job = jobs.get("extended").await.unwrap();
+    assert!(condition(&job, "Failed").is_none(), "{:?}", job.status);
+    // Anything else in the spec is refused, with the server's Invalid status.
+    let other = merge(serde_json::json!({"spec": {"backoffLimit": 9}}));
+    match jobs
+        .patch("extended", &PatchParams::default(), &other)
+        .await
+    {
+        Err(kube::Error::Api(e)) => assert_eq!((e.code, e.reason.as_str()), (422, "Invalid")),
+        other => panic!("a backoffLimit patch was not refused: {other:?}"),
+    }
+    // A deadline already past fails the Job at once, as the controller's re-armed timer does.
+    let shorter = merge(serde_json::json!({"spec": {"activeDeadlineSeconds": 1}}));
+    jobs.patch("extended", &PatchParams::default(), &shorter)
+        .await
+        .unwrap();
+    let failed = wait_condition(&jobs, "extended", "Failed").await;
+    let c = condition(&failed, "Failed").unwrap();
+    assert_eq!(c.reason.as_deref(), Some("DeadlineExceeded"));
 }
 
 fn sleeper(name: &str, dir: &Path) -> Job {

@@ -417,6 +417,7 @@ fn pod_span(job: u32, (start, end): (f64, f64), spot: bool, reclaimed: bool) -> 
         gpus: 1,
         node: Some(if spot { "spot" } else { "on-demand" }.into()),
         disrupted: reclaimed,
+        succeeded: !reclaimed,
     }
 }
 

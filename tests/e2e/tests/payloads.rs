@@ -144,6 +144,9 @@ fn worst_usage() -> Ledger {
         jobs: "P".repeat(MAX_WORKERS as usize),
         gpus: u32::MAX,
         last: u64::MAX,
+        lost: u64::MAX,
+        lost_since: Some(u64::MAX),
+        lost_until: u64::MAX,
     }
 }
 

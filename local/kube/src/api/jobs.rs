@@ -1,4 +1,5 @@
-//! `batch/v1` Job handlers: create (validation, strict field checks, dry run), list, get, delete.
+//! `batch/v1` Job handlers: create (validation, strict field checks, dry run), list, get,
+//! merge patch, delete.
 
 use std::time::Duration;
 
@@ -12,8 +13,9 @@ use serde_json::Value;
 use super::objects::{into_response, to_json};
 use super::{decode_body, int_param, json, truthy, valid_namespace, AppState, Params};
 use crate::objects::job::prepare_create;
+use crate::objects::validation::validate_job;
 use crate::runtime::{Deleted, Propagation};
-use crate::status::{go_quote, ApiError, JOBS};
+use crate::status::{go_quote, ApiError, FieldError, JOBS};
 use crate::store::ObjKey;
 
 /// Paths of fields the typed object dropped: unknown to the schema.
@@ -125,6 +127,109 @@ fn create_inner(
         }
     }
     Ok(resp)
+}
+
+/// PATCH /apis/batch/v1/namespaces/{ns}/jobs/{name}: a JSON merge patch (RFC 7386), as
+/// `kubectl patch --type merge` and kube's `Patch::Merge` send it. Of a Job's spec, only
+/// `activeDeadlineSeconds` may change here (the real server also lets `parallelism`,
+/// `suspend` and a few others change, which this server does not model); the Job controller
+/// re-arms its deadline, as the real one does when the field changes ("Job termination and
+/// cleanup" in the Kubernetes docs). Labels and annotations may change too; the status is not
+/// the main resource's to change.
+pub async fn patch(
+    State(state): State<AppState>,
+    Path((ns, name)): Path<(String, String)>,
+    Query(p): Query<Params>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Response {
+    into_response(patch_inner(&state, &ns, &name, &p, &headers, &body))
+}
+
+fn patch_inner(
+    state: &AppState,
+    ns: &str,
+    name: &str,
+    p: &Params,
+    headers: &HeaderMap,
+    body: &Bytes,
+) -> Result<Response, ApiError> {
+    state.check("patch", &JOBS, ns, Some(name))?;
+    let content_type = headers
+        .get(axum::http::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or_default();
+    let media_type = content_type.split(';').next().unwrap_or_default().trim();
+    if media_type != "application/merge-patch+json" {
+        return Err(ApiError::unsupported_media_type(content_type));
+    }
+    let patch: Value = serde_json::from_slice(body)
+        .map_err(|e| ApiError::bad_request(format!("error decoding patch: {e}")))?;
+    let key = ObjKey::new(ns, name);
+    let current = state
+        .rt
+        .store
+        .get::<Job>(&key)
+        .ok_or_else(|| ApiError::not_found(&JOBS, name))?;
+    let mut merged = to_json(&current);
+    merge_patch(&mut merged, &patch);
+    let strict = p.field_validation.as_deref() == Some("Strict");
+    let (patched, _) = decode_job(merged, strict)?;
+    let uid = current.metadata.uid.clone().unwrap_or_default();
+    let mut errors = validate_job(&patched, &uid);
+    let (mut was, mut now) = (current.spec.clone(), patched.spec.clone());
+    for spec in [&mut was, &mut now].into_iter().flatten() {
+        spec.active_deadline_seconds = None;
+    }
+    if was != now {
+        errors.push(FieldError::forbidden(
+            "spec",
+            "only spec.activeDeadlineSeconds may change on this server",
+        ));
+    }
+    if !errors.is_empty() {
+        return Err(ApiError::invalid(&JOBS, name, &errors));
+    }
+    let apply = |job: &mut Job| {
+        if job.spec != patched.spec {
+            job.metadata.generation = Some(job.metadata.generation.unwrap_or(1) + 1);
+            job.spec = patched.spec.clone();
+        }
+        job.metadata.labels = patched.metadata.labels.clone();
+        job.metadata.annotations = patched.metadata.annotations.clone();
+    };
+    if p.dry_run.as_deref() == Some("All") {
+        let mut job = current;
+        apply(&mut job);
+        return Ok(json(StatusCode::OK, &to_json(&job)));
+    }
+    let job = state
+        .rt
+        .store
+        .update::<Job>(&key, apply)
+        .ok_or_else(|| ApiError::not_found(&JOBS, name))?;
+    state.rt.notify_job(&uid);
+    Ok(json(StatusCode::OK, &to_json(&job)))
+}
+
+/// RFC 7386: objects merge key by key, `null` removes a key, anything else replaces.
+fn merge_patch(target: &mut Value, patch: &Value) {
+    let Value::Object(fields) = patch else {
+        *target = patch.clone();
+        return;
+    };
+    if !target.is_object() {
+        *target = Value::Object(Default::default());
+    }
+    if let Value::Object(target) = target {
+        for (key, value) in fields {
+            if value.is_null() {
+                target.remove(key);
+            } else {
+                merge_patch(target.entry(key.clone()).or_insert(Value::Null), value);
+            }
+        }
+    }
 }
 
 /// `propagationPolicy`, `gracePeriodSeconds`, uid precondition and dry run of a delete, from
@@ -241,6 +346,26 @@ pub async fn delete(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_merge_patch_merges_objects_removes_nulls_and_replaces_the_rest() {
+        let mut job = serde_json::json!({
+            "metadata": {"labels": {"a": "1", "b": "2"}},
+            "spec": {"activeDeadlineSeconds": 60, "parallelism": 1}
+        });
+        let patch = serde_json::json!({
+            "metadata": {"labels": {"b": null, "c": "3"}},
+            "spec": {"activeDeadlineSeconds": 120}
+        });
+        merge_patch(&mut job, &patch);
+        assert_eq!(
+            job,
+            serde_json::json!({
+                "metadata": {"labels": {"a": "1", "c": "3"}},
+                "spec": {"activeDeadlineSeconds": 120, "parallelism": 1}
+            })
+        );
+    }
 
     #[test]
     fn unknown_fields_are_found_with_their_paths() {

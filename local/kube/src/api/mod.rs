@@ -282,7 +282,9 @@ pub fn router(state: AppState) -> Router {
         )
         .route(
             "/apis/batch/v1/namespaces/{ns}/jobs/{name}",
-            get(objects::get_named::<Job>).delete(jobs::delete),
+            get(objects::get_named::<Job>)
+                .patch(jobs::patch)
+                .delete(jobs::delete),
         )
         .route(
             "/apis/batch/v1/namespaces/{ns}/jobs/{name}/status",
