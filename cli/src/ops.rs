@@ -592,12 +592,9 @@ async fn estimates(
 
 /// `~40m`, `1h-3h`: an estimated start in a column.
 fn short_estimate(e: lb_domain::queue::StartEstimate) -> String {
-    let minutes = |s: u64| s.div_ceil(60).max(1);
-    let (low, high) = (minutes(e.low), minutes(e.high));
-    if high <= 90 {
-        format!("{low}-{high}m")
-    } else {
-        format!("{}-{}h", low / 60, high.div_ceil(60))
+    match e.shown() {
+        lb_domain::queue::Shown::Minutes(low, high) => format!("{low}-{high}m"),
+        lb_domain::queue::Shown::Hours(low, high) => format!("{low}-{high}h"),
     }
 }
 

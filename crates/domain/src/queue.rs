@@ -128,6 +128,20 @@ pub fn shown_ahead(shown: Option<u32>, now: u32) -> u32 {
     shown.map_or(now, |before| before.min(now))
 }
 
+/// Whether the participant's note is rewritten now: the place `ahead` (`None`: the note goes,
+/// the run started) differs from the one `shown` at `shown_at`, and a changed place was last
+/// shown `interval` seconds ago or more (places move often in a busy queue); removing the note
+/// waits for nothing.
+pub fn note_due(
+    (shown, shown_at): (Option<u32>, Option<u64>),
+    ahead: Option<u32>,
+    now: u64,
+    interval: u64,
+) -> bool {
+    ahead != shown
+        && (ahead.is_none() || shown_at.is_none_or(|t| now.saturating_sub(t) >= interval))
+}
+
 /// What holds a queued submission back, for its participant and the operator.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Hold {
@@ -174,6 +188,27 @@ impl StartEstimate {
     pub fn middle(&self) -> u64 {
         (self.low + self.high) / 2
     }
+
+    /// The range as it is shown: whole minutes up to an hour and a half, whole hours beyond
+    /// (the low end rounded down, the high end up).
+    pub fn shown(&self) -> Shown {
+        let minutes = |s: u64| s.div_ceil(60).max(1);
+        let (low, high) = (minutes(self.low), minutes(self.high));
+        if high <= 90 {
+            Shown::Minutes(low.min(high), high)
+        } else {
+            Shown::Hours(low / 60, high.div_ceil(60))
+        }
+    }
+}
+
+/// A [`StartEstimate`] rounded for people: (low, high).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Shown {
+    /// In minutes.
+    Minutes(u64, u64),
+    /// In hours.
+    Hours(u64, u64),
 }
 
 /// The estimated start of a submission with `ahead` submissions before it, while `running`
@@ -207,24 +242,12 @@ pub fn estimate_team_turn(team_ahead: u32, limit: u32, recent: &[u64]) -> Option
 
 /// The estimate in the participant's words: "about 40 minutes", "between 1 and 3 hours".
 pub fn describe_estimate(estimate: StartEstimate) -> String {
-    let minutes = |s: u64| s.div_ceil(60).max(1);
-    let (low, high) = (minutes(estimate.low), minutes(estimate.high));
-    let span = if high <= 90 {
-        if high - low <= high / 4 {
-            format!("about {high} minutes")
-        } else {
-            format!("between {} and {high} minutes", low.min(high))
-        }
-    } else {
-        let hours = |m: u64| m.div_ceil(60);
-        let (low, high) = (low / 60, hours(high));
-        if low == 0 {
-            format!("within {high} hours")
-        } else if low == high || high - low <= high / 4 {
-            format!("about {high} hours")
-        } else {
-            format!("between {low} and {high} hours")
-        }
+    let span = match estimate.shown() {
+        Shown::Minutes(low, high) if high - low <= high / 4 => format!("about {high} minutes"),
+        Shown::Minutes(low, high) => format!("between {low} and {high} minutes"),
+        Shown::Hours(0, high) => format!("within {high} hours"),
+        Shown::Hours(low, high) if high - low <= high / 4 => format!("about {high} hours"),
+        Shown::Hours(low, high) => format!("between {low} and {high} hours"),
     };
     format!("it should start {span} from now (an estimate from this track's recent evaluations)")
 }
@@ -232,6 +255,20 @@ pub fn describe_estimate(estimate: StartEstimate) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_changed_place_is_shown_at_most_every_interval_and_a_removal_at_once() {
+        let shown = (Some(3), Some(1000));
+        assert!(!note_due(shown, Some(3), 9000, 300), "unchanged");
+        assert!(!note_due(shown, Some(2), 1299, 300));
+        assert!(note_due(shown, Some(2), 1300, 300));
+        assert!(
+            note_due(shown, None, 1001, 300),
+            "it runs: the note goes at once"
+        );
+        assert!(note_due((None, None), Some(5), 0, 300), "never shown");
+        assert!(!note_due((None, None), None, 0, 300), "nothing to remove");
+    }
 
     #[test]
     fn the_start_estimate_reads_the_track_s_pace_over_the_places_running() {

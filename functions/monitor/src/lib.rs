@@ -425,9 +425,13 @@ async fn queue_note(
         (Some(table), None) => match queue::ahead_of(table, submission).await {
             Ok(Some((ahead, running))) => {
                 let ahead = lb_domain::queue::shown_ahead(run.queue.shown, ahead);
-                let hold = lb_domain::queue::Hold::Capacity;
-                let text = queue::note(table, submission, (ahead, 0, running), hold).await;
-                Some(Some((ahead, text)))
+                if note_due(run, Some(ahead), now) {
+                    let hold = lb_domain::queue::Hold::Capacity;
+                    let text = queue::note(table, submission, (ahead, 0, running), hold).await;
+                    Some(Some((ahead, text)))
+                } else {
+                    None
+                }
             }
             Ok(None) => None,
             Err(e) => {
@@ -586,6 +590,10 @@ async fn waiting_round(
         return Ok(run);
     }
     let ahead = lb_domain::queue::shown_ahead(run.queue.shown, standing.ahead);
+    if !note_due(&run, Some(ahead), now) {
+        return Ok(run);
+    }
+    // The estimate reads the track's pace: only for a note that is written.
     let place = (ahead, standing.team_ahead, 0);
     let note = queue::note(table, submission, place, standing.hold).await;
     if show_place(deps, at, &mut run, Some((ahead, note)), now).await?
@@ -608,14 +616,7 @@ async fn show_place(
     now: u64,
 ) -> Result<Option<SubmissionStatus>> {
     let ahead = note.as_ref().map(|(ahead, _)| *ahead);
-    if ahead == run.queue.shown {
-        return Ok(None);
-    }
-    let due = run
-        .queue
-        .shown_at
-        .is_none_or(|t| now.saturating_sub(t) >= QUEUE_NOTE_INTERVAL.as_secs());
-    if note.is_some() && !due {
+    if !note_due(run, ahead, now) {
         return Ok(None);
     }
     let evalai = deps.clients.evalai.with_priority(Priority::Routine);
@@ -647,6 +648,12 @@ async fn show_place(
         }
         Err(e) => Err(e.into()),
     }
+}
+
+/// Whether the queue note showing `ahead` is written this round (`lb_domain::queue::note_due`).
+fn note_due(run: &RunState, ahead: Option<u32>, now: u64) -> bool {
+    let shown = (run.queue.shown, run.queue.shown_at);
+    lb_domain::queue::note_due(shown, ahead, now, QUEUE_NOTE_INTERVAL.as_secs())
 }
 
 /// Where the submission is on EvalAI.
