@@ -109,7 +109,13 @@ async fn watch_and_drain(
         tokio::select! {
             () = cue.notified(), if !cued => {
                 cued = true;
-                report.evicted = drain(&cluster, &pods, submission).await;
+                let evicted = drain(&cluster, &pods, submission).await;
+                for (pod, reason) in &evicted {
+                    if let Some(reason) = reason {
+                        report.disrupted.insert(pod.clone(), reason.clone());
+                    }
+                }
+                report.evicted = evicted.into_iter().map(|(pod, _)| pod).collect();
                 acted.store(!report.evicted.is_empty(), Ordering::SeqCst);
             }
             _ = stopped.changed() => return report,
@@ -118,8 +124,14 @@ async fn watch_and_drain(
     }
 }
 
-/// Evicts every running pod of the submission, as `kubectl drain` and the node group do.
-async fn drain(cluster: &lb_cluster::Cluster, api: &Api<Pod>, submission: u64) -> Vec<String> {
+/// Evicts every running pod of the submission, as `kubectl drain` and the node group do; each
+/// evicted pod with its `DisruptionTarget` reason as read right after (the API server writes
+/// it before the pod is deleted; a pod that stops at once may be gone before a later look).
+async fn drain(
+    cluster: &lb_cluster::Cluster,
+    api: &Api<Pod>,
+    submission: u64,
+) -> Vec<(String, Option<String>)> {
     let Ok(seen) = cluster.observe(&submission.to_string()).await else {
         return Vec::new();
     };
@@ -127,7 +139,10 @@ async fn drain(cluster: &lb_cluster::Cluster, api: &Api<Pod>, submission: u64) -
     let pods = seen.jobs.iter().flat_map(|j| &j.pods);
     for pod in pods.filter(|p| p.phase == "Running" && !p.terminating) {
         match api.evict(&pod.name, &EvictParams::default()).await {
-            Ok(_) => evicted.push(pod.name.clone()),
+            Ok(_) => {
+                let reason = disruption_of(api, &pod.name).await;
+                evicted.push((pod.name.clone(), reason));
+            }
             Err(e) => cli::outln!("           scenario: evicting {} failed: {e}", pod.name),
         }
     }
@@ -136,6 +151,16 @@ async fn drain(cluster: &lb_cluster::Cluster, api: &Api<Pod>, submission: u64) -
         evicted.len()
     );
     evicted
+}
+
+/// The reason of pod `name`'s `DisruptionTarget` condition, if it has one.
+async fn disruption_of(api: &Api<Pod>, name: &str) -> Option<String> {
+    let pod = api.get_opt(name).await.ok()??;
+    let conditions = pod.status?.conditions?;
+    conditions
+        .into_iter()
+        .find(|c| c.type_ == "DisruptionTarget" && c.status == "True")?
+        .reason
 }
 
 /// The Jobs' failures counted so far, and the pods the control plane is taking away, as the
