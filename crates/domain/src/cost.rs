@@ -363,30 +363,26 @@ impl Ledger {
                 running.disrupted = true;
                 self.begin_lost(since.min(now));
             }
-            let mark = match pod.ended_at {
-                None => JobMark::Running(running),
-                Some(_) if running.disrupted && !pod.succeeded => JobMark::Reclaimed,
-                // A disrupted pod that succeeded finished its pair's routes: its Job caught up
-                // when it ended.
-                Some(end) => {
-                    if running.disrupted {
-                        resumed = resumed.max(Some(end.min(now)));
-                    }
-                    JobMark::Idle
-                }
-            };
+            let (mark, caught_up) = after_round(pod, running, now);
+            resumed = resumed.max(caught_up);
             self.set_mark(pod.job, mark);
             handled.insert(pod.job);
         }
-        // Pods of the last round neither seen nor replaced: gone between the two rounds.
+        self.charge_gone(&handled, now);
+        self.jobs.truncate(self.jobs.trim_end_matches('.').len());
+        self.last = self.last.max(now);
+        if !(0..self.jobs.len() as u32).any(|job| self.catching_up(job)) {
+            self.end_lost(resumed.unwrap_or(now));
+        }
+    }
+
+    /// Pods of the last round neither seen nor replaced (`handled` has the Jobs that were) went
+    /// between the two rounds: charged up to `now`; a disrupted one leaves its Job catching up.
+    fn charge_gone(&mut self, handled: &std::collections::BTreeSet<u32>, now: u64) {
         for job in 0..self.jobs.len() as u32 {
             if let Some(gone) = self.running(job).filter(|_| !handled.contains(&job)) {
-                self.charge(
-                    gone.line,
-                    now.saturating_sub(self.last),
-                    self.gpus,
-                    gone.disrupted,
-                );
+                let seconds = now.saturating_sub(self.last);
+                self.charge(gone.line, seconds, self.gpus, gone.disrupted);
                 let mark = if gone.disrupted {
                     JobMark::Reclaimed
                 } else {
@@ -394,11 +390,6 @@ impl Ledger {
                 };
                 self.set_mark(job, mark);
             }
-        }
-        self.jobs.truncate(self.jobs.trim_end_matches('.').len());
-        self.last = self.last.max(now);
-        if !(0..self.jobs.len() as u32).any(|job| self.catching_up(job)) {
-            self.end_lost(resumed.unwrap_or(now));
         }
     }
 
@@ -453,6 +444,17 @@ impl Ledger {
             }
         }
         totals
+    }
+}
+
+/// Where a pod seen at `now` leaves its Job, and when the Job caught up on a reclaim if it did
+/// here: a disrupted pod that succeeded had finished its pair's routes, so its Job caught up
+/// when it ended.
+fn after_round(pod: &PodSeen, running: Running, now: u64) -> (JobMark, Option<u64>) {
+    match pod.ended_at {
+        None => (JobMark::Running(running), None),
+        Some(_) if running.disrupted && !pod.succeeded => (JobMark::Reclaimed, None),
+        Some(end) => (JobMark::Idle, running.disrupted.then_some(end.min(now))),
     }
 }
 
