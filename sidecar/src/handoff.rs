@@ -25,7 +25,11 @@
 //! simulator's sidecar takes the first free one of `CARLA_PORT + 100*k`, puts it in place of
 //! `{carla_port}` in CARLA's arguments, and writes it to `$LB_HANDOFF_DIR/port-<ID>` before
 //! CARLA starts; the agent's sidecar reads it once the start marker is there and gives the
-//! evaluator that `CARLA_PORT` (and the traffic manager the same offset from it).
+//! evaluator that `CARLA_PORT` (and the traffic manager the same offset from it). A look is not
+//! a hold: two simulators starting together can both find one port free, and the one whose
+//! CARLA binds second exits at once. A CARLA that exits before it is ready while its port is
+//! held by another process lost that race: the sidecar starts it again on the next free port
+//! ([`PORT_RACES`] times at most), and the attempt is not a crash.
 
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
@@ -48,6 +52,9 @@ pub const DIR_VAR: &str = "LB_HANDOFF_DIR";
 const PORT_CANDIDATES: u16 = 50;
 /// Distance between candidates (CARLA also takes the two ports after its own).
 const PORT_STRIDE: u16 = 100;
+/// How many times one attempt starts CARLA again on another port after losing its port to
+/// another process: each is a race lost to a simulator that started at the same moment.
+pub const PORT_RACES: u32 = 3;
 /// Where the simulator keeps the GPU it took over (a volume only simulators mount).
 pub const DEFAULT_PIN_DIR: &str = "/tmp/gpu-pin";
 /// `LB_GPU_PIN_DIR`: that folder.
@@ -155,6 +162,11 @@ fn ports_free(port: u16, tm_offset: u16) -> bool {
     wanted.iter().all(|p| {
         p.is_some_and(|p| std::net::TcpListener::bind((std::net::Ipv4Addr::UNSPECIFIED, p)).is_ok())
     })
+}
+
+/// Whether another process holds `port` or one of the ports CARLA would take with it.
+pub fn port_taken(port: u16, tm_offset: u16) -> bool {
+    !ports_free(port, tm_offset)
 }
 
 /// The first free port of `preferred + 100*k` (`preferred` itself in a pod of its own).

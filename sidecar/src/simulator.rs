@@ -1,7 +1,8 @@
 //! `lb-sidecar simulator -- CMD`: runs CARLA and plays the simulator's side of the protocol.
 //!
 //! Start CARLA in its own process group (output to `logs/simulator/simulator<ID>.log`); it
-//! is ready when its port accepts connections (bounded by `LB_CARLA_READY_SECONDS`); write
+//! is ready when its port accepts connections and CARLA is what listens there (bounded by
+//! `LB_CARLA_READY_SECONDS`; a port lost to another process moves it, `crate::handoff`); write
 //! `simulator-<ID>.start<CRASH_ID>`; then agent done -> stop CARLA, `simulator-<ID>.done`,
 //! exit 0; agent crashed -> stop, this attempt's crash marker, exit 1; CARLA died (or never
 //! became ready) -> `simulator-<ID>.crash<CRASH_ID>`, wait (bounded) for the agent, exit 1;
@@ -20,7 +21,7 @@ use crate::handoff;
 use crate::pair::{self, port_open, write_marker, PairError, PairOutcome};
 use crate::signals::{Signals, Wake};
 use crate::status::StatusDir;
-use crate::supervise::{become_subreaper, Supervised};
+use crate::supervise::{become_subreaper, listened_by_another, Supervised};
 
 /// Runs the subcommand with the configuration from the environment.
 pub fn run(command: &[String]) -> Result<PairOutcome, PairError> {
@@ -92,47 +93,37 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
     } else {
         None
     };
-    let port = handoff::pick_port(cfg.carla_port, cfg.tm_offset());
-    if port != cfg.carla_port {
-        warn!(
-            pair = id,
-            wanted = cfg.carla_port,
-            port,
-            "CARLA's port is taken: using another"
-        );
-    }
-    if let Err(e) = handoff::announce_port(&cfg.handoff_dir, id, port) {
-        warn!(pair = id, error = %e, "cannot tell the agent CARLA's port");
-    }
-    let command = handoff::substitute(command, gpu, port);
-    let mut envs: Vec<(String, String)> = match gpu {
-        Some(index) => handoff::substitute_env(std::env::vars_os(), index),
-        None => Vec::new(),
-    };
-    envs.push((protocol::env::CARLA_PORT.to_owned(), port.to_string()));
-    let envs: Vec<(&str, String)> = envs.iter().map(|(k, v)| (k.as_str(), v.clone())).collect();
-    let command = command.as_slice();
-    let mut child =
-        Supervised::spawn(command, &envs, &log, true).map_err(|source| PairError::Spawn {
-            program: command.first().cloned().unwrap_or_default(),
-            source,
-        })?;
-    info!(pair = id, attempt, port, "simulator started");
-    child.note(&format!(
-        "simulator {id} attempt {attempt}: started, waiting for port {}",
-        port
-    ));
-
-    let ready_by = Instant::now() + cfg.carla_ready;
+    let (mut child, mut port) = start_carla(cfg, command, gpu, &log, attempt)?;
+    let mut races = 0;
+    let mut ready_by = Instant::now() + cfg.carla_ready;
     let mut ready = false;
     loop {
         if let Some(exit) = child.try_exit() {
             warn!(pair = id, %exit, ready, "CARLA exited");
             child.note(&format!("CARLA exited ({exit})"));
+            child.stop(cfg.stop_grace).await;
+            if !ready && races < handoff::PORT_RACES && handoff::port_taken(port, cfg.tm_offset()) {
+                races += 1;
+                warn!(
+                    pair = id,
+                    attempt,
+                    port,
+                    "another process took CARLA's port first: starting CARLA on another"
+                );
+                child.note(&format!(
+                    "port {port} was taken before CARLA could bind it: starting CARLA on another"
+                ));
+                // NB: the old one's drop kills every descendant: it goes before the new one.
+                drop(child);
+                (child, port) = start_carla(cfg, command, gpu, &log, attempt)?;
+                ready_by = Instant::now() + cfg.carla_ready;
+                continue;
+            }
             return crashed(cfg, &mut signals, &status, child, attempt).await;
         }
         if !ready {
-            if port_open(port).await {
+            // NB: on a network pods share, the port may answer from another pod's CARLA.
+            if port_open(port).await && !listened_by_another(port) {
                 ready = true;
                 info!(pair = id, attempt, "CARLA accepts connections");
                 child.note("CARLA accepts connections");
@@ -200,6 +191,46 @@ pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcom
             };
         }
     }
+}
+
+/// Picks CARLA's port (`crate::handoff`), tells the agent, and starts CARLA on it.
+fn start_carla(
+    cfg: &PairConfig,
+    command: &[String],
+    gpu: Option<u32>,
+    log: &std::path::Path,
+    attempt: u32,
+) -> Result<(Supervised, u16), PairError> {
+    let id = cfg.pair;
+    let port = handoff::pick_port(cfg.carla_port, cfg.tm_offset());
+    if port != cfg.carla_port {
+        warn!(
+            pair = id,
+            wanted = cfg.carla_port,
+            port,
+            "CARLA's port is taken: using another"
+        );
+    }
+    if let Err(e) = handoff::announce_port(&cfg.handoff_dir, id, port) {
+        warn!(pair = id, error = %e, "cannot tell the agent CARLA's port");
+    }
+    let command = handoff::substitute(command, gpu, port);
+    let mut envs: Vec<(String, String)> = match gpu {
+        Some(index) => handoff::substitute_env(std::env::vars_os(), index),
+        None => Vec::new(),
+    };
+    envs.push((protocol::env::CARLA_PORT.to_owned(), port.to_string()));
+    let envs: Vec<(&str, String)> = envs.iter().map(|(k, v)| (k.as_str(), v.clone())).collect();
+    let child =
+        Supervised::spawn(&command, &envs, log, true).map_err(|source| PairError::Spawn {
+            program: command.first().cloned().unwrap_or_default(),
+            source,
+        })?;
+    info!(pair = id, attempt, port, "simulator started");
+    child.note(&format!(
+        "simulator {id} attempt {attempt}: started, waiting for port {port}"
+    ));
+    Ok((child, port))
 }
 
 /// CARLA died or never became ready: crash marker, then wait (bounded) for the agent.

@@ -381,9 +381,83 @@ fn parse_stat(stat: &str) -> Option<(i32, char)> {
     Some((ppid, state))
 }
 
+/// Whether TCP `port` is listened on in this network by processes outside the sidecar's tree
+/// only: it answers, but not from the child (on a network pods share, another pod's CARLA).
+/// `false` when `/proc` cannot tell.
+pub fn listened_by_another(port: u16) -> bool {
+    let inodes: Vec<u64> = ["/proc/net/tcp", "/proc/net/tcp6"]
+        .iter()
+        .filter_map(|table| fs::read_to_string(table).ok())
+        .flat_map(|table| listening_inodes(&table, port))
+        .collect();
+    if inodes.is_empty() {
+        return false;
+    }
+    let ours = descendants(nix::unistd::getpid())
+        .into_iter()
+        .any(|pid| holds_socket(pid, &inodes));
+    !ours
+}
+
+/// The inodes of the sockets listening (state `0A`) on `port` in a `/proc/net/tcp` table.
+fn listening_inodes(table: &str, port: u16) -> Vec<u64> {
+    table
+        .lines()
+        .skip(1)
+        .filter_map(|line| {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let (_, local_port) = fields.get(1)?.rsplit_once(':')?;
+            let listening = *fields.get(3)? == "0A";
+            let on_port = u16::from_str_radix(local_port, 16).ok()? == port;
+            let inode = fields.get(9)?.parse().ok()?;
+            (listening && on_port).then_some(inode)
+        })
+        .collect()
+}
+
+/// Whether process `pid` has one of the sockets `inodes` open.
+fn holds_socket(pid: Pid, inodes: &[u64]) -> bool {
+    let Ok(fds) = fs::read_dir(format!("/proc/{pid}/fd")) else {
+        return false;
+    };
+    fds.flatten().any(|fd| {
+        let Ok(target) = fs::read_link(fd.path()) else {
+            return false;
+        };
+        let inode = target
+            .to_str()
+            .and_then(|t| t.strip_prefix("socket:["))
+            .and_then(|t| t.strip_suffix(']'))
+            .and_then(|t| t.parse::<u64>().ok());
+        inode.is_some_and(|i| inodes.contains(&i))
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn listeners_are_read_from_the_kernels_table_by_port_and_state() {
+        let table = "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode
+   0: 00000000:07D0 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 4242 1 0000000000000000 100 0 0 10 0
+   1: 0100007F:07D0 0100007F:A1B2 01 00000000:00000000 00:00000000 00000000     0        0 4343 1 0000000000000000 20 4 30 10 -1
+   2: 00000000:0834 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 4444 1 0000000000000000 100 0 0 10 0
+   garbage";
+        assert_eq!(listening_inodes(table, 2000), [4242]);
+        assert_eq!(listening_inodes(table, 2100), [4444]);
+        assert!(listening_inodes(table, 2001).is_empty());
+    }
+
+    #[test]
+    fn a_port_held_outside_the_sidecars_tree_is_anothers() {
+        // NB: the sidecar asks about its descendants; the test process is not its own.
+        let held = std::net::TcpListener::bind(("0.0.0.0", 0)).unwrap();
+        let port = held.local_addr().unwrap().port();
+        assert!(listened_by_another(port));
+        drop(held);
+        assert!(!listened_by_another(port), "nobody listens any more");
+    }
 
     #[test]
     fn stat_lines_with_odd_command_names_parse() {

@@ -206,6 +206,64 @@ fn an_agent_whose_simulator_never_starts_gives_up_after_the_start_wait() {
     assert_eq!(vols.markers(), ["agent-8.crash0"]);
 }
 
+/// Before CARLA starts, the wrapper names the port the sidecar gave it (in `$1/port`) and waits
+/// until something else listens there: the test takes the port between the sidecar's look and
+/// CARLA's bind, as a pod starting at the same moment does on a network pods share. CARLA then
+/// takes a second to start (the real one takes longer), in which the port answers, not from it.
+const PORT_THIEF: &str = r#"if mkdir "$1/raced" 2>/dev/null; then
+  echo "$2" > "$1/port.tmp" && mv "$1/port.tmp" "$1/port"
+  for _ in $(seq 100); do (exec 3<>"/dev/tcp/127.0.0.1/$2") 2>/dev/null && break; sleep 0.1; done
+  sleep 1
+fi
+exec "$3" -carla-rpc-port="$2" -RenderOffScreen"#;
+
+#[test]
+fn a_port_taken_before_carla_binds_it_moves_carla_and_is_no_crash() {
+    let vols = Volumes::new();
+    let race = tempfile::tempdir().unwrap();
+    let pair = Pair::new(5, "0-2");
+    let command = [
+        "bash".to_owned(),
+        "-c".to_owned(),
+        PORT_THIEF.to_owned(),
+        "carla".to_owned(),
+        race.path().display().to_string(),
+        "{carla_port}".to_owned(),
+        fake("fake-carla").display().to_string(),
+    ];
+    let mut sim = pair.simulator_running(&vols, &command);
+    let named = race.path().join("port");
+    wait_until("CARLA's port named", LIMIT, || named.exists());
+    let port: u16 = std::fs::read_to_string(&named)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    // NB: held until the end, so the sidecar must not take the thief's answer for CARLA's.
+    let thief = std::net::TcpListener::bind(("0.0.0.0", port)).unwrap();
+    let mut agent = pair.agent(&vols);
+    assert_eq!(sim.wait(LIMIT).code(), Some(0), "{}", sim.log());
+    assert_eq!(agent.wait(LIMIT).code(), Some(0), "{}", agent.log());
+    assert_eq!(
+        vols.markers(),
+        ["agent-5.done", "simulator-5.done", "simulator-5.start0"]
+    );
+    let log = vols.simulator_log(5);
+    assert!(
+        log.contains(&format!("port {port} was taken before CARLA could bind it")),
+        "{log}"
+    );
+    let moved: u16 = std::fs::read_to_string(vols.root().join("handoff/port-5"))
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    assert_ne!(moved, port, "the agent was told the port CARLA got");
+    assert!(log.contains(&format!("waiting for port {moved}")), "{log}");
+    assert!(finished(&std::fs::read(vols.checkpoint(5)).unwrap(), "0-2"));
+    drop(thief);
+}
+
 #[test]
 fn a_simulator_whose_carla_never_opens_its_port_crashes_after_the_ready_wait() {
     let vols = Volumes::new();

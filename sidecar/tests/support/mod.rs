@@ -192,6 +192,13 @@ impl Pair {
         Proc::spawn(self.command(vols, &args), "simulator")
     }
 
+    /// `lb-sidecar simulator -- COMMAND...`: a simulator container running something else.
+    pub fn simulator_running(&self, vols: &Volumes, command: &[String]) -> Proc {
+        let mut args = vec!["simulator".to_owned(), "--".to_owned()];
+        args.extend(command.iter().cloned());
+        Proc::spawn(self.command(vols, &args), "simulator")
+    }
+
     /// `lb-sidecar agent -- COMMAND...`: an agent whose image runs something else.
     pub fn agent_running(&self, vols: &Volumes, command: &[&str]) -> Proc {
         let mut args = vec!["agent".to_owned(), "--".to_owned()];
