@@ -117,15 +117,22 @@ impl Function for Deps {
     }
 }
 
-/// The submission's Jobs and pods as the cluster reports them now, and its pods as the GPU
-/// count takes them with what the nodes `usage` does not know yet are (`None`: a node could
-/// not be read this round, and the count waits for the next).
+/// What a round saw of the cluster, and the client it saw it with (the round acts on it).
+struct Sighting {
+    cluster: lb_cluster::Cluster,
+    observation: lb_cluster::Observation,
+    /// The pods as the GPU count takes them, with what the nodes `usage` does not know yet
+    /// are (`None`: a node could not be read this round, and the count waits for the next).
+    counted: Option<PodsOnNodes>,
+}
+
+/// The submission's Jobs and pods as the cluster reports them now.
 async fn observe(
     deps: &Deps,
     deployment: &lb_domain::settings::LeaderboardSettings,
     id: u64,
     usage: &Ledger,
-) -> Result<(lb_cluster::Observation, Option<PodsOnNodes>)> {
+) -> Result<Sighting> {
     let policy = VerdictPolicy {
         queue_limit: Duration::from_secs(deployment.max_queue_hours * 3600),
         ..deps.policy
@@ -137,7 +144,6 @@ async fn observe(
         .await?
         .with_policy(policy);
     let observation = cluster.observe(&id.to_string()).await?;
-    extend_deadlines(&cluster, &observation.jobs, usage, id).await;
     let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
     let mut kinds = NodeKinds::new();
     for node in usage.unknown_nodes(&pods) {
@@ -147,15 +153,24 @@ async fn observe(
             }
             Err(e) => {
                 warn!(submission_id = id, %node, error = %e, "node not read: GPU usage counted next round");
-                return Ok((observation, None));
+                return Ok(Sighting {
+                    cluster,
+                    observation,
+                    counted: None,
+                });
             }
         }
     }
-    Ok((observation, Some(PodsOnNodes { pods, kinds })))
+    let counted = Some(PodsOnNodes { pods, kinds });
+    Ok(Sighting {
+        cluster,
+        observation,
+        counted,
+    })
 }
 
 /// The Jobs' own deadline grows by the time reclaims cost the evaluation (the stretches closed
-/// by the last round), as the participant's limit does. A patch that fails is tried again next
+/// by this round's count), as the participant's limit does. A patch that fails is tried again next
 /// round: the value set does not depend on what the Job has.
 async fn extend_deadlines(
     cluster: &lb_cluster::Cluster,
@@ -273,12 +288,16 @@ async fn round(
     };
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
     let observation = match observation {
-        Some((observation, Some(counted))) => {
-            let observed_at = u64::try_from(observation.observed_at.as_second()).unwrap_or(0);
-            count_usage(&store, observed_at, &counted, &mut run).await;
-            Some(observation)
+        Some(seen) => {
+            if let Some(counted) = &seen.counted {
+                let observed_at = seen.observation.observed_at.as_second();
+                let observed_at = u64::try_from(observed_at).unwrap_or(0);
+                count_usage(&store, observed_at, counted, &mut run).await;
+            }
+            let (jobs, usage) = (&seen.observation.jobs, &run.monitor.usage);
+            extend_deadlines(&seen.cluster, jobs, usage, id).await;
+            Some(seen.observation)
         }
-        Some((observation, None)) => Some(observation),
         None => None,
     };
     let at = submission_ref(submission);
@@ -371,7 +390,7 @@ async fn read_wake(deps: &Deps, id: u64, run: &mut RunState) -> Result<WakeState
 
 /// What the round saw of the cluster.
 enum Seen {
-    Observed(Box<(lb_cluster::Observation, Option<PodsOnNodes>)>),
+    Observed(Box<Sighting>),
     /// Out of reach this round: the verdict is skipped, the Jobs run on without it.
     Unreachable,
     /// Out of reach for longer than the leaderboard allows: the run has ended.
@@ -389,10 +408,10 @@ async fn observe_round(
     now: u64,
 ) -> Result<Seen> {
     let e = match observe(deps, target.deployment, id, &run.monitor.usage).await {
-        Ok((observation, kinds)) => {
+        Ok(mut seen) => {
             run.monitor.unreachable_since = None;
-            let observation = observation.expect_jobs(run.jobs);
-            return Ok(Seen::Observed(Box::new((observation, kinds))));
+            seen.observation = seen.observation.expect_jobs(run.jobs);
+            return Ok(Seen::Observed(Box::new(seen)));
         }
         Err(e) if e.is_transient() => e,
         Err(e) => return Err(e),
