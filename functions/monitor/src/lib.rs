@@ -170,8 +170,8 @@ async fn observe(
 }
 
 /// The Jobs' own deadline grows by the time reclaims cost the evaluation (the stretches closed
-/// by this round's count), as the participant's limit does. A patch that fails is tried again next
-/// round: the value set does not depend on what the Job has.
+/// by this round's count), as the participant's limit does. A patch that fails is tried again
+/// next round: the value set does not depend on what the Job has.
 async fn extend_deadlines(
     cluster: &lb_cluster::Cluster,
     jobs: &[JobView],
