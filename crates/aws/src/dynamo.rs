@@ -408,8 +408,8 @@ impl SubmissionsTable {
 }
 
 /// The usage attributes (`SET` clauses and their values): GPU-seconds in all, on Spot, run
-/// again after a reclaim, the evaluation's seconds lost to reclaims, the estimate in dollars when every second had a price, and the
-/// orchestration's own when counted.
+/// again after a reclaim, the evaluation's seconds lost to reclaims, the estimate in dollars
+/// when every second had a price, and the orchestration's own when counted.
 fn usage_update(usage: &Totals) -> (Vec<String>, HashMap<String, AttributeValue>) {
     let mut set = vec![
         "gpu_seconds = :gpu".to_string(),

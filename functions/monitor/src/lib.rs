@@ -172,13 +172,8 @@ async fn observe(
 /// The Jobs' own deadline grows by the time reclaims cost the evaluation (the stretches closed
 /// by this round's count), as the participant's limit does. A patch that fails is tried again
 /// next round: the value set does not depend on what the Job has.
-async fn extend_deadlines(
-    cluster: &lb_cluster::Cluster,
-    jobs: &[JobView],
-    usage: &Ledger,
-    id: u64,
-) {
-    for (job, seconds) in monitor::deadlines_to_extend(jobs, usage.lost) {
+async fn extend_deadlines(cluster: &lb_cluster::Cluster, jobs: &[JobView], lost: u64, id: u64) {
+    for (job, seconds) in monitor::deadlines_to_extend(jobs, lost) {
         if let Err(e) = cluster.extend_deadline(job, seconds).await {
             warn!(submission_id = id, job, error = %e, "Job deadline not extended this round");
         }
@@ -294,8 +289,8 @@ async fn round(
                 let observed_at = u64::try_from(observed_at).unwrap_or(0);
                 count_usage(&store, observed_at, counted, &mut run).await;
             }
-            let (jobs, usage) = (&seen.observation.jobs, &run.monitor.usage);
-            extend_deadlines(&seen.cluster, jobs, usage, id).await;
+            let lost = run.monitor.usage.lost;
+            extend_deadlines(&seen.cluster, &seen.observation.jobs, lost, id).await;
             Some(seen.observation)
         }
         None => None,
