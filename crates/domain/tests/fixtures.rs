@@ -341,6 +341,7 @@ fn files_under(root: &Path) -> Vec<PathBuf> {
 /// Where the shared set lies beside the repository (as CI lays it out), the copy must be it,
 /// byte for byte: a case or file it lacks, has in excess or holds differently is named.
 #[test]
+#[ignore = "needs ../shared beside the repository: make test runs it there and skips it by name elsewhere"]
 fn the_kept_fixtures_are_the_shared_set_byte_for_byte_when_it_is_beside_the_repository() {
     same_as_shared(
         "fixtures/leaderboard-results",
@@ -352,6 +353,7 @@ fn the_kept_fixtures_are_the_shared_set_byte_for_byte_when_it_is_beside_the_repo
 /// The same for the recording of EvalAI's real server that `local/evalai/tests/contract.rs`
 /// replays (its JSON files; the folder's README is the repository's own).
 #[test]
+#[ignore = "needs ../shared beside the repository: make test runs it there and skips it by name elsewhere"]
 fn the_kept_evalai_recording_is_the_shared_one_byte_for_byte_when_it_is_beside_the_repository() {
     same_as_shared("reference/evalai-contract", "evalai-contract", |f| {
         f.extension().is_some_and(|e| e == "json")
@@ -363,13 +365,11 @@ fn same_as_shared(shared: &str, kept: &str, keep: fn(&Path) -> bool) {
     let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
     let shared = manifest.join("../../../shared").join(shared);
     let kept = manifest.join("../../tests/fixtures").join(kept);
-    if !shared.is_dir() {
-        eprintln!(
-            "no {} beside the repository: nothing to compare",
-            shared.display()
-        );
-        return;
-    }
+    assert!(
+        shared.is_dir(),
+        "no {} beside the repository: nothing to compare it with",
+        shared.display()
+    );
     let select = |root: &Path| -> Vec<PathBuf> {
         files_under(root).into_iter().filter(|f| keep(f)).collect()
     };

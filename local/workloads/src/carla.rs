@@ -62,9 +62,11 @@ pub async fn run(cfg: CarlaConfig) -> u8 {
         ));
     }
     let faults = &cfg.faults;
-    let once = OnceDir::new(
+    let once = OnceDir::of_pair(
         faults.once_dir.clone(),
-        format!("fake-carla-{}", cfg.rpc_port),
+        "fake-carla",
+        faults.once_owner.as_deref(),
+        cfg.rpc_port,
     );
     let mut signals = match Signals::new() {
         Ok(s) => s,

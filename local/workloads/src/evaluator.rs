@@ -104,9 +104,11 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
         checkpoint = %cfg.args.checkpoint.display(),
         "fake evaluator starting"
     );
-    let once = OnceDir::new(
+    let once = OnceDir::of_pair(
         cfg.faults.once_dir.clone(),
-        format!("fake-evaluator-{}", cfg.args.port),
+        "fake-evaluator",
+        cfg.faults.once_owner.as_deref(),
+        cfg.args.port,
     );
     let mut run = Run {
         checkpoint: Checkpoint::new(lb, cfg.args.checkpoint.clone(), plan.len() as u64),

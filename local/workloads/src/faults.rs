@@ -50,6 +50,19 @@ impl OnceDir {
         }
     }
 
+    /// The markers of one fake (`fake-carla`, `fake-evaluator`) of one pair: keyed by the
+    /// submission and pair the Job template exports (`LB_SUBMISSION_ID`, `LB_PAIR_ID`) when
+    /// they are set, else by CARLA's port (a fake run by hand). Never by the port inside a Job:
+    /// on local-kube a pod takes the first free port, so a pair whose first pod inherits a port
+    /// another pair crashed on would find that pair's marker and skip its own fault.
+    pub fn of_pair(dir: Option<PathBuf>, fake: &str, owner: Option<&str>, port: u16) -> Self {
+        let prefix = match owner {
+            Some(owner) => format!("{fake}-{owner}"),
+            None => format!("{fake}-{port}"),
+        };
+        OnceDir::new(dir, prefix)
+    }
+
     /// Records that the fault fires now. A marker that cannot be written is logged: the
     /// fault still fires, and would fire again after a restart.
     pub fn mark(&self, fault: &str) {
@@ -136,6 +149,8 @@ pub struct CarlaFaults {
     pub fail_start: bool,
     /// `FAKE_CARLA_ONCE_DIR`: where the once markers live.
     pub once_dir: Option<PathBuf>,
+    /// Whose markers they are: the submission and pair (`OnceDir::of_pair`).
+    pub once_owner: Option<String>,
     /// `FAKE_CARLA_START_DELAY`: seconds to wait before listening (CARLA takes a while).
     pub start_delay: f64,
     /// `FAKE_CARLA_CRASH_SIGNAL`: how a crash dies.
@@ -150,11 +165,19 @@ impl CarlaFaults {
             crash_file: env.non_empty("FAKE_CARLA_CRASH_FILE").map(PathBuf::from),
             fail_start: env_value(env, "FAKE_CARLA_FAIL_START", switch)?.unwrap_or(false),
             once_dir: env.non_empty("FAKE_CARLA_ONCE_DIR").map(PathBuf::from),
+            once_owner: once_owner(env),
             start_delay: env_value(env, "FAKE_CARLA_START_DELAY", seconds)?.unwrap_or(0.0),
             crash_signal: env_value(env, "FAKE_CARLA_CRASH_SIGNAL", |v| v.parse())?
                 .unwrap_or_default(),
         })
     }
+}
+
+/// `<submission>-pair<id>` from the Job template's variables, when the pair's is set.
+fn once_owner(env: &Env) -> Option<String> {
+    let pair = env.non_empty("LB_PAIR_ID")?;
+    let submission = env.non_empty("LB_SUBMISSION_ID").unwrap_or("0");
+    Some(format!("{submission}-pair{pair}"))
 }
 
 /// A route a fault fires at: `7` (any repetition) or `7_rep1` (`RouteScenario_` optional).
@@ -281,6 +304,8 @@ pub struct EvaluatorFaults {
     pub child_pid_file: Option<PathBuf>,
     /// `FAKE_EVALUATOR_ONCE_DIR`: where the once markers live.
     pub once_dir: Option<PathBuf>,
+    /// Whose markers they are: the submission and pair (`OnceDir::of_pair`).
+    pub once_owner: Option<String>,
     /// `FAKE_EVALUATOR_RECORD_LOG` (instrumentation, not a fault): a file to which each
     /// record's write is appended as `<epoch ms> <route index>`, and the final write as
     /// `<epoch ms> global` (what `lbctl local run --latency` measures from).
@@ -331,6 +356,7 @@ impl EvaluatorFaults {
                 .non_empty("FAKE_EVALUATOR_CHILD_PID_FILE")
                 .map(PathBuf::from),
             once_dir: env.non_empty("FAKE_EVALUATOR_ONCE_DIR").map(PathBuf::from),
+            once_owner: once_owner(env),
             record_log: env
                 .non_empty("FAKE_EVALUATOR_RECORD_LOG")
                 .map(PathBuf::from),
@@ -461,6 +487,31 @@ mod tests {
         let always = OnceDir::new(None, "x");
         always.mark("crash-after");
         assert!(always.armed("crash-after"));
+    }
+
+    #[test]
+    fn once_markers_belong_to_a_pair_whatever_port_its_pod_was_given() {
+        // Pair 1 crashes on port 2100; pair 2's first pod is then given 2100 too.
+        let dir = tempfile::tempdir().unwrap();
+        let markers = || Some(dir.path().to_path_buf());
+        let first = OnceDir::of_pair(markers(), "fake-evaluator", Some("7-pair1"), 2100);
+        first.mark("plant-gpu");
+        let second = OnceDir::of_pair(markers(), "fake-evaluator", Some("7-pair2"), 2100);
+        assert!(second.armed("plant-gpu"), "pair 2 keeps its own fault");
+        let again = OnceDir::of_pair(markers(), "fake-evaluator", Some("7-pair1"), 2200);
+        assert!(
+            !again.armed("plant-gpu"),
+            "pair 1's retry on another port skips it"
+        );
+        // By hand, with no pair, the port keys the markers as before.
+        let by_hand = OnceDir::of_pair(markers(), "fake-carla", None, 2000);
+        assert_eq!(
+            by_hand.marker("x").unwrap(),
+            dir.path().join("fake-carla-2000.x")
+        );
+        let env = Env::from_pairs([("LB_SUBMISSION_ID", "7"), ("LB_PAIR_ID", "2")]);
+        assert_eq!(once_owner(&env).as_deref(), Some("7-pair2"));
+        assert_eq!(once_owner(&Env::from_pairs::<_, &str, &str>([])), None);
     }
 
     #[test]
