@@ -133,9 +133,17 @@ impl Deployment {
                 )
             })?;
         Ok(Deployment {
-            admission: args.admission_table.as_ref().map(|table| {
-                lb_aws::admission::AdmissionTable::new(aws_sdk_dynamodb::Client::new(&sdk), table)
-            }),
+            // `unlimited` is what `invoke` takes for "no queue": no table to read then.
+            admission: args
+                .admission_table
+                .as_ref()
+                .filter(|t| t.as_str() != lb_pipeline::config::Shared::UNLIMITED)
+                .map(|table| {
+                    lb_aws::admission::AdmissionTable::new(
+                        aws_sdk_dynamodb::Client::new(&sdk),
+                        table,
+                    )
+                }),
             dynamo: aws_sdk_dynamodb::Client::new(&sdk),
             s3: lb_aws::s3_client(&sdk),
             settings_secret: args.settings_secret.clone(),
@@ -149,12 +157,17 @@ impl Deployment {
         &self,
         token: &EvalAiTokenArgs,
     ) -> std::result::Result<lb_evalai::EvalAiClient, lb_pipeline::FnError> {
+        use lb_pipeline::config::Shared;
         let config = lb_pipeline::FunctionConfig {
             settings_secret: self.settings_secret.clone(),
             token_secret: token.token_secret.clone(),
             wake_table: None,
-            budget_table: token.budget_table.clone(),
-            admission_table: None,
+            // By hand, with no table named, the command's requests take from no budget.
+            budget: match token.budget_table.as_deref() {
+                None | Some(Shared::UNLIMITED) => Shared::Unlimited,
+                Some(table) => Shared::Table(table.to_owned()),
+            },
+            admission: Shared::Unlimited,
             memory_mb: 0,
         };
         lb_pipeline::clients::evalai(&self.sdk, &config, &self.settings).await

@@ -14,6 +14,8 @@ const SCRUBBED: &[&str] = &[
     "LB_SETTINGS_SECRET",
     "LB_EVALAI_TOKEN_SECRET",
     "LB_WAKE_TABLE",
+    "LB_BUDGET_TABLE",
+    "LB_ADMISSION_TABLE",
     "LB_STATE_MACHINE_ARN",
     "LB_KUBECONFIG",
     "AWS_ENDPOINT_URL",
@@ -124,5 +126,8 @@ pub async fn stack(
     env.push(("LB_SETTINGS_SECRET", SETTINGS_SECRET.to_string()));
     env.push(("LB_EVALAI_TOKEN_SECRET", TOKEN_SECRET.to_string()));
     env.push(("LB_WAKE_TABLE", local_stack::stack::WAKE_TABLE.to_string()));
+    // An operator's `lbctl invoke` by hand: no shared budget or queue, asked for by name.
+    env.push(("LB_BUDGET_TABLE", "unlimited".to_string()));
+    env.push(("LB_ADMISSION_TABLE", "unlimited".to_string()));
     (stack, env)
 }

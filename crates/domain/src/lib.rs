@@ -17,6 +17,8 @@ pub mod queue;
 pub mod reaper;
 pub mod resources;
 pub mod results;
+pub mod round;
+pub mod run;
 pub mod schedule;
 pub mod settings;
 pub mod submission;

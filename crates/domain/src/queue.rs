@@ -252,6 +252,19 @@ pub fn describe_estimate(estimate: StartEstimate) -> String {
     format!("it should start {span} from now (an estimate from this track's recent evaluations)")
 }
 
+/// Where a submission stands after asking for its turn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Standing {
+    /// It may have its Jobs created.
+    pub admitted: bool,
+    /// Submissions that arrived before it and have not started.
+    pub ahead: u32,
+    /// Its team's submissions that arrived before it and wait for a place.
+    pub team_ahead: u32,
+    /// What holds it back.
+    pub hold: Hold,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

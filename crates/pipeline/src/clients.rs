@@ -8,6 +8,8 @@ use lb_domain::settings::Settings;
 use lb_evalai::{AuthScheme, BudgetPolicy, EvalAiClient, RetryPolicy};
 
 use crate::cluster::Clusters;
+use crate::config::Shared;
+use crate::queue::Admission;
 use crate::{FnError, FunctionConfig};
 
 /// The settings secret, read and checked.
@@ -45,7 +47,7 @@ pub async fn evalai_counted(
         scheme,
         RetryPolicy::default(),
     )?;
-    let Some(table) = &config.budget_table else {
+    let crate::config::Shared::Table(table) = &config.budget else {
         return Ok(client);
     };
     let policy = BudgetPolicy::evalai(settings.evalai.requests_per_minute).ok_or_else(|| {
@@ -55,8 +57,8 @@ pub async fn evalai_counted(
     Ok(client.with_budget(std::sync::Arc::new(budget)))
 }
 
-/// The admission table, when the function has one.
-pub fn admission(sdk: &SdkConfig, config: &FunctionConfig) -> Option<AdmissionTable> {
+/// The leaderboards' queues as the function's configuration chose them.
+pub fn admission(sdk: &SdkConfig, config: &FunctionConfig) -> Admission {
     admission_counted(sdk, config, &RequestCount::default())
 }
 
@@ -65,11 +67,14 @@ pub fn admission_counted(
     sdk: &SdkConfig,
     config: &FunctionConfig,
     count: &RequestCount,
-) -> Option<AdmissionTable> {
-    config
-        .admission_table
-        .as_ref()
-        .map(|table| AdmissionTable::new(lb_aws::dynamo_client(sdk, count), table))
+) -> Admission {
+    match &config.admission {
+        Shared::Table(table) => Admission::Queue(AdmissionTable::new(
+            lb_aws::dynamo_client(sdk, count),
+            table,
+        )),
+        Shared::Unlimited => Admission::Unlimited,
+    }
 }
 
 /// Now, in the records' time format (the original's `2024-03-07 10:31:02 UTC`).
@@ -104,8 +109,8 @@ pub struct RunClients {
     pub s3: aws_sdk_s3::Client,
     /// DynamoDB.
     pub dynamo: aws_sdk_dynamodb::Client,
-    /// The leaderboards' queues, when configured.
-    pub admission: Option<AdmissionTable>,
+    /// The leaderboards' queues.
+    pub admission: Admission,
     /// The DynamoDB requests of these clients (the orchestration's cost).
     pub dynamo_requests: RequestCount,
     /// The function's memory, MB (its invocations' cost per second).

@@ -14,12 +14,12 @@ pub struct FunctionConfig {
     /// stages do without it).
     pub wake_table: Option<String>,
     /// `LB_BUDGET_TABLE`: the shared EvalAI budget (`lb_aws::budget`) every EvalAI request
-    /// takes from; unset only where one function runs alone (a tool run by hand).
-    pub budget_table: Option<String>,
+    /// takes from, or [`Shared::Unlimited`] where one function runs alone (a tool run by hand).
+    pub budget: Shared,
     /// `LB_ADMISSION_TABLE`: the leaderboards' queues (`lb_aws::admission`), where Launch
-    /// admits and the Monitor and Finalize move a submission on; unset, nothing is queued
+    /// admits and the Monitor and Finalize move a submission on, or [`Shared::Unlimited`]
     /// (every submission is admitted at once: a tool run by hand).
-    pub admission_table: Option<String>,
+    pub admission: Shared,
     /// `AWS_LAMBDA_FUNCTION_MEMORY_SIZE` (the runtime sets it): the function's memory in MB,
     /// what its invocations cost per second; Lambda's default, 128, where it is not set.
     pub memory_mb: u32,
@@ -42,12 +42,49 @@ impl FunctionConfig {
             settings_secret: get("LB_SETTINGS_SECRET")?,
             token_secret: get("LB_EVALAI_TOKEN_SECRET")?,
             wake_table: lookup("LB_WAKE_TABLE").filter(|v| !v.trim().is_empty()),
-            budget_table: lookup("LB_BUDGET_TABLE").filter(|v| !v.trim().is_empty()),
-            admission_table: lookup("LB_ADMISSION_TABLE").filter(|v| !v.trim().is_empty()),
+            budget: Shared::parse("LB_BUDGET_TABLE", &get("LB_BUDGET_TABLE")?)?,
+            admission: Shared::parse("LB_ADMISSION_TABLE", &get("LB_ADMISSION_TABLE")?)?,
             memory_mb: lookup("AWS_LAMBDA_FUNCTION_MEMORY_SIZE")
                 .and_then(|v| v.trim().parse().ok())
                 .unwrap_or(128),
         })
+    }
+}
+
+/// A limit every function shares through a DynamoDB table (the EvalAI budget, the queues),
+/// or none at all, which a person must ask for by name: a deployment that forgets the
+/// variable fails at start instead of silently admitting everything.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Shared {
+    /// The table of this name.
+    Table(String),
+    /// No limit (`unlimited`, a name DynamoDB tables of ours never take).
+    Unlimited,
+}
+
+impl Shared {
+    /// The word that asks for no limit.
+    pub const UNLIMITED: &'static str = "unlimited";
+
+    /// `value` of variable `name`: `unlimited`, or a DynamoDB table name (3 to 255 of
+    /// `A-Za-z0-9_.-`), else an error naming the variable.
+    pub fn parse(name: &str, value: &str) -> Result<Shared, FnError> {
+        let value = value.trim();
+        if value == Self::UNLIMITED {
+            return Ok(Shared::Unlimited);
+        }
+        let valid = (3..=255).contains(&value.len())
+            && value
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b"_.-".contains(&b));
+        if !valid {
+            return Err(FnError::Config(format!(
+                "environment variable `{name}` is neither a DynamoDB table name nor `{}`: `{}`",
+                Self::UNLIMITED,
+                value.escape_debug()
+            )));
+        }
+        Ok(Shared::Table(value.to_owned()))
     }
 }
 
@@ -63,6 +100,46 @@ impl FunctionConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn env(missing: &str) -> impl Fn(&str) -> Option<String> + '_ {
+        move |name| {
+            let value = match name {
+                "LB_SETTINGS_SECRET" => "cfg",
+                "LB_EVALAI_TOKEN_SECRET" => "token",
+                "LB_BUDGET_TABLE" => "leaderboard-budget",
+                "LB_ADMISSION_TABLE" => "unlimited",
+                _ => return None,
+            };
+            (name != missing).then(|| value.into())
+        }
+    }
+
+    #[test]
+    fn the_shared_limits_are_required_and_unlimited_only_by_name() {
+        let config = FunctionConfig::from_lookup(env("")).unwrap();
+        assert_eq!(config.budget, Shared::Table("leaderboard-budget".into()));
+        assert_eq!(config.admission, Shared::Unlimited);
+        for variable in ["LB_BUDGET_TABLE", "LB_ADMISSION_TABLE"] {
+            let err = FunctionConfig::from_lookup(env(variable)).unwrap_err();
+            assert_eq!(err.name(), "InvalidConfiguration");
+            assert!(
+                err.to_string()
+                    .contains(&format!("`{variable}` is not set")),
+                "{err}"
+            );
+        }
+        for bad in ["ab", "no spaces", "Unlimited!", "a/b"] {
+            let err = Shared::parse("LB_ADMISSION_TABLE", bad).unwrap_err();
+            assert!(
+                err.to_string().contains("`LB_ADMISSION_TABLE` is neither"),
+                "{err}"
+            );
+        }
+        assert_eq!(
+            Shared::parse("X", " leaderboard-admission ").unwrap(),
+            Shared::Table("leaderboard-admission".into())
+        );
+    }
 
     #[test]
     fn a_missing_variable_is_named() {

@@ -7,6 +7,7 @@ use std::time::Duration;
 use lb_aws::admission::{AdmissionTable, Admit};
 use lb_aws::tasks::{Callbacks, Reported};
 use lb_aws::wake::WakeTable;
+pub use lb_domain::queue::Standing;
 use lb_domain::queue::{self, Entry, EntryState, Hold};
 
 use crate::payload::SubmissionInfo;
@@ -16,17 +17,103 @@ use crate::Result;
 /// and a PATCH each, routine for the shared budget): places change often in a busy queue.
 pub const QUEUE_NOTE_INTERVAL: Duration = Duration::from_secs(300);
 
-/// Where a submission stands after asking for its turn.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Standing {
-    /// It may have its Jobs created.
-    pub admitted: bool,
-    /// Submissions that arrived before it and have not started.
-    pub ahead: u32,
-    /// Its team's submissions that arrived before it and wait for a place.
-    pub team_ahead: u32,
-    /// What holds it back.
-    pub hold: Hold,
+/// The leaderboards' queues, chosen once at start (`LB_ADMISSION_TABLE`): the admission
+/// table, or none at all, which an operator asks for by name (`unlimited`: a tool run by
+/// hand). The stages ask the same questions of either; without a queue every submission has
+/// its turn at once, nobody is ahead, and there is nothing to hold, release or wake.
+#[derive(Debug, Clone)]
+pub enum Admission {
+    /// The admission table.
+    Queue(AdmissionTable),
+    /// No queue.
+    Unlimited,
+}
+
+impl Admission {
+    /// The table, where there is one (the reaper's pass and `lbctl` read it whole).
+    pub fn table(&self) -> Option<&AdmissionTable> {
+        match self {
+            Admission::Queue(table) => Some(table),
+            Admission::Unlimited => None,
+        }
+    }
+
+    /// [`take_turn`]; without a queue, admitted with nobody ahead.
+    pub async fn take_turn(
+        &self,
+        submission: &SubmissionInfo,
+        arrived_ms: u64,
+        limit: u32,
+    ) -> Result<Standing> {
+        match self {
+            Admission::Queue(table) => take_turn(table, submission, arrived_ms, limit).await,
+            Admission::Unlimited => Ok(Standing {
+                admitted: true,
+                ahead: 0,
+                team_ahead: 0,
+                hold: Hold::Capacity,
+            }),
+        }
+    }
+
+    /// [`ahead_of`]; without a queue, no entry.
+    pub async fn ahead_of(&self, submission: &SubmissionInfo) -> Result<Option<(u32, u32)>> {
+        match self {
+            Admission::Queue(table) => ahead_of(table, submission).await,
+            Admission::Unlimited => Ok(None),
+        }
+    }
+
+    /// [`note`]; without a queue, the place alone (no pace to estimate from).
+    pub async fn note(
+        &self,
+        submission: &SubmissionInfo,
+        place: (u32, u32, u32),
+        hold: Hold,
+    ) -> String {
+        match self {
+            Admission::Queue(table) => note(table, submission, place, hold).await,
+            Admission::Unlimited => queue::describe(place.0, hold),
+        }
+    }
+
+    /// The entry names `execution` (a continuation's first round).
+    pub async fn adopt(&self, submission: &SubmissionInfo, execution: &str) -> Result<()> {
+        if let Admission::Queue(table) = self {
+            let (leaderboard, id) = (&submission.leaderboard, submission.submission_id);
+            table.adopt(leaderboard, id, execution).await?;
+        }
+        Ok(())
+    }
+
+    /// Out of the count of those waiting (its first pair started).
+    pub async fn mark_running(&self, submission: &SubmissionInfo) -> Result<()> {
+        if let Admission::Queue(table) = self {
+            let (leaderboard, id) = (&submission.leaderboard, submission.submission_id);
+            table.mark_running(leaderboard, id).await?;
+        }
+        Ok(())
+    }
+
+    /// Gives the team its place back and takes the entry out; whether there was a queue to
+    /// leave.
+    pub async fn release(&self, submission: &SubmissionInfo) -> Result<bool> {
+        let Admission::Queue(table) = self else {
+            return Ok(false);
+        };
+        let (leaderboard, id) = (&submission.leaderboard, submission.submission_id);
+        table.release(leaderboard, id, submission.team_id).await?;
+        Ok(true)
+    }
+
+    /// A finished evaluation's duration joins its track's pace.
+    pub async fn record_pace(&self, submission: &SubmissionInfo, seconds: u64) -> Result<()> {
+        if let Admission::Queue(table) = self {
+            let (leaderboard, track) = (&submission.leaderboard, &submission.track);
+            table.record_pace(leaderboard, track, seconds).await?;
+        }
+        Ok(())
+    }
 }
 
 /// Puts `submission` in the queue if it is not there (arrived at `arrived_ms`), and admits it

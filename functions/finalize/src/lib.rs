@@ -14,7 +14,6 @@ use lb_pipeline::serve::{Function, Invocation};
 use std::time::Duration;
 
 use aws_config::SdkConfig;
-use lb_aws::admission::AdmissionTable;
 use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable};
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
 use lb_aws::tasks::{Callbacks, StepFunctions};
@@ -575,16 +574,10 @@ async fn recordings(
 /// team never shows more than its `team_limit` evaluations in progress. Repeating it is
 /// harmless.
 async fn leave_queue<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) -> Result<()> {
-    if let Some(table) = &deps.clients.admission {
-        table
-            .release(
-                &submission.leaderboard,
-                submission.submission_id,
-                submission.team_id,
-            )
-            .await?;
+    let admission = &deps.clients.admission;
+    if admission.release(submission).await? {
         info!(submission_id = submission.submission_id, "left the queue");
-        wake_next(deps, table, submission).await;
+        wake_next(deps, submission).await;
     }
     Ok(())
 }
@@ -596,15 +589,14 @@ async fn record_pace<C: Callbacks>(
     submission: &SubmissionInfo,
     run: Option<&RunState>,
 ) {
-    let (Some(table), Some(started)) = (
-        &deps.clients.admission,
-        run.and_then(|r| r.monitor.started_at),
-    ) else {
+    let Some(started) = run.and_then(|r| r.monitor.started_at) else {
         return;
     };
     let seconds = clients::now_epoch_seconds().saturating_sub(started);
-    let recorded = table
-        .record_pace(&submission.leaderboard, &submission.track, seconds)
+    let recorded = deps
+        .clients
+        .admission
+        .record_pace(submission, seconds)
         .await;
     if let Err(e) = recorded {
         warn!(submission_id = submission.submission_id, error = %e, "pace not recorded");
@@ -613,12 +605,10 @@ async fn record_pace<C: Callbacks>(
 
 /// Wakes the team's next waiting submissions, one per open place (see
 /// [`queue::wake_team_next`]). Best effort: a failure is logged, and its poll still comes.
-async fn wake_next<C: Callbacks>(
-    deps: &Deps<C>,
-    table: &AdmissionTable,
-    submission: &SubmissionInfo,
-) {
-    let Some(wakes) = &deps.wakes else { return };
+async fn wake_next<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) {
+    let (Some(table), Some(wakes)) = (deps.clients.admission.table(), &deps.wakes) else {
+        return;
+    };
     let limit = match deps.clients.settings.target(submission.phase_id) {
         Ok(target) => target.deployment.team_limit,
         Err(e) => {

@@ -148,7 +148,8 @@ pub async fn reconcile<C: Callbacks + Executions>(
             machine.escape_debug()
         )));
     }
-    let Some(table) = &deps.clients.admission else {
+    // Without a queue nothing is held.
+    let Some(table) = deps.clients.admission.table() else {
         return Ok(Vec::new());
     };
     let mut reaped = Vec::new();

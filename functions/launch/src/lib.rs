@@ -8,7 +8,6 @@
 //! state machine comes back here (`LaunchAdmitted`) to create them.
 
 use aws_config::SdkConfig;
-use lb_aws::admission::AdmissionTable;
 use lb_domain::cost::{self, Orchestration};
 use lb_domain::history;
 use lb_domain::plan::{plan, Plan, PlanInput};
@@ -40,8 +39,8 @@ pub struct Deps {
     pub region: String,
     /// The sidecar's timers, when not the defaults (local runs poll faster).
     pub timers: Option<lb_jobs::Timers>,
-    /// The leaderboards' queues (`None`: every submission is admitted at once).
-    pub admission: Option<AdmissionTable>,
+    /// The leaderboards' queues.
+    pub admission: queue::Admission,
     /// This function's memory, MB, and its DynamoDB requests: its share of the orchestration.
     pub memory_mb: u32,
     /// The DynamoDB requests of its clients.
@@ -171,24 +170,25 @@ async fn launch(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         phase: submission.phase_id,
         submission: submission.submission_id,
     };
-    if let Some(table) = &deps.admission {
-        let limit = target.deployment.team_limit;
-        let standing = queue::take_turn(table, &submission, arrived_ms, limit).await?;
-        if !standing.admitted {
-            info!(
-                submission_id = submission.submission_id,
-                team_id = submission.team_id,
-                ahead = standing.ahead,
-                "the team holds all its places: waiting for its turn"
-            );
-            if first {
-                mark_queued(deps, at, "").await?;
-            }
-            place.admitted = false;
-            let mut run = prepared.run_state(0, now, place, history);
-            run.monitor.wait_seconds = queue_wait(Duration::ZERO).as_secs();
-            return Ok(run);
+    let limit = target.deployment.team_limit;
+    let standing = deps
+        .admission
+        .take_turn(&submission, arrived_ms, limit)
+        .await?;
+    if !standing.admitted {
+        info!(
+            submission_id = submission.submission_id,
+            team_id = submission.team_id,
+            ahead = standing.ahead,
+            "the team holds all its places: waiting for its turn"
+        );
+        if first {
+            mark_queued(deps, at, "").await?;
         }
+        place.admitted = false;
+        let mut run = prepared.run_state(0, now, place, history);
+        run.monitor.wait_seconds = queue_wait(Duration::ZERO).as_secs();
+        return Ok(run);
     }
     place.admitted = true;
     let names = launch_jobs(deps, &target, &submission, &prepared).await?;

@@ -36,8 +36,8 @@ pub fn function_config() -> lb_pipeline::FunctionConfig {
         settings_secret: SETTINGS_SECRET.into(),
         token_secret: TOKEN_SECRET.into(),
         wake_table: Some(WAKE_TABLE.into()),
-        budget_table: Some(BUDGET_TABLE.into()),
-        admission_table: Some(ADMISSION_TABLE.into()),
+        budget: lb_pipeline::config::Shared::Table(BUDGET_TABLE.into()),
+        admission: lb_pipeline::config::Shared::Table(ADMISSION_TABLE.into()),
         // The template's Monitor and Finalize, which take most of a run's Lambda time.
         memory_mb: 512,
     }

@@ -234,6 +234,8 @@ fn main() {
                 ("LB_SETTINGS_SECRET".to_string(), SETTINGS_SECRET.to_string()),
                 ("LB_EVALAI_TOKEN_SECRET".to_string(), TOKEN_SECRET.to_string()),
                 ("LB_WAKE_TABLE".to_string(), "leaderboard-wakes".to_string()),
+                ("LB_BUDGET_TABLE".to_string(), local_stack::stack::BUDGET_TABLE.to_string()),
+                ("LB_ADMISSION_TABLE".to_string(), local_stack::stack::ADMISSION_TABLE.to_string()),
                 ("LB_KUBECONFIG".to_string(), stack.kubeconfig.as_ref().unwrap().display().to_string()),
             ])
             .collect();

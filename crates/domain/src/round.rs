@@ -1,0 +1,1185 @@
+//! The Monitor's round without I/O: the shell performs each [`Step`] the round asks for and
+//! gives back what it found as an [`Answer`]; the round decides, in this one place, which rule
+//! wins (a cancel before the verdict, the queue note before the results, the shortest wait)
+//! and leaves the run state for the next wait.
+//!
+//! A round reads the wake count first (the next wait is conditional on it). A submission its
+//! team's cap holds back confirms a cancel, ends a wait past the queue limit, asks for its turn
+//! and otherwise shows its place. An admitted one looks at the cluster (charging the GPUs and
+//! growing the Jobs' deadlines by the time reclaims cost), tells EvalAI when the first pair
+//! started, keeps the queue note, sends changed results at most once per interval, reads
+//! EvalAI's status only to confirm a cancel or as a fallback, and then takes the cluster's
+//! verdict. Trouble with one service skips its part of the round, never the run.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use crate::cluster::{self, Observation, Verdict};
+use crate::cost::{InstancePrice, NodeKind, PodSeen, Totals};
+use crate::history;
+use crate::monitor::{self, StatusRead};
+use crate::queue::{self, Hold, Standing};
+use crate::run::{RunPhase, RunState};
+use crate::schedule::{queue_wait, safety_net, MIN_ROUND_INTERVAL, POLL_WITHOUT_WAKE};
+use crate::submission::SubmissionStatus;
+
+/// How soon to look again once every Job's logcopy is done.
+pub const ENDING_POLL: Duration = Duration::from_secs(5);
+
+/// What a round needs to know besides the run state: the clock, the leaderboard's bounds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Context {
+    /// Now, epoch seconds.
+    pub now: u64,
+    /// `$$.Execution.Name`, when the state machine passed it.
+    pub execution: Option<String>,
+    /// `$$.State.RetryCount`.
+    pub retries: u64,
+    /// When it arrived in the queue (epoch ms), as Intake read it (`None`: the stored arrival).
+    pub arrived_ms: Option<u64>,
+    /// The leaderboard's `partial_update_seconds`.
+    pub partial_update_seconds: u64,
+    /// The leaderboard's `max_queue_hours`.
+    pub max_queue_hours: u64,
+    /// The leaderboard's `max_cluster_outage_hours`.
+    pub max_cluster_outage_hours: u64,
+    /// The leaderboard's `team_limit`.
+    pub team_limit: u32,
+    /// The least interval between two rewrites of the queue note, seconds.
+    pub note_interval: u64,
+    /// The GPU prices the record's usage is priced at.
+    pub prices: BTreeMap<String, InstancePrice>,
+    /// How long the wake item is kept after a round, seconds (its DynamoDB TTL).
+    pub wake_retention: u64,
+}
+
+/// What the shell is asked to do next.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Step {
+    /// Name this execution on the queue entry ([`Answer::Adopted`]).
+    Adopt(String),
+    /// Read the wake count ([`Answer::Wake`]).
+    ReadWake,
+    /// Read the status on EvalAI ([`Answer::Status`]), urgent to confirm a cancel.
+    ReadStatus(StatusRead),
+    /// Ask for its turn ([`Answer::Turn`]).
+    TakeTurn {
+        /// When it arrived (epoch ms): its place in the queue.
+        arrived_ms: u64,
+        /// Its team's cap.
+        limit: u32,
+    },
+    /// Count who is ahead of an admitted submission whose pods wait ([`Answer::Ahead`]).
+    ReadAhead,
+    /// Word the queue note for this place ([`Answer::Note`]): (ahead, of its team, running).
+    ComposeNote((u32, u32, u32), Hold),
+    /// Show the participant its place, or remove the note once it runs ([`Answer::Shown`]).
+    ShowPlace(Option<(u32, String)>),
+    /// Look at the submission's Jobs and pods ([`Answer::Observed`] or
+    /// [`Answer::Unreachable`]).
+    Observe,
+    /// When each Job's pair last wrote results (epoch seconds; [`Answer::ResultsWritten`]).
+    ResultsWritten,
+    /// Grow these Jobs' `activeDeadlineSeconds` to these seconds ([`Answer::Done`]; a failed
+    /// patch is tried again next round).
+    ExtendDeadlines(Vec<(String, u64)>),
+    /// Tell EvalAI and the queue the first pair started ([`Answer::Started`]).
+    MarkStarted(Vec<String>),
+    /// List the workers' results ([`Answer::Listed`]).
+    ListResults,
+    /// Read and merge the listed results ([`Answer::Collected`]).
+    CollectResults,
+    /// Send the merged results as a partial update ([`Answer::Posted`]).
+    PostPartial,
+    /// Write the S3 cancel marker ([`Answer::Done`]): the sidecars stop the Jobs.
+    PutCancelMarker,
+    /// Record progress and usage on the submission's record ([`Answer::Done`]).
+    RecordRunning {
+        /// Routes done and planned.
+        progress: (u64, u64),
+        /// The GPUs and orchestration so far.
+        usage: Totals,
+    },
+    /// Whether every Job's logcopy is done ([`Answer::Ending`]).
+    CheckEnding,
+    /// The round is over: [`Round::finish`] gives the run state.
+    Done,
+}
+
+/// The outcome of a write to EvalAI.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Write {
+    /// Written.
+    Written,
+    /// Refused: the participant cancelled.
+    Cancelled,
+    /// Refused: the submission already has this final status.
+    AlreadyFinal(SubmissionStatus),
+    /// Deferred by the budget or skipped for transient trouble: a later round tries again.
+    NotNow,
+}
+
+/// The workers' merged results, as far as the round needs them.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Collected {
+    /// Merged: routes done and planned, and the fingerprint of what was read.
+    Merged {
+        /// Routes done and planned.
+        progress: (u64, u64),
+        /// What was read.
+        fingerprint: String,
+    },
+    /// Transient trouble: tried again in a later round.
+    NotNow,
+    /// The participant's files are broken (the sidecar marks that pair crashed): not read
+    /// again until they change.
+    Unusable,
+}
+
+/// What the cluster showed this round.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sighting {
+    /// The Jobs, their pods and the verdict.
+    pub observation: Observation,
+    /// The pods as the GPU count takes them and the kinds of the nodes new ones run on
+    /// (`None`: a node could not be read, and the count waits for the next round).
+    pub counted: Option<(Vec<PodSeen>, BTreeMap<String, NodeKind>)>,
+}
+
+/// What the shell found doing a [`Step`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Answer {
+    /// The step was done (or failed in a way the round does not act on).
+    Done,
+    /// The queue entry names this execution now.
+    Adopted(bool),
+    /// The wake count and the sweep's cancel flag (`None`: not read, poll instead).
+    Wake(Option<(u64, bool)>),
+    /// The status on EvalAI (`None`: not read this round).
+    Status(Option<SubmissionStatus>),
+    /// Where it stands in the queue.
+    Turn(Standing),
+    /// Ahead of it and running (`None`: no entry, or the queue not read).
+    Ahead(Option<(u32, u32)>),
+    /// The queue note's words.
+    Note(String),
+    /// What EvalAI did with the queue note.
+    Shown(Write),
+    /// The cluster as seen.
+    Observed(Box<Sighting>),
+    /// The cluster's API was out of reach; the error's stable name.
+    Unreachable(&'static str),
+    /// When each Job's pair last wrote results.
+    ResultsWritten(BTreeMap<u32, u64>),
+    /// EvalAI was told the submission runs.
+    Started(bool),
+    /// The results' fingerprint (`None`: not listed this round).
+    Listed(Option<String>),
+    /// The results as read.
+    Collected(Collected),
+    /// What EvalAI did with the partial update.
+    Posted(Write),
+    /// Every Job's logcopy is done.
+    Ending(bool),
+}
+
+/// Where a round is: the stage whose step is outstanding.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stage {
+    Adopt,
+    Wake,
+    WaitStatus,
+    Turn,
+    Observe,
+    Deadlines,
+    Started,
+    Note,
+    Results,
+    Status,
+    Cancel,
+    Verdict,
+    Ending,
+    Done,
+}
+
+/// One Monitor round.
+#[derive(Debug)]
+pub struct Round {
+    run: RunState,
+    cx: Context,
+    stage: Stage,
+    /// A step that follows from the last answer, within the same stage.
+    pending: Option<Step>,
+    /// The sweep flagged a cancel.
+    cancel_flagged: bool,
+    /// What EvalAI said of the submission this round (a write's refusal, a read).
+    status: Option<SubmissionStatus>,
+    sighting: Option<Sighting>,
+    /// The place of the queue note being shown (`None`: the note goes).
+    showing: Option<u32>,
+    /// The listed fingerprint while results are read.
+    listed: Option<String>,
+    /// The merged results' fingerprint while they are sent.
+    merged: Option<String>,
+}
+
+impl Round {
+    /// A round of `run`: its defaults (the safety net's timeout for the next wait, the least
+    /// hold, no poll), and the round counted in this execution's history.
+    pub fn begin(mut run: RunState, cx: Context) -> Round {
+        let now = cx.now;
+        let elapsed = Duration::from_secs(now.saturating_sub(run.launched_at));
+        let monitor = &mut run.monitor;
+        monitor.rounds += 1;
+        monitor.state = RunPhase::Running;
+        monitor.continue_as = None;
+        monitor.wait_seconds = safety_net(elapsed).as_secs();
+        monitor.hold_seconds = MIN_ROUND_INTERVAL.as_secs();
+        monitor.poll = false;
+        monitor.expires_at = now + cx.wake_retention;
+        if let Some(execution) = &cx.execution {
+            if let Some(entered) = history::entering(monitor.execution.as_deref(), execution) {
+                monitor.execution = Some(execution.clone());
+                monitor.events = entered.events;
+                monitor.handover = entered.continued;
+            }
+        }
+        monitor.events += history::round_events(cx.retries);
+        Round {
+            run,
+            cx,
+            stage: Stage::Adopt,
+            pending: None,
+            cancel_flagged: false,
+            status: None,
+            sighting: None,
+            showing: None,
+            listed: None,
+            merged: None,
+        }
+    }
+
+    /// The run state as the round leaves it so far.
+    pub fn run(&self) -> &RunState {
+        &self.run
+    }
+
+    /// What the shell does next; [`Step::Done`] once the round is over.
+    pub fn poll(&mut self) -> Step {
+        if let Some(step) = self.pending.take() {
+            return step;
+        }
+        loop {
+            if let Some(step) = self.step() {
+                return step;
+            }
+        }
+    }
+
+    /// The current stage's step, or `None` after moving past a stage with nothing to do.
+    fn step(&mut self) -> Option<Step> {
+        let now = self.cx.now;
+        match self.stage {
+            Stage::Adopt => match (&self.run.monitor.execution, self.run.monitor.handover) {
+                (Some(execution), true) => return Some(Step::Adopt(execution.clone())),
+                _ => self.advance(Stage::Wake),
+            },
+            Stage::Wake => return Some(Step::ReadWake),
+            Stage::WaitStatus => {
+                let waited = now.saturating_sub(self.run.queue.arrived_at);
+                self.run.monitor.wait_seconds = queue_wait(Duration::from_secs(waited)).as_secs();
+                match self.status_read() {
+                    Some(read) => return Some(Step::ReadStatus(read)),
+                    None => self.advance(Stage::Turn),
+                }
+            }
+            Stage::Turn => {
+                let waited = now.saturating_sub(self.run.queue.arrived_at);
+                let (hours, limit) = (self.cx.max_queue_hours, self.cx.team_limit);
+                if let Some(reason) = monitor::queue_limit_ends_wait(waited, hours, limit) {
+                    return Some(self.end(RunPhase::Failed, Some(reason)));
+                }
+                // The entry exists since Launch: its stored arrival stands.
+                let stored = self.run.queue.arrived_at * 1000;
+                let arrived_ms = self.cx.arrived_ms.unwrap_or(stored);
+                return Some(Step::TakeTurn { arrived_ms, limit });
+            }
+            Stage::Observe => return Some(Step::Observe),
+            Stage::Deadlines => {
+                let extend = self.sighting.as_ref().map_or_else(Vec::new, |seen| {
+                    let lost = self.run.monitor.usage.lost;
+                    monitor::deadlines_to_extend(&seen.observation.jobs, lost)
+                        .into_iter()
+                        .map(|(job, seconds)| (job.to_owned(), seconds))
+                        .collect()
+                });
+                if !extend.is_empty() {
+                    return Some(Step::ExtendDeadlines(extend));
+                }
+                self.advance(Stage::Started);
+            }
+            Stage::Started => {
+                let jobs = self.sighting.as_ref().map(|seen| &seen.observation.jobs);
+                match jobs {
+                    Some(jobs)
+                        if self.run.monitor.started_at.is_none() && cluster::started(jobs) =>
+                    {
+                        return Some(Step::MarkStarted(
+                            jobs.iter().map(|j| j.name.clone()).collect(),
+                        ));
+                    }
+                    _ => self.advance(Stage::Note),
+                }
+            }
+            Stage::Note => match (self.run.monitor.started_at, self.run.queue.shown) {
+                (None, _) => return Some(Step::ReadAhead),
+                (Some(_), Some(_)) if self.note_due(None) => {
+                    self.showing = None;
+                    return Some(Step::ShowPlace(None));
+                }
+                _ => self.advance(Stage::Results),
+            },
+            Stage::Results if self.status.is_none() => return Some(Step::ListResults),
+            Stage::Results => self.advance(Stage::Status),
+            Stage::Status => match (self.status, self.status_read()) {
+                (Some(SubmissionStatus::Cancelled), _) => self.advance(Stage::Cancel),
+                (None, Some(read)) => return Some(Step::ReadStatus(read)),
+                _ => self.advance(Stage::Verdict),
+            },
+            Stage::Cancel => return Some(Step::PutCancelMarker),
+            Stage::Verdict => return Some(self.verdict()),
+            Stage::Ending => return Some(Step::CheckEnding),
+            Stage::Done => return Some(Step::Done),
+        }
+        None
+    }
+
+    /// Takes what the shell found doing the step [`Round::poll`] gave last. An answer that
+    /// fits no outstanding step is a bug in the shell: the round ends there, with the run
+    /// state as it stands (the next round starts from it).
+    pub fn answer(&mut self, answer: Answer) {
+        let now = self.cx.now;
+        match (self.stage, answer) {
+            (Stage::Adopt, Answer::Adopted(done)) => {
+                self.run.monitor.handover = !done;
+                self.advance(Stage::Wake);
+            }
+            (Stage::Wake, Answer::Wake(wake)) => self.woke(wake),
+            (Stage::WaitStatus, Answer::Status(status)) => {
+                self.read_status(status);
+                match self.status {
+                    Some(SubmissionStatus::Cancelled) => _ = self.end(RunPhase::Cancelled, None),
+                    _ => self.advance(Stage::Turn),
+                }
+            }
+            (Stage::Turn, Answer::Turn(standing)) => self.took_turn(standing),
+            (Stage::Turn | Stage::Note, Answer::Note(text)) => {
+                self.pending = Some(Step::ShowPlace(self.showing.map(|ahead| (ahead, text))));
+            }
+            (Stage::Turn | Stage::Note, Answer::Shown(write)) => self.shown(write),
+            (Stage::Observe, Answer::Observed(seen)) => self.observed(*seen),
+            (Stage::Observe, Answer::ResultsWritten(at)) => self.charge(&at),
+            (Stage::Observe, Answer::Unreachable(error)) => self.unreachable(error),
+            (Stage::Deadlines, Answer::Done) => self.advance(Stage::Started),
+            (Stage::Started, Answer::Started(started)) => {
+                if started {
+                    self.run.monitor.started_at = Some(now);
+                }
+                self.advance(Stage::Note);
+            }
+            (Stage::Note, Answer::Ahead(ahead)) => self.ahead(ahead),
+            (Stage::Results, Answer::Listed(fingerprint)) => self.listed(fingerprint),
+            (Stage::Results, Answer::Collected(collected)) => self.collected(collected),
+            (Stage::Results, Answer::Posted(write)) => self.posted(write),
+            (Stage::Status, Answer::Status(status)) => {
+                self.read_status(status);
+                // Only a cancel ends the round; any other word is left to the verdict.
+                self.advance(match self.status {
+                    Some(SubmissionStatus::Cancelled) => Stage::Cancel,
+                    _ => Stage::Verdict,
+                });
+            }
+            (Stage::Cancel, Answer::Done) => _ = self.end(RunPhase::Cancelled, None),
+            (Stage::Verdict, Answer::Done) => self.advance(Stage::Ending),
+            (Stage::Ending, Answer::Ending(ending)) => {
+                // Every Job's logcopy is done: the Jobs complete within seconds, and nothing
+                // more will land in S3 to wake us.
+                if ending {
+                    self.shorten_wait(ENDING_POLL.as_secs());
+                }
+                self.advance(Stage::Done);
+            }
+            (_, _) => self.advance(Stage::Done),
+        }
+    }
+
+    /// The run state the round leaves, continued as a new execution of `lineage` when this
+    /// one's history leaves no room for another round (`history`).
+    pub fn finish(mut self, history_budget: u64, lineage: &str) -> RunState {
+        let monitor = &mut self.run.monitor;
+        let running = monitor.state == RunPhase::Running;
+        if running && history::continue_due(monitor.events, history_budget) {
+            monitor.generation += 1;
+            monitor.continue_as = Some(history::continuation_name(lineage, monitor.generation));
+            monitor.state = RunPhase::Continued;
+        }
+        self.run
+    }
+
+    fn advance(&mut self, stage: Stage) {
+        self.stage = stage;
+    }
+
+    fn done(&mut self) -> Step {
+        self.advance(Stage::Done);
+        Step::Done
+    }
+
+    fn end(&mut self, state: RunPhase, reason: Option<String>) -> Step {
+        self.run.monitor.state = state;
+        self.run.monitor.reason = reason;
+        self.advance(Stage::Done);
+        Step::Done
+    }
+
+    fn shorten_wait(&mut self, seconds: u64) {
+        let wait = &mut self.run.monitor.wait_seconds;
+        *wait = (*wait).min(seconds);
+    }
+
+    fn status_read(&self) -> Option<StatusRead> {
+        let last = self.run.monitor.status_read_at;
+        monitor::status_read(self.cancel_flagged, last, self.cx.now)
+    }
+
+    fn read_status(&mut self, status: Option<SubmissionStatus>) {
+        if status.is_some() {
+            self.run.monitor.status_read_at = Some(self.cx.now);
+        }
+        self.status = status;
+    }
+
+    fn note_due(&self, ahead: Option<u32>) -> bool {
+        let shown = (self.run.queue.shown, self.run.queue.shown_at);
+        queue::note_due(shown, ahead, self.cx.now, self.cx.note_interval)
+    }
+
+    /// The wake count before anything else: unread, the next wait is a plain poll (a wait
+    /// conditional on a count we do not know could end at once every time).
+    fn woke(&mut self, wake: Option<(u64, bool)>) {
+        match wake {
+            Some((changes, cancel)) => {
+                self.run.monitor.seen = changes;
+                self.cancel_flagged = cancel;
+            }
+            None => {
+                self.run.monitor.poll = true;
+                self.run.monitor.wait_seconds = POLL_WITHOUT_WAKE.as_secs();
+            }
+        }
+        self.advance(match self.run.queue.admitted {
+            true => Stage::Observe,
+            false => Stage::WaitStatus,
+        });
+    }
+
+    /// A held submission's turn: admitted (Launch creates its Jobs next), or its place shown
+    /// when it changed.
+    fn took_turn(&mut self, standing: Standing) {
+        if standing.admitted {
+            self.end(RunPhase::Admitted, None);
+            return;
+        }
+        let ahead = queue::shown_ahead(self.run.queue.shown, standing.ahead);
+        if !self.note_due(Some(ahead)) {
+            self.advance(Stage::Done);
+            return;
+        }
+        self.showing = Some(ahead);
+        let place = (ahead, standing.team_ahead, 0);
+        self.pending = Some(Step::ComposeNote(place, standing.hold));
+    }
+
+    /// An admitted submission whose pods wait: its place, when it changed.
+    fn ahead(&mut self, ahead: Option<(u32, u32)>) {
+        let Some((ahead, running)) = ahead else {
+            return self.advance(Stage::Results);
+        };
+        let ahead = queue::shown_ahead(self.run.queue.shown, ahead);
+        if !self.note_due(Some(ahead)) {
+            return self.advance(Stage::Results);
+        }
+        self.showing = Some(ahead);
+        self.pending = Some(Step::ComposeNote((ahead, 0, running), Hold::Capacity));
+    }
+
+    /// What EvalAI did with the queue note. Held, a refusal for a cancel ends the wait; once
+    /// admitted, only a cancel is kept (any other word is left to the rest of the round).
+    fn shown(&mut self, write: Write) {
+        if write == Write::Written {
+            self.run.queue.shown = self.showing;
+            self.run.queue.shown_at = Some(self.cx.now);
+        }
+        let cancelled = matches!(
+            write,
+            Write::Cancelled | Write::AlreadyFinal(SubmissionStatus::Cancelled)
+        );
+        match (self.stage, cancelled) {
+            (Stage::Turn, true) => _ = self.end(RunPhase::Cancelled, None),
+            (Stage::Turn, false) => self.advance(Stage::Done),
+            (_, cancelled) => {
+                self.status = cancelled.then_some(SubmissionStatus::Cancelled);
+                self.advance(Stage::Results);
+            }
+        }
+    }
+
+    /// The cluster reached: the count of GPU time waits for the results' times when a pod
+    /// was taken away (its run-again time counts from its pair's last write).
+    fn observed(&mut self, mut seen: Sighting) {
+        self.run.monitor.unreachable_since = None;
+        seen.observation = seen.observation.expect_jobs(self.run.jobs);
+        let disrupted = seen
+            .counted
+            .as_ref()
+            .is_some_and(|(pods, _)| pods.iter().any(|p| p.disrupted));
+        self.sighting = Some(seen);
+        if disrupted {
+            self.pending = Some(Step::ResultsWritten);
+        } else {
+            self.charge(&BTreeMap::new());
+        }
+    }
+
+    /// Charges this round's GPU time up to when the pods were listed (`cost`).
+    fn charge(&mut self, results_at: &BTreeMap<u32, u64>) {
+        if let Some(seen) = &self.sighting {
+            if let Some((pods, kinds)) = &seen.counted {
+                let at = u64::try_from(seen.observation.observed_at.as_second()).unwrap_or(0);
+                self.run.monitor.usage.account(pods, kinds, results_at, at);
+            }
+        }
+        self.advance(Stage::Deadlines);
+    }
+
+    /// The cluster's API out of reach skips the verdict this round; only an outage longer
+    /// than the leaderboard allows ends the run.
+    fn unreachable(&mut self, error: &str) {
+        let now = self.cx.now;
+        let since = *self.run.monitor.unreachable_since.get_or_insert(now);
+        let bound = self.cx.max_cluster_outage_hours;
+        if let Some(reason) = monitor::outage_ends_run(since, now, bound, error) {
+            self.end(RunPhase::Failed, Some(reason));
+            return;
+        }
+        // Its recovery writes nothing to S3: look again at the first outage's pace.
+        self.shorten_wait(safety_net(Duration::ZERO).as_secs());
+        self.advance(Stage::Started);
+    }
+
+    /// Results listed: changed ones are read when a partial update may go.
+    fn listed(&mut self, fingerprint: Option<String>) {
+        let interval = self.cx.partial_update_seconds;
+        let Some(fingerprint) = fingerprint else {
+            self.shorten_wait(interval);
+            return self.advance(Stage::Status);
+        };
+        if fingerprint.is_empty() || Some(&fingerprint) == self.run.monitor.fingerprint.as_ref() {
+            return self.advance(Stage::Status);
+        }
+        let last = self.run.monitor.updated_at;
+        if let Err(wait) = monitor::partial_update_due(last, self.cx.now, interval) {
+            // Too soon (a round the hold did not cover): the wait ends when it may go.
+            self.shorten_wait(wait.as_secs());
+            return self.advance(Stage::Status);
+        }
+        self.listed = Some(fingerprint);
+        self.pending = Some(Step::CollectResults);
+    }
+
+    fn collected(&mut self, collected: Collected) {
+        match collected {
+            Collected::Merged {
+                progress,
+                fingerprint,
+            } => {
+                self.run.monitor.progress = progress;
+                self.merged = Some(fingerprint);
+                self.pending = Some(Step::PostPartial);
+            }
+            Collected::NotNow => {
+                self.shorten_wait(self.cx.partial_update_seconds);
+                self.advance(Stage::Status);
+            }
+            Collected::Unusable => {
+                self.run.monitor.fingerprint = self.listed.take();
+                self.advance(Stage::Status);
+            }
+        }
+    }
+
+    fn posted(&mut self, write: Write) {
+        let (now, interval) = (self.cx.now, self.cx.partial_update_seconds);
+        let merged = self.merged.take();
+        self.status = match write {
+            Write::Written => {
+                let monitor = &mut self.run.monitor;
+                monitor.fingerprint = merged;
+                monitor.updated_at = Some(now);
+                monitor.hold_seconds = monitor.hold_seconds.max(interval);
+                Some(SubmissionStatus::PartiallyEvaluated)
+            }
+            Write::Cancelled => Some(SubmissionStatus::Cancelled),
+            Write::AlreadyFinal(status) => Some(status),
+            // Nothing in S3 will change for it: the wait ends when it may go again.
+            Write::NotNow => {
+                self.shorten_wait(interval);
+                None
+            }
+        };
+        self.advance(Stage::Status);
+    }
+
+    /// The cluster's verdict on a run its status did not end: too long, still queued,
+    /// running (progress recorded), finished or failed.
+    fn verdict(&mut self) -> Step {
+        let Some(seen) = &self.sighting else {
+            return self.done();
+        };
+        let monitor = &self.run.monitor;
+        match &seen.observation.verdict {
+            Verdict::Running => {
+                let lost = monitor.usage.lost_at(self.cx.now);
+                match (
+                    monitor.started_at,
+                    monitor::overran(monitor.started_at, lost, self.cx.now),
+                ) {
+                    (_, Some(reason)) => self.end(RunPhase::Failed, Some(reason)),
+                    // Queued: waiting for capacity is no failure, and the record stays as
+                    // Intake wrote it.
+                    (None, None) => self.done(),
+                    (Some(_), None) => Step::RecordRunning {
+                        progress: monitor.progress,
+                        usage: monitor.usage.summary(&self.cx.prices),
+                    },
+                }
+            }
+            Verdict::Finished => self.end(RunPhase::Finished, None),
+            Verdict::Failed { message, .. } => {
+                let message = message.clone();
+                self.end(RunPhase::Failed, Some(message))
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cluster::{FailureKind, JobState, JobView};
+    use crate::run::{MonitorState, QueueState};
+    use crate::schedule::{MAX_EVALUATION, STATUS_FALLBACK};
+
+    const NOW: u64 = 1_000_000;
+    const INTERVAL: u64 = 20;
+
+    fn run(admitted: bool) -> RunState {
+        RunState {
+            jobs: 1,
+            pairs: Vec::new(),
+            repetitions: 1,
+            launched_at: NOW - 600,
+            monitor: MonitorState {
+                status_read_at: Some(NOW - 60),
+                ..MonitorState::starting(30, 0, 10, "exec-1", 0)
+            },
+            queue: QueueState {
+                admitted,
+                ..QueueState::arriving(NOW - 600)
+            },
+        }
+    }
+
+    fn cx() -> Context {
+        Context {
+            now: NOW,
+            execution: Some("exec-1".into()),
+            retries: 0,
+            arrived_ms: None,
+            partial_update_seconds: INTERVAL,
+            max_queue_hours: 24,
+            max_cluster_outage_hours: 6,
+            team_limit: 2,
+            note_interval: 300,
+            prices: BTreeMap::new(),
+            wake_retention: 3600,
+        }
+    }
+
+    fn job(state: JobState) -> JobView {
+        JobView {
+            name: "lb-7-0".into(),
+            index: Some(0),
+            state,
+            active: 1,
+            ready: 1,
+            succeeded: 0,
+            failed: 0,
+            start_time: None,
+            completion_time: None,
+            terminating: false,
+            deadline: None,
+            pods: Vec::new(),
+        }
+    }
+
+    /// The cluster with its one Job `started` or still pending, and this verdict.
+    fn seen(started: bool, verdict: Verdict) -> Answer {
+        let state = if started {
+            JobState::Complete
+        } else {
+            JobState::Pending
+        };
+        Answer::Observed(Box::new(Sighting {
+            observation: Observation {
+                submission_id: "7".into(),
+                observed_at: jiff::Timestamp::from_second(NOW as i64).unwrap(),
+                jobs: vec![job(state)],
+                stray_pods: Vec::new(),
+                verdict,
+            },
+            counted: Some((Vec::new(), BTreeMap::new())),
+        }))
+    }
+
+    /// Runs a round, answering each step with `world`; the steps taken and the state left.
+    fn drive(
+        run: RunState,
+        cx: Context,
+        mut world: impl FnMut(&Step) -> Answer,
+    ) -> (Vec<Step>, RunState) {
+        let mut round = Round::begin(run, cx);
+        let mut steps = Vec::new();
+        loop {
+            let step = round.poll();
+            if step == Step::Done {
+                return (steps, round.finish(u64::MAX, "exec-1"));
+            }
+            assert!(steps.len() < 50, "the round does not end: {steps:?}");
+            let answer = world(&step);
+            steps.push(step);
+            round.answer(answer);
+        }
+    }
+
+    /// A world where nothing happens: the wake count read, the cluster running, the results
+    /// as last sent, EvalAI saying `running`.
+    fn quiet(verdict: Verdict) -> impl FnMut(&Step) -> Answer {
+        move |step| match step {
+            Step::Adopt(_) => Answer::Adopted(true),
+            Step::ReadWake => Answer::Wake(Some((4, false))),
+            Step::Observe => seen(true, verdict.clone()),
+            Step::ListResults => Answer::Listed(Some("etag-1".into())),
+            Step::ReadStatus(_) => Answer::Status(Some(SubmissionStatus::Running)),
+            Step::CheckEnding => Answer::Ending(false),
+            _ => Answer::Done,
+        }
+    }
+
+    fn started(mut run: RunState) -> RunState {
+        run.monitor.started_at = Some(NOW - 300);
+        run.monitor.fingerprint = Some("etag-1".into());
+        run
+    }
+
+    fn kinds(steps: &[Step]) -> Vec<&'static str> {
+        steps
+            .iter()
+            .map(|s| match s {
+                Step::Adopt(_) => "adopt",
+                Step::ReadWake => "wake",
+                Step::ReadStatus(_) => "status",
+                Step::TakeTurn { .. } => "turn",
+                Step::ReadAhead => "ahead",
+                Step::ComposeNote(..) => "compose",
+                Step::ShowPlace(_) => "show",
+                Step::Observe => "observe",
+                Step::ResultsWritten => "written",
+                Step::ExtendDeadlines(_) => "deadlines",
+                Step::MarkStarted(_) => "started",
+                Step::ListResults => "list",
+                Step::CollectResults => "collect",
+                Step::PostPartial => "post",
+                Step::PutCancelMarker => "cancel",
+                Step::RecordRunning { .. } => "record",
+                Step::CheckEnding => "ending",
+                Step::Done => "done",
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_quiet_running_round_records_progress_and_reads_nothing_it_does_not_need() {
+        let (steps, run) = drive(started(run(true)), cx(), quiet(Verdict::Running));
+        assert_eq!(
+            kinds(&steps),
+            ["wake", "observe", "list", "record", "ending"]
+        );
+        assert_eq!(run.monitor.state, RunPhase::Running);
+        assert_eq!(run.monitor.seen, 4);
+        assert_eq!(run.monitor.rounds, 1);
+        assert_eq!(run.monitor.hold_seconds, MIN_ROUND_INTERVAL.as_secs());
+        assert!(!run.monitor.poll);
+    }
+
+    #[test]
+    fn a_cancel_the_sweep_flagged_is_confirmed_and_wins_over_a_finished_verdict() {
+        let (steps, run) = drive(started(run(true)), cx(), |step| match step {
+            Step::ReadWake => Answer::Wake(Some((5, true))),
+            Step::ReadStatus(read) => {
+                assert_eq!(*read, StatusRead::ConfirmCancel);
+                Answer::Status(Some(SubmissionStatus::Cancelled))
+            }
+            other => quiet(Verdict::Finished)(other),
+        });
+        assert_eq!(
+            kinds(&steps),
+            ["wake", "observe", "list", "status", "cancel"]
+        );
+        assert_eq!(run.monitor.state, RunPhase::Cancelled);
+        assert_eq!(run.monitor.status_read_at, Some(NOW));
+    }
+
+    #[test]
+    fn a_flag_evalai_does_not_confirm_leaves_the_verdict_to_decide() {
+        let (steps, run) = drive(started(run(true)), cx(), |step| match step {
+            Step::ReadWake => Answer::Wake(Some((5, true))),
+            other => quiet(Verdict::Finished)(other),
+        });
+        assert_eq!(kinds(&steps), ["wake", "observe", "list", "status"]);
+        assert_eq!(run.monitor.state, RunPhase::Finished);
+    }
+
+    #[test]
+    fn a_cancel_met_by_the_queue_note_ends_the_round_before_the_results() {
+        let mut waiting = run(true);
+        waiting.monitor.status_read_at = Some(NOW);
+        let (steps, run) = drive(waiting, cx(), |step| match step {
+            Step::Observe => seen(false, Verdict::Running),
+            Step::ReadAhead => Answer::Ahead(Some((3, 1))),
+            Step::ComposeNote(place, hold) => {
+                assert_eq!((*place, *hold), ((3, 0, 1), Hold::Capacity));
+                Answer::Note("3 ahead".into())
+            }
+            Step::ShowPlace(note) => {
+                assert_eq!(note, &Some((3, "3 ahead".into())));
+                Answer::Shown(Write::Cancelled)
+            }
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(
+            kinds(&steps),
+            ["wake", "observe", "ahead", "compose", "show", "cancel"]
+        );
+        assert_eq!(run.monitor.state, RunPhase::Cancelled);
+        assert_eq!(run.queue.shown, None, "a refused note was not shown");
+    }
+
+    #[test]
+    fn changed_results_go_once_per_interval_and_hold_the_next_wait() {
+        let world = |step: &Step| match step {
+            Step::ListResults => Answer::Listed(Some("etag-2".into())),
+            Step::CollectResults => Answer::Collected(Collected::Merged {
+                progress: (3, 10),
+                fingerprint: "etag-2".into(),
+            }),
+            Step::PostPartial => Answer::Posted(Write::Written),
+            other => quiet(Verdict::Running)(other),
+        };
+        let (steps, run) = drive(started(run(true)), cx(), world);
+        assert_eq!(
+            kinds(&steps),
+            ["wake", "observe", "list", "collect", "post", "record", "ending"]
+        );
+        assert_eq!(run.monitor.fingerprint.as_deref(), Some("etag-2"));
+        assert_eq!(
+            (run.monitor.updated_at, run.monitor.progress),
+            (Some(NOW), (3, 10))
+        );
+        assert_eq!(run.monitor.hold_seconds, INTERVAL);
+
+        // Sent 5 seconds ago: the wait ends when it may go, nothing is read.
+        let mut recent = started(self::run(true));
+        recent.monitor.updated_at = Some(NOW - 5);
+        let (steps, run) = drive(recent, cx(), world);
+        assert_eq!(
+            kinds(&steps),
+            ["wake", "observe", "list", "record", "ending"]
+        );
+        assert_eq!(run.monitor.wait_seconds, 15);
+        assert_eq!(run.monitor.fingerprint.as_deref(), Some("etag-1"));
+    }
+
+    #[test]
+    fn a_deferred_update_or_unreadable_results_shorten_the_wait_to_the_interval() {
+        for (collected, posted) in [
+            (Collected::NotNow, Write::Written),
+            (
+                Collected::Merged {
+                    progress: (1, 10),
+                    fingerprint: "etag-2".into(),
+                },
+                Write::NotNow,
+            ),
+        ] {
+            let (_, run) = drive(started(run(true)), cx(), |step| match step {
+                Step::ListResults => Answer::Listed(Some("etag-2".into())),
+                Step::CollectResults => Answer::Collected(collected.clone()),
+                Step::PostPartial => Answer::Posted(posted),
+                other => quiet(Verdict::Running)(other),
+            });
+            assert_eq!(run.monitor.wait_seconds, INTERVAL);
+            assert_eq!(run.monitor.fingerprint.as_deref(), Some("etag-1"));
+        }
+        // Broken files are not read again until they change.
+        let (_, run) = drive(started(run(true)), cx(), |step| match step {
+            Step::ListResults => Answer::Listed(Some("etag-3".into())),
+            Step::CollectResults => Answer::Collected(Collected::Unusable),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(run.monitor.fingerprint.as_deref(), Some("etag-3"));
+    }
+
+    #[test]
+    fn an_unreachable_cluster_skips_the_verdict_until_the_leaderboard_s_bound() {
+        let world = |step: &Step| match step {
+            Step::Observe => Answer::Unreachable("KubeUnavailable"),
+            other => quiet(Verdict::Finished)(other),
+        };
+        let (steps, run) = drive(started(run(true)), cx(), world);
+        assert_eq!(kinds(&steps), ["wake", "observe", "list"]);
+        assert_eq!(run.monitor.state, RunPhase::Running);
+        assert_eq!(run.monitor.unreachable_since, Some(NOW));
+        assert_eq!(
+            run.monitor.wait_seconds,
+            safety_net(Duration::ZERO).as_secs()
+        );
+
+        let mut long = started(self::run(true));
+        long.monitor.unreachable_since = Some(NOW - 6 * 3600);
+        let (steps, run) = drive(long, cx(), world);
+        assert_eq!(kinds(&steps), ["wake", "observe"]);
+        assert_eq!(run.monitor.state, RunPhase::Failed);
+        let reason = run.monitor.reason.unwrap();
+        assert!(reason.contains("(KubeUnavailable)"), "{reason}");
+    }
+
+    #[test]
+    fn the_first_pair_started_tells_evalai_once_and_the_note_goes() {
+        let mut queued = run(true);
+        queued.queue.shown = Some(2);
+        queued.queue.shown_at = Some(NOW - 10);
+        queued.monitor.fingerprint = Some("etag-1".into());
+        let (steps, run) = drive(queued, cx(), |step| match step {
+            Step::MarkStarted(jobs) => {
+                assert_eq!(jobs, &["lb-7-0".to_string()]);
+                Answer::Started(true)
+            }
+            Step::ShowPlace(note) => {
+                assert_eq!(note, &None);
+                Answer::Shown(Write::Written)
+            }
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(
+            kinds(&steps),
+            ["wake", "observe", "started", "show", "list", "record", "ending"]
+        );
+        assert_eq!(run.monitor.started_at, Some(NOW));
+        assert_eq!(run.queue.shown, None);
+
+        // EvalAI not reached: tried again next round, and the run stays queued.
+        let (_, run) = drive(self::run(true), cx(), |step| match step {
+            Step::MarkStarted(_) => Answer::Started(false),
+            Step::ReadAhead => Answer::Ahead(None),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(run.monitor.started_at, None);
+    }
+
+    #[test]
+    fn a_held_submission_is_admitted_or_shown_its_changed_place() {
+        let standing = |admitted| Standing {
+            admitted,
+            ahead: 4,
+            team_ahead: 1,
+            hold: Hold::TeamLimit { limit: 2 },
+        };
+        let (steps, run) = drive(run(false), cx(), |step| match step {
+            Step::TakeTurn { arrived_ms, limit } => {
+                assert_eq!((*arrived_ms, *limit), ((NOW - 600) * 1000, 2));
+                Answer::Turn(standing(true))
+            }
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(kinds(&steps), ["wake", "turn"]);
+        assert_eq!(run.monitor.state, RunPhase::Admitted);
+
+        let (steps, run) = drive(self::run(false), cx(), |step| match step {
+            Step::TakeTurn { .. } => Answer::Turn(standing(false)),
+            Step::ComposeNote(place, _) => {
+                assert_eq!(*place, (4, 1, 0));
+                Answer::Note("4 ahead".into())
+            }
+            Step::ShowPlace(_) => Answer::Shown(Write::Written),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(kinds(&steps), ["wake", "turn", "compose", "show"]);
+        assert_eq!((run.queue.shown, run.queue.shown_at), (Some(4), Some(NOW)));
+        assert_eq!(run.monitor.state, RunPhase::Running);
+        assert_eq!(
+            run.monitor.wait_seconds,
+            queue_wait(Duration::from_secs(600)).as_secs()
+        );
+    }
+
+    #[test]
+    fn a_held_submission_confirms_a_cancel_first_and_ends_at_the_queue_limit() {
+        let (steps, run) = drive(run(false), cx(), |step| match step {
+            Step::ReadWake => Answer::Wake(Some((1, true))),
+            Step::ReadStatus(_) => Answer::Status(Some(SubmissionStatus::Cancelled)),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(kinds(&steps), ["wake", "status"]);
+        assert_eq!(run.monitor.state, RunPhase::Cancelled);
+
+        let mut long = self::run(false);
+        long.queue.arrived_at = NOW - 24 * 3600;
+        let (steps, run) = drive(long, cx(), quiet(Verdict::Running));
+        assert_eq!(kinds(&steps), ["wake"]);
+        assert_eq!(run.monitor.state, RunPhase::Failed);
+        assert!(run
+            .monitor
+            .reason
+            .unwrap()
+            .contains("queue limit of 24 hours"));
+    }
+
+    #[test]
+    fn an_unread_wake_count_makes_the_next_wait_a_poll() {
+        let (_, run) = drive(started(run(true)), cx(), |step| match step {
+            Step::ReadWake => Answer::Wake(None),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert!(run.monitor.poll);
+        assert_eq!(run.monitor.wait_seconds, POLL_WITHOUT_WAKE.as_secs());
+    }
+
+    #[test]
+    fn the_status_fallback_is_read_when_due_and_yields_to_an_update() {
+        let mut stale = started(run(true));
+        stale.monitor.status_read_at = Some(NOW - STATUS_FALLBACK.as_secs());
+        let (steps, _) = drive(stale.clone(), cx(), quiet(Verdict::Running));
+        assert_eq!(
+            kinds(&steps),
+            ["wake", "observe", "list", "status", "record", "ending"]
+        );
+        // A partial update's own read of the status stands for it.
+        let (steps, _) = drive(stale, cx(), |step| match step {
+            Step::ListResults => Answer::Listed(Some("etag-2".into())),
+            Step::CollectResults => Answer::Collected(Collected::Merged {
+                progress: (1, 10),
+                fingerprint: "etag-2".into(),
+            }),
+            Step::PostPartial => Answer::Posted(Write::Written),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert!(!kinds(&steps).contains(&"status"), "{steps:?}");
+    }
+
+    #[test]
+    fn the_verdict_ends_a_finished_failed_or_overrun_run() {
+        let (_, run) = drive(started(run(true)), cx(), quiet(Verdict::Finished));
+        assert_eq!(run.monitor.state, RunPhase::Finished);
+
+        let failed = Verdict::Failed {
+            kind: FailureKind::ParticipantImagePull,
+            job: None,
+            container: None,
+            message: "the image cannot be pulled".into(),
+        };
+        let (_, run) = drive(started(self::run(true)), cx(), quiet(failed));
+        assert_eq!(run.monitor.state, RunPhase::Failed);
+        assert_eq!(
+            run.monitor.reason.as_deref(),
+            Some("the image cannot be pulled")
+        );
+
+        let mut long = started(self::run(true));
+        long.monitor.started_at = Some(NOW - MAX_EVALUATION.as_secs() - 1);
+        let (steps, run) = drive(long, cx(), quiet(Verdict::Running));
+        assert!(!kinds(&steps).contains(&"record"));
+        assert_eq!(run.monitor.state, RunPhase::Failed);
+        assert!(run.monitor.reason.unwrap().contains("72 hours"));
+    }
+
+    #[test]
+    fn every_job_s_logcopy_done_shortens_the_wait() {
+        let (_, run) = drive(started(run(true)), cx(), |step| match step {
+            Step::CheckEnding => Answer::Ending(true),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(run.monitor.wait_seconds, ENDING_POLL.as_secs());
+    }
+
+    #[test]
+    fn a_continuation_hands_the_queue_entry_over_until_it_is_done() {
+        let mut continued = started(run(true));
+        continued.monitor.execution = Some("exec-1".into());
+        let cx = Context {
+            execution: Some("exec-1-c1".into()),
+            ..cx()
+        };
+        let (steps, run) = drive(continued.clone(), cx.clone(), |step| match step {
+            Step::Adopt(execution) => {
+                assert_eq!(execution, "exec-1-c1");
+                Answer::Adopted(false)
+            }
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(kinds(&steps)[..2], ["adopt", "wake"]);
+        assert!(run.monitor.handover, "tried again next round");
+        let (steps, run) = drive(run, cx, quiet(Verdict::Running));
+        assert_eq!(kinds(&steps)[..3], ["adopt", "wake", "observe"]);
+        assert!(!run.monitor.handover);
+    }
+
+    #[test]
+    fn a_round_near_the_history_budget_continues_as_a_new_execution() {
+        let mut round = Round::begin(started(run(true)), cx());
+        while round.poll() != Step::Done {
+            round.answer(Answer::Done);
+        }
+        let run = round.finish(0, "exec-1");
+        assert_eq!(run.monitor.state, RunPhase::Continued);
+        assert_eq!(run.monitor.continue_as.as_deref(), Some("exec-1-c1"));
+        assert_eq!(run.monitor.generation, 1);
+    }
+
+    #[test]
+    fn the_jobs_deadlines_grow_by_the_time_reclaims_cost() {
+        let mut reclaimed = started(run(true));
+        reclaimed.monitor.usage.lost = 600;
+        let mut observed = seen(true, Verdict::Running);
+        if let Answer::Observed(seen) = &mut observed {
+            seen.observation.jobs[0].state = JobState::Running;
+            seen.observation.jobs[0].deadline = Some(crate::schedule::JOB_DEADLINE.as_secs());
+        }
+        let (steps, _) = drive(reclaimed, cx(), |step| match step {
+            Step::Observe => observed.clone(),
+            other => quiet(Verdict::Running)(other),
+        });
+        let wanted = crate::schedule::JOB_DEADLINE.as_secs() + 600;
+        assert!(steps.contains(&Step::ExtendDeadlines(vec![("lb-7-0".into(), wanted)])));
+    }
+}

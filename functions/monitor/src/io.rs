@@ -1,0 +1,393 @@
+//! The Monitor's I/O: each step the round asks for, performed and answered in the round's
+//! terms. Transient trouble is logged here and answered as "not this round"; only errors no
+//! later round can change are returned (the state machine's Retry and Catch see them).
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use lb_aws::dynamo::SubmissionsTable;
+use lb_aws::s3::SubmissionStore;
+use lb_cluster::{Cluster, VerdictPolicy};
+use lb_domain::cost::{self, NodeKind, Totals};
+use lb_domain::monitor::StatusRead;
+use lb_domain::protocol::Marker;
+use lb_domain::queue::Hold;
+use lb_domain::round::{Answer, Collected, Sighting, Step, Write};
+use lb_domain::settings::Target;
+use lb_evalai::{EvalAiError, PartialUpdate, Priority, SubmissionRef, WriteOutcome};
+use lb_pipeline::clients;
+use lb_pipeline::payload::{RunState, SubmissionInfo};
+use lb_pipeline::results::{self, Listing, Snapshot};
+use lb_pipeline::{FnError, Result};
+use tracing::{info, warn};
+
+use crate::Deps;
+
+/// What the shell keeps between a round's steps: its clients and what a later step acts on
+/// (the cluster it observed with, the results it listed and merged).
+pub struct Shell<'a> {
+    deps: &'a Deps,
+    target: &'a Target<'a>,
+    submission: &'a SubmissionInfo,
+    store: SubmissionStore,
+    cluster: Option<Cluster>,
+    listing: Option<Listing>,
+    snapshot: Option<Snapshot>,
+}
+
+impl<'a> Shell<'a> {
+    /// The shell of one round of `submission`.
+    pub fn new(deps: &'a Deps, target: &'a Target<'a>, submission: &'a SubmissionInfo) -> Self {
+        let bucket = &target.deployment.bucket;
+        let store = SubmissionStore::new(deps.clients.s3.clone(), bucket, submission.submission_id);
+        Shell {
+            deps,
+            target,
+            submission,
+            store,
+            cluster: None,
+            listing: None,
+            snapshot: None,
+        }
+    }
+
+    fn id(&self) -> u64 {
+        self.submission.submission_id
+    }
+
+    fn at(&self) -> SubmissionRef {
+        SubmissionRef {
+            challenge: self.submission.challenge_id,
+            phase: self.submission.phase_id,
+            submission: self.submission.submission_id,
+        }
+    }
+
+    /// Performs `step` of a round whose run state is `run`.
+    pub async fn perform(&mut self, step: Step, run: &RunState) -> Result<Answer> {
+        let admission = &self.deps.clients.admission;
+        Ok(match step {
+            Step::Adopt(execution) => Answer::Adopted(self.adopt(&execution).await),
+            Step::ReadWake => Answer::Wake(self.read_wake().await?),
+            Step::ReadStatus(read) => Answer::Status(self.read_status(read).await?),
+            Step::TakeTurn { arrived_ms, limit } => Answer::Turn(
+                admission
+                    .take_turn(self.submission, arrived_ms, limit)
+                    .await?,
+            ),
+            Step::ReadAhead => Answer::Ahead(self.read_ahead().await),
+            Step::ComposeNote(place, hold) => Answer::Note(self.compose(place, hold).await),
+            Step::ShowPlace(note) => Answer::Shown(self.show_place(note).await?),
+            Step::Observe => self.observe(run).await?,
+            Step::ResultsWritten => Answer::ResultsWritten(results::written(&self.store).await),
+            Step::ExtendDeadlines(jobs) => self.extend_deadlines(jobs).await,
+            Step::MarkStarted(jobs) => Answer::Started(self.mark_started(&jobs).await?),
+            Step::ListResults => Answer::Listed(self.list().await?),
+            Step::CollectResults => Answer::Collected(self.collect(run).await?),
+            Step::PostPartial => Answer::Posted(self.post_partial().await?),
+            Step::PutCancelMarker => {
+                self.store.put_cancel_marker().await?;
+                info!(
+                    submission_id = self.id(),
+                    "the participant cancelled: cancel marker written"
+                );
+                Answer::Done
+            }
+            Step::RecordRunning { progress, usage } => self.record(progress, &usage).await,
+            Step::CheckEnding => Answer::Ending(self.ending(run).await),
+            Step::Done => Answer::Done,
+        })
+    }
+
+    /// The queue entry names the execution the reaper's pass checks; tried each round until
+    /// it is done.
+    async fn adopt(&self, execution: &str) -> bool {
+        let adopted = self
+            .deps
+            .clients
+            .admission
+            .adopt(self.submission, execution);
+        match adopted.await {
+            Ok(()) => true,
+            Err(e) => {
+                warn!(submission_id = self.id(), error = %e, "queue entry not handed over this round");
+                false
+            }
+        }
+    }
+
+    async fn read_wake(&self) -> Result<Option<(u64, bool)>> {
+        match self.deps.wake.state(self.id()).await {
+            Ok(wake) => Ok(Some((wake.changes, wake.cancel))),
+            Err(e) if e.is_transient() => {
+                warn!(submission_id = self.id(), error = %e, "wake count not read: polling this time");
+                Ok(None)
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// The status on EvalAI: a cancel to confirm goes ahead of partial updates; the fallback
+    /// yields to them.
+    async fn read_status(
+        &self,
+        read: StatusRead,
+    ) -> Result<Option<lb_domain::submission::SubmissionStatus>> {
+        let priority = match read {
+            StatusRead::ConfirmCancel => Priority::Urgent,
+            StatusRead::Fallback => Priority::Routine,
+        };
+        let evalai = self.deps.clients.evalai.with_priority(priority);
+        match evalai.submission(self.id()).await {
+            Ok(current) => Ok(Some(current.status)),
+            Err(e) => not_now(self.id(), "status read", e).map(|()| None),
+        }
+    }
+
+    async fn read_ahead(&self) -> Option<(u32, u32)> {
+        match self.deps.clients.admission.ahead_of(self.submission).await {
+            Ok(ahead) => ahead,
+            Err(e) => {
+                warn!(submission_id = self.id(), error = %e, "queue not read this round");
+                None
+            }
+        }
+    }
+
+    async fn compose(&self, place: (u32, u32, u32), hold: Hold) -> String {
+        self.deps
+            .clients
+            .admission
+            .note(self.submission, place, hold)
+            .await
+    }
+
+    async fn show_place(&self, note: Option<(u32, String)>) -> Result<Write> {
+        let evalai = self.deps.clients.evalai.with_priority(Priority::Routine);
+        let note = note.as_ref().map(|(ahead, text)| (*ahead, text.as_str()));
+        let shown = evalai.show_queue(self.at(), note).await;
+        if matches!(shown, Ok(WriteOutcome::Written)) {
+            info!(submission_id = self.id(), ahead = ?note.map(|n| n.0), "queue place shown");
+        }
+        written(self.id(), "queue place", shown)
+    }
+
+    /// The submission's Jobs and pods as the cluster reports them now, and the kinds of the
+    /// nodes new pods run on. The cluster out of reach (a 500, a timeout, DescribeCluster
+    /// failing) skips the verdict this round.
+    async fn observe(&mut self, run: &RunState) -> Result<Answer> {
+        let deployment = self.target.deployment;
+        let policy = VerdictPolicy {
+            queue_limit: Duration::from_secs(deployment.max_queue_hours * 3600),
+            ..self.deps.policy
+        };
+        let seen = async {
+            let cluster = self
+                .deps
+                .clients
+                .clusters
+                .connect(deployment)
+                .await?
+                .with_policy(policy);
+            let observation = cluster.observe(&self.id().to_string()).await?;
+            Ok::<_, FnError>((cluster, observation))
+        };
+        let (cluster, observation) = match seen.await {
+            Ok(seen) => seen,
+            Err(e) if e.is_transient() => {
+                warn!(submission_id = self.id(), error = %e.chain(), "cluster not reached this round");
+                return Ok(Answer::Unreachable(e.name()));
+            }
+            Err(e) => return Err(e),
+        };
+        let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
+        let mut kinds = BTreeMap::new();
+        let mut counted = true;
+        for node in run.monitor.usage.unknown_nodes(&pods) {
+            match cluster.node_kind(&node).await {
+                Ok(kind) => _ = kinds.insert(node, kind.unwrap_or_else(NodeKind::unknown)),
+                Err(e) => {
+                    warn!(submission_id = self.id(), %node, error = %e, "node not read: GPU usage counted next round");
+                    counted = false;
+                    break;
+                }
+            }
+        }
+        self.cluster = Some(cluster);
+        let counted = counted.then_some((pods, kinds));
+        Ok(Answer::Observed(Box::new(Sighting {
+            observation,
+            counted,
+        })))
+    }
+
+    /// A patch that fails is tried again next round: the value set does not depend on what
+    /// the Job has.
+    async fn extend_deadlines(&self, jobs: Vec<(String, u64)>) -> Answer {
+        let Some(cluster) = &self.cluster else {
+            return Answer::Done;
+        };
+        for (job, seconds) in jobs {
+            if let Err(e) = cluster.extend_deadline(&job, seconds).await {
+                warn!(submission_id = self.id(), job, error = %e, "Job deadline not extended this round");
+            }
+        }
+        Answer::Done
+    }
+
+    /// Out of the count of those waiting, and `running` on EvalAI (its `started_at`, the
+    /// participant's execution time, starts now).
+    async fn mark_started(&self, jobs: &[String]) -> Result<bool> {
+        if let Err(e) = self
+            .deps
+            .clients
+            .admission
+            .mark_running(self.submission)
+            .await
+        {
+            warn!(submission_id = self.id(), error = %e, "queue entry not marked running");
+        }
+        match self
+            .deps
+            .clients
+            .evalai
+            .mark_running(self.at(), &jobs.join(","))
+            .await
+        {
+            Ok(outcome) => {
+                info!(
+                    submission_id = self.id(),
+                    ?outcome,
+                    "first pair started: running"
+                );
+                Ok(true)
+            }
+            Err(e) => not_now(self.id(), "running", e).map(|()| false),
+        }
+    }
+
+    async fn list(&mut self) -> Result<Option<String>> {
+        match results::list(&self.store).await {
+            Ok(listing) => {
+                let fingerprint = listing.fingerprint.clone();
+                self.listing = Some(listing);
+                Ok(Some(fingerprint))
+            }
+            Err(e) if e.is_transient() => {
+                warn!(submission_id = self.id(), error = %e.chain(), "results not listed this round");
+                Ok(None)
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    async fn collect(&mut self, run: &RunState) -> Result<Collected> {
+        let Some(listing) = self.listing.take() else {
+            return Ok(Collected::NotNow);
+        };
+        let leaderboard = self.target.leaderboard;
+        let collected = results::collect_listed(
+            &self.store,
+            listing,
+            leaderboard,
+            &run.pairs,
+            run.repetitions,
+        );
+        match collected.await {
+            Ok(snapshot) => {
+                let merged = Collected::Merged {
+                    progress: snapshot.progress,
+                    fingerprint: snapshot.fingerprint.clone(),
+                };
+                self.snapshot = Some(snapshot);
+                Ok(merged)
+            }
+            Err(e) if e.is_transient() => {
+                warn!(submission_id = self.id(), error = %e.chain(), "results not read this round");
+                Ok(Collected::NotNow)
+            }
+            Err(e) => {
+                // The participant's own files are broken; the sidecar marks that pair crashed.
+                warn!(submission_id = self.id(), error = %e.chain(), "results unusable this round");
+                Ok(Collected::Unusable)
+            }
+        }
+    }
+
+    async fn post_partial(&mut self) -> Result<Write> {
+        let Some(snapshot) = self.snapshot.take() else {
+            return Ok(Write::NotNow);
+        };
+        let files = snapshot.files;
+        let update = PartialUpdate {
+            result: files.results_json(),
+            stdout: files.stdout,
+            metadata: files.metadata.unwrap_or_else(|| "{}".into()),
+        };
+        let posted = self
+            .deps
+            .clients
+            .evalai
+            .post_partial(self.at(), &update)
+            .await;
+        written(self.id(), "partial update", posted)
+    }
+
+    /// Progress and usage on the record; a failure is tried again next round.
+    async fn record(&self, progress: (u64, u64), usage: &Totals) -> Answer {
+        let table = &self.target.deployment.submissions_table;
+        let table = SubmissionsTable::new(self.deps.clients.dynamo.clone(), table);
+        let (time, location) = (clients::now_record_time(), self.store.location());
+        let (team, id) = (self.submission.team_id, self.id());
+        let marked = table.mark_running(team, id, &time, &location, progress, Some(usage));
+        if let Err(e) = marked.await {
+            warn!(submission_id = id, error = %e, "progress not recorded this round");
+        }
+        Answer::Done
+    }
+
+    /// Whether every Job of this run has written `logcopy-<J>.done` (since the launch).
+    async fn ending(&self, run: &RunState) -> bool {
+        match self.store.markers_since(run.launched_at).await {
+            Ok(names) => (0..run.jobs).all(|job| {
+                let marker = Marker::LogcopyDone { job }.to_string();
+                names.contains(&marker)
+            }),
+            Err(e) => {
+                warn!(submission_id = self.id(), error = %e, "markers not listed this round");
+                false
+            }
+        }
+    }
+}
+
+/// An EvalAI write's outcome in the round's terms: deferred by the budget or transient
+/// trouble is "not now"; anything else no later round changes is an error.
+fn written(
+    id: u64,
+    what: &str,
+    outcome: std::result::Result<WriteOutcome, EvalAiError>,
+) -> Result<Write> {
+    match outcome {
+        Ok(WriteOutcome::Written) => Ok(Write::Written),
+        Ok(WriteOutcome::Cancelled) => Ok(Write::Cancelled),
+        Ok(WriteOutcome::AlreadyFinal(status)) => Ok(Write::AlreadyFinal(status)),
+        Err(e) => not_now(id, what, e).map(|()| Write::NotNow),
+    }
+}
+
+/// Logs an EvalAI call left for a later round (the budget's decision, or transient trouble);
+/// any other error is returned.
+fn not_now(id: u64, what: &str, e: EvalAiError) -> Result<()> {
+    match e {
+        EvalAiError::OverBudget => {
+            info!(submission_id = id, what, "deferred by the EvalAI budget");
+            Ok(())
+        }
+        e if e.is_transient() => {
+            warn!(submission_id = id, what, error = %e, "not done this round");
+            Ok(())
+        }
+        e => Err(e.into()),
+    }
+}
