@@ -152,20 +152,7 @@ mod tests {
 
     #[test]
     fn running_jobs_deadlines_grow_by_the_lost_time_once() {
-        let job = |name: &str, state, deadline| JobView {
-            name: name.into(),
-            index: Some(0),
-            state,
-            active: 1,
-            ready: 1,
-            succeeded: 0,
-            failed: 0,
-            start_time: None,
-            completion_time: None,
-            terminating: false,
-            deadline,
-            pods: Vec::new(),
-        };
+        let job = crate::testutil::job;
         let base = JOB_DEADLINE.as_secs();
         let jobs = [
             job("running", JobState::Running, Some(base)),

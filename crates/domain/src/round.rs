@@ -676,7 +676,7 @@ impl Round {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cluster::{FailureKind, JobState, JobView};
+    use crate::cluster::{FailureKind, JobState};
     use crate::run::{MonitorState, QueueState};
     use crate::schedule::{MAX_EVALUATION, STATUS_FALLBACK};
 
@@ -716,23 +716,6 @@ mod tests {
         }
     }
 
-    fn job(state: JobState) -> JobView {
-        JobView {
-            name: "lb-7-0".into(),
-            index: Some(0),
-            state,
-            active: 1,
-            ready: 1,
-            succeeded: 0,
-            failed: 0,
-            start_time: None,
-            completion_time: None,
-            terminating: false,
-            deadline: None,
-            pods: Vec::new(),
-        }
-    }
-
     /// The cluster with its one Job `started` or still pending, and this verdict.
     fn seen(started: bool, verdict: Verdict) -> Answer {
         let state = if started {
@@ -744,7 +727,7 @@ mod tests {
             observation: Observation {
                 submission_id: "7".into(),
                 observed_at: jiff::Timestamp::from_second(NOW as i64).unwrap(),
-                jobs: vec![job(state)],
+                jobs: vec![crate::testutil::job("lb-7-0", state, None)],
                 stray_pods: Vec::new(),
                 verdict,
             },

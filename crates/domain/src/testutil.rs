@@ -12,3 +12,26 @@ pub fn results_fixtures_dir() -> PathBuf {
         }
     }
 }
+
+/// A Job named `name` at index 0 in `state`, with one pod active and ready, none counted, no
+/// pods listed, and this `activeDeadlineSeconds`.
+pub fn job(
+    name: &str,
+    state: crate::cluster::JobState,
+    deadline: Option<u64>,
+) -> crate::cluster::JobView {
+    crate::cluster::JobView {
+        name: name.into(),
+        index: Some(0),
+        state,
+        active: 1,
+        ready: 1,
+        succeeded: 0,
+        failed: 0,
+        start_time: None,
+        completion_time: None,
+        terminating: false,
+        deadline,
+        pods: Vec::new(),
+    }
+}
