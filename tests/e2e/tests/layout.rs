@@ -397,19 +397,53 @@ fn long_functions(source: &str, max: usize) -> Vec<(String, usize)> {
     long
 }
 
+/// Shipped functions still longer than a screen, as `path: name`: this list may only shrink
+/// (a listed function that fits now must leave it), and ends empty.
+const LONG_FOR_NOW: &[&str] = &[
+    "cli/src/executions.rs: resume",
+    "cli/src/ops.rs: list",
+    "cli/src/ops.rs: status",
+    "cli/src/rescore.rs: rescore",
+    "cli/src/watch.rs: look",
+    "sidecar/src/agent.rs: evaluate",
+    "sidecar/src/init.rs: init",
+    "sidecar/src/simulator.rs: simulate",
+];
+
+/// Whether a source file is shipped code the screen rule covers.
+fn shipped_source(rel: &str) -> bool {
+    ["crates/", "functions/", "sidecar/", "cli/"]
+        .iter()
+        .any(|room| rel.starts_with(room))
+        && rel.contains("/src/")
+}
+
 #[test]
-fn no_function_of_the_shared_crates_is_longer_than_a_screen() {
-    let long: Vec<String> = files(&["rs"])
+fn no_shipped_function_is_longer_than_a_screen() {
+    let long: Vec<(String, usize)> = files(&["rs"])
         .into_iter()
-        .filter(|(_, rel)| rel.starts_with("crates/") && rel.contains("/src/"))
+        .filter(|(_, rel)| shipped_source(rel))
         .flat_map(|(path, rel)| {
             let source = std::fs::read_to_string(path).unwrap();
             long_functions(&source, MAX_FUNCTION_LINES)
                 .into_iter()
-                .map(move |(name, n)| format!("{rel}: `{name}` has {n} lines"))
+                .map(move |(name, n)| (format!("{rel}: {name}"), n))
         })
         .collect();
-    assert!(long.is_empty(), "split these:\n{}", long.join("\n"));
+    let new: Vec<String> = long
+        .iter()
+        .filter(|(at, _)| !LONG_FOR_NOW.contains(&at.as_str()))
+        .map(|(at, n)| format!("{at} has {n} lines"))
+        .collect();
+    assert!(new.is_empty(), "split these:\n{}", new.join("\n"));
+    let fit: Vec<&&str> = LONG_FOR_NOW
+        .iter()
+        .filter(|at| !long.iter().any(|(l, _)| l == *at))
+        .collect();
+    assert!(
+        fit.is_empty(),
+        "these fit a screen now: take them off LONG_FOR_NOW: {fit:?}"
+    );
 }
 
 /// A crate's public modules, from its `lib.rs`.
