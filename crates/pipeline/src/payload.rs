@@ -60,6 +60,43 @@ pub enum Action {
     Reject,
 }
 
+/// The execution state as the finished or failed path hands it to Finalize (`{"state.$": "$"}`),
+/// typed: what Intake decided, the run, and the error a Catch put there. The state's other keys
+/// are not Finalize's. A part that does not decode is an invalid input, named, never read as
+/// "absent": a run state dropped for a decode error would read as an evaluation that never
+/// started.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ExecutionState {
+    /// Intake's decision (`$.intake`); absent when the execution failed before it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub intake: Option<IntakeOutput>,
+    /// The run (`$.run`); absent before Launch.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub run: Option<RunState>,
+    /// The error a Catch put at `$.error` (`{"Error", "Cause"}`, as Step Functions writes it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<serde_json::Value>,
+}
+
+impl ExecutionState {
+    /// The state from its JSON, or an `InvalidInput` error naming the part that is wrong.
+    pub fn from_value(state: serde_json::Value) -> crate::Result<ExecutionState> {
+        serde_path_to_error::deserialize(state).map_err(|e| {
+            crate::FnError::RunState(format!(
+                "the execution state at `{}`: {}",
+                e.path(),
+                e.inner()
+            ))
+        })
+    }
+
+    /// The caught error in words (`Name: message`), if a Catch put one there.
+    pub fn caught_error(&self) -> Option<String> {
+        let error = self.error.as_ref()?;
+        lb_domain::finalize::caught_error(&serde_json::json!({ "error": error }))
+    }
+}
+
 /// Everything later stages need to know about the submission.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

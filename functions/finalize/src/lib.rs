@@ -30,7 +30,9 @@ use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::Clusters;
-use lb_pipeline::payload::{Action, IntakeOutput, RunPhase, RunState, SubmissionInfo};
+use lb_pipeline::payload::{
+    Action, ExecutionState, IntakeOutput, RunPhase, RunState, SubmissionInfo,
+};
 use lb_pipeline::queue;
 use lb_pipeline::results::{collect, Snapshot};
 use lb_pipeline::{FunctionConfig, Result};
@@ -99,7 +101,7 @@ impl<C> Deps<C> {
 #[serde(deny_unknown_fields)]
 pub struct FinalizeInput {
     /// The state as the failed or finished path left it.
-    pub state: Value,
+    pub state: ExecutionState,
 }
 
 /// What Finalize did (`$.final`; the Choice after it reads `pipeline_error`).
@@ -120,14 +122,19 @@ pub struct FinalizeOutput {
     pub reason: Option<String>,
 }
 
+impl FinalizeInput {
+    /// The state's submission, once Intake knew it.
+    fn submission(&self) -> Option<&SubmissionInfo> {
+        self.state.intake.as_ref()?.submission.as_ref()
+    }
+}
+
 impl Invocation for FinalizeInput {
     fn submission_id(&self) -> Option<u64> {
-        self.state
-            .pointer("/intake/submission/submission_id")?
-            .as_u64()
+        Some(self.submission()?.submission_id)
     }
     fn execution(&self) -> Option<&str> {
-        self.state.pointer("/intake/submission/execution")?.as_str()
+        Some(&self.submission()?.execution)
     }
 }
 
@@ -206,11 +213,8 @@ impl<C: Callbacks + Executions> Function for Deps<C> {
 /// Ends one execution.
 pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Result<FinalizeOutput> {
     let state = input.state;
-    let error = finalize::caught_error(&state);
-    let intake: Option<IntakeOutput> = state
-        .get("intake")
-        .and_then(|v| serde_json::from_value(v.clone()).ok());
-    let (action, submission) = match intake {
+    let error = state.caught_error();
+    let (action, submission) = match state.intake {
         Some(IntakeOutput {
             action,
             submission: Some(submission),
@@ -261,10 +265,7 @@ pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Resul
             reason: error,
         });
     }
-    let run: Option<RunState> = state
-        .get("run")
-        .and_then(|v| serde_json::from_value(v.clone()).ok());
-    finish_run(deps, &submission, run, error).await
+    finish_run(deps, &submission, state.run, error).await
 }
 
 async fn finish_run<C: Callbacks>(
@@ -693,8 +694,20 @@ mod tests {
 
     #[test]
     fn each_request_is_told_apart_by_its_key_and_a_bad_one_names_its_field() {
-        let state = serde_json::from_value::<Request>(json!({"state": {"intake": {}}}));
+        let state = serde_json::from_value::<Request>(json!({"state": {"message": {}}}));
         assert!(matches!(state, Ok(Request::State(_))));
+        // A part of the state that does not decode is refused, not read as absent: a run
+        // state dropped here would read as an evaluation that never started.
+        let bad_run = json!({"state": {"run": {"jobs": 1, "monitor": {}}}});
+        let err = lb_pipeline::FnError::decode::<Request>("finalize", bad_run).unwrap_err();
+        assert_eq!(err.name(), "InvalidInput");
+        assert!(err.chain().contains("missing field"), "{}", err.chain());
+        let err = lb_pipeline::payload::ExecutionState::from_value(
+            json!({"intake": {"action": "maybe"}}),
+        )
+        .unwrap_err();
+        assert_eq!(err.name(), "InvalidInput");
+        assert!(err.to_string().contains("`intake.action`"), "{err}");
         let reconcile =
             json!({"reconcile": {"state_machine": "arn:aws:states:us-east-1:1:stateMachine:s"}});
         assert!(matches!(

@@ -16,6 +16,7 @@ use serde_json::Value;
 use tracing::{error, info, warn};
 
 use crate::{handle, Deps, FinalizeInput};
+use lb_pipeline::payload::ExecutionState;
 
 /// The event's `detail-type` for an execution's change of status.
 pub const STATUS_CHANGE: &str = "Step Functions Execution Status Change";
@@ -116,7 +117,7 @@ pub async fn reap<C: Callbacks + Executions>(
         );
         return Ok(left(arn, status));
     };
-    let state = reaper::finalize_state(state, name, &cause);
+    let state = ExecutionState::from_value(reaper::finalize_state(state, name, &cause))?;
     let out = handle(FinalizeInput { state }, deps).await?;
     // Alarmed through the state machine's ExecutionsAborted/TimedOut/Failed metrics; this
     // line says what the reaper did about it.

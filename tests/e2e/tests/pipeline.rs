@@ -145,6 +145,7 @@ impl Harness {
         run: &RunState,
     ) -> finalize::FinalizeOutput {
         let state = json!({"intake": {"action": "run", "submission": submission}, "run": run});
+        let state = lb_pipeline::payload::ExecutionState::from_value(state).unwrap();
         finalize::handle(finalize::FinalizeInput { state }, &self.finalize)
             .await
             .unwrap()
@@ -158,6 +159,7 @@ impl Harness {
     ) -> finalize::FinalizeOutput {
         let state = json!({"intake": {"action": "run", "submission": submission}, "run": run,
             "error": {"Error": "States.Timeout", "Cause": ""}});
+        let state = lb_pipeline::payload::ExecutionState::from_value(state).unwrap();
         finalize::handle(finalize::FinalizeInput { state }, &self.finalize)
             .await
             .unwrap()
