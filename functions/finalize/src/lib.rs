@@ -143,12 +143,12 @@ impl Invocation for FinalizeInput {
 /// (an untagged enum would only say that nothing matched).
 #[derive(Debug, Clone)]
 pub enum Request {
-    /// The state machine's Finalize task.
-    State(FinalizeInput),
+    /// The state machine's Finalize task (boxed: the typed state is large).
+    State(Box<FinalizeInput>),
     /// The scheduled pass over held places.
     Reconcile(reaper::ReconcileInput),
-    /// Step Functions' "Execution Status Change", through EventBridge.
-    Event(EventBridgeEvent<Value>),
+    /// Step Functions' "Execution Status Change", through EventBridge (boxed: large too).
+    Event(Box<EventBridgeEvent<Value>>),
 }
 
 impl<'de> Deserialize<'de> for Request {
@@ -157,11 +157,11 @@ impl<'de> Deserialize<'de> for Request {
         let value = Value::deserialize(d)?;
         let has = |key: &str| value.get(key).is_some();
         if has("state") {
-            FinalizeInput::deserialize(value).map(Request::State)
+            FinalizeInput::deserialize(value).map(|input| Request::State(Box::new(input)))
         } else if has("reconcile") {
             reaper::ReconcileInput::deserialize(value).map(Request::Reconcile)
         } else if has("detail-type") {
-            EventBridgeEvent::deserialize(value).map(Request::Event)
+            EventBridgeEvent::deserialize(value).map(|event| Request::Event(Box::new(event)))
         } else {
             return Err(D::Error::custom(
                 "expected the state machine's `{\"state\": ...}`, the schedule's \
@@ -203,9 +203,9 @@ impl<C: Callbacks + Executions> Function for Deps<C> {
     type Output = Response;
     async fn handle(&self, input: Request) -> Result<Response> {
         Ok(match input {
-            Request::State(input) => Response::Finalized(handle(input, self).await?),
+            Request::State(input) => Response::Finalized(handle(*input, self).await?),
             Request::Reconcile(input) => Response::Reaped(reaper::reconcile(input, self).await?),
-            Request::Event(event) => Response::Reaped(vec![reaper::on_event(event, self).await?]),
+            Request::Event(event) => Response::Reaped(vec![reaper::on_event(*event, self).await?]),
         })
     }
 }
