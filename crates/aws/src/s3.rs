@@ -245,35 +245,33 @@ impl SubmissionStore {
 
     /// Writes the merged results and the EvalAI files.
     pub async fn put_evalai_files(&self, files: &EvalAiObjects<'_>) -> Result<()> {
-        if let Some(merged) = files.merged {
+        // Independent objects: written at once, not one after another.
+        tokio::try_join!(
+            self.put_json(derived::MERGED, files.merged),
             self.put(
-                derived::MERGED,
-                merged.as_bytes().to_vec(),
+                derived::EVALAI_RESULTS,
+                files.results.as_bytes().to_vec(),
                 "application/json",
-            )
-            .await?;
-        }
-        self.put(
-            derived::EVALAI_RESULTS,
-            files.results.as_bytes().to_vec(),
-            "application/json",
-        )
-        .await?;
-        self.put(
-            derived::EVALAI_STDOUT,
-            files.stdout.as_bytes().to_vec(),
-            "text/plain; charset=utf-8",
-        )
-        .await?;
-        if let Some(metadata) = files.metadata {
+            ),
             self.put(
-                derived::EVALAI_METADATA,
-                metadata.as_bytes().to_vec(),
-                "application/json",
-            )
-            .await?;
-        }
+                derived::EVALAI_STDOUT,
+                files.stdout.as_bytes().to_vec(),
+                "text/plain; charset=utf-8",
+            ),
+            self.put_json(derived::EVALAI_METADATA, files.metadata),
+        )?;
         Ok(())
+    }
+
+    /// A JSON object, when there is one to write.
+    async fn put_json(&self, relative: &str, body: Option<&str>) -> Result<()> {
+        match body {
+            Some(body) => {
+                self.put(relative, body.as_bytes().to_vec(), "application/json")
+                    .await
+            }
+            None => Ok(()),
+        }
     }
 
     /// Puts one object under the submission prefix.

@@ -141,6 +141,40 @@ impl RunClients {
     }
 }
 
+/// One invocation's share of the orchestration, measured from its start: its Lambda time and
+/// the DynamoDB requests its clients sent since (`lb_domain::cost::Orchestration`). Every
+/// stage that adds its share to the run's count measures it the same way.
+#[derive(Debug)]
+pub struct Meter<'a> {
+    began: std::time::Instant,
+    requests: u64,
+    count: &'a RequestCount,
+    memory_mb: u32,
+}
+
+impl<'a> Meter<'a> {
+    /// Starts measuring an invocation of a function of `memory_mb` whose clients count their
+    /// requests in `count`.
+    pub fn start(count: &'a RequestCount, memory_mb: u32) -> Self {
+        Meter {
+            began: std::time::Instant::now(),
+            requests: count.get(),
+            count,
+            memory_mb,
+        }
+    }
+
+    /// The invocation so far, with the `transitions` it causes.
+    pub fn invocation(&self, transitions: u64) -> lb_domain::cost::Orchestration {
+        lb_domain::cost::Orchestration::invocation(
+            transitions,
+            self.memory_mb,
+            u64::try_from(self.began.elapsed().as_millis()).unwrap_or(u64::MAX),
+            self.count.get().saturating_sub(self.requests),
+        )
+    }
+}
+
 /// What a handler keeps for itself after its last EvalAI call: raising its error or writing
 /// its record.
 pub const REPORT_MARGIN: std::time::Duration = std::time::Duration::from_secs(10);

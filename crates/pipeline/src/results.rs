@@ -1,6 +1,7 @@
 //! The submission's results as the workers left them in S3: fingerprinted cheaply, merged with
 //! the Leaderboard's rules, turned into the EvalAI files and stored next to them.
 
+use futures_util::{StreamExt as _, TryStreamExt as _};
 use lb_aws::s3::{EvalAiObjects, PartialObject, SubmissionStore, MAX_PARTIAL_BYTES};
 use lb_domain::py::Num;
 use lb_domain::results::{
@@ -163,6 +164,9 @@ pub async fn collect_listed(
     })
 }
 
+/// How many workers' results files are read at once.
+const CONCURRENT_READS: usize = 8;
+
 /// The workers' files merged.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Merge {
@@ -188,7 +192,6 @@ pub async fn merge_partials(
     repetitions: u32,
 ) -> Result<Merge, FnError> {
     let mut sources = Vec::new();
-    let mut contents = Vec::new();
     let mut subsets = Vec::new();
     let mut ids = Vec::new();
     for partial in partials {
@@ -197,10 +200,17 @@ pub async fn merge_partials(
             continue;
         };
         sources.push(partial.key.clone());
-        contents.push(store.get_bounded(&partial.key, MAX_PARTIAL_BYTES).await?);
         subsets.push(*subset);
         ids.push(partial.pair_id);
     }
+    // The reads are independent: a few at a time, in order, instead of one after another.
+    // Owned keys: a future borrowing its key through the closure's argument is not `Send`
+    // for every lifetime, which the Lambda runtime's spawn needs.
+    let contents: Vec<Vec<u8>> = futures_util::stream::iter(sources.clone())
+        .map(|key| async move { store.get_bounded(&key, MAX_PARTIAL_BYTES).await })
+        .buffered(CONCURRENT_READS)
+        .try_collect()
+        .await?;
     let inputs: Vec<WorkerInput<'_>> = sources
         .iter()
         .zip(&contents)

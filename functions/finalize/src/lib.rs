@@ -18,7 +18,7 @@ use lb_aws::dynamo::{FinalRecord, QualifierTable, RecordStatus, SubmissionsTable
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER};
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
-use lb_domain::cost::{self, Orchestration, Totals};
+use lb_domain::cost::{self, Totals};
 use std::collections::HashSet;
 
 use lb_domain::audit;
@@ -275,10 +275,7 @@ async fn finish_run<C: Callbacks>(
     error: Option<String>,
 ) -> Result<FinalizeOutput> {
     let id = submission.submission_id;
-    let began = (
-        std::time::Instant::now(),
-        deps.clients.dynamo_requests.get(),
-    );
+    let meter = clients::Meter::start(&deps.clients.dynamo_requests, deps.clients.memory_mb);
     let target = deps.clients.settings.target(submission.phase_id)?;
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
     let submissions = &target.deployment.submissions_table;
@@ -292,11 +289,17 @@ async fn finish_run<C: Callbacks>(
         return Ok(ended(status, reason));
     }
     stop_jobs(deps, &target, submission).await?;
-    let markers = store.markers().await?;
-    let snapshot = match &run {
-        Some(run) => Some(collect(&store, target.leaderboard, &run.pairs, run.repetitions).await),
-        None => None,
+    // The markers and the results are independent reads: at once.
+    let results = async {
+        match &run {
+            Some(run) => {
+                Some(collect(&store, target.leaderboard, &run.pairs, run.repetitions).await)
+            }
+            None => None,
+        }
     };
+    let (markers, snapshot) = tokio::join!(store.markers(), results);
+    let markers = markers?;
     let cancelled = run
         .as_ref()
         .is_some_and(|r| r.monitor.state == RunPhase::Cancelled)
@@ -308,12 +311,16 @@ async fn finish_run<C: Callbacks>(
     };
     let (outcome, snapshot) = decide(cancelled, error.as_deref(), run.as_ref(), snapshot);
     let summary = snapshot.as_ref().map_or("", |s| s.files.stdout.as_str());
-    let verdict = qualify(deps, &target, submission, &outcome, snapshot.as_ref()).await?;
-    let stdout = finalize::stdout(outcome.pairs_note.as_deref(), verdict.as_deref(), summary);
-    let tail = match outcome.status {
-        SubmissionStatus::Failed => agent_log_tail(&store, &markers).await,
-        _ => None,
+    let tail = async {
+        match outcome.status {
+            SubmissionStatus::Failed => agent_log_tail(&store, &markers).await,
+            _ => None,
+        }
     };
+    let qualified = qualify(deps, &target, submission, &outcome, snapshot.as_ref());
+    let (verdict, tail) = tokio::join!(qualified, tail);
+    let verdict = verdict?;
+    let stdout = finalize::stdout(outcome.pairs_note.as_deref(), verdict.as_deref(), summary);
     let stderr = finalize::stderr(&outcome, tail.as_ref().map(|(p, t)| (*p, t.as_str())));
     let at = SubmissionRef {
         challenge: submission.challenge_id,
@@ -324,7 +331,7 @@ async fn finish_run<C: Callbacks>(
     let outcome = finalize::settle(outcome, posted);
     let mut record = final_record(&target, &store, &outcome, snapshot.as_ref(), error.clone());
     record.recordings = recordings(&store, &outcome, snapshot.as_ref()).await;
-    record.usage = run.as_ref().map(|run| usage(deps, run, began));
+    record.usage = run.as_ref().map(|run| usage(deps, run, &meter));
     if !table
         .finish(submission.team_id, id, &submission.execution, &record)
         .await?
@@ -516,17 +523,11 @@ fn final_record(
 
 /// What the run's GPUs came to: the Monitor's count, with the pods still running at its last
 /// round charged until now (their Jobs were just deleted); and the orchestration's, this
-/// Finalize (since `began`, with the DynamoDB requests counted then) and the states after it
-/// included.
-fn usage<C: Callbacks>(deps: &Deps<C>, run: &RunState, began: (std::time::Instant, u64)) -> Totals {
+/// Finalize so far and the states after it included.
+fn usage<C: Callbacks>(deps: &Deps<C>, run: &RunState, meter: &clients::Meter<'_>) -> Totals {
     let mut ledger = run.monitor.usage.clone();
     ledger.close_all(clients::now_epoch_seconds());
-    let this = Orchestration::invocation(
-        cost::CLOSING_TRANSITIONS,
-        deps.clients.memory_mb,
-        u64::try_from(began.0.elapsed().as_millis()).unwrap_or(u64::MAX),
-        deps.clients.dynamo_requests.get().saturating_sub(began.1),
-    );
+    let this = meter.invocation(cost::CLOSING_TRANSITIONS);
     Totals {
         orchestration: Some(run.monitor.orchestration + this),
         ..ledger.summary(&deps.clients.settings.prices)

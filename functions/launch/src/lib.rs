@@ -123,7 +123,7 @@ impl Function for Deps {
 /// places, starts the run state of a submission waiting for its turn; the run's orchestration
 /// counted so far, this Launch's share added (and Intake's transitions the first time).
 pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
-    let (began, requests) = (std::time::Instant::now(), deps.dynamo_requests.get());
+    let meter = clients::Meter::start(&deps.dynamo_requests, deps.memory_mb);
     let before = match input.orchestration {
         Some(counted) => counted,
         // Intake's invocation and the states before Launch.
@@ -134,12 +134,7 @@ pub async fn handle(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         },
     };
     let mut run = launch(input, deps).await?;
-    let this = Orchestration::invocation(
-        cost::task_transitions(0, run.monitor.after()),
-        deps.memory_mb,
-        u64::try_from(began.elapsed().as_millis()).unwrap_or(u64::MAX),
-        deps.dynamo_requests.get().saturating_sub(requests),
-    );
+    let this = meter.invocation(cost::task_transitions(0, run.monitor.after()));
     run.monitor.orchestration = before + this;
     Ok(run)
 }

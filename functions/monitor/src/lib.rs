@@ -109,10 +109,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         execution,
         retries,
     } = input;
-    let (began, requests) = (
-        std::time::Instant::now(),
-        deps.clients.dynamo_requests.get(),
-    );
+    let meter = clients::Meter::start(&deps.clients.dynamo_requests, deps.clients.memory_mb);
     let target = deps.clients.settings.target(submission.phase_id)?;
     let deployment = target.deployment;
     let mut round = Round::begin(
@@ -150,12 +147,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         state => info!(submission_id = id, ?state, reason = ?monitor.reason, "the run ended"),
     }
     // This round's share of the orchestration, up to the next task.
-    let round = cost::Orchestration::invocation(
-        cost::task_transitions(retries, run.monitor.after()),
-        deps.clients.memory_mb,
-        u64::try_from(began.elapsed().as_millis()).unwrap_or(u64::MAX),
-        deps.clients.dynamo_requests.get().saturating_sub(requests),
-    );
+    let round = meter.invocation(cost::task_transitions(retries, run.monitor.after()));
     run.monitor.orchestration = run.monitor.orchestration + round;
     Ok(run)
 }

@@ -362,7 +362,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
 
     // The handlers, in-process, each with its clients built once.
     let config = local_stack::stack::function_config();
-    let clusters = || Clusters::Kubeconfig(kubeconfig.clone());
+    let clusters = || Clusters::kubeconfig(kubeconfig.clone());
     let intake = Arc::new(intake::Deps::load(&stack.sdk, &config).await?);
     let mut launch = launch::Deps::load(&stack.sdk, &config, clusters()).await?;
     launch.timers = Some(lb_jobs::Timers {

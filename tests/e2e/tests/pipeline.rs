@@ -50,7 +50,7 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
         .start_workloads(&settings, &bins, &behaviour, unpullable)
         .unwrap();
     let config = local_stack::stack::function_config();
-    let clusters = || Clusters::Kubeconfig(stack.kubeconfig.clone().unwrap());
+    let clusters = || Clusters::kubeconfig(stack.kubeconfig.clone().unwrap());
     let intake = intake::Deps::load(&stack.sdk, &config).await.unwrap();
     let mut launch = launch::Deps::load(&stack.sdk, &config, clusters())
         .await
@@ -607,7 +607,7 @@ async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() 
     let down = kubeconfig.with_file_name("kubeconfig-down");
     std::fs::write(&down, text.replace(&server, "http://127.0.0.1:9")).unwrap();
     let config = local_stack::stack::function_config();
-    let unreachable = monitor::Deps::load(&h.stack.sdk, &config, Clusters::Kubeconfig(down))
+    let unreachable = monitor::Deps::load(&h.stack.sdk, &config, Clusters::kubeconfig(down))
         .await
         .unwrap();
     let mut run = run;
