@@ -164,6 +164,18 @@ pub async fn collect_listed(
     })
 }
 
+/// The workers' files, a few at a time, in order: the reads are independent.
+async fn read_all(store: &SubmissionStore, keys: &[String]) -> Result<Vec<Vec<u8>>, FnError> {
+    // Owned keys: a future borrowing its key through the closure's argument is not `Send`
+    // for every lifetime, which the Lambda runtime's spawn needs.
+    let contents: Vec<Vec<u8>> = futures_util::stream::iter(keys.to_vec())
+        .map(|key| async move { store.get_bounded(&key, MAX_PARTIAL_BYTES).await })
+        .buffered(CONCURRENT_READS)
+        .try_collect()
+        .await?;
+    Ok(contents)
+}
+
 /// How many workers' results files are read at once.
 const CONCURRENT_READS: usize = 8;
 
@@ -203,14 +215,7 @@ pub async fn merge_partials(
         subsets.push(*subset);
         ids.push(partial.pair_id);
     }
-    // The reads are independent: a few at a time, in order, instead of one after another.
-    // Owned keys: a future borrowing its key through the closure's argument is not `Send`
-    // for every lifetime, which the Lambda runtime's spawn needs.
-    let contents: Vec<Vec<u8>> = futures_util::stream::iter(sources.clone())
-        .map(|key| async move { store.get_bounded(&key, MAX_PARTIAL_BYTES).await })
-        .buffered(CONCURRENT_READS)
-        .try_collect()
-        .await?;
+    let contents = read_all(store, &sources).await?;
     let inputs: Vec<WorkerInput<'_>> = sources
         .iter()
         .zip(&contents)

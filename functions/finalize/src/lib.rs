@@ -289,16 +289,7 @@ async fn finish_run<C: Callbacks>(
         return Ok(ended(status, reason));
     }
     stop_jobs(deps, &target, submission).await?;
-    // The markers and the results are independent reads: at once.
-    let results = async {
-        match &run {
-            Some(run) => {
-                Some(collect(&store, target.leaderboard, &run.pairs, run.repetitions).await)
-            }
-            None => None,
-        }
-    };
-    let (markers, snapshot) = tokio::join!(store.markers(), results);
+    let (markers, snapshot) = read_left(&store, &target, run.as_ref()).await;
     let markers = markers?;
     let cancelled = run
         .as_ref()
@@ -353,6 +344,25 @@ async fn finish_run<C: Callbacks>(
     }
     leave_queue(deps, submission).await?;
     Ok(ended(record.status.as_str().into(), outcome.reason))
+}
+
+/// What the run left, read at once (the reads are independent): its markers, and its results
+/// when it had a run.
+async fn read_left(
+    store: &SubmissionStore,
+    target: &Target<'_>,
+    run: Option<&RunState>,
+) -> (Result<Vec<String>>, Option<Result<Snapshot>>) {
+    let results = async {
+        match run {
+            Some(run) => {
+                Some(collect(store, target.leaderboard, &run.pairs, run.repetitions).await)
+            }
+            None => None,
+        }
+    };
+    let (markers, snapshot) = tokio::join!(store.markers(), results);
+    (markers.map_err(Into::into), snapshot)
 }
 
 /// What stands when this execution must not end the run: another holds the claim, or an
