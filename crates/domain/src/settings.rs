@@ -35,16 +35,23 @@ pub struct EvalAiSettings {
     /// Base URL, e.g. `https://eval.ai`.
     pub api_server: String,
     /// `Bearer` (JWT from the profile page, the default) or `Token` (legacy key).
-    #[serde(default = "default_scheme")]
-    pub auth_scheme: String,
+    #[serde(default)]
+    pub auth_scheme: AuthScheme,
     /// The host token's limit (EvalAI's `UserRateThrottle`: 60 a minute, reference section 1),
     /// shared by every function of every submission in flight (`lb_evalai::budget`).
     #[serde(default = "default_requests_per_minute")]
     pub requests_per_minute: u32,
 }
 
-fn default_scheme() -> String {
-    "Bearer".into()
+/// How the host token goes in `Authorization` (EvalAI accepts both, each for its own kind);
+/// any other word is refused when the settings are read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+pub enum AuthScheme {
+    /// `Bearer <jwt>`: the profile page's refresh token.
+    #[default]
+    Bearer,
+    /// `Token <key>`: the legacy DRF token.
+    Token,
 }
 
 fn default_requests_per_minute() -> u32 {
@@ -333,9 +340,6 @@ impl EvalAiSettings {
         if !(api.starts_with("https://") || api.starts_with("http://")) {
             return invalid("api_server", "must be an http(s) URL");
         }
-        if !matches!(self.auth_scheme.as_str(), "Bearer" | "Token") {
-            return invalid("auth_scheme", "must be `Bearer` or `Token`");
-        }
         if !(14..=6000).contains(&self.requests_per_minute) {
             return invalid(
                 "requests_per_minute",
@@ -614,6 +618,32 @@ mod tests {
         assert_eq!(target.required_qualifier(), Some("SENSORS_QUALIFIER"));
         assert_eq!(settings.target(1235).unwrap().required_qualifier(), None);
         assert_eq!(settings.target(9).unwrap_err().name(), "UnknownPhase");
+    }
+
+    #[test]
+    fn the_auth_scheme_is_bearer_or_token_and_nothing_else_falls_back() {
+        let settings = Settings::from_json(EXAMPLE).unwrap();
+        assert_eq!(settings.evalai.auth_scheme, AuthScheme::Bearer);
+        let token = EXAMPLE.replacen(
+            r#""api_server""#,
+            r#""auth_scheme": "Token", "api_server""#,
+            1,
+        );
+        assert_eq!(
+            Settings::from_json(&token).unwrap().evalai.auth_scheme,
+            AuthScheme::Token
+        );
+        let typo = EXAMPLE.replacen(
+            r#""api_server""#,
+            r#""auth_scheme": "token", "api_server""#,
+            1,
+        );
+        let err = Settings::from_json(&typo).unwrap_err().to_string();
+        assert!(err.contains("evalai.auth_scheme"), "{err}");
+        assert!(
+            err.contains("`Bearer`, `Token`") || err.contains("Bearer"),
+            "{err}"
+        );
     }
 
     #[test]

@@ -46,15 +46,8 @@ impl std::fmt::Debug for HostToken {
     }
 }
 
-/// How the token goes in `Authorization` (EvalAI accepts both, each for its own kind).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum AuthScheme {
-    /// `Bearer <jwt>`: the profile page's refresh token.
-    #[default]
-    Bearer,
-    /// `Token <key>`: the legacy DRF token.
-    Token,
-}
+/// How the token goes in `Authorization`, as the settings name it.
+pub use lb_domain::settings::AuthScheme;
 
 /// Result alias of this crate.
 pub type Result<T, E = EvalAiError> = std::result::Result<T, E>;

@@ -5,7 +5,7 @@ use lb_aws::admission::AdmissionTable;
 use lb_aws::budget::BudgetTable;
 use lb_aws::RequestCount;
 use lb_domain::settings::Settings;
-use lb_evalai::{AuthScheme, BudgetPolicy, EvalAiClient, RetryPolicy};
+use lb_evalai::{BudgetPolicy, EvalAiClient, RetryPolicy};
 
 use crate::cluster::Clusters;
 use crate::config::Shared;
@@ -37,14 +37,10 @@ pub async fn evalai_counted(
 ) -> Result<EvalAiClient, FnError> {
     let secrets = aws_sdk_secretsmanager::Client::new(sdk);
     let token = lb_aws::secrets::load_token(&secrets, &config.token_secret).await?;
-    let scheme = match settings.evalai.auth_scheme.as_str() {
-        "Token" => AuthScheme::Token,
-        _ => AuthScheme::Bearer,
-    };
     let client = EvalAiClient::new(
         &settings.evalai.api_server,
         &token,
-        scheme,
+        settings.evalai.auth_scheme,
         RetryPolicy::default(),
     )?;
     let crate::config::Shared::Table(table) = &config.budget else {
