@@ -128,7 +128,11 @@ pub fn rescore_refusal(
 /// The error a Catch put at `$.error`, in words: Lambda's `Cause` is a JSON text holding
 /// `errorMessage`.
 pub fn caught_error(state: &Value) -> Option<String> {
-    let error = state.get("error")?;
+    state.get("error").map(caught)
+}
+
+/// A caught error (`{"Error", "Cause"}`, as a Catch writes it) in words: `Name: message`.
+pub fn caught(error: &Value) -> String {
     let name = error
         .get("Error")
         .and_then(Value::as_str)
@@ -145,11 +149,11 @@ pub fn caught_error(state: &Value) -> Option<String> {
                 .map(str::to_owned)
         })
         .unwrap_or_else(|| cause.to_string());
-    Some(if message.is_empty() {
+    if message.is_empty() {
         name.to_string()
     } else {
         format!("{name}: {message}")
-    })
+    }
 }
 
 /// Which routes a failed run evaluated, when some pairs finished and some did not (a pair out

@@ -92,8 +92,7 @@ impl ExecutionState {
 
     /// The caught error in words (`Name: message`), if a Catch put one there.
     pub fn caught_error(&self) -> Option<String> {
-        let error = self.error.as_ref()?;
-        lb_domain::finalize::caught_error(&serde_json::json!({ "error": error }))
+        self.error.as_ref().map(lb_domain::finalize::caught)
     }
 }
 
