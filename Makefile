@@ -40,9 +40,9 @@ kubectl: ## Install kubectl (Debian's kubernetes-client) when it is missing
 # lays it out); a clone alone skips them by name, and says so.
 SHARED_SKIP := $(if $(wildcard ../shared/fixtures),,--skip _when_it_is_beside_the_repository)
 
-test: venv lint-venv kubectl ## The whole suite, emulator tests included (README's and CI's command)
+test: venv lint-venv kubectl ## The whole suite, emulator tests included, two test binaries at a time (README's and CI's command)
 	@$(if $(SHARED_SKIP),echo "no shared set beside the repository: the kept copies are not compared",:)
-	$(CARGO) test --workspace --all-targets -- --include-ignored $(SHARED_SKIP)
+	CARGO=$(CARGO) $(PYTHON) tests/suite.py -- --include-ignored $(SHARED_SKIP)
 	$(CARGO) test --workspace --doc
 
 test-unit: ## Tests that need nothing but cargo (what plain `cargo test` runs)
@@ -77,7 +77,7 @@ sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
 # Local runs in real time (time scale 1), 40 routes of 5 s on 4 pairs.
 LATENCY_RUN := local run --time-scale 1 --routes 40 --workers 4 --route-seconds 5 --latency --timeout 900
 bench-latency: venv kubectl ## Record -> partial update and last write -> final status, with and without S3's events (targets: p50 < 15 s, p99 < 60 s, final < 60 s)
-	$(CARGO) build --quiet -p cli -p local-cli -p sidecar -p fake-workloads --bins
+	$(CARGO) build --quiet --workspace --bins
 	@for run in "events, partial_update_seconds 20 (the default)|" \
 	            "events, partial_update_seconds 30|--partial-update-seconds 30" \
 	            "no events: safety net, holds and sweep only|--no-wake"; do \
@@ -161,7 +161,7 @@ cluster-manifests: $(DEPLOY_TOOLS) ## Apply infra/k8s/ to LEADERBOARD's cluster 
 			infra/k8s/$$f.yaml | kubectl apply -f -; done
 
 local: venv kubectl ## One whole submission on this machine (ARGS="--scenario crash" etc.)
-	$(CARGO) build --quiet -p cli -p local-cli -p sidecar -p fake-workloads --bins
+	$(CARGO) build --quiet --workspace --bins
 	$(TARGET_DIR)/debug/lbctl local run $(ARGS)
 
 # The harness only starts processes and servers: its own profile does not matter, so it is

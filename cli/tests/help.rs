@@ -1,7 +1,7 @@
 //! What an operator sees without any AWS: help texts, usage errors and their exit codes, and
 //! `invoke`'s errors that happen before any call.
 
-mod common;
+use crate::common;
 
 use common::{lbctl, show, stderr, stdout};
 

@@ -1,7 +1,7 @@
 //! `lbctl invoke intake` against moto and the fake EvalAI: the handler runs in-process as the
 //! Lambda would, its result or its Lambda error object on stdout.
 
-mod common;
+use crate::common;
 
 use aws_sdk_dynamodb::types::AttributeValue;
 use common::{lbctl, show};

@@ -1,6 +1,6 @@
 //! `lbctl logs` against moto: a submission's logs as logcopy left them in S3.
 
-mod common;
+use crate::common;
 
 use std::time::{Duration, Instant};
 

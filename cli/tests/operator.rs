@@ -1,7 +1,7 @@
 //! `status`, `list`, `cancel`, `submit` and `resume` against moto (DynamoDB, S3, Secrets
 //! Manager, Step Functions) and the fake EvalAI, through the `lbctl` binary.
 
-mod common;
+use crate::common;
 
 use std::collections::HashMap;
 

@@ -1,7 +1,7 @@
 //! `lbctl rescore` against moto and the fake EvalAI: the workers' files of a fixture case in
 //! S3 give the fixture's EvalAI files; `--post` sends them, a cancelled submission is refused.
 
-mod common;
+use crate::common;
 
 use aws_sdk_dynamodb::types::AttributeValue;
 use common::{lbctl, show, stderr, stdout};

@@ -1,7 +1,7 @@
 //! `lbctl watch` against moto, the fake EvalAI and the local Kubernetes API: a submission
 //! driven through its stages while it is watched.
 
-mod common;
+use crate::common;
 
 use std::time::{Duration, Instant};
 

@@ -1,6 +1,6 @@
 //! `lb-sidecar init` against moto: code, binary, logs tree, stale state, downloads.
 
-mod support;
+use crate::support;
 
 use std::os::unix::fs::PermissionsExt;
 use std::time::Duration;

@@ -1,7 +1,7 @@
 //! One whole Job on the local Kubernetes API: init, a simulator-agent pair and logcopy,
 //! with the contract's volumes, subPaths and commands, S3 served by moto.
 
-mod support;
+use crate::support;
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};

@@ -1,6 +1,6 @@
 //! `lb-sidecar logcopy` (and whole Jobs around it) against moto.
 
-mod support;
+use crate::support;
 
 use std::path::Path;
 use std::time::{Duration, Instant};

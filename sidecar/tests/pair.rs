@@ -1,7 +1,7 @@
 //! `lb-sidecar simulator` and `agent` as the kubelet runs them: whole processes around the
 //! fake CARLA and the fake evaluator, with temp dirs standing in for the Job's volumes.
 
-mod support;
+use crate::support;
 
 use std::time::{Duration, Instant};
 

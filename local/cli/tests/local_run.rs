@@ -5,17 +5,7 @@ use std::path::{Path, PathBuf};
 
 use serde_json::{json, Value};
 use std::process::Command;
-use std::sync::{Mutex, OnceLock};
-use std::time::Instant;
-
-/// Local Jobs share the host's network (CARLA ports 2000+): one local run at a time.
-static ONE_RUN_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
-    ONE_RUN_AT_A_TIME
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
-}
+use std::sync::OnceLock;
 
 /// `lbctl`, built beside `lbctl-local` (and the workloads) as `make local` builds them.
 fn lbctl() -> PathBuf {
@@ -54,195 +44,205 @@ fn text<'a>(report: &'a Value, key: &str) -> &'a str {
     report[key].as_str().unwrap_or_default()
 }
 
+// Each local run takes its own ports (moto, the fake EvalAI, the local Kubernetes API, and
+// CARLA's, which the simulator's sidecar moves past any taken), and the crash scenario kills
+// only its own CARLA: the runs of these tests go side by side.
+
 #[test]
 #[ignore = "needs moto"]
-fn every_scenario_ends_as_expected() {
-    let _one = one_at_a_time();
-    // lbctl finds the sidecar and the fakes next to itself.
-    // One at a time: local Jobs share the host's CARLA ports.
-    let mut happy_scores = Value::Null;
-    for (scenario, expected) in [
-        ("happy", "FINISHED"),
-        ("crash", "FINISHED"),
-        ("hang", "FINISHED"),
-        ("cancel", "CANCELLED"),
-        ("unpullable", "FAILED"),
-        ("crash-loop", "FAILED"),
-        ("no-node", "FAILED"),
-        ("stop", "FAILED"),
-        ("forge", "FINISHED"),
-        ("plant-gpu", "FINISHED"),
-        ("spot", "FINISHED"),
-    ] {
-        let started = Instant::now();
-        let (report, stdout) = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
-        assert_eq!(
-            text(&report, "evalai_status"),
-            expected.to_lowercase(),
-            "{scenario}: {report}"
-        );
-        assert_eq!(report["ok"], true, "{scenario}: {report}");
-        let (stderr, participant_stdout) = (
-            text(&report, "evalai_stderr"),
-            text(&report, "evalai_stdout"),
-        );
-        // A failure tells the participant why, and shows their agent's own last words.
-        match scenario {
-            "unpullable" => assert!(stderr.contains("never-pushed"), "{report}"),
-            "crash-loop" => {
-                assert!(
-                    stderr.contains("The last lines of agent 1's output:"),
-                    "{report}"
-                );
-                assert!(
-                    stderr.contains("Traceback (most recent call last)"),
-                    "{report}"
-                );
-                // Pair 1 crash-loops in a Job of its own: its retries run out, never its
-                // neighbours'. Their routes are complete, and both files say which count.
-                let note = "routes 0-4 (pair 1) were not evaluated; routes 5-9, 10-14, 15-19 (pairs 2, 3, 4) are complete";
-                assert!(stderr.contains(note), "{report}");
-                assert!(participant_stdout.contains(note), "{report}");
-                // Pairs 2-4's 15 routes, and whatever pair 1 got through before each crash.
-                let merged = report["merged"]["records"].as_u64().unwrap_or_default();
-                assert!((15..20).contains(&merged), "{report}");
-                assert!(
-                    stderr.contains("BackoffLimitExceeded")
-                        || stdout.contains("BackoffLimitExceeded"),
-                    "{report}\n{stdout}"
-                );
-            }
-            "no-node" => {
-                // The autoscaler's word, with what to fix, before any time was used.
-                assert!(
-                    stderr.contains("offers the nodes this leaderboard runs on (`leaderboard.carla.org/gpu-model=nvidia-a10g`)")
-                        && stderr.contains("please contact the organizers"),
-                    "{report}"
-                );
-            }
-            "stop" => {
-                // Stopped mid-run, the execution never reached Finalize: the reaper did its
-                // work on the status-change event, and nothing of the run is left.
-                assert_eq!(text(&report, "execution"), "ABORTED", "{report}");
-                assert!(
-                    stderr.contains("stopped by an operator before it finished"),
-                    "{report}"
-                );
-                assert_eq!(report["reaped"][0][0]["outcome"], "FAILED", "{report}");
-                let left = &report["left_behind"];
-                assert_eq!(left["jobs"], 0, "{report}");
-                assert_eq!(left["places_held"], 0, "{report}");
-                assert_eq!(left["record_status"], "FAILED", "{report}");
-            }
-            "happy" => {
-                happy_scores = report["scores"].clone();
-                // Every route's recording is in S3, and the record says so.
-                assert_eq!(
-                    report["left_behind"]["recordings"],
-                    json!([20, 20]),
-                    "{report}"
-                );
-                // Four pairs' GPUs for the run's seconds, on-demand, none run again, priced.
-                let usage = &report["left_behind"]["usage"];
-                assert!(usage["gpu_seconds"].as_u64().unwrap() >= 4, "{report}");
-                assert_eq!(usage["spot"], 0, "{report}");
-                assert_eq!(usage["run_again"], 0, "{report}");
-                assert_eq!(usage["lost_to_reclaims"], 0, "{report}");
-                assert!(usage["cost_usd"].as_f64().is_some(), "{report}");
-                // Every state the executions entered was counted by the stage that caused it.
-                assert_eq!(
-                    usage["state_transitions"], report["state_transitions"],
-                    "{report}"
-                );
-                assert!(
-                    usage["orchestration_usd"].as_f64().unwrap() > 0.0,
-                    "{report}"
-                );
-            }
-            "forge" => {
-                // Pair 2's results as pair 2 wrote them: the same scores as the happy run,
-                // although the other pairs' pods wrote its file and done marker last.
-                assert_eq!(report["merged"]["records"], 20, "{report}");
-                assert_eq!(report["scores"], happy_scores, "{report}");
-            }
-            "plant-gpu" => {
-                // Every pair crashed once after planting another GPU; at each attempt (each
-                // pod, which may be given another GPU) the simulator rendered on a GPU one of its
-                // own pair's agents was given.
-                let gpus = report["simulator_gpus"].as_object().unwrap();
-                assert_eq!(gpus.len(), 4, "{report}");
-                for (pair, attempts) in gpus {
-                    let attempts = attempts.as_array().unwrap();
-                    assert!(attempts.len() >= 2, "pair {pair}: {report}");
-                    let given = report["agent_gpus"][pair.as_str()].as_array().unwrap();
-                    assert!(!given.is_empty(), "pair {pair}: {report}");
-                    assert!(
-                        attempts.iter().all(|gpu| given.contains(gpu)),
-                        "pair {pair}: {report}"
-                    );
-                }
-            }
-            "spot" => {
-                // Every pod evicted mid-route was replaced without using a retry; each pair's
-                // interrupted route ran again once and no route was lost.
-                let reclaim = &report["reclaim"];
-                let evicted = reclaim["evicted"].as_array().unwrap();
-                assert!(!evicted.is_empty(), "{report}");
-                for pod in evicted {
-                    let pod = pod.as_str().unwrap();
-                    assert_eq!(
-                        reclaim["disrupted"][pod], "EvictionByEvictionAPI",
-                        "{report}"
-                    );
-                }
-                assert_eq!(reclaim["retries_used"], 0, "{report}");
-                let runs = reclaim["route_runs"].as_object().unwrap();
-                assert_eq!(runs.len(), 20, "{report}");
-                assert!(runs.values().all(|n| n == 1 || n == 2), "{report}");
-                let again = reclaim["routes_run_again"].as_u64().unwrap();
-                assert!((1..=evicted.len() as u64).contains(&again), "{report}");
-                assert_eq!(report["merged"]["records"], 20, "{report}");
-                assert_eq!(report["scores"], happy_scores, "{report}");
-                // All of it on the Spot node; what was run again (the seconds after each
-                // evicted pod's last results, under a second each with these short routes)
-                // is part of it.
-                let usage = &report["left_behind"]["usage"];
-                let held = usage["gpu_seconds"].as_u64().unwrap();
-                assert!(held > 0, "{report}");
-                assert_eq!(usage["spot"].as_u64().unwrap(), held, "{report}");
-                let run_again = usage["run_again"].as_u64().unwrap();
-                assert!(run_again < held, "{report}");
-                // The evaluation's time lost to the reclaim (not the participant's) runs from
-                // a pair's last results to its next pod's start: it is there whenever the
-                // Monitor saw a route's seconds run again.
-                let lost = usage["lost_to_reclaims"].as_u64().unwrap();
-                assert!(run_again == 0 || lost > 0, "{report}");
-            }
-            _ => {}
-        }
-        // Every state the executions entered was counted by the stage that caused it, however
-        // the run went (no task was retried in these).
-        if ["happy", "spot", "cancel", "crash-loop"].contains(&scenario) {
-            assert_eq!(
-                report["left_behind"]["usage"]["state_transitions"], report["state_transitions"],
-                "{scenario}: {report}"
-            );
-        }
-        if !["crash-loop", "unpullable", "no-node", "stop"].contains(&scenario) {
-            assert!(report["evalai_stderr"].is_null(), "{scenario}: {report}");
-        }
-        assert!(
-            started.elapsed().as_secs() < 60,
-            "{scenario} took {:?}",
-            started.elapsed()
-        );
+fn the_happy_path_and_the_forged_and_reclaimed_runs_finish_with_the_same_scores() {
+    let happy = scenario("happy", "FINISHED", &Value::Null);
+    for (name, expected) in [("forge", "FINISHED"), ("spot", "FINISHED")] {
+        scenario(name, expected, &happy["scores"]);
     }
 }
 
 #[test]
 #[ignore = "needs moto"]
+fn a_crash_a_hang_and_a_planted_gpu_finish() {
+    for name in ["crash", "hang", "plant-gpu"] {
+        scenario(name, "FINISHED", &Value::Null);
+    }
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn a_cancel_ends_cancelled_and_a_stopped_execution_is_reaped() {
+    scenario("cancel", "CANCELLED", &Value::Null);
+    scenario("stop", "FAILED", &Value::Null);
+}
+
+#[test]
+#[ignore = "needs moto"]
+fn an_unpullable_image_a_crash_loop_and_no_node_fail_with_their_reasons() {
+    for name in ["unpullable", "crash-loop", "no-node"] {
+        scenario(name, "FAILED", &Value::Null);
+    }
+}
+
+/// `lbctl local run --scenario <scenario>`, which must end `expected` with what the scenario
+/// promises (`happy_scores`: the happy run's, for the runs that must score alike); its report.
+fn scenario(scenario: &str, expected: &str, happy_scores: &Value) -> Value {
+    let (report, stdout) = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
+    assert_eq!(
+        text(&report, "evalai_status"),
+        expected.to_lowercase(),
+        "{scenario}: {report}"
+    );
+    assert_eq!(report["ok"], true, "{scenario}: {report}");
+    let (stderr, participant_stdout) = (
+        text(&report, "evalai_stderr"),
+        text(&report, "evalai_stdout"),
+    );
+    // A failure tells the participant why, and shows their agent's own last words.
+    match scenario {
+        "unpullable" => assert!(stderr.contains("never-pushed"), "{report}"),
+        "crash-loop" => {
+            assert!(
+                stderr.contains("The last lines of agent 1's output:"),
+                "{report}"
+            );
+            assert!(
+                stderr.contains("Traceback (most recent call last)"),
+                "{report}"
+            );
+            // Pair 1 crash-loops in a Job of its own: its retries run out, never its
+            // neighbours'. Their routes are complete, and both files say which count.
+            let note = "routes 0-4 (pair 1) were not evaluated; routes 5-9, 10-14, 15-19 (pairs 2, 3, 4) are complete";
+            assert!(stderr.contains(note), "{report}");
+            assert!(participant_stdout.contains(note), "{report}");
+            // Pairs 2-4's 15 routes, and whatever pair 1 got through before each crash.
+            let merged = report["merged"]["records"].as_u64().unwrap_or_default();
+            assert!((15..20).contains(&merged), "{report}");
+            assert!(
+                stderr.contains("BackoffLimitExceeded") || stdout.contains("BackoffLimitExceeded"),
+                "{report}\n{stdout}"
+            );
+        }
+        "no-node" => {
+            // The autoscaler's word, with what to fix, before any time was used.
+            assert!(
+                stderr.contains("offers the nodes this leaderboard runs on (`leaderboard.carla.org/gpu-model=nvidia-a10g`)")
+                    && stderr.contains("please contact the organizers"),
+                "{report}"
+            );
+        }
+        "stop" => {
+            // Stopped mid-run, the execution never reached Finalize: the reaper did its
+            // work on the status-change event, and nothing of the run is left.
+            assert_eq!(text(&report, "execution"), "ABORTED", "{report}");
+            assert!(
+                stderr.contains("stopped by an operator before it finished"),
+                "{report}"
+            );
+            assert_eq!(report["reaped"][0][0]["outcome"], "FAILED", "{report}");
+            let left = &report["left_behind"];
+            assert_eq!(left["jobs"], 0, "{report}");
+            assert_eq!(left["places_held"], 0, "{report}");
+            assert_eq!(left["record_status"], "FAILED", "{report}");
+        }
+        "happy" => {
+            // Every route's recording is in S3, and the record says so.
+            assert_eq!(
+                report["left_behind"]["recordings"],
+                json!([20, 20]),
+                "{report}"
+            );
+            // Four pairs' GPUs for the run's seconds, on-demand, none run again, priced.
+            let usage = &report["left_behind"]["usage"];
+            assert!(usage["gpu_seconds"].as_u64().unwrap() >= 4, "{report}");
+            assert_eq!(usage["spot"], 0, "{report}");
+            assert_eq!(usage["run_again"], 0, "{report}");
+            assert_eq!(usage["lost_to_reclaims"], 0, "{report}");
+            assert!(usage["cost_usd"].as_f64().is_some(), "{report}");
+            // Every state the executions entered was counted by the stage that caused it.
+            assert_eq!(
+                usage["state_transitions"], report["state_transitions"],
+                "{report}"
+            );
+            assert!(
+                usage["orchestration_usd"].as_f64().unwrap() > 0.0,
+                "{report}"
+            );
+        }
+        "forge" => {
+            // Pair 2's results as pair 2 wrote them: the same scores as the happy run,
+            // although the other pairs' pods wrote its file and done marker last.
+            assert_eq!(report["merged"]["records"], 20, "{report}");
+            assert_eq!(&report["scores"], happy_scores, "{report}");
+        }
+        "plant-gpu" => {
+            // Every pair crashed once after planting another GPU; at each attempt (each
+            // pod, which may be given another GPU) the simulator rendered on a GPU one of its
+            // own pair's agents was given.
+            let gpus = report["simulator_gpus"].as_object().unwrap();
+            assert_eq!(gpus.len(), 4, "{report}");
+            for (pair, attempts) in gpus {
+                let attempts = attempts.as_array().unwrap();
+                assert!(attempts.len() >= 2, "pair {pair}: {report}");
+                let given = report["agent_gpus"][pair.as_str()].as_array().unwrap();
+                assert!(!given.is_empty(), "pair {pair}: {report}");
+                assert!(
+                    attempts.iter().all(|gpu| given.contains(gpu)),
+                    "pair {pair}: {report}"
+                );
+            }
+        }
+        "spot" => {
+            // Every pod evicted mid-route was replaced without using a retry; each pair's
+            // interrupted route ran again once and no route was lost.
+            let reclaim = &report["reclaim"];
+            let evicted = reclaim["evicted"].as_array().unwrap();
+            assert!(!evicted.is_empty(), "{report}");
+            for pod in evicted {
+                let pod = pod.as_str().unwrap();
+                assert_eq!(
+                    reclaim["disrupted"][pod], "EvictionByEvictionAPI",
+                    "{report}"
+                );
+            }
+            assert_eq!(reclaim["retries_used"], 0, "{report}");
+            let runs = reclaim["route_runs"].as_object().unwrap();
+            assert_eq!(runs.len(), 20, "{report}");
+            assert!(runs.values().all(|n| n == 1 || n == 2), "{report}");
+            let again = reclaim["routes_run_again"].as_u64().unwrap();
+            assert!((1..=evicted.len() as u64).contains(&again), "{report}");
+            assert_eq!(report["merged"]["records"], 20, "{report}");
+            assert_eq!(&report["scores"], happy_scores, "{report}");
+            // All of it on the Spot node; what was run again (the seconds after each
+            // evicted pod's last results, under a second each with these short routes)
+            // is part of it.
+            let usage = &report["left_behind"]["usage"];
+            let held = usage["gpu_seconds"].as_u64().unwrap();
+            assert!(held > 0, "{report}");
+            assert_eq!(usage["spot"].as_u64().unwrap(), held, "{report}");
+            let run_again = usage["run_again"].as_u64().unwrap();
+            assert!(run_again < held, "{report}");
+            // The evaluation's time lost to the reclaim (not the participant's) runs from
+            // a pair's last results to its next pod's start: it is there whenever the
+            // Monitor saw a route's seconds run again.
+            let lost = usage["lost_to_reclaims"].as_u64().unwrap();
+            assert!(run_again == 0 || lost > 0, "{report}");
+        }
+        _ => {}
+    }
+    // Every state the executions entered was counted by the stage that caused it, however
+    // the run went (no task was retried in these).
+    if ["happy", "spot", "cancel", "crash-loop"].contains(&scenario) {
+        assert_eq!(
+            report["left_behind"]["usage"]["state_transitions"], report["state_transitions"],
+            "{scenario}: {report}"
+        );
+    }
+    if !["crash-loop", "unpullable", "no-node", "stop"].contains(&scenario) {
+        assert!(report["evalai_stderr"].is_null(), "{scenario}: {report}");
+    }
+    report
+}
+
+#[test]
+#[ignore = "needs moto"]
 fn a_wake_flood_costs_rounds_at_the_least_interval_and_continues_under_its_budget() {
-    let _one = one_at_a_time();
     // Every agent rewrites a status file and its results file 4 times a second; a small
     // history budget makes the run continue as new executions within seconds.
     let budget = lb_domain::history::MIN_BUDGET;
@@ -310,7 +310,6 @@ fn assert_rounds_bounded(report: &Value, time_scale: f64) {
 #[test]
 #[ignore = "needs moto"]
 fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
-    let _one = one_at_a_time();
     let (report, _) = local_run(
         &[
             "--leaderboard",
@@ -346,7 +345,6 @@ fn a_leaderboard_1_run_ends_finished_with_five_records_per_route() {
 #[test]
 #[ignore = "needs moto"]
 fn a_30_minute_cluster_api_outage_mid_run_skips_rounds_and_the_run_ends_finished() {
-    let _one = one_at_a_time();
     // 30 minutes at scale 0.01: 18 s of 500s from the first Monitor round, while the Jobs
     // (5 s of routes) run on and finish.
     let (report, stdout) = local_run(
@@ -380,7 +378,6 @@ fn a_30_minute_cluster_api_outage_mid_run_skips_rounds_and_the_run_ends_finished
 #[test]
 #[ignore = "needs moto"]
 fn a_cancel_in_a_quiet_stretch_is_found_by_the_sweep_and_the_jobs_are_gone_within_two_minutes() {
-    let _one = one_at_a_time();
     // Real time (scale 1), routes long enough that no results change for minutes, the cancel
     // after the second round (whose partial update was the last): only the once-a-minute
     // sweep can notice it (the Monitor reads EvalAI's status itself every 30 minutes, and at
@@ -449,7 +446,6 @@ fn the_run_documents_its_options_and_scenarios() {
 #[test]
 #[ignore = "needs moto"]
 fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard() {
-    let _one = one_at_a_time();
     // A separately started EvalAI whose ids are nothing like the local settings': challenge 7,
     // phase 4321 (a 2.0 phase), submission 55.
     let mut fixture: serde_json::Value =
@@ -509,7 +505,6 @@ fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard()
 #[test]
 #[ignore = "needs moto"]
 fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
-    let _one = one_at_a_time();
     let (report, stdout) = local_run(
         &[
             "--submissions",

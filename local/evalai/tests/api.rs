@@ -1,6 +1,6 @@
 //! The EvalAI wire contract, rule by rule, over HTTP.
 
-mod common;
+use crate::common;
 
 use common::*;
 use fake_evalai::{FakeEvalAi, Fixture};

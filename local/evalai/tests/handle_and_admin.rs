@@ -1,6 +1,6 @@
 //! The handle, the `/_admin/` API, fault injection and fixture validation.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -58,14 +58,39 @@ fn interpreter(script: &Path) -> Option<PathBuf> {
     (python.is_absolute() && python.is_file() && !line.contains(' ')).then_some(python)
 }
 
+/// The variables that say where `moto_server` is.
+#[derive(Debug, Clone, Default)]
+pub struct Lookup {
+    /// `LB_MOTO_SERVER`: this path and no other.
+    pub override_path: Option<PathBuf>,
+    /// `PATH`.
+    pub path: Option<std::ffi::OsString>,
+}
+
+impl Lookup {
+    /// This process's `LB_MOTO_SERVER` and `PATH`.
+    pub fn from_env() -> Self {
+        Self {
+            override_path: std::env::var_os("LB_MOTO_SERVER").map(PathBuf::from),
+            path: std::env::var_os("PATH"),
+        }
+    }
+}
+
 impl MotoServer {
     /// Where `moto_server` may be, in the order looked at: `$LB_MOTO_SERVER` alone when set;
     /// else beside this program, in the `.venv` of the current directory or any parent (a
     /// checkout of the project), in the `.venv` of the checkout this was built from, then
     /// every `PATH` entry.
     pub fn candidates() -> Vec<PathBuf> {
-        if let Some(path) = std::env::var_os("LB_MOTO_SERVER") {
-            return vec![PathBuf::from(path)];
+        Self::candidates_in(&Lookup::from_env())
+    }
+
+    /// [`candidates`](Self::candidates) for the given variables (the process's own are shared
+    /// by every test of a binary, so tests pass theirs).
+    pub fn candidates_in(lookup: &Lookup) -> Vec<PathBuf> {
+        if let Some(path) = &lookup.override_path {
+            return vec![path.clone()];
         }
         let mut out = Vec::new();
         if let Some(dir) = std::env::current_exe()
@@ -78,8 +103,8 @@ impl MotoServer {
             out.extend(cwd.ancestors().map(|d| d.join(".venv/bin/moto_server")));
         }
         out.push(workspace_root().join(".venv/bin/moto_server"));
-        if let Some(path) = std::env::var_os("PATH") {
-            out.extend(std::env::split_paths(&path).map(|d| d.join("moto_server")));
+        if let Some(path) = &lookup.path {
+            out.extend(std::env::split_paths(path).map(|d| d.join("moto_server")));
         }
         out.dedup();
         out
@@ -87,7 +112,12 @@ impl MotoServer {
 
     /// The first of [`candidates`](Self::candidates) that is a file.
     pub fn executable() -> Result<PathBuf, MotoError> {
-        let candidates = Self::candidates();
+        Self::executable_in(&Lookup::from_env())
+    }
+
+    /// The first of [`candidates_in`](Self::candidates_in) that is a file.
+    pub fn executable_in(lookup: &Lookup) -> Result<PathBuf, MotoError> {
+        let candidates = Self::candidates_in(lookup);
         candidates
             .iter()
             .find(|p| p.is_file())

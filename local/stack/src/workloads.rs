@@ -87,21 +87,10 @@ impl Binaries {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
         let status = Command::new(cargo)
             .current_dir(&root)
-            // The set `make local` builds (lbctl and the rehearsal too), so one build serves
-            // both and a test can run `lbctl local` from the same folder.
-            .args([
-                "build",
-                "--quiet",
-                "-p",
-                "cli",
-                "-p",
-                "local-cli",
-                "-p",
-                "sidecar",
-                "-p",
-                "fake-workloads",
-                "--bins",
-            ])
+            // Every binary of the workspace, as `make local` and the test suite build them: one
+            // selection resolves the dependencies' features once, so no caller rebuilds them for
+            // a selection of its own, and a test can run `lbctl local` from the same folder.
+            .args(["build", "--quiet", "--workspace", "--bins"])
             .status()?;
         if !status.success() {
             return Err(std::io::Error::other(format!(

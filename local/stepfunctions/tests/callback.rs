@@ -5,7 +5,7 @@
 //! `sqs:sendMessage` handler plays SQS and hands the message to the test, which plays the
 //! worker.
 
-mod common;
+use crate::common;
 
 use std::collections::HashMap;
 use std::time::Duration;

@@ -1,6 +1,6 @@
 //! Each state type against the behaviour the Step Functions developer guide documents.
 
-mod common;
+use crate::common;
 
 use std::time::{Duration, Instant};
 

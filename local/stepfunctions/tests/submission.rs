@@ -1,7 +1,7 @@
 //! The definition we deploy, `statemachine/submission.asl.json`, run end to end with fake
 //! task handlers: the paths a submission takes and the history it leaves.
 
-mod common;
+use crate::common;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};

@@ -1,7 +1,7 @@
 //! Task states: both Lambda integrations, Retry timing, Catch, TimeoutSeconds, the context
 //! object, and the execution-level controls (cancel, deadline, limits, live events).
 
-mod common;
+use crate::common;
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;

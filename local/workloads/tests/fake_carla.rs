@@ -1,6 +1,6 @@
 //! `fake-carla` as a process: ports, signals, crashes and once-semantics.
 
-mod common;
+use crate::common;
 
 use std::io::Read as _;
 use std::net::TcpStream;

@@ -1,7 +1,7 @@
 //! `fake-evaluator` as a process against `fake-carla`: checkpoints in the official format,
 //! merges equal to the fixtures', resume, crashes, hangs and the other failure modes.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::time::Duration;

@@ -27,7 +27,9 @@ pub fn fake(name: &str) -> PathBuf {
         let target = dir.parent().unwrap();
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let status = Command::new(cargo)
-            .args(["build", "--quiet", "-p", "fake-workloads", "--bins"])
+            // The workspace's selection (as `make local` and the suite build): another would
+            // resolve the dependencies' features anew and rebuild them.
+            .args(["build", "--quiet", "--workspace", "--bins"])
             .env("CARGO_TARGET_DIR", target)
             .current_dir(env!("CARGO_MANIFEST_DIR"))
             .status()

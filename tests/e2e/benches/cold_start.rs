@@ -211,10 +211,8 @@ fn main() {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let status = Command::new(cargo)
             .current_dir(&root)
-            .args([
-                "build", "--quiet", "-p", "intake", "-p", "launch", "-p", "monitor", "-p",
-                "finalize", "-p", "wake", "-p", "sweep",
-            ])
+            // The workspace's selection, as the suite builds it (no feature set of its own).
+            .args(["build", "--quiet", "--workspace", "--bins"])
             .status()
             .unwrap();
         assert!(status.success());

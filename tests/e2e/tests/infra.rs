@@ -473,7 +473,8 @@ fn deploy_function_ships_code_only_to_the_stacks_function() {
     let exe = std::env::current_exe().unwrap();
     let debug = exe.parent().and_then(Path::parent).unwrap().to_owned();
     run(Command::new(env!("CARGO"))
-        .args(["build", "-q", "-p", "intake"])
+        // The workspace's selection, as the suite and `make local` build (no rebuild of its own).
+        .args(["build", "-q", "--workspace", "--bins"])
         .current_dir(root()));
     let binary = debug.join("intake");
     let bootstrap = format!("BOOTSTRAP={}", binary.display());

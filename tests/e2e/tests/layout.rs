@@ -446,6 +446,52 @@ fn no_shipped_function_is_longer_than_a_screen() {
     );
 }
 
+/// Each package links its integration tests once: one test target, `tests/main.rs`, whose
+/// modules are the other files of `tests/` (each test binary links the whole dependency graph,
+/// and there were 60 of them). A file `tests/main.rs` does not declare would never run.
+#[test]
+fn each_package_has_one_integration_test_binary_that_holds_every_test_file() {
+    let meta = metadata();
+    let root = root();
+    let mut wrong = Vec::new();
+    for package in meta["packages"].as_array().unwrap() {
+        let manifest = package["manifest_path"].as_str().unwrap();
+        let dir = Path::new(manifest).parent().unwrap();
+        let name = folder(manifest, &root);
+        let tests: Vec<&str> = package["targets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|t| t["kind"][0] == "test")
+            .map(|t| t["src_path"].as_str().unwrap())
+            .collect();
+        let files: Vec<String> = std::fs::read_dir(dir.join("tests"))
+            .into_iter()
+            .flatten()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|f| f.ends_with(".rs") && f != "main.rs")
+            .collect();
+        if tests.is_empty() && files.is_empty() {
+            continue;
+        }
+        let main = dir.join("tests/main.rs");
+        if tests.len() != 1 || Path::new(tests[0]) != main {
+            wrong.push(format!("{name}: test targets {tests:?}, not tests/main.rs alone (set `autotests = false` and one [[test]])"));
+            continue;
+        }
+        let declared = std::fs::read_to_string(&main).unwrap();
+        for file in files {
+            let module = format!("mod {};", file.trim_end_matches(".rs"));
+            if !declared.lines().any(|l| l.trim() == module) {
+                wrong.push(format!(
+                    "{name}: tests/{file} is not a module of tests/main.rs, so it never runs"
+                ));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
 /// A crate's public modules, from its `lib.rs`.
 fn public_modules(lib: &str) -> Vec<String> {
     lib.lines()

@@ -15,12 +15,7 @@ use serde_json::json;
 
 const PARTICIPANT_IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v1";
 
-/// Local Jobs share the host's network, so two runs would fight over CARLA's ports 2000+:
-/// the tests of this file take turns.
-static ONE_RUN_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
 struct Harness {
-    _turn: tokio::sync::MutexGuard<'static, ()>,
     stack: Stack,
     intake: intake::Deps,
     launch: launch::Deps,
@@ -40,7 +35,6 @@ fn fast_timers() -> lb_jobs::Timers {
 }
 
 async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
-    let turn = ONE_RUN_AT_A_TIME.lock().await;
     let bins = tokio::task::spawn_blocking(Binaries::build)
         .await
         .unwrap()
@@ -64,7 +58,6 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
         .unwrap();
     finalize.delete_wait = Duration::from_secs(30);
     Harness {
-        _turn: turn,
         stack,
         intake,
         launch,

@@ -1,0 +1,4 @@
+//! The integration tests of `functions/finalize`, one test binary (each file is a module: one link,
+//! not one per file).
+
+mod privilege;

@@ -1,0 +1,5 @@
+//! The integration tests of `local/kube`, one test binary (each file is a module: one link,
+//! not one per file).
+
+mod cluster;
+mod kubectl;

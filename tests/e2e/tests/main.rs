@@ -1,0 +1,7 @@
+//! The integration tests of `tests/e2e`, one test binary (each file is a module: one link,
+//! not one per file).
+
+mod infra;
+mod layout;
+mod payloads;
+mod pipeline;
