@@ -16,18 +16,6 @@ use crate::error::{CliError, Result};
 /// commands stay bounded on a table that grew beyond what a person reads anyway.
 pub const MAX_SCAN_PAGES: usize = 100;
 
-/// The statuses after which nothing runs any more.
-pub const FINAL_STATUSES: [RecordStatus; 3] = [
-    RecordStatus::Finished,
-    RecordStatus::Failed,
-    RecordStatus::Cancelled,
-];
-
-/// Whether a stored `submission_status` is one of [`FINAL_STATUSES`].
-pub fn is_final_status(status: &str) -> bool {
-    FINAL_STATUSES.iter().any(|s| s.as_str() == status)
-}
-
 /// Where the deployment's configuration is.
 #[derive(Debug, Clone, Args)]
 pub struct DeploymentArgs {
@@ -326,14 +314,20 @@ impl Record {
         self.number("team_id")
     }
 
-    /// `submission_status` as stored.
-    pub fn status(&self) -> &str {
+    /// `submission_status`, when it is one of ours (`None`: absent, or a word the deployment
+    /// never writes; [`status_word`](Self::status_word) shows it).
+    pub fn status(&self) -> Option<RecordStatus> {
+        self.status_word().parse().ok()
+    }
+
+    /// `submission_status` as stored, for display.
+    pub fn status_word(&self) -> &str {
         self.text("submission_status").unwrap_or("")
     }
 
     /// FINISHED, FAILED or CANCELLED.
     pub fn is_final(&self) -> bool {
-        is_final_status(self.status())
+        self.status().is_some_and(RecordStatus::is_final)
     }
 
     /// The record as JSON, with where it was found.
@@ -551,7 +545,7 @@ mod tests {
     fn a_malformed_record_reads_as_missing_values_not_a_panic() {
         let r = record(&[("submission_id", AttributeValue::S("seven".into()))]);
         assert_eq!(r.submission_id(), None);
-        assert_eq!(r.status(), "");
+        assert_eq!((r.status(), r.status_word()), (None, ""));
         assert!(!r.is_final());
     }
 

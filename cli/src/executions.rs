@@ -11,7 +11,7 @@ use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
 use lb_infra::pipe;
 use serde_json::{json, Map, Value};
 
-use crate::deployment::{clean, Deployment, DeploymentArgs, EvalAiTokenArgs, ScanFilter};
+use crate::deployment::{clean, Deployment, DeploymentArgs, EvalAiTokenArgs, Record, ScanFilter};
 use crate::error::{CliError, Result};
 use crate::ops::evalai_id;
 
@@ -249,44 +249,11 @@ pub async fn resume(args: Resume) -> Result<u8> {
     let id = args.submission;
     let deployment = Deployment::load(&args.deployment).await?;
     let found = deployment.records(None, ScanFilter::Submission(id)).await?;
-    let record = match found.records.as_slice() {
-        [] => {
-            return Err(CliError::NotFound(format!(
-                "submission `{id}` has no record: it never ran here, so there is nothing to \
-                 resume (`lbctl submit` starts it)"
-            )))
-        }
-        [record] => record,
-        many => {
-            let places: Vec<String> = many
-                .iter()
-                .map(|r| format!("team {:?} in `{}`", r.team_id(), r.table))
-                .collect();
-            return Err(CliError::Refused(format!(
-                "submission `{id}` has {} records ({}): resolve that by hand",
-                many.len(),
-                places.join(", ")
-            )));
-        }
-    };
-    let status = record.status();
-    let resumable =
-        matches!(status, "FAILED" | "CANCELLED") || (args.force && status == "FINISHED");
-    if !resumable {
-        let why = if RecordStatus::is_in_flight(status) {
-            format!(
-                "it is `{}`: an execution still holds it and Intake would skip a new one as a \
-                 duplicate; `lbctl cancel {id}` first and wait for Finalize",
-                clean(status)
-            )
-        } else {
-            format!(
-                "it is `{}`; only FAILED or CANCELLED submissions are resumed (FINISHED with --force)",
-                clean(status)
-            )
-        };
+    let record = only_record(&found.records, id)?;
+    if let Some(why) = resume_refusal(record.status(), args.force, id) {
         return Err(CliError::Refused(format!(
-            "submission `{id}` cannot be resumed: {why}"
+            "submission `{id}` cannot be resumed: it is `{}`{why}",
+            clean(record.status_word())
         )));
     }
     let phase = record.number("track_id").ok_or_else(|| {
@@ -312,23 +279,69 @@ pub async fn resume(args: Resume) -> Result<u8> {
     if args.force {
         outln!("note: --force: EvalAI's status is not checked");
     } else {
-        let evalai = deployment
-            .evalai(&args.token)
-            .await
-            .map_err(|source| CliError::EvalAi {
-                submission: id,
-                source: Box::new(source),
-            })?;
-        let on_evalai = evalai.submission(id).await.map_err(|e| CliError::EvalAi {
-            submission: id,
-            source: Box::new(e.into()),
-        })?;
-        if on_evalai.status != SubmissionStatus::Resuming {
-            return Err(CliError::Refused(evalai_advice(id, on_evalai.status)));
+        resuming_on_evalai(&deployment, &args.token, id).await?;
+    }
+    clear_cancel_marker(&deployment, &record.leaderboard, id).await?;
+
+    let input = pipe_input(challenge, phase, id, image);
+    let (name, arn) = start(&deployment.sdk, state_machine, id, &input).await?;
+    report(&name, &arn, &input);
+    outln!(
+        "note: Intake runs it only while EvalAI reports `resuming` (its claim takes a FAILED or \
+         CANCELLED record back only then); otherwise the execution ends skipped. EvalAI's own \
+         resume endpoint also publishes a message: if both arrive, the claim lets one run."
+    );
+    Ok(0)
+}
+
+/// The one record of submission `id`: none means nothing ran here, several need a person.
+fn only_record(records: &[Record], id: u64) -> Result<&Record> {
+    match records {
+        [] => Err(CliError::NotFound(format!(
+            "submission `{id}` has no record: it never ran here, so there is nothing to \
+             resume (`lbctl submit` starts it)"
+        ))),
+        [record] => Ok(record),
+        many => {
+            let places: Vec<String> = many
+                .iter()
+                .map(|r| format!("team {:?} in `{}`", r.team_id(), r.table))
+                .collect();
+            Err(CliError::Refused(format!(
+                "submission `{id}` has {} records ({}): resolve that by hand",
+                many.len(),
+                places.join(", ")
+            )))
         }
     }
+}
 
-    let bucket = &deployment.leaderboard(&record.leaderboard)?.bucket;
+/// Refuses unless EvalAI reports submission `id` as `resuming` (Intake would skip it).
+async fn resuming_on_evalai(
+    deployment: &Deployment,
+    token: &EvalAiTokenArgs,
+    id: u64,
+) -> Result<()> {
+    let evalai = deployment
+        .evalai(token)
+        .await
+        .map_err(|source| CliError::EvalAi {
+            submission: id,
+            source: Box::new(source),
+        })?;
+    let on_evalai = evalai.submission(id).await.map_err(|e| CliError::EvalAi {
+        submission: id,
+        source: Box::new(e.into()),
+    })?;
+    if on_evalai.status != SubmissionStatus::Resuming {
+        return Err(CliError::Refused(evalai_advice(id, on_evalai.status)));
+    }
+    Ok(())
+}
+
+/// Removes submission `id`'s cancel marker from its leaderboard's bucket, when there is one.
+async fn clear_cancel_marker(deployment: &Deployment, leaderboard: &str, id: u64) -> Result<()> {
+    let bucket = &deployment.leaderboard(leaderboard)?.bucket;
     let key = format!("{id}/{STATUS_DIR}/{CANCEL_MARKER}");
     let store = lb_aws::s3::SubmissionStore::new(deployment.s3.clone(), bucket, id);
     let markers = store.markers().await.map_err(|e| {
@@ -348,16 +361,23 @@ pub async fn resume(args: Resume) -> Result<u8> {
             .map_err(|e| CliError::sdk(format!("s3 `DeleteObject` of `s3://{bucket}/{key}`"), e))?;
         outln!("cancel marker removed: s3://{bucket}/{key}");
     }
+    Ok(())
+}
 
-    let input = pipe_input(challenge, phase, id, image);
-    let (name, arn) = start(&deployment.sdk, state_machine, id, &input).await?;
-    report(&name, &arn, &input);
-    outln!(
-        "note: Intake runs it only while EvalAI reports `resuming` (its claim takes a FAILED or \
-         CANCELLED record back only then); otherwise the execution ends skipped. EvalAI's own \
-         resume endpoint also publishes a message: if both arrive, the claim lets one run."
-    );
-    Ok(0)
+/// Why a record in `status` must not be resumed (`None`: it may): only a failed or cancelled
+/// submission is, a finished one with `--force`; one in flight is still held by an execution.
+fn resume_refusal(status: Option<RecordStatus>, force: bool, id: u64) -> Option<String> {
+    match status {
+        Some(RecordStatus::Failed | RecordStatus::Cancelled) => None,
+        Some(RecordStatus::Finished) if force => None,
+        Some(status) if status.is_in_flight() => Some(format!(
+            ": an execution still holds it and Intake would skip a new one as a duplicate; \
+             `lbctl cancel {id}` first and wait for Finalize"
+        )),
+        _ => Some(
+            "; only FAILED or CANCELLED submissions are resumed (FINISHED with --force)".into(),
+        ),
+    }
 }
 
 #[cfg(test)]

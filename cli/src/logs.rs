@@ -229,7 +229,9 @@ async fn follow_from(
             printed = print_new(&store, args, &printed).await?;
         }
         if done {
-            let status = record.map(|r| r.status().to_owned()).unwrap_or_default();
+            let status = record
+                .map(|r| r.status_word().to_owned())
+                .unwrap_or_default();
             errln!("lbctl: submission {id} ended `{status}`");
             return Ok(0);
         }

@@ -4,6 +4,7 @@
 use std::collections::HashMap;
 
 use clap::Args;
+use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER, STATUS_DIR};
 use serde_json::{json, Value};
 
@@ -49,10 +50,8 @@ pub struct List {
     pub team: Option<String>,
     /// Only this status (`SUBMITTED`, `RESUMING`, `RUNNING`, `FINISHED`, `FAILED`, `CANCELLED`;
     /// case-insensitive). Another word is a usage error, not an empty list.
-    #[arg(long, value_name = "STATUS", ignore_case = true, value_parser = [
-        "SUBMITTED", "RESUMING", "RUNNING", "FINISHED", "FAILED", "CANCELLED",
-    ])]
-    pub status: Option<String>,
+    #[arg(long, value_name = "STATUS", value_parser = record_status)]
+    pub status: Option<RecordStatus>,
     /// Most submissions shown (the newest).
     #[arg(long, default_value_t = 50, value_parser = clap::value_parser!(u64).range(1..=100_000))]
     pub limit: u64,
@@ -266,40 +265,56 @@ pub async fn status(args: Status) -> Result<u8> {
         .map(|((lb, _), place)| (lb.as_str(), *place))
         .collect();
     if args.json {
-        let out = json!({
-            "submission_id": id,
-            "queue": queue.iter().map(|(lb, p)| {
-                let mut v = p.to_json();
-                v["leaderboard"] = json!(lb);
-                v
-            }).collect::<Vec<_>>(),
-            "records": found.records.iter().map(Record::to_json).collect::<Vec<_>>(),
-            "markers": markers.iter().map(|m| json!({
-                "leaderboard": m.leaderboard,
-                "location": m.location,
-                "names": m.names,
-                "cancel_requested": m.cancel_requested(),
-                "error": m.error,
-            })).collect::<Vec<_>>(),
-            "incomplete_scans": found.truncated,
-        });
-        outln!("{}", pretty(&out));
+        outln!("{}", pretty(&status_json(id, &queue, &found, &markers)));
         return Ok(0);
     }
+    print_status(&deployment, id, &queue, &found.records, &markers);
+    Ok(0)
+}
+
+/// `lbctl status --json`.
+fn status_json(id: u64, queue: &[(&str, Place)], found: &Found, markers: &[Markers]) -> Value {
+    json!({
+        "submission_id": id,
+        "queue": queue.iter().map(|(lb, p)| {
+            let mut v = p.to_json();
+            v["leaderboard"] = json!(lb);
+            v
+        }).collect::<Vec<_>>(),
+        "records": found.records.iter().map(Record::to_json).collect::<Vec<_>>(),
+        "markers": markers.iter().map(|m| json!({
+            "leaderboard": m.leaderboard,
+            "location": m.location,
+            "names": m.names,
+            "cancel_requested": m.cancel_requested(),
+            "error": m.error,
+        })).collect::<Vec<_>>(),
+        "incomplete_scans": found.truncated,
+    })
+}
+
+/// `lbctl status` as text.
+fn print_status(
+    deployment: &Deployment,
+    id: u64,
+    queue: &[(&str, Place)],
+    records: &[Record],
+    markers: &[Markers],
+) {
     outln!("submission {id}");
-    if found.records.is_empty() {
+    if records.is_empty() {
         outln!(
             "no record in {} (never claimed, or claimed elsewhere)",
-            tables(&deployment, None)
+            tables(deployment, None)
         );
     }
-    for record in &found.records {
+    for record in records {
         print_record(record);
     }
-    for (lb, place) in &queue {
+    for (lb, place) in queue {
         outln!("queue of leaderboard {lb}: {}", place.describe());
     }
-    for m in &markers {
+    for m in markers {
         outln!("markers in {} (leaderboard {})", m.location, m.leaderboard);
         if let Some(error) = &m.error {
             outln!("  (unreadable: {error})");
@@ -315,7 +330,6 @@ pub async fn status(args: Status) -> Result<u8> {
             outln!("  {}{note}", clean(name));
         }
     }
-    Ok(0)
 }
 
 fn print_record(record: &Record) {
@@ -393,20 +407,7 @@ pub async fn list(args: List) -> Result<u8> {
     let now = time::OffsetDateTime::now_utc();
     let queue = queue_positions(&found.records);
     let places = places(&deployment, args.leaderboard.as_deref()).await?;
-    let wanted = |r: &Record| {
-        let team_ok = args.team.as_deref().is_none_or(|team| {
-            r.number("team_id")
-                .is_some_and(|id| id.to_string() == team.trim())
-                || r.text("team_name")
-                    .is_some_and(|name| name.eq_ignore_ascii_case(team.trim()))
-        });
-        let status_ok = args
-            .status
-            .as_deref()
-            .is_none_or(|s| r.status().eq_ignore_ascii_case(s.trim()));
-        team_ok && status_ok
-    };
-    let matching: Vec<&Record> = found.records.iter().filter(|r| wanted(r)).collect();
+    let matching: Vec<&Record> = found.records.iter().filter(|r| wanted(&args, r)).collect();
     let limit = usize::try_from(args.limit).unwrap_or(usize::MAX);
     let shown = &matching[..matching.len().min(limit)];
     // 1 for the next to start in its leaderboard: the admission table's count when it is
@@ -450,6 +451,34 @@ pub async fn list(args: List) -> Result<u8> {
         outln!("{}", pretty(&Value::Array(out)));
         return Ok(0);
     }
+    let row = |r: &Record| (position(r), estimate(r));
+    print_list(&args, &deployment, (&matching, shown), &row, now);
+    Ok(0)
+}
+
+/// Whether record `r` passes `lbctl list`'s `--team` and `--status`.
+fn wanted(args: &List, r: &Record) -> bool {
+    let team_ok = args.team.as_deref().is_none_or(|team| {
+        r.number("team_id")
+            .is_some_and(|id| id.to_string() == team.trim())
+            || r.text("team_name")
+                .is_some_and(|name| name.eq_ignore_ascii_case(team.trim()))
+    });
+    team_ok && args.status.is_none_or(|s| r.status() == Some(s))
+}
+
+/// A listed record's place in its queue and estimated start.
+type QueueColumns = (Option<usize>, Option<lb_domain::queue::StartEstimate>);
+
+/// `lbctl list` as text: a line per shown record (`row`: its queue position and estimated
+/// start), then what was left out and each team's GPU usage.
+fn print_list(
+    args: &List,
+    deployment: &Deployment,
+    (matching, shown): (&[&Record], &[&Record]),
+    row: &dyn Fn(&Record) -> QueueColumns,
+    now: time::OffsetDateTime,
+) {
     if shown.is_empty() {
         let what = if args.running {
             "no submission is queued or running"
@@ -463,9 +492,9 @@ pub async fn list(args: List) -> Result<u8> {
         };
         outln!(
             "{what}{filtered} ({})",
-            tables(&deployment, args.leaderboard.as_deref())
+            tables(deployment, args.leaderboard.as_deref())
         );
-        return Ok(0);
+        return;
     }
     outln!(
         "{:<10} {:<4} {:<9} {:>5} {:>9} {:>6} {:<28} {:<18} {:>7} {:>14}  {:<23} ENDED",
@@ -482,26 +511,29 @@ pub async fn list(args: List) -> Result<u8> {
         "SUBMITTED"
     );
     for record in shown {
-        let queue = (position(record), estimate(record));
-        outln!("{}", list_line(record, queue, age(record, now)));
+        outln!("{}", list_line(record, row(record), age(record, now)));
     }
     if matching.len() > shown.len() {
         outln!("... {} more (raise --limit)", matching.len() - shown.len());
     }
-    for (team, usage) in team_usage(&matching) {
+    for (team, usage) in team_usage(matching) {
         outln!("team {team}: {}", usage.describe());
     }
     if shown.iter().any(|r| unaudited(r)) {
         outln!("* some routes have no CARLA recording: the scores cannot be audited (lbctl status <submission>)");
     }
-    Ok(0)
 }
 
 /// Claimed submissions whose Jobs do not run yet, per leaderboard, oldest first: the queue.
 pub(crate) fn queue_positions(records: &[Record]) -> Vec<(&str, u64)> {
     let mut waiting: Vec<(&str, &str, u64)> = records
         .iter()
-        .filter(|r| matches!(r.status(), "SUBMITTED" | "RESUMING"))
+        .filter(|r| {
+            matches!(
+                r.status(),
+                Some(RecordStatus::Submitted | RecordStatus::Resuming)
+            )
+        })
         .filter_map(|r| {
             Some((
                 r.leaderboard.as_str(),
@@ -697,7 +729,7 @@ pub async fn cancel(args: Cancel) -> Result<u8> {
             let statuses: Vec<String> = found
                 .records
                 .iter()
-                .map(|r| format!("{} in `{}`", clean(r.status()), r.table))
+                .map(|r| format!("{} in `{}`", clean(r.status_word()), r.table))
                 .collect();
             return Err(CliError::Refused(format!(
                 "submission `{id}` is already final ({}): nothing runs to cancel (--force writes the marker anyway)",
@@ -713,7 +745,7 @@ pub async fn cancel(args: Cancel) -> Result<u8> {
             if !targets.iter().any(|(lb, _)| *lb == record.leaderboard) {
                 targets.push((
                     record.leaderboard.clone(),
-                    format!("record {}", clean(record.status())),
+                    format!("record {}", clean(record.status_word())),
                 ));
             }
         }
@@ -781,7 +813,7 @@ pub async fn release(args: Release) -> Result<u8> {
         .records
         .iter()
         .filter(|r| !r.is_final())
-        .map(|r| format!("{} in `{}`", clean(r.status()), r.table))
+        .map(|r| format!("{} in `{}`", clean(r.status_word()), r.table))
         .collect();
     if !in_flight.is_empty() && !args.force {
         return Err(CliError::Refused(format!(
@@ -817,6 +849,14 @@ pub async fn release(args: Release) -> Result<u8> {
         );
     }
     Ok(0)
+}
+
+/// `--status`, in any case: one of the record's statuses.
+fn record_status(word: &str) -> std::result::Result<RecordStatus, String> {
+    word.trim()
+        .to_ascii_uppercase()
+        .parse()
+        .map_err(|e: lb_domain::status::UnknownStatus| e.to_string())
 }
 
 #[cfg(test)]

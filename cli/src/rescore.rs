@@ -8,7 +8,7 @@ use clap::Args;
 use lb_aws::s3::SubmissionStore;
 use lb_domain::finalize::rescore_refusal;
 use lb_domain::plan::{plan, PlanInput};
-use lb_domain::results::{EvalAiFiles, RouteSubset};
+use lb_domain::results::{EvalAiFiles, Leaderboard, RouteSubset};
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::results::merge_partials;
@@ -101,34 +101,14 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
     if let Some(dir) = &args.out {
         write_files(dir, merged.map(|m| m.to_json()), &files)?;
     }
-    if args.json {
-        let accuracies: serde_json::Map<String, serde_json::Value> = files
-            .accuracies()
-            .iter()
-            .map(|(label, value)| (label.to_string(), serde_json::json!(value.as_f64())))
-            .collect();
-        let out = serde_json::json!({
-            "submission_id": id,
-            "leaderboard": leaderboard.as_str(),
-            "files": partials.len(),
-            "complete": complete,
-            "progress": [progress.0, progress.1],
-            "accuracies": accuracies,
-        });
-        outln!("{}", serde_json::to_string_pretty(&out).unwrap_or_default());
-    } else {
-        outln!(
-            "submission {id}: {} worker file(s), {}/{} records, {}",
-            partials.len(),
-            progress.0,
-            progress.1,
-            if complete { "complete" } else { "not complete" }
-        );
-        outln!("--- results.json");
-        outln!("{}", files.results_json());
-        outln!("--- stdout.txt");
-        out!("{}", files.stdout);
-    }
+    print_merge(
+        &args,
+        id,
+        leaderboard,
+        partials.len(),
+        (complete, progress),
+        &files,
+    );
     if !args.post {
         return Ok(0);
     }
@@ -139,6 +119,44 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
         )));
     }
     post(&deployment, &args, phase, &files).await
+}
+
+/// What the merge gave: as JSON, or the counts and the files EvalAI would get.
+fn print_merge(
+    args: &Rescore,
+    id: u64,
+    leaderboard: Leaderboard,
+    files_read: usize,
+    (complete, progress): (bool, (u64, u64)),
+    files: &EvalAiFiles,
+) {
+    if args.json {
+        let accuracies: serde_json::Map<String, serde_json::Value> = files
+            .accuracies()
+            .iter()
+            .map(|(label, value)| (label.to_string(), serde_json::json!(value.as_f64())))
+            .collect();
+        let out = serde_json::json!({
+            "submission_id": id,
+            "leaderboard": leaderboard.as_str(),
+            "files": files_read,
+            "complete": complete,
+            "progress": [progress.0, progress.1],
+            "accuracies": accuracies,
+        });
+        outln!("{}", serde_json::to_string_pretty(&out).unwrap_or_default());
+    } else {
+        outln!(
+            "submission {id}: {files_read} worker file(s), {}/{} records, {}",
+            progress.0,
+            progress.1,
+            if complete { "complete" } else { "not complete" }
+        );
+        outln!("--- results.json");
+        outln!("{}", files.results_json());
+        outln!("--- stdout.txt");
+        out!("{}", files.stdout);
+    }
 }
 
 async fn one_record(deployment: &Deployment, args: &Rescore) -> Result<Record> {

@@ -7,13 +7,12 @@ use std::io::{IsTerminal, Write};
 use std::time::{Duration, Instant};
 
 use clap::Args;
+use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::SubmissionStore;
 use lb_domain::results::{read_worker_file, Leaderboard, WorkerFile, MAX_FILE_BYTES};
 use lb_pipeline::cluster::Clusters;
 
-use crate::deployment::{
-    clean, is_final_status, Deployment, DeploymentArgs, EvalAiTokenArgs, ScanFilter,
-};
+use crate::deployment::{clean, Deployment, DeploymentArgs, EvalAiTokenArgs, Record, ScanFilter};
 use crate::error::{CliError, Result};
 use crate::ops::{evalai_id, queue_positions};
 
@@ -62,6 +61,9 @@ struct Screen {
     track: String,
     stage: String,
     status: String,
+    /// `status` when it is one of ours.
+    #[serde(skip)]
+    record_status: Option<RecordStatus>,
     queue_position: Option<usize>,
     queue_length: usize,
     started: String,
@@ -104,7 +106,8 @@ pub async fn watch(args: Watch) -> Result<u8> {
     let mut last: Option<Screen> = None;
     while started.elapsed() < MAX_WATCH {
         let screen = look(&deployment, &args, &evalai, &clusters).await?;
-        let ended = is_final_status(&screen.status) && is_final_on_evalai(&screen.evalai_status);
+        let ended = screen.record_status.is_some_and(RecordStatus::is_final)
+            && is_final_on_evalai(&screen.evalai_status);
         if args.json {
             outln!("{}", serde_json::to_string(&screen).unwrap_or_default());
         } else {
@@ -139,21 +142,8 @@ fn is_final_on_evalai(status: &str) -> bool {
     )
 }
 
-async fn look(
-    deployment: &Deployment,
-    args: &Watch,
-    evalai: &std::result::Result<lb_evalai::EvalAiClient, String>,
-    clusters: &Clusters,
-) -> Result<Screen> {
-    let id = args.submission;
-    let found = deployment
-        .records(args.leaderboard.as_deref(), ScanFilter::Submission(id))
-        .await?;
-    let Some(record) = found.records.into_iter().next() else {
-        return Err(CliError::NotFound(format!(
-            "submission `{id}` has no record yet: Intake has not claimed it (is it on the queue?)"
-        )));
-    };
+/// What the record itself shows of submission `id`.
+fn screen_of(record: &Record, id: u64) -> Screen {
     let mut screen = Screen {
         submission_id: id,
         leaderboard: record.leaderboard.clone(),
@@ -165,7 +155,8 @@ async fn look(
                 .map_or("-".into(), |n| n.to_string())
         ),
         track: clean(record.text("track_name").unwrap_or("-")),
-        status: record.status().to_owned(),
+        status: record.status_word().to_owned(),
+        record_status: record.status(),
         started: clean(record.text("start_time").unwrap_or("-")),
         ended: clean(record.text("end_time").unwrap_or("-")),
         routes: format!(
@@ -181,14 +172,39 @@ async fn look(
         usage: record.usage().map(|u| u.describe()),
         ..Screen::default()
     };
-    screen.stage = match screen.status.as_str() {
-        "SUBMITTED" | "RESUMING" => "claimed, waiting for its Jobs to run".into(),
-        "RUNNING" => "running".into(),
-        s if is_final_status(s) => format!("ended {}", s.to_lowercase()),
-        other => format!("`{}`", clean(other)),
+    screen.stage = match screen.record_status {
+        Some(RecordStatus::Submitted | RecordStatus::Resuming) => {
+            "claimed, waiting for its Jobs to run".into()
+        }
+        Some(RecordStatus::Running) => "running".into(),
+        Some(status) => format!("ended {}", status.as_str().to_lowercase()),
+        None => format!("`{}`", clean(&screen.status)),
     };
+    screen
+}
+
+async fn look(
+    deployment: &Deployment,
+    args: &Watch,
+    evalai: &std::result::Result<lb_evalai::EvalAiClient, String>,
+    clusters: &Clusters,
+) -> Result<Screen> {
+    let id = args.submission;
+    let found = deployment
+        .records(args.leaderboard.as_deref(), ScanFilter::Submission(id))
+        .await?;
+    let Some(record) = found.records.into_iter().next() else {
+        return Err(CliError::NotFound(format!(
+            "submission `{id}` has no record yet: Intake has not claimed it (is it on the queue?)"
+        )));
+    };
+    let mut screen = screen_of(&record, id);
+    let claimed = matches!(
+        screen.record_status,
+        Some(RecordStatus::Submitted | RecordStatus::Resuming)
+    );
     // The queue: claimed submissions of this leaderboard that do not run yet.
-    if matches!(screen.status.as_str(), "SUBMITTED" | "RESUMING") {
+    if claimed {
         let waiting = deployment
             .records(Some(&record.leaderboard), ScanFilter::InFlight)
             .await?;
@@ -202,11 +218,13 @@ async fn look(
     let Some((_, lb)) = lb.into_iter().next() else {
         return Ok(screen);
     };
-    let leaderboard: Leaderboard = record.leaderboard.parse().unwrap_or_default();
+    let Ok(leaderboard) = record.leaderboard.parse::<Leaderboard>() else {
+        return Ok(screen);
+    };
     let store = SubmissionStore::new(deployment.s3.clone(), &lb.bucket, id);
     screen.workers = workers(&store, leaderboard).await;
     screen.scores = scores(&store, id).await;
-    if !is_final_status(&screen.status) {
+    if !screen.record_status.is_some_and(RecordStatus::is_final) {
         match clusters.connect(lb).await {
             Ok(cluster) => match cluster.observe(&id.to_string()).await {
                 Ok(observation) => screen.pods = pods(&observation),

@@ -132,84 +132,341 @@ pub fn resume(attempt: u32, checkpoint: &Path) -> bool {
     attempt > 0 || fs::metadata(checkpoint).is_ok_and(|m| m.len() > 0)
 }
 
-/// The agent's state machine.
+/// The agent's state machine: one phase after another, each returning the next, until the
+/// pair's outcome.
 pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutcome, PairError> {
-    let mut signals = Signals::install().map_err(PairError::Runtime)?;
-    become_subreaper();
-    let p = &cfg.pair;
-    let id = p.pair;
-    let status = StatusDir::new(&p.status_dir);
-    let (attempt, owed) = protocol::start_attempt(&pair::markers(&status), Role::Agent, id);
-    for marker in owed {
-        warn!(%marker, "writing a crash marker a killed attempt did not write");
-        write_marker(&status, marker)?;
-    }
-    let crash = Marker::Crash {
-        role: Role::Agent,
-        pair: id,
-        crash_id: attempt,
-    };
-    let view = pair::view(&status, id, attempt);
-    if view.agent_done {
-        info!(pair = id, "already done");
+    let Some(mut agent) = Agent::begin(cfg)? else {
         return Ok(PairOutcome::Done);
-    }
-
-    // The pair's GPU, before anything of the participant's runs (crate::handoff).
-    let visible = std::env::var(handoff::VISIBLE_DEVICES).ok();
-    let handed = match handoff::hand_over(&p.handoff_dir, id, visible.as_deref()) {
-        Ok(Some(uuid)) => {
-            info!(pair = id, %uuid, "GPU handed over to the simulator");
-            Some(uuid)
-        }
-        Ok(None) => None,
-        Err(e) => {
-            warn!(pair = id, error = %e, "cannot hand the GPU over to the simulator");
-            None
-        }
     };
-
-    // Wait for this attempt's CARLA.
-    let start_by = Instant::now() + p.start_wait;
+    let mut phase = Phase::WaitForCarla;
     loop {
-        match agent_step(&pair::view(&status, id, attempt), false) {
-            AgentStep::Start => break,
-            AgentStep::Cancel => {
-                info!(pair = id, "cancelled before start");
-                return Ok(PairOutcome::Cancelled);
-            }
-            AgentStep::SimulatorCrashed => {
-                warn!(
-                    pair = id,
-                    attempt, "the simulator crashed before it was ready"
-                );
-                write_marker(&status, crash)?;
-                return Ok(PairOutcome::Crashed);
-            }
-            AgentStep::Continue => {}
+        phase = match phase {
+            Phase::WaitForCarla => agent.wait_for_carla().await?,
+            Phase::Run => agent.run(command).await?,
+            Phase::Judge(run) => agent.judge(run)?,
+            Phase::WaitForPartner(outcome) => agent.wait_for_partner(outcome).await,
+            Phase::Ended(outcome) => return Ok(outcome),
+        };
+    }
+}
+
+/// Where the agent's attempt is.
+enum Phase {
+    /// Waiting for this attempt's CARLA (its start marker).
+    WaitForCarla,
+    /// Starting the evaluator and watching it until it ends, is stopped or goes silent.
+    Run,
+    /// The evaluator stopped: its results decide the attempt.
+    Judge(Ran),
+    /// The attempt is decided: the simulator is given time to see it and end its side.
+    WaitForPartner(PairOutcome),
+    /// Nothing more to do.
+    Ended(PairOutcome),
+}
+
+/// Why the watch of the evaluator ended.
+enum Watched {
+    /// It exited by itself.
+    Exited(ChildExit),
+    /// The submission was cancelled.
+    Cancelled,
+    /// The simulator crashed, or the evaluator went silent: it is stopped.
+    Stopped,
+    /// SIGTERM: the pod is going.
+    Terminated,
+}
+
+/// How the evaluator's run ended, for the judgement.
+struct Ran {
+    child: Supervised,
+    /// Its exit, when it ended by itself.
+    ended: Option<ChildExit>,
+    /// SIGTERM stopped it: the pod is going, nobody waits for the partner.
+    terminated: bool,
+}
+
+/// One attempt of the agent's side of a pair.
+struct Agent<'a> {
+    cfg: &'a AgentConfig,
+    signals: Signals,
+    status: StatusDir,
+    id: u32,
+    attempt: u32,
+    /// This attempt's crash marker.
+    crash: Marker,
+    /// The pair's GPU, handed to the simulator.
+    gpu: Option<String>,
+}
+
+impl<'a> Agent<'a> {
+    /// Starts the attempt: the crash markers killed attempts owe, then the GPU handed to the
+    /// simulator before anything of the participant's runs (`crate::handoff`). `None` when
+    /// the pair is already done.
+    fn begin(cfg: &'a AgentConfig) -> Result<Option<Agent<'a>>, PairError> {
+        let signals = Signals::install().map_err(PairError::Runtime)?;
+        become_subreaper();
+        let p = &cfg.pair;
+        let id = p.pair;
+        let status = StatusDir::new(&p.status_dir);
+        let (attempt, owed) = protocol::start_attempt(&pair::markers(&status), Role::Agent, id);
+        for marker in owed {
+            warn!(%marker, "writing a crash marker a killed attempt did not write");
+            write_marker(&status, marker)?;
         }
-        if Instant::now() >= start_by {
-            warn!(pair = id, waited = ?p.start_wait, "no simulator start marker in time");
-            write_marker(&status, crash)?;
-            return Ok(PairOutcome::Crashed);
+        if pair::view(&status, id, attempt).agent_done {
+            info!(pair = id, "already done");
+            return Ok(None);
         }
-        if signals.sleep(p.poll).await == Wake::Terminate {
-            write_marker(&status, crash)?;
-            return Ok(PairOutcome::Crashed);
+        let gpu = match handoff::hand_over(&p.handoff_dir, id, cfg.visible_devices.as_deref()) {
+            Ok(Some(uuid)) => {
+                info!(pair = id, %uuid, "GPU handed over to the simulator");
+                Some(uuid)
+            }
+            Ok(None) => None,
+            Err(e) => {
+                warn!(pair = id, error = %e, "cannot hand the GPU over to the simulator");
+                None
+            }
+        };
+        let crash = Marker::Crash {
+            role: Role::Agent,
+            pair: id,
+            crash_id: attempt,
+        };
+        Ok(Some(Agent {
+            cfg,
+            signals,
+            status,
+            id,
+            attempt,
+            crash,
+            gpu,
+        }))
+    }
+
+    fn step(&self, started: bool) -> AgentStep {
+        agent_step(&pair::view(&self.status, self.id, self.attempt), started)
+    }
+
+    /// This attempt crashed: its marker, and the outcome.
+    fn crashed(&self) -> Result<Phase, PairError> {
+        write_marker(&self.status, self.crash)?;
+        Ok(Phase::Ended(PairOutcome::Crashed))
+    }
+
+    /// Waits (bounded) for this attempt's CARLA.
+    async fn wait_for_carla(&mut self) -> Result<Phase, PairError> {
+        let (id, wait) = (self.id, self.cfg.pair.start_wait);
+        let start_by = Instant::now() + wait;
+        loop {
+            match self.step(false) {
+                AgentStep::Start => return Ok(Phase::Run),
+                AgentStep::Cancel => {
+                    info!(pair = id, "cancelled before start");
+                    return Ok(Phase::Ended(PairOutcome::Cancelled));
+                }
+                AgentStep::SimulatorCrashed => {
+                    warn!(
+                        pair = id,
+                        attempt = self.attempt,
+                        "the simulator crashed before it was ready"
+                    );
+                    return self.crashed();
+                }
+                AgentStep::Continue => {}
+            }
+            if Instant::now() >= start_by {
+                warn!(pair = id, waited = ?wait, "no simulator start marker in time");
+                return self.crashed();
+            }
+            if self.signals.sleep(self.cfg.pair.poll).await == Wake::Terminate {
+                return self.crashed();
+            }
         }
     }
 
-    let paths = AgentPaths::of(cfg);
-    for dir in [&paths.recorder, &p.agent_dir] {
-        if let Err(e) = fs::create_dir_all(dir) {
-            warn!(dir = %dir.display(), error = %e, "cannot create a directory for the evaluator");
+    /// Starts the evaluator on this attempt's CARLA and watches it.
+    async fn run(&mut self, command: &[String]) -> Result<Phase, PairError> {
+        let paths = AgentPaths::of(self.cfg);
+        let mut child = match self.spawn(command, &paths)? {
+            Ok(child) => child,
+            Err(unrunnable) => return Ok(unrunnable),
+        };
+        let watched = self.watch(&mut child).await;
+        // Also when it exited by itself: whatever it left behind goes too.
+        child.stop(self.cfg.pair.stop_grace).await;
+        let (ended, terminated) = match watched {
+            Watched::Cancelled => return Ok(Phase::Ended(PairOutcome::Cancelled)),
+            Watched::Exited(exit) => (Some(exit), false),
+            Watched::Stopped => (None, false),
+            Watched::Terminated => (None, true),
+        };
+        // NB: on a cancel the simulator may stop CARLA first, and the evaluator then dies
+        // before the watch sees the marker: that is a cancel, not a crash.
+        if self.step(true) == AgentStep::Cancel {
+            child.note("submission cancelled: the evaluator stopped");
+            return Ok(Phase::Ended(PairOutcome::Cancelled));
+        }
+        Ok(Phase::Judge(Ran {
+            child,
+            ended,
+            terminated,
+        }))
+    }
+
+    /// The evaluator started with CARLA's port and the resume flag (`Err(phase)`: the image
+    /// cannot run it, which no new pod can change).
+    fn spawn(
+        &self,
+        command: &[String],
+        paths: &AgentPaths,
+    ) -> Result<Result<Supervised, Phase>, PairError> {
+        let (p, id, attempt) = (&self.cfg.pair, self.id, self.attempt);
+        for dir in [&paths.recorder, &p.agent_dir] {
+            if let Err(e) = fs::create_dir_all(dir) {
+                warn!(dir = %dir.display(), error = %e, "cannot create a directory for the evaluator");
+            }
+        }
+        let resuming = resume(attempt, &paths.checkpoint);
+        // CARLA's port, as its sidecar announced it before writing the start marker.
+        let port = handoff::announced_port(&p.handoff_dir, id).unwrap_or(p.carla_port);
+        let envs = evaluator_env(paths, port, port.saturating_add(p.tm_offset()), resuming);
+        let child = match Supervised::spawn(command, &envs, &paths.log, true) {
+            Ok(child) => child,
+            Err(source) if image_cannot_run(&source) => {
+                warn!(pair = id, error = %source, "the image cannot run the evaluator");
+                write_marker(&self.status, self.crash)?;
+                return Ok(Err(Phase::Ended(PairOutcome::Unrunnable)));
+            }
+            Err(source) => {
+                return Err(PairError::Spawn {
+                    program: command.first().cloned().unwrap_or_default(),
+                    source,
+                })
+            }
+        };
+        info!(pair = id, attempt, resume = resuming, "evaluator started");
+        child.note(&format!(
+            "agent {id} attempt {attempt}: evaluator started on routes {}{}",
+            p.routes_subset,
+            if resuming { " (resuming)" } else { "" }
+        ));
+        // The pair's own GPU (its agent's, which its code sees anyway): what the simulator's
+        // log says it rendered on can be checked against it.
+        if let Some(uuid) = &self.gpu {
+            child.note(&format!(
+                "agent {id} attempt {attempt}: the pair's GPU is {uuid}"
+            ));
+        }
+        Ok(Ok(child))
+    }
+
+    /// Watches the evaluator until it exits, the submission is cancelled, the simulator
+    /// crashes, it goes silent or SIGTERM comes.
+    async fn watch(&mut self, child: &mut Supervised) -> Watched {
+        let (id, max_idle, poll) = (self.id, self.cfg.max_idle, self.cfg.pair.poll);
+        loop {
+            if let Some(exit) = child.try_exit() {
+                info!(pair = id, %exit, "evaluator ended");
+                child.note(&format!("evaluator ended ({exit})"));
+                return Watched::Exited(exit);
+            }
+            match self.step(true) {
+                AgentStep::Cancel => {
+                    child.note("submission cancelled: stopping the evaluator");
+                    return Watched::Cancelled;
+                }
+                AgentStep::SimulatorCrashed => {
+                    warn!(pair = id, "the simulator crashed: stopping the evaluator");
+                    child.note("the simulator crashed: stopping the evaluator");
+                    return Watched::Stopped;
+                }
+                AgentStep::Start | AgentStep::Continue => {}
+            }
+            let idle = child.idle_for();
+            if idle >= max_idle {
+                warn!(pair = id, idle = ?idle, "the evaluator is silent: stopping it");
+                child.note(&format!(
+                    "no output for {max_idle:?}: stopping the evaluator"
+                ));
+                return Watched::Stopped;
+            }
+            let tick = poll.min(max_idle.saturating_sub(idle)).max(poll / 10);
+            if self.signals.sleep(tick).await == Wake::Terminate {
+                info!(pair = id, "SIGTERM: stopping the evaluator");
+                child.note("SIGTERM: stopping the evaluator");
+                return Watched::Terminated;
+            }
         }
     }
-    let resuming = resume(attempt, &paths.checkpoint);
-    // CARLA's port, as its sidecar announced it before writing the start marker.
-    let port = handoff::announced_port(&p.handoff_dir, id).unwrap_or(p.carla_port);
-    let tm_port = port.saturating_add(p.tm_offset());
-    let envs = [
+
+    /// The attempt's outcome from its results: complete is done, anything else a crash (and
+    /// an image whose shell cannot run the evaluator, with no progress, is unrunnable).
+    fn judge(&self, run: Ran) -> Result<Phase, PairError> {
+        let (id, attempt, child) = (self.id, self.attempt, &run.child);
+        let checkpoint = AgentPaths::of(self.cfg).checkpoint;
+        let outcome = match judge(self.cfg, &checkpoint) {
+            Verdict::Finished => {
+                child.note("results complete");
+                write_marker(
+                    &self.status,
+                    Marker::Done {
+                        role: Role::Agent,
+                        pair: id,
+                    },
+                )?;
+                PairOutcome::Done
+            }
+            Verdict::Incomplete(why) => {
+                warn!(pair = id, attempt, reason = %why, "results incomplete: crash");
+                child.note(&format!("crash: {why}"));
+                write_marker(&self.status, self.crash)?;
+                match run.ended {
+                    Some(ChildExit::Code(code))
+                        if exit::shell_cannot_run(code) && !has_progress(self.cfg, &checkpoint) =>
+                    {
+                        child.note(&format!(
+                            "the image cannot run the evaluator (the shell's exit code {code}): no retry can help"
+                        ));
+                        PairOutcome::Unrunnable
+                    }
+                    _ => PairOutcome::Crashed,
+                }
+            }
+        };
+        Ok(if run.terminated {
+            Phase::Ended(outcome)
+        } else {
+            Phase::WaitForPartner(outcome)
+        })
+    }
+
+    /// Lets the simulator see our marker and end its side (bounded) before we go.
+    async fn wait_for_partner(&mut self, outcome: PairOutcome) -> Phase {
+        let (id, wait) = (self.id, self.cfg.pair.end_wait);
+        let end_by = Instant::now() + wait;
+        while !partner_finished(&pair::view(&self.status, id, self.attempt), Role::Agent) {
+            if Instant::now() >= end_by {
+                warn!(pair = id, waited = ?wait, "the simulator wrote no marker in time");
+                break;
+            }
+            if self.signals.sleep(self.cfg.pair.poll).await == Wake::Terminate {
+                break;
+            }
+        }
+        Phase::Ended(outcome)
+    }
+}
+
+/// The evaluator's variables: CARLA's and the traffic manager's ports, whether it resumes,
+/// and where it writes its results and recordings.
+fn evaluator_env(
+    paths: &AgentPaths,
+    port: u16,
+    tm_port: u16,
+    resuming: bool,
+) -> [(&'static str, String); 6] {
+    [
         (env::CARLA_PORT, port.to_string()),
         (env::CARLA_TM_PORT, tm_port.to_string()),
         (env::RESUME, if resuming { "1" } else { "" }.to_owned()),
@@ -222,130 +479,5 @@ pub async fn evaluate(cfg: &AgentConfig, command: &[String]) -> Result<PairOutco
             paths.live_results.display().to_string(),
         ),
         (env::RECORD_PATH, paths.recorder.display().to_string()),
-    ];
-    let mut child = match Supervised::spawn(command, &envs, &paths.log, true) {
-        Ok(child) => child,
-        // The participant's image has no such program: every new pod would fail the same way.
-        Err(source) if image_cannot_run(&source) => {
-            warn!(pair = id, error = %source, "the image cannot run the evaluator");
-            write_marker(&status, crash)?;
-            return Ok(PairOutcome::Unrunnable);
-        }
-        Err(source) => {
-            return Err(PairError::Spawn {
-                program: command.first().cloned().unwrap_or_default(),
-                source,
-            })
-        }
-    };
-    info!(pair = id, attempt, resume = resuming, "evaluator started");
-    child.note(&format!(
-        "agent {id} attempt {attempt}: evaluator started on routes {}{}",
-        p.routes_subset,
-        if resuming { " (resuming)" } else { "" }
-    ));
-    // The pair's own GPU (its agent's, which its code sees anyway): what the simulator's log
-    // says it rendered on can be checked against it.
-    if let Some(uuid) = &handed {
-        child.note(&format!(
-            "agent {id} attempt {attempt}: the pair's GPU is {uuid}"
-        ));
-    }
-
-    let mut terminated = false;
-    let mut ended = None;
-    loop {
-        if let Some(exit) = child.try_exit() {
-            info!(pair = id, %exit, "evaluator ended");
-            child.note(&format!("evaluator ended ({exit})"));
-            ended = Some(exit);
-            break;
-        }
-        match agent_step(&pair::view(&status, id, attempt), true) {
-            AgentStep::Cancel => {
-                child.note("submission cancelled: stopping the evaluator");
-                child.stop(p.stop_grace).await;
-                return Ok(PairOutcome::Cancelled);
-            }
-            AgentStep::SimulatorCrashed => {
-                warn!(pair = id, "the simulator crashed: stopping the evaluator");
-                child.note("the simulator crashed: stopping the evaluator");
-                break;
-            }
-            AgentStep::Start | AgentStep::Continue => {}
-        }
-        let idle = child.idle_for();
-        if idle >= cfg.max_idle {
-            warn!(pair = id, idle = ?idle, "the evaluator is silent: stopping it");
-            child.note(&format!(
-                "no output for {:?}: stopping the evaluator",
-                cfg.max_idle
-            ));
-            break;
-        }
-        let tick = p
-            .poll
-            .min(cfg.max_idle.saturating_sub(idle))
-            .max(p.poll / 10);
-        if signals.sleep(tick).await == Wake::Terminate {
-            info!(pair = id, "SIGTERM: stopping the evaluator");
-            child.note("SIGTERM: stopping the evaluator");
-            terminated = true;
-            break;
-        }
-    }
-    // Also when it exited by itself: whatever it left behind goes too.
-    child.stop(p.stop_grace).await;
-    // NB: on a cancel the simulator may stop CARLA first, and the evaluator then dies before
-    // this loop sees the marker: that is a cancel, not a crash.
-    if agent_step(&pair::view(&status, id, attempt), true) == AgentStep::Cancel {
-        child.note("submission cancelled: the evaluator stopped");
-        return Ok(PairOutcome::Cancelled);
-    }
-
-    let outcome = match judge(cfg, &paths.checkpoint) {
-        Verdict::Finished => {
-            child.note("results complete");
-            write_marker(
-                &status,
-                Marker::Done {
-                    role: Role::Agent,
-                    pair: id,
-                },
-            )?;
-            PairOutcome::Done
-        }
-        Verdict::Incomplete(why) => {
-            warn!(pair = id, attempt, reason = %why, "results incomplete: crash");
-            child.note(&format!("crash: {why}"));
-            write_marker(&status, crash)?;
-            match ended {
-                Some(ChildExit::Code(code))
-                    if exit::shell_cannot_run(code) && !has_progress(cfg, &paths.checkpoint) =>
-                {
-                    child.note(&format!(
-                        "the image cannot run the evaluator (the shell's exit code {code}): no retry can help"
-                    ));
-                    PairOutcome::Unrunnable
-                }
-                _ => PairOutcome::Crashed,
-            }
-        }
-    };
-    if terminated {
-        return Ok(outcome);
-    }
-
-    // Let the simulator see our marker and end its side before we go.
-    let end_by = Instant::now() + p.end_wait;
-    while !partner_finished(&pair::view(&status, id, attempt), Role::Agent) {
-        if Instant::now() >= end_by {
-            warn!(pair = id, waited = ?p.end_wait, "the simulator wrote no marker in time");
-            break;
-        }
-        if signals.sleep(p.poll).await == Wake::Terminate {
-            break;
-        }
-    }
-    Ok(outcome)
+    ]
 }

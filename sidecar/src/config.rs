@@ -215,6 +215,9 @@ pub struct PairConfig {
     /// `LB_GPU_PIN_DIR`: where the simulator keeps the GPU it took over, for the pod's later
     /// attempts (a volume only simulators mount).
     pub gpu_pin_dir: PathBuf,
+    /// CARLA's variables whose value holds `{gpu_index}` (the simulator fills in the pair's
+    /// GPU): read with the rest of the environment, by `simulator::run`.
+    pub gpu_templates: Vec<(String, String)>,
 }
 
 impl PairConfig {
@@ -255,6 +258,7 @@ impl PairConfig {
                 crate::handoff::PIN_DIR_VAR,
                 Some(crate::handoff::DEFAULT_PIN_DIR),
             )?,
+            gpu_templates: Vec::new(),
         })
     }
 }
@@ -266,6 +270,9 @@ pub struct AgentConfig {
     pub pair: PairConfig,
     /// `LB_MAX_IDLE_SECONDS`: the evaluator is stopped after this long without output.
     pub max_idle: Duration,
+    /// `NVIDIA_VISIBLE_DEVICES`: the GPU the device plugin gave this container, handed to the
+    /// simulator (`crate::handoff`); unset without a GPU.
+    pub visible_devices: Option<String>,
 }
 
 impl AgentConfig {
@@ -281,6 +288,7 @@ impl AgentConfig {
         Ok(AgentConfig {
             pair,
             max_idle: e.seconds(env::MAX_IDLE_SECONDS, 800.0, false)?,
+            visible_devices: e.raw(crate::handoff::VISIBLE_DEVICES)?,
         })
     }
 }

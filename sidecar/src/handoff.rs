@@ -190,15 +190,21 @@ pub fn announced_port(dir: &Path, pair: u32) -> Option<u16> {
     read_small(&port_path(dir, pair))?.trim().parse().ok()
 }
 
-/// The variables of `vars` whose value holds `{gpu_index}`, with it replaced.
-pub fn substitute_env(
+/// The variables of `vars` whose value holds `{gpu_index}` (read once, into the config).
+pub fn templated_env(
     vars: impl IntoIterator<Item = (OsString, OsString)>,
-    index: u32,
 ) -> Vec<(String, String)> {
     vars.into_iter()
         .filter_map(|(k, v)| Some((k.into_string().ok()?, v.into_string().ok()?)))
         .filter(|(_, v)| v.contains(PLACEHOLDER))
-        .map(|(k, v)| (k, v.replace(PLACEHOLDER, &index.to_string())))
+        .collect()
+}
+
+/// `templates` ([`templated_env`]) with `{gpu_index}` replaced by `index`.
+pub fn substitute_env(templates: &[(String, String)], index: u32) -> Vec<(String, String)> {
+    templates
+        .iter()
+        .map(|(k, v)| (k.clone(), v.replace(PLACEHOLDER, &index.to_string())))
         .collect()
 }
 
@@ -376,7 +382,7 @@ mod tests {
         let vars = [("SDL_HINT_CUDA_DEVICE", "{gpu_index}"), ("OTHER", "1")]
             .map(|(k, v)| (OsString::from(k), OsString::from(v)));
         assert_eq!(
-            substitute_env(vars, 2),
+            substitute_env(&templated_env(vars), 2),
             [("SDL_HINT_CUDA_DEVICE".to_owned(), "2".to_owned())]
         );
     }

@@ -127,9 +127,33 @@ pub fn run() -> Result<InitReport, InitError> {
     })
 }
 
-/// Does init's work.
+/// Does init's work: the official code copied, this binary installed, the logs tree made,
+/// the Job's stale markers gone, the cancel marker settled, and what earlier pods of its pairs
+/// left downloaded.
 pub async fn init(cfg: &InitConfig, s3: &S3) -> Result<InitReport, InitError> {
-    let mut report = InitReport::default();
+    let mut report = InitReport {
+        code_files: copy_code(cfg)?,
+        ..InitReport::default()
+    };
+    install_self(&cfg.bin_dir)?;
+    make_logs_tree(cfg)?;
+    let status = StatusDir::new(cfg.logs_root.join(STATUS_DIR));
+    report.stale_markers = remove_stale_markers(cfg, s3, &status).await?;
+    report.cancel_removed = settle_cancel(cfg, s3, &status).await?;
+    report.downloaded = download_left(cfg, s3).await?;
+    info!(
+        code_files = report.code_files,
+        stale_markers = report.stale_markers,
+        downloaded = report.downloaded.len(),
+        cancel_removed = report.cancel_removed,
+        "init done"
+    );
+    Ok(report)
+}
+
+/// Copies each official source tree into its volume: the number of files.
+fn copy_code(cfg: &InitConfig) -> Result<usize, InitError> {
+    let mut files = 0;
     for code in &cfg.code {
         let meta = fs::metadata(&code.from).and_then(|m| {
             if m.is_dir() {
@@ -150,49 +174,66 @@ pub async fn init(cfg: &InitConfig, s3: &S3) -> Result<InitReport, InitError> {
         }
         fs::create_dir_all(&code.to).map_err(write_err(&code.to))?;
         clear_dir(&code.to)?;
-        report.code_files += copy_tree(&code.from, &code.to)?;
+        files += copy_tree(&code.from, &code.to)?;
         info!(from = %code.from.display(), to = %code.to.display(), "official code copied");
     }
-    install_self(&cfg.bin_dir)?;
-    make_logs_tree(cfg)?;
+    Ok(files)
+}
 
-    let sub = cfg.common.submission_id;
-    let status = StatusDir::new(cfg.logs_root.join(STATUS_DIR));
-    // Local stale markers (an init container re-run in the same pod).
+/// Removes this Job's markers, local (an init container re-run in the same pod) and in S3:
+/// the number removed from S3.
+async fn remove_stale_markers(
+    cfg: &InitConfig,
+    s3: &S3,
+    status: &StatusDir,
+) -> Result<usize, InitError> {
+    let (sub, job) = (cfg.common.submission_id, cfg.common.job_index);
     for marker in status.markers().map_err(write_err(status.path()))?.iter() {
-        if marker.belongs_to_job(&cfg.pairs, cfg.common.job_index) {
+        if marker.belongs_to_job(&cfg.pairs, job) {
             status.remove(*marker).map_err(write_err(status.path()))?;
         }
     }
+    let mut removed = 0;
     for (key, _) in s3.list(&format!("{sub}/{STATUS_DIR}/"), LIST_LIMIT).await? {
         let name = key.rsplit('/').next().unwrap_or_default();
-        if Marker::parse(name).is_some_and(|m| m.belongs_to_job(&cfg.pairs, cfg.common.job_index)) {
+        if Marker::parse(name).is_some_and(|m| m.belongs_to_job(&cfg.pairs, job)) {
             s3.delete(&key).await?;
-            report.stale_markers += 1;
+            removed += 1;
         }
     }
-    let cancel_key = format!("{sub}/{STATUS_DIR}/{CANCEL_MARKER}");
+    Ok(removed)
+}
+
+/// A participant's resume removes the cancel marker; otherwise one in S3 is copied here, so
+/// the pairs stop at once instead of after logcopy's first period. Whether it was removed.
+async fn settle_cancel(cfg: &InitConfig, s3: &S3, status: &StatusDir) -> Result<bool, InitError> {
+    let cancel_key = format!("{}/{STATUS_DIR}/{CANCEL_MARKER}", cfg.common.submission_id);
     if cfg.participant_resume {
         s3.delete(&cancel_key).await?;
         status
             .remove(Marker::Cancel)
             .map_err(write_err(status.path()))?;
-        report.cancel_removed = true;
         info!("participant resume: cancel marker removed");
-    } else if s3.exists(&cancel_key).await? {
-        // The pairs then stop at once instead of after logcopy's first period.
+        return Ok(true);
+    }
+    if s3.exists(&cancel_key).await? {
         status
             .write(Marker::Cancel)
             .map_err(write_err(status.path()))?;
     }
+    Ok(false)
+}
 
+/// Downloads what earlier pods of this Job's pairs left: their partial results and logs.
+async fn download_left(cfg: &InitConfig, s3: &S3) -> Result<Vec<String>, InitError> {
+    let mut downloaded = Vec::new();
     for &pair in &cfg.pairs {
         let rel = format!("{AGENT_DIR}/{}", protocol::partial_results_name(pair));
         if download(s3, cfg, &rel).await? {
-            report.downloaded.push(rel);
+            downloaded.push(rel);
         }
     }
-    let logs_prefix = format!("{sub}/{LOGS_DIR}/");
+    let logs_prefix = format!("{}/{LOGS_DIR}/", cfg.common.submission_id);
     for (key, _) in s3.list(&logs_prefix, LIST_LIMIT).await? {
         let Some(under_logs) = key.strip_prefix(&logs_prefix) else {
             continue;
@@ -206,17 +247,10 @@ pub async fn init(cfg: &InitConfig, s3: &S3) -> Result<InitReport, InitError> {
             continue;
         }
         if download(s3, cfg, &rel).await? {
-            report.downloaded.push(rel);
+            downloaded.push(rel);
         }
     }
-    info!(
-        code_files = report.code_files,
-        stale_markers = report.stale_markers,
-        downloaded = report.downloaded.len(),
-        cancel_removed = report.cancel_removed,
-        "init done"
-    );
-    Ok(report)
+    Ok(downloaded)
 }
 
 impl InitReport {

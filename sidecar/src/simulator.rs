@@ -11,6 +11,7 @@
 //! With `LB_GPU_FROM_AGENT`, CARLA starts only once the agent handed over its GPU
 //! (`crate::handoff`); no GPU in time is a crash of this attempt.
 
+use std::path::PathBuf;
 use std::time::Instant;
 
 use lb_domain::protocol::{self, partner_finished, simulator_step, Marker, Role, SimulatorStep};
@@ -25,171 +26,283 @@ use crate::supervise::{become_subreaper, listened_by_another, Supervised};
 
 /// Runs the subcommand with the configuration from the environment.
 pub fn run(command: &[String]) -> Result<PairOutcome, PairError> {
-    let cfg = PairConfig::read(&Env::new(&process_env))?;
+    let mut cfg = PairConfig::read(&Env::new(&process_env))?;
+    // CARLA's variables that name the pair's GPU (`{gpu_index}`), filled in once it is known.
+    cfg.gpu_templates = handoff::templated_env(std::env::vars_os());
     pair::runtime()?.block_on(simulate(&cfg, command))
 }
 
-/// The simulator's state machine.
+/// The simulator's state machine: one phase after another, each returning the next, until
+/// the pair's outcome.
 pub async fn simulate(cfg: &PairConfig, command: &[String]) -> Result<PairOutcome, PairError> {
-    let mut signals = Signals::install().map_err(PairError::Runtime)?;
-    become_subreaper();
-    let status = StatusDir::new(&cfg.status_dir);
-    let id = cfg.pair;
-    let (attempt, owed) = protocol::start_attempt(&pair::markers(&status), Role::Simulator, id);
-    for marker in owed {
-        warn!(%marker, "writing a crash marker a killed attempt did not write");
-        write_marker(&status, marker)?;
+    let mut sim = match Simulator::begin(cfg)? {
+        Ok(sim) => sim,
+        Err(outcome) => return Ok(outcome),
+    };
+    let mut phase = Phase::TakeGpu;
+    loop {
+        phase = match phase {
+            Phase::TakeGpu => sim.take_gpu().await?,
+            Phase::Start(gpu) => Phase::Watch(sim.start(command, gpu)?),
+            Phase::Watch(carla) => sim.watch(command, carla).await?,
+            Phase::CarlaDied(child) => {
+                Phase::Ended(crashed(cfg, &mut sim.signals, &sim.status, child, sim.attempt).await?)
+            }
+            Phase::Terminated(child) => sim.terminated(child).await?,
+            Phase::Ended(outcome) => return Ok(outcome),
+        };
     }
-    let done = Marker::Done {
-        role: Role::Simulator,
-        pair: id,
-    };
-    let crash = Marker::Crash {
-        role: Role::Simulator,
-        pair: id,
-        crash_id: attempt,
-    };
-    match simulator_step(&pair::view(&status, id, attempt)) {
-        SimulatorStep::AgentDone => {
-            info!(pair = id, "the agent is already done");
-            write_marker(&status, done)?;
-            return Ok(PairOutcome::Done);
+}
+
+/// Where the simulator's attempt is.
+enum Phase {
+    /// With `LB_GPU_FROM_AGENT`, waiting for the agent's GPU.
+    TakeGpu,
+    /// Starting CARLA (on this GPU index, when one was handed over).
+    Start(Option<u32>),
+    /// CARLA runs: until it is ready, then until the agent ends its side.
+    Watch(Carla),
+    /// CARLA died or never became ready.
+    CarlaDied(Supervised),
+    /// SIGTERM: the pod is going.
+    Terminated(Supervised),
+    /// Nothing more to do.
+    Ended(PairOutcome),
+}
+
+/// A running CARLA.
+struct Carla {
+    child: Supervised,
+    port: u16,
+    gpu: Option<u32>,
+    /// Times its port was lost to another process before it bound it.
+    races: u32,
+    ready_by: Instant,
+    ready: bool,
+}
+
+/// One attempt of the simulator's side of a pair.
+struct Simulator<'a> {
+    cfg: &'a PairConfig,
+    signals: Signals,
+    status: StatusDir,
+    attempt: u32,
+    log: PathBuf,
+}
+
+impl<'a> Simulator<'a> {
+    /// Starts the attempt: the crash markers killed attempts owe; `Err(outcome)` when the
+    /// pair has nothing left for it (the agent is done, or the submission was cancelled).
+    fn begin(cfg: &'a PairConfig) -> Result<Result<Simulator<'a>, PairOutcome>, PairError> {
+        let signals = Signals::install().map_err(PairError::Runtime)?;
+        become_subreaper();
+        let status = StatusDir::new(&cfg.status_dir);
+        let id = cfg.pair;
+        let (attempt, owed) = protocol::start_attempt(&pair::markers(&status), Role::Simulator, id);
+        for marker in owed {
+            warn!(%marker, "writing a crash marker a killed attempt did not write");
+            write_marker(&status, marker)?;
         }
-        SimulatorStep::Cancel => {
-            info!(pair = id, "cancelled before start");
-            return Ok(PairOutcome::Cancelled);
+        let sim = Simulator {
+            cfg,
+            signals,
+            status,
+            attempt,
+            log: cfg.logs_dir.join(protocol::simulator_log(id)),
+        };
+        match sim.step() {
+            SimulatorStep::AgentDone => {
+                info!(pair = id, "the agent is already done");
+                write_marker(&sim.status, sim.done())?;
+                Ok(Err(PairOutcome::Done))
+            }
+            SimulatorStep::Cancel => {
+                info!(pair = id, "cancelled before start");
+                Ok(Err(PairOutcome::Cancelled))
+            }
+            SimulatorStep::AgentCrashed | SimulatorStep::Continue => Ok(Ok(sim)),
         }
-        SimulatorStep::AgentCrashed | SimulatorStep::Continue => {}
     }
 
-    let log = cfg.logs_dir.join(protocol::simulator_log(id));
-    let gpu = if cfg.gpu_from_agent {
+    fn step(&self) -> SimulatorStep {
+        simulator_step(&pair::view(&self.status, self.cfg.pair, self.attempt))
+    }
+
+    fn done(&self) -> Marker {
+        Marker::Done {
+            role: Role::Simulator,
+            pair: self.cfg.pair,
+        }
+    }
+
+    fn crash(&self) -> Marker {
+        Marker::Crash {
+            role: Role::Simulator,
+            pair: self.cfg.pair,
+            crash_id: self.attempt,
+        }
+    }
+
+    /// A line in the pair's simulator log (the participant's to read).
+    fn note(&self, line: &str) {
+        if let Ok(f) = crate::supervise::open_log(&self.log) {
+            crate::supervise::note(&f, line);
+        }
+    }
+
+    /// With `LB_GPU_FROM_AGENT`, the agent's GPU (bounded): none in time is a crash.
+    async fn take_gpu(&mut self) -> Result<Phase, PairError> {
+        let (cfg, id, attempt) = (self.cfg, self.cfg.pair, self.attempt);
+        if !cfg.gpu_from_agent {
+            return Ok(Phase::Start(None));
+        }
         let dirs = (cfg.handoff_dir.as_path(), cfg.gpu_pin_dir.as_path());
-        match handoff::take_over(dirs, id, cfg.start_wait, cfg.poll, &mut signals).await {
+        match handoff::take_over(dirs, id, cfg.start_wait, cfg.poll, &mut self.signals).await {
             Ok(Some((uuid, index))) => {
                 info!(pair = id, %uuid, index, "rendering on the agent's GPU");
                 // The pair's own GPU only, by index: the log is the participant's to read.
-                if let Ok(f) = crate::supervise::open_log(&log) {
-                    let line =
-                        format!("simulator {id} attempt {attempt}: rendering on GPU {index}");
-                    crate::supervise::note(&f, &line);
-                }
-                Some(index)
+                self.note(&format!(
+                    "simulator {id} attempt {attempt}: rendering on GPU {index}"
+                ));
+                Ok(Phase::Start(Some(index)))
             }
             Ok(None) => {
                 info!(pair = id, "SIGTERM before the agent handed over its GPU");
-                write_marker(&status, crash)?;
-                return Ok(PairOutcome::Crashed);
+                write_marker(&self.status, self.crash())?;
+                Ok(Phase::Ended(PairOutcome::Crashed))
             }
             Err(e) => {
                 warn!(pair = id, error = %e, "no GPU to render on");
-                if let Ok(f) = crate::supervise::open_log(&log) {
-                    crate::supervise::note(&f, &format!("simulator {id} attempt {attempt}: {e}"));
-                }
-                write_marker(&status, crash)?;
-                return Ok(PairOutcome::Crashed);
+                self.note(&format!("simulator {id} attempt {attempt}: {e}"));
+                write_marker(&self.status, self.crash())?;
+                Ok(Phase::Ended(PairOutcome::Crashed))
             }
         }
-    } else {
-        None
-    };
-    let (mut child, mut port) = start_carla(cfg, command, gpu, &log, attempt)?;
-    let mut races = 0;
-    let mut ready_by = Instant::now() + cfg.carla_ready;
-    let mut ready = false;
-    loop {
-        if let Some(exit) = child.try_exit() {
-            warn!(pair = id, %exit, ready, "CARLA exited");
-            child.note(&format!("CARLA exited ({exit})"));
-            child.stop(cfg.stop_grace).await;
-            if !ready && races < handoff::PORT_RACES && handoff::port_taken(port, cfg.tm_offset()) {
-                races += 1;
-                warn!(
-                    pair = id,
-                    attempt,
-                    port,
-                    "another process took CARLA's port first: starting CARLA on another"
-                );
-                child.note(&format!(
-                    "port {port} was taken before CARLA could bind it: starting CARLA on another"
-                ));
-                // NB: the old one's drop kills every descendant: it goes before the new one.
-                drop(child);
-                (child, port) = start_carla(cfg, command, gpu, &log, attempt)?;
-                ready_by = Instant::now() + cfg.carla_ready;
-                continue;
-            }
-            return crashed(cfg, &mut signals, &status, child, attempt).await;
+    }
+
+    /// CARLA started on a free port.
+    fn start(&self, command: &[String], gpu: Option<u32>) -> Result<Carla, PairError> {
+        let (child, port) = start_carla(self.cfg, command, gpu, &self.log, self.attempt)?;
+        Ok(Carla {
+            child,
+            port,
+            gpu,
+            races: 0,
+            ready_by: Instant::now() + self.cfg.carla_ready,
+            ready: false,
+        })
+    }
+
+    /// One look at CARLA and the pair, then the poll's wait: the next phase.
+    async fn watch(&mut self, command: &[String], mut carla: Carla) -> Result<Phase, PairError> {
+        let (cfg, id) = (self.cfg, self.cfg.pair);
+        if let Some(exit) = carla.child.try_exit() {
+            warn!(pair = id, %exit, ready = carla.ready, "CARLA exited");
+            carla.child.note(&format!("CARLA exited ({exit})"));
+            carla.child.stop(cfg.stop_grace).await;
+            return self.lost_port(command, carla);
         }
-        if !ready {
+        if !carla.ready {
             // NB: on a network pods share, the port may answer from another pod's CARLA.
-            if port_open(port).await && !listened_by_another(port) {
-                ready = true;
-                info!(pair = id, attempt, "CARLA accepts connections");
-                child.note("CARLA accepts connections");
-                write_marker(
-                    &status,
-                    Marker::Start {
-                        pair: id,
-                        crash_id: attempt,
-                    },
-                )?;
-            } else if Instant::now() >= ready_by {
+            if port_open(carla.port).await && !listened_by_another(carla.port) {
+                carla.ready = true;
+                info!(
+                    pair = id,
+                    attempt = self.attempt,
+                    "CARLA accepts connections"
+                );
+                carla.child.note("CARLA accepts connections");
+                let start = Marker::Start {
+                    pair: id,
+                    crash_id: self.attempt,
+                };
+                write_marker(&self.status, start)?;
+            } else if Instant::now() >= carla.ready_by {
                 warn!(pair = id, waited = ?cfg.carla_ready, "CARLA did not open its port in time");
-                child.note(&format!(
+                carla.child.note(&format!(
                     "CARLA did not accept connections within {:?}",
                     cfg.carla_ready
                 ));
-                return crashed(cfg, &mut signals, &status, child, attempt).await;
+                return Ok(Phase::CarlaDied(carla.child));
             }
         }
-        match simulator_step(&pair::view(&status, id, attempt)) {
-            SimulatorStep::Continue => {}
+        let (why, marker, outcome) = match self.step() {
+            SimulatorStep::Continue => {
+                if self.signals.sleep(cfg.poll).await == Wake::Terminate {
+                    return Ok(Phase::Terminated(carla.child));
+                }
+                return Ok(Phase::Watch(carla));
+            }
+            SimulatorStep::AgentDone => ("the agent is done", Some(self.done()), PairOutcome::Done),
+            SimulatorStep::Cancel => ("submission cancelled", None, PairOutcome::Cancelled),
+            SimulatorStep::AgentCrashed => (
+                "the agent crashed",
+                Some(self.crash()),
+                PairOutcome::Crashed,
+            ),
+        };
+        carla.child.note(&format!("{why}: stopping CARLA"));
+        carla.child.stop(cfg.stop_grace).await;
+        if let Some(marker) = marker {
+            write_marker(&self.status, marker)?;
+        }
+        Ok(Phase::Ended(outcome))
+    }
+
+    /// CARLA exited: before it was ready, with its port held by another process, it lost a
+    /// race for the port and starts again on another ([`handoff::PORT_RACES`] times at most);
+    /// otherwise it died.
+    fn lost_port(&self, command: &[String], carla: Carla) -> Result<Phase, PairError> {
+        let (id, port) = (self.cfg.pair, carla.port);
+        let lost = !carla.ready
+            && carla.races < handoff::PORT_RACES
+            && handoff::port_taken(port, self.cfg.tm_offset());
+        if !lost {
+            return Ok(Phase::CarlaDied(carla.child));
+        }
+        warn!(
+            pair = id,
+            attempt = self.attempt,
+            port,
+            "another process took CARLA's port first: starting CARLA on another"
+        );
+        carla.child.note(&format!(
+            "port {port} was taken before CARLA could bind it: starting CARLA on another"
+        ));
+        // NB: the old one's drop kills every descendant: it goes before the new one.
+        drop(carla.child);
+        let mut next = self.start(command, carla.gpu)?;
+        next.races = carla.races + 1;
+        Ok(Phase::Watch(next))
+    }
+
+    /// The whole pod is stopping (a drained node): CARLA stays until the agent has stopped
+    /// the evaluator (bounded), so that the evaluator never records the route in progress as
+    /// a simulation crash, which would make the next pod run the route before it again too.
+    async fn terminated(&self, mut child: Supervised) -> Result<Phase, PairError> {
+        let (cfg, id) = (self.cfg, self.cfg.pair);
+        info!(pair = id, "SIGTERM: CARLA stops once the evaluator has");
+        child.note("SIGTERM: CARLA stops once the evaluator has");
+        let until = Instant::now() + cfg.stop_grace + cfg.poll * 2;
+        while Instant::now() < until
+            && child.try_exit().is_none()
+            && !partner_finished(&pair::view(&self.status, id, self.attempt), Role::Simulator)
+        {
+            tokio::time::sleep(cfg.poll).await;
+        }
+        child.stop(cfg.stop_grace).await;
+        let outcome = match self.step() {
             SimulatorStep::AgentDone => {
-                child.note("the agent is done: stopping CARLA");
-                child.stop(cfg.stop_grace).await;
-                write_marker(&status, done)?;
-                return Ok(PairOutcome::Done);
+                write_marker(&self.status, self.done())?;
+                PairOutcome::Done
             }
-            SimulatorStep::Cancel => {
-                child.note("submission cancelled: stopping CARLA");
-                child.stop(cfg.stop_grace).await;
-                return Ok(PairOutcome::Cancelled);
+            SimulatorStep::Cancel => PairOutcome::Cancelled,
+            SimulatorStep::AgentCrashed | SimulatorStep::Continue => {
+                write_marker(&self.status, self.crash())?;
+                PairOutcome::Crashed
             }
-            SimulatorStep::AgentCrashed => {
-                child.note("the agent crashed: stopping CARLA");
-                child.stop(cfg.stop_grace).await;
-                write_marker(&status, crash)?;
-                return Ok(PairOutcome::Crashed);
-            }
-        }
-        if signals.sleep(cfg.poll).await == Wake::Terminate {
-            // The whole pod is stopping (a drained node): CARLA stays until the agent has
-            // stopped the evaluator (bounded), so that the evaluator never records the route
-            // in progress as a simulation crash, which would make the next pod run the route
-            // before it again too.
-            info!(pair = id, "SIGTERM: CARLA stops once the evaluator has");
-            child.note("SIGTERM: CARLA stops once the evaluator has");
-            let until = Instant::now() + cfg.stop_grace + cfg.poll * 2;
-            while Instant::now() < until
-                && child.try_exit().is_none()
-                && !partner_finished(&pair::view(&status, id, attempt), Role::Simulator)
-            {
-                tokio::time::sleep(cfg.poll).await;
-            }
-            child.stop(cfg.stop_grace).await;
-            return match simulator_step(&pair::view(&status, id, attempt)) {
-                SimulatorStep::AgentDone => {
-                    write_marker(&status, done)?;
-                    Ok(PairOutcome::Done)
-                }
-                SimulatorStep::Cancel => Ok(PairOutcome::Cancelled),
-                SimulatorStep::AgentCrashed | SimulatorStep::Continue => {
-                    write_marker(&status, crash)?;
-                    Ok(PairOutcome::Crashed)
-                }
-            };
-        }
+        };
+        Ok(Phase::Ended(outcome))
     }
 }
 
@@ -216,7 +329,7 @@ fn start_carla(
     }
     let command = handoff::substitute(command, gpu, port);
     let mut envs: Vec<(String, String)> = match gpu {
-        Some(index) => handoff::substitute_env(std::env::vars_os(), index),
+        Some(index) => handoff::substitute_env(&cfg.gpu_templates, index),
         None => Vec::new(),
     };
     envs.push((protocol::env::CARLA_PORT.to_owned(), port.to_string()));

@@ -17,48 +17,7 @@ use lb_domain::cost::Totals;
 
 use crate::{condition_failed, AwsError, Result};
 
-/// `submission_status` values of the record.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum RecordStatus {
-    /// Claimed for a new submission (EvalAI's `submitted`, upper-cased as the original).
-    Submitted,
-    /// Claimed for a resume (EvalAI's `resuming`).
-    Resuming,
-    /// Jobs running.
-    Running,
-    /// Final scores posted.
-    Finished,
-    /// Failed (the error is in `error`).
-    Failed,
-    /// Cancelled by the participant.
-    Cancelled,
-}
-
-impl RecordStatus {
-    /// The statuses of a submission an execution still holds (claimed or running).
-    pub const IN_FLIGHT: [RecordStatus; 3] = [
-        RecordStatus::Submitted,
-        RecordStatus::Resuming,
-        RecordStatus::Running,
-    ];
-
-    /// Whether a stored status is one of [`IN_FLIGHT`](Self::IN_FLIGHT).
-    pub fn is_in_flight(stored: &str) -> bool {
-        Self::IN_FLIGHT.iter().any(|s| s.as_str() == stored)
-    }
-
-    /// As stored.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            RecordStatus::Submitted => "SUBMITTED",
-            RecordStatus::Resuming => "RESUMING",
-            RecordStatus::Running => "RUNNING",
-            RecordStatus::Finished => "FINISHED",
-            RecordStatus::Failed => "FAILED",
-            RecordStatus::Cancelled => "CANCELLED",
-        }
-    }
-}
+pub use lb_domain::status::RecordStatus;
 
 /// The record written when a submission is claimed.
 #[derive(Debug, Clone, PartialEq)]
@@ -350,16 +309,24 @@ impl SubmissionsTable {
         }
     }
 
-    /// Who holds the submission and in which status, as stored (`None`: no record).
+    /// Who holds the submission and in which status, as stored (`None`: no record). A status
+    /// that is none of ours is [`AwsError::Malformed`], naming it.
     pub async fn standing(&self, team_id: u64, submission_id: u64) -> Result<Option<Standing>> {
-        let item = self.get(team_id, submission_id).await?;
-        Ok(item.map(|item| {
-            let text = |k: &str| item.get(k).and_then(|v| v.as_s().ok()).cloned();
-            Standing {
-                claimed_by: text("claimed_by"),
-                status: text("submission_status"),
-                error: text("error"),
-            }
+        let Some(item) = self.get(team_id, submission_id).await? else {
+            return Ok(None);
+        };
+        let text = |k: &str| item.get(k).and_then(|v| v.as_s().ok()).cloned();
+        let status = text("submission_status")
+            .map(|s| s.parse::<RecordStatus>())
+            .transpose()
+            .map_err(|e| AwsError::Malformed {
+                what: format!("of submission {submission_id} (team {team_id})"),
+                problem: e.to_string(),
+            })?;
+        Ok(Some(Standing {
+            claimed_by: text("claimed_by"),
+            status,
+            error: text("error"),
         }))
     }
 
@@ -518,7 +485,7 @@ pub struct Standing {
     /// The execution that claimed it last.
     pub claimed_by: Option<String>,
     /// `submission_status` as stored.
-    pub status: Option<String>,
+    pub status: Option<RecordStatus>,
     /// The stored failure reason.
     pub error: Option<String>,
 }

@@ -6,6 +6,7 @@ use std::future::Future;
 
 use aws_sdk_sfn::operation::describe_execution::DescribeExecutionError;
 use aws_sdk_sfn::operation::get_execution_history::GetExecutionHistoryError;
+use lb_domain::status::ExecutionStatus;
 use serde_json::Value;
 
 use crate::tasks::StepFunctions;
@@ -18,8 +19,8 @@ const HISTORY_PAGE: i32 = 100;
 /// An execution's end as `DescribeExecution` tells it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Described {
-    /// `RUNNING`, `SUCCEEDED`, `FAILED`, `TIMED_OUT`, `ABORTED`, `PENDING_REDRIVE`.
-    pub status: String,
+    /// How it stands.
+    pub status: ExecutionStatus,
     /// The error it failed with, if any.
     pub error: Option<String>,
     /// The execution its run continued as, when it ended to start one
@@ -44,7 +45,7 @@ pub async fn current<E: Executions>(
             return Ok(None);
         };
         match described.continued_as.clone() {
-            Some(next) if described.status == "SUCCEEDED" => arn = next,
+            Some(next) if described.status == ExecutionStatus::Succeeded => arn = next,
             _ => return Ok(Some((arn, described))),
         }
     }
@@ -80,8 +81,14 @@ impl Executions for StepFunctions {
         match out {
             Ok(out) => {
                 let output: Option<Value> = out.output().and_then(|t| serde_json::from_str(t).ok());
+                let status = out.status().as_str().parse().map_err(
+                    |e: lb_domain::status::UnknownStatus| AwsError::Malformed {
+                        what: format!("execution `{arn}`"),
+                        problem: e.to_string(),
+                    },
+                )?;
                 Ok(Some(Described {
-                    status: out.status().as_str().to_string(),
+                    status,
                     error: out.error().map(str::to_owned),
                     continued_as: output
                         .as_ref()
@@ -144,7 +151,7 @@ mod tests {
     impl Executions for Known {
         async fn describe(&self, arn: &str) -> crate::Result<Option<Described>> {
             Ok(self.0.get(arn).map(|(status, next)| Described {
-                status: status.to_string(),
+                status: status.parse().unwrap(),
                 error: None,
                 continued_as: next.clone(),
             }))
@@ -170,13 +177,13 @@ mod tests {
                 current(known, arn)
                     .await
                     .unwrap()
-                    .map(|(arn, d)| (arn, d.status))
+                    .map(|(arn, d)| (arn, d.status.as_str()))
             }
         };
-        assert_eq!(at("a").await, Some(("a-c2".into(), "RUNNING".into())));
-        assert_eq!(at("done").await, Some(("done".into(), "SUCCEEDED".into())));
+        assert_eq!(at("a").await, Some(("a-c2".into(), "RUNNING")));
+        assert_eq!(at("done").await, Some(("done".into(), "SUCCEEDED")));
         // Only a success continues: a failure is judged as itself.
-        assert_eq!(at("failed").await, Some(("failed".into(), "FAILED".into())));
+        assert_eq!(at("failed").await, Some(("failed".into(), "FAILED")));
         // A continuation Step Functions does not know: as for an unknown execution.
         assert_eq!(at("lost").await, None);
         assert_eq!(at("nobody").await, None);

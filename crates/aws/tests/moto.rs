@@ -196,7 +196,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert!(!table.finish(7, 42, "exec-1", &failed).await.unwrap());
     let standing = table.standing(7, 42).await.unwrap().unwrap();
     assert_eq!(standing.claimed_by.as_deref(), Some("exec-1"));
-    assert_eq!(standing.status.as_deref(), Some("FAILED"));
+    assert_eq!(standing.status, Some(RecordStatus::Failed));
     assert_eq!(standing.error.as_deref(), Some("CARLA crashed too often"));
     let item = table.get(7, 42).await.unwrap().unwrap();
     assert_eq!(

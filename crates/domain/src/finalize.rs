@@ -5,6 +5,7 @@
 use serde_json::Value;
 
 use crate::protocol::{Marker, Role};
+use crate::status::RecordStatus;
 use crate::submission::SubmissionStatus;
 
 /// What the run left, as Finalize read it.
@@ -96,21 +97,21 @@ pub fn outcome(facts: &Facts<'_>) -> Outcome {
 }
 
 /// Why `lbctl rescore --post` must not post, if it must not: a cancelled submission stays
-/// cancelled; a submission an execution still
-/// holds gets its final status from that execution's Finalize (which never replaces a final
-/// status, so one posted first would stand instead of the real one), and only a complete, valid merge is a result worth replacing a final
-/// status with. `record_status` is the record's (`RUNNING`, ...); `invalid` is the validation's
-/// reason when it set the entry `Invalid`.
+/// cancelled; a submission an execution still holds gets its final status from that
+/// execution's Finalize (which never replaces a final status, so one posted first would stand
+/// instead of the real one); and only a complete, valid merge is a result worth replacing a
+/// final status with. `record_status` is the record's (`None`: absent, or a word we never
+/// write); `invalid` is the validation's reason when it set the entry `Invalid`.
 pub fn rescore_refusal(
-    record_status: &str,
+    record_status: Option<RecordStatus>,
     complete: bool,
     progress: (u64, u64),
     invalid: Option<&str>,
 ) -> Option<String> {
-    if record_status == "CANCELLED" {
+    if record_status == Some(RecordStatus::Cancelled) {
         return Some("it was cancelled: its participant's word is final".into());
     }
-    if matches!(record_status, "SUBMITTED" | "RESUMING" | "RUNNING") {
+    if let Some(record_status) = record_status.filter(|s| s.is_in_flight()) {
         return Some(format!(
             "its record is `{record_status}`: the execution that holds it posts the final status \
              (lbctl cancel it, or wait for it to end)"
@@ -514,7 +515,7 @@ mod tests {
         ];
         for (status, complete, invalid, refused) in cases {
             let got = rescore_refusal(
-                status,
+                Some(status.parse().unwrap()),
                 complete,
                 (if complete { 20 } else { 3 }, 20),
                 invalid,

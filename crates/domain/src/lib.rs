@@ -21,6 +21,7 @@ pub mod round;
 pub mod run;
 pub mod schedule;
 pub mod settings;
+pub mod status;
 pub mod submission;
 #[cfg(feature = "test-util")]
 pub mod testutil;

@@ -4,9 +4,15 @@
 
 use serde_json::Value;
 
+use crate::status::ExecutionStatus;
+
 /// The statuses of Step Functions' "Execution Status Change" events the reaper acts on: the
 /// endings that can leave Jobs, a team's place and an unfinished EvalAI status behind.
-pub const REAPED_STATUSES: [&str; 3] = ["FAILED", "TIMED_OUT", "ABORTED"];
+pub const REAPED_STATUSES: [ExecutionStatus; 3] = [
+    ExecutionStatus::Failed,
+    ExecutionStatus::TimedOut,
+    ExecutionStatus::Aborted,
+];
 
 /// The error names the reaper gives Finalize (see [`Verdict::Reap`]).
 pub const ERROR_NAMES: [&str; 3] = ["ExecutionAborted", "ExecutionTimedOut", "ExecutionFailed"];
@@ -28,7 +34,7 @@ pub enum Verdict {
 
 /// The verdict on an execution that ended with `status` (`error` and `cause` as the event or
 /// `DescribeExecution` give them), whose last state was `state`.
-pub fn verdict(status: &str, error: Option<&str>, state: Option<&Value>) -> Verdict {
+pub fn verdict(status: ExecutionStatus, error: Option<&str>, state: Option<&Value>) -> Verdict {
     let finalized = state.is_some_and(|s| s.get("final").is_some());
     if finalized {
         // Finalize ran to the end; the execution then failed on purpose so operators see a
@@ -36,15 +42,15 @@ pub fn verdict(status: &str, error: Option<&str>, state: Option<&Value>) -> Verd
         return Verdict::Leave;
     }
     let (name, cause) = match status {
-        "ABORTED" => (
+        ExecutionStatus::Aborted => (
             "ExecutionAborted",
             "the evaluation was stopped by an operator before it finished".to_string(),
         ),
-        "TIMED_OUT" => (
+        ExecutionStatus::TimedOut => (
             "ExecutionTimedOut",
             "the evaluation ran past the pipeline's time limit".to_string(),
         ),
-        "FAILED" => (
+        ExecutionStatus::Failed => (
             "ExecutionFailed",
             match error.map(str::trim).filter(|e| !e.is_empty()) {
                 Some(error) => {
@@ -53,7 +59,9 @@ pub fn verdict(status: &str, error: Option<&str>, state: Option<&Value>) -> Verd
                 None => "the pipeline failed before the evaluation finished".to_string(),
             },
         ),
-        _ => return Verdict::Leave,
+        ExecutionStatus::Running | ExecutionStatus::Succeeded | ExecutionStatus::PendingRedrive => {
+            return Verdict::Leave
+        }
     };
     Verdict::Reap { error: name, cause }
 }
@@ -92,7 +100,11 @@ mod tests {
                 "{status}"
             );
         }
-        for status in ["RUNNING", "SUCCEEDED", "PENDING_REDRIVE", "bogus"] {
+        for status in [
+            ExecutionStatus::Running,
+            ExecutionStatus::Succeeded,
+            ExecutionStatus::PendingRedrive,
+        ] {
             assert_eq!(
                 verdict(status, None, Some(&running)),
                 Verdict::Leave,
@@ -101,7 +113,7 @@ mod tests {
         }
         // No state read (the history gone): still reaped, Finalize's claim check decides.
         assert!(matches!(
-            verdict("ABORTED", None, None),
+            verdict(ExecutionStatus::Aborted, None, None),
             Verdict::Reap { .. }
         ));
     }
@@ -113,19 +125,22 @@ mod tests {
             Verdict::Leave => panic!("{status} left"),
         };
         assert_eq!(
-            cause("ABORTED", None),
+            cause(ExecutionStatus::Aborted, None),
             (
                 "ExecutionAborted",
                 "the evaluation was stopped by an operator before it finished".into()
             )
         );
-        assert_eq!(cause("TIMED_OUT", None).0, "ExecutionTimedOut");
         assert_eq!(
-            cause("FAILED", Some("States.Runtime")).1,
+            cause(ExecutionStatus::TimedOut, None).0,
+            "ExecutionTimedOut"
+        );
+        assert_eq!(
+            cause(ExecutionStatus::Failed, Some("States.Runtime")).1,
             "the pipeline failed (States.Runtime) before the evaluation finished"
         );
         assert_eq!(
-            cause("FAILED", Some("  ")).1,
+            cause(ExecutionStatus::Failed, Some("  ")).1,
             "the pipeline failed before the evaluation finished"
         );
     }
@@ -148,7 +163,7 @@ mod tests {
             Some("ExecutionAborted: stopped")
         );
         // The participant reads the reaper's plain words, never only an error name.
-        let Verdict::Reap { error, cause } = verdict("ABORTED", None, None) else {
+        let Verdict::Reap { error, cause } = verdict(ExecutionStatus::Aborted, None, None) else {
             panic!("reaped")
         };
         let state = finalize_state(json!({}), error, &cause);

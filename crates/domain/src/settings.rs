@@ -21,7 +21,7 @@ pub struct Settings {
     /// EvalAI phase id -> leaderboard and track.
     pub phases: BTreeMap<u64, PhaseSettings>,
     /// Per leaderboard (`"1.0"`, `"2.0"`): cluster, storage, images, tracks.
-    pub leaderboards: BTreeMap<String, LeaderboardSettings>,
+    pub leaderboards: BTreeMap<Leaderboard, LeaderboardSettings>,
     /// Dollars per instance-hour by EC2 instance type, on-demand and Spot: what a
     /// submission's GPU-seconds are priced at (`lb_domain::cost`). Empty: no estimate.
     #[serde(default)]
@@ -63,7 +63,7 @@ fn default_requests_per_minute() -> u32 {
 #[serde(deny_unknown_fields)]
 pub struct PhaseSettings {
     /// `"1.0"` or `"2.0"`.
-    pub leaderboard: String,
+    pub leaderboard: Leaderboard,
     /// Track codename, e.g. `SENSORS`, `MAP`, `SENSORS_QUALIFIER`.
     pub track: String,
 }
@@ -351,21 +351,13 @@ impl EvalAiSettings {
 }
 
 impl LeaderboardSettings {
-    /// Checks leaderboard `name`'s settings: its key, the names it needs, the bounds of its
-    /// numbers, its pairs' share of a node, its tracks and its qualifier.
+    /// Checks leaderboard `name`'s settings (its key parsed as a leaderboard): the names it
+    /// needs, the bounds of its numbers, its pairs' share of a node, its tracks and its
+    /// qualifier.
     fn check(&self, name: &str) -> Result<(), Problem> {
         let invalid = |field: &str, problem: &str| {
             Err((format!("leaderboards.{name}.{field}"), problem.to_string()))
         };
-        if ![Leaderboard::V1, Leaderboard::V2]
-            .iter()
-            .any(|l| l.as_str() == name)
-        {
-            return Err((
-                format!("leaderboards.{name}"),
-                "key must be `1.0` or `2.0`".into(),
-            ));
-        }
         for (field, value) in [
             ("cluster", &self.cluster),
             ("namespace", &self.namespace),
@@ -553,7 +545,7 @@ impl Settings {
         let invalid = |(path, problem): (String, String)| SettingsError::Invalid { path, problem };
         self.evalai.check().map_err(invalid)?;
         for (name, lb) in &self.leaderboards {
-            lb.check(name).map_err(invalid)?;
+            lb.check(name.as_str()).map_err(invalid)?;
         }
         for (instance_type, price) in &self.prices {
             check_price(instance_type, price).map_err(invalid)?;
@@ -580,7 +572,7 @@ impl Settings {
         // Both lookups were checked at load.
         let deployment = &self.leaderboards[&phase.leaderboard];
         Ok(Target {
-            leaderboard: phase.leaderboard.parse().unwrap_or_default(),
+            leaderboard: phase.leaderboard,
             track: &phase.track,
             deployment,
             track_settings: &deployment.tracks[&phase.track],
@@ -648,7 +640,7 @@ mod tests {
 
     #[test]
     fn the_qualifier_verdict_needs_every_metric_strictly_above_its_threshold() {
-        let q = Settings::from_json(EXAMPLE).unwrap().leaderboards["2.0"]
+        let q = Settings::from_json(EXAMPLE).unwrap().leaderboards[&Leaderboard::V2]
             .qualifier
             .clone();
         assert_eq!(q.targets_of("SENSORS_QUALIFIER"), ["SENSORS"]);
@@ -682,7 +674,9 @@ mod tests {
     #[test]
     fn pair_resources_default_from_the_instance_type_or_come_from_the_operator() {
         let settings = Settings::from_json(EXAMPLE).unwrap();
-        let share = settings.leaderboards["2.0"].pair_share().unwrap();
+        let share = settings.leaderboards[&Leaderboard::V2]
+            .pair_share()
+            .unwrap();
         assert_eq!((share.simulator.cpu, share.agent.memory_gib), (4.0, 24.0));
         let own = EXAMPLE.replace(
             r#""instance_type": "g5.12xlarge", "gpus_per_node": 4,"#,
@@ -690,7 +684,7 @@ mod tests {
                 "simulator": {"cpu": 3, "memory_gib": 12},
                 "agent": {"cpu": 5.5, "memory_gib": 20}, "shm_gib": 2},"#,
         );
-        let share = Settings::from_json(&own).unwrap().leaderboards["2.0"]
+        let share = Settings::from_json(&own).unwrap().leaderboards[&Leaderboard::V2]
             .pair_share()
             .unwrap();
         assert_eq!(share.allotment().agent.cpu_millis, 5500);
@@ -700,7 +694,7 @@ mod tests {
     #[test]
     fn pairs_select_nodes_by_gpu_model_and_pinned_capacity() {
         let settings = Settings::from_json(EXAMPLE).unwrap();
-        let board = &settings.leaderboards["2.0"];
+        let board = &settings.leaderboards[&Leaderboard::V2];
         assert_eq!(board.capacity, Capacity::SpotThenOnDemand, "the default");
         assert_eq!(
             board.node_selector().unwrap(),
@@ -714,7 +708,9 @@ mod tests {
             r#""gpus_per_node": 4, "capacity": "on-demand", "gpu_model": "nvidia-a10g-24gb","#,
         );
         let pinned = Settings::from_json(&pinned).unwrap();
-        let selector = pinned.leaderboards["2.0"].node_selector().unwrap();
+        let selector = pinned.leaderboards[&Leaderboard::V2]
+            .node_selector()
+            .unwrap();
         assert_eq!(selector[Capacity::LABEL], "ON_DEMAND");
         assert_eq!(selector[resources::GPU_MODEL_LABEL], "nvidia-a10g-24gb");
         let spot = EXAMPLE.replace(
@@ -723,7 +719,7 @@ mod tests {
         );
         let spot = Settings::from_json(&spot).unwrap();
         assert_eq!(
-            spot.leaderboards["2.0"].node_selector().unwrap()[Capacity::LABEL],
+            spot.leaderboards[&Leaderboard::V2].node_selector().unwrap()[Capacity::LABEL],
             "SPOT"
         );
     }

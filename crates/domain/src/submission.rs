@@ -8,7 +8,10 @@
 use std::fmt;
 use std::str::FromStr;
 
+use serde::{Deserialize, Serialize};
 use serde_json::Value;
+
+use crate::results::Leaderboard;
 
 /// The biggest id we accept: EvalAI's primary keys are Postgres `integer`s.
 pub const MAX_ID: u64 = i32::MAX as u64;
@@ -223,6 +226,47 @@ impl FromStr for SubmissionStatus {
             .find(|status| status.as_str() == s)
             .ok_or_else(|| format!("unknown submission status `{}`", s.escape_debug()))
     }
+}
+
+/// The submission as Intake established it: everything later stages (and the Job renderer)
+/// need to know about it, carried in the execution state.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SubmissionInfo {
+    /// EvalAI challenge id.
+    pub challenge_id: u64,
+    /// EvalAI phase id.
+    pub phase_id: u64,
+    /// EvalAI submission id.
+    pub submission_id: u64,
+    /// Participant team id.
+    pub team_id: u64,
+    /// Participant team name (free text, untrusted: only label-safe forms reach a Job).
+    pub team_name: String,
+    /// Which leaderboard (`"1.0"` or `"2.0"` in JSON).
+    pub leaderboard: Leaderboard,
+    /// Track codename.
+    pub track: String,
+    /// The participant's image (untrusted; the renderer checks it against the reference
+    /// grammar).
+    pub image: String,
+    /// Routes of the track.
+    pub routes: u32,
+    /// Simulator-agent pairs.
+    pub workers: u32,
+    /// EvalAI said `resuming` (init removes the cancel marker).
+    pub resuming: bool,
+    /// The execution that claimed it (the Jobs' execution label).
+    pub execution: String,
+    /// When it arrived (EvalAI's `submitted_at`, epoch milliseconds): its place in the queue.
+    /// `None` for a resume (it arrives again now) or when EvalAI did not say.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arrived_ms: Option<u64>,
+    /// EvalAI's `submitted_at` in epoch seconds, a resume's too (0 when EvalAI did not say):
+    /// the wait stores it, so the cancel sweep asks EvalAI only for what came since the
+    /// oldest submission waiting.
+    #[serde(default)]
+    pub submitted_at: u64,
 }
 
 #[cfg(test)]

@@ -16,6 +16,7 @@ use lb_domain::plan::{
 use lb_domain::resources::{Allotment, PairAllotment};
 use lb_domain::results::Leaderboard;
 use lb_domain::settings::LeaderboardSettings;
+use lb_domain::submission::SubmissionInfo;
 use serde::{Deserialize, Serialize};
 
 use crate::image::parse_image;
@@ -156,6 +157,8 @@ pub struct JobSettings {
     pub routes_file: String,
     /// Routes file for qualifier tracks.
     pub qualifier_routes_file: String,
+    /// The track is a qualifier: its Jobs run [`qualifier_routes_file`](Self::qualifier_routes_file).
+    pub qualifier: bool,
     /// Scenarios file (Leaderboard 1.0 only; empty for 2.0).
     pub scenarios_file: String,
     /// Official code directories in the private-contents image.
@@ -214,6 +217,7 @@ impl JobSettings {
             repetitions,
             routes_file: "/workspace/leaderboard/data/routes_testing.xml".into(),
             qualifier_routes_file: "/workspace/leaderboard/data/routes_qualifier.xml".into(),
+            qualifier: false,
             scenarios_file: scenarios.into(),
             sources: Sources {
                 leaderboard: "/src/leaderboard".into(),
@@ -224,31 +228,6 @@ impl JobSettings {
             resources,
         })
     }
-}
-
-/// The submission as Intake established it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct SubmissionInfo {
-    /// EvalAI submission id.
-    pub submission_id: u64,
-    /// EvalAI challenge id.
-    pub challenge_id: u64,
-    /// EvalAI phase id.
-    pub phase_id: u64,
-    /// EvalAI participant team id.
-    pub team_id: u64,
-    /// Team name as EvalAI gives it (untrusted: only label-safe forms reach the Job).
-    pub team_name: String,
-    /// Track codename (`SENSORS`, `MAP`, `SENSORS_QUALIFIER`, ...).
-    pub track: String,
-    /// Whether the track is a qualifier (it runs the qualifier routes).
-    pub qualifier: bool,
-    /// The participant's image (untrusted; checked against the reference grammar).
-    pub participant_image: String,
-    /// EvalAI said `resuming`: init removes the cancel marker.
-    pub participant_resume: bool,
-    /// The Step Functions execution launching the Jobs (their execution label).
-    pub execution: String,
 }
 
 /// The team, as the Job may show it.
@@ -408,8 +387,8 @@ pub struct PairContext {
 /// Everything a Job template reads. Serialized, it is the input of the `.$` paths.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct JobContext {
-    /// `1.0` or `2.0`.
-    pub leaderboard: String,
+    /// Which leaderboard (`"1.0"` or `"2.0"` to the template).
+    pub leaderboard: Leaderboard,
     /// EvalAI submission id.
     pub submission_id: u64,
     /// EvalAI challenge id.
@@ -758,12 +737,12 @@ impl JobContext {
                 "private-contents image",
                 &settings.private_contents_image,
             )?,
-            participant: check_image("participant image", &submission.participant_image)?,
+            participant: check_image("participant image", &submission.image)?,
         };
         let team_label = label_value(&submission.team_name);
         let labels = job_labels(leaderboard, job, submission);
         Ok(JobContext {
-            leaderboard: leaderboard.as_str().to_owned(),
+            leaderboard,
             submission_id: submission.submission_id,
             challenge_id: submission.challenge_id,
             phase_id: submission.phase_id,
@@ -773,15 +752,10 @@ impl JobContext {
                 label: team_label,
             },
             track: submission.track.clone(),
-            participant_resume: if submission.participant_resume {
-                "1"
-            } else {
-                ""
-            }
-            .to_owned(),
+            participant_resume: if submission.resuming { "1" } else { "" }.to_owned(),
             images,
             evaluation: EvaluationContext {
-                routes_file: if submission.qualifier {
+                routes_file: if settings.qualifier {
                     settings.qualifier_routes_file.clone()
                 } else {
                     settings.routes_file.clone()
@@ -866,11 +840,15 @@ impl JobContext {
             phase_id: 1,
             team_id: 1,
             team_name: "sample".into(),
+            leaderboard,
             track: "SENSORS".into(),
-            qualifier: false,
-            participant_image: "registry.example.com/team/agent:1".into(),
-            participant_resume: false,
+            image: "registry.example.com/team/agent:1".into(),
+            routes: 20,
+            workers: 4,
+            resuming: false,
             execution: "sample".into(),
+            arrived_ms: None,
+            submitted_at: 0,
         };
         JobContext::build(leaderboard, &plan, 0, &submission, &settings)
             .expect("the sample context is valid")

@@ -24,8 +24,9 @@ use lb_asl::AslError;
 use lb_domain::plan::Plan;
 use lb_domain::results::Leaderboard;
 
-pub use context::{ContextError, JobContext, JobSettings, SubmissionInfo, Timers};
+pub use context::{ContextError, JobContext, JobSettings, Timers};
 pub use image::{parse_image, ImageRef};
+pub use lb_domain::submission::SubmissionInfo;
 pub use template::{JobTemplate, TemplateError};
 
 /// Why a Job could not be rendered. Each variant has a stable [`name`](Self::name).

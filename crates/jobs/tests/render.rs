@@ -68,11 +68,15 @@ fn submission(team: &str, image: &str) -> SubmissionInfo {
         phase_id: 4191,
         team_id: 77,
         team_name: team.into(),
+        leaderboard: Leaderboard::V2,
         track: "SENSORS".into(),
-        qualifier: false,
-        participant_image: image.into(),
-        participant_resume: false,
+        image: image.into(),
+        routes: 20,
+        workers: 4,
+        resuming: false,
         execution: "5f0c9e3a-6b1e-4c41-9d0e-2a7d3c1b8e44".into(),
+        arrived_ms: None,
+        submitted_at: 0,
     }
 }
 
@@ -637,9 +641,10 @@ fn a_qualifier_track_runs_the_qualifier_routes_and_a_resume_is_passed_to_init() 
     .unwrap();
     let mut s = submission("t", AGENT);
     s.track = "SENSORS_QUALIFIER".into();
-    s.qualifier = true;
-    s.participant_resume = true;
-    let jobs = render_plan(Leaderboard::V2, &p, &s, &settings(Leaderboard::V2)).unwrap();
+    s.resuming = true;
+    let mut qualifier = settings(Leaderboard::V2);
+    qualifier.qualifier = true;
+    let jobs = render_plan(Leaderboard::V2, &p, &s, &qualifier).unwrap();
     let e = env(container(&jobs[0], "agent-1"));
     assert_eq!(
         e["ROUTES"],

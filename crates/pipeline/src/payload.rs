@@ -96,41 +96,4 @@ impl ExecutionState {
     }
 }
 
-/// Everything later stages need to know about the submission.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SubmissionInfo {
-    /// EvalAI challenge id.
-    pub challenge_id: u64,
-    /// EvalAI phase id.
-    pub phase_id: u64,
-    /// EvalAI submission id.
-    pub submission_id: u64,
-    /// Participant team id.
-    pub team_id: u64,
-    /// Participant team name (free text).
-    pub team_name: String,
-    /// `1.0` or `2.0`.
-    pub leaderboard: String,
-    /// Track codename.
-    pub track: String,
-    /// The participant's image.
-    pub image: String,
-    /// Routes of the track.
-    pub routes: u32,
-    /// Simulator-agent pairs.
-    pub workers: u32,
-    /// EvalAI said `resuming`.
-    pub resuming: bool,
-    /// The execution that claimed it.
-    pub execution: String,
-    /// When it arrived (EvalAI's `submitted_at`, epoch milliseconds): its place in the queue.
-    /// `None` for a resume (it arrives again now) or when EvalAI did not say.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub arrived_ms: Option<u64>,
-    /// EvalAI's `submitted_at` in epoch seconds, a resume's too (0 when EvalAI did not say):
-    /// the wait stores it, so the cancel sweep asks EvalAI only for what came since the
-    /// oldest submission waiting.
-    #[serde(default)]
-    pub submitted_at: u64,
-}
+pub use lb_domain::submission::SubmissionInfo;

@@ -80,7 +80,7 @@ impl Admission {
     /// The entry names `execution` (a continuation's first round).
     pub async fn adopt(&self, submission: &SubmissionInfo, execution: &str) -> Result<()> {
         if let Admission::Queue(table) = self {
-            let (leaderboard, id) = (&submission.leaderboard, submission.submission_id);
+            let (leaderboard, id) = (submission.leaderboard.as_str(), submission.submission_id);
             table.adopt(leaderboard, id, execution).await?;
         }
         Ok(())
@@ -89,7 +89,7 @@ impl Admission {
     /// Out of the count of those waiting (its first pair started).
     pub async fn mark_running(&self, submission: &SubmissionInfo) -> Result<()> {
         if let Admission::Queue(table) = self {
-            let (leaderboard, id) = (&submission.leaderboard, submission.submission_id);
+            let (leaderboard, id) = (submission.leaderboard.as_str(), submission.submission_id);
             table.mark_running(leaderboard, id).await?;
         }
         Ok(())
@@ -101,7 +101,7 @@ impl Admission {
         let Admission::Queue(table) = self else {
             return Ok(false);
         };
-        let (leaderboard, id) = (&submission.leaderboard, submission.submission_id);
+        let (leaderboard, id) = (submission.leaderboard.as_str(), submission.submission_id);
         table.release(leaderboard, id, submission.team_id).await?;
         Ok(true)
     }
@@ -109,7 +109,7 @@ impl Admission {
     /// A finished evaluation's duration joins its track's pace.
     pub async fn record_pace(&self, submission: &SubmissionInfo, seconds: u64) -> Result<()> {
         if let Admission::Queue(table) = self {
-            let (leaderboard, track) = (&submission.leaderboard, &submission.track);
+            let (leaderboard, track) = (submission.leaderboard.as_str(), &submission.track);
             table.record_pace(leaderboard, track, seconds).await?;
         }
         Ok(())
@@ -127,7 +127,7 @@ pub async fn take_turn(
 ) -> Result<Standing> {
     let me = table
         .enqueue(
-            &submission.leaderboard,
+            submission.leaderboard.as_str(),
             &Entry {
                 submission_id: submission.submission_id,
                 team_id: submission.team_id,
@@ -137,7 +137,7 @@ pub async fn take_turn(
             &submission.execution,
         )
         .await?;
-    let entries = table.entries(&submission.leaderboard).await?;
+    let entries = table.entries(submission.leaderboard.as_str()).await?;
     // The entry as the queue shows it now (an admission since `enqueue` read it).
     let me = entries
         .iter()
@@ -149,11 +149,14 @@ pub async fn take_turn(
         // on the cap. With no place open the team's oldest still asks: `admit` then drops
         // holds whose entries are gone.
         let held = table
-            .holders(&submission.leaderboard, submission.team_id)
+            .holders(submission.leaderboard.as_str(), submission.team_id)
             .await?
             .len();
         queue::team_turn(&entries, &me, queue::free_places(limit, held).max(1))
-            && table.admit(&submission.leaderboard, &me, limit).await? == Admit::Admitted
+            && table
+                .admit(submission.leaderboard.as_str(), &me, limit)
+                .await?
+                == Admit::Admitted
     };
     Ok(Standing {
         admitted,
@@ -173,7 +176,7 @@ pub async fn ahead_of(
     table: &AdmissionTable,
     submission: &SubmissionInfo,
 ) -> Result<Option<(u32, u32)>> {
-    let entries = table.entries(&submission.leaderboard).await?;
+    let entries = table.entries(submission.leaderboard.as_str()).await?;
     let running = entries
         .iter()
         .filter(|e| e.state == EntryState::Running)
@@ -194,7 +197,10 @@ pub async fn note(
     hold: Hold,
 ) -> String {
     let place = queue::describe(ahead, hold);
-    let pace = match table.pace(&submission.leaderboard, &submission.track).await {
+    let pace = match table
+        .pace(submission.leaderboard.as_str(), &submission.track)
+        .await
+    {
         Ok(pace) => pace,
         Err(e) => {
             tracing::warn!(submission_id = submission.submission_id, error = %e, "pace not read: no estimate in the note");

@@ -18,7 +18,7 @@ fn info(submission_id: u64, team_id: u64) -> SubmissionInfo {
         submission_id,
         team_id,
         team_name: format!("team {team_id}"),
-        leaderboard: "2.0".into(),
+        leaderboard: lb_domain::results::Leaderboard::V2,
         track: "SENSORS".into(),
         image: "example/agent:1".into(),
         routes: 20,

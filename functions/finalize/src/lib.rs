@@ -26,6 +26,7 @@ use lb_domain::finalize::{self, Outcome, Posted};
 use lb_domain::logtail::{participant_tail, MAX_TAIL_CHARS};
 use lb_domain::protocol::{self, LOGS_DIR};
 use lb_domain::settings::Target;
+use lb_domain::status::Settled;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, RunClients};
@@ -107,10 +108,9 @@ pub struct FinalizeInput {
 /// What Finalize did (`$.final`; the Choice after it reads `pipeline_error`).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FinalizeOutput {
-    /// The submission's final status on our side (`FINISHED`, `FAILED`, `CANCELLED`; for a
-    /// repeated Finalize, the one that stands), `UNCLAIMED` when this execution never owned
-    /// it, or `SUPERSEDED` when another execution (a resume) holds it now.
-    pub status: String,
+    /// The submission's final status on our side (for a repeated Finalize, the one that
+    /// stands), or why this execution touched nothing of it.
+    pub status: Settled,
     /// A stage failed: the execution ends as failed so operators see it.
     pub pipeline_error: bool,
     /// Why, for failed submissions.
@@ -228,7 +228,7 @@ pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Resul
                 "failed before claiming a submission"
             );
             return Ok(FinalizeOutput {
-                status: "UNCLAIMED".into(),
+                status: Settled::Unclaimed,
                 pipeline_error: true,
                 reason: error,
             });
@@ -253,14 +253,14 @@ pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Resul
         )
         .await?;
         return Ok(FinalizeOutput {
-            status: RecordStatus::Failed.as_str().into(),
+            status: Settled::Ended(RecordStatus::Failed),
             pipeline_error: false,
             reason: Some(reason),
         });
     }
     if action.0 != Action::Run {
         return Ok(FinalizeOutput {
-            status: "UNCLAIMED".into(),
+            status: Settled::Unclaimed,
             pipeline_error: error.is_some(),
             reason: error,
         });
@@ -280,7 +280,7 @@ async fn finish_run<C: Callbacks>(
     let store = SubmissionStore::new(deps.clients.s3.clone(), &target.deployment.bucket, id);
     let submissions = &target.deployment.submissions_table;
     let table = SubmissionsTable::new(deps.clients.dynamo.clone(), submissions);
-    let ended = |status: String, reason| FinalizeOutput {
+    let ended = |status: Settled, reason| FinalizeOutput {
         status,
         pipeline_error: error.is_some(),
         reason,
@@ -343,7 +343,7 @@ async fn finish_run<C: Callbacks>(
         record_pace(deps, submission, run.as_ref()).await;
     }
     leave_queue(deps, submission).await?;
-    Ok(ended(record.status.as_str().into(), outcome.reason))
+    Ok(ended(Settled::Ended(record.status), outcome.reason))
 }
 
 /// What the run left, read at once (the reads are independent): its markers, and its results
@@ -373,25 +373,23 @@ async fn already_ended<C: Callbacks>(
     deps: &Deps<C>,
     table: &SubmissionsTable,
     submission: &SubmissionInfo,
-) -> Result<Option<(String, Option<String>)>> {
+) -> Result<Option<(Settled, Option<String>)>> {
     let id = submission.submission_id;
     let standing = table.standing(submission.team_id, id).await?;
     let holder = standing.as_ref().and_then(|s| s.claimed_by.as_deref());
     if let Some(why) = finalize::superseded(holder, &submission.execution) {
         warn!(submission_id = id, %why, "nothing done");
-        return Ok(Some(("SUPERSEDED".into(), Some(why))));
+        return Ok(Some((Settled::Superseded, Some(why))));
     }
-    let Some(ended) = standing.filter(|s| {
-        s.status
-            .as_deref()
-            .is_some_and(|s| !RecordStatus::is_in_flight(s))
-    }) else {
+    let Some((status, error)) =
+        standing.and_then(|s| Some((s.status.filter(|status| !status.is_in_flight())?, s.error)))
+    else {
         return Ok(None);
     };
-    info!(submission_id = id, status = ?ended.status, "already finalized; nothing done");
+    info!(submission_id = id, %status, "already finalized; nothing done");
     // An earlier attempt may have ended before it gave the place back.
     leave_queue(deps, submission).await?;
-    Ok(Some((ended.status.unwrap_or_default(), ended.error)))
+    Ok(Some((Settled::Ended(status), error)))
 }
 
 /// The final status from what the run left (`lb_domain::finalize::outcome`), and the
@@ -632,7 +630,7 @@ async fn wake_next<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) {
         table,
         wakes,
         &deps.callbacks,
-        (&submission.leaderboard, submission.team_id, limit),
+        (submission.leaderboard.as_str(), submission.team_id, limit),
         clients::now_epoch_seconds(),
     )
     .await;

@@ -10,6 +10,7 @@ use lb_aws::admission::AdmissionTable;
 use lb_aws::executions::{self, execution_arn, Executions};
 use lb_aws::tasks::Callbacks;
 use lb_domain::reaper::{self, Verdict, REAPED_STATUSES};
+use lb_domain::status::{ExecutionStatus, Reaping};
 use lb_pipeline::{queue, FnError, Result};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -42,17 +43,16 @@ pub struct Reconcile {
 pub struct Reaped {
     /// The execution's ARN.
     pub execution: String,
-    /// How it ended.
-    pub status: String,
-    /// Finalize's status for it (`UNCLAIMED`, `SUPERSEDED`, a final one), or `left` when
-    /// nothing was to be done.
-    pub outcome: String,
+    /// How it ended (absent: Step Functions does not know it).
+    pub status: Option<ExecutionStatus>,
+    /// What the reaper did: nothing, only the place given back, or Finalize's settled status.
+    pub outcome: Reaping,
 }
 
 /// The fields of a status change's `detail` the reaper reads, validated.
 struct Ended<'a> {
     arn: &'a str,
-    status: &'a str,
+    status: ExecutionStatus,
     error: Option<&'a str>,
 }
 
@@ -69,7 +69,10 @@ fn ended(event: &EventBridgeEvent<Value>) -> Result<Ended<'_>> {
     let arn = text("executionArn")
         .filter(|a| a.starts_with("arn:") && a.contains(":states:") && a.contains(":execution:"))
         .ok_or_else(|| bad("`detail.executionArn` is not an execution ARN".into()))?;
-    let status = text("status").ok_or_else(|| bad("`detail.status` is missing".into()))?;
+    let status = text("status")
+        .ok_or_else(|| bad("`detail.status` is missing".into()))?
+        .parse()
+        .map_err(|e: lb_domain::status::UnknownStatus| bad(format!("`detail.status`: {e}")))?;
     Ok(Ended {
         arn,
         status,
@@ -90,11 +93,11 @@ pub async fn on_event<C: Callbacks + Executions>(
     reap(deps, ended.arn, ended.status, ended.error).await
 }
 
-fn left(arn: &str, status: &str) -> Reaped {
+fn left(arn: &str, status: ExecutionStatus) -> Reaped {
     Reaped {
         execution: arn.to_string(),
-        status: status.to_string(),
-        outcome: "left".into(),
+        status: Some(status),
+        outcome: Reaping::Left,
     }
 }
 
@@ -102,7 +105,7 @@ fn left(arn: &str, status: &str) -> Reaped {
 pub async fn reap<C: Callbacks + Executions>(
     deps: &Deps<C>,
     arn: &str,
-    status: &str,
+    status: ExecutionStatus,
     error: Option<&str>,
 ) -> Result<Reaped> {
     let state = deps.callbacks.last_state(arn).await?;
@@ -113,7 +116,7 @@ pub async fn reap<C: Callbacks + Executions>(
     let Some(state) = state else {
         warn!(
             execution = arn,
-            status, "no state recorded: nothing claimed to finish"
+            %status, "no state recorded: nothing claimed to finish"
         );
         return Ok(left(arn, status));
     };
@@ -123,15 +126,15 @@ pub async fn reap<C: Callbacks + Executions>(
     // line says what the reaper did about it.
     error!(
         execution = arn,
-        status,
+        %status,
         outcome = out.status.as_str(),
         reason = %cause,
         "reaped an execution that ended without Finalize"
     );
     Ok(Reaped {
         execution: arn.to_string(),
-        status: status.to_string(),
-        outcome: out.status,
+        status: Some(status),
+        outcome: Reaping::Finalized(out.status),
     })
 }
 
@@ -156,7 +159,7 @@ pub async fn reconcile<C: Callbacks + Executions>(
     let mut reaped = Vec::new();
     let mut failed = Vec::new();
     for (queue, leaderboard) in &deps.clients.settings.leaderboards {
-        let limit = leaderboard.team_limit;
+        let (queue, limit) = (queue.as_str(), leaderboard.team_limit);
         for (team, holders) in table.holds(queue).await? {
             for holder in holders {
                 match check(deps, table, &machine, (queue, team, limit), &holder).await {
@@ -200,14 +203,14 @@ async fn check<C: Callbacks + Executions>(
     // A run that continued as a new execution names it in its entry once its first round ran:
     // until then the entry's execution ended to start it, and the one it runs in now is judged.
     match executions::current(&deps.callbacks, &arn).await? {
-        Some((_, d)) if d.status == "RUNNING" => Ok(None),
+        Some((_, d)) if d.status == ExecutionStatus::Running => Ok(None),
         Some((arn, d)) => {
-            let mut done = reap(deps, &arn, &d.status, d.error.as_deref()).await?;
-            if done.outcome == "left" {
+            let mut done = reap(deps, &arn, d.status, d.error.as_deref()).await?;
+            if done.outcome == Reaping::Left {
                 // Ended and nothing to finish, yet still holding: Finalize ran but its
                 // release did not.
                 give_back(deps, table, (queue, team, limit), id).await?;
-                done.outcome = "released".into();
+                done.outcome = Reaping::Released;
             }
             Ok(Some(done))
         }
@@ -216,8 +219,8 @@ async fn check<C: Callbacks + Executions>(
             give_back(deps, table, (queue, team, limit), id).await?;
             Ok(Some(Reaped {
                 execution: arn,
-                status: "UNKNOWN".into(),
-                outcome: "released".into(),
+                status: None,
+                outcome: Reaping::Released,
             }))
         }
     }

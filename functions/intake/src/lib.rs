@@ -141,7 +141,7 @@ fn described(
         submission_id: message.submission_id,
         team_id: submission.team_id,
         team_name: submission.team_name.clone(),
-        leaderboard: target.leaderboard.as_str().to_string(),
+        leaderboard: target.leaderboard,
         track: target.track.to_string(),
         image: String::new(),
         routes: target.track_settings.routes,

@@ -218,6 +218,7 @@ fn prepare(deps: &Deps, target: &Target<'_>, submission: &SubmissionInfo) -> Res
         &deps.region,
         &deployment.job_role_arn,
     )?;
+    settings.qualifier = target.track_settings.qualifier;
     if let Some(timers) = &deps.timers {
         settings.timers = timers.clone();
     }
@@ -245,22 +246,10 @@ async fn launch_jobs(
     submission: &SubmissionInfo,
     prepared: &Prepared,
 ) -> Result<Vec<String>> {
-    let about = lb_jobs::SubmissionInfo {
-        submission_id: submission.submission_id,
-        challenge_id: submission.challenge_id,
-        phase_id: submission.phase_id,
-        team_id: submission.team_id,
-        team_name: submission.team_name.clone(),
-        track: submission.track.clone(),
-        qualifier: target.track_settings.qualifier,
-        participant_image: submission.image.clone(),
-        participant_resume: submission.resuming,
-        execution: submission.execution.clone(),
-    };
     let jobs = render_plan(
         target.leaderboard,
         &prepared.plan,
-        &about,
+        submission,
         &prepared.settings,
     )?;
     let cluster = deps.clusters.connect(target.deployment).await?;

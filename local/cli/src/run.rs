@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use fake_evalai::Fixture;
+use lb_domain::results::Leaderboard;
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::FnError;
 use local_stack::stack::{LOCAL_SETTINGS, WAKE_TABLE};
@@ -125,8 +126,8 @@ pub struct LocalRun {
     #[arg(long, default_value_t = 0.2)]
     pub route_seconds: f64,
     /// Leaderboard of the submission's phase (`1.0` or `2.0`).
-    #[arg(long, default_value = "2.0", value_parser = ["1.0", "2.0"])]
-    pub leaderboard: String,
+    #[arg(long, default_value = "2.0", value_parser = |s: &str| s.parse::<Leaderboard>())]
+    pub leaderboard: Leaderboard,
     /// Multiplies the state machine's waits and retry intervals (0.05: a 60 s Wait lasts 3 s).
     #[arg(long, default_value_t = 0.05)]
     pub time_scale: f64,
@@ -213,9 +214,13 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let bins = Binaries::find()?;
 
     // The phase: 1 is Leaderboard 2.0, 2 is 1.0 in the local settings and the fake's fixture.
-    let phase = if args.leaderboard == "1.0" { 2 } else { 1 };
+    let phase = match args.leaderboard {
+        Leaderboard::V1 => 2,
+        Leaderboard::V2 => 1,
+    };
+    let board = args.leaderboard.as_str();
     let mut settings: Value = serde_json::from_str(LOCAL_SETTINGS)?;
-    let track = &mut settings["leaderboards"][&args.leaderboard]["tracks"]["SENSORS"];
+    let track = &mut settings["leaderboards"][board]["tracks"]["SENSORS"];
     track["routes"] = json!(args.routes);
     track["workers"] = json!(args.workers);
     // The Monitor's clock is real while the executor scales every wait: the least interval
@@ -225,9 +230,9 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             .round()
             .max(1.0) as u64,
     );
-    settings["leaderboards"][&args.leaderboard]["partial_update_seconds"] = json!(interval);
+    settings["leaderboards"][board]["partial_update_seconds"] = json!(interval);
     if let Some(limit) = args.team_limit {
-        settings["leaderboards"][&args.leaderboard]["team_limit"] = json!(limit);
+        settings["leaderboards"][board]["team_limit"] = json!(limit);
     }
     // Another EvalAI has its own phase ids: its phase runs the chosen leaderboard's track.
     if let (Some(_), Some(p)) = (&args.evalai_url, args.phase) {
@@ -594,14 +599,17 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     }
     let ended_without_finalize = results
         .iter()
-        .filter(|r| lb_domain::reaper::REAPED_STATUSES.contains(&r.status.as_str()))
+        .filter(|r| {
+            let status = local_stack::events::execution_status(Some(r.status));
+            lb_domain::reaper::REAPED_STATUSES.contains(&status)
+        })
         .count();
     let reaped = reaper.collect(ended_without_finalize).await;
     let result = results.remove(0);
     let ended = Instant::now();
     let logs = agent_logs(
         &stack.sdk,
-        &settings_bucket(&settings, &args.leaderboard),
+        &settings_bucket(&settings, args.leaderboard),
         submission,
         args.workers,
     )
@@ -632,7 +640,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             Err(e) => format!("(unknown: {e})"),
         },
     };
-    let bucket = settings_bucket(&settings, &args.leaderboard);
+    let bucket = settings_bucket(&settings, args.leaderboard);
     let expected = args.scenario.expected();
     let queue = stack.fake_evalai.as_ref().map(|fake| {
         crate::queue_report::report(&fake.requests(), &arrivals, |id| {
@@ -708,7 +716,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         left_behind: left_behind(
             &stack.sdk,
             &settings,
-            &args.leaderboard,
+            args.leaderboard,
             &kubeconfig,
             (arrivals[0].1, submission),
         )
@@ -955,9 +963,8 @@ fn spawn_reaper(
         while let Some(event) = changes.recv().await {
             let status = event["detail"]["status"]
                 .as_str()
-                .unwrap_or_default()
-                .to_string();
-            if !lb_domain::reaper::REAPED_STATUSES.contains(&status.as_str()) {
+                .and_then(|s| s.parse().ok());
+            if !status.is_some_and(|s| lb_domain::reaper::REAPED_STATUSES.contains(&s)) {
                 continue;
             }
             let answer = match lb_pipeline::serve::call(&*finalize, event).await {
@@ -999,7 +1006,7 @@ fn stop_after_first_round(
 async fn left_behind(
     sdk: &aws_config::SdkConfig,
     settings: &lb_domain::settings::Settings,
-    leaderboard: &str,
+    leaderboard: Leaderboard,
     kubeconfig: &std::path::Path,
     (team, submission): (u64, u64),
 ) -> crate::report::LeftBehind {
@@ -1014,17 +1021,17 @@ async fn left_behind(
     let dynamo = aws_sdk_dynamodb::Client::new(sdk);
     let queue =
         lb_aws::admission::AdmissionTable::new(dynamo.clone(), local_stack::stack::ADMISSION_TABLE);
-    if let Ok(holds) = queue.holds(leaderboard).await {
+    if let Ok(holds) = queue.holds(leaderboard.as_str()).await {
         left.places_held = Some(holds.iter().map(|(_, h)| h.len()).sum());
     }
     if let Some(table) = settings
         .leaderboards
-        .get(leaderboard)
+        .get(&leaderboard)
         .map(|l| &l.submissions_table)
     {
         let records = lb_aws::dynamo::SubmissionsTable::new(dynamo, table);
         if let Ok(Some(standing)) = records.standing(team, submission).await {
-            left.record_status = standing.status;
+            left.record_status = standing.status.map(|s| s.as_str().to_owned());
         }
         if let Ok(Some(item)) = records.get(team, submission).await {
             let number = |key: &str| item.get(key)?.as_n().ok()?.parse::<u64>().ok();
@@ -1046,10 +1053,10 @@ async fn left_behind(
     left
 }
 
-fn settings_bucket(settings: &lb_domain::settings::Settings, leaderboard: &str) -> String {
+fn settings_bucket(settings: &lb_domain::settings::Settings, leaderboard: Leaderboard) -> String {
     settings
         .leaderboards
-        .get(leaderboard)
+        .get(&leaderboard)
         .map(|l| l.bucket.clone())
         .unwrap_or_default()
 }

@@ -17,7 +17,8 @@ use aws_config::SdkConfig;
 use aws_sdk_sqs::types::MessageSystemAttributeName;
 use lb_aws::executions::{Described, Executions};
 use lb_aws::tasks::{Callbacks, Reported};
-use local_stepfunctions::{CallbackError, Executor};
+use lb_domain::status::ExecutionStatus;
+use local_stepfunctions::{CallbackError, Executor, Status};
 use serde_json::Value;
 
 use crate::pipe::{queue_arn, region_of, sqs_error, sqs_record, PipeError};
@@ -235,10 +236,21 @@ impl Callbacks for ExecutorCallbacks {
     }
 }
 
+/// The embedded executor's status as Step Functions words it (`None`: still running).
+pub fn execution_status(status: Option<Status>) -> ExecutionStatus {
+    match status {
+        None => ExecutionStatus::Running,
+        Some(Status::Succeeded) => ExecutionStatus::Succeeded,
+        Some(Status::Failed) => ExecutionStatus::Failed,
+        Some(Status::TimedOut) => ExecutionStatus::TimedOut,
+        Some(Status::Aborted) => ExecutionStatus::Aborted,
+    }
+}
+
 impl Executions for ExecutorCallbacks {
     async fn describe(&self, arn: &str) -> lb_aws::Result<Option<Described>> {
         Ok(self.0.describe(arn).map(|d| Described {
-            status: d.status.map_or("RUNNING", |s| s.as_str()).to_string(),
+            status: execution_status(d.status),
             error: d.error,
             continued_as: d
                 .output

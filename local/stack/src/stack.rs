@@ -306,7 +306,7 @@ impl Stack {
 pub fn app_template(settings: &Settings) -> Template {
     let mut template = APP.clone().in_stack("leaderboard", REGION, MOTO_ACCOUNT);
     for (key, lb) in &settings.leaderboards {
-        let prefix = format!("Leaderboard{}", key.replace('.', ""));
+        let prefix = format!("Leaderboard{}", key.as_str().replace('.', ""));
         for (suffix, value) in [
             ("Bucket", &lb.bucket),
             ("SubmissionsTable", &lb.submissions_table),

@@ -41,7 +41,7 @@ async fn results_and_markers_reach_the_wake_queue_and_logs_do_not() {
         .await
         .expect("the wake queue exists");
     let s3 = lb_aws::s3_client(&stack.sdk);
-    let bucket = &settings.leaderboards["2.0"].bucket;
+    let bucket = &settings.leaderboards[&lb_domain::results::Leaderboard::V2].bucket;
     let put = |key: &'static str| {
         s3.put_object()
             .bucket(bucket)

@@ -590,7 +590,7 @@ async fn rush(full: bool, mode: Mode) -> f64 {
             submission_id: id,
             team_id: team,
             team_name: format!("team {team}"),
-            leaderboard: LEADERBOARD.into(),
+            leaderboard: LEADERBOARD.parse().unwrap(),
             track: "SENSORS".into(),
             image: "example/agent:1".into(),
             routes: 20,

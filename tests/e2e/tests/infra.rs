@@ -1142,7 +1142,7 @@ fn the_settings_example_is_valid_and_names_what_the_stacks_create() {
     let default = |t: &Template, p: &str| t.eval(&t.root()["Parameters"][p]["Default"]).unwrap();
     let namespace = &k8s_docs("namespace.yaml")[0]["metadata"]["name"];
     for (key, lb) in &settings.leaderboards {
-        let n = key.replace('.', "");
+        let n = key.as_str().replace('.', "");
         assert_eq!(lb.bucket, default(&APP, &format!("Leaderboard{n}Bucket")));
         assert_eq!(
             lb.submissions_table,
@@ -1241,7 +1241,7 @@ fn the_autoscaler_grows_the_spot_gpu_group_first_and_both_groups_carry_the_gpu_m
     // of a node per GPU, so a pair gets the same requests on each.
     let settings = std::fs::read_to_string(root().join("infra/settings.example.json")).unwrap();
     let settings = lb_domain::settings::Settings::from_json(&settings).unwrap();
-    let board = &settings.leaderboards["2.0"];
+    let board = &settings.leaderboards[&lb_domain::results::Leaderboard::V2];
     assert_eq!(board.gpu_model().unwrap(), default("GpuModel"));
     let shape = lb_domain::resources::capacity(&board.instance_type).unwrap();
     for (_, types) in groups.values() {

@@ -60,7 +60,7 @@ fn submission() -> SubmissionInfo {
         submission_id: u64::MAX,
         team_id: u64::MAX,
         team_name: WORST_RAW.to_string().repeat(lb_evalai::MAX_TEAM_NAME),
-        leaderboard: "2.0".into(),
+        leaderboard: lb_domain::results::Leaderboard::V2,
         track: "T".repeat(63),
         image: "x".repeat(lb_jobs::image::MAX_REFERENCE_LEN),
         routes: MAX_ROUTES,
@@ -216,7 +216,7 @@ fn tasks(failing: Failing) -> TaskMap {
                 return Err(error());
             }
             Ok(serde_json::to_value(finalize::FinalizeOutput {
-                status: "FAILED".into(),
+                status: "FAILED".parse().unwrap(),
                 pipeline_error: true,
                 reason: Some(worst(MAX_REASON_BYTES * 4)),
             })

@@ -487,7 +487,7 @@ async fn a_participant_cancel_ends_cancelled_with_the_jobs_gone() {
         .iter()
         .any(|m| m == "simulation.cancel"));
     let out = h.finalize(&submission, &run).await;
-    assert_eq!(out.status, "CANCELLED");
+    assert_eq!(out.status.as_str(), "CANCELLED");
     assert_eq!(h.stack.fake().submission(1).unwrap().status, "cancelled");
     let (jobs, pods) = h.cluster_jobs().await;
     assert!(jobs.is_empty() && pods.is_empty());
@@ -505,7 +505,7 @@ async fn an_image_that_cannot_be_pulled_fails_with_a_message_the_participant_can
     let reason = run.monitor.reason.clone().unwrap();
     assert!(reason.contains(bad), "{reason}");
     let out = h.finalize(&submission, &run).await;
-    assert_eq!(out.status, "FAILED");
+    assert_eq!(out.status.as_str(), "FAILED");
     let evalai = h.stack.fake().submission(1).unwrap();
     assert_eq!(evalai.status, "failed");
     assert!(evalai.files.stderr.unwrap_or_default().contains(bad));
@@ -522,7 +522,10 @@ async fn finalize_acts_once_and_only_for_the_execution_holding_the_claim() {
     let run = h.monitor_until_done(&submission, run, |_| {}).await;
     // The run ended in failure mode (a Catch), so the participant may resume it.
     assert_eq!(
-        h.finalize_after_error(&submission, &run).await.status,
+        h.finalize_after_error(&submission, &run)
+            .await
+            .status
+            .as_str(),
         "FAILED"
     );
     let record = h.record().await;
@@ -535,7 +538,7 @@ async fn finalize_acts_once_and_only_for_the_execution_holding_the_claim() {
         h.finalize(&submission, &run).await,
         h.finalize_after_error(&submission, &run).await,
     ] {
-        assert_eq!(again.status, "FAILED");
+        assert_eq!(again.status.as_str(), "FAILED");
     }
     assert_eq!(h.evalai_puts(), puts, "nothing re-sent to EvalAI");
     assert_eq!(h.stack.fake().submission(1).unwrap().status, "failed");
@@ -552,7 +555,7 @@ async fn finalize_acts_once_and_only_for_the_execution_holding_the_claim() {
 
     // The first execution's Finalize, late (a retry after the resume): it touches nothing.
     let stale = h.finalize_after_error(&submission, &run).await;
-    assert_eq!(stale.status, "SUPERSEDED", "{stale:?}");
+    assert_eq!(stale.status.as_str(), "SUPERSEDED", "{stale:?}");
     let (jobs_after, _) = h.cluster_jobs().await;
     assert_eq!(
         jobs_after
@@ -573,7 +576,7 @@ async fn finalize_acts_once_and_only_for_the_execution_holding_the_claim() {
 
     // The resume's own Finalize ends it.
     let out = h.finalize(&resumed, &new_run).await;
-    assert_ne!(out.status, "SUPERSEDED");
+    assert_ne!(out.status.as_str(), "SUPERSEDED");
 }
 
 #[tokio::test]
@@ -624,7 +627,10 @@ async fn a_cluster_api_outage_skips_monitor_rounds_and_the_run_still_finishes() 
     let run = h.monitor_until_done(&submission, run, |_| {}).await;
     assert_eq!(run.monitor.state, RunPhase::Finished, "{:?}", run.monitor);
     assert_eq!(run.monitor.unreachable_since, None);
-    assert_eq!(h.finalize(&submission, &run).await.status, "FINISHED");
+    assert_eq!(
+        h.finalize(&submission, &run).await.status.as_str(),
+        "FINISHED"
+    );
 
     // An outage longer than the setting ends a run, saying why (0 hours: the first round).
     let mut settings: serde_json::Value = serde_json::from_str(LOCAL_SETTINGS).unwrap();

@@ -17,8 +17,9 @@ pub use model::{
 
 use std::fmt;
 
-/// Which Leaderboard's evaluator wrote the files; the formats and rules differ.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+/// Which Leaderboard's evaluator wrote the files; the formats and rules differ. In JSON
+/// (settings, payloads) it is its short name, `"1.0"` or `"2.0"`, and nothing else.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Default)]
 pub enum Leaderboard {
     /// Leaderboard 1.0 (CARLA 0.9.10.1): 12 metrics, sorted keys, unrounded floats.
     V1,
@@ -90,6 +91,27 @@ impl Leaderboard {
             Leaderboard::V1 => "1.0",
             Leaderboard::V2 => "2.0",
         }
+    }
+}
+
+impl serde::Serialize for Leaderboard {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.as_str())
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Leaderboard {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let word = String::deserialize(d)?;
+        [Leaderboard::V1, Leaderboard::V2]
+            .into_iter()
+            .find(|lb| lb.as_str() == word)
+            .ok_or_else(|| {
+                serde::de::Error::custom(format!(
+                    "unknown leaderboard `{}`, expected `1.0` or `2.0`",
+                    word.escape_debug()
+                ))
+            })
     }
 }
 
