@@ -136,10 +136,9 @@ pub async fn watch(args: Watch) -> Result<u8> {
 
 fn is_final_on_evalai(status: &str) -> bool {
     // Unknown (EvalAI unreachable) does not keep the watch going once the record is final.
-    !matches!(
-        status,
-        "submitted" | "queued" | "running" | "partially_evaluated" | "resuming" | "submitting"
-    )
+    status
+        .parse::<lb_domain::submission::SubmissionStatus>()
+        .map_or(true, lb_domain::submission::SubmissionStatus::is_final)
 }
 
 /// What the record itself shows of submission `id`.

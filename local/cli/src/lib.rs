@@ -7,10 +7,13 @@ mod reclaim;
 mod relay;
 mod report;
 mod run;
+pub mod scenario;
+pub mod wiring;
 
 use clap::{Parser, Subcommand};
 
-pub use run::{LocalRun, Scenario};
+pub use run::LocalRun;
+pub use scenario::Scenario;
 
 /// Rehearse the CARLA Leaderboard evaluation backend on this machine: moto, the fake EvalAI
 /// and the local Kubernetes API stand in for AWS, EvalAI and EKS (no AWS account needed).

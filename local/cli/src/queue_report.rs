@@ -48,6 +48,13 @@ pub struct QueueReport {
     pub most_in_a_minute: usize,
 }
 
+impl QueueReport {
+    /// Every submission ended `status` on EvalAI.
+    pub fn all_ended(&self, status: &str) -> bool {
+        self.submissions.iter().all(|s| s.status == status)
+    }
+}
+
 /// The submission a host write is about, and the status it sets, if it sets one.
 fn write_of(record: &fake_evalai::RequestRecord) -> Option<(u64, Option<String>, &Value)> {
     let body = record.body.as_ref()?;

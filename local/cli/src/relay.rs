@@ -24,6 +24,16 @@ pub struct Relays {
     pub sweep_wakes: Arc<AtomicU64>,
 }
 
+impl Relays {
+    /// Stops them: the messages the wake function handled and the sweep's wakes.
+    pub fn stop(self) -> (u64, u64) {
+        (
+            self.wake_messages.load(Ordering::Relaxed),
+            self.sweep_wakes.load(Ordering::Relaxed),
+        )
+    }
+}
+
 impl Drop for Relays {
     fn drop(&mut self) {
         for task in &self.tasks {

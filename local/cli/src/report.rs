@@ -120,6 +120,26 @@ impl Merged {
 impl RunReport {
     /// The summary a person reads at the end of the run.
     pub fn print(&self, args: &LocalRun, moto: &str, latency: Option<&Latency>, many: bool) {
+        self.print_outcome(args);
+        self.print_participant_view();
+        self.print_costs(args, latency);
+        outln!("time per stage");
+        for (stage, seconds) in &self.stages {
+            outln!("  {stage:<12} {seconds:>7.1}s");
+        }
+        outln!("results        {} on moto {moto}", self.results);
+        outln!("pod logs       {}", self.pod_logs.display());
+        if !args.keep {
+            outln!("               (the stack and these go away on exit: --keep to look at them)");
+        }
+        outln!("total          {:.1}s", self.seconds);
+        if let (true, Some(queue)) = (many, &self.queue) {
+            crate::queue_report::print(queue);
+        }
+    }
+
+    /// How the execution ended, what EvalAI says, and what woke it.
+    fn print_outcome(&self, args: &LocalRun) {
         outln!();
         if self.executions > 1 {
             outln!(
@@ -168,8 +188,11 @@ impl RunReport {
                 args.time_scale
             );
         }
-        // What the participant reads on a failure: the reason and the end of their agent's
-        // output, and the head of the summary beside it (which routes count).
+    }
+
+    /// What the participant reads: on a failure the reason and the end of their agent's
+    /// output, and the head of the summary beside it (which routes count); the scores.
+    fn print_participant_view(&self) {
         if let Some(stderr) = &self.evalai_stderr {
             outln!("EvalAI stderr");
             for line in stderr.lines() {
@@ -188,6 +211,10 @@ impl RunReport {
         if let Some(merged) = &self.merged {
             outln!("merged         {}", merged.line());
         }
+    }
+
+    /// GPU time and its price, the reclaim, and the latencies (`--latency`).
+    fn print_costs(&self, args: &LocalRun, latency: Option<&Latency>) {
         if let Some(usage) = &self.left_behind.usage {
             outln!(
                 "GPUs           {} GPU-seconds ({} on Spot, {} run again), about ${} (time scale {}); orchestration about ${} ({} state transitions)",
@@ -221,19 +248,6 @@ impl RunReport {
                 m.undelivered,
                 secs(m.final_delay)
             );
-        }
-        outln!("time per stage");
-        for (stage, seconds) in &self.stages {
-            outln!("  {stage:<12} {seconds:>7.1}s");
-        }
-        outln!("results        {} on moto {moto}", self.results);
-        outln!("pod logs       {}", self.pod_logs.display());
-        if !args.keep {
-            outln!("               (the stack and these go away on exit: --keep to look at them)");
-        }
-        outln!("total          {:.1}s", self.seconds);
-        if let (true, Some(queue)) = (many, &self.queue) {
-            crate::queue_report::print(queue);
         }
     }
 }

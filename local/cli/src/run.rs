@@ -1,96 +1,34 @@
 //! `lbctl local run`: one submission from the SQS message to the final scores on this machine,
 //! through the deployed state machine definition, the real handlers, Job templates and sidecar.
+//! What differs per scenario is in `crate::scenario`; the handlers' wiring in `crate::wiring`.
 
 use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
-use clap::{Args, ValueEnum};
+use clap::Args;
 use fake_evalai::Fixture;
 use lb_domain::results::Leaderboard;
-use lb_pipeline::cluster::Clusters;
-use lb_pipeline::FnError;
+use local_stack::events::LateCallbacks;
 use local_stack::stack::{LOCAL_SETTINGS, WAKE_TABLE};
 use local_stack::workloads::{Behaviour, Binaries};
 use local_stack::{EvalAi, Stack};
 
+use crate::latency::Latency;
 use crate::report::{Merged, RunReport};
+use crate::scenario::{Begin, Findings, Rehearsal, Scenario};
+use crate::wiring::{Handlers, Pace};
 use cli::{clean, outln};
 use local_stepfunctions::{
-    EventType, Executor, HistoryEvent, Options, StateMachine, TaskError, TaskMap,
+    EventType, Execution, ExecutionResult, Executor, HistoryEvent, Options, StateMachine,
 };
 use serde_json::{json, Value};
 
-/// The least seconds per route of the spot scenario: the drain must land mid-route.
-const SPOT_ROUTE_SECONDS: f64 = 1.5;
-
 /// The deployed definition, embedded so `lbctl` runs from anywhere.
 const DEFINITION: &str = include_str!("../../../statemachine/submission.asl.json");
-
-/// What the run rehearses.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum Scenario {
-    /// Everything works: FINISHED with scores.
-    Happy,
-    /// CARLA of the first pair is killed mid-route: crash markers, restart, resume, FINISHED.
-    Crash,
-    /// The first pair's evaluator hangs: the idle watchdog ends it, it resumes, FINISHED.
-    Hang,
-    /// The participant cancels on EvalAI after the first round: CANCELLED once the sweep (or
-    /// a partial update's status read) notices, nothing left.
-    Cancel,
-    /// The participant's image cannot be pulled: FAILED with a message naming it.
-    Unpullable,
-    /// The first pair's evaluator crashes at every attempt: out of retries, FAILED, and the
-    /// participant's stderr shows the reason and the end of that agent's output.
-    CrashLoop,
-    /// The cluster's node has another GPU model than the leaderboard's: the autoscaler says no
-    /// node group could hold the pods, FAILED at once naming the labels the pods need (a
-    /// configuration problem of the leaderboard), none of the participant's time used.
-    NoNode,
-    /// Every agent rewrites a file in its status directory and its own results file several
-    /// times a second for the whole run: only the protocol's files wake the execution, rounds
-    /// come no sooner than the least interval, and a history near its budget continues as a
-    /// new execution. FINISHED.
-    WakeFlood,
-    /// Every other pair's agent writes pair 2's results file and done marker in its own pod:
-    /// none of it leaves the pod, pair 2's honest results stand, FINISHED.
-    Forge,
-    /// Every agent plants another GPU's UUID in its pair's handoff and crashes once: each
-    /// simulator renders on its own pair's GPU at every attempt, FINISHED (a node of 4 GPUs
-    /// unless --gpus says otherwise).
-    PlantGpu,
-    /// The node is reclaimed mid-route (a Spot interruption: the managed node group drains it
-    /// through the Eviction API): every pod gets the `DisruptionTarget` condition and a new
-    /// pod replaces it once it has stopped, without using a retry; each interrupted route runs
-    /// again once. FINISHED (routes of at least 1.5 s, so that the drain lands mid-route).
-    Spot,
-    /// An operator stops the execution (StopExecution) after its first Monitor round: the
-    /// reaper (Finalize, on Step Functions' status-change event, which local mode delivers as
-    /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
-    /// `failed` with the reason and writes the final record.
-    Stop,
-}
-
-impl Scenario {
-    fn expected(self) -> &'static str {
-        match self {
-            Scenario::Happy
-            | Scenario::Crash
-            | Scenario::Hang
-            | Scenario::WakeFlood
-            | Scenario::Forge
-            | Scenario::PlantGpu
-            | Scenario::Spot => "finished",
-            Scenario::Cancel => "cancelled",
-            Scenario::Unpullable | Scenario::CrashLoop | Scenario::NoNode | Scenario::Stop => {
-                "failed"
-            }
-        }
-    }
-}
 
 /// `lbctl local run` options.
 #[derive(Debug, Clone, Args)]
@@ -176,14 +114,6 @@ pub struct LocalRun {
     pub keep: bool,
 }
 
-const IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local";
-const UNPULLABLE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:never-pushed";
-/// How often a flooding agent rewrites its files (the wake-flood scenario): the issue's
-/// reproduction rewrote one four times a second.
-const FLOOD_HZ: u32 = 4;
-/// The node type of the no-node scenario: not of the GPU model the local settings name.
-const OTHER_INSTANCE_TYPE: &str = "g6.xlarge";
-
 fn say(started: Instant, text: impl AsRef<str>) {
     outln!(
         "[{:>6.1}s] {}",
@@ -194,6 +124,126 @@ fn say(started: Instant, text: impl AsRef<str>) {
 
 /// Runs one local submission; the exit code is 0 only when it ended as the scenario expects.
 pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
+    check(&args)?;
+    let teams = team_sizes(&args)?;
+    let started = Instant::now();
+    let scenario: Arc<dyn Rehearsal> = Arc::from(args.scenario.rehearsal());
+    let (stack, settings, kubeconfig) = set_up(&args, &*scenario, teams.len(), started).await?;
+    let record_log = stack.workdir.path().join("record-writes.log");
+    let (challenge, phase, arrivals) = submissions(&args, &stack, &teams, scenario.image())?;
+    // The first is the one the summary describes in detail (and the scenarios act on).
+    let submission = arrivals[0].0;
+    let handlers = Handlers::load(&stack.sdk, kubeconfig.clone(), &pace(&args)).await?;
+    // The summary reads the outcome from EvalAI with the functions' own client.
+    let evalai = handlers.intake.evalai.clone();
+    let late = LateCallbacks::default();
+    let (tasks, reaper_deps) = handlers.task_map(&late);
+    // The wake table's wait, on moto's DynamoDB; a continuation, on the executor.
+    let tasks = local_stack::integrations::with_services(tasks, &stack.sdk, late.clone());
+    let acted = Arc::new(AtomicBool::new(!scenario.acts()));
+    scenario.begin(&Begin {
+        kubeconfig: kubeconfig.clone(),
+        submission,
+        fake_evalai: stack.fake_evalai.as_ref().map(|f| f.url()),
+        cancel_after_round: args.cancel_after_round,
+        acted: acted.clone(),
+    });
+    let many = arrivals.len() > 1;
+    let watch = Watch::default();
+    // Many executions: the per-round lines of each would drown the summary.
+    let on_event = (!many).then(|| watch.on_event(&args, &stack, &scenario, &acted, started));
+    let executor = executor(&args, tasks, on_event)?;
+    late.bind(executor.clone());
+    // Step Functions' "Execution Status Change" events go to Finalize as the reaper, as the
+    // deployment's EventBridge rule sends them.
+    let reaper = spawn_reaper(&executor, reaper_deps);
+    // S3's events and the cancel sweep wake the waiting execution, as in the deployment.
+    let relays = crate::relay::spawn(
+        &stack.sdk,
+        &local_stack::stack::app_template(&settings),
+        &local_stack::stack::function_config(),
+        executor.clone(),
+        args.time_scale,
+        !args.no_wake,
+    )
+    .await?;
+    let at = (challenge, phase, scenario.image());
+    let executions = start(&stack, &executor, at, (&arrivals, teams.len()), started).await?;
+    scenario.started(&executor, executions[0].2.arn(), &watch.rounds, &acted);
+    let (mut results, chains) = wait_all(&executor, executions, many, started).await;
+    let reaped = reaper.collect(ended_without_finalize(&results)).await;
+    let ended = Instant::now();
+    let bucket = settings_bucket(&settings, args.leaderboard);
+    let logs = agent_logs(&stack.sdk, &bucket, submission, args.workers).await;
+    let findings = scenario.finish(&logs).await;
+    let wakes = relays.stop();
+    let ran = Ran {
+        args: &args,
+        stack: &stack,
+        settings: &settings,
+        kubeconfig: &kubeconfig,
+        arrivals: &arrivals,
+        result: results.remove(0),
+        chains: &chains,
+        reaped,
+        logs: &logs,
+        findings,
+        watch: &watch,
+        acted: acted.load(Ordering::SeqCst),
+        wakes,
+        times: (started, ended),
+        record_log: &record_log,
+        expected: scenario.expected(),
+    };
+    let (report, latency) = ran.report(&evalai).await;
+    finish(&args, &stack, (report, latency, many), &kubeconfig).await
+}
+
+/// The stack, the settings provisioned in it, and the local cluster with the images as the
+/// scenario sets them up (its kubeconfig).
+async fn set_up(
+    args: &LocalRun,
+    scenario: &dyn Rehearsal,
+    teams: usize,
+    started: Instant,
+) -> anyhow::Result<(Stack, lb_domain::settings::Settings, PathBuf)> {
+    let (mut stack, settings) = start_stack(args, teams, started).await?;
+    let record_log = stack.workdir.path().join("record-writes.log");
+    let kubeconfig = start_workloads(args, scenario, &mut stack, &settings, &record_log)?;
+    say(
+        started,
+        format!(
+            "local Kubernetes API {} (kubeconfig {})",
+            stack.kube.as_ref().map(|k| k.url()).unwrap_or_default(),
+            kubeconfig.display()
+        ),
+    );
+    Ok((stack, settings, kubeconfig))
+}
+
+/// The embedded executor with the run's time scale and deadline.
+fn executor(
+    args: &LocalRun,
+    tasks: local_stepfunctions::TaskMap,
+    on_event: Option<local_stepfunctions::EventCallback>,
+) -> anyhow::Result<Executor> {
+    Executor::new(
+        tasks,
+        Options {
+            time_scale: args.time_scale,
+            deadline: Some(Duration::from_secs(args.timeout)),
+            on_event,
+            // The handlers run in-process at real speed, and the shared EvalAI budget is a
+            // real minute's requests: a Lambda's timeout is not scaled (its waits are).
+            scale_invocation_timeouts: false,
+            ..Options::default()
+        },
+    )
+    .map_err(|e| anyhow::anyhow!("{e}"))
+}
+
+/// The options no parser checks alone.
+fn check(args: &LocalRun) -> anyhow::Result<()> {
     if !(args.time_scale > 0.0 && args.time_scale <= 1.0) {
         bail!("--time-scale must be in (0, 1], got {}", args.time_scale);
     }
@@ -206,18 +256,22 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             args.kube_outage_minutes
         );
     }
-    let teams = team_sizes(&args)?;
-    if teams.len() > 1 && args.evalai_url.is_some() {
+    if args.teams.len() > 1 && args.evalai_url.is_some() {
         bail!("--teams needs the fake EvalAI (an external one has its own teams)");
     }
-    let started = Instant::now();
-    let bins = Binaries::find()?;
+    Ok(())
+}
 
-    // The phase: 1 is Leaderboard 2.0, 2 is 1.0 in the local settings and the fake's fixture.
-    let phase = match args.leaderboard {
+/// The phase of the local settings and the fake's fixture: 1 is Leaderboard 2.0, 2 is 1.0.
+fn local_phase(leaderboard: Leaderboard) -> u64 {
+    match leaderboard {
         Leaderboard::V1 => 2,
         Leaderboard::V2 => 1,
-    };
+    }
+}
+
+/// The local settings with the run's track, pacing and team limit.
+fn settings_for(args: &LocalRun) -> anyhow::Result<Value> {
     let board = args.leaderboard.as_str();
     let mut settings: Value = serde_json::from_str(LOCAL_SETTINGS)?;
     let track = &mut settings["leaderboards"][board]["tracks"]["SENSORS"];
@@ -236,18 +290,25 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     }
     // Another EvalAI has its own phase ids: its phase runs the chosen leaderboard's track.
     if let (Some(_), Some(p)) = (&args.evalai_url, args.phase) {
-        settings["phases"][p.to_string()] =
-            json!({"leaderboard": args.leaderboard, "track": "SENSORS"});
+        settings["phases"][p.to_string()] = json!({"leaderboard": board, "track": "SENSORS"});
     }
+    Ok(settings)
+}
 
+/// moto, EvalAI (the fake with `teams` teams, or another) and the provisioned settings.
+async fn start_stack(
+    args: &LocalRun,
+    teams: usize,
+    started: Instant,
+) -> anyhow::Result<(Stack, lb_domain::settings::Settings)> {
+    let settings = settings_for(args)?;
     let external = args.evalai_url.clone().map(|url| EvalAi::External {
         url,
         token: args.evalai_token.clone().unwrap_or_default(),
     });
-    let mut stack =
-        Stack::start(external.unwrap_or(EvalAi::Fake(Fixture::with_teams(teams.len()))))
-            .await
-            .context("starting the local stack (run `make venv` for moto)")?;
+    let stack = Stack::start(external.unwrap_or(EvalAi::Fake(Fixture::with_teams(teams))))
+        .await
+        .context("starting the local stack (run `make venv` for moto)")?;
     say(
         started,
         format!(
@@ -258,84 +319,57 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         ),
     );
     let settings = stack.provision(&settings.to_string()).await?;
+    Ok((stack, settings))
+}
 
-    let scratch = stack.workdir.path().join("images");
-    let once = scratch.join("once");
+/// The local Kubernetes API and the images, as the scenario sets them up: the kubeconfig.
+fn start_workloads(
+    args: &LocalRun,
+    scenario: &dyn Rehearsal,
+    stack: &mut Stack,
+    settings: &lb_domain::settings::Settings,
+    record_log: &Path,
+) -> anyhow::Result<PathBuf> {
+    let bins = Binaries::find()?;
+    let once = stack.workdir.path().join("images").join("once");
     std::fs::create_dir_all(&once)?;
     let mut behaviour = Behaviour {
         route_seconds: args.route_seconds,
         node_gpus: args.gpus,
         ..Behaviour::default()
     };
-    if args.scenario == Scenario::Spot {
-        behaviour.route_seconds = args.route_seconds.max(SPOT_ROUTE_SECONDS);
-        behaviour.node_capacity = lb_domain::settings::Capacity::Spot;
-    }
-    if args.scenario == Scenario::Hang {
-        behaviour.evaluator_env = BTreeMap::from([
-            ("FAKE_EVALUATOR_HANG_AT_ROUTE".into(), "1".into()),
-            ("FAKE_EVALUATOR_ONCE_DIR".into(), once.display().to_string()),
-        ]);
-    }
-    if args.scenario == Scenario::CrashLoop {
-        // No once-dir: every attempt of the pair that runs route 1 crashes there.
-        behaviour.evaluator_env =
-            BTreeMap::from([("FAKE_EVALUATOR_CRASH_AT_ROUTE".into(), "1".into())]);
-    }
-    if args.scenario == Scenario::NoNode {
-        behaviour.node_instance_type = Some(OTHER_INSTANCE_TYPE.into());
-    }
-    if args.scenario == Scenario::Forge {
-        behaviour
-            .evaluator_env
-            .insert("FAKE_EVALUATOR_FORGE_PAIR".into(), "2".into());
-    }
-    if args.scenario == Scenario::PlantGpu {
-        // Two of the node's GPUs: at least one is another pair's.
-        let planted = [0, 1].map(local_kube::gpu_uuid).join(",");
-        behaviour.node_gpus = Some(args.gpus.unwrap_or(4));
-        behaviour.evaluator_env.extend([
-            ("FAKE_EVALUATOR_PLANT_GPU".into(), planted),
-            ("FAKE_EVALUATOR_ONCE_DIR".into(), once.display().to_string()),
-        ]);
-    }
-    if args.scenario == Scenario::WakeFlood {
-        behaviour
-            .evaluator_env
-            .insert("FAKE_EVALUATOR_FLOOD_HZ".into(), FLOOD_HZ.to_string());
-    }
-    let record_log = stack.workdir.path().join("record-writes.log");
+    scenario.set_up(&mut behaviour, &once);
     if args.latency {
         behaviour.evaluator_env.insert(
             "FAKE_EVALUATOR_RECORD_LOG".into(),
             record_log.display().to_string(),
         );
     }
-    let unpullable: &[&str] = if args.scenario == Scenario::Unpullable {
-        &[UNPULLABLE]
-    } else {
+    let image = scenario.image();
+    let unpullable: &[&str] = if image == crate::scenario::IMAGE {
         &[]
+    } else {
+        &[image]
     };
     stack
-        .start_workloads(&settings, &bins, &behaviour, unpullable)
+        .start_workloads(settings, &bins, &behaviour, unpullable)
         .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let kubeconfig = stack.kubeconfig.clone().context("no kubeconfig")?;
-    say(
-        started,
-        format!(
-            "local Kubernetes API {} (kubeconfig {})",
-            stack.kube.as_ref().map(|k| k.url()).unwrap_or_default(),
-            kubeconfig.display()
-        ),
-    );
+    stack.kubeconfig.clone().context("no kubeconfig")
+}
 
-    // The submission on EvalAI and the message EvalAI publishes for it.
-    let image = if args.scenario == Scenario::Unpullable {
-        UNPULLABLE
-    } else {
-        IMAGE
-    };
-    let (challenge, phase, arrivals) = match (
+/// Each submission with its team, in order of arrival.
+type Arrivals = Vec<(u64, u64)>;
+
+/// The submissions on EvalAI (each team's, in order, on the fake; the one named on another):
+/// the challenge, the phase, and each submission with its team.
+fn submissions(
+    args: &LocalRun,
+    stack: &Stack,
+    teams: &[u32],
+    image: &str,
+) -> anyhow::Result<(u64, u64, Arrivals)> {
+    let phase = local_phase(args.leaderboard);
+    match (
         &stack.fake_evalai,
         args.challenge,
         args.phase,
@@ -357,165 +391,106 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                     arrivals.push((new.id, team));
                 }
             }
-            (1, phase, arrivals)
+            Ok((1, phase, arrivals))
         }
-        (None, Some(c), Some(p), Some(s)) => (c, p, vec![(s, 0)]),
+        (None, Some(c), Some(p), Some(s)) => Ok((c, p, vec![(s, 0)])),
         _ => bail!("an external EvalAI needs --challenge, --phase and --submission"),
-    };
-    // The first is the one the summary describes in detail (and the scenarios act on).
-    let submission = arrivals[0].0;
+    }
+}
 
-    // The handlers, in-process, each with its clients built once.
-    let config = local_stack::stack::function_config();
-    let clusters = || Clusters::kubeconfig(kubeconfig.clone());
-    let intake = Arc::new(intake::Deps::load(&stack.sdk, &config).await?);
-    let mut launch = launch::Deps::load(&stack.sdk, &config, clusters()).await?;
-    launch.timers = Some(lb_jobs::Timers {
-        start_wait_seconds: 120,
-        end_wait_seconds: 60,
-        carla_ready_seconds: 60,
-        poll_seconds: 1,
-        max_idle_seconds: 5,
-        logcopy_period_seconds: 1,
-    });
-    let launch = Arc::new(launch);
-    let mut monitor = monitor::Deps::load(&stack.sdk, &config, clusters()).await?;
-    // The autoscaler's word is believed after minutes on EKS; local-kube's is final at once.
-    monitor.policy.never_fits_grace = Duration::from_secs(2);
-    monitor.history_budget = args.history_budget;
-    let monitor = Arc::new(monitor);
-    // Finalize wakes a team's next submission through the executor, which the task map below
-    // is made for: bound once it exists.
-    let late = local_stack::events::LateCallbacks::default();
-    let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters())
-        .await?
-        .with_callbacks(late.clone());
-    finalize.delete_wait = Duration::from_secs(60);
-    let finalize = Arc::new(finalize);
-    let reaper_deps = finalize.clone();
-    // The summary reads the outcome from EvalAI with the functions' own client.
-    let evalai = intake.evalai.clone();
-    let tasks = TaskMap::new()
-        .with("IntakeFunctionArn", move |v| {
-            let deps = intake.clone();
-            async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
-        })
-        .with("LaunchFunctionArn", move |v| {
-            let deps = launch.clone();
-            async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
-        })
-        .with("MonitorFunctionArn", move |v| {
-            let deps = monitor.clone();
-            async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
-        })
-        .with("FinalizeFunctionArn", move |v| {
-            let deps = finalize.clone();
-            async move { lambda(lb_pipeline::serve::call(&*deps, v).await) }
-        });
-    // The wake table's wait, on moto's DynamoDB; a continuation, on the executor.
-    let tasks = local_stack::integrations::with_services(tasks, &stack.sdk, late.clone());
+/// The rehearsal's pace: shorter sidecar timers, the autoscaler believed at once.
+fn pace(args: &LocalRun) -> Pace {
+    Pace {
+        timers: lb_jobs::Timers {
+            start_wait_seconds: 120,
+            end_wait_seconds: 60,
+            carla_ready_seconds: 60,
+            poll_seconds: 1,
+            max_idle_seconds: 5,
+            logcopy_period_seconds: 1,
+        },
+        delete_wait: Duration::from_secs(60),
+        // The autoscaler's word is believed after minutes on EKS; local-kube's is final at once.
+        never_fits_grace: Some(Duration::from_secs(2)),
+        history_budget: Some(args.history_budget),
+    }
+}
 
+/// The deployed state machine, its function ARNs and wake table filled in.
+fn machine() -> anyhow::Result<StateMachine> {
     let mut substitutions: HashMap<String, String> = ["Intake", "Launch", "Monitor", "Finalize"]
         .iter()
         .map(|f| {
-            (
-                format!("{f}FunctionArn"),
-                format!(
-                    "arn:aws:lambda:us-east-1:123456789012:function:{}",
-                    f.to_lowercase()
-                ),
-            )
+            let arn = format!(
+                "arn:aws:lambda:us-east-1:123456789012:function:{}",
+                f.to_lowercase()
+            );
+            (format!("{f}FunctionArn"), arn)
         })
         .collect();
     substitutions.insert("WakeTable".into(), WAKE_TABLE.into());
-    let machine = StateMachine::load(&serde_json::from_str(DEFINITION)?, &substitutions)
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    StateMachine::load(&serde_json::from_str(DEFINITION)?, &substitutions)
+        .map_err(|e| anyhow::anyhow!("{e}"))
+}
 
-    // Live progress, and the scenario's own act at the right moment.
-    let rounds = Arc::new(AtomicU64::new(0));
-    // Rounds that found the cluster's API out of reach (their verdict skipped).
-    let unreachable_rounds = Arc::new(AtomicU64::new(0));
-    // The crash scenario has acted once CARLA was killed, the spot one once the node was
-    // drained; the others have nothing to do.
-    let acted = Arc::new(AtomicBool::new(
-        args.scenario != Scenario::Crash && args.scenario != Scenario::Spot,
-    ));
-    let reclaim = (args.scenario == Scenario::Spot)
-        .then(|| crate::reclaim::Reclaim::spawn(kubeconfig.clone(), submission, acted.clone()));
-    let reclaim_cue = reclaim.as_ref().map(|r| r.cue());
-    // When the participant cancelled (the cancel scenario), to time how long the Jobs outlive it.
-    let cancelled_at: Arc<std::sync::Mutex<Option<Instant>>> = Arc::default();
-    let fake = stack.fake_evalai.as_ref().map(|f| f.url());
-    let outage = stack
-        .kube
-        .as_ref()
-        .map(|k| k.outage())
-        .filter(|_| args.kube_outage_minutes > 0.0);
-    let outage_for = Duration::from_secs_f64(args.kube_outage_minutes * 60.0 * args.time_scale);
-    let outage_minutes = args.kube_outage_minutes;
-    let many = arrivals.len() > 1;
-    let on_event = {
-        let rounds = rounds.clone();
-        let unreachable_rounds = unreachable_rounds.clone();
-        let acted = acted.clone();
-        let cancelled_at = cancelled_at.clone();
-        let scenario = args.scenario;
-        let cancel_after = args.cancel_after_round;
-        let reclaim_cue = reclaim_cue.clone();
+/// What the run watches of its executions: Monitor rounds, and those that found the cluster's
+/// API out of reach (their verdict skipped).
+#[derive(Default)]
+struct Watch {
+    rounds: Arc<AtomicU64>,
+    unreachable_rounds: Arc<AtomicU64>,
+}
+
+impl Watch {
+    /// Live progress, the outage from the first round, and the scenario's hooks at each round.
+    fn on_event(
+        &self,
+        args: &LocalRun,
+        stack: &Stack,
+        scenario: &Arc<dyn Rehearsal>,
+        acted: &Arc<AtomicBool>,
+        started: Instant,
+    ) -> local_stepfunctions::EventCallback {
+        let (rounds, unreachable) = (self.rounds.clone(), self.unreachable_rounds.clone());
+        let (scenario, acted) = (scenario.clone(), acted.clone());
+        let outage = stack
+            .kube
+            .as_ref()
+            .map(|k| k.outage())
+            .filter(|_| args.kube_outage_minutes > 0.0);
+        let outage_for = Duration::from_secs_f64(args.kube_outage_minutes * 60.0 * args.time_scale);
+        let outage_minutes = args.kube_outage_minutes;
         Arc::new(move |event: &HistoryEvent| {
-            if many {
-                // Many executions: the per-round lines of each would drown the summary.
-                return;
-            }
-            if event.event_type == EventType::TaskStateEntered {
-                let name = event.state_name().unwrap_or_default();
-                if name == "Monitor" {
-                    let n = rounds.fetch_add(1, Ordering::SeqCst) + 1;
-                    if let (1, Some(outage)) = (n, &outage) {
-                        outage.fail_for(outage_for);
-                        say(
-                            started,
-                            format!("the cluster's API answers 500 for {outage_minutes} minutes (scaled)"),
-                        );
-                    }
-                    // From the first round on, until CARLA was up to be killed (a busy machine
-                    // may start it after the first round).
-                    if !acted.load(Ordering::SeqCst) && act(scenario, n) {
-                        acted.store(true, Ordering::SeqCst);
-                    }
-                } else {
-                    say(started, format!("stage {name}"));
+            let name = event.state_name().unwrap_or_default();
+            if event.event_type == EventType::TaskStateEntered && name != "Monitor" {
+                say(started, format!("stage {name}"));
+            } else if event.event_type == EventType::TaskStateEntered {
+                let n = rounds.fetch_add(1, Ordering::SeqCst) + 1;
+                if let (1, Some(outage)) = (n, &outage) {
+                    outage.fail_for(outage_for);
+                    say(
+                        started,
+                        format!(
+                            "the cluster's API answers 500 for {outage_minutes} minutes (scaled)"
+                        ),
+                    );
                 }
-            }
-            if event.event_type == EventType::TaskStateExited
-                && event.state_name() == Some("Monitor")
-            {
+                if !acted.load(Ordering::SeqCst) && scenario.round_begins(n) {
+                    acted.store(true, Ordering::SeqCst);
+                }
+            } else if event.event_type == EventType::TaskStateExited && name == "Monitor" {
                 let output = &event.details["output"]["run"]["monitor"];
-                let unreachable = if output["unreachable_since"].is_null() {
+                let skipped = if output["unreachable_since"].is_null() {
                     ""
                 } else {
-                    unreachable_rounds.fetch_add(1, Ordering::SeqCst);
+                    unreachable.fetch_add(1, Ordering::SeqCst);
                     " (cluster unreachable: verdict skipped)"
                 };
-                // The cancel comes after a round (the first read the status on EvalAI): from
-                // then on the cancel sweep notices it, or a partial update's own read.
-                if scenario == Scenario::Cancel && output["rounds"] == cancel_after {
-                    if let Ok(mut at) = cancelled_at.lock() {
-                        at.get_or_insert_with(Instant::now);
-                    }
-                    cancel_on(fake.as_deref(), submission);
-                }
-                // A route is under way: the node goes now (once; the watcher ignores more).
-                if let Some(cue) = reclaim_cue
-                    .as_ref()
-                    .filter(|_| output["progress"][0].as_u64() >= Some(1))
-                {
-                    cue.notify_one();
-                }
+                scenario.round_ended(output);
                 say(
                     started,
                     format!(
-                        "monitor round {}: {} routes {}/{}{unreachable}",
+                        "monitor round {}: {} routes {}/{}{skipped}",
                         output["rounds"],
                         output["state"],
                         output["progress"][0],
@@ -523,41 +498,24 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
                     ),
                 );
             }
-        }) as local_stepfunctions::EventCallback
-    };
-    let executor = Executor::new(
-        tasks,
-        Options {
-            time_scale: args.time_scale,
-            deadline: Some(Duration::from_secs(args.timeout)),
-            on_event: Some(on_event),
-            // The handlers run in-process at real speed, and the shared EvalAI budget is a
-            // real minute's requests: a Lambda's timeout is not scaled (its waits are).
-            scale_invocation_timeouts: false,
-            ..Options::default()
-        },
-    )
-    .map_err(|e| anyhow::anyhow!("{e}"))?;
-    late.bind(executor.clone());
-    // Step Functions' "Execution Status Change" events go to Finalize as the reaper, as the
-    // deployment's EventBridge rule sends them.
-    let reaper = spawn_reaper(&executor, reaper_deps);
-    // S3's events and the cancel sweep wake the waiting execution, as in the deployment.
-    let relays = crate::relay::spawn(
-        &stack.sdk,
-        &local_stack::stack::app_template(&settings),
-        &config,
-        executor.clone(),
-        args.time_scale,
-        !args.no_wake,
-    )
-    .await?;
-    // All at once, as EvalAI's messages come: each one's place in the queue is when EvalAI
-    // received it (`submitted_at`), the order of `arrivals`.
+        })
+    }
+}
+
+/// Starts an execution per arrival, all at once, as EvalAI's messages come: each one's place
+/// in the queue is when EvalAI received it (`submitted_at`), the order of `arrivals`.
+async fn start(
+    stack: &Stack,
+    executor: &Executor,
+    (challenge, phase, image): (u64, u64, &str),
+    (arrivals, teams): (&[(u64, u64)], usize),
+    started: Instant,
+) -> anyhow::Result<Vec<(u64, u64, Execution)>> {
+    let machine = machine()?;
     let mut executions = Vec::new();
-    for (id, team) in &arrivals {
-        let input = sqs_round_trip(&stack, challenge, phase, *id, image).await?;
-        if !many {
+    for (id, team) in arrivals {
+        let input = sqs_round_trip(stack, challenge, phase, *id, image).await?;
+        if arrivals.len() == 1 {
             say(
                 started,
                 format!("message for submission {id} received from SQS; Pipe output {input}"),
@@ -568,166 +526,213 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         executions.push((*id, *team, execution));
     }
-    if args.scenario == Scenario::Stop {
-        stop_after_first_round(&executor, executions[0].2.arn(), &rounds, &acted);
-    }
-    if many {
+    if arrivals.len() > 1 {
+        let count = arrivals.len();
         say(
             started,
-            format!(
-                "{} submissions from {} teams arrived",
-                arrivals.len(),
-                teams.len()
-            ),
+            format!("{count} submissions from {teams} teams arrived"),
         );
     }
+    Ok(executions)
+}
+
+/// Every execution's result, followed through its continuations, in arrival order; and each
+/// one's history lengths.
+async fn wait_all(
+    executor: &Executor,
+    executions: Vec<(u64, u64, Execution)>,
+    many: bool,
+    started: Instant,
+) -> (Vec<ExecutionResult>, Vec<Vec<usize>>) {
     let mut results = Vec::new();
     let mut chains = Vec::new();
     for (id, team, execution) in executions {
-        let (result, lengths) = follow(&executor, execution.wait().await).await;
+        let (result, lengths) = follow(executor, execution.wait().await).await;
         chains.push(lengths);
         if many {
+            let status = result.status.as_str();
             say(
                 started,
-                format!(
-                    "submission {id} (team {team}): execution {}",
-                    result.status.as_str()
-                ),
+                format!("submission {id} (team {team}): execution {status}"),
             );
         }
         results.push(result);
     }
-    let ended_without_finalize = results
+    (results, chains)
+}
+
+/// How many executions ended without Finalize (the reaper answers for those).
+fn ended_without_finalize(results: &[ExecutionResult]) -> usize {
+    results
         .iter()
         .filter(|r| {
             let status = local_stack::events::execution_status(Some(r.status));
             lb_domain::reaper::REAPED_STATUSES.contains(&status)
         })
-        .count();
-    let reaped = reaper.collect(ended_without_finalize).await;
-    let result = results.remove(0);
-    let ended = Instant::now();
-    let logs = agent_logs(
-        &stack.sdk,
-        &settings_bucket(&settings, args.leaderboard),
-        submission,
-        args.workers,
-    )
-    .await;
-    let reclaim = match reclaim {
-        Some(watcher) => {
-            let mut report = watcher.finish().await;
-            crate::reclaim::count_route_runs(&logs, &mut report);
-            Some(report)
-        }
-        None => None,
-    };
-    let wake_messages = relays.wake_messages.load(Ordering::Relaxed);
-    let sweep_wakes = relays.sweep_wakes.load(Ordering::Relaxed);
-    drop(relays);
+        .count()
+}
 
-    // The summary: one report, printed for people and written with --report for tests.
-    let on_fake = stack
-        .fake_evalai
-        .as_ref()
-        .and_then(|fake| fake.submission(submission));
-    let status_on_evalai = match (&stack.fake_evalai, &on_fake) {
-        (Some(_), Some(s)) => s.status.clone(),
-        (Some(_), None) => String::new(),
-        // Another EvalAI: ask it, with the client the functions use.
-        (None, _) => match evalai.submission(submission).await {
-            Ok(s) => s.status.as_str().to_string(),
-            Err(e) => format!("(unknown: {e})"),
-        },
-    };
-    let bucket = settings_bucket(&settings, args.leaderboard);
-    let expected = args.scenario.expected();
-    let queue = stack.fake_evalai.as_ref().map(|fake| {
-        crate::queue_report::report(&fake.requests(), &arrivals, |id| {
+/// Everything the summary is made of, once the run ended.
+struct Ran<'a> {
+    args: &'a LocalRun,
+    stack: &'a Stack,
+    settings: &'a lb_domain::settings::Settings,
+    kubeconfig: &'a Path,
+    arrivals: &'a [(u64, u64)],
+    /// The first submission's execution, followed to its end.
+    result: ExecutionResult,
+    chains: &'a [Vec<usize>],
+    reaped: Vec<Value>,
+    logs: &'a [String],
+    findings: Findings,
+    watch: &'a Watch,
+    /// The scenario did its act (or had none).
+    acted: bool,
+    /// Messages S3's events sent, and the sweep's wakes.
+    wakes: (u64, u64),
+    /// When the run started and when its executions ended.
+    times: (Instant, Instant),
+    record_log: &'a Path,
+    expected: &'static str,
+}
+
+impl Ran<'_> {
+    /// The submission on the fake EvalAI, and its status there (or on another EvalAI, asked
+    /// with the client the functions use).
+    async fn on_evalai(
+        &self,
+        evalai: &lb_evalai::EvalAiClient,
+    ) -> (Option<fake_evalai::SubmissionSnapshot>, String) {
+        let submission = self.arrivals[0].0;
+        let Some(fake) = &self.stack.fake_evalai else {
+            let status = match evalai.submission(submission).await {
+                Ok(s) => s.status.as_str().to_string(),
+                Err(e) => format!("(unknown: {e})"),
+            };
+            return (None, status);
+        };
+        let on_fake = fake.submission(submission);
+        let status = on_fake
+            .as_ref()
+            .map(|s| s.status.clone())
+            .unwrap_or_default();
+        (on_fake, status)
+    }
+
+    /// What the fake EvalAI saw: each submission's statuses and the requests (the queue
+    /// report), and with `--latency` how long results took to reach it.
+    fn on_fake_evalai(&self) -> (Option<crate::queue_report::QueueReport>, Option<Latency>) {
+        let Some(fake) = &self.stack.fake_evalai else {
+            return (None, None);
+        };
+        let requests = fake.requests();
+        let queue = crate::queue_report::report(&requests, self.arrivals, |id| {
             fake.submission(id)
                 .map(|s| (s.status.clone(), s.files.stderr.clone()))
-        })
-    });
-    let latency = match (args.latency, &stack.fake_evalai) {
-        (true, Some(fake)) => {
-            let log = std::fs::read_to_string(&record_log).unwrap_or_default();
-            Some(crate::latency::measure(&log, &fake.requests(), submission))
-        }
-        _ => None,
-    };
-    let report = RunReport {
-        scenario: format!("{:?}", args.scenario),
-        expected,
-        ok: acted.load(Ordering::SeqCst)
+        });
+        let latency = self.args.latency.then(|| {
+            let log = std::fs::read_to_string(self.record_log).unwrap_or_default();
+            crate::latency::measure(&log, &requests, self.arrivals[0].0)
+        });
+        (Some(queue), latency)
+    }
+
+    /// The run's report: what EvalAI shows, what the run left, and whether it is as expected;
+    /// with the latencies measured (`--latency`).
+    async fn report(self, evalai: &lb_evalai::EvalAiClient) -> (RunReport, Option<Latency>) {
+        let (args, stack, submission) = (self.args, self.stack, self.arrivals[0].0);
+        let many = self.arrivals.len() > 1;
+        let (on_fake, status_on_evalai) = self.on_evalai(evalai).await;
+        let bucket = settings_bucket(self.settings, args.leaderboard);
+        let expected = self.expected;
+        let (queue, latency) = self.on_fake_evalai();
+        let reclaim = self.findings.reclaim;
+        let ok = self.acted
             && reclaim
                 .as_ref()
                 .is_none_or(crate::reclaim::ReclaimReport::as_expected)
             && status_on_evalai == expected
             && queue
                 .as_ref()
-                .is_none_or(|q| !many || q.submissions.iter().all(|s| s.status == expected)),
-        execution: result.status.as_str().to_string(),
-        history_events: chains[0].iter().copied().max().unwrap_or_default(),
-        executions: chains[0].len(),
-        rounds: rounds.load(Ordering::SeqCst),
-        state_transitions: result
-            .history
-            .iter()
-            .filter(|e| e.event_type.as_str().ends_with("StateEntered"))
-            .count(),
-        error: result
-            .error
-            .as_ref()
-            .map(|e| format!("{e}: {}", result.cause.clone().unwrap_or_default())),
-        caught_error: result
-            .output
-            .as_ref()
-            .and_then(lb_domain::finalize::caught_error)
-            .map(|c| clean(&c)),
-        evalai_status: status_on_evalai,
-        evalai_stderr: on_fake
-            .as_ref()
-            .and_then(|s| s.files.stderr.clone())
-            .filter(|e| !e.trim().is_empty()),
-        evalai_stdout: on_fake.as_ref().and_then(|s| s.files.stdout.clone()),
-        scores: on_fake
-            .as_ref()
-            .and_then(|s| s.leaderboard.first())
-            .map(|row| row.result.clone()),
-        merged: merged_summary(&stack.sdk, &bucket, submission).await,
-        simulator_gpus: simulator_gpus(&stack.sdk, &bucket, submission, args.workers).await,
-        agent_gpus: agent_gpus(&logs),
-        reclaim,
-        wake_messages,
-        sweep_wakes,
-        unreachable_rounds: unreachable_rounds.load(Ordering::SeqCst),
-        // Finalize deletes the Jobs in the foreground: when the execution ends, they are gone.
-        cancel_to_end_seconds: cancelled_at
-            .lock()
-            .ok()
-            .and_then(|at| *at)
-            .map(|at| ended.saturating_duration_since(at).as_secs_f64()),
-        stages: stage_times(&result.history),
-        results: format!("s3://{bucket}/{submission}/"),
-        pod_logs: stack.workdir.path().join("pods"),
-        seconds: started.elapsed().as_secs_f64(),
-        queue,
-        reaped,
-        left_behind: left_behind(
-            &stack.sdk,
-            &settings,
-            args.leaderboard,
-            &kubeconfig,
-            (arrivals[0].1, submission),
-        )
-        .await,
-    };
-    report.print(&args, &stack.moto.endpoint(), latency.as_ref(), many);
+                .is_none_or(|q| !many || q.all_ended(expected));
+        let result = &self.result;
+        let (started, ended) = self.times;
+        let report = RunReport {
+            scenario: format!("{:?}", args.scenario),
+            expected,
+            ok,
+            execution: result.status.as_str().to_string(),
+            history_events: self.chains[0].iter().copied().max().unwrap_or_default(),
+            executions: self.chains[0].len(),
+            rounds: self.watch.rounds.load(Ordering::SeqCst),
+            state_transitions: result
+                .history
+                .iter()
+                .filter(|e| e.event_type.as_str().ends_with("StateEntered"))
+                .count(),
+            error: result
+                .error
+                .as_ref()
+                .map(|e| format!("{e}: {}", result.cause.clone().unwrap_or_default())),
+            caught_error: result
+                .output
+                .as_ref()
+                .and_then(lb_domain::finalize::caught_error)
+                .map(|c| clean(&c)),
+            evalai_status: status_on_evalai,
+            evalai_stderr: on_fake
+                .as_ref()
+                .and_then(|s| s.files.stderr.clone())
+                .filter(|e| !e.trim().is_empty()),
+            evalai_stdout: on_fake.as_ref().and_then(|s| s.files.stdout.clone()),
+            scores: on_fake
+                .as_ref()
+                .and_then(|s| s.leaderboard.first())
+                .map(|row| row.result.clone()),
+            merged: merged_summary(&stack.sdk, &bucket, submission).await,
+            simulator_gpus: simulator_gpus(&stack.sdk, &bucket, submission, args.workers).await,
+            agent_gpus: agent_gpus(self.logs),
+            reclaim,
+            wake_messages: self.wakes.0,
+            sweep_wakes: self.wakes.1,
+            unreachable_rounds: self.watch.unreachable_rounds.load(Ordering::SeqCst),
+            // Finalize deletes the Jobs in the foreground: when the execution ends, they are
+            // gone.
+            cancel_to_end_seconds: self
+                .findings
+                .cancelled_at
+                .map(|at| ended.saturating_duration_since(at).as_secs_f64()),
+            stages: stage_times(&result.history),
+            results: format!("s3://{bucket}/{submission}/"),
+            pod_logs: stack.workdir.path().join("pods"),
+            seconds: started.elapsed().as_secs_f64(),
+            queue,
+            reaped: self.reaped,
+            left_behind: left_behind(
+                &stack.sdk,
+                self.settings,
+                args.leaderboard,
+                self.kubeconfig,
+                (self.arrivals[0].1, submission),
+            )
+            .await,
+        };
+        (report, latency)
+    }
+}
+
+/// Prints and writes the report, keeps the stack up when asked: the exit code.
+async fn finish(
+    args: &LocalRun,
+    stack: &Stack,
+    (report, latency, many): (RunReport, Option<Latency>, bool),
+    kubeconfig: &Path,
+) -> anyhow::Result<u8> {
+    report.print(args, &stack.moto.endpoint(), latency.as_ref(), many);
     if let Some(path) = &args.report {
         std::fs::write(path, serde_json::to_string_pretty(&report)?)
             .with_context(|| format!("writing {}", path.display()))?;
     }
-    let ok = report.ok;
     if args.keep {
         outln!(
             "\nthe stack stays up (kubeconfig {}); Ctrl-C to stop",
@@ -735,7 +740,8 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         );
         let _ = tokio::signal::ctrl_c().await;
     }
-    if ok {
+    let expected = report.expected;
+    if report.ok {
         outln!(
             "OK: the {:?} scenario ended {expected} as expected",
             args.scenario
@@ -977,31 +983,6 @@ fn spawn_reaper(
     Reaper { answers }
 }
 
-/// Stops execution `arn` once its first Monitor round began (the stop scenario's act).
-fn stop_after_first_round(
-    executor: &Executor,
-    arn: &str,
-    rounds: &Arc<AtomicU64>,
-    acted: &Arc<AtomicBool>,
-) {
-    let (executor, arn, rounds, acted) = (
-        executor.clone(),
-        arn.to_string(),
-        rounds.clone(),
-        acted.clone(),
-    );
-    tokio::spawn(async move {
-        while rounds.load(Ordering::SeqCst) < 1 {
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-        // After the round: the run has Jobs and its team a place.
-        tokio::time::sleep(Duration::from_secs(2)).await;
-        if executor.stop(&arn) {
-            acted.store(true, Ordering::SeqCst);
-        }
-    });
-}
-
 /// What an ended run left: its Jobs, its team's places, its record's status.
 async fn left_behind(
     sdk: &aws_config::SdkConfig,
@@ -1059,94 +1040,6 @@ fn settings_bucket(settings: &lb_domain::settings::Settings, leaderboard: Leader
         .get(&leaderboard)
         .map(|l| l.bucket.clone())
         .unwrap_or_default()
-}
-
-/// A handler's result as Lambda reports it to Step Functions.
-fn lambda(result: Result<Value, FnError>) -> Result<Value, TaskError> {
-    result.map_err(|e| TaskError::lambda(e.name(), e.chain()))
-}
-
-/// The scenario's intervention at monitor round `n`; `false` when it could not be done.
-fn act(scenario: Scenario, n: u64) -> bool {
-    if scenario != Scenario::Crash {
-        return true;
-    }
-    // This run's own CARLA (a descendant of this process: local-kube runs in it), never
-    // another local run's beside it; of this run's, the one on the lowest port.
-    let Some((pid, port)) = own_carla() else {
-        outln!("           scenario: round {n}: no CARLA of this run to kill");
-        return false;
-    };
-    let killed = std::process::Command::new("kill")
-        .args(["-KILL", &pid.to_string()])
-        .status()
-        .is_ok_and(|s| s.success());
-    outln!("           scenario: round {n}: CARLA on port {port} killed: {killed}");
-    killed
-}
-
-/// The process id and RPC port of this process's descendant CARLA (`./CarlaUE4.sh ...`, not
-/// the sidecar that wraps it) on the lowest port, read from `/proc`.
-fn own_carla() -> Option<(u32, u16)> {
-    let mut parent = std::collections::HashMap::new();
-    let mut carla = Vec::new();
-    for entry in std::fs::read_dir("/proc").ok()?.flatten() {
-        let Some(pid) = entry
-            .file_name()
-            .to_str()
-            .and_then(|n| n.parse::<u32>().ok())
-        else {
-            continue;
-        };
-        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else {
-            continue;
-        };
-        // `pid (comm) state ppid ...`: comm may hold spaces and parentheses.
-        let ppid = stat
-            .rsplit_once(')')
-            .and_then(|(_, rest)| rest.split_whitespace().nth(1))
-            .and_then(|p| p.parse::<u32>().ok());
-        if let Some(ppid) = ppid {
-            parent.insert(pid, ppid);
-        }
-        let argv = std::fs::read(entry.path().join("cmdline")).unwrap_or_default();
-        let mut args = argv.split(|b| *b == 0).map(String::from_utf8_lossy);
-        if args.next().as_deref() == Some("./CarlaUE4.sh") {
-            let port = args.find_map(|a| {
-                a.strip_prefix("-carla-rpc-port=")
-                    .and_then(|p| p.parse().ok())
-            });
-            carla.push((pid, port.unwrap_or(u16::MAX)));
-        }
-    }
-    let me = std::process::id();
-    let ours = |mut pid: u32| {
-        while let Some(&up) = parent.get(&pid) {
-            if up == me {
-                return true;
-            }
-            pid = up;
-        }
-        false
-    };
-    carla
-        .into_iter()
-        .filter(|(pid, _)| ours(*pid))
-        .min_by_key(|(_, port)| *port)
-}
-
-/// The participant cancels on the fake EvalAI (its admin endpoint, as the participant's
-/// button would), without holding up the executor's event callback.
-fn cancel_on(fake: Option<&str>, submission: u64) {
-    if let Some(url) = fake {
-        let url = format!("{url}/_admin/submissions/{submission}/cancel");
-        std::thread::spawn(move || {
-            let status = std::process::Command::new("curl")
-                .args(["-s", "-o", "/dev/null", "-X", "POST", &url])
-                .status();
-            outln!("           scenario: the participant cancels ({status:?})");
-        });
-    }
 }
 
 /// Seconds spent in each state, summed over its visits.

@@ -407,9 +407,10 @@ fn shipped_source(rel: &str) -> bool {
 
 #[test]
 fn no_shipped_function_is_longer_than_a_screen() {
+    // The rehearsal's run too: a newcomer adds a scenario there.
     let long: Vec<String> = files(&["rs"])
         .into_iter()
-        .filter(|(_, rel)| shipped_source(rel))
+        .filter(|(_, rel)| shipped_source(rel) || rel.starts_with("local/cli/src/"))
         .flat_map(|(path, rel)| {
             let source = std::fs::read_to_string(path).unwrap();
             long_functions(&source, MAX_FUNCTION_LINES)

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 use aws_sdk_dynamodb::types::AttributeValue;
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{Action, IntakeInput, RunPhase, RunState, SubmissionInfo};
+use local_cli::wiring::{Handlers, Pace};
 use local_stack::stack::LOCAL_SETTINGS;
 use local_stack::workloads::{Behaviour, Binaries};
 use local_stack::Stack;
@@ -23,14 +24,21 @@ struct Harness {
     finalize: finalize::Deps,
 }
 
-fn fast_timers() -> lb_jobs::Timers {
-    lb_jobs::Timers {
-        start_wait_seconds: 60,
-        end_wait_seconds: 30,
-        carla_ready_seconds: 30,
-        poll_seconds: 1,
-        max_idle_seconds: 60,
-        logcopy_period_seconds: 1,
+/// The rehearsal's wiring of the handlers (`lbctl local run`'s), with sidecar timers for
+/// runs of a few short routes and production's Monitor policy.
+fn pace() -> Pace {
+    Pace {
+        timers: lb_jobs::Timers {
+            start_wait_seconds: 60,
+            end_wait_seconds: 30,
+            carla_ready_seconds: 30,
+            poll_seconds: 1,
+            max_idle_seconds: 60,
+            logcopy_period_seconds: 1,
+        },
+        delete_wait: Duration::from_secs(30),
+        never_fits_grace: None,
+        history_budget: None,
     }
 }
 
@@ -43,20 +51,15 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
     stack
         .start_workloads(&settings, &bins, &behaviour, unpullable)
         .unwrap();
-    let config = local_stack::stack::function_config();
-    let clusters = || Clusters::kubeconfig(stack.kubeconfig.clone().unwrap());
-    let intake = intake::Deps::load(&stack.sdk, &config).await.unwrap();
-    let mut launch = launch::Deps::load(&stack.sdk, &config, clusters())
+    let kubeconfig = stack.kubeconfig.clone().unwrap();
+    let Handlers {
+        intake,
+        launch,
+        monitor,
+        finalize,
+    } = Handlers::load(&stack.sdk, kubeconfig, &pace())
         .await
         .unwrap();
-    launch.timers = Some(fast_timers());
-    let monitor = monitor::Deps::load(&stack.sdk, &config, clusters())
-        .await
-        .unwrap();
-    let mut finalize = finalize::Deps::load(&stack.sdk, &config, clusters())
-        .await
-        .unwrap();
-    finalize.delete_wait = Duration::from_secs(30);
     Harness {
         stack,
         intake,

@@ -1,0 +1,171 @@
+//! What `lbctl local run` rehearses: one type per scenario, in a file of its own, saying what
+//! it sets up (the fakes' switches, the node), what it injects during the run, and how the
+//! submission must end. Adding one is a file here and a line in [`Scenario`].
+
+mod cancel;
+mod crash;
+mod crash_loop;
+mod forge;
+mod hang;
+mod happy;
+mod no_node;
+mod plant_gpu;
+mod spot;
+mod stop;
+mod unpullable;
+mod wake_flood;
+
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, AtomicU64};
+use std::sync::Arc;
+use std::time::Instant;
+
+use clap::ValueEnum;
+use local_stack::workloads::Behaviour;
+use local_stepfunctions::Executor;
+use serde_json::Value;
+
+use crate::reclaim::ReclaimReport;
+
+/// The participant's image of every scenario but the unpullable one.
+pub const IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local";
+
+/// What the run rehearses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Scenario {
+    /// Everything works: FINISHED with scores.
+    Happy,
+    /// CARLA of the first pair is killed mid-route: crash markers, restart, resume, FINISHED.
+    Crash,
+    /// The first pair's evaluator hangs: the idle watchdog ends it, it resumes, FINISHED.
+    Hang,
+    /// The participant cancels on EvalAI after the first round: CANCELLED once the sweep (or
+    /// a partial update's status read) notices, nothing left.
+    Cancel,
+    /// The participant's image cannot be pulled: FAILED with a message naming it.
+    Unpullable,
+    /// The first pair's evaluator crashes at every attempt: out of retries, FAILED, and the
+    /// participant's stderr shows the reason and the end of that agent's output.
+    CrashLoop,
+    /// The cluster's node has another GPU model than the leaderboard's: the autoscaler says no
+    /// node group could hold the pods, FAILED at once naming the labels the pods need (a
+    /// configuration problem of the leaderboard), none of the participant's time used.
+    NoNode,
+    /// Every agent rewrites a file in its status directory and its own results file several
+    /// times a second for the whole run: only the protocol's files wake the execution, rounds
+    /// come no sooner than the least interval, and a history near its budget continues as a
+    /// new execution. FINISHED.
+    WakeFlood,
+    /// Every other pair's agent writes pair 2's results file and done marker in its own pod:
+    /// none of it leaves the pod, pair 2's honest results stand, FINISHED.
+    Forge,
+    /// Every agent plants another GPU's UUID in its pair's handoff and crashes once: each
+    /// simulator renders on its own pair's GPU at every attempt, FINISHED (a node of 4 GPUs
+    /// unless --gpus says otherwise).
+    PlantGpu,
+    /// The node is reclaimed mid-route (a Spot interruption: the managed node group drains it
+    /// through the Eviction API): every pod gets the `DisruptionTarget` condition and a new
+    /// pod replaces it once it has stopped, without using a retry; each interrupted route runs
+    /// again once. FINISHED (routes of at least 1.5 s, so that the drain lands mid-route).
+    Spot,
+    /// An operator stops the execution (StopExecution) after its first Monitor round: the
+    /// reaper (Finalize, on Step Functions' status-change event, which local mode delivers as
+    /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
+    /// `failed` with the reason and writes the final record.
+    Stop,
+}
+
+impl Scenario {
+    /// This scenario, for one run.
+    pub fn rehearsal(self) -> Box<dyn Rehearsal> {
+        match self {
+            Scenario::Happy => Box::new(happy::Happy),
+            Scenario::Crash => Box::new(crash::Crash),
+            Scenario::Hang => Box::new(hang::Hang),
+            Scenario::Cancel => Box::new(cancel::Cancel::default()),
+            Scenario::Unpullable => Box::new(unpullable::Unpullable),
+            Scenario::CrashLoop => Box::new(crash_loop::CrashLoop),
+            Scenario::NoNode => Box::new(no_node::NoNode),
+            Scenario::WakeFlood => Box::new(wake_flood::WakeFlood),
+            Scenario::Forge => Box::new(forge::Forge),
+            Scenario::PlantGpu => Box::new(plant_gpu::PlantGpu),
+            Scenario::Spot => Box::new(spot::Spot::default()),
+            Scenario::Stop => Box::new(stop::Stop),
+        }
+    }
+}
+
+/// What a run tells its scenario before the executions start.
+pub struct Begin {
+    /// The local cluster's kubeconfig.
+    pub kubeconfig: PathBuf,
+    /// The submission the scenario acts on (the first to arrive).
+    pub submission: u64,
+    /// The fake EvalAI's address (none with another EvalAI).
+    pub fake_evalai: Option<String>,
+    /// `--cancel-after-round`.
+    pub cancel_after_round: u64,
+    /// Set once the scenario did its act (for those that [`act`](Rehearsal::acts)).
+    pub acted: Arc<AtomicBool>,
+}
+
+/// What a scenario found, for the report.
+#[derive(Debug, Default)]
+pub struct Findings {
+    /// The spot scenario's reclaim: evictions, retries, routes run again.
+    pub reclaim: Option<ReclaimReport>,
+    /// When the participant cancelled (the cancel scenario).
+    pub cancelled_at: Option<Instant>,
+}
+
+/// A scenario for one run: what it sets up, what it injects, what it expects. Every hook but
+/// [`expected`](Self::expected) does nothing unless the scenario says otherwise.
+pub trait Rehearsal: Send + Sync {
+    /// EvalAI's status the submission must end with (`finished`, `failed`, `cancelled`).
+    fn expected(&self) -> &'static str;
+
+    /// The images' and the node's behaviour (`once`: a folder for once-only faults).
+    fn set_up(&self, _behaviour: &mut Behaviour, _once: &Path) {}
+
+    /// The participant's image.
+    fn image(&self) -> &'static str {
+        IMAGE
+    }
+
+    /// Whether it acts during the run: the run is as expected only once it did.
+    fn acts(&self) -> bool {
+        false
+    }
+
+    /// Before the executions start.
+    fn begin(&self, _run: &Begin) {}
+
+    /// Once the executions started (the first one's ARN), with the Monitor rounds counted so
+    /// far and the flag of [`Begin::acted`].
+    fn started(
+        &self,
+        _executor: &Executor,
+        _arn: &str,
+        _rounds: &Arc<AtomicU64>,
+        _acted: &Arc<AtomicBool>,
+    ) {
+    }
+
+    /// Monitor round `n` begins: its act, `true` once done (tried every round until then).
+    fn round_begins(&self, _n: u64) -> bool {
+        true
+    }
+
+    /// A Monitor round ended, its run state's `monitor` part as it left it.
+    fn round_ended(&self, _monitor: &Value) {}
+
+    /// What it found, once the run ended (`logs`: each pair's agent log).
+    fn finish<'a>(
+        &'a self,
+        _logs: &'a [String],
+    ) -> Pin<Box<dyn Future<Output = Findings> + Send + 'a>> {
+        Box::pin(async { Findings::default() })
+    }
+}

@@ -1,0 +1,76 @@
+//! The node is reclaimed mid-route (a Spot interruption: the managed node group drains it
+//! through the Eviction API): every pod is replaced without using a retry, each interrupted
+//! route runs again once. FINISHED.
+
+use std::path::Path;
+use std::pin::Pin;
+use std::sync::{Mutex, PoisonError};
+
+use local_stack::workloads::Behaviour;
+use serde_json::Value;
+
+use super::{Begin, Findings, Rehearsal};
+use crate::reclaim::{count_route_runs, Reclaim};
+
+/// The least seconds per route: the drain must land mid-route.
+const SPOT_ROUTE_SECONDS: f64 = 1.5;
+
+/// A Spot node's reclaim.
+#[derive(Default)]
+pub struct Spot {
+    watcher: Mutex<Option<Reclaim>>,
+}
+
+impl Rehearsal for Spot {
+    fn expected(&self) -> &'static str {
+        "finished"
+    }
+
+    fn set_up(&self, behaviour: &mut Behaviour, _once: &Path) {
+        behaviour.route_seconds = behaviour.route_seconds.max(SPOT_ROUTE_SECONDS);
+        behaviour.node_capacity = lb_domain::settings::Capacity::Spot;
+    }
+
+    fn acts(&self) -> bool {
+        true
+    }
+
+    fn begin(&self, run: &Begin) {
+        let watcher = Reclaim::spawn(run.kubeconfig.clone(), run.submission, run.acted.clone());
+        *self.watcher.lock().unwrap_or_else(PoisonError::into_inner) = Some(watcher);
+    }
+
+    /// A route is under way: the node goes now (once; the watcher ignores more cues).
+    fn round_ended(&self, monitor: &Value) {
+        if monitor["progress"][0].as_u64() >= Some(1) {
+            if let Some(watcher) = &*self.watcher.lock().unwrap_or_else(PoisonError::into_inner) {
+                watcher.cue().notify_one();
+            }
+        }
+    }
+
+    fn finish<'a>(
+        &'a self,
+        logs: &'a [String],
+    ) -> Pin<Box<dyn std::future::Future<Output = Findings> + Send + 'a>> {
+        let watcher = self
+            .watcher
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        Box::pin(async move {
+            let reclaim = match watcher {
+                Some(watcher) => {
+                    let mut report = watcher.finish().await;
+                    count_route_runs(logs, &mut report);
+                    Some(report)
+                }
+                None => None,
+            };
+            Findings {
+                reclaim,
+                ..Findings::default()
+            }
+        })
+    }
+}
