@@ -457,14 +457,23 @@ const TYPED_WORDS: &[&str] = &[
 /// is parsing, and allowed.
 fn string_comparisons(source: &str) -> Vec<String> {
     let mut found = Vec::new();
-    let mut in_matches = false;
+    // Parentheses still open in a `matches!(...)` that started on an earlier line.
+    let mut open = 0i32;
     for line in source.lines() {
         if line.trim_start().starts_with("#[cfg(test)]") {
             break;
         }
         let code = line.split("//").next().unwrap_or_default();
-        in_matches = (in_matches || code.contains("matches!(")) && !code.contains(");");
-        let matched = code.contains("matches!(") || in_matches;
+        let matched = open > 0 || code.contains("matches!(");
+        if matched {
+            let from = if open > 0 {
+                code
+            } else {
+                &code[code.find("matches!(").unwrap_or(0)..]
+            };
+            open += from.matches('(').count() as i32 - from.matches(')').count() as i32;
+            open = open.max(0);
+        }
         for word in TYPED_WORDS {
             let quoted = format!("\"{word}\"");
             let compared = [
