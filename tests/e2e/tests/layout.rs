@@ -10,6 +10,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use lb_domain::results::Leaderboard;
+use lb_domain::submission::SubmissionStatus;
 use serde_json::Value;
 
 fn root() -> PathBuf {
@@ -421,41 +423,25 @@ fn no_shipped_function_is_longer_than_a_screen() {
     assert!(long.is_empty(), "split these:\n{}", long.join("\n"));
 }
 
-/// Words of the statuses, outcomes and leaderboards we keep as types (`lb_domain::status`,
-/// `SubmissionStatus`, `Leaderboard`): past parsing, none is compared as a string.
-const TYPED_WORDS: &[&str] = &[
-    "SUBMITTED",
-    "RESUMING",
-    "RUNNING",
-    "FINISHED",
-    "FAILED",
-    "CANCELLED",
-    "SUCCEEDED",
-    "TIMED_OUT",
-    "ABORTED",
-    "PENDING_REDRIVE",
-    "UNCLAIMED",
-    "SUPERSEDED",
-    "submitted",
-    "submitting",
-    "queued",
-    "running",
-    "resuming",
-    "partially_evaluated",
-    "finished",
-    "failed",
-    "cancelled",
-    "archived",
-    "left",
-    "released",
-    "1.0",
-    "2.0",
-];
+/// The words of the statuses, outcomes and leaderboards we keep as types (`lb_domain::status`,
+/// `SubmissionStatus`, `Leaderboard`), from the types themselves: past parsing, none is
+/// compared as a string.
+fn typed_words() -> Vec<&'static str> {
+    use lb_domain::status::{ExecutionStatus, Reaping, RecordStatus, Settled};
+    let mut words: Vec<&'static str> = RecordStatus::ALL.iter().map(|s| s.as_str()).collect();
+    words.extend(ExecutionStatus::ALL.iter().map(|s| s.as_str()));
+    words.extend(SubmissionStatus::ALL.iter().map(|s| s.as_str()));
+    words.extend([Settled::Unclaimed, Settled::Superseded].map(Settled::as_str));
+    words.extend([Reaping::Left, Reaping::Released].map(Reaping::as_str));
+    words.extend([Leaderboard::V1, Leaderboard::V2].map(Leaderboard::as_str));
+    words
+}
 
-/// The lines of shipped code (outside `#[cfg(test)]`) that compare one of [`TYPED_WORDS`] as a
+/// The lines of shipped code (outside `#[cfg(test)]`) that compare one of [`typed_words`] as a
 /// string: `== "word"`, `"word" !=`, `matches!(x, "word" | ...)`. A `match` arm (`"word" =>`)
 /// is parsing, and allowed.
 fn string_comparisons(source: &str) -> Vec<String> {
+    let words = typed_words();
     let mut found = Vec::new();
     // Parentheses still open in a `matches!(...)` that started on an earlier line.
     let mut open = 0i32;
@@ -474,7 +460,7 @@ fn string_comparisons(source: &str) -> Vec<String> {
             open += from.matches('(').count() as i32 - from.matches(')').count() as i32;
             open = open.max(0);
         }
-        for word in TYPED_WORDS {
+        for word in &words {
             let quoted = format!("\"{word}\"");
             let compared = [
                 format!("== {quoted}"),

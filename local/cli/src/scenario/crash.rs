@@ -35,51 +35,20 @@ impl Rehearsal for Crash {
 }
 
 /// The process id and RPC port of this process's descendant CARLA (`./CarlaUE4.sh ...`, not
-/// the sidecar that wraps it) on the lowest port, read from `/proc`.
+/// the sidecar that wraps it) on the lowest port.
 fn own_carla() -> Option<(u32, u16)> {
-    let mut parent = std::collections::HashMap::new();
-    let mut carla = Vec::new();
-    for entry in std::fs::read_dir("/proc").ok()?.flatten() {
-        let Some(pid) = entry
-            .file_name()
-            .to_str()
-            .and_then(|n| n.parse::<u32>().ok())
-        else {
-            continue;
-        };
-        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else {
-            continue;
-        };
-        // `pid (comm) state ppid ...`: comm may hold spaces and parentheses.
-        let ppid = stat
-            .rsplit_once(')')
-            .and_then(|(_, rest)| rest.split_whitespace().nth(1))
-            .and_then(|p| p.parse::<u32>().ok());
-        if let Some(ppid) = ppid {
-            parent.insert(pid, ppid);
-        }
-        let argv = std::fs::read(entry.path().join("cmdline")).unwrap_or_default();
-        let mut args = argv.split(|b| *b == 0).map(String::from_utf8_lossy);
-        if args.next().as_deref() == Some("./CarlaUE4.sh") {
+    let me = nix::unistd::Pid::from_raw(i32::try_from(std::process::id()).ok()?);
+    sidecar::supervise::descendants(me)
+        .into_iter()
+        .filter_map(|pid| {
+            let argv = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
+            let mut args = argv.split(|b| *b == 0).map(String::from_utf8_lossy);
+            (args.next().as_deref() == Some("./CarlaUE4.sh")).then_some(())?;
             let port = args.find_map(|a| {
                 a.strip_prefix("-carla-rpc-port=")
                     .and_then(|p| p.parse().ok())
             });
-            carla.push((pid, port.unwrap_or(u16::MAX)));
-        }
-    }
-    let me = std::process::id();
-    let ours = |mut pid: u32| {
-        while let Some(&up) = parent.get(&pid) {
-            if up == me {
-                return true;
-            }
-            pid = up;
-        }
-        false
-    };
-    carla
-        .into_iter()
-        .filter(|(pid, _)| ours(*pid))
+            Some((u32::try_from(pid.as_raw()).ok()?, port.unwrap_or(u16::MAX)))
+        })
         .min_by_key(|(_, port)| *port)
 }
