@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use aws_config::SdkConfig;
 use lb_pipeline::cluster::Clusters;
-use lb_pipeline::{FnError, FunctionConfig};
+use lb_pipeline::FnError;
 use local_stack::events::LateCallbacks;
 use local_stepfunctions::{TaskError, TaskMap};
 use serde_json::Value;
@@ -48,17 +48,7 @@ impl Handlers {
         kubeconfig: PathBuf,
         pace: &Pace,
     ) -> Result<Handlers, FnError> {
-        let config = local_stack::stack::function_config();
-        Self::load_with(sdk, &config, kubeconfig, pace).await
-    }
-
-    /// [`load`](Self::load) with a function configuration of the caller's.
-    pub async fn load_with(
-        sdk: &SdkConfig,
-        config: &FunctionConfig,
-        kubeconfig: PathBuf,
-        pace: &Pace,
-    ) -> Result<Handlers, FnError> {
+        let config = &local_stack::stack::function_config();
         let clusters = || Clusters::kubeconfig(kubeconfig.clone());
         let intake = intake::Deps::load(sdk, config).await?;
         let mut launch = launch::Deps::load(sdk, config, clusters()).await?;

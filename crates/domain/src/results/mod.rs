@@ -102,16 +102,15 @@ impl serde::Serialize for Leaderboard {
 
 impl<'de> serde::Deserialize<'de> for Leaderboard {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        // Only the short name: the command line's aliases (`FromStr`) are not a stored word.
         let word = String::deserialize(d)?;
-        [Leaderboard::V1, Leaderboard::V2]
-            .into_iter()
-            .find(|lb| lb.as_str() == word)
-            .ok_or_else(|| {
-                serde::de::Error::custom(format!(
-                    "unknown leaderboard `{}`, expected `1.0` or `2.0`",
-                    word.escape_debug()
-                ))
-            })
+        match word.parse::<Leaderboard>() {
+            Ok(lb) if lb.as_str() == word => Ok(lb),
+            _ => Err(serde::de::Error::custom(format!(
+                "unknown leaderboard `{}`, expected `1.0` or `2.0`",
+                word.escape_debug()
+            ))),
+        }
     }
 }
 
