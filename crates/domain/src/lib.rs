@@ -2,6 +2,7 @@
 
 pub mod audit;
 pub mod autoscaler;
+pub mod closing;
 pub mod cluster;
 pub mod cost;
 pub mod errors;

@@ -1,0 +1,765 @@
+//! Finalize's end of a run without I/O: the shell performs each [`Step`] and gives back what
+//! it found as an [`Answer`]; [`Closing`] decides, in this one place, what happens and in
+//! which order.
+//!
+//! Only the execution that holds the claim ends the run, once: a superseded one touches
+//! nothing, and a repeated one reports what stands and gives the place back. Otherwise the
+//! Jobs stop first (GPUs cost money, and their logcopy makes its last upload on the way out),
+//! then what the run left is read and the final status decided
+//! ([`crate::finalize::outcome`]); results that cannot be read for now fail the attempt (the
+//! state machine retries it) unless the outcome does not need them. A failed run's
+//! participant reads the end of its most crashed agent's log; a passed qualifier admits its
+//! team. EvalAI gets the final word before the record, and the place is given back last, so
+//! the team never shows more evaluations in progress than its cap.
+
+use std::collections::HashSet;
+
+use crate::audit::{self, Recordings};
+use crate::finalize::{self, Outcome, Posted};
+use crate::protocol::CANCEL_MARKER;
+use crate::py::Num;
+use crate::run::{RunPhase, RunState};
+use crate::settings::QualifierSettings;
+use crate::status::{RecordStatus, Settled};
+use crate::submission::SubmissionStatus;
+
+/// What Finalize knows before it reads anything.
+#[derive(Debug, Clone, Copy)]
+pub struct Context<'a> {
+    /// The execution this Finalize runs in (the claim it must hold).
+    pub execution: &'a str,
+    /// The error a Catch caught on the way here.
+    pub caught: Option<&'a str>,
+    /// The run, when Launch started one.
+    pub run: Option<&'a RunState>,
+    /// The submission's track.
+    pub track: &'a str,
+    /// The qualifier's settings, when the track is a qualifier.
+    pub qualifier: Option<&'a QualifierSettings>,
+}
+
+/// What the shell is asked to do next.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Step {
+    /// Read the submission's record ([`Answer::Standing`]).
+    ReadStanding,
+    /// Delete this execution's Jobs and wait, bounded, for their pods ([`Answer::Done`]).
+    StopJobs,
+    /// Read the markers, and the merged results when there was a run ([`Answer::Left`]).
+    ReadLeft,
+    /// The results could not be read for now and the outcome needs them: fail with the
+    /// read's error, so the state machine tries Finalize again.
+    TryAgain,
+    /// Read the end of this pair's agent log ([`Answer::Tail`]).
+    ReadAgentTail(u32),
+    /// Admit the team to these main tracks: it passed their qualifier ([`Answer::Done`]).
+    Admit(Vec<String>),
+    /// Post the final update to EvalAI ([`Answer::Posted`]).
+    Post {
+        /// The final status.
+        status: SubmissionStatus,
+        /// The participant's stdout: the pairs note, the qualifier's verdict, the summary.
+        stdout: String,
+        /// The participant's stderr: the reason and the agent's log tail.
+        stderr: String,
+    },
+    /// List the uploaded logs ([`Answer::Logs`]), to count the recordings.
+    ListLogs,
+    /// Write the final record ([`Answer::Recorded`]).
+    WriteRecord {
+        /// The record's status.
+        status: RecordStatus,
+        /// The error operators read: the whole caught chain, or the outcome's reason.
+        error: Option<String>,
+        /// What can be audited of a FINISHED result (`None`: another outcome, or the logs
+        /// could not be listed).
+        recordings: Option<Recordings>,
+    },
+    /// Add this run's duration to its track's pace, best effort ([`Answer::Done`]).
+    RecordPace,
+    /// Give the team its place back and wake its next submission ([`Answer::Done`]).
+    LeaveQueue,
+    /// Finalize is over: [`Closing::finish`] says what stands.
+    Done,
+}
+
+/// The record as the shell read it.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Record {
+    /// The execution that claimed it last.
+    pub claimed_by: Option<String>,
+    /// Its status.
+    pub status: Option<RecordStatus>,
+    /// Its stored failure reason.
+    pub error: Option<String>,
+}
+
+/// The merged results as Finalize needs them.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Read {
+    /// Merged.
+    Merged(Merged),
+    /// The results themselves are broken: the error chain.
+    Unusable(String),
+    /// Transient trouble reading them: the error chain.
+    NotNow(String),
+}
+
+/// What a merge of the results gave.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Merged {
+    /// Every planned route has its records.
+    pub complete: bool,
+    /// Records merged and planned.
+    pub progress: (u64, u64),
+    /// The pairs whose results file is complete.
+    pub finished_pairs: Vec<u32>,
+    /// (attribute, value) per metric, for the qualifier's verdict.
+    pub metrics: Vec<(&'static str, Num)>,
+    /// The merged records' route ids, for the recordings' audit.
+    pub route_ids: Vec<String>,
+    /// The summary the participant's stdout ends with.
+    pub summary: String,
+}
+
+/// What the run left in S3.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Left {
+    /// The status markers' names.
+    pub markers: Vec<String>,
+    /// The results (`None`: there was no run to read).
+    pub results: Option<Read>,
+}
+
+/// What the shell found doing a [`Step`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Answer {
+    /// The step was done.
+    Done,
+    /// The record (`None`: there is none).
+    Standing(Option<Record>),
+    /// What the run left.
+    Left(Left),
+    /// The end of the agent's log, made fit to show (`None`: unreadable or empty).
+    Tail(Option<String>),
+    /// What EvalAI did with the final update.
+    Posted(Posted),
+    /// The uploaded logs, (path under the logs folder, size) (`None`: not listed).
+    Logs(Option<Vec<(String, u64)>>),
+    /// The record was written (`false`: the claim moved on, the record is another's).
+    Recorded(bool),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stage {
+    Standing,
+    Stop,
+    Read,
+    TryAgain,
+    Tail,
+    Admit,
+    Post,
+    Logs,
+    Record,
+    Pace,
+    Leave,
+    Done,
+}
+
+/// One Finalize of a claimed run.
+#[derive(Debug)]
+pub struct Closing<'a> {
+    cx: Context<'a>,
+    stage: Stage,
+    /// What stands once decided, and why.
+    settled: Option<(Settled, Option<String>)>,
+    outcome: Option<Outcome>,
+    merged: Option<Merged>,
+    /// The pair whose log tail is read, then its tail.
+    tail: Option<(u32, Option<String>)>,
+    /// The qualifier's verdict and the tracks a pass admits to.
+    verdict: Option<(String, Vec<String>)>,
+    recordings: Option<Recordings>,
+}
+
+impl<'a> Closing<'a> {
+    /// The end of a run Finalize's execution claimed.
+    pub fn begin(cx: Context<'a>) -> Closing<'a> {
+        Closing {
+            cx,
+            stage: Stage::Standing,
+            settled: None,
+            outcome: None,
+            merged: None,
+            tail: None,
+            verdict: None,
+            recordings: None,
+        }
+    }
+
+    /// What the shell does next; [`Step::Done`] once Finalize is over.
+    pub fn poll(&self) -> Step {
+        match self.stage {
+            Stage::Standing => Step::ReadStanding,
+            Stage::Stop => Step::StopJobs,
+            Stage::Read => Step::ReadLeft,
+            Stage::TryAgain => Step::TryAgain,
+            Stage::Tail => Step::ReadAgentTail(self.tail.as_ref().map_or(0, |(pair, _)| *pair)),
+            Stage::Admit => Step::Admit(
+                self.verdict
+                    .as_ref()
+                    .map(|v| v.1.clone())
+                    .unwrap_or_default(),
+            ),
+            Stage::Post => self.post(),
+            Stage::Logs => Step::ListLogs,
+            Stage::Record => self.record(),
+            Stage::Pace => Step::RecordPace,
+            Stage::Leave => Step::LeaveQueue,
+            Stage::Done => Step::Done,
+        }
+    }
+
+    /// Takes what the shell found doing the step [`Closing::poll`] gave last. An answer that
+    /// fits no outstanding step is a bug in the shell: Finalize ends there unsettled.
+    pub fn answer(&mut self, answer: Answer) {
+        self.stage = match (self.stage, answer) {
+            (Stage::Standing, Answer::Standing(record)) => self.stood(record.unwrap_or_default()),
+            (Stage::Stop, Answer::Done) => Stage::Read,
+            (Stage::Read, Answer::Left(left)) => self.decide(left),
+            (Stage::Tail, Answer::Tail(tail)) => {
+                if let Some((_, read)) = &mut self.tail {
+                    *read = tail;
+                }
+                Stage::Post
+            }
+            (Stage::Admit, Answer::Done) => Stage::Post,
+            (Stage::Post, Answer::Posted(posted)) => self.posted(posted),
+            (Stage::Logs, Answer::Logs(logs)) => {
+                self.recordings = logs.map(|logs| self.audit(&logs));
+                Stage::Record
+            }
+            (Stage::Record, Answer::Recorded(_)) => self.recorded(),
+            (Stage::Pace, Answer::Done) => Stage::Leave,
+            (Stage::Leave, Answer::Done) => Stage::Done,
+            (_, _) => Stage::Done,
+        };
+    }
+
+    /// What stands, and why: `Settled::Ended` with the final status, or `Superseded`
+    /// (`None`: it ended before deciding, which only a shell's misfit answer does).
+    pub fn finish(self) -> Option<(Settled, Option<String>)> {
+        self.settled
+    }
+
+    /// A superseded execution does nothing; a repeated Finalize reports what stands and only
+    /// gives the place back (an earlier attempt may have ended before it did).
+    fn stood(&mut self, record: Record) -> Stage {
+        if let Some(why) = finalize::superseded(record.claimed_by.as_deref(), self.cx.execution) {
+            self.settled = Some((Settled::Superseded, Some(why)));
+            return Stage::Done;
+        }
+        match record.status.filter(|status| !status.is_in_flight()) {
+            Some(status) => {
+                self.settled = Some((Settled::Ended(status), record.error));
+                Stage::Leave
+            }
+            None => Stage::Stop,
+        }
+    }
+
+    /// The final status from what the run left ([`finalize::outcome`]).
+    fn decide(&mut self, left: Left) -> Stage {
+        let run = self.cx.run;
+        let cancelled = run.is_some_and(|r| r.monitor.state == RunPhase::Cancelled)
+            || left.markers.iter().any(|m| m == CANCEL_MARKER);
+        if matches!(left.results, Some(Read::NotNow(_))) && !cancelled && self.cx.caught.is_none() {
+            return Stage::TryAgain;
+        }
+        let pairs: Vec<(u32, &str)> = run
+            .map(|r| r.pairs.iter().map(|p| (p.id, p.routes.as_str())).collect())
+            .unwrap_or_default();
+        let facts_run = match (run, &left.results) {
+            (Some(run), Some(read)) => Some(finalize::Run {
+                finished: run.monitor.state == RunPhase::Finished,
+                reason: run.monitor.reason.as_deref(),
+                pairs: &pairs,
+                results: match read {
+                    Read::Merged(m) => Ok(finalize::Results {
+                        complete: m.complete,
+                        progress: m.progress,
+                        finished_pairs: &m.finished_pairs,
+                    }),
+                    Read::Unusable(problem) | Read::NotNow(problem) => Err(problem.as_str()),
+                },
+            }),
+            _ => None,
+        };
+        let outcome = finalize::outcome(&finalize::Facts {
+            cancelled,
+            caught: self.cx.caught,
+            run: facts_run,
+        });
+        self.merged = match left.results {
+            Some(Read::Merged(merged)) => Some(merged),
+            _ => None,
+        };
+        let next = match outcome.status {
+            SubmissionStatus::Failed => {
+                finalize::most_crashed_agent(left.markers.iter().map(String::as_str)).map(|pair| {
+                    self.tail = Some((pair, None));
+                    Stage::Tail
+                })
+            }
+            SubmissionStatus::Finished => self.qualify(),
+            _ => None,
+        };
+        self.outcome = Some(outcome);
+        next.unwrap_or(Stage::Post)
+    }
+
+    /// A finished qualifier run: as the original, the verdict heads the participant's stdout
+    /// either way, and a pass admits the team to the qualifier's target tracks.
+    fn qualify(&mut self) -> Option<Stage> {
+        let qualifier = self.cx.qualifier?;
+        let targets = qualifier.targets_of(self.cx.track);
+        let first = targets.first()?;
+        let metrics = self
+            .merged
+            .as_ref()
+            .map_or(&[][..], |m| m.metrics.as_slice());
+        let (passed, verdict) = qualifier.verdict(first, metrics);
+        let admitted = if passed {
+            targets.iter().map(|t| t.to_string()).collect()
+        } else {
+            Vec::new()
+        };
+        let admit = !admitted.is_empty();
+        self.verdict = Some((verdict, admitted));
+        admit.then_some(Stage::Admit)
+    }
+
+    fn post(&self) -> Step {
+        let Some(outcome) = &self.outcome else {
+            return Step::Done;
+        };
+        let summary = self.merged.as_ref().map_or("", |m| m.summary.as_str());
+        let verdict = self.verdict.as_ref().map(|(v, _)| v.as_str());
+        let tail = self
+            .tail
+            .as_ref()
+            .and_then(|(pair, tail)| Some((*pair, tail.as_deref()?)));
+        Step::Post {
+            status: outcome.status,
+            stdout: finalize::stdout(outcome.pairs_note.as_deref(), verdict, summary),
+            stderr: finalize::stderr(outcome, tail),
+        }
+    }
+
+    /// EvalAI's final word wins over ours ([`finalize::settle`]); a FINISHED result has its
+    /// recordings counted.
+    fn posted(&mut self, posted: Posted) -> Stage {
+        let Some(outcome) = self.outcome.take() else {
+            return Stage::Done;
+        };
+        let outcome = finalize::settle(outcome, posted);
+        let finished = outcome.status == SubmissionStatus::Finished;
+        self.outcome = Some(outcome);
+        if finished && self.merged.is_some() {
+            Stage::Logs
+        } else {
+            Stage::Record
+        }
+    }
+
+    fn audit(&self, logs: &[(String, u64)]) -> Recordings {
+        let present: HashSet<&str> = logs
+            .iter()
+            .filter(|(_, size)| *size > 0)
+            .filter_map(|(key, _)| audit::recording_of(key))
+            .collect();
+        let route_ids = self.merged.iter().flat_map(|m| m.route_ids.iter());
+        let expected = audit::expected_recordings(route_ids.map(String::as_str));
+        audit::audit(&expected, &present)
+    }
+
+    fn record(&self) -> Step {
+        let Some(outcome) = &self.outcome else {
+            return Step::Done;
+        };
+        Step::WriteRecord {
+            status: record_status(outcome.status),
+            error: self
+                .cx
+                .caught
+                .map(str::to_owned)
+                .or_else(|| outcome.reason.clone()),
+            recordings: self.recordings.clone(),
+        }
+    }
+
+    /// The status stands whether or not the record was ours to write (a resume that claimed
+    /// it anew owns it; EvalAI had our final word before that). A finished run's duration
+    /// joins its track's pace.
+    fn recorded(&mut self) -> Stage {
+        let Some(outcome) = &self.outcome else {
+            return Stage::Done;
+        };
+        let status = record_status(outcome.status);
+        self.settled = Some((Settled::Ended(status), outcome.reason.clone()));
+        let started = self.cx.run.is_some_and(|r| r.monitor.started_at.is_some());
+        if status == RecordStatus::Finished && started {
+            Stage::Pace
+        } else {
+            Stage::Leave
+        }
+    }
+}
+
+/// The record's word for EvalAI's final status.
+pub fn record_status(status: SubmissionStatus) -> RecordStatus {
+    match status {
+        SubmissionStatus::Finished => RecordStatus::Finished,
+        SubmissionStatus::Cancelled => RecordStatus::Cancelled,
+        _ => RecordStatus::Failed,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::run::{MonitorState, PairRoutes, QueueState};
+    use std::collections::BTreeMap;
+
+    const EXECUTION: &str = "exec-1";
+
+    fn run(state: RunPhase, started: bool) -> RunState {
+        let mut monitor = MonitorState::starting(30, 0, 10, EXECUTION, 0);
+        monitor.state = state;
+        monitor.started_at = started.then_some(900);
+        RunState {
+            jobs: 2,
+            pairs: vec![
+                PairRoutes {
+                    id: 1,
+                    routes: "0-1".into(),
+                },
+                PairRoutes {
+                    id: 2,
+                    routes: "2-3".into(),
+                },
+            ],
+            repetitions: 1,
+            launched_at: 0,
+            monitor,
+            queue: QueueState::arriving(0),
+        }
+    }
+
+    fn cx<'a>(run: Option<&'a RunState>, caught: Option<&'a str>) -> Context<'a> {
+        Context {
+            execution: EXECUTION,
+            caught,
+            run,
+            track: "qualifier",
+            qualifier: None,
+        }
+    }
+
+    fn merged(complete: bool, score: f64) -> Read {
+        Read::Merged(Merged {
+            complete,
+            progress: if complete { (4, 4) } else { (2, 4) },
+            finished_pairs: if complete { vec![1, 2] } else { vec![1] },
+            metrics: vec![("driving_score", Num::Float(score))],
+            route_ids: vec!["RouteScenario_0_rep0".into(), "RouteScenario_1_rep0".into()],
+            summary: "summary".into(),
+        })
+    }
+
+    fn recording(route: u32, size: u64) -> (String, u64) {
+        let key = format!("logs/agent/agent1/recorder/RouteScenario_{route}_rep0.log");
+        (key, size)
+    }
+
+    /// A world where everything goes well: the record is ours and in flight, the run left
+    /// `results` and `markers`, EvalAI writes what it is sent, both recordings are there.
+    fn world(results: Option<Read>, markers: &[&str]) -> impl FnMut(&Step) -> Answer {
+        let markers: Vec<String> = markers.iter().map(|m| m.to_string()).collect();
+        move |step| match step {
+            Step::ReadStanding => Answer::Standing(Some(Record {
+                claimed_by: Some(EXECUTION.into()),
+                status: Some(RecordStatus::Running),
+                error: None,
+            })),
+            Step::ReadLeft => Answer::Left(Left {
+                markers: markers.clone(),
+                results: results.clone(),
+            }),
+            Step::ReadAgentTail(_) => Answer::Tail(Some("Traceback: boom".into())),
+            Step::Post { .. } => Answer::Posted(Posted::Written),
+            Step::ListLogs => Answer::Logs(Some(vec![recording(0, 10), recording(1, 10)])),
+            Step::WriteRecord { .. } => Answer::Recorded(true),
+            _ => Answer::Done,
+        }
+    }
+
+    /// Runs a Finalize, answering each step with `world`; the steps taken and what stands.
+    fn drive(
+        cx: Context<'_>,
+        mut world: impl FnMut(&Step) -> Answer,
+    ) -> (Vec<Step>, Option<(Settled, Option<String>)>) {
+        let mut closing = Closing::begin(cx);
+        let mut steps = Vec::new();
+        loop {
+            let step = closing.poll();
+            if step == Step::Done {
+                return (steps, closing.finish());
+            }
+            assert!(steps.len() < 20, "Finalize does not end: {steps:?}");
+            let answer = world(&step);
+            steps.push(step);
+            closing.answer(answer);
+        }
+    }
+
+    fn kinds(steps: &[Step]) -> Vec<&'static str> {
+        steps
+            .iter()
+            .map(|s| match s {
+                Step::ReadStanding => "standing",
+                Step::StopJobs => "stop",
+                Step::ReadLeft => "read",
+                Step::TryAgain => "again",
+                Step::ReadAgentTail(_) => "tail",
+                Step::Admit(_) => "admit",
+                Step::Post { .. } => "post",
+                Step::ListLogs => "logs",
+                Step::WriteRecord { .. } => "record",
+                Step::RecordPace => "pace",
+                Step::LeaveQueue => "leave",
+                Step::Done => "done",
+            })
+            .collect()
+    }
+
+    fn find<'s>(steps: &'s [Step], kind: &str) -> &'s Step {
+        let at = kinds(steps).iter().position(|k| *k == kind);
+        &steps[at.unwrap_or_else(|| panic!("no {kind} in {steps:?}"))]
+    }
+
+    #[test]
+    fn a_finished_run_stops_its_jobs_first_posts_before_the_record_and_leaves_the_queue_last() {
+        let run = run(RunPhase::Finished, true);
+        let (steps, stands) = drive(cx(Some(&run), None), world(Some(merged(true, 90.0)), &[]));
+        let order = [
+            "standing", "stop", "read", "post", "logs", "record", "pace", "leave",
+        ];
+        assert_eq!(kinds(&steps), order);
+        let Step::Post { status, stdout, .. } = find(&steps, "post") else {
+            unreachable!()
+        };
+        assert_eq!(
+            (*status, stdout.as_str()),
+            (SubmissionStatus::Finished, "summary")
+        );
+        let Step::WriteRecord {
+            status,
+            error,
+            recordings,
+        } = find(&steps, "record")
+        else {
+            unreachable!()
+        };
+        assert_eq!((*status, error.as_deref()), (RecordStatus::Finished, None));
+        assert!(recordings.as_ref().is_some_and(Recordings::complete));
+        assert_eq!(stands, Some((Settled::Ended(RecordStatus::Finished), None)));
+    }
+
+    #[test]
+    fn another_execution_s_claim_leaves_everything_untouched() {
+        let run = run(RunPhase::Finished, true);
+        let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
+            Step::ReadStanding => Answer::Standing(Some(Record {
+                claimed_by: Some("exec-2".into()),
+                ..Record::default()
+            })),
+            _ => Answer::Done,
+        });
+        assert_eq!(kinds(&steps), ["standing"]);
+        let (settled, why) = stands.unwrap();
+        assert_eq!(settled, Settled::Superseded);
+        assert!(why.unwrap().contains("exec-2"));
+    }
+
+    #[test]
+    fn a_repeated_finalize_reports_what_stands_and_only_gives_the_place_back() {
+        let run = run(RunPhase::Failed, true);
+        let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
+            Step::ReadStanding => Answer::Standing(Some(Record {
+                claimed_by: Some(EXECUTION.into()),
+                status: Some(RecordStatus::Failed),
+                error: Some("the agent crashed".into()),
+            })),
+            _ => Answer::Done,
+        });
+        assert_eq!(kinds(&steps), ["standing", "leave"]);
+        let failed = Settled::Ended(RecordStatus::Failed);
+        assert_eq!(stands, Some((failed, Some("the agent crashed".into()))));
+    }
+
+    #[test]
+    fn results_unreadable_for_now_fail_the_attempt_unless_a_cancel_or_an_error_decides() {
+        let run = run(RunPhase::Finished, true);
+        let not_now = || Some(Read::NotNow("S3 throttled".into()));
+        let (steps, _) = drive(cx(Some(&run), None), world(not_now(), &[]));
+        assert_eq!(kinds(&steps), ["standing", "stop", "read", "again"]);
+        // The participant's cancel does not need them, nor does a caught error.
+        let (steps, stands) = drive(cx(Some(&run), None), world(not_now(), &[CANCEL_MARKER]));
+        assert_eq!(
+            kinds(&steps),
+            ["standing", "stop", "read", "post", "record", "leave"]
+        );
+        assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Cancelled));
+        let caught = "States.Timeout: the task timed out";
+        let (steps, _) = drive(cx(Some(&run), Some(caught)), world(not_now(), &[]));
+        let Step::WriteRecord { status, error, .. } = find(&steps, "record") else {
+            unreachable!()
+        };
+        // Operators read the whole caught error; the participant read its plain words.
+        assert_eq!(
+            (*status, error.as_deref()),
+            (RecordStatus::Failed, Some(caught))
+        );
+        let Step::Post { stderr, .. } = find(&steps, "post") else {
+            unreachable!()
+        };
+        assert!(stderr.contains("evaluation service"), "{stderr}");
+    }
+
+    #[test]
+    fn a_failed_run_shows_its_most_crashed_agent_s_log_and_counts_no_recordings() {
+        let run = run(RunPhase::Failed, true);
+        let markers = ["agent-2.crash0", "agent-2.crash1", "agent-1.crash0"];
+        let (steps, stands) = drive(
+            cx(Some(&run), None),
+            world(Some(merged(false, 0.0)), &markers),
+        );
+        assert_eq!(
+            kinds(&steps),
+            ["standing", "stop", "read", "tail", "post", "record", "leave"]
+        );
+        assert_eq!(steps[3], Step::ReadAgentTail(2));
+        let Step::Post {
+            status,
+            stderr,
+            stdout,
+        } = find(&steps, "post")
+        else {
+            unreachable!()
+        };
+        assert_eq!(*status, SubmissionStatus::Failed);
+        assert!(
+            stderr.contains("agent 2's output:\nTraceback: boom"),
+            "{stderr}"
+        );
+        // Pair 1 finished its routes: they are kept, and the participant is told which.
+        assert!(
+            stdout.contains("routes 0-1 (pair 1) are complete and kept"),
+            "{stdout}"
+        );
+        assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Failed));
+    }
+
+    #[test]
+    fn a_qualifier_pass_admits_the_team_before_the_post_and_a_fail_only_tells_it() {
+        let qualifier = QualifierSettings {
+            enabled: true,
+            tracks: BTreeMap::from([("sensors".into(), "qualifier".into())]),
+            thresholds: BTreeMap::from([("driving_score".into(), 50.0)]),
+        };
+        let run = run(RunPhase::Finished, true);
+        let cx = Context {
+            qualifier: Some(&qualifier),
+            ..cx(Some(&run), None)
+        };
+        let (steps, _) = drive(cx, world(Some(merged(true, 90.0)), &[]));
+        assert_eq!(steps[3], Step::Admit(vec!["sensors".into()]));
+        let Step::Post { stdout, .. } = find(&steps, "post") else {
+            unreachable!()
+        };
+        assert!(stdout.starts_with("CONGRATULATIONS!"), "{stdout}");
+        let (steps, _) = drive(cx, world(Some(merged(true, 40.0)), &[]));
+        assert!(!kinds(&steps).contains(&"admit"), "{steps:?}");
+        let Step::Post { stdout, .. } = find(&steps, "post") else {
+            unreachable!()
+        };
+        assert!(stdout.contains("Driving score: 40.0 / 50.0"), "{stdout}");
+    }
+
+    #[test]
+    fn evalai_s_final_word_is_what_the_record_and_the_answer_say() {
+        let run = run(RunPhase::Finished, true);
+        let mut world = world(Some(merged(true, 90.0)), &[]);
+        let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
+            Step::Post { .. } => Answer::Posted(Posted::Cancelled),
+            step => world(step),
+        });
+        // A cancel on EvalAI: no recordings to audit, no pace to record.
+        assert_eq!(
+            kinds(&steps),
+            ["standing", "stop", "read", "post", "record", "leave"]
+        );
+        let Step::WriteRecord { status, .. } = find(&steps, "record") else {
+            unreachable!()
+        };
+        assert_eq!(*status, RecordStatus::Cancelled);
+        assert_eq!(
+            stands,
+            Some((Settled::Ended(RecordStatus::Cancelled), None))
+        );
+    }
+
+    #[test]
+    fn only_non_empty_recordings_count_and_an_unlisted_folder_counts_nothing() {
+        let run = run(RunPhase::Finished, false);
+        let mut world = world(Some(merged(true, 90.0)), &[]);
+        let (steps, _) = drive(cx(Some(&run), None), |step| match step {
+            Step::ListLogs => Answer::Logs(Some(vec![recording(0, 10), recording(1, 0)])),
+            step => world(step),
+        });
+        let Step::WriteRecord { recordings, .. } = find(&steps, "record") else {
+            unreachable!()
+        };
+        let counted = recordings.clone().unwrap();
+        assert_eq!((counted.found, counted.expected), (1, 2));
+        assert_eq!(counted.missing, ["RouteScenario_1_rep0"]);
+        // Not started: no pace to record.
+        assert!(!kinds(&steps).contains(&"pace"), "{steps:?}");
+        let (steps, _) = drive(cx(Some(&run), None), |step| match step {
+            Step::ListLogs => Answer::Logs(None),
+            step => world(step),
+        });
+        let Step::WriteRecord { recordings, .. } = find(&steps, "record") else {
+            unreachable!()
+        };
+        assert_eq!(*recordings, None);
+    }
+
+    #[test]
+    fn without_a_run_it_did_not_start_and_an_answer_out_of_turn_settles_nothing() {
+        let (steps, stands) = drive(cx(None, None), world(None, &[]));
+        assert_eq!(
+            kinds(&steps),
+            ["standing", "stop", "read", "post", "record", "leave"]
+        );
+        let Step::Post { stderr, .. } = find(&steps, "post") else {
+            unreachable!()
+        };
+        assert_eq!(stderr, "the evaluation did not start");
+        assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Failed));
+        let (steps, stands) = drive(cx(None, None), |_| Answer::Recorded(true));
+        assert_eq!(kinds(&steps), ["standing"]);
+        assert_eq!(stands, None);
+    }
+}

@@ -1,0 +1,346 @@
+//! Finalize's I/O: each step `lb_domain::closing` asks for, performed and answered in its
+//! terms. A failed required step fails the attempt (the state machine retries Finalize, whose
+//! every step is idempotent); the best-effort ones (the agent's log, the logs' listing, the
+//! pace, the team's wake-up) are logged and answered as unread.
+
+use std::time::Duration;
+
+use lb_aws::dynamo::{FinalRecord, QualifierTable, SubmissionsTable};
+use lb_aws::s3::SubmissionStore;
+use lb_aws::tasks::Callbacks;
+use lb_domain::audit::Recordings;
+use lb_domain::closing::{Answer, Left, Merged, Read, Record, Step};
+use lb_domain::cost::{self, Totals};
+use lb_domain::finalize::Posted;
+use lb_domain::logtail::{participant_tail, MAX_TAIL_CHARS};
+use lb_domain::protocol::{self, LOGS_DIR};
+use lb_domain::settings::Target;
+use lb_domain::status::RecordStatus;
+use lb_domain::submission::SubmissionStatus;
+use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
+use lb_pipeline::clients::{self, Meter};
+use lb_pipeline::payload::{RunState, SubmissionInfo};
+use lb_pipeline::queue;
+use lb_pipeline::results::{collect, Snapshot};
+use lb_pipeline::Result;
+use tracing::{info, warn};
+
+use crate::Deps;
+
+/// Bytes read from the end of an agent's log: enough for [`MAX_TAIL_CHARS`] characters of
+/// multi-byte text and the escapes that are stripped from it.
+const TAIL_BYTES: u64 = 64 * 1024;
+
+/// What the shell keeps between steps: its clients, and the results it read (posted and
+/// recorded whole; the closing only sees what it decides on).
+pub struct Shell<'a, C> {
+    deps: &'a Deps<C>,
+    target: &'a Target<'a>,
+    submission: &'a SubmissionInfo,
+    run: Option<&'a RunState>,
+    meter: &'a Meter<'a>,
+    store: SubmissionStore,
+    table: SubmissionsTable,
+    snapshot: Option<Result<Snapshot>>,
+}
+
+impl<'a, C: Callbacks> Shell<'a, C> {
+    /// The shell of one Finalize of `submission`'s run.
+    pub fn new(
+        deps: &'a Deps<C>,
+        target: &'a Target<'a>,
+        submission: &'a SubmissionInfo,
+        run: Option<&'a RunState>,
+        meter: &'a Meter<'a>,
+    ) -> Self {
+        let (s3, dynamo) = (deps.clients.s3.clone(), deps.clients.dynamo.clone());
+        let bucket = &target.deployment.bucket;
+        Shell {
+            deps,
+            target,
+            submission,
+            run,
+            meter,
+            store: SubmissionStore::new(s3, bucket, submission.submission_id),
+            table: SubmissionsTable::new(dynamo, &target.deployment.submissions_table),
+            snapshot: None,
+        }
+    }
+
+    fn id(&self) -> u64 {
+        self.submission.submission_id
+    }
+
+    /// Performs `step` and answers with what it found.
+    pub async fn perform(&mut self, step: Step) -> Result<Answer> {
+        let sub = self.submission;
+        Ok(match step {
+            Step::ReadStanding => Answer::Standing(self.standing().await?),
+            Step::StopJobs => self.stop_jobs().await.map(|()| Answer::Done)?,
+            Step::ReadLeft => Answer::Left(self.read_left().await?),
+            Step::TryAgain => match self.snapshot.take() {
+                Some(Err(e)) => return Err(e),
+                _ => Answer::Done,
+            },
+            Step::ReadAgentTail(pair) => Answer::Tail(self.agent_tail(pair).await),
+            Step::Admit(tracks) => {
+                let table = &self.target.deployment.qualifier_table;
+                let table = QualifierTable::new(self.deps.clients.dynamo.clone(), table);
+                for track in &tracks {
+                    table.admit(sub.team_id, track, sub.submission_id).await?;
+                }
+                Answer::Done
+            }
+            Step::Post {
+                status,
+                stdout,
+                stderr,
+            } => {
+                let texts = (status, stdout, stderr);
+                Answer::Posted(post_final(self.deps, sub, self.merged(), texts).await?)
+            }
+            Step::ListLogs => Answer::Logs(match self.store.logs().await {
+                Ok(logs) => Some(logs),
+                Err(e) => {
+                    warn!(error = %e, "logs not listed: the recordings are not counted");
+                    None
+                }
+            }),
+            Step::WriteRecord {
+                status,
+                error,
+                recordings,
+            } => Answer::Recorded(self.write_record(status, error, recordings).await?),
+            Step::RecordPace => self.record_pace().await,
+            Step::LeaveQueue => leave_queue(self.deps, sub).await.map(|()| Answer::Done)?,
+            Step::Done => Answer::Done,
+        })
+    }
+
+    async fn standing(&self) -> Result<Option<Record>> {
+        let standing = self
+            .table
+            .standing(self.submission.team_id, self.id())
+            .await?;
+        Ok(standing.map(|s| Record {
+            claimed_by: s.claimed_by,
+            status: s.status,
+            error: s.error,
+        }))
+    }
+
+    /// Only this execution's Jobs (and unlabelled ones from before the label): a superseded
+    /// execution never gets here (the claim check), and this is the second guard.
+    async fn stop_jobs(&self) -> Result<()> {
+        let (id, execution) = (
+            self.id().to_string(),
+            Some(self.submission.execution.as_str()),
+        );
+        let cluster = self
+            .deps
+            .clients
+            .clusters
+            .connect(self.target.deployment)
+            .await?;
+        let deleted = cluster.delete_all(&id, execution).await?;
+        info!(submission_id = self.id(), ?deleted, "jobs deleted");
+        let (wait, poll) = (self.deps.delete_wait, Duration::from_secs(2));
+        if !cluster.wait_gone(&id, execution, wait, poll).await? {
+            warn!(
+                submission_id = self.id(),
+                "jobs still terminating; results as they are now"
+            );
+        }
+        Ok(())
+    }
+
+    /// The markers and the results, read at once (the reads are independent).
+    async fn read_left(&mut self) -> Result<Left> {
+        let results = async {
+            let run = self.run?;
+            Some(
+                collect(
+                    &self.store,
+                    self.target.leaderboard,
+                    &run.pairs,
+                    run.repetitions,
+                )
+                .await,
+            )
+        };
+        let (markers, snapshot) = tokio::join!(self.store.markers(), results);
+        let markers = markers?;
+        let results = snapshot.as_ref().map(|read| match read {
+            Ok(s) => Read::Merged(Merged {
+                complete: s.complete,
+                progress: s.progress,
+                finished_pairs: s.finished_pairs.clone(),
+                metrics: s.metrics.clone(),
+                route_ids: s.route_ids.clone(),
+                summary: s.files.stdout.clone(),
+            }),
+            Err(e) if e.is_transient() => Read::NotNow(e.chain()),
+            Err(e) => Read::Unusable(e.chain()),
+        });
+        self.snapshot = snapshot;
+        Ok(Left { markers, results })
+    }
+
+    fn merged(&self) -> Option<&Snapshot> {
+        self.snapshot.as_ref()?.as_ref().ok()
+    }
+
+    /// The end of a crashed agent's output, cleaned for the participant's page. Its container
+    /// holds no secret (no AWS credentials, no token), so its output has none of ours to leak.
+    async fn agent_tail(&self, pair: u32) -> Option<String> {
+        let key = format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair));
+        match self.store.get_tail(&key, TAIL_BYTES).await {
+            Ok(bytes) => bytes
+                .map(|bytes| participant_tail(&bytes, MAX_TAIL_CHARS))
+                .filter(|tail| !tail.is_empty()),
+            Err(e) => {
+                warn!(%key, error = %e, "the agent's log could not be read");
+                None
+            }
+        }
+    }
+
+    /// The record: every metric of the leaderboard as EvalAI got it (`-` where it got none),
+    /// and what the run cost. `false` when the claim moved on while this ran.
+    async fn write_record(
+        &self,
+        status: RecordStatus,
+        error: Option<String>,
+        recordings: Option<Recordings>,
+    ) -> Result<bool> {
+        if let Some(counted) = recordings.as_ref().filter(|r| !r.complete()) {
+            warn!(
+                found = counted.found,
+                expected = counted.expected,
+                missing = ?counted.missing,
+                "FINISHED without every route's CARLA recording: these scores cannot be audited"
+            );
+        }
+        let snapshot = self.merged();
+        let metrics = snapshot.map(|s| s.metrics.as_slice()).unwrap_or_default();
+        let record = FinalRecord {
+            status,
+            end_time: clients::now_record_time(),
+            results: self.store.location(),
+            metrics: (self.target.leaderboard.metrics().iter())
+                .map(|m| {
+                    let value = metrics.iter().find(|(a, _)| *a == m.attribute);
+                    (m.attribute, value.map(|(_, v)| v.py_str()))
+                })
+                .collect(),
+            progress: snapshot.map_or((0, 0), |s| s.progress),
+            error,
+            recordings: recordings.map(|r| (r.found, r.expected)),
+            usage: self.run.map(|run| self.usage(run)),
+        };
+        let sub = self.submission;
+        let ours = (self.table)
+            .finish(sub.team_id, sub.submission_id, &sub.execution, &record)
+            .await?;
+        if !ours {
+            // A resume claimed it anew: EvalAI had the final word before that.
+            warn!(
+                submission_id = self.id(),
+                "the claim moved on; the record is the new execution's"
+            );
+        }
+        info!(submission_id = self.id(), %status, "finalized");
+        Ok(ours)
+    }
+
+    /// What the run's GPUs came to: the Monitor's count, with the pods still running at its
+    /// last round charged until now (their Jobs were just deleted); and the orchestration's,
+    /// this Finalize so far and the states after it included.
+    fn usage(&self, run: &RunState) -> Totals {
+        let mut ledger = run.monitor.usage.clone();
+        ledger.close_all(clients::now_epoch_seconds());
+        let this = self.meter.invocation(cost::CLOSING_TRANSITIONS);
+        Totals {
+            orchestration: Some(run.monitor.orchestration + this),
+            ..ledger.summary(&self.deps.clients.settings.prices)
+        }
+    }
+
+    /// A finished evaluation's duration, from its first pair's start, joins its track's pace
+    /// (the queue note's estimate). Best effort.
+    async fn record_pace(&self) -> Answer {
+        if let Some(started) = self.run.and_then(|r| r.monitor.started_at) {
+            let seconds = clients::now_epoch_seconds().saturating_sub(started);
+            let admission = &self.deps.clients.admission;
+            if let Err(e) = admission.record_pace(self.submission, seconds).await {
+                warn!(submission_id = self.id(), error = %e, "pace not recorded");
+            }
+        }
+        Answer::Done
+    }
+}
+
+/// The final EvalAI update, (status, stdout, stderr): scores for a finished run; for a
+/// failed one, the partial summary as stdout and the reason as stderr.
+pub async fn post_final<C>(
+    deps: &Deps<C>,
+    submission: &SubmissionInfo,
+    snapshot: Option<&Snapshot>,
+    (status, stdout, stderr): (SubmissionStatus, String, String),
+) -> Result<Posted> {
+    let update = FinalUpdate {
+        status,
+        result: snapshot.map_or_else(|| "[]".to_string(), |s| s.files.results_json()),
+        stdout,
+        stderr,
+        metadata: snapshot
+            .and_then(|s| s.files.metadata.clone())
+            .unwrap_or_else(|| "{}".into()),
+    };
+    let at = SubmissionRef {
+        challenge: submission.challenge_id,
+        phase: submission.phase_id,
+        submission: submission.submission_id,
+    };
+    Ok(match deps.clients.evalai.post_final(at, &update).await? {
+        WriteOutcome::Written => Posted::Written,
+        WriteOutcome::Cancelled => Posted::Cancelled,
+        WriteOutcome::AlreadyFinal(stands) => Posted::AlreadyFinal(stands),
+    })
+}
+
+/// Gives the team its place back and takes the submission out of its leaderboard's queue,
+/// last: EvalAI has its final status before the team's next submission is admitted, so the
+/// team never shows more than its `team_limit` evaluations in progress. Repeating it is
+/// harmless.
+pub async fn leave_queue<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) -> Result<()> {
+    if deps.clients.admission.release(submission).await? {
+        info!(submission_id = submission.submission_id, "left the queue");
+        wake_next(deps, submission).await;
+    }
+    Ok(())
+}
+
+/// Wakes the team's next waiting submissions, one per open place (see
+/// [`queue::wake_team_next`]). Best effort: a failure is logged, and its poll still comes.
+async fn wake_next<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) {
+    let id = submission.submission_id;
+    let (Some(table), Some(wakes)) = (deps.clients.admission.table(), &deps.wakes) else {
+        return;
+    };
+    let woken = match deps.clients.settings.target(submission.phase_id) {
+        Ok(target) => {
+            let team = (submission.leaderboard.as_str(), submission.team_id);
+            let team = (team.0, team.1, target.deployment.team_limit);
+            let now = clients::now_epoch_seconds();
+            queue::wake_team_next(table, wakes, &deps.callbacks, team, now).await
+        }
+        Err(e) => Err(e.into()),
+    };
+    match woken {
+        Ok(woken) => info!(submission_id = id, ?woken, "the team's next submissions"),
+        Err(e) => {
+            warn!(submission_id = id, error = %e, "cannot wake the team's next; its poll comes")
+        }
+    }
+}
