@@ -579,8 +579,11 @@ impl Cluster {
         Ok(deleted)
     }
 
-    /// Polls (every `poll`, at most until `timeout`) until the submission has no Job and no
-    /// Pod left (of `execution`, as [`Cluster::delete_all`] selects them). `Ok(true)` when gone, `Ok(false)` when time ran out first.
+    /// Polls (at most until `timeout`) until the submission has no Job and no Pod left (of
+    /// `execution`, as [`Cluster::delete_all`] selects them). The first looks come soon and
+    /// then every `poll` ([`next_look`]): a finished run's pods go within a fraction of a
+    /// second, a running one's take their grace period. `Ok(true)` when gone, `Ok(false)` when
+    /// time ran out first.
     #[instrument(skip(self))]
     pub async fn wait_gone(
         &self,
@@ -591,6 +594,7 @@ impl Cluster {
     ) -> Result<bool> {
         let deadline = tokio::time::Instant::now() + timeout;
         let poll = poll.max(Duration::from_millis(10));
+        let mut wait = Duration::ZERO;
         let execution = execution.map(labels::execution_value);
         let execution = execution.as_deref();
         loop {
@@ -609,8 +613,19 @@ impl Cluster {
                 );
                 return Ok(false);
             }
-            tokio::time::sleep(poll.min(deadline - now)).await;
+            wait = next_look(wait, poll);
+            tokio::time::sleep(wait.min(deadline - now)).await;
         }
+    }
+}
+
+/// The wait before the next look when the last waited `previous` (zero before the first):
+/// a sixteenth of `poll` first, doubling up to `poll`.
+pub fn next_look(previous: Duration, poll: Duration) -> Duration {
+    if previous.is_zero() {
+        (poll / 16).max(Duration::from_millis(10)).min(poll)
+    } else {
+        (previous * 2).min(poll)
     }
 }
 
@@ -684,4 +699,26 @@ fn client_from(config: kube::Config) -> Result<kube::Client> {
         problem: "cannot build the HTTPS client (bad CA or TLS settings?)".into(),
         source: Some(Box::new(e)),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::next_look;
+    use std::time::Duration;
+
+    #[test]
+    fn the_first_looks_come_soon_and_then_every_poll() {
+        let poll = Duration::from_secs(2);
+        let mut wait = Duration::ZERO;
+        let waits: Vec<u128> = (0..7)
+            .map(|_| {
+                wait = next_look(wait, poll);
+                wait.as_millis()
+            })
+            .collect();
+        assert_eq!(waits, [125, 250, 500, 1000, 2000, 2000, 2000]);
+        // A poll shorter than the floor is not lengthened.
+        let short = Duration::from_millis(5);
+        assert_eq!(next_look(Duration::ZERO, short), short);
+    }
 }

@@ -201,6 +201,26 @@ fn binaries(target: &Path, release: bool) -> Vec<(&'static str, PathBuf)> {
         .collect()
 }
 
+/// Waits (bounded) until every Job of `submission` is complete.
+async fn run_ended(kubeconfig: &Path, submission: &str) {
+    let cluster = lb_cluster::Cluster::from_kubeconfig(kubeconfig, None)
+        .await
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(240);
+    loop {
+        let seen = cluster.observe(submission).await.unwrap();
+        if seen.verdict == lb_domain::cluster::Verdict::Finished {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the run did not end: {:?}",
+            seen.verdict
+        );
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+}
+
 fn main() {
     let release = std::env::args().any(|a| a == "--bench");
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
@@ -243,6 +263,13 @@ fn main() {
                              "submitted_image_uri": "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v1"});
         let mut state = json!({});
         for (function, binary) in &functions {
+            if *function == "monitor" {
+                // The Monitor's round then sees the run end, and Finalize does the whole of a
+                // finished run's work (merge, final post, recordings, record) with nothing left
+                // to wait for: its own I/O is what is measured, not the pods' termination.
+                let kubeconfig = stack.kubeconfig.as_ref().unwrap();
+                run_ended(kubeconfig, "1").await;
+            }
             let event = match *function {
                 "intake" => json!({"message": message, "execution": "bench"}),
                 "launch" => json!({"submission": state["intake"]["submission"]}),
@@ -262,6 +289,9 @@ fn main() {
             };
             let measured = invoke(function, binary, &env, event).await;
             assert_eq!(measured.outcome, "response", "{function}: {}", measured.output);
+            if *function == "finalize" {
+                assert_eq!(measured.output["status"], "FINISHED", "the whole path was measured");
+            }
             if *function == "wake" {
                 assert_eq!(measured.output, json!({"batchItemFailures": []}), "the wake counted it");
             }
