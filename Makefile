@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv lint-venv test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function cluster cluster-manifests
+.PHONY: help venv lint-venv real-kube test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -40,7 +40,10 @@ kubectl: ## Install kubectl (Debian's kubernetes-client) when it is missing
 # lays it out); a clone alone skips them by name, and says so.
 SHARED_SKIP := $(if $(wildcard ../shared/fixtures),,--skip _when_it_is_beside_the_repository)
 
-test: venv lint-venv kubectl ## The whole suite, emulator tests included, two test binaries at a time (README's and CI's command)
+real-kube: kubectl ## Build the pinned real Kubernetes control plane the tests hold local-kube to (cached outside the clone)
+	bash local/realkube/build.sh
+
+test: venv lint-venv kubectl real-kube ## The whole suite, emulator tests included, two test binaries at a time (README's and CI's command)
 	@$(if $(SHARED_SKIP),echo "no shared set beside the repository: the kept copies are not compared",:)
 	CARGO=$(CARGO) $(PYTHON) tests/suite.py -- --include-ignored $(SHARED_SKIP)
 	$(CARGO) test --workspace --doc

@@ -5,3 +5,4 @@ mod infra;
 mod layout;
 mod payloads;
 mod pipeline;
+mod real_kube;

@@ -1,0 +1,193 @@
+//! Our manifests and permissions judged by the real Kubernetes control plane (`real-kube`,
+//! the pinned release): `infra/k8s` and the rendered Jobs pass its validation and the
+//! namespace's Pod Security level, the pipeline's calls (`lb_cluster`) are authorized by its
+//! RBAC as the pipeline's own identity, and a request outside that Role is refused.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+use lb_cluster::{Cluster, Job};
+use real_kube::{ControlPlane, Identity};
+
+/// The namespace `infra/k8s` makes (the settings' `namespace` in a deployment).
+const NAMESPACE: &str = "leaderboard";
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn kubectl(plane: &ControlPlane, who: Identity, args: &[&str]) -> Output {
+    Command::new("kubectl")
+        .arg(format!("--kubeconfig={}", plane.kubeconfig(who).display()))
+        .args(args)
+        .output()
+        .expect("kubectl runs")
+}
+
+fn text(out: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+/// The golden rendered Jobs (crates/jobs/tests/golden), in the namespace `infra/k8s` makes.
+fn rendered_jobs() -> Vec<Job> {
+    let golden = root().join("crates/jobs/tests/golden/leaderboard-20.yaml");
+    let text = std::fs::read_to_string(&golden).unwrap();
+    serde_yaml::Deserializer::from_str(&text)
+        .map(|doc| {
+            let mut job: Job = serde::Deserialize::deserialize(doc).unwrap();
+            job.metadata.namespace = Some(NAMESPACE.into());
+            job
+        })
+        .collect()
+}
+
+/// Pod resident memory, MiB.
+fn rss_mib(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    let kib: f64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches(" kB").trim().parse().ok())
+        .unwrap_or(0.0);
+    kib / 1024.0
+}
+
+#[tokio::test]
+#[ignore = "builds and starts the real control plane (minutes the first time): make test runs it"]
+async fn the_real_control_plane_admits_our_manifests_and_only_the_pipeline_s_own_requests() {
+    let bin = real_kube::binaries().expect("the control plane builds");
+    let started = Instant::now();
+    let plane = ControlPlane::start(&bin).expect("the control plane starts");
+    let ready = started.elapsed();
+    let memory: Vec<String> = (plane.pids().into_iter())
+        .map(|(name, pid)| format!("{name} {:.0} MiB", rss_mib(pid)))
+        .collect();
+    println!(
+        "real-kube ready in {:.1} s; {}",
+        ready.as_secs_f64(),
+        memory.join(", ")
+    );
+
+    // What an operator applies, validated by the server itself.
+    let k8s = root().join("infra/k8s");
+    let applied = kubectl(
+        &plane,
+        Identity::Admin,
+        &["apply", "-f", k8s.to_str().unwrap()],
+    );
+    assert!(
+        applied.status.success(),
+        "infra/k8s refused: {}",
+        text(&applied)
+    );
+
+    // The pipeline's own calls, as the pipeline's identity.
+    let cluster = Cluster::from_kubeconfig(&plane.kubeconfig(Identity::Pipeline), None)
+        .await
+        .unwrap()
+        .with_namespace(NAMESPACE);
+    let jobs = rendered_jobs();
+    for job in &jobs {
+        cluster
+            .create_or_adopt(job)
+            .await
+            .expect("the pipeline creates its Jobs");
+    }
+    // The Job controller makes their pods: Pod Security `baseline` admitted the template.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let seen = loop {
+        let seen = cluster
+            .observe("4242")
+            .await
+            .expect("the pipeline observes");
+        let pods: usize = seen.jobs.iter().map(|j| j.pods.len()).sum();
+        if pods == jobs.len() {
+            break seen;
+        }
+        if Instant::now() > deadline {
+            let events = kubectl(&plane, Identity::Admin, &["-n", NAMESPACE, "get", "events"]);
+            panic!("{pods} of {} pods made: {}", jobs.len(), text(&events));
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    };
+    assert_eq!(seen.jobs.len(), jobs.len());
+    let first = &seen.jobs[0].name;
+    assert!(cluster.extend_deadline(first, 300_000).await.unwrap());
+    assert_eq!(cluster.node_kind("no-such-node").await.unwrap(), None);
+    cluster
+        .delete_all("4242", None)
+        .await
+        .expect("the pipeline deletes its Jobs");
+    let gone = cluster.wait_gone(
+        "4242",
+        None,
+        Duration::from_secs(60),
+        Duration::from_secs(1),
+    );
+    assert!(gone.await.unwrap(), "the Jobs and pods went");
+
+    // Outside the Role, as the same identity: refused by the real authorizer.
+    for request in [
+        &["-n", NAMESPACE, "get", "secrets"][..],
+        &[
+            "-n",
+            NAMESPACE,
+            "run",
+            "sneak",
+            "--image=busybox",
+            "--restart=Never",
+        ],
+        &["-n", "default", "get", "jobs"],
+        &["delete", "node", "any"],
+    ] {
+        let out = kubectl(&plane, Identity::Pipeline, request);
+        assert!(!out.status.success(), "{request:?} was allowed");
+        assert!(
+            text(&out).contains("Forbidden"),
+            "{request:?}: {}",
+            text(&out)
+        );
+    }
+
+    // The namespace's level holds whoever asks: a privileged pod is refused even to an admin.
+    let privileged = r#"{"apiVersion":"v1","kind":"Pod","metadata":{"name":"privileged"},
+        "spec":{"containers":[{"name":"c","image":"busybox",
+        "securityContext":{"privileged":true}}]}}"#;
+    let path = std::env::temp_dir().join(format!("privileged-{}.json", std::process::id()));
+    std::fs::write(&path, privileged).unwrap();
+    let out = kubectl(
+        &plane,
+        Identity::Admin,
+        &["-n", NAMESPACE, "create", "-f", path.to_str().unwrap()],
+    );
+    let _ = std::fs::remove_file(&path);
+    assert!(!out.status.success(), "a privileged pod was admitted");
+    assert!(
+        text(&out).contains("violates PodSecurity \"baseline"),
+        "{}",
+        text(&out)
+    );
+}
+
+#[test]
+fn the_control_plane_is_the_release_our_clusters_run() {
+    let pins = std::fs::read_to_string(root().join("local/realkube/versions.env")).unwrap();
+    let pinned = pins
+        .lines()
+        .find_map(|l| l.strip_prefix("K8S_VERSION=v"))
+        .expect("versions.env pins K8S_VERSION");
+    let minor: Vec<&str> = pinned.split('.').take(2).collect();
+    let template = std::fs::read_to_string(root().join("infra/cluster.yaml")).unwrap();
+    let default = template
+        .split("KubernetesVersion:")
+        .nth(1)
+        .and_then(|rest| rest.lines().find_map(|l| l.trim().strip_prefix("Default:")))
+        .map(|v| v.trim().trim_matches('"').to_string())
+        .expect("infra/cluster.yaml has a KubernetesVersion default");
+    assert_eq!(minor.join("."), default, "upgrade the pin with the cluster");
+}
