@@ -18,5 +18,5 @@ pub use config::{Config, Isolation, Timing};
 pub use error::{Error, Result};
 pub use imagemap::{ImageEntry, ImageMap, ImageMapError, Pull};
 pub use kubeconfig::kubeconfig_yaml;
-pub use runtime::scheduler::{gpu_uuid, UNMODELLED_GPUS};
+pub use runtime::scheduler::{gpu_uuid, INSUFFICIENT_GPU, SELECTOR_MISMATCH, UNMODELLED_GPUS};
 pub use server::LocalKube;

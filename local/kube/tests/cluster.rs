@@ -1582,7 +1582,7 @@ async fn pods_wait_pending_unschedulable_until_the_nodes_gpus_free() {
             (
                 "False",
                 Some("Unschedulable"),
-                Some("0/1 nodes are available: 1 Insufficient nvidia.com/gpu.")
+                Some(local_kube::INSUFFICIENT_GPU)
             ),
             "{name}"
         );

@@ -281,14 +281,16 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
             let unschedulable = pods
                 .iter()
                 .filter(|p| {
-                    p.status.as_ref().and_then(|s| s.conditions.as_ref()).is_some_and(|c| {
-                        c.iter().any(|c| {
-                            c.type_ == "PodScheduled"
-                                && c.reason.as_deref() == Some("Unschedulable")
-                                && c.message.as_deref()
-                                    == Some("0/1 nodes are available: 1 Insufficient nvidia.com/gpu.")
+                    p.status
+                        .as_ref()
+                        .and_then(|s| s.conditions.as_ref())
+                        .is_some_and(|c| {
+                            c.iter().any(|c| {
+                                c.type_ == "PodScheduled"
+                                    && c.reason.as_deref() == Some("Unschedulable")
+                                    && c.message.as_deref() == Some(local_kube::INSUFFICIENT_GPU)
+                            })
                         })
-                    })
                 })
                 .count();
             if pods.len() == 4 && unschedulable == 2 {

@@ -191,3 +191,138 @@ fn the_control_plane_is_the_release_our_clusters_run() {
         .expect("infra/cluster.yaml has a KubernetesVersion default");
     assert_eq!(minor.join("."), default, "upgrade the pin with the cluster");
 }
+
+/// A GPU node as a node group makes it: labelled with its GPU model, `nvidia.com/gpu` of
+/// `gpus`, Ready, and without the `not-ready` taint a new Node is created with (no node
+/// lifecycle controller runs here to lift it).
+fn add_node(plane: &ControlPlane, gpu_model: &str, gpus: u32) {
+    let node = format!(
+        r#"{{"apiVersion":"v1","kind":"Node","metadata":{{"name":"gpu-node",
+        "labels":{{"leaderboard.carla.org/gpu-model":"{gpu_model}"}}}}}}"#
+    );
+    let path = std::env::temp_dir().join(format!("node-{}.json", std::process::id()));
+    std::fs::write(&path, node).unwrap();
+    let created = kubectl(
+        plane,
+        Identity::Admin,
+        &["create", "-f", path.to_str().unwrap()],
+    );
+    let _ = std::fs::remove_file(&path);
+    assert!(created.status.success(), "{}", text(&created));
+    let resources = format!(
+        r#"{{"cpu":"32","memory":"128Gi","pods":"110","ephemeral-storage":"200Gi","nvidia.com/gpu":"{gpus}"}}"#
+    );
+    let status = format!(
+        r#"{{"status":{{"capacity":{resources},"allocatable":{resources},
+        "conditions":[{{"type":"Ready","status":"True","reason":"KubeletReady","message":"ready"}}]}}}}"#
+    );
+    let patch = [
+        "patch",
+        "node",
+        "gpu-node",
+        "--subresource=status",
+        "--type=merge",
+        "-p",
+        &status,
+    ];
+    let patched = kubectl(plane, Identity::Admin, &patch);
+    assert!(patched.status.success(), "{}", text(&patched));
+    let untaint = [
+        "taint",
+        "nodes",
+        "gpu-node",
+        "node.kubernetes.io/not-ready:NoSchedule-",
+    ];
+    let _ = kubectl(plane, Identity::Admin, &untaint);
+}
+
+/// The scheduler's complaint about the first pod of submission 4242, as `lb_cluster` reads it.
+async fn unschedulable(cluster: &Cluster) -> String {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let seen = cluster.observe("4242").await.unwrap();
+        let pod = seen.jobs.iter().flat_map(|j| &j.pods).next();
+        if let Some(waiting) = pod.and_then(|p| p.unschedulable.as_ref()) {
+            return waiting.message.clone();
+        }
+        assert!(Instant::now() < deadline, "no pod was found unschedulable");
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+}
+
+/// The same Job on local-kube, whose one node has `gpus` GPUs of `gpu_model`.
+async fn local_unschedulable(gpu_model: &str, gpus: u32) -> String {
+    let config = local_kube::Config {
+        gpus: Some(gpus),
+        labels: [("leaderboard.carla.org/gpu-model".into(), gpu_model.into())].into(),
+        ..Default::default()
+    };
+    let lk = local_kube::LocalKube::start(config).await.unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kubeconfig");
+    lk.write_kubeconfig(&path).unwrap();
+    let cluster = Cluster::from_kubeconfig(&path, None).await.unwrap();
+    let mut job = rendered_jobs().remove(0);
+    job.metadata.namespace = Some(cluster.namespace().to_string());
+    cluster.create_or_adopt(&job).await.unwrap();
+    unschedulable(&cluster).await
+}
+
+/// What the real control plane answered, committed (`LB_RECORD_KUBE_CONTRACT=1` re-records it).
+fn contract_path() -> PathBuf {
+    root().join("local/realkube/contract/scheduler.json")
+}
+
+#[tokio::test]
+#[ignore = "builds and starts the real control plane (minutes the first time): make test runs it"]
+async fn local_kube_s_scheduler_complains_as_the_real_one_does() {
+    let bin = real_kube::binaries().expect("the control plane builds");
+    let recorded: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(contract_path()).unwrap()).unwrap();
+    let mut answered = serde_json::Map::new();
+    for (gpu_model, gpus) in [("nvidia-a10g", 0), ("nvidia-l4", 8)] {
+        let case = format!("a node with {gpus} GPUs of {gpu_model}");
+        let plane = ControlPlane::start(&bin).expect("the control plane starts");
+        add_node(&plane, gpu_model, gpus);
+        let k8s = root().join("infra/k8s");
+        let applied = kubectl(
+            &plane,
+            Identity::Admin,
+            &["apply", "-f", k8s.to_str().unwrap()],
+        );
+        assert!(applied.status.success(), "{}", text(&applied));
+        let cluster = Cluster::from_kubeconfig(&plane.kubeconfig(Identity::Pipeline), None)
+            .await
+            .unwrap()
+            .with_namespace(NAMESPACE);
+        cluster.create_or_adopt(&rendered_jobs()[0]).await.unwrap();
+        let real = unschedulable(&cluster).await;
+        let local = local_unschedulable(gpu_model, gpus).await;
+        assert_eq!(local, real, "{case}: local-kube against the real scheduler");
+        if std::env::var_os("LB_RECORD_KUBE_CONTRACT").is_none() {
+            assert_eq!(
+                recorded[&case],
+                real.as_str(),
+                "{case}: the recording is stale"
+            );
+        }
+        answered.insert(case, real.into());
+    }
+    if std::env::var_os("LB_RECORD_KUBE_CONTRACT").is_some() {
+        let text = serde_json::to_string_pretty(&answered).unwrap();
+        std::fs::write(contract_path(), text + "\n").unwrap();
+    }
+}
+
+/// local-kube against the recording alone: what a machine without the real control plane
+/// still checks.
+#[tokio::test]
+async fn local_kube_s_scheduler_answers_as_recorded() {
+    let recorded: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(contract_path()).unwrap()).unwrap();
+    for (gpu_model, gpus) in [("nvidia-a10g", 0), ("nvidia-l4", 8)] {
+        let case = format!("a node with {gpus} GPUs of {gpu_model}");
+        let local = local_unschedulable(gpu_model, gpus).await;
+        assert_eq!(recorded[&case], local.as_str(), "{case}");
+    }
+}

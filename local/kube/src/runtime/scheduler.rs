@@ -16,8 +16,9 @@ use crate::store::time_now;
 pub const GPU: &str = "nvidia.com/gpu";
 
 /// What the real scheduler writes on a pod no node has GPUs for (kube-scheduler's
-/// `NodeResourcesFit` plugin, one node).
-pub const INSUFFICIENT_GPU: &str = "0/1 nodes are available: 1 Insufficient nvidia.com/gpu.";
+/// `NodeResourcesFit` plugin, one node, and the preemption it then tries: no pod of lower
+/// priority holds one), as `tests/e2e/tests/real_kube.rs` checks against the real one.
+pub const INSUFFICIENT_GPU: &str = "0/1 nodes are available: 1 Insufficient nvidia.com/gpu. preemption: 0/1 nodes are available: 1 No preemption victims found for incoming pod.";
 
 /// What the real scheduler writes on a pod whose `nodeSelector` the node's labels do not
 /// satisfy (kube-scheduler's `NodeAffinity` filter, one node; preemption cannot help).
