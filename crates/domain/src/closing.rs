@@ -156,7 +156,8 @@ enum Stage {
     Stop,
     Read,
     TryAgain,
-    Tail,
+    /// Reading this pair's agent log.
+    Tail(u32),
     Admit,
     Post,
     Logs,
@@ -175,8 +176,8 @@ pub struct Closing<'a> {
     settled: Option<(Settled, Option<String>)>,
     outcome: Option<Outcome>,
     merged: Option<Merged>,
-    /// The pair whose log tail is read, then its tail.
-    tail: Option<(u32, Option<String>)>,
+    /// The most crashed agent's pair and the end of its log, once read.
+    tail: Option<(u32, String)>,
     /// The qualifier's verdict and the tracks a pass admits to.
     verdict: Option<(String, Vec<String>)>,
     recordings: Option<Recordings>,
@@ -204,7 +205,7 @@ impl<'a> Closing<'a> {
             Stage::Stop => Step::StopJobs,
             Stage::Read => Step::ReadLeft,
             Stage::TryAgain => Step::TryAgain,
-            Stage::Tail => Step::ReadAgentTail(self.tail.as_ref().map_or(0, |(pair, _)| *pair)),
+            Stage::Tail(pair) => Step::ReadAgentTail(pair),
             Stage::Admit => Step::Admit(
                 self.verdict
                     .as_ref()
@@ -227,10 +228,8 @@ impl<'a> Closing<'a> {
             (Stage::Standing, Answer::Standing(record)) => self.stood(record.unwrap_or_default()),
             (Stage::Stop, Answer::Done) => Stage::Read,
             (Stage::Read, Answer::Left(left)) => self.decide(left),
-            (Stage::Tail, Answer::Tail(tail)) => {
-                if let Some((_, read)) = &mut self.tail {
-                    *read = tail;
-                }
+            (Stage::Tail(pair), Answer::Tail(tail)) => {
+                self.tail = tail.map(|tail| (pair, tail));
                 Stage::Post
             }
             (Stage::Admit, Answer::Done) => Stage::Post,
@@ -306,10 +305,8 @@ impl<'a> Closing<'a> {
         };
         let next = match outcome.status {
             SubmissionStatus::Failed => {
-                finalize::most_crashed_agent(left.markers.iter().map(String::as_str)).map(|pair| {
-                    self.tail = Some((pair, None));
-                    Stage::Tail
-                })
+                finalize::most_crashed_agent(left.markers.iter().map(String::as_str))
+                    .map(Stage::Tail)
             }
             SubmissionStatus::Finished => self.qualify(),
             _ => None,
@@ -348,7 +345,7 @@ impl<'a> Closing<'a> {
         let tail = self
             .tail
             .as_ref()
-            .and_then(|(pair, tail)| Some((*pair, tail.as_deref()?)));
+            .map(|(pair, tail)| (*pair, tail.as_str()));
         Step::Post {
             status: outcome.status,
             stdout: finalize::stdout(outcome.pairs_note.as_deref(), verdict, summary),
@@ -417,7 +414,7 @@ impl<'a> Closing<'a> {
 }
 
 /// The record's word for EvalAI's final status.
-pub fn record_status(status: SubmissionStatus) -> RecordStatus {
+fn record_status(status: SubmissionStatus) -> RecordStatus {
     match status {
         SubmissionStatus::Finished => RecordStatus::Finished,
         SubmissionStatus::Cancelled => RecordStatus::Cancelled,

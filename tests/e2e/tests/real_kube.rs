@@ -46,6 +46,21 @@ fn rendered_jobs() -> Vec<Job> {
         .collect()
 }
 
+/// `infra/k8s` applied as an operator applies it; the server validates each object.
+fn apply_infra(plane: &ControlPlane) {
+    let k8s = root().join("infra/k8s");
+    let applied = kubectl(
+        plane,
+        Identity::Admin,
+        &["apply", "-f", k8s.to_str().unwrap()],
+    );
+    assert!(
+        applied.status.success(),
+        "infra/k8s refused: {}",
+        text(&applied)
+    );
+}
+
 /// Pod resident memory, MiB.
 fn rss_mib(pid: u32) -> f64 {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
@@ -73,18 +88,7 @@ async fn the_real_control_plane_admits_our_manifests_and_only_the_pipeline_s_own
         memory.join(", ")
     );
 
-    // What an operator applies, validated by the server itself.
-    let k8s = root().join("infra/k8s");
-    let applied = kubectl(
-        &plane,
-        Identity::Admin,
-        &["apply", "-f", k8s.to_str().unwrap()],
-    );
-    assert!(
-        applied.status.success(),
-        "infra/k8s refused: {}",
-        text(&applied)
-    );
+    apply_infra(&plane);
 
     // The pipeline's own calls, as the pipeline's identity.
     let cluster = Cluster::from_kubeconfig(&plane.kubeconfig(Identity::Pipeline), None)
@@ -273,24 +277,29 @@ fn contract_path() -> PathBuf {
     root().join("local/realkube/contract/scheduler.json")
 }
 
+fn recorded() -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(contract_path()).unwrap()).unwrap()
+}
+
+/// The one node's GPU model and count, for a pod asking one `nvidia-a10g`: too few GPUs, and
+/// the wrong model.
+const NODES: [(&str, u32); 2] = [("nvidia-a10g", 0), ("nvidia-l4", 8)];
+
+fn case(gpu_model: &str, gpus: u32) -> String {
+    format!("a node with {gpus} GPUs of {gpu_model}")
+}
+
 #[tokio::test]
 #[ignore = "builds and starts the real control plane (minutes the first time): make test runs it"]
 async fn local_kube_s_scheduler_complains_as_the_real_one_does() {
     let bin = real_kube::binaries().expect("the control plane builds");
-    let recorded: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(contract_path()).unwrap()).unwrap();
+    let recorded = recorded();
     let mut answered = serde_json::Map::new();
-    for (gpu_model, gpus) in [("nvidia-a10g", 0), ("nvidia-l4", 8)] {
-        let case = format!("a node with {gpus} GPUs of {gpu_model}");
+    for (gpu_model, gpus) in NODES {
+        let case = case(gpu_model, gpus);
         let plane = ControlPlane::start(&bin).expect("the control plane starts");
         add_node(&plane, gpu_model, gpus);
-        let k8s = root().join("infra/k8s");
-        let applied = kubectl(
-            &plane,
-            Identity::Admin,
-            &["apply", "-f", k8s.to_str().unwrap()],
-        );
-        assert!(applied.status.success(), "{}", text(&applied));
+        apply_infra(&plane);
         let cluster = Cluster::from_kubeconfig(&plane.kubeconfig(Identity::Pipeline), None)
             .await
             .unwrap()
@@ -318,10 +327,9 @@ async fn local_kube_s_scheduler_complains_as_the_real_one_does() {
 /// still checks.
 #[tokio::test]
 async fn local_kube_s_scheduler_answers_as_recorded() {
-    let recorded: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(contract_path()).unwrap()).unwrap();
-    for (gpu_model, gpus) in [("nvidia-a10g", 0), ("nvidia-l4", 8)] {
-        let case = format!("a node with {gpus} GPUs of {gpu_model}");
+    let recorded = recorded();
+    for (gpu_model, gpus) in NODES {
+        let case = case(gpu_model, gpus);
         let local = local_unschedulable(gpu_model, gpus).await;
         assert_eq!(recorded[&case], local.as_str(), "{case}");
     }
