@@ -56,13 +56,20 @@ pub struct Reclaim {
 }
 
 impl Reclaim {
-    /// Starts watching the submission's Jobs; `acted` is set once the node was drained.
-    pub fn spawn(kubeconfig: PathBuf, submission: u64, acted: Arc<AtomicBool>) -> Reclaim {
+    /// Starts watching the submission's Jobs; `acted` is set once the node was drained (and
+    /// first cordoned, when `cordons`).
+    pub fn spawn(
+        kubeconfig: PathBuf,
+        namespace: String,
+        submission: u64,
+        cordons: bool,
+        acted: Arc<AtomicBool>,
+    ) -> Reclaim {
         let cue = Arc::new(Notify::new());
         let (stop, stopped) = watch::channel(false);
         let task = tokio::spawn(watch_and_drain(
-            kubeconfig,
-            submission,
+            (kubeconfig, namespace),
+            (submission, cordons),
             cue.clone(),
             stopped,
             acted,
@@ -83,8 +90,8 @@ impl Reclaim {
 }
 
 async fn watch_and_drain(
-    kubeconfig: PathBuf,
-    submission: u64,
+    (kubeconfig, namespace): (PathBuf, String),
+    (submission, cordons): (u64, bool),
     cue: Arc<Notify>,
     mut stopped: watch::Receiver<bool>,
     acted: Arc<AtomicBool>,
@@ -93,23 +100,21 @@ async fn watch_and_drain(
     let Ok(cluster) = lb_cluster::Cluster::from_kubeconfig(&kubeconfig, None).await else {
         return report;
     };
-    let pods: Option<Api<Pod>> = async {
-        let kc = kube::config::Kubeconfig::read_from(&kubeconfig).ok()?;
-        let options = kube::config::KubeConfigOptions::default();
-        let config = kube::Config::from_custom_kubeconfig(kc, &options)
-            .await
-            .ok()?;
-        let client = kube::Client::try_from(config).ok()?;
-        Some(Api::namespaced(client, cluster.namespace()))
-    }
-    .await;
-    let Some(pods) = pods else { return report };
+    let cluster = cluster.with_namespace(namespace);
+    let Ok(client) = node_agent::client(&kubeconfig).await else {
+        return report;
+    };
+    let pods: Api<Pod> = Api::namespaced(client.clone(), cluster.namespace());
     let mut cued = false;
     loop {
         tokio::select! {
             () = cue.notified(), if !cued => {
                 cued = true;
-                let evicted = drain(&cluster, &pods, submission).await;
+                let on_node = match cordons {
+                    true => cordon(&client, &pods, submission).await,
+                    false => None,
+                };
+                let evicted = drain(&cluster, &pods, submission, on_node).await;
                 for (pod, reason) in &evicted {
                     if let Some(reason) = reason {
                         report.disrupted.insert(pod.clone(), reason.clone());
@@ -124,20 +129,46 @@ async fn watch_and_drain(
     }
 }
 
-/// Evicts every running pod of the submission, as `kubectl drain` and the node group do; each
+/// Cordons one node the submission's pods run on, as a managed node group does before it
+/// drains a node on its interruption notice; the names of the pods on it.
+async fn cordon(
+    client: &kube::Client,
+    api: &Api<Pod>,
+    submission: u64,
+) -> Option<std::collections::BTreeSet<String>> {
+    let selector = format!("{}={submission}", lb_domain::plan::SUBMISSION_LABEL);
+    let params = kube::api::ListParams::default().labels(&selector);
+    let pods = api.list(&params).await.ok()?.items;
+    let on = |p: &Pod| p.spec.as_ref().and_then(|s| s.node_name.clone());
+    let node = pods.iter().find_map(on)?;
+    match node_agent::cordon(client, &node).await {
+        Ok(()) => cli::outln!("           scenario: node {node} cordoned"),
+        Err(e) => cli::outln!("           scenario: cordoning {node} failed: {e}"),
+    }
+    Some(
+        pods.iter()
+            .filter(|p| on(p).as_deref() == Some(node.as_str()))
+            .filter_map(|p| p.metadata.name.clone())
+            .collect(),
+    )
+}
+
+/// Evicts every running pod of the submission (on the drained node, when it is known), as `kubectl drain` and the node group do; each
 /// evicted pod with its `DisruptionTarget` reason as read right after (the API server writes
 /// it before the pod is deleted; a pod that stops at once may be gone before a later look).
 async fn drain(
     cluster: &lb_cluster::Cluster,
     api: &Api<Pod>,
     submission: u64,
+    on_node: Option<std::collections::BTreeSet<String>>,
 ) -> Vec<(String, Option<String>)> {
     let Ok(seen) = cluster.observe(&submission.to_string()).await else {
         return Vec::new();
     };
     let mut evicted = Vec::new();
     let pods = seen.jobs.iter().flat_map(|j| &j.pods);
-    for pod in pods.filter(|p| p.phase == "Running" && !p.terminating) {
+    let on_node = |name: &String| on_node.as_ref().is_none_or(|n| n.contains(name));
+    for pod in pods.filter(|p| p.phase == "Running" && !p.terminating && on_node(&p.name)) {
         match api.evict(&pod.name, &EvictParams::default()).await {
             Ok(_) => {
                 let reason = disruption_of(api, &pod.name).await;

@@ -39,6 +39,11 @@ pub struct LocalRun {
     /// Simulator-agent pairs.
     #[arg(long, default_value_t = 4)]
     pub workers: u32,
+    /// The Kubernetes the Jobs run on: local-kube (embedded, fast), or the real control plane
+    /// of the pinned release (`make real-kube` builds it) with local-kube's process runner as
+    /// the kubelet of its GPU nodes.
+    #[arg(long, value_enum, default_value = "local")]
+    pub kube: KubeKind,
     /// GPUs of the local node (`nvidia.com/gpu`; each pair's agent requests one): pairs
     /// beyond them wait Pending, Unschedulable, until a GPU frees. Default: not modelled.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=64))]
@@ -114,6 +119,15 @@ pub struct LocalRun {
     pub keep: bool,
 }
 
+/// The Kubernetes of a local run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum KubeKind {
+    /// local-kube: one node, its own API server, job controller and scheduler.
+    Local,
+    /// The real kube-apiserver, Job controller and scheduler; local-kube runs the pods.
+    Real,
+}
+
 fn say(started: Instant, text: impl AsRef<str>) {
     outln!(
         "[{:>6.1}s] {}",
@@ -142,7 +156,15 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let tasks = local_stack::integrations::with_services(tasks, &stack.sdk, late.clone());
     let acted = Arc::new(AtomicBool::new(!scenario.acts()));
     scenario.begin(&Begin {
-        kubeconfig: kubeconfig.clone(),
+        kubeconfig: stack
+            .operator_kubeconfig()
+            .map_or_else(|| kubeconfig.clone(), Path::to_path_buf),
+        cordons: args.kube == KubeKind::Real,
+        namespace: settings
+            .leaderboards
+            .get(&args.leaderboard)
+            .map(|l| l.namespace.clone())
+            .unwrap_or_default(),
         submission,
         fake_evalai: stack.fake_evalai.as_ref().map(|f| f.url()),
         cancel_after_round: args.cancel_after_round,
@@ -213,8 +235,17 @@ async fn set_up(
     say(
         started,
         format!(
-            "local Kubernetes API {} (kubeconfig {})",
-            stack.kube.as_ref().map(|k| k.url()).unwrap_or_default(),
+            "{} {} (kubeconfig {})",
+            match args.kube {
+                KubeKind::Local => "local Kubernetes API",
+                KubeKind::Real => "real Kubernetes control plane",
+            },
+            stack
+                .kube
+                .as_ref()
+                .map(|k| k.url())
+                .or_else(|| stack.real.as_ref().map(|r| r.plane.server.clone()))
+                .unwrap_or_default(),
             kubeconfig.display()
         ),
     );
@@ -270,6 +301,9 @@ fn local_phase(leaderboard: Leaderboard) -> u64 {
     }
 }
 
+/// The submissions' namespace `infra/k8s` creates.
+const REAL_NAMESPACE: &str = "leaderboard";
+
 /// The local settings with the run's track, pacing and team limit.
 fn settings_for(args: &LocalRun) -> anyhow::Result<Value> {
     let board = args.leaderboard.as_str();
@@ -285,6 +319,16 @@ fn settings_for(args: &LocalRun) -> anyhow::Result<Value> {
             .max(1.0) as u64,
     );
     settings["leaderboards"][board]["partial_update_seconds"] = json!(interval);
+    if args.kube == KubeKind::Real {
+        // The namespace infra/k8s declares (Pod Security baseline, the pipeline's Role).
+        for leaderboard in settings["leaderboards"]
+            .as_object_mut()
+            .into_iter()
+            .flat_map(|l| l.values_mut())
+        {
+            leaderboard["namespace"] = json!(REAL_NAMESPACE);
+        }
+    }
     if let Some(limit) = args.team_limit {
         settings["leaderboards"][board]["team_limit"] = json!(limit);
     }
@@ -351,9 +395,11 @@ fn start_workloads(
     } else {
         &[image]
     };
-    stack
-        .start_workloads(settings, &bins, &behaviour, unpullable)
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    match args.kube {
+        KubeKind::Local => stack.start_workloads(settings, &bins, &behaviour, unpullable),
+        KubeKind::Real => stack.start_real_workloads(settings, &bins, &behaviour, unpullable),
+    }
+    .map_err(|e| anyhow::anyhow!("{e}"))?;
     stack.kubeconfig.clone().context("no kubeconfig")
 }
 

@@ -18,5 +18,8 @@ pub use config::{Config, Isolation, Timing};
 pub use error::{Error, Result};
 pub use imagemap::{ImageEntry, ImageMap, ImageMapError, Pull};
 pub use kubeconfig::kubeconfig_yaml;
-pub use runtime::scheduler::{gpu_uuid, INSUFFICIENT_GPU, SELECTOR_MISMATCH, UNMODELLED_GPUS};
-pub use server::LocalKube;
+pub use runtime::scheduler::{
+    autoscaler_word, gpu_request, gpu_uuid, AUTOSCALER, INSUFFICIENT_GPU, NOT_TRIGGERED,
+    SELECTOR_MISMATCH, UNMODELLED_GPUS,
+};
+pub use server::{LocalKube, PodRunner};

@@ -17,7 +17,8 @@ use crate::error::{Error, Result};
 use crate::kubeconfig::kubeconfig_yaml;
 use crate::runtime::process::{detect, Namespaces};
 use crate::runtime::Runtime;
-use crate::store::{time_now, Store};
+use crate::store::{time_now, ObjKey, Store};
+use k8s_openapi::api::core::v1::Pod;
 
 enum Serving {
     /// A task in the caller's runtime.
@@ -258,6 +259,12 @@ impl LocalKube {
         self.rt.pods_dir.clone()
     }
 
+    /// A handle on the pods this server runs, for a node agent that takes them from another
+    /// control plane.
+    pub fn runner(&self) -> PodRunner {
+        PodRunner(self.rt.clone())
+    }
+
     /// A kubeconfig for this server (with the bearer token when one is required).
     pub fn kubeconfig_yaml(&self) -> String {
         kubeconfig_yaml(&self.url(), self.token.as_deref())
@@ -306,5 +313,35 @@ impl LocalKube {
 impl Drop for LocalKube {
     fn drop(&mut self) {
         self.shutdown();
+    }
+}
+
+/// The process runner of a [`LocalKube`], shared with a node agent.
+#[derive(Clone)]
+pub struct PodRunner(Arc<Runtime>);
+
+impl PodRunner {
+    /// Runs a pod another scheduler bound to a node this process serves (a node agent's):
+    /// stored under its own name and uid, its containers started. 409 if it is already here.
+    pub fn adopt(&self, pod: Pod) -> std::result::Result<Pod, crate::status::ApiError> {
+        self.0.adopt(pod)
+    }
+
+    /// Every pod held here, as its kubelet last wrote it.
+    pub fn pods(&self) -> Vec<Pod> {
+        self.0.store.list::<Pod>(None, |_| true).0
+    }
+
+    /// Stops a pod's containers within `grace` (capped) and waits for them, bounded; the pod
+    /// and its logs stay, with the status of its terminated containers.
+    pub async fn stop_pod(&self, uid: &str, grace: Option<Duration>) {
+        self.0.stop_pod(uid, grace).await;
+    }
+
+    /// Stops a pod, removes its directory and the object.
+    pub async fn delete_pod(&self, namespace: &str, name: &str) {
+        self.0
+            .delete_pod(&ObjKey::new(namespace, name), Some(Duration::ZERO))
+            .await;
     }
 }

@@ -182,6 +182,32 @@ impl ControlPlane {
         self.dir.path().join(format!("{}.kubeconfig", who.user()))
     }
 
+    /// The certificate and key (PEM) a node agent serves its kubelet endpoint with (signed by
+    /// the cluster's CA, for 127.0.0.1).
+    pub fn kubelet_tls(&self) -> (PathBuf, PathBuf) {
+        let at = |name: &str| self.dir.path().join(name);
+        (at("kubelet.crt"), at("kubelet.key"))
+    }
+
+    /// Applies manifests (a file or a folder) as the admin, as an operator does.
+    pub fn apply(&self, manifests: &Path) -> Result<(), Error> {
+        let out = Command::new("kubectl")
+            .arg(format!(
+                "--kubeconfig={}",
+                self.kubeconfig(Identity::Admin).display()
+            ))
+            .args(["apply", "-f"])
+            .arg(manifests)
+            .output()?;
+        match out.status.success() {
+            true => Ok(()),
+            false => Err(Error::Start {
+                what: "kubectl apply",
+                why: String::from_utf8_lossy(&out.stderr).into_owned(),
+            }),
+        }
+    }
+
     /// The PIDs of the servers, by name (for memory readings).
     pub fn pids(&self) -> Vec<(&'static str, u32)> {
         self.children.iter().map(|(n, c)| (*n, c.id())).collect()
@@ -207,13 +233,8 @@ impl ControlPlane {
         // A CA and a serving certificate it signs: rustls (kube-rs) refuses a self-signed CA
         // presented as the server's own certificate.
         let path = |name: &str| at(name).to_str().unwrap_or_default().to_string();
-        let (ca, ca_key, crt, key) = (
-            path("ca.crt"),
-            path("ca.key"),
-            path("serving.crt"),
-            path("serving.key"),
-        );
-        let (csr, ext) = (path("serving.csr"), path("serving.ext"));
+        let (ca, ca_key) = (path("ca.crt"), path("ca.key"));
+        let ext = path("serving.ext");
         fs::write(
             &ext,
             "subjectAltName=IP:127.0.0.1,DNS:localhost\nbasicConstraints=CA:FALSE\n\
@@ -234,35 +255,43 @@ impl ControlPlane {
             "-out",
             &ca,
         ])?;
-        openssl(&[
-            "req",
-            "-newkey",
-            "rsa:2048",
-            "-nodes",
-            "-subj",
-            "/CN=kube-apiserver",
-            "-keyout",
-            &key,
-            "-out",
-            &csr,
-        ])?;
-        openssl(&[
-            "x509",
-            "-req",
-            "-in",
-            &csr,
-            "-CA",
-            &ca,
-            "-CAkey",
-            &ca_key,
-            "-CAcreateserial",
-            "-days",
-            "30",
-            "-extfile",
-            &ext,
-            "-out",
-            &crt,
-        ])?;
+        // The API server's, and the one a node agent serves its kubelet endpoint with.
+        for (name, cn) in [("serving", "kube-apiserver"), ("kubelet", "kubelet")] {
+            let (key, crt, csr) = (
+                path(&format!("{name}.key")),
+                path(&format!("{name}.crt")),
+                path(&format!("{name}.csr")),
+            );
+            openssl(&[
+                "req",
+                "-newkey",
+                "rsa:2048",
+                "-nodes",
+                "-subj",
+                &format!("/CN={cn}"),
+                "-keyout",
+                &key,
+                "-out",
+                &csr,
+            ])?;
+            openssl(&[
+                "x509",
+                "-req",
+                "-in",
+                &csr,
+                "-CA",
+                &ca,
+                "-CAkey",
+                &ca_key,
+                "-CAcreateserial",
+                "-days",
+                "30",
+                "-extfile",
+                &ext,
+                "-out",
+                &crt,
+            ])?;
+        }
         let (sa_key, sa_pub) = (at("sa.key"), at("sa.pub"));
         let sa_key = sa_key.to_str().unwrap_or_default();
         openssl(&["genrsa", "-out", sa_key, "2048"])?;

@@ -4,6 +4,7 @@ pub mod events;
 pub mod integrations;
 pub mod moto;
 pub mod pipe;
+pub mod real;
 pub mod stack;
 pub mod workloads;
 

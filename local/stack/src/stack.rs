@@ -14,6 +14,7 @@ use lb_domain::settings::Settings;
 use local_kube::LocalKube;
 
 use crate::moto::{MotoError, MotoServer};
+use crate::real::{node_of, RealCluster};
 use crate::workloads::{image_map, Behaviour, Binaries};
 use lb_infra::template::{Template, TemplateError, APP};
 
@@ -110,8 +111,12 @@ pub struct Stack {
     pub sdk: SdkConfig,
     /// The local Kubernetes API, when the stack started one.
     pub kube: Option<LocalKube>,
-    /// Its kubeconfig (in `workdir`).
+    /// The functions' kubeconfig.
     pub kubeconfig: Option<std::path::PathBuf>,
+    /// The operator's kubeconfig, when it is another identity.
+    pub operator_kubeconfig: Option<std::path::PathBuf>,
+    /// The real control plane and its node agent, when the workloads run there.
+    pub real: Option<RealCluster>,
     /// Scratch directory of this stack (kubeconfig, pod directories); removed on drop.
     pub workdir: tempfile::TempDir,
     /// How long start-up took.
@@ -188,6 +193,8 @@ impl Stack {
             sdk,
             kube,
             kubeconfig,
+            operator_kubeconfig: None,
+            real: None,
             workdir,
             started_in: started.elapsed(),
         })
@@ -210,8 +217,47 @@ impl Stack {
         behaviour: &Behaviour,
         unpullable: &[&str],
     ) -> Result<(), StackError> {
+        let images = self.images(settings, bins, behaviour, unpullable)?;
+        let node = node_of(settings, behaviour);
+        self.start_kube(local_kube::Config {
+            images,
+            gpus: behaviour.node_gpus,
+            instance_type: node.instance_type,
+            labels: node.labels,
+            autoscaler: true,
+            ..local_kube::Config::default()
+        })
+    }
+
+    /// The same workloads on the real Kubernetes control plane (`make real-kube` builds it):
+    /// `infra/k8s` applied, its scheduler placing the pods on GPU nodes of the settings'
+    /// instance type, local-kube's process runner as their kubelet, and a stand-in for the
+    /// Cluster Autoscaler's word. The functions' kubeconfig is the pipeline's identity.
+    pub fn start_real_workloads(
+        &mut self,
+        settings: &Settings,
+        bins: &Binaries,
+        behaviour: &Behaviour,
+        unpullable: &[&str],
+    ) -> Result<(), StackError> {
+        let images = self.images(settings, bins, behaviour, unpullable)?;
+        let real = RealCluster::start(settings, behaviour, images, self.workdir.path())?;
+        self.kubeconfig = Some(real.plane.kubeconfig(real_kube::Identity::Pipeline));
+        self.operator_kubeconfig = Some(real.plane.kubeconfig(real_kube::Identity::Admin));
+        self.real = Some(real);
+        Ok(())
+    }
+
+    /// The image map of a local run.
+    fn images(
+        &self,
+        settings: &Settings,
+        bins: &Binaries,
+        behaviour: &Behaviour,
+        unpullable: &[&str],
+    ) -> Result<local_kube::ImageMap, StackError> {
         let scratch = self.workdir.path().join("images");
-        let images = image_map(
+        image_map(
             settings,
             bins,
             &self.moto.endpoint(),
@@ -220,46 +266,15 @@ impl Stack {
             behaviour,
             unpullable,
         )
-        .map_err(|e| StackError::Kube(format!("image map: {e}")))?;
-        // One node, of the instance type the leaderboards run on, under a Cluster Autoscaler
-        // whose one node group is at its maximum (infra/k8s/cluster-autoscaler.yaml runs one
-        // on EKS): a pod no node could hold hears so, as it would there.
-        let mut types = settings.leaderboards.values().map(|l| &l.instance_type);
-        let shared = types
-            .next()
-            .filter(|first| types.all(|t| t == *first))
-            .cloned();
-        let instance_type = behaviour.node_instance_type.clone().or(shared);
-        // The labels its node group gives it (infra/cluster.yaml): the GPU model of its
-        // instance type, and the capacity type EKS adds.
-        let labels = instance_type
+        .map_err(|e| StackError::Kube(format!("image map: {e}")))
+    }
+
+    /// The kubeconfig an operator uses (and a managed node group's drain acts as): the
+    /// functions' own on local-kube, the admin's on the real control plane.
+    pub fn operator_kubeconfig(&self) -> Option<&std::path::Path> {
+        self.operator_kubeconfig
             .as_deref()
-            .and_then(lb_domain::resources::gpu_model)
-            .map(|model| {
-                std::collections::BTreeMap::from([
-                    (
-                        lb_domain::resources::GPU_MODEL_LABEL.to_owned(),
-                        model.to_owned(),
-                    ),
-                    (
-                        lb_domain::settings::Capacity::LABEL.to_owned(),
-                        behaviour
-                            .node_capacity
-                            .node_label()
-                            .unwrap_or("ON_DEMAND")
-                            .to_owned(),
-                    ),
-                ])
-            })
-            .unwrap_or_default();
-        self.start_kube(local_kube::Config {
-            images,
-            gpus: behaviour.node_gpus,
-            instance_type,
-            labels,
-            autoscaler: true,
-            ..local_kube::Config::default()
-        })
+            .or(self.kubeconfig.as_deref())
     }
 
     /// The fake EvalAI (panics if the stack uses an external one: a test bug).

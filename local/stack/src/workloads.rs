@@ -126,6 +126,9 @@ pub struct Behaviour {
     /// The local node's capacity type (`eks.amazonaws.com/capacityType`): on-demand unless
     /// `Capacity::Spot`.
     pub node_capacity: lb_domain::settings::Capacity,
+    /// A second node the pods can move to once the first is drained (on the real control
+    /// plane a drained node is cordoned; local-kube's one node is not).
+    pub spare_node: bool,
 }
 
 impl Default for Behaviour {
@@ -137,6 +140,7 @@ impl Default for Behaviour {
             node_gpus: None,
             node_instance_type: None,
             node_capacity: lb_domain::settings::Capacity::OnDemand,
+            spare_node: false,
         }
     }
 }

@@ -2,6 +2,7 @@
 //! not one per file).
 
 mod infra;
+mod kube_contract;
 mod layout;
 mod payloads;
 mod pipeline;

@@ -99,8 +99,13 @@ impl Scenario {
 
 /// What a run tells its scenario before the executions start.
 pub struct Begin {
-    /// The local cluster's kubeconfig.
+    /// The local cluster's kubeconfig, as an operator (and a node group's drain) uses it.
     pub kubeconfig: PathBuf,
+    /// Whether a drain cordons the node first (the real control plane has Node objects;
+    /// local-kube's one node is not modelled as one).
+    pub cordons: bool,
+    /// The submissions' namespace.
+    pub namespace: String,
     /// The submission the scenario acts on (the first to arrive).
     pub submission: u64,
     /// The fake EvalAI's address (none with another EvalAI).

@@ -29,6 +29,7 @@ impl Rehearsal for Spot {
     fn set_up(&self, behaviour: &mut Behaviour, _once: &Path) {
         behaviour.route_seconds = behaviour.route_seconds.max(SPOT_ROUTE_SECONDS);
         behaviour.node_capacity = lb_domain::settings::Capacity::Spot;
+        behaviour.spare_node = true;
     }
 
     fn acts(&self) -> bool {
@@ -36,7 +37,13 @@ impl Rehearsal for Spot {
     }
 
     fn begin(&self, run: &Begin) {
-        let watcher = Reclaim::spawn(run.kubeconfig.clone(), run.submission, run.acted.clone());
+        let watcher = Reclaim::spawn(
+            run.kubeconfig.clone(),
+            run.namespace.clone(),
+            run.submission,
+            run.cordons,
+            run.acted.clone(),
+        );
         *self.watcher.lock().unwrap_or_else(PoisonError::into_inner) = Some(watcher);
     }
 

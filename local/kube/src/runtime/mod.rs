@@ -316,6 +316,41 @@ impl Runtime {
         });
     }
 
+    /// Runs a pod another scheduler bound (a node agent's pod from a real control plane):
+    /// stored as it came, given GPUs as the device plugin would, and its kubelet started.
+    pub fn adopt(self: &Arc<Self>, pod: Pod) -> Result<Pod, ApiError> {
+        if self.is_shutting_down() {
+            return Err(ApiError::unavailable("local-kube is shutting down"));
+        }
+        let pod = self.store.create(pod)?;
+        let uid = pod.metadata.uid.clone().unwrap_or_default();
+        let need = pod.spec.as_ref().map_or(0, scheduler::gpu_request);
+        lock(&self.allocations).bind(&uid, need, None);
+        self.start_kubelet(pod.clone());
+        Ok(pod)
+    }
+
+    /// Stops a pod's containers (grace capped) and waits for them, bounded; the object and its
+    /// logs stay with the status its kubelet wrote last.
+    pub async fn stop_pod(&self, uid: &str, grace: Option<Duration>) {
+        let handle = lock(&self.pods)
+            .get(uid)
+            .map(|h| (h.stop.clone(), h.done.clone(), h.grace));
+        if let Some((stop, mut done, default_grace)) = handle {
+            let grace = grace
+                .unwrap_or(default_grace)
+                .min(self.timing.max_grace_period);
+            let _ = stop.send(Some(grace));
+            let bound = grace + Duration::from_secs(10);
+            if tokio::time::timeout(bound, done.wait_for(|d| *d))
+                .await
+                .is_err()
+            {
+                warn!(pod = uid, "pod did not stop in time");
+            }
+        }
+    }
+
     /// Marks a pod deleted (so it shows as terminating) and returns it.
     pub fn mark_pod_deleted(&self, key: &ObjKey, grace: Option<Duration>) -> Option<Pod> {
         let now = time_now();
@@ -340,22 +375,7 @@ impl Runtime {
             return;
         };
         let uid = pod.metadata.uid.clone().unwrap_or_default();
-        let handle = lock(&self.pods)
-            .get(&uid)
-            .map(|h| (h.stop.clone(), h.done.clone(), h.grace));
-        if let Some((stop, mut done, default_grace)) = handle {
-            let grace = grace
-                .unwrap_or(default_grace)
-                .min(self.timing.max_grace_period);
-            let _ = stop.send(Some(grace));
-            let bound = grace + Duration::from_secs(10);
-            if tokio::time::timeout(bound, done.wait_for(|d| *d))
-                .await
-                .is_err()
-            {
-                warn!(pod = %key.name, "pod did not stop in time");
-            }
-        }
+        self.stop_pod(&uid, grace).await;
         lock(&self.pods).remove(&uid);
         let dir = self.pod_dir(&pod);
         if let Err(e) = std::fs::remove_dir_all(&dir) {

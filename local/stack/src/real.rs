@@ -1,0 +1,137 @@
+//! The rehearsal's workloads on the real Kubernetes control plane: the pinned kube-apiserver,
+//! controller-manager and scheduler (`real_kube`), `infra/k8s` applied as an operator applies
+//! it, and GPU nodes as the node groups of `infra/cluster.yaml` make them, whose kubelet is
+//! local-kube's process runner (`node_agent`).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use k8s_openapi::api::core::v1::Taint;
+use lb_domain::settings::Settings;
+use node_agent::{NodeAgent, NodeSpec};
+use real_kube::{ControlPlane, Identity};
+
+use crate::stack::StackError;
+use crate::workloads::Behaviour;
+
+/// What the cluster's manifests are (the repository's, applied as `make cluster` applies them).
+const INFRA_K8S: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../infra/k8s");
+
+/// The node group's label of the pool GPU nodes belong to (`infra/cluster.yaml`).
+const POOL_LABEL: &str = "leaderboard.carla.org/pool";
+
+/// GPUs of a node when neither the run nor the settings say.
+const DEFAULT_GPUS: u32 = 4;
+
+/// The node a run's pods are placed on: its instance type and its node group's labels.
+pub struct NodeOf {
+    /// `node.kubernetes.io/instance-type`, when one is modelled.
+    pub instance_type: Option<String>,
+    /// The GPU model and capacity type labels.
+    pub labels: BTreeMap<String, String>,
+}
+
+/// One node, of the instance type the leaderboards run on (the run's own when it names one),
+/// labelled as its node group labels it: the GPU model of that type, and the capacity type EKS
+/// adds.
+pub fn node_of(settings: &Settings, behaviour: &Behaviour) -> NodeOf {
+    let mut types = settings.leaderboards.values().map(|l| &l.instance_type);
+    let shared = types
+        .next()
+        .filter(|first| types.all(|t| t == *first))
+        .cloned();
+    let instance_type = behaviour.node_instance_type.clone().or(shared);
+    let labels = instance_type
+        .as_deref()
+        .and_then(lb_domain::resources::gpu_model)
+        .map(|model| {
+            BTreeMap::from([
+                (
+                    lb_domain::resources::GPU_MODEL_LABEL.to_owned(),
+                    model.to_owned(),
+                ),
+                (
+                    lb_domain::settings::Capacity::LABEL.to_owned(),
+                    behaviour
+                        .node_capacity
+                        .node_label()
+                        .unwrap_or("ON_DEMAND")
+                        .to_owned(),
+                ),
+            ])
+        })
+        .unwrap_or_default();
+    NodeOf {
+        instance_type,
+        labels,
+    }
+}
+
+/// The real control plane and the agent serving its nodes; dropping it stops both.
+pub struct RealCluster {
+    // NB: the agent goes first: it ends its pods while the API server still answers.
+    /// The node agent.
+    pub agent: NodeAgent,
+    /// The control plane.
+    pub plane: ControlPlane,
+}
+
+impl RealCluster {
+    /// Builds (once per machine) and starts the control plane, applies `infra/k8s`, and
+    /// registers the run's GPU nodes (two when the scenario drains one).
+    pub fn start(
+        settings: &Settings,
+        behaviour: &Behaviour,
+        images: local_kube::ImageMap,
+        workdir: &Path,
+    ) -> Result<RealCluster, StackError> {
+        let fail = |e: real_kube::Error| StackError::Kube(format!("real control plane: {e}"));
+        let bin = real_kube::binaries().map_err(fail)?;
+        let plane = ControlPlane::start(&bin).map_err(fail)?;
+        plane.apply(Path::new(INFRA_K8S)).map_err(fail)?;
+        let node = node_of(settings, behaviour);
+        let gpus = behaviour
+            .node_gpus
+            .or_else(|| {
+                settings
+                    .leaderboards
+                    .values()
+                    .map(|l| l.gpus_per_node)
+                    .max()
+            })
+            .unwrap_or(DEFAULT_GPUS);
+        let mut labels = node.labels;
+        labels.insert(POOL_LABEL.into(), "gpu".into());
+        if let Some(t) = node.instance_type {
+            labels.insert("node.kubernetes.io/instance-type".into(), t);
+        }
+        let taint = Taint {
+            key: node_agent::GPU_TAINT.into(),
+            value: Some("true".into()),
+            effect: "NoSchedule".into(),
+            ..Taint::default()
+        };
+        let count = if behaviour.spare_node { 2 } else { 1 };
+        let nodes = (1..=count)
+            .map(|i| NodeSpec {
+                name: format!("gpu-node-{i}"),
+                gpus,
+                labels: labels.clone(),
+                taints: vec![taint.clone()],
+            })
+            .collect();
+        let agent = NodeAgent::spawn(node_agent::Config {
+            kubeconfig: plane.kubeconfig(Identity::Admin),
+            nodes,
+            runtime: local_kube::Config {
+                images,
+                state_dir: Some(workdir.join("pods")),
+                ..local_kube::Config::default()
+            },
+            tls: plane.kubelet_tls(),
+            autoscaler: true,
+        })
+        .map_err(|e| StackError::Kube(format!("node agent: {e}")))?;
+        Ok(RealCluster { agent, plane })
+    }
+}
