@@ -160,6 +160,18 @@ pub struct Ledger {
     /// twice.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub lost_until: u64,
+    /// Each Job's failed pods at the last round: a pod gone since without one more failure
+    /// was one the Pod failure policy ignored, a disruption (`Ignore` is the policy's one rule
+    /// for it), even when no round saw its `DisruptionTarget`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub failed: Vec<u32>,
+}
+
+/// Each Job's failed pods (`status.failed`), by Job index.
+pub fn failures(jobs: &[JobView]) -> BTreeMap<u32, u32> {
+    jobs.iter()
+        .filter_map(|j| Some((j.index?, u32::try_from(j.failed).unwrap_or(0))))
+        .collect()
 }
 
 fn is_zero(n: &u64) -> bool {
@@ -310,11 +322,15 @@ impl Ledger {
     /// or up to its Job's next pod's start. A disrupted pod's time after its pair's last
     /// results write (`results_at`, by Job index) is run again by the next pod, and is lost
     /// time until that pod starts.
+    ///
+    /// `failed` is each Job's failed pods now: a pod that went between the rounds without its
+    /// Job counting a failure was disrupted (an eviction a round did not see), and its time
+    /// after the results write is run again as a seen disruption's is.
     pub fn account(
         &mut self,
         pods: &[PodSeen],
         kinds: &BTreeMap<String, NodeKind>,
-        results_at: &BTreeMap<u32, u64>,
+        (results_at, failed): (&BTreeMap<u32, u64>, &BTreeMap<u32, u32>),
         now: u64,
     ) {
         let mut pods: Vec<&PodSeen> = pods.iter().filter(|p| !self.counted_before(p)).collect();
@@ -333,6 +349,10 @@ impl Ledger {
                     {
                         let end = pod.started_at.clamp(self.last, now);
                         self.charge(gone.line, end - self.last, self.gpus, gone.disrupted);
+                        if !gone.disrupted && self.ignored_failure(pod.job, failed) {
+                            self.lose(gone.line, pod.job, results_at, end);
+                            resumed = resumed.max(Some(pod.started_at.min(now)));
+                        }
                     }
                     if self.catching_up(pod.job) && !pod.disrupted {
                         resumed = resumed.max(Some(pod.started_at.min(now)));
@@ -368,7 +388,15 @@ impl Ledger {
             self.set_mark(pod.job, mark);
             handled.insert(pod.job);
         }
-        self.charge_gone(&handled, now);
+        self.charge_gone(&handled, (results_at, failed), now);
+        self.failed = (0..self.jobs.len().max(self.failed.len()) as u32)
+            .map(|job| {
+                failed
+                    .get(&job)
+                    .copied()
+                    .unwrap_or_else(|| self.failed_before(job))
+            })
+            .collect();
         self.jobs.truncate(self.jobs.trim_end_matches('.').len());
         self.last = self.last.max(now);
         if !(0..self.jobs.len() as u32).any(|job| self.catching_up(job)) {
@@ -378,12 +406,21 @@ impl Ledger {
 
     /// Pods of the last round neither seen nor replaced (`handled` has the Jobs that were) went
     /// between the two rounds: charged up to `now`; a disrupted one leaves its Job catching up.
-    fn charge_gone(&mut self, handled: &std::collections::BTreeSet<u32>, now: u64) {
+    fn charge_gone(
+        &mut self,
+        handled: &std::collections::BTreeSet<u32>,
+        (results_at, failed): (&BTreeMap<u32, u64>, &BTreeMap<u32, u32>),
+        now: u64,
+    ) {
         for job in 0..self.jobs.len() as u32 {
             if let Some(gone) = self.running(job).filter(|_| !handled.contains(&job)) {
                 let seconds = now.saturating_sub(self.last);
                 self.charge(gone.line, seconds, self.gpus, gone.disrupted);
-                let mark = if gone.disrupted {
+                let ignored = !gone.disrupted && self.ignored_failure(job, failed);
+                if ignored {
+                    self.lose(gone.line, job, results_at, now);
+                }
+                let mark = if gone.disrupted || ignored {
                     JobMark::Reclaimed
                 } else {
                     JobMark::Idle
@@ -391,6 +428,40 @@ impl Ledger {
                 self.set_mark(job, mark);
             }
         }
+    }
+
+    /// Whether a pod running at the last round went since without its Job counting a failure
+    /// (a disruption no round saw): its lost time needs the results' times.
+    pub fn went_unfailed(&self, pods: &[PodSeen], failed: &BTreeMap<u32, u32>) -> bool {
+        (0..self.jobs.len() as u32).any(|job| {
+            self.running(job).is_some_and(|r| !r.disrupted)
+                && !pods
+                    .iter()
+                    .any(|p| p.job == job && self.continues(p).is_some())
+                && self.ignored_failure(job, failed)
+        })
+    }
+
+    /// Whether the Job's pod that went since the last round went without a failure counted
+    /// (known only when both rounds saw the Job's count).
+    fn ignored_failure(&self, job: u32, failed: &BTreeMap<u32, u32>) -> bool {
+        let before = self.failed.get(job as usize);
+        matches!((before, failed.get(&job)), (Some(b), Some(n)) if n <= b)
+    }
+
+    fn failed_before(&self, job: u32) -> u32 {
+        self.failed.get(job as usize).copied().unwrap_or(0)
+    }
+
+    /// A pod of `job` unseen disrupted went by `end`: its time after its pair's last results
+    /// write is run again, and lost time from then. NB: without that write, from the last
+    /// round (the pod's start is not kept), so the run-again time is a lower bound.
+    fn lose(&mut self, line: usize, job: u32, results_at: &BTreeMap<u32, u64>, end: u64) {
+        let since = results_at.get(&job).copied().unwrap_or(self.last).min(end);
+        let lost = (end - since).saturating_mul(u64::from(self.gpus));
+        let line = &mut self.lines[line];
+        line.run_again = line.run_again.saturating_add(lost);
+        self.begin_lost(since);
     }
 
     /// A Job starts catching up on work lost since `since`: the open stretch begins then, or
@@ -418,7 +489,12 @@ impl Ledger {
     /// Finalize's last word: every pod still running is charged to `now` (the Jobs are deleted
     /// next).
     pub fn close_all(&mut self, now: u64) {
-        self.account(&[], &BTreeMap::new(), &BTreeMap::new(), now);
+        self.account(
+            &[],
+            &BTreeMap::new(),
+            (&BTreeMap::new(), &BTreeMap::new()),
+            now,
+        );
     }
 
     /// The totals over every line, priced by `prices`.
@@ -643,26 +719,70 @@ mod tests {
         let mut ledger = Ledger::default();
         let running = [pod(0, 100, None, "od-a", false)];
         assert_eq!(ledger.unknown_nodes(&running), ["od-a"]);
-        ledger.account(&running, &kinds, &none, 400);
+        ledger.account(&running, &kinds, (&none, &BTreeMap::new()), 400);
         assert!(ledger.unknown_nodes(&running).is_empty(), "{ledger:?}");
-        ledger.account(&running, &kinds, &none, 1000);
+        ledger.account(&running, &kinds, (&none, &BTreeMap::new()), 1000);
         // Ended at 1100; the next rounds still list it (a Job's pods stay until it goes).
         for now in [1200, 1300] {
             let ended = [pod(0, 100, Some(1100), "od-a", false)];
-            ledger.account(&ended, &kinds, &none, now);
+            ledger.account(&ended, &kinds, (&none, &BTreeMap::new()), now);
         }
         // Another Job's pod started and ended between two rounds, on a node never read.
         let brief = [pod(1, 1310, Some(1390), "gone", false)];
-        ledger.account(&brief, &kinds, &none, 1400);
+        ledger.account(&brief, &kinds, (&none, &BTreeMap::new()), 1400);
         assert_eq!(ledger.totals().gpu_seconds, 1000 + 80);
         assert_eq!(ledger.lines[1].kind, NodeKind::unknown());
         // A pod deleted between two rounds is charged up to the round that misses it.
-        ledger.account(&[pod(3, 1450, None, "od-a", false)], &kinds, &none, 1500);
+        ledger.account(
+            &[pod(3, 1450, None, "od-a", false)],
+            &kinds,
+            (&none, &BTreeMap::new()),
+            1500,
+        );
         assert_eq!(ledger.jobs, "...a");
-        ledger.account(&[], &kinds, &none, 1600);
+        ledger.account(&[], &kinds, (&none, &BTreeMap::new()), 1600);
         assert_eq!(ledger.totals().gpu_seconds, 1080 + 150);
         assert!(ledger.jobs.is_empty(), "{ledger:?}");
         assert_eq!(ledger.totals().run_again, 0);
+    }
+
+    #[test]
+    fn a_pod_evicted_between_two_rounds_is_run_again_as_a_seen_one_unless_its_job_counted_it() {
+        let kinds = kinds();
+        let results = BTreeMap::from([(0, 700)]);
+        let (none_failed, one_failed) = (BTreeMap::from([(0, 0)]), BTreeMap::from([(0, 1)]));
+        let running = [pod(0, 100, None, "spot-a", false)];
+        let replaced = [pod(0, 960, None, "od-a", false)];
+        let start = || {
+            let mut ledger = Ledger::default();
+            ledger.account(&running, &kinds, (&results, &none_failed), 500);
+            ledger
+        };
+        // Gone and replaced within one round's interval, no failure counted: a disruption.
+        let mut evicted = start();
+        assert!(evicted.went_unfailed(&replaced, &none_failed));
+        evicted.account(&replaced, &kinds, (&results, &none_failed), 1000);
+        let totals = evicted.totals();
+        assert_eq!((totals.spot, totals.gpu_seconds), (860, 900), "{evicted:?}");
+        assert_eq!(totals.run_again, 260, "since the results at 700");
+        assert_eq!(evicted.lost_at(1000), 260, "to the next pod's start");
+        // The same with one more failure counted: a crash, the participant's.
+        let mut crashed = start();
+        assert!(!crashed.went_unfailed(&replaced, &one_failed));
+        crashed.account(&replaced, &kinds, (&results, &one_failed), 1000);
+        assert_eq!((crashed.totals().run_again, crashed.lost_at(1000)), (0, 0));
+        // Gone, its replacement still in the Job controller's backoff at the next round.
+        let mut waiting = start();
+        waiting.account(&[], &kinds, (&results, &none_failed), 900);
+        assert_eq!(waiting.jobs, "-", "catching up");
+        assert_eq!(waiting.totals().run_again, 200);
+        waiting.account(&replaced, &kinds, (&results, &none_failed), 1000);
+        assert_eq!(waiting.lost_at(1000), 260, "{waiting:?}");
+        assert_eq!(waiting.jobs, "b");
+        // A round that could not read the Jobs' counts decides nothing.
+        let mut unknown = start();
+        unknown.account(&replaced, &kinds, (&results, &BTreeMap::new()), 1000);
+        assert_eq!(unknown.totals().run_again, 0);
     }
 
     #[test]
@@ -670,11 +790,26 @@ mod tests {
         let kinds = kinds();
         let mut ledger = Ledger::default();
         let results = BTreeMap::from([(0, 700)]);
-        ledger.account(&[pod(0, 100, None, "spot-a", false)], &kinds, &results, 500);
-        ledger.account(&[pod(0, 100, None, "spot-a", true)], &kinds, &results, 900);
+        ledger.account(
+            &[pod(0, 100, None, "spot-a", false)],
+            &kinds,
+            (&results, &BTreeMap::new()),
+            500,
+        );
+        ledger.account(
+            &[pod(0, 100, None, "spot-a", true)],
+            &kinds,
+            (&results, &BTreeMap::new()),
+            900,
+        );
         assert_eq!(ledger.totals().run_again, 200, "since the results at 700");
         // Deleted once its Job counted it; the next pod started at 960 on an on-demand node.
-        ledger.account(&[pod(0, 960, None, "od-a", false)], &kinds, &results, 1000);
+        ledger.account(
+            &[pod(0, 960, None, "od-a", false)],
+            &kinds,
+            (&results, &BTreeMap::new()),
+            1000,
+        );
         let totals = ledger.totals();
         assert_eq!(totals.spot, 860, "{ledger:?}");
         assert_eq!(totals.gpu_seconds, 860 + 40);
@@ -686,8 +821,18 @@ mod tests {
         );
         // A replacement that started within the last round's second is not the disrupted pod.
         let mut same_second = Ledger::default();
-        same_second.account(&[pod(0, 100, None, "spot-a", true)], &kinds, &results, 900);
-        same_second.account(&[pod(0, 900, None, "spot-a", false)], &kinds, &results, 950);
+        same_second.account(
+            &[pod(0, 100, None, "spot-a", true)],
+            &kinds,
+            (&results, &BTreeMap::new()),
+            900,
+        );
+        same_second.account(
+            &[pod(0, 900, None, "spot-a", false)],
+            &kinds,
+            (&results, &BTreeMap::new()),
+            950,
+        );
         assert_eq!(same_second.totals().run_again, 200);
         assert_eq!(same_second.jobs, "a");
         assert_eq!((same_second.lost, same_second.lost_since), (200, None));
@@ -709,27 +854,32 @@ mod tests {
                 pod(1, 100, None, "spot-a", disrupted),
             ]
         };
-        ledger.account(&both(false), &kinds, &results, 600);
+        ledger.account(&both(false), &kinds, (&results, &BTreeMap::new()), 600);
         assert_eq!(ledger.lost_at(600), 0);
         // One node reclaimed: both pairs lose what followed their last results.
-        ledger.account(&both(true), &kinds, &results, 900);
+        ledger.account(&both(true), &kinds, (&results, &BTreeMap::new()), 900);
         assert_eq!(
             ledger.lost_at(900),
             250,
             "since the earlier results, at 650"
         );
         // Deleted; no next pod yet: the stretch stays open.
-        ledger.account(&[], &kinds, &results, 1000);
+        ledger.account(&[], &kinds, (&results, &BTreeMap::new()), 1000);
         assert_eq!(ledger.jobs, "--");
         assert_eq!(ledger.lost_at(1000), 350);
         // Job 0 starts again at 1100; Job 1 still waits for a GPU.
-        ledger.account(&[pod(0, 1100, None, "od-a", false)], &kinds, &results, 1200);
+        ledger.account(
+            &[pod(0, 1100, None, "od-a", false)],
+            &kinds,
+            (&results, &BTreeMap::new()),
+            1200,
+        );
         assert_eq!(ledger.lost_at(1200), 550);
         let both_back = [
             pod(0, 1100, None, "od-a", false),
             pod(1, 1300, None, "od-a", false),
         ];
-        ledger.account(&both_back, &kinds, &results, 1400);
+        ledger.account(&both_back, &kinds, (&results, &BTreeMap::new()), 1400);
         assert_eq!((ledger.lost, ledger.lost_since), (650, None), "650 to 1300");
         assert_eq!(ledger.lost_at(5000), 650);
         // A later reclaim whose lost work began before the last stretch ended counts from its end.
@@ -738,19 +888,24 @@ mod tests {
             pod(0, 1100, None, "od-a", true),
             pod(1, 1300, None, "od-a", false),
         ];
-        ledger.account(&again, &kinds, &results, 1500);
+        ledger.account(&again, &kinds, (&results, &BTreeMap::new()), 1500);
         let back = [
             pod(0, 1550, None, "od-a", false),
             pod(1, 1300, None, "od-a", false),
         ];
-        ledger.account(&back, &kinds, &results, 1600);
+        ledger.account(&back, &kinds, (&results, &BTreeMap::new()), 1600);
         assert_eq!(ledger.lost, 650 + 250, "1300 to 1550");
         // A disrupted pod that succeeded finished its routes: its Job caught up when it ended.
         let (mut done, none) = (Ledger::default(), BTreeMap::new());
-        done.account(&[pod(0, 100, None, "spot-a", true)], &kinds, &none, 900);
+        done.account(
+            &[pod(0, 100, None, "spot-a", true)],
+            &kinds,
+            (&none, &BTreeMap::new()),
+            900,
+        );
         let mut ended = pod(0, 100, Some(950), "spot-a", true);
         ended.succeeded = true;
-        done.account(&[ended], &kinds, &none, 1000);
+        done.account(&[ended], &kinds, (&none, &BTreeMap::new()), 1000);
         assert_eq!((done.lost, done.lost_since), (950 - 100, None));
         assert!(done.jobs.is_empty());
     }
@@ -764,7 +919,7 @@ mod tests {
             pod(1, 0, Some(7200), "od-a", false),
             pod(2, 0, Some(3600), "gone", false),
         ];
-        ledger.account(&pods, &kinds, &BTreeMap::new(), 7200);
+        ledger.account(&pods, &kinds, (&BTreeMap::new(), &BTreeMap::new()), 7200);
         let prices = BTreeMap::from([(
             "g5.12xlarge".to_string(),
             InstancePrice {

@@ -539,10 +539,11 @@ impl Round {
     fn observed(&mut self, mut seen: Sighting) {
         self.run.monitor.unreachable_since = None;
         seen.observation = seen.observation.expect_jobs(self.run.jobs);
-        let disrupted = seen
-            .counted
-            .as_ref()
-            .is_some_and(|(pods, _)| pods.iter().any(|p| p.disrupted));
+        let failed = crate::cost::failures(&seen.observation.jobs);
+        let usage = &self.run.monitor.usage;
+        let disrupted = seen.counted.as_ref().is_some_and(|(pods, _)| {
+            pods.iter().any(|p| p.disrupted) || usage.went_unfailed(pods, &failed)
+        });
         self.sighting = Some(seen);
         if disrupted {
             self.pending = Some(Step::ResultsWritten);
@@ -556,7 +557,11 @@ impl Round {
         if let Some(seen) = &self.sighting {
             if let Some((pods, kinds)) = &seen.counted {
                 let at = u64::try_from(seen.observation.observed_at.as_second()).unwrap_or(0);
-                self.run.monitor.usage.account(pods, kinds, results_at, at);
+                let failed = crate::cost::failures(&seen.observation.jobs);
+                self.run
+                    .monitor
+                    .usage
+                    .account(pods, kinds, (results_at, &failed), at);
             }
         }
         self.advance(Stage::Deadlines);
