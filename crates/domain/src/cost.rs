@@ -6,7 +6,7 @@
 //! from where the last round left it to its end (or to now), so a pod the control plane deletes
 //! between two rounds (an evicted one goes once its Job counted it) is not lost.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use serde::{Deserialize, Serialize};
 
@@ -195,6 +195,10 @@ pub struct Totals {
     pub orchestration: Option<Orchestration>,
 }
 
+/// Seconds by which a pod's start (the kubelet's clock) may follow the round that listed it
+/// (the Monitor's clock, read before the list).
+const CLOCK_SLACK: u64 = 5;
+
 /// A Job's pod at the last round: its line, and whether its disruption was counted.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Running {
@@ -263,9 +267,15 @@ impl Ledger {
     /// Whether a pod seen now ran at the last round (and was charged up to it): its Job's, if
     /// it started by then. A disrupted pod stays disrupted, so an undisrupted one is its
     /// replacement even when it started within the last round's second.
+    ///
+    /// A start a few seconds after the last round is that round's pod too: it was listed
+    /// then with its start clamped to the round's clock, which is read before the list and
+    /// is not the kubelet's.
     fn continues(&self, pod: &PodSeen) -> Option<Running> {
-        self.running(pod.job)
-            .filter(|r| pod.started_at <= self.last && (pod.disrupted || !r.disrupted))
+        self.running(pod.job).filter(|r| {
+            pod.started_at <= self.last.saturating_add(CLOCK_SLACK)
+                && (pod.disrupted || !r.disrupted)
+        })
     }
 
     /// A pod that ended by the last round was counted then (a Job's ended pods stay listed
@@ -333,9 +343,10 @@ impl Ledger {
         (results_at, failed): (&BTreeMap<u32, u64>, &BTreeMap<u32, u32>),
         now: u64,
     ) {
+        let listed = self.listed_before(pods);
         let mut pods: Vec<&PodSeen> = pods.iter().filter(|p| !self.counted_before(p)).collect();
         pods.sort_by_key(|p| (p.job, p.started_at));
-        let mut handled = std::collections::BTreeSet::new();
+        let mut handled = BTreeSet::new();
         // The latest start of a pod that ended a Job's catching up.
         let mut resumed: Option<u64> = None;
         for pod in pods {
@@ -349,7 +360,10 @@ impl Ledger {
                     {
                         let end = pod.started_at.clamp(self.last, now);
                         self.charge(gone.line, end - self.last, self.gpus, gone.disrupted);
-                        if !gone.disrupted && self.ignored_failure(pod.job, failed) {
+                        if !gone.disrupted
+                            && !listed.contains(&pod.job)
+                            && self.ignored_failure(pod.job, failed)
+                        {
                             self.lose(gone.line, pod.job, results_at, end);
                             resumed = resumed.max(Some(pod.started_at.min(now)));
                         }
@@ -388,7 +402,7 @@ impl Ledger {
             self.set_mark(pod.job, mark);
             handled.insert(pod.job);
         }
-        self.charge_gone(&handled, (results_at, failed), now);
+        self.charge_gone((&handled, &listed), (results_at, failed), now);
         self.failed = (0..self.jobs.len().max(self.failed.len()) as u32)
             .map(|job| {
                 failed
@@ -408,7 +422,7 @@ impl Ledger {
     /// between the two rounds: charged up to `now`; a disrupted one leaves its Job catching up.
     fn charge_gone(
         &mut self,
-        handled: &std::collections::BTreeSet<u32>,
+        (handled, listed): (&BTreeSet<u32>, &BTreeSet<u32>),
         (results_at, failed): (&BTreeMap<u32, u64>, &BTreeMap<u32, u32>),
         now: u64,
     ) {
@@ -416,7 +430,8 @@ impl Ledger {
             if let Some(gone) = self.running(job).filter(|_| !handled.contains(&job)) {
                 let seconds = now.saturating_sub(self.last);
                 self.charge(gone.line, seconds, self.gpus, gone.disrupted);
-                let ignored = !gone.disrupted && self.ignored_failure(job, failed);
+                let ignored =
+                    !gone.disrupted && !listed.contains(&job) && self.ignored_failure(job, failed);
                 if ignored {
                     self.lose(gone.line, job, results_at, now);
                 }
@@ -433,13 +448,22 @@ impl Ledger {
     /// Whether a pod running at the last round went since without its Job counting a failure
     /// (a disruption no round saw): its lost time needs the results' times.
     pub fn went_unfailed(&self, pods: &[PodSeen], failed: &BTreeMap<u32, u32>) -> bool {
+        let listed = self.listed_before(pods);
         (0..self.jobs.len() as u32).any(|job| {
             self.running(job).is_some_and(|r| !r.disrupted)
-                && !pods
-                    .iter()
-                    .any(|p| p.job == job && self.continues(p).is_some())
+                && !listed.contains(&job)
                 && self.ignored_failure(job, failed)
         })
+    }
+
+    /// The Jobs with a pod listed that started by the last round: their pod of then is still
+    /// there (running, or ended, perhaps within that round's second), not gone.
+    fn listed_before(&self, pods: &[PodSeen]) -> BTreeSet<u32> {
+        let by = self.last.saturating_add(CLOCK_SLACK);
+        pods.iter()
+            .filter(|p| p.started_at <= by)
+            .map(|p| p.job)
+            .collect()
     }
 
     /// Whether the Job's pod that went since the last round went without a failure counted
@@ -779,6 +803,29 @@ mod tests {
         waiting.account(&replaced, &kinds, (&results, &none_failed), 1000);
         assert_eq!(waiting.lost_at(1000), 260, "{waiting:?}");
         assert_eq!(waiting.jobs, "b");
+        // A pod that started as a round listed it (its start clamped to that round's clock)
+        // is the same pod at the next, a second or two later by the kubelet's clock.
+        let mut clamped = Ledger::default();
+        clamped.account(
+            &[pod(0, 500, None, "od-a", false)],
+            &kinds,
+            (&results, &none_failed),
+            500,
+        );
+        let later = [pod(0, 502, None, "od-a", false)];
+        assert!(!clamped.went_unfailed(&later, &none_failed));
+        clamped.account(&later, &kinds, (&results, &none_failed), 1000);
+        assert_eq!((clamped.totals().run_again, clamped.lost_at(1000)), (0, 0));
+        // A pod that ended within the second of the round that still saw it running is
+        // listed ended at the next: it ended, it did not go.
+        let mut ended = start();
+        let done = [PodSeen {
+            succeeded: true,
+            ..pod(0, 100, Some(500), "spot-a", false)
+        }];
+        assert!(!ended.went_unfailed(&done, &none_failed));
+        ended.account(&done, &kinds, (&results, &none_failed), 1000);
+        assert_eq!((ended.totals().run_again, ended.lost_at(1000)), (0, 0));
         // A round that could not read the Jobs' counts decides nothing.
         let mut unknown = start();
         unknown.account(&replaced, &kinds, (&results, &BTreeMap::new()), 1000);

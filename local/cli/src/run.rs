@@ -1039,6 +1039,14 @@ async fn left_behind(
 ) -> crate::report::LeftBehind {
     let mut left = crate::report::LeftBehind::default();
     if let Ok(cluster) = lb_cluster::Cluster::from_kubeconfig(kubeconfig, None).await {
+        let namespace = settings
+            .leaderboards
+            .get(&leaderboard)
+            .map(|l| &l.namespace);
+        let cluster = match namespace {
+            Some(ns) => cluster.with_namespace(ns),
+            None => cluster,
+        };
         left.jobs = cluster
             .list(&submission.to_string())
             .await

@@ -80,10 +80,31 @@ fn an_unpullable_image_a_crash_loop_and_no_node_fail_with_their_reasons() {
     }
 }
 
+#[test]
+#[ignore = "needs moto and the real control plane (make real-kube)"]
+fn on_the_real_control_plane_the_scenarios_end_as_on_local_kube() {
+    let happy = scenario_on("real", "happy", "FINISHED", &Value::Null);
+    scenario_on("real", "spot", "FINISHED", &happy["scores"]);
+    for (name, expected) in [
+        ("crash", "FINISHED"),
+        ("crash-loop", "FAILED"),
+        ("cancel", "CANCELLED"),
+        ("no-node", "FAILED"),
+    ] {
+        scenario_on("real", name, expected, &Value::Null);
+    }
+}
+
 /// `lbctl local run --scenario <scenario>`, which must end `expected` with what the scenario
 /// promises (`happy_scores`: the happy run's, for the runs that must score alike); its report.
 fn scenario(scenario: &str, expected: &str, happy_scores: &Value) -> Value {
-    let (report, stdout) = local_run(&["--scenario", scenario, "--timeout", "240"], &[]);
+    scenario_on("local", scenario, expected, happy_scores)
+}
+
+/// [`scenario`] on the Kubernetes `kube` (`local` or `real`).
+fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value) -> Value {
+    let args = ["--kube", kube, "--scenario", scenario, "--timeout", "240"];
+    let (report, stdout) = local_run(&args, &[]);
     assert_eq!(
         text(&report, "evalai_status"),
         expected.to_lowercase(),
