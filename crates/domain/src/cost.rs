@@ -160,11 +160,12 @@ pub struct Ledger {
     /// twice.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub lost_until: u64,
-    /// Each Job's failed pods at the last round: a pod gone since without one more failure
-    /// was one the Pod failure policy ignored, a disruption (`Ignore` is the policy's one rule
-    /// for it), even when no round saw its `DisruptionTarget`.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub failed: Vec<u32>,
+    /// Each Job's failed pods at the last round, one base-36 digit per Job (saturating at
+    /// `z`, far above any `backoffLimit`): a pod gone since without one more failure was one
+    /// the Pod failure policy ignored, a disruption (`Ignore` is the policy's one rule for
+    /// it), even when no round saw its `DisruptionTarget`.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub failed: String,
 }
 
 /// Each Job's failed pods (`status.failed`), by Job index.
@@ -405,10 +406,8 @@ impl Ledger {
         self.charge_gone((&handled, &listed), (results_at, failed), now);
         self.failed = (0..self.jobs.len().max(self.failed.len()) as u32)
             .map(|job| {
-                failed
-                    .get(&job)
-                    .copied()
-                    .unwrap_or_else(|| self.failed_before(job))
+                let n = failed.get(&job).copied().or(self.failed_before(job));
+                char::from_digit(n.unwrap_or(0).min(35), 36).unwrap_or('z')
             })
             .collect();
         self.jobs.truncate(self.jobs.trim_end_matches('.').len());
@@ -469,12 +468,11 @@ impl Ledger {
     /// Whether the Job's pod that went since the last round went without a failure counted
     /// (known only when both rounds saw the Job's count).
     fn ignored_failure(&self, job: u32, failed: &BTreeMap<u32, u32>) -> bool {
-        let before = self.failed.get(job as usize);
-        matches!((before, failed.get(&job)), (Some(b), Some(n)) if n <= b)
+        matches!((self.failed_before(job), failed.get(&job)), (Some(b), Some(&n)) if n <= b)
     }
 
-    fn failed_before(&self, job: u32) -> u32 {
-        self.failed.get(job as usize).copied().unwrap_or(0)
+    fn failed_before(&self, job: u32) -> Option<u32> {
+        self.failed.chars().nth(job as usize)?.to_digit(36)
     }
 
     /// A pod of `job` unseen disrupted went by `end`: its time after its pair's last results

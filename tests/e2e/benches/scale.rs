@@ -288,8 +288,12 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
             let results_at = (0..PAIRS)
                 .map(|job| (job, real_now(last_record) as u64))
                 .collect();
-            seen.usage
-                .account(&pods, &kinds(&kind), &results_at, real_now(now) as u64);
+            seen.usage.account(
+                &pods,
+                &kinds(&kind),
+                (&results_at, &BTreeMap::new()),
+                real_now(now) as u64,
+            );
             capacity.give_back(PAIRS as usize, spot);
             drop(held);
             held = gpus
@@ -355,8 +359,12 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
         .map(|job| pod_span(job, (real_now(pod_started), real_now(ends)), spot, false))
         .collect();
     let end = real_now(ends) as u64;
-    seen.usage
-        .account(&pods, &kinds(&kind), &BTreeMap::new(), end);
+    seen.usage.account(
+        &pods,
+        &kinds(&kind),
+        (&BTreeMap::new(), &BTreeMap::new()),
+        end,
+    );
     // The track's pace as Finalize records it: from the first pair's start to now, its final
     // write done (what a place takes to turn over, the budget's delays included).
     recent

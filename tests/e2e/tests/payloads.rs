@@ -147,6 +147,7 @@ fn worst_usage() -> Ledger {
         lost: u64::MAX,
         lost_since: Some(u64::MAX),
         lost_until: u64::MAX,
+        failed: "z".repeat(MAX_WORKERS as usize),
     }
 }
 
