@@ -155,21 +155,13 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     // The wake table's wait, on moto's DynamoDB; a continuation, on the executor.
     let tasks = local_stack::integrations::with_services(tasks, &stack.sdk, late.clone());
     let acted = Arc::new(AtomicBool::new(!scenario.acts()));
-    scenario.begin(&Begin {
-        kubeconfig: stack
-            .operator_kubeconfig()
-            .map_or_else(|| kubeconfig.clone(), Path::to_path_buf),
-        cordons: args.kube == KubeKind::Real,
-        namespace: settings
-            .leaderboards
-            .get(&args.leaderboard)
-            .map(|l| l.namespace.clone())
-            .unwrap_or_default(),
-        submission,
-        fake_evalai: stack.fake_evalai.as_ref().map(|f| f.url()),
-        cancel_after_round: args.cancel_after_round,
-        acted: acted.clone(),
-    });
+    scenario.begin(&begin(
+        &args,
+        &stack,
+        &settings,
+        kubeconfig.clone(),
+        (submission, &acted),
+    ));
     let many = arrivals.len() > 1;
     let watch = Watch::default();
     // Many executions: the per-round lines of each would drown the summary.
@@ -250,6 +242,32 @@ async fn set_up(
         ),
     );
     Ok((stack, settings, kubeconfig))
+}
+
+/// What the scenario is told before the executions start: the operator's kubeconfig (the
+/// functions' own on local-kube), the namespace, the submission it acts on.
+fn begin(
+    args: &LocalRun,
+    stack: &Stack,
+    settings: &lb_domain::settings::Settings,
+    kubeconfig: PathBuf,
+    (submission, acted): (u64, &Arc<AtomicBool>),
+) -> Begin {
+    Begin {
+        kubeconfig: stack
+            .operator_kubeconfig()
+            .map_or(kubeconfig, Path::to_path_buf),
+        cordons: args.kube == KubeKind::Real,
+        namespace: settings
+            .leaderboards
+            .get(&args.leaderboard)
+            .map(|l| l.namespace.clone())
+            .unwrap_or_default(),
+        submission,
+        fake_evalai: stack.fake_evalai.as_ref().map(|f| f.url()),
+        cancel_after_round: args.cancel_after_round,
+        acted: acted.clone(),
+    }
 }
 
 /// The embedded executor with the run's time scale and deadline.

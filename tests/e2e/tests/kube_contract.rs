@@ -12,48 +12,73 @@ use std::time::{Duration, Instant};
 
 use k8s_openapi::api::batch::v1::Job;
 use k8s_openapi::api::core::v1::Pod;
-use kube::api::{Api, DeleteParams, EvictParams, ListParams, PostParams};
+use kube::api::{Api, DeleteParams, EvictParams, ListParams, Patch, PatchParams, PostParams};
 use real_kube::{ControlPlane, Identity};
 use serde_json::{json, Value};
 
 /// How long a case may take to settle (the real controller's first backoff is 10 s).
 const SETTLE_WITHIN: Duration = Duration::from_secs(90);
 
-/// A case: the Job's script, its deadline, and whether its first pod is evicted once running.
+/// What the test does once the Job's first pod runs and has marked itself.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Act {
+    /// Nothing.
+    Wait,
+    /// Evicts it through the Eviction API.
+    Evict,
+    /// Extends the Job's `activeDeadlineSeconds` by a merge patch, as the Monitor does.
+    Extend(i64),
+    /// Deletes the Job with foreground propagation, as Finalize does.
+    DeleteForeground,
+}
+
+/// A case: the Job's script, its deadline, and what is done to it.
 struct Case {
     name: &'static str,
     script: &'static str,
     deadline: Option<i64>,
-    evict: bool,
+    act: Act,
 }
 
 /// The behaviours the pipeline relies on, one Job each. `{marker}` is a host file unique to
 /// the run: a pod that finds it is a replacement.
-const CASES: [Case; 4] = [
+const CASES: [Case; 6] = [
     Case {
         name: "an exit code the policy fails the Job on",
         script: "exit 42",
         deadline: None,
-        evict: false,
+        act: Act::Wait,
     },
     Case {
         name: "a crash, then a replacement that succeeds",
         script: "if [ -e {marker} ]; then exit 0; fi; touch {marker}; exit 1",
         deadline: None,
-        evict: false,
+        act: Act::Wait,
     },
     Case {
         name: "an eviction through the Eviction API, then a replacement that succeeds",
         // Ends as our pods do on SIGTERM: not at once (the sidecar uploads first).
         script: "if [ -e {marker} ]; then exit 0; fi; touch {marker}; trap 'sleep 0.5; exit 143' TERM; sleep 300 & wait",
         deadline: None,
-        evict: true,
+        act: Act::Evict,
     },
     Case {
         name: "the active deadline",
         script: "sleep 300",
         deadline: Some(3),
-        evict: false,
+        act: Act::Wait,
+    },
+    Case {
+        name: "the active deadline, extended by a merge patch before it passes",
+        script: "touch {marker}; sleep 8",
+        deadline: Some(5),
+        act: Act::Extend(60),
+    },
+    Case {
+        name: "the Job deleted with foreground propagation while its pod runs",
+        script: "touch {marker}; trap 'sleep 0.5; exit 143' TERM; sleep 300 & wait",
+        deadline: None,
+        act: Act::DeleteForeground,
     },
 ];
 
@@ -106,10 +131,17 @@ async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) ->
         .await
         .unwrap();
     let selector = ListParams::default().labels(&format!("job-name={name}"));
-    let (mut evicted, mut seen, mut disruptions) = (!case.evict, BTreeMap::new(), Vec::new());
+    let (mut acted, mut seen, mut disruptions) =
+        (case.act == Act::Wait, BTreeMap::new(), Vec::new());
+    let mut deleting_finalizers = None;
     let deadline = Instant::now() + SETTLE_WITHIN;
     let settled = loop {
-        let now = jobs.get(&name).await.unwrap();
+        let Some(now) = jobs.get_opt(&name).await.unwrap() else {
+            break None;
+        };
+        if now.metadata.deletion_timestamp.is_some() {
+            deleting_finalizers.get_or_insert(now.metadata.finalizers.clone().unwrap_or_default());
+        }
         for pod in pods.list(&selector).await.unwrap().items {
             let pod_name = pod.metadata.name.clone().unwrap_or_default();
             let status = pod.status.clone().unwrap_or_default();
@@ -125,21 +157,37 @@ async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) ->
             let running = status.phase.as_deref() == Some("Running")
                 && status.container_statuses.iter().flatten().all(|s| s.ready);
             // NB: once the pod marked itself: evicted sooner, its replacement would sleep.
-            if !evicted && running && marker.exists() {
-                pods.evict(&pod_name, &EvictParams::default())
-                    .await
-                    .unwrap();
-                evicted = true;
-                // NB: read at once: the API server writes the condition with the eviction,
-                // and a pod that stops at once may be gone by the next look.
-                if let Some(reason) = disruption(&pods, &pod_name).await {
-                    seen.insert(pod_name.clone(), ());
-                    disruptions.push(reason);
+            if !acted && running && marker.exists() {
+                acted = true;
+                match case.act {
+                    Act::Wait => {}
+                    Act::Evict => {
+                        pods.evict(&pod_name, &EvictParams::default())
+                            .await
+                            .unwrap();
+                        // NB: read at once: the API server writes the condition with the
+                        // eviction, and a pod that stops at once may be gone by the next look.
+                        if let Some(reason) = disruption(&pods, &pod_name).await {
+                            seen.insert(pod_name.clone(), ());
+                            disruptions.push(reason);
+                        }
+                    }
+                    Act::Extend(seconds) => {
+                        let patch = json!({"spec": {"activeDeadlineSeconds": seconds}});
+                        jobs.patch(&name, &PatchParams::default(), &Patch::Merge(&patch))
+                            .await
+                            .unwrap();
+                    }
+                    Act::DeleteForeground => {
+                        jobs.delete(&name, &DeleteParams::foreground())
+                            .await
+                            .unwrap();
+                    }
                 }
             }
         }
-        if finished(&now) && evicted {
-            break now;
+        if finished(&now) && acted {
+            break Some(now);
         }
         assert!(
             Instant::now() < deadline,
@@ -157,7 +205,7 @@ async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) ->
         .iter()
         .filter_map(|p| p.metadata.name.clone())
         .collect();
-    let status = settled.status.unwrap_or_default();
+    let status = settled.and_then(|j| j.status).unwrap_or_default();
     let mut conditions: Vec<Value> = status
         .conditions
         .iter()
@@ -179,6 +227,8 @@ async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) ->
         "pods": made.len().max(disruptions.len()),
         "disruptions": disruptions,
         "replacement after": backoff,
+        "finalizers while deleting": deleting_finalizers,
+        "pods left once the Job is gone": (case.act == Act::DeleteForeground).then_some(made.len()),
     })
 }
 
