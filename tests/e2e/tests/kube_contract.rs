@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use k8s_openapi::api::batch::v1::Job;
-use k8s_openapi::api::core::v1::Pod;
+use k8s_openapi::api::core::v1::{Node, Pod, Taint};
 use kube::api::{Api, DeleteParams, EvictParams, ListParams, Patch, PatchParams, PostParams};
 use real_kube::{ControlPlane, Identity};
 use serde_json::{json, Value};
@@ -30,7 +30,21 @@ enum Act {
     Extend(i64),
     /// Deletes the Job with foreground propagation, as Finalize does.
     DeleteForeground,
+    /// Taints its node `NoExecute` with a key it does not tolerate (lifted once it is done).
+    TaintNode,
+    /// Deletes its Node, as a node group does with a terminated instance.
+    DeleteNode,
 }
+
+impl Act {
+    /// Whether the act needs Node objects, which local-kube does not model.
+    fn on_nodes(self) -> bool {
+        matches!(self, Act::TaintNode | Act::DeleteNode)
+    }
+}
+
+/// The taint of [`Act::TaintNode`].
+const RECLAIM_TAINT: &str = "contract.leaderboard/reclaimed";
 
 /// A case: the Job's script, its deadline, and what is done to it.
 struct Case {
@@ -42,7 +56,7 @@ struct Case {
 
 /// The behaviours the pipeline relies on, one Job each. `{marker}` is a host file unique to
 /// the run: a pod that finds it is a replacement.
-const CASES: [Case; 6] = [
+const CASES: [Case; 8] = [
     Case {
         name: "an exit code the policy fails the Job on",
         script: "exit 42",
@@ -79,6 +93,18 @@ const CASES: [Case; 6] = [
         script: "touch {marker}; trap 'sleep 0.5; exit 143' TERM; sleep 300 & wait",
         deadline: None,
         act: Act::DeleteForeground,
+    },
+    Case {
+        name: "a NoExecute taint on its node, then a replacement that succeeds",
+        script: "if [ -e {marker} ]; then exit 0; fi; touch {marker}; trap 'sleep 0.5; exit 143' TERM; sleep 300 & wait",
+        deadline: None,
+        act: Act::TaintNode,
+    },
+    Case {
+        name: "its Node deleted, then a replacement that succeeds",
+        script: "if [ -e {marker} ]; then exit 0; fi; touch {marker}; trap 'sleep 0.5; exit 143' TERM; sleep 300 & wait",
+        deadline: None,
+        act: Act::DeleteNode,
     },
 ];
 
@@ -123,8 +149,10 @@ fn finished(job: &Job) -> bool {
 async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) -> Value {
     let (jobs, pods): (Api<Job>, Api<Pod>) = (
         Api::namespaced(client.clone(), "default"),
-        Api::namespaced(client, "default"),
+        Api::namespaced(client.clone(), "default"),
     );
+    let nodes: Api<Node> = Api::all(client);
+    let mut acted_on = String::new();
     let name = format!("contract-{index}");
     let marker = scratch.join(format!("{name}.replaced"));
     jobs.create(&PostParams::default(), &job(&name, case, &marker))
@@ -134,7 +162,14 @@ async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) ->
     let (mut acted, mut seen, mut disruptions) =
         (case.act == Act::Wait, BTreeMap::new(), Vec::new());
     let mut deleting_finalizers = None;
-    let deadline = Instant::now() + SETTLE_WITHIN;
+    // The pod garbage collector takes a deleted Node's pods about 50 s later.
+    let deadline = Instant::now()
+        + SETTLE_WITHIN
+        + if case.act == Act::DeleteNode {
+            GC_WITHIN
+        } else {
+            Duration::ZERO
+        };
     let settled = loop {
         let Some(now) = jobs.get_opt(&name).await.unwrap() else {
             break None;
@@ -183,6 +218,11 @@ async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) ->
                             .await
                             .unwrap();
                     }
+                    Act::TaintNode | Act::DeleteNode => {
+                        let node = pod.spec.as_ref().and_then(|s| s.node_name.clone());
+                        acted_on = node.unwrap_or_default();
+                        on_node(&nodes, case.act, &acted_on, true).await;
+                    }
                 }
             }
         }
@@ -220,6 +260,9 @@ async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) ->
         .collect();
     conditions.sort_by_key(|c| c["type"].as_str().unwrap_or_default().to_owned());
     let _ = jobs.delete(&name, &DeleteParams::background()).await;
+    if case.act == Act::TaintNode {
+        on_node(&nodes, case.act, &acted_on, false).await;
+    }
     json!({
         "conditions": conditions,
         "failed": status.failed.unwrap_or(0),
@@ -256,6 +299,32 @@ fn replacement_delay(pods: &[Pod]) -> Option<Duration> {
     Some(Duration::from_secs_f64(seconds))
 }
 
+/// How much longer a case whose Node is deleted may take.
+const GC_WITHIN: Duration = Duration::from_secs(90);
+
+/// Taints `node` (or lifts the taint, `on` false), or deletes it.
+async fn on_node(nodes: &Api<Node>, act: Act, node: &str, on: bool) {
+    if act == Act::DeleteNode {
+        nodes.delete(node, &DeleteParams::default()).await.unwrap();
+        return;
+    }
+    let current = nodes.get(node).await.unwrap();
+    let mut taints = current.spec.and_then(|s| s.taints).unwrap_or_default();
+    taints.retain(|t| t.key != RECLAIM_TAINT);
+    if on {
+        taints.push(Taint {
+            key: RECLAIM_TAINT.into(),
+            effect: "NoExecute".into(),
+            ..Taint::default()
+        });
+    }
+    let patch = json!({"spec": {"taints": taints}});
+    nodes
+        .patch(node, &PatchParams::default(), &Patch::Merge(&patch))
+        .await
+        .unwrap();
+}
+
 /// The reason of the pod's `DisruptionTarget` condition, if it has one.
 async fn disruption(pods: &Api<Pod>, name: &str) -> Option<String> {
     let pod = pods.get_opt(name).await.ok()??;
@@ -279,7 +348,7 @@ async fn local_kube_answers() -> Value {
     lk.write_kubeconfig(&path).unwrap();
     let client = node_agent::client(&path).await.unwrap();
     let mut answered = serde_json::Map::new();
-    for (i, case) in CASES.iter().enumerate() {
+    for (i, case) in CASES.iter().enumerate().filter(|(_, c)| !c.act.on_nodes()) {
         answered.insert(
             case.name.into(),
             run(client.clone(), i, case, scratch.path()).await,
@@ -289,7 +358,14 @@ async fn local_kube_answers() -> Value {
 }
 
 /// Where local-kube answers otherwise, and why that is harmless.
-fn known_differences(_case: &str, field: &str) -> Option<&'static str> {
+fn known_differences(case: &str, field: &str) -> Option<&'static str> {
+    if CASES.iter().any(|c| c.name == case && c.act.on_nodes()) {
+        return Some(
+            "local-kube models one node and no Node objects: nothing taints or deletes it. \
+             These cases record what the real control plane writes (the `DisruptionTarget` \
+             reasons the Monitor sees) and that the replacement uses no retry",
+        );
+    }
     match field {
         "replacement after" => Some(
             "local-kube's Job backoff is `Timing::pod_backoff`, short so that the suite and the \
@@ -326,12 +402,15 @@ async fn the_real_job_controller_answers_as_recorded_and_local_kube_as_it() {
     let scratch = tempfile::tempdir().unwrap();
     let agent = node_agent::NodeAgent::spawn(node_agent::Config {
         kubeconfig: plane.kubeconfig(Identity::Admin),
-        nodes: vec![node_agent::NodeSpec {
-            name: "node-1".into(),
-            gpus: 1,
-            labels: BTreeMap::new(),
-            taints: Vec::new(),
-        }],
+        // Two: a pod whose node is tainted or deleted is replaced on the other.
+        nodes: ["node-1", "node-2"]
+            .map(|name| node_agent::NodeSpec {
+                name: name.into(),
+                gpus: 1,
+                labels: BTreeMap::new(),
+                taints: Vec::new(),
+            })
+            .to_vec(),
         runtime: local_kube::Config {
             state_dir: Some(scratch.path().join("pods")),
             ..local_kube::Config::default()
