@@ -185,6 +185,7 @@ impl Kubelet {
     fn end(&self, real: Pod, uid: String, grace: Option<Duration>) {
         lock(&self.ending).insert(uid.clone());
         let (client, runner) = (self.client.clone(), self.runner.clone());
+        let ending = self.ending.clone();
         tokio::spawn(async move {
             runner.stop_pod(&uid, grace).await;
             let local = runner
@@ -209,7 +210,11 @@ impl Kubelet {
             match api.delete(&name, &params).await {
                 Ok(_) => info!(pod = %name, "pod ended"),
                 Err(kube::Error::Api(s)) if s.code == 404 || s.code == 409 => {}
-                Err(e) => warn!(pod = %name, error = %e, "cannot remove pod"),
+                Err(e) => {
+                    // NB: the next look ends it again (its containers are already stopped).
+                    warn!(pod = %name, error = %e, "cannot remove pod: trying again");
+                    lock(&ending).remove(&uid);
+                }
             }
         });
     }
