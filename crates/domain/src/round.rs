@@ -122,12 +122,16 @@ pub enum Write {
 /// The workers' merged results, as far as the round needs them.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Collected {
-    /// Merged: routes done and planned, and the fingerprint of what was read.
+    /// Merged: routes done and planned, the fingerprint of what was read and the digest of
+    /// what it says.
     Merged {
         /// Routes done and planned.
         progress: (u64, u64),
-        /// What was read.
+        /// What was read (the files' ETags).
         fingerprint: String,
+        /// The merged records' digest: the same records rewritten (a trailing newline
+        /// toggled) give the same digest, so nothing new is sent.
+        content: String,
     },
     /// Transient trouble: tried again in a later round.
     NotNow,
@@ -220,7 +224,7 @@ pub struct Round {
     /// The listed fingerprint while results are read.
     listed: Option<String>,
     /// The merged results' fingerprint while they are sent.
-    merged: Option<String>,
+    merged: Option<(String, String)>,
 }
 
 impl Round {
@@ -607,9 +611,15 @@ impl Round {
             Collected::Merged {
                 progress,
                 fingerprint,
+                content,
             } => {
                 self.run.monitor.progress = progress;
-                self.merged = Some(fingerprint);
+                if self.run.monitor.posted.as_ref() == Some(&content) {
+                    // Rewritten, not changed: not read again until the files change again.
+                    self.run.monitor.fingerprint = Some(fingerprint);
+                    return self.advance(Stage::Status);
+                }
+                self.merged = Some((fingerprint, content));
                 self.pending = Some(Step::PostPartial);
             }
             Collected::NotNow => {
@@ -625,11 +635,12 @@ impl Round {
 
     fn posted(&mut self, write: Write) {
         let (now, interval) = (self.cx.now, self.cx.partial_update_seconds);
-        let merged = self.merged.take();
+        let (merged, content) = self.merged.take().unzip();
         self.status = match write {
             Write::Written => {
                 let monitor = &mut self.run.monitor;
                 monitor.fingerprint = merged;
+                monitor.posted = content;
                 monitor.updated_at = Some(now);
                 monitor.hold_seconds = monitor.hold_seconds.max(interval);
                 Some(SubmissionStatus::PartiallyEvaluated)
@@ -880,6 +891,7 @@ mod tests {
             Step::CollectResults => Answer::Collected(Collected::Merged {
                 progress: (3, 10),
                 fingerprint: "etag-2".into(),
+                content: "records-2".into(),
             }),
             Step::PostPartial => Answer::Posted(Write::Written),
             other => quiet(Verdict::Running)(other),
@@ -890,6 +902,7 @@ mod tests {
             ["wake", "observe", "list", "collect", "post", "record", "ending"]
         );
         assert_eq!(run.monitor.fingerprint.as_deref(), Some("etag-2"));
+        assert_eq!(run.monitor.posted.as_deref(), Some("records-2"));
         assert_eq!(
             (run.monitor.updated_at, run.monitor.progress),
             (Some(NOW), (3, 10))
@@ -909,6 +922,33 @@ mod tests {
     }
 
     #[test]
+    fn the_same_records_rewritten_are_not_sent_again() {
+        let mut sent = started(run(true));
+        sent.monitor.posted = Some("records-2".into());
+        let (steps, run) = drive(sent, cx(), |step| match step {
+            Step::ListResults => Answer::Listed(Some("etag-3".into())),
+            Step::CollectResults => Answer::Collected(Collected::Merged {
+                progress: (3, 10),
+                fingerprint: "etag-3".into(),
+                content: "records-2".into(),
+            }),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(
+            kinds(&steps),
+            ["wake", "observe", "list", "collect", "record", "ending"],
+            "read, found the same, nothing posted"
+        );
+        assert_eq!(
+            run.monitor.fingerprint.as_deref(),
+            Some("etag-3"),
+            "not read again"
+        );
+        assert_eq!(run.monitor.updated_at, None);
+        assert_eq!(run.monitor.posted.as_deref(), Some("records-2"));
+    }
+
+    #[test]
     fn a_deferred_update_or_unreadable_results_shorten_the_wait_to_the_interval() {
         for (collected, posted) in [
             (Collected::NotNow, Write::Written),
@@ -916,6 +956,7 @@ mod tests {
                 Collected::Merged {
                     progress: (1, 10),
                     fingerprint: "etag-2".into(),
+                    content: "records-2".into(),
                 },
                 Write::NotNow,
             ),
@@ -1078,6 +1119,7 @@ mod tests {
             Step::CollectResults => Answer::Collected(Collected::Merged {
                 progress: (1, 10),
                 fingerprint: "etag-2".into(),
+                content: "records-2".into(),
             }),
             Step::PostPartial => Answer::Posted(Write::Written),
             other => quiet(Verdict::Running)(other),

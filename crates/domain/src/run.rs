@@ -140,9 +140,13 @@ pub struct MonitorState {
     pub status_read_at: Option<u64>,
     /// Monitor rounds so far.
     pub rounds: u64,
-    /// The partial results last sent to EvalAI (object ETags); unchanged means no update.
+    /// The partial results last read or sent (object ETags); unchanged means nothing to read.
     #[serde(default)]
     pub fingerprint: Option<String>,
+    /// The digest of the merged records last sent to EvalAI; the same records again (however
+    /// their files' bytes changed) send nothing.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub posted: Option<String>,
     /// Routes done and planned.
     #[serde(default)]
     pub progress: (u64, u64),
@@ -227,6 +231,7 @@ impl MonitorState {
             status_read_at: None,
             rounds: 0,
             fingerprint: None,
+            posted: None,
             progress: (0, total),
             reason: None,
             unreachable_since: None,

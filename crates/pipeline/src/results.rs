@@ -18,6 +18,9 @@ use crate::FnError;
 pub struct Snapshot {
     /// What was read (see [`fingerprint`]).
     pub fingerprint: String,
+    /// The digest of what the merged records say (`agent_results.json`): the same records in
+    /// other bytes give the same digest.
+    pub content: String,
     /// The EvalAI files.
     pub files: EvalAiFiles,
     /// `agent_results.json`, when any worker wrote results.
@@ -73,6 +76,15 @@ pub async fn fingerprint(store: &SubmissionStore) -> Result<String, FnError> {
 
 fn fingerprint_of(partials: &[PartialObject]) -> String {
     fingerprint_of_pairs(partials.iter().map(|p| (p.pair_id, p.etag.as_str())))
+}
+
+/// A SHA-256 of `bytes`, in hex (64 bytes of the state).
+fn digest(bytes: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 /// The fingerprint of workers' files given as (pair ID, ETag): a SHA-256 of them, so that it
@@ -152,8 +164,10 @@ pub async fn collect_listed(
             metadata: files.metadata.as_deref(),
         })
         .await?;
+    let content = digest(merged_json.as_deref().unwrap_or_default().as_bytes());
     Ok(Snapshot {
         fingerprint,
+        content,
         files,
         merged_json,
         progress,

@@ -298,6 +298,7 @@ impl<'a> Shell<'a> {
                 let merged = Collected::Merged {
                     progress: snapshot.progress,
                     fingerprint: snapshot.fingerprint.clone(),
+                    content: snapshot.content.clone(),
                 };
                 self.snapshot = Some(snapshot);
                 Ok(merged)

@@ -25,6 +25,8 @@ pub struct SubmissionSeen {
     pub reason: Option<String>,
     /// The statuses our writes set, in order (repeats folded).
     pub statuses: Vec<String>,
+    /// The partial updates sent (writes of `partially_evaluated` results).
+    pub partial_updates: usize,
     /// The `ahead` of each queue note shown, in order (`None`: the note was removed).
     pub places: Vec<Option<u64>>,
     /// Log sequence of the `queued` update that named its Jobs: its admission.
@@ -102,6 +104,7 @@ pub fn report(
                 .and_then(|e| e.lines().find(|l| !l.trim().is_empty()))
                 .map(str::to_owned),
             statuses: Vec::new(),
+            partial_updates: 0,
             places: Vec::new(),
             admitted_seq: None,
             running_seq: None,
@@ -127,6 +130,9 @@ pub fn report(
                 }
                 if set == "running" {
                     seen.running_seq.get_or_insert(record.seq);
+                }
+                if set == "partially_evaluated" {
+                    seen.partial_updates += 1;
                 }
                 if matches!(set.as_str(), "finished" | "failed" | "cancelled") {
                     seen.final_seq.get_or_insert(record.seq);

@@ -316,6 +316,37 @@ fn a_wake_flood_costs_rounds_at_the_least_interval_and_continues_under_its_budge
     );
 }
 
+#[test]
+#[ignore = "needs moto"]
+fn results_rewritten_with_the_same_records_send_nothing_new() {
+    // Agents that rewrite their results four times a second with the same records (a trailing
+    // newline toggled), on routes longer than the least interval between partial updates:
+    // only new records are sent, at most one update per route and the first.
+    let routes = 4;
+    let (report, _) = local_run(
+        &[
+            "--scenario",
+            "wake-flood",
+            "--routes",
+            &routes.to_string(),
+            "--workers",
+            "2",
+            "--route-seconds",
+            "6",
+            "--partial-update-seconds",
+            "1",
+            "--timeout",
+            "240",
+        ],
+        &[],
+    );
+    assert_eq!(text(&report, "evalai_status"), "finished", "{report}");
+    let updates = report["queue"]["submissions"][0]["partial_updates"]
+        .as_u64()
+        .unwrap();
+    assert!(updates <= routes + 1, "{updates} partial updates: {report}");
+}
+
 /// Each round is followed by the least interval (scaled by `time_scale`): the rounds are
 /// bounded by the run's length, however often the files change.
 fn assert_rounds_bounded(report: &Value, time_scale: f64) {

@@ -106,6 +106,8 @@ fn run(phase: RunPhase) -> RunState {
             fingerprint: Some(lb_pipeline::results::fingerprint_of_pairs(
                 (1..=MAX_WORKERS).map(|id| (id, format!("{}-10000", "f".repeat(32)))),
             )),
+            // A SHA-256 in hex, as every digest.
+            posted: Some("f".repeat(64)),
             progress: (u64::MAX, u64::MAX),
             reason: Some(worst(MAX_REASON_BYTES * 4)),
             unreachable_since: Some(u64::MAX),
