@@ -37,6 +37,33 @@ pub struct SubmissionSeen {
     pub final_seq: Option<u64>,
 }
 
+impl SubmissionSeen {
+    /// One write of ours: a queue note (`set` none), or a status set, with its log sequence.
+    fn saw(&mut self, set: Option<String>, body: &Value, seq: u64) {
+        let Some(set) = set else {
+            let note = &body["submission_metadata"][lb_evalai::QUEUE_NOTE_KEY];
+            self.places.push(note["ahead"].as_u64());
+            return;
+        };
+        let names = body["job_name"].as_str().is_some_and(|n| !n.is_empty());
+        if set == "queued" && names {
+            self.admitted_seq.get_or_insert(seq);
+        }
+        if set == "running" {
+            self.running_seq.get_or_insert(seq);
+        }
+        if set == "partially_evaluated" {
+            self.partial_updates += 1;
+        }
+        if matches!(set.as_str(), "finished" | "failed" | "cancelled") {
+            self.final_seq.get_or_insert(seq);
+        }
+        if self.statuses.last() != Some(&set) {
+            self.statuses.push(set);
+        }
+    }
+}
+
 /// The whole run.
 #[derive(Debug, Clone, Serialize)]
 pub struct QueueReport {
@@ -118,30 +145,7 @@ pub fn report(
         let Some(seen) = submissions.iter_mut().find(|s| s.id == id) else {
             continue;
         };
-        match set {
-            None => {
-                let note = &body["submission_metadata"][lb_evalai::QUEUE_NOTE_KEY];
-                seen.places.push(note["ahead"].as_u64());
-            }
-            Some(set) => {
-                let names = body["job_name"].as_str().is_some_and(|n| !n.is_empty());
-                if set == "queued" && names {
-                    seen.admitted_seq.get_or_insert(record.seq);
-                }
-                if set == "running" {
-                    seen.running_seq.get_or_insert(record.seq);
-                }
-                if set == "partially_evaluated" {
-                    seen.partial_updates += 1;
-                }
-                if matches!(set.as_str(), "finished" | "failed" | "cancelled") {
-                    seen.final_seq.get_or_insert(record.seq);
-                }
-                if seen.statuses.last() != Some(&set) {
-                    seen.statuses.push(set);
-                }
-            }
-        }
+        seen.saw(set, body, record.seq);
     }
     let times: Vec<i128> = api
         .iter()
