@@ -19,7 +19,7 @@ pub use error::{Error, Result};
 pub use imagemap::{ImageEntry, ImageMap, ImageMapError, Pull};
 pub use kubeconfig::kubeconfig_yaml;
 pub use runtime::scheduler::{
-    autoscaler_word, gpu_request, gpu_uuid, AUTOSCALER, INSUFFICIENT_GPU, NOT_TRIGGERED,
+    autoscaler_word, gpu_request, gpu_uuid, selects, AUTOSCALER, INSUFFICIENT_GPU, NOT_TRIGGERED,
     SELECTOR_MISMATCH, UNMODELLED_GPUS,
 };
 pub use server::{LocalKube, PodRunner};

@@ -42,18 +42,16 @@ impl StandIn {
                 continue;
             };
             let need = local_kube::gpu_request(spec);
-            let selected = |labels: &BTreeMap<String, String>| {
-                spec.node_selector
-                    .iter()
-                    .flatten()
-                    .all(|(k, v)| labels.get(k) == Some(v))
-            };
             // The first group that could hold the pod decides; else the first rejection.
             let word = self
                 .groups
                 .iter()
                 .map(|(labels, gpus)| {
-                    local_kube::autoscaler_word(selected(labels), need, Some(*gpus))
+                    local_kube::autoscaler_word(
+                        local_kube::selects(spec, labels),
+                        need,
+                        Some(*gpus),
+                    )
                 })
                 .min_by_key(|w| !w.contains("max node group size"))
                 .unwrap_or_else(|| local_kube::autoscaler_word(false, need, None));

@@ -168,7 +168,7 @@ async fn serve(
             () = tokio::time::sleep(LOOK_EVERY) => {}
         }
     }
-    kubelet.stop_all().await;
+    // NB: the runner's shutdown ends every pod's processes.
     runner.shutdown();
 }
 

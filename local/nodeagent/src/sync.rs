@@ -218,14 +218,6 @@ impl Kubelet {
             }
         });
     }
-
-    /// Stops every pod's processes (the agent is going away).
-    pub async fn stop_all(&self) {
-        for pod in self.runner.pods() {
-            let uid = pod.metadata.uid.clone().unwrap_or_default();
-            self.runner.stop_pod(&uid, Some(Duration::ZERO)).await;
-        }
-    }
 }
 
 /// Writes a pod's status; whether the API server took it.
