@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 use clap::Args;
 use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::SubmissionStore;
+use lb_domain::disruption::Disruption;
 use lb_domain::results::{read_worker_file, Leaderboard, WorkerFile, MAX_FILE_BYTES};
 use lb_pipeline::cluster::Clusters;
 
@@ -308,11 +309,15 @@ fn pods(observation: &lb_cluster::Observation) -> Vec<PodLine> {
                 let _ = write!(detail, " {}x{}", clean(&c.name), c.restart_count);
             }
             if let Some(reason) = &pod.disruption {
-                let _ = write!(
-                    detail,
-                    " disrupted ({}): not counted, a new pod resumes",
-                    clean(reason)
-                );
+                // The Monitor's judgement, as far as the pod alone tells it: a kubelet's
+                // eviction is free only when its node is leaving, which the node tells.
+                let message = pod.disruption_message.as_deref();
+                let whose = match lb_domain::disruption::classify(reason, message) {
+                    Disruption::Reclaim => "a reclaim: not counted, a new pod resumes",
+                    Disruption::ByKubelet => "by the kubelet: free only if its node is leaving",
+                    Disruption::Own => "counted as a crash",
+                };
+                let _ = write!(detail, " disrupted ({}): {whose}", clean(reason));
             }
             PodLine {
                 name: clean(&pod.name),

@@ -10,6 +10,7 @@ use k8s_openapi::jiff::Timestamp;
 use kube::api::{Api, DeleteParams, ListParams, Patch, PatchParams, PostParams};
 use kube::config::{KubeConfigOptions, Kubeconfig};
 use lb_domain::cost::{CapacityType, NodeKind};
+use lb_domain::disruption::NodeFacts;
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info, instrument, warn};
 
@@ -450,6 +451,34 @@ impl Cluster {
         }
     }
 
+    /// What node `name`'s object says of its going: cordoned, its taints, `Ready`. `None` when
+    /// the node is gone.
+    pub async fn node_facts(&self, name: &str) -> Result<Option<NodeFacts>> {
+        let node = self
+            .call("get node", self.nodes().get_opt(name))
+            .await?
+            .map_err(|e| ClusterError::from_kube("get node", name, e))?;
+        Ok(node.map(|node| {
+            let spec = node.spec.unwrap_or_default();
+            let ready = node
+                .status
+                .and_then(|s| s.conditions)
+                .unwrap_or_default()
+                .iter()
+                .any(|c| c.type_ == "Ready" && c.status == "True");
+            NodeFacts {
+                unschedulable: spec.unschedulable.unwrap_or(false),
+                taints: spec
+                    .taints
+                    .unwrap_or_default()
+                    .into_iter()
+                    .map(|t| t.key)
+                    .collect(),
+                ready,
+            }
+        }))
+    }
+
     /// What node `name` is, from the labels its node group gives it
     /// (`node.kubernetes.io/instance-type`, `eks.amazonaws.com/capacityType`): what a pod on
     /// it costs. `None` when the node is gone (a reclaimed one goes soon after its pods).
@@ -473,7 +502,7 @@ impl Cluster {
     /// Sets Job `name`'s `activeDeadlineSeconds` to `seconds` (a merge patch: the field is
     /// mutable, and the Job controller re-arms its timer when it changes). `Ok(false)` when
     /// the Job is gone.
-    pub async fn extend_deadline(&self, name: &str, seconds: u64) -> Result<bool> {
+    pub async fn set_deadline(&self, name: &str, seconds: u64) -> Result<bool> {
         let patch = Patch::Merge(serde_json::json!({
             "spec": { "activeDeadlineSeconds": seconds }
         }));
@@ -485,7 +514,7 @@ impl Cluster {
             .await?;
         match patched {
             Ok(_) => {
-                info!(job = name, seconds, "Job deadline extended");
+                info!(job = name, seconds, "Job deadline set");
                 Ok(true)
             }
             Err(kube::Error::Api(s)) if s.is_not_found() => Ok(false),

@@ -141,6 +141,11 @@ fn job_view(job: &Job) -> JobView {
             .as_ref()
             .and_then(|s| s.active_deadline_seconds)
             .and_then(|d| u64::try_from(d).ok()),
+        backoff_limit: job
+            .spec
+            .as_ref()
+            .and_then(|s| s.backoff_limit)
+            .and_then(|b| u32::try_from(b).ok()),
         pods: Vec::new(),
     }
 }
@@ -185,11 +190,14 @@ fn pod_view(pod: &Pod) -> PodView {
             let pairs: Vec<String> = s.iter().map(|(k, v)| format!("{k}={v}")).collect();
             pairs.join(",")
         });
+    let (disruption, disruption_message) =
+        disruption(&status).map_or((None, None), |(reason, message)| (Some(reason), message));
     PodView {
         name: name_of(&pod.metadata),
         uid: pod.metadata.uid.clone(),
         node_selector,
-        disruption: disruption(&status),
+        disruption,
+        disruption_message,
         gpus: gpus(&spec),
         autoscaler: None,
         job: owning_job(&pod.metadata),
@@ -214,18 +222,28 @@ fn gpus(spec: &k8s_openapi::api::core::v1::PodSpec) -> u32 {
         .sum()
 }
 
-/// The reason of a pod's `DisruptionTarget` condition: the control plane is taking it away (a
-/// drained or reclaimed node, preemption, an eviction), and its Job will not count it.
-fn disruption(status: &k8s_openapi::api::core::v1::PodStatus) -> Option<String> {
+/// Longest `DisruptionTarget` message kept: the kubelet's own are one sentence.
+const MAX_DISRUPTION_MESSAGE: usize = 200;
+
+/// The reason and message of a pod's `DisruptionTarget` condition: something is taking it away
+/// (a drained or reclaimed node, preemption, an eviction, the kubelet), and its Job will not
+/// count it; whose doing it was is the Monitor's to judge (`lb_domain::disruption`).
+fn disruption(status: &k8s_openapi::api::core::v1::PodStatus) -> Option<(String, Option<String>)> {
     status
         .conditions
         .iter()
         .flatten()
         .find(|c| c.type_ == "DisruptionTarget" && c.status == "True")
         .map(|c| {
-            c.reason
+            let reason = c
+                .reason
                 .clone()
-                .unwrap_or_else(|| "DisruptionTarget".into())
+                .unwrap_or_else(|| "DisruptionTarget".into());
+            let message = c
+                .message
+                .as_deref()
+                .map(|m| m.chars().take(MAX_DISRUPTION_MESSAGE).collect::<String>());
+            (reason, message)
         })
 }
 
@@ -935,6 +953,10 @@ mod tests {
         let obs = observe_at_945(&jobs, &pods);
         let pod = &obs.jobs[1].pods[0];
         assert_eq!(pod.disruption.as_deref(), Some("EvictionByEvictionAPI"));
+        assert_eq!(
+            pod.disruption_message.as_deref(),
+            Some("Eviction API: evicting")
+        );
         assert_eq!(
             obs.jobs[0].pods.iter().find_map(|p| p.disruption.clone()),
             None

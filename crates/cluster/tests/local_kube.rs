@@ -272,7 +272,7 @@ async fn a_job_s_deadline_is_extended_in_place_and_a_gone_job_says_so() {
     j.spec.as_mut().unwrap().active_deadline_seconds = Some(345_600);
     bounded(cluster.create_or_adopt(&j)).await.unwrap();
     let name = "lb-5006-team-77-0";
-    let extended = bounded(cluster.extend_deadline(name, 345_600 + 900)).await;
+    let extended = bounded(cluster.set_deadline(name, 345_600 + 900)).await;
     assert!(extended.unwrap());
     let seen = observe_until(&cluster, "5006", "the new deadline", |o| {
         o.jobs.iter().any(|j| j.deadline == Some(345_600 + 900))
@@ -283,7 +283,7 @@ async fn a_job_s_deadline_is_extended_in_place_and_a_gone_job_says_so() {
         "{seen:?}"
     );
     bounded(cluster.delete_all("5006", None)).await.unwrap();
-    let gone = bounded(cluster.extend_deadline("lb-5006-team-77-9", 1)).await;
+    let gone = bounded(cluster.set_deadline("lb-5006-team-77-9", 1)).await;
     assert!(!gone.unwrap(), "no such Job");
 }
 

@@ -2,6 +2,7 @@
 //! view, and the one verdict the Monitor acts on (keep waiting, finished, or failed with a
 //! message the participant can act on). `lb_cluster::observe` maps the API objects into these.
 
+use std::collections::BTreeMap;
 use std::time::Duration;
 
 use jiff::Timestamp;
@@ -104,6 +105,9 @@ pub struct JobView {
     /// Its `activeDeadlineSeconds`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub deadline: Option<u64>,
+    /// Its `backoffLimit`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub backoff_limit: Option<u32>,
     /// Its Pods, by name.
     pub pods: Vec<PodView>,
 }
@@ -158,6 +162,10 @@ pub struct PodView {
     /// control plane is taking it away, and its Job will not count it as a failure.
     #[serde(default)]
     pub disruption: Option<String>,
+    /// That condition's message: the kubelet's tells a node shutdown from node pressure
+    /// (`lb_domain::disruption::classify`). Kept short.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disruption_message: Option<String>,
     /// The GPUs (`nvidia.com/gpu`) it holds while it runs: its containers' limits added up.
     #[serde(default)]
     pub gpus: u32,
@@ -319,6 +327,31 @@ impl Observation {
     /// When the first Job started, if any has.
     pub fn started_at(&self) -> Option<Timestamp> {
         self.jobs.iter().filter_map(|j| j.start_time).min()
+    }
+
+    /// Takes the Jobs in `spent` (by name, with why) as out of retries, whatever Kubernetes
+    /// says of them: their pods' disruptions of their own counted against `backoffLimit` by
+    /// the Monitor, which the Job controller cannot (its Pod failure policy ignores every
+    /// `DisruptionTarget`). Each pair gives up as a Job past its `backoffLimit` does: its
+    /// neighbours go on, and the verdict is decided again over the Jobs so marked.
+    pub fn give_up(&mut self, spent: &BTreeMap<String, String>, policy: &VerdictPolicy) {
+        let missing = matches!(
+            self.verdict,
+            Verdict::Failed {
+                kind: FailureKind::JobsMissing,
+                ..
+            }
+        );
+        if spent.is_empty() || missing {
+            return;
+        }
+        for job in self.jobs.iter_mut().filter(|j| spent.contains_key(&j.name)) {
+            job.state = JobState::Failed {
+                reason: OUT_OF_RETRIES.into(),
+                message: spent[&job.name].clone(),
+            };
+        }
+        self.verdict = verdict(&self.jobs, self.observed_at, policy);
     }
 
     /// Fails a verdict that is not already failed when a Job index below `count` is absent
@@ -790,6 +823,7 @@ mod tests {
             uid: Some("uid".into()),
             node_selector: None,
             disruption: None,
+            disruption_message: None,
             gpus: 1,
             unschedulable: None,
             autoscaler: None,
@@ -810,6 +844,7 @@ mod tests {
             completion_time: None,
             terminating: false,
             deadline: None,
+            backoff_limit: None,
             pods,
         }
     }

@@ -11,6 +11,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use serde::{Deserialize, Serialize};
 
 use crate::cluster::{ContainerState, JobView};
+use crate::disruption::{self, Disruption, FREE_RECLAIMS_PER_PAIR, MAX_TIME_OFF};
 
 /// The capacity a pod's node was, from its `eks.amazonaws.com/capacityType` label.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -69,8 +70,9 @@ pub struct PodSeen {
     pub gpus: u32,
     /// The node it runs on.
     pub node: Option<String>,
-    /// It carries `DisruptionTarget`: the control plane is taking it away.
-    pub disrupted: bool,
+    /// It carries `DisruptionTarget`, read: a reclaim (the control plane is taking it away),
+    /// the pod's own doing, or the kubelet's until its node is judged ([`judge`]).
+    pub disruption: Option<Disruption>,
     /// It ended `Succeeded`.
     pub succeeded: bool,
 }
@@ -102,12 +104,32 @@ pub fn pods_seen(jobs: &[JobView], observed_at: jiff::Timestamp) -> Vec<PodSeen>
                 ended_at: ended.then(|| finished.unwrap_or(started_at).max(started_at)),
                 gpus: pod.gpus,
                 node: pod.node.clone(),
-                disrupted: pod.disruption.is_some(),
+                disruption: pod
+                    .disruption
+                    .as_deref()
+                    .map(|reason| disruption::classify(reason, pod.disruption_message.as_deref())),
                 succeeded: pod.phase == "Succeeded",
             });
         }
     }
     out
+}
+
+/// The kubelet's disruptions judged by their nodes: `leaving` says, by node name, whether the
+/// node is gone or going ([`disruption::leaving`]). A node not in it is taken as staying.
+pub fn judge(pods: &mut [PodSeen], leaving: &BTreeMap<String, bool>) {
+    for pod in pods {
+        if let Some(d @ Disruption::ByKubelet) = pod.disruption {
+            let gone = pod.node.as_ref().and_then(|n| leaving.get(n)).copied();
+            pod.disruption = Some(disruption::judge(d, gone.unwrap_or(false)));
+        }
+    }
+}
+
+impl PodSeen {
+    fn reclaimed(&self) -> bool {
+        self.disruption == Some(Disruption::Reclaim)
+    }
 }
 
 /// GPU-seconds on one kind of node.
@@ -166,6 +188,35 @@ pub struct Ledger {
     /// it), even when no round saw its `DisruptionTarget`.
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub failed: String,
+    /// Each Job's reclaims given free so far, one base-36 digit per Job: at
+    /// [`FREE_RECLAIMS_PER_PAIR`] the next counts as a crash.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub reclaims: String,
+    /// Each Job's pods that ended by a disruption of their own (or a reclaim beyond the free
+    /// ones), one base-36 digit per Job: crashes its Job did not count, which count against
+    /// its `backoffLimit` all the same ([`Ledger::charged_to`]).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub charged: String,
+}
+
+/// Digit `job` of a per-Job base-36 count (`0` when absent).
+fn digit(counts: &str, job: u32) -> u32 {
+    counts
+        .chars()
+        .nth(job as usize)
+        .and_then(|c| c.to_digit(36))
+        .unwrap_or(0)
+}
+
+/// One more in digit `job` of a per-Job base-36 count (saturating at `z`).
+fn bump(counts: &mut String, job: u32) {
+    let job = job as usize;
+    if counts.len() <= job {
+        counts.extend(std::iter::repeat_n('0', job + 1 - counts.len()));
+    }
+    let n = digit(counts, job as u32).saturating_add(1).min(35);
+    let c = char::from_digit(n, 36).unwrap_or('z');
+    counts.replace_range(job..=job, c.encode_utf8(&mut [0; 4]));
 }
 
 /// Each Job's failed pods (`status.failed`), by Job index.
@@ -275,7 +326,7 @@ impl Ledger {
     fn continues(&self, pod: &PodSeen) -> Option<Running> {
         self.running(pod.job).filter(|r| {
             pod.started_at <= self.last.saturating_add(CLOCK_SLACK)
-                && (pod.disrupted || !r.disrupted)
+                && (pod.disruption.is_some() || !r.disrupted)
         })
     }
 
@@ -290,6 +341,19 @@ impl Ledger {
         let mut nodes: Vec<String> = pods
             .iter()
             .filter(|p| self.continues(p).is_none() && !self.counted_before(p))
+            .filter_map(|p| p.node.clone())
+            .collect();
+        nodes.sort();
+        nodes.dedup();
+        nodes
+    }
+
+    /// Nodes whose state this round needs: those of pods the kubelet evicted, not counted
+    /// before, whose disruption is judged by whether their node is leaving ([`judge`]).
+    pub fn nodes_to_judge(&self, pods: &[PodSeen]) -> Vec<String> {
+        let mut nodes: Vec<String> = pods
+            .iter()
+            .filter(|p| p.disruption == Some(Disruption::ByKubelet) && !self.counted_before(p))
             .filter_map(|p| p.node.clone())
             .collect();
         nodes.sort();
@@ -364,12 +428,12 @@ impl Ledger {
                         if !gone.disrupted
                             && !listed.contains(&pod.job)
                             && self.ignored_failure(pod.job, failed)
+                            && self.reclaimed_unseen(gone.line, pod.job, results_at, end)
                         {
-                            self.lose(gone.line, pod.job, results_at, end);
                             resumed = resumed.max(Some(pod.started_at.min(now)));
                         }
                     }
-                    if self.catching_up(pod.job) && !pod.disrupted {
+                    if self.catching_up(pod.job) && !pod.reclaimed() {
                         resumed = resumed.max(Some(pod.started_at.min(now)));
                     }
                     let kind = pod.node.as_ref().and_then(|n| kinds.get(n));
@@ -386,18 +450,7 @@ impl Ledger {
             self.gpus = pod.gpus;
             let to = pod.ended_at.unwrap_or(now).min(now).max(from);
             self.charge(running.line, to - from, pod.gpus, running.disrupted);
-            if pod.disrupted && !running.disrupted {
-                // Seen disrupted for the first time: everything since its pair's last results
-                // write is lost, what earlier rounds charged included.
-                let since = results_at
-                    .get(&pod.job)
-                    .map_or(pod.started_at, |&t| t.max(pod.started_at));
-                let lost = to.saturating_sub(since).saturating_mul(u64::from(pod.gpus));
-                let line = &mut self.lines[running.line];
-                line.run_again = line.run_again.saturating_add(lost);
-                running.disrupted = true;
-                self.begin_lost(since.min(now));
-            }
+            self.disrupted(pod, &mut running, (to, now), results_at);
             let (mark, caught_up) = after_round(pod, running, now);
             resumed = resumed.max(caught_up);
             self.set_mark(pod.job, mark);
@@ -417,6 +470,35 @@ impl Ledger {
         }
     }
 
+    /// A disrupted pod seen this round (running charged up to `to`): a reclaim, the first time
+    /// it is seen so and while its pair has free ones, loses everything since its pair's last
+    /// results write, what earlier rounds charged included; any other disruption is a crash
+    /// its Job did not count, charged once the pod has ended (a pod is seen ended once: the
+    /// next round counted it before).
+    fn disrupted(
+        &mut self,
+        pod: &PodSeen,
+        running: &mut Running,
+        (to, now): (u64, u64),
+        results_at: &BTreeMap<u32, u64>,
+    ) {
+        if pod.reclaimed() && !running.disrupted && self.free(pod.job) {
+            bump(&mut self.reclaims, pod.job);
+            let since = results_at
+                .get(&pod.job)
+                .map_or(pod.started_at, |&t| t.max(pod.started_at));
+            let lost = to.saturating_sub(since).saturating_mul(u64::from(pod.gpus));
+            let line = &mut self.lines[running.line];
+            line.run_again = line.run_again.saturating_add(lost);
+            running.disrupted = true;
+            self.begin_lost(since.min(now));
+        }
+        let crashed = pod.ended_at.is_some() && !pod.succeeded;
+        if crashed && pod.disruption.is_some() && !running.disrupted {
+            bump(&mut self.charged, pod.job);
+        }
+    }
+
     /// Pods of the last round neither seen nor replaced (`handled` has the Jobs that were) went
     /// between the two rounds: charged up to `now`; a disrupted one leaves its Job catching up.
     fn charge_gone(
@@ -429,12 +511,11 @@ impl Ledger {
             if let Some(gone) = self.running(job).filter(|_| !handled.contains(&job)) {
                 let seconds = now.saturating_sub(self.last);
                 self.charge(gone.line, seconds, self.gpus, gone.disrupted);
-                let ignored =
-                    !gone.disrupted && !listed.contains(&job) && self.ignored_failure(job, failed);
-                if ignored {
-                    self.lose(gone.line, job, results_at, now);
-                }
-                let mark = if gone.disrupted || ignored {
+                let reclaimed = !gone.disrupted
+                    && !listed.contains(&job)
+                    && self.ignored_failure(job, failed)
+                    && self.reclaimed_unseen(gone.line, job, results_at, now);
+                let mark = if gone.disrupted || reclaimed {
                     JobMark::Reclaimed
                 } else {
                     JobMark::Idle
@@ -473,6 +554,48 @@ impl Ledger {
 
     fn failed_before(&self, job: u32) -> Option<u32> {
         self.failed.chars().nth(job as usize)?.to_digit(36)
+    }
+
+    /// Whether the Job has a free reclaim left.
+    fn free(&self, job: u32) -> bool {
+        digit(&self.reclaims, job) < FREE_RECLAIMS_PER_PAIR
+    }
+
+    /// A pod of `job` went by `end` without its Job counting a failure, no round having seen
+    /// why (a deletion: only the control plane deletes our pods): a reclaim, its time lost,
+    /// while the Job has free ones (`true`); beyond them, a crash its Job did not count.
+    fn reclaimed_unseen(
+        &mut self,
+        line: usize,
+        job: u32,
+        results_at: &BTreeMap<u32, u64>,
+        end: u64,
+    ) -> bool {
+        if !self.free(job) {
+            bump(&mut self.charged, job);
+            return false;
+        }
+        bump(&mut self.reclaims, job);
+        self.lose(line, job, results_at, end);
+        true
+    }
+
+    /// The Job's pods that ended by a disruption of their own (or a reclaim beyond the free
+    /// ones): crashes its Job did not count.
+    pub fn charged_to(&self, job: u32) -> u32 {
+        digit(&self.charged, job)
+    }
+
+    /// Seconds taken off the 72-hour limit at `now`: the time reclaims cost, up to
+    /// [`MAX_TIME_OFF`].
+    pub fn time_off(&self, now: u64) -> u64 {
+        self.lost_at(now).min(MAX_TIME_OFF)
+    }
+
+    /// Seconds the Jobs' deadlines grow by: the closed stretches reclaims cost, up to
+    /// [`MAX_TIME_OFF`].
+    pub fn deadline_extension(&self) -> u64 {
+        self.lost.min(MAX_TIME_OFF)
     }
 
     /// A pod of `job` unseen disrupted went by `end`: its time after its pair's last results
@@ -718,7 +841,7 @@ mod tests {
             ended_at: end,
             gpus: 1,
             node: Some(node.into()),
-            disrupted,
+            disruption: disrupted.then_some(Disruption::Reclaim),
             succeeded: false,
         }
     }
@@ -766,6 +889,98 @@ mod tests {
         assert_eq!(ledger.totals().gpu_seconds, 1080 + 150);
         assert!(ledger.jobs.is_empty(), "{ledger:?}");
         assert_eq!(ledger.totals().run_again, 0);
+    }
+
+    #[test]
+    fn only_the_control_plane_s_disruptions_are_free_and_only_a_few_per_pair() {
+        let kinds = kinds();
+        let results = BTreeMap::from([(0, 700)]);
+        let none_failed = BTreeMap::from([(0, 0)]);
+        let with = |d: Option<Disruption>, end: Option<u64>| PodSeen {
+            disruption: d,
+            ..pod(0, 100, end, "spot-a", false)
+        };
+        let running = [with(None, None)];
+        // One round sees the pod running, the next sees it ended by this disruption: what
+        // the ledger charges the pair and gives back.
+        let after = |d: Disruption, reclaims: &str| {
+            let mut ledger = Ledger {
+                reclaims: reclaims.into(),
+                ..Ledger::default()
+            };
+            ledger.account(&running, &kinds, (&results, &none_failed), 500);
+            ledger.account(
+                &[with(Some(d), Some(900))],
+                &kinds,
+                (&results, &none_failed),
+                1000,
+            );
+            (
+                ledger.charged_to(0),
+                ledger.totals().run_again,
+                ledger.lost_at(1000),
+            )
+        };
+        // A reclaim: free, run again from the results at 700, lost until a next pod starts.
+        assert_eq!(after(Disruption::Reclaim, ""), (0, 200, 300));
+        // The kubelet's pressure eviction on a healthy node (judged `Own`): a crash, charged
+        // to the pair's retries, nothing given back.
+        assert_eq!(after(Disruption::Own, ""), (1, 0, 0));
+        // A kubelet's eviction whose node was never judged is not taken as free either.
+        assert_eq!(after(Disruption::ByKubelet, ""), (1, 0, 0));
+        // Beyond the free reclaims a reclaim is a crash too.
+        assert_eq!(after(Disruption::Reclaim, "2"), (0, 200, 300));
+        assert_eq!(after(Disruption::Reclaim, "3"), (1, 0, 0));
+        // A pod gone between two rounds unseen (only the control plane deletes): free while
+        // the pair has free reclaims, then charged.
+        let gone = |reclaims: &str| {
+            let mut ledger = Ledger {
+                reclaims: reclaims.into(),
+                ..Ledger::default()
+            };
+            ledger.account(&running, &kinds, (&results, &none_failed), 500);
+            let next = [pod(0, 960, None, "od-a", false)];
+            ledger.account(&next, &kinds, (&results, &none_failed), 1000);
+            (ledger.charged_to(0), ledger.lost_at(1000), ledger.reclaims)
+        };
+        assert_eq!(gone("0"), (0, 260, "1".to_string()));
+        assert_eq!(gone("3"), (1, 0, "3".to_string()));
+        // Judging by the node: gone or leaving makes the kubelet's eviction free.
+        let mut pods = [
+            PodSeen {
+                node: Some("cordoned".into()),
+                ..with(Some(Disruption::ByKubelet), None)
+            },
+            PodSeen {
+                node: Some("healthy".into()),
+                ..with(Some(Disruption::ByKubelet), None)
+            },
+        ];
+        let ledger = Ledger::default();
+        assert_eq!(ledger.nodes_to_judge(&pods), ["cordoned", "healthy"]);
+        judge(
+            &mut pods,
+            &BTreeMap::from([("cordoned".into(), true), ("healthy".into(), false)]),
+        );
+        let judged: Vec<_> = pods.iter().map(|p| p.disruption).collect();
+        assert_eq!(judged, [Some(Disruption::Reclaim), Some(Disruption::Own)]);
+    }
+
+    #[test]
+    fn the_time_reclaims_take_off_the_limit_is_capped() {
+        let ledger = Ledger {
+            lost: 3 * MAX_TIME_OFF,
+            lost_since: Some(0),
+            ..Ledger::default()
+        };
+        assert_eq!(ledger.lost_at(1000), 3 * MAX_TIME_OFF + 1000);
+        assert_eq!(ledger.time_off(1000), MAX_TIME_OFF);
+        assert_eq!(ledger.deadline_extension(), MAX_TIME_OFF);
+        let small = Ledger {
+            lost: 600,
+            ..Ledger::default()
+        };
+        assert_eq!((small.time_off(0), small.deadline_extension()), (600, 600));
     }
 
     #[test]

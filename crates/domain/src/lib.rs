@@ -5,6 +5,7 @@ pub mod autoscaler;
 pub mod closing;
 pub mod cluster;
 pub mod cost;
+pub mod disruption;
 pub mod errors;
 pub mod finalize;
 pub mod history;

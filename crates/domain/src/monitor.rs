@@ -2,9 +2,12 @@
 //! ends the run and what the participant reads then, when EvalAI's status is read, and when
 //! the round's results go out. The Monitor fetches the facts and acts on these.
 
+use std::collections::BTreeMap;
 use std::time::Duration;
 
 use crate::cluster::{JobState, JobView};
+use crate::cost::Ledger;
+use crate::disruption::FREE_RECLAIMS_PER_PAIR;
 use crate::schedule::{JOB_DEADLINE, MAX_EVALUATION, STATUS_FALLBACK};
 
 /// Why the run ends after the cluster's API was out of reach since `since` (epoch seconds):
@@ -50,15 +53,52 @@ pub fn overran(started_at: Option<u64>, lost: u64, now: u64) -> Option<String> {
         })
 }
 
-/// The Jobs whose `activeDeadlineSeconds` should grow, and to what: every Job still running
-/// keeps [`JOB_DEADLINE`] plus the `lost` seconds (closed stretches) reclaims cost, so the
-/// backstop stays as far past the participant's limit as it was.
-pub fn deadlines_to_extend(jobs: &[JobView], lost: u64) -> Vec<(&str, u64)> {
+/// The `activeDeadlineSeconds` that ends a Job at once: its `startTime` is older than that, so
+/// the Job controller fails it (`DeadlineExceeded`) and stops its pod.
+pub const END_NOW: u64 = 1;
+
+/// The Jobs whose `activeDeadlineSeconds` should change, and to what: a pair out of retries
+/// (in `spent`) ends now ([`END_NOW`]); every other Job still running keeps [`JOB_DEADLINE`]
+/// plus the `lost` seconds (closed stretches) reclaims cost, so the backstop stays as far past
+/// the participant's limit as it was.
+pub fn deadlines_to_set<'a>(
+    jobs: &'a [JobView],
+    lost: u64,
+    spent: &BTreeMap<String, String>,
+) -> Vec<(&'a str, u64)> {
     let wanted = JOB_DEADLINE.as_secs().saturating_add(lost);
     jobs.iter()
         .filter(|j| !j.terminating && matches!(j.state, JobState::Pending | JobState::Running))
-        .filter(|j| j.deadline.is_some_and(|d| d < wanted))
-        .map(|j| (j.name.as_str(), wanted))
+        .filter_map(|j| match spent.contains_key(&j.name) {
+            true => (j.deadline != Some(END_NOW)).then_some((j.name.as_str(), END_NOW)),
+            false => j
+                .deadline
+                .is_some_and(|d| d < wanted)
+                .then_some((j.name.as_str(), wanted)),
+        })
+        .collect()
+}
+
+/// The pairs out of retries, by Job name, with why: a Job whose failed pods and the pods the
+/// ledger charged to it (disruptions of their own, reclaims beyond the free ones) are more
+/// than its `backoffLimit`. Without a charged pod the Job controller decides alone.
+pub fn spent_pairs(jobs: &[JobView], usage: &Ledger) -> BTreeMap<String, String> {
+    jobs.iter()
+        .filter_map(|j| {
+            let charged = usage.charged_to(j.index?);
+            let failed = u32::try_from(j.failed).unwrap_or(0);
+            let limit = j.backoff_limit?;
+            (charged > 0 && failed.saturating_add(charged) > limit).then(|| {
+                let why = format!(
+                    "{charged} of its pods were stopped by a disruption of their own (evicted by \
+                     the kubelet from a healthy node, for disk, inodes or processes beyond the \
+                     pod's share) or by more reclaims than the {FREE_RECLAIMS_PER_PAIR} a pair \
+                     gets free; with {failed} failed pod(s) that is more than the \
+                     {limit} retries allowed"
+                );
+                (j.name.clone(), why)
+            })
+        })
         .collect()
 }
 
@@ -161,9 +201,9 @@ mod tests {
             job("done", JobState::Complete, Some(base)),
             job("none", JobState::Running, None),
         ];
-        assert!(deadlines_to_extend(&jobs, 0).is_empty());
+        assert!(deadlines_to_set(&jobs, 0, &BTreeMap::new()).is_empty());
         assert_eq!(
-            deadlines_to_extend(&jobs, 600),
+            deadlines_to_set(&jobs, 600, &BTreeMap::new()),
             [("running", base + 600), ("pending", base + 600)]
         );
     }

@@ -85,6 +85,60 @@ pub fn gpu_model(instance_type: &str) -> Option<&'static str> {
     }
 }
 
+/// Local disk (`ephemeral-storage`) one container may fill besides its volumes: its writable
+/// layer and its logs, GiB. The request is what it normally takes, so the scheduler keeps
+/// that much room on the node; the limit is where the kubelet evicts the pod as a failure of
+/// its own (no `DisruptionTarget`), so a pod that fills its space spends one of its retries
+/// instead of pushing the node into disk pressure, whose evictions hit every team's pods on
+/// it. A GPU node's disk (`GpuNodeDiskGiB`, 300 GiB) holds the images (tens of GiB each),
+/// then a few pods at their limits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Storage {
+    /// What the scheduler reserves, GiB.
+    pub request_gib: u32,
+    /// What the kubelet allows, GiB.
+    pub limit_gib: u32,
+}
+
+impl Storage {
+    /// CARLA: its `Saved/` logs and shader cache.
+    pub const SIMULATOR: Storage = Storage {
+        request_gib: 1,
+        limit_gib: 4,
+    };
+    /// The participant's agent: caches and temporary files in its image's file system.
+    pub const AGENT: Storage = Storage {
+        request_gib: 4,
+        limit_gib: 16,
+    };
+    /// Init and logcopy: they write into the volumes, not their own layers.
+    pub const SIDECAR: Storage = Storage {
+        request_gib: 1,
+        limit_gib: 1,
+    };
+}
+
+/// `sizeLimit`s of a pod's disk-backed volumes: every `emptyDir` is bounded, so no volume can
+/// outgrow the pod's own share of the node's disk.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct VolumeSizes {
+    /// `logs` per pair, GiB: results, the agent's logs and the CARLA recordings of its routes.
+    pub logs_per_pair_gib: u32,
+    /// `lb-bin` (the sidecar binary), MiB.
+    pub bin_mib: u32,
+    /// Each of `leaderboard`, `scenario-runner` and `carla-api` (the evaluation's code), MiB.
+    pub sources_mib: u32,
+}
+
+impl VolumeSizes {
+    /// The sizes every Job gets.
+    pub const JOB: VolumeSizes = VolumeSizes {
+        logs_per_pair_gib: 8,
+        bin_mib: 256,
+        sources_mib: 2048,
+    };
+}
+
 /// CPU (millicores) and memory (MiB) of one container, requested and limited alike.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Allotment {

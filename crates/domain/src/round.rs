@@ -14,8 +14,9 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use crate::cluster::{self, Observation, Verdict};
+use crate::cluster::{self, Observation, Verdict, VerdictPolicy};
 use crate::cost::{InstancePrice, NodeKind, PodSeen, Totals};
+use crate::disruption::Disruption;
 use crate::history;
 use crate::monitor::{self, StatusRead};
 use crate::queue::{self, Hold, Standing};
@@ -80,9 +81,10 @@ pub enum Step {
     Observe,
     /// When each Job's pair last wrote results (epoch seconds; [`Answer::ResultsWritten`]).
     ResultsWritten,
-    /// Grow these Jobs' `activeDeadlineSeconds` to these seconds ([`Answer::Done`]; a failed
+    /// Set these Jobs' `activeDeadlineSeconds` to these seconds: grown by the time reclaims
+    /// cost, or [`monitor::END_NOW`] for a pair out of retries ([`Answer::Done`]; a failed
     /// patch is tried again next round).
-    ExtendDeadlines(Vec<(String, u64)>),
+    SetDeadlines(Vec<(String, u64)>),
     /// Tell EvalAI and the queue the first pair started ([`Answer::Started`]).
     MarkStarted(Vec<String>),
     /// List the workers' results ([`Answer::Listed`]).
@@ -148,6 +150,9 @@ pub struct Sighting {
     /// The pods as the GPU count takes them and the kinds of the nodes new ones run on
     /// (`None`: a node could not be read, and the count waits for the next round).
     pub counted: Option<(Vec<PodSeen>, BTreeMap<String, NodeKind>)>,
+    /// The patience the verdict was reached with: the round decides it again when the pairs
+    /// out of retries are known ([`Observation::give_up`]).
+    pub policy: VerdictPolicy,
 }
 
 /// What the shell found doing a [`Step`].
@@ -310,15 +315,19 @@ impl Round {
             }
             Stage::Observe => return Some(Step::Observe),
             Stage::Deadlines => {
-                let extend = self.sighting.as_ref().map_or_else(Vec::new, |seen| {
-                    let lost = self.run.monitor.usage.lost;
-                    monitor::deadlines_to_extend(&seen.observation.jobs, lost)
+                let set = self.sighting.as_mut().map_or_else(Vec::new, |seen| {
+                    let usage = &self.run.monitor.usage;
+                    let jobs = &seen.observation.jobs;
+                    let spent = monitor::spent_pairs(jobs, usage);
+                    let set = monitor::deadlines_to_set(jobs, usage.deadline_extension(), &spent)
                         .into_iter()
                         .map(|(job, seconds)| (job.to_owned(), seconds))
-                        .collect()
+                        .collect();
+                    seen.observation.give_up(&spent, &seen.policy);
+                    set
                 });
-                if !extend.is_empty() {
-                    return Some(Step::ExtendDeadlines(extend));
+                if !set.is_empty() {
+                    return Some(Step::SetDeadlines(set));
                 }
                 self.advance(Stage::Started);
             }
@@ -546,7 +555,9 @@ impl Round {
         let failed = crate::cost::failures(&seen.observation.jobs);
         let usage = &self.run.monitor.usage;
         let disrupted = seen.counted.as_ref().is_some_and(|(pods, _)| {
-            pods.iter().any(|p| p.disrupted) || usage.went_unfailed(pods, &failed)
+            pods.iter()
+                .any(|p| p.disruption == Some(Disruption::Reclaim))
+                || usage.went_unfailed(pods, &failed)
         });
         self.sighting = Some(seen);
         if disrupted {
@@ -665,7 +676,7 @@ impl Round {
         let monitor = &self.run.monitor;
         match &seen.observation.verdict {
             Verdict::Running => {
-                let lost = monitor.usage.lost_at(self.cx.now);
+                let lost = monitor.usage.time_off(self.cx.now);
                 match (
                     monitor.started_at,
                     monitor::overran(monitor.started_at, lost, self.cx.now),
@@ -692,7 +703,7 @@ impl Round {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cluster::{FailureKind, JobState};
+    use crate::cluster::{FailureKind, JobState, JobView};
     use crate::run::{MonitorState, QueueState};
     use crate::schedule::{MAX_EVALUATION, STATUS_FALLBACK};
 
@@ -748,6 +759,7 @@ mod tests {
                 verdict,
             },
             counted: Some((Vec::new(), BTreeMap::new())),
+            policy: VerdictPolicy::default(),
         }))
     }
 
@@ -804,7 +816,7 @@ mod tests {
                 Step::ShowPlace(_) => "show",
                 Step::Observe => "observe",
                 Step::ResultsWritten => "written",
-                Step::ExtendDeadlines(_) => "deadlines",
+                Step::SetDeadlines(_) => "deadlines",
                 Step::MarkStarted(_) => "started",
                 Step::ListResults => "list",
                 Step::CollectResults => "collect",
@@ -1210,6 +1222,96 @@ mod tests {
             other => quiet(Verdict::Running)(other),
         });
         let wanted = crate::schedule::JOB_DEADLINE.as_secs() + 600;
-        assert!(steps.contains(&Step::ExtendDeadlines(vec![("lb-7-0".into(), wanted)])));
+        assert!(steps.contains(&Step::SetDeadlines(vec![("lb-7-0".into(), wanted)])));
+    }
+
+    #[test]
+    fn the_72_hour_limit_binds_whatever_the_pods_do() {
+        let max = MAX_EVALUATION.as_secs();
+        let off = crate::disruption::MAX_TIME_OFF;
+        // However much time reclaims cost (here the whole run, and more), at most the cap is
+        // taken off the limit, and the Jobs' deadlines grow by no more.
+        for (running_for, ends) in [(max + off, false), (max + off + 1, true)] {
+            let mut run = started(run(true));
+            run.monitor.started_at = Some(NOW - running_for);
+            run.monitor.usage.lost = 10 * max;
+            let mut observed = seen(true, Verdict::Running);
+            if let Answer::Observed(seen) = &mut observed {
+                seen.observation.jobs[0].state = JobState::Running;
+                seen.observation.jobs[0].deadline = Some(crate::schedule::JOB_DEADLINE.as_secs());
+            }
+            let (steps, run) = drive(run, cx(), |step| match step {
+                Step::Observe => observed.clone(),
+                other => quiet(Verdict::Running)(other),
+            });
+            let wanted = crate::schedule::JOB_DEADLINE.as_secs() + off;
+            assert!(steps.contains(&Step::SetDeadlines(vec![("lb-7-0".into(), wanted)])));
+            assert_eq!(run.monitor.state == RunPhase::Failed, ends, "{running_for}");
+        }
+    }
+
+    #[test]
+    fn a_pair_out_of_retries_by_disruptions_of_its_own_ends_and_its_neighbour_goes_on() {
+        let job = |name: &str, index: u32, failed: i32| JobView {
+            index: Some(index),
+            failed,
+            state: JobState::Running,
+            deadline: Some(crate::schedule::JOB_DEADLINE.as_secs()),
+            ..crate::testutil::job(name, JobState::Running, None)
+        };
+        // Pair 1: 2 crashes its Job counted and 3 kubelet evictions on a healthy node the
+        // ledger charged: 5 > backoffLimit 4. Pair 2: 4 crashes, none charged: its Job
+        // controller decides alone.
+        let mut run = started(run(true));
+        run.jobs = 2;
+        run.monitor.usage.charged = "3".into();
+        let observe = |first: JobState, second: JobState| {
+            let mut jobs = vec![job("lb-7-0", 0, 2), job("lb-7-1", 1, 4)];
+            (jobs[0].state, jobs[1].state) = (first, second);
+            let at = jiff::Timestamp::from_second(NOW as i64).unwrap();
+            let verdict = cluster::verdict(&jobs, at, &VerdictPolicy::default());
+            Answer::Observed(Box::new(Sighting {
+                observation: Observation {
+                    submission_id: "7".into(),
+                    observed_at: at,
+                    jobs,
+                    stray_pods: Vec::new(),
+                    verdict,
+                },
+                counted: Some((Vec::new(), BTreeMap::new())),
+                policy: VerdictPolicy::default(),
+            }))
+        };
+        let (steps, after) = drive(run.clone(), cx(), |step| match step {
+            Step::Observe => observe(JobState::Running, JobState::Running),
+            other => quiet(Verdict::Running)(other),
+        });
+        let end = vec![("lb-7-0".to_string(), monitor::END_NOW)];
+        assert!(steps.contains(&Step::SetDeadlines(end)), "{steps:?}");
+        assert_eq!(after.monitor.state, RunPhase::Running, "pair 2 goes on");
+        // Once its Job failed on that deadline, the pair is taken as out of retries, not as
+        // an evaluation out of time; the neighbour still runs.
+        let deadline = JobState::Failed {
+            reason: "DeadlineExceeded".into(),
+            message: "Job was active longer than specified deadline".into(),
+        };
+        let (steps, after) = drive(run.clone(), cx(), |step| match step {
+            Step::Observe => observe(deadline.clone(), JobState::Running),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert!(!kinds(&steps).contains(&"deadlines"), "{steps:?}");
+        assert_eq!(after.monitor.state, RunPhase::Running);
+        // Once the neighbour is done, the submission ends as when pairs give up, saying why.
+        let (_, after) = drive(run, cx(), |step| match step {
+            Step::Observe => observe(deadline.clone(), JobState::Complete),
+            other => quiet(Verdict::Running)(other),
+        });
+        assert_eq!(after.monitor.state, RunPhase::Failed);
+        let reason = after.monitor.reason.unwrap();
+        assert!(reason.contains("retry limit"), "{reason}");
+        assert!(
+            reason.contains("3 of its pods were stopped by a disruption of their own"),
+            "{reason}"
+        );
     }
 }

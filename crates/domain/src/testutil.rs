@@ -32,6 +32,7 @@ pub fn job(
         completion_time: None,
         terminating: false,
         deadline,
+        backoff_limit: Some(4),
         pods: Vec::new(),
     }
 }

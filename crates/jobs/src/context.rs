@@ -13,7 +13,7 @@ use lb_domain::plan::{
     COMPONENT_SUBMISSION, EXECUTION_LABEL, JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY,
     MANAGED_BY_LABEL, SUBMISSION_LABEL, TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
 };
-use lb_domain::resources::{Allotment, PairAllotment};
+use lb_domain::resources::{Allotment, PairAllotment, Storage, VolumeSizes};
 use lb_domain::results::Leaderboard;
 use lb_domain::settings::LeaderboardSettings;
 use lb_domain::submission::SubmissionInfo;
@@ -302,7 +302,8 @@ pub struct KubernetesContext {
 pub struct ContainerResources {
     /// What the scheduler reserves.
     pub requests: Quantities,
-    /// The same: a container cannot take more than it reserved.
+    /// The same CPU and memory: a container cannot take more than it reserved; more disk
+    /// than it reserved, up to its limit ([`Storage`]).
     pub limits: Quantities,
 }
 
@@ -316,23 +317,26 @@ pub struct Quantities {
     /// GPUs the NVIDIA device plugin allocates (extended resource: request = limit).
     #[serde(rename = "nvidia.com/gpu", skip_serializing_if = "Option::is_none")]
     pub gpu: Option<String>,
-}
-
-impl From<Allotment> for ContainerResources {
-    fn from(a: Allotment) -> Self {
-        let q = Quantities {
-            cpu: format!("{}m", a.cpu_millis),
-            memory: format!("{}Mi", a.memory_mib),
-            gpu: None,
-        };
-        ContainerResources {
-            requests: q.clone(),
-            limits: q,
-        }
-    }
+    /// Local disk besides the volumes, GiB (`4Gi`).
+    #[serde(rename = "ephemeral-storage")]
+    pub storage: String,
 }
 
 impl ContainerResources {
+    /// CPU and memory requested and limited alike, disk as `storage` says.
+    pub fn of(a: Allotment, storage: Storage) -> Self {
+        let q = |gib: u32| Quantities {
+            cpu: format!("{}m", a.cpu_millis),
+            memory: format!("{}Mi", a.memory_mib),
+            gpu: None,
+            storage: format!("{gib}Gi"),
+        };
+        ContainerResources {
+            requests: q(storage.request_gib),
+            limits: q(storage.limit_gib),
+        }
+    }
+
     /// The same with one GPU allocated by the device plugin: the pair's GPU is held by its
     /// agent (the untrusted container sees only that GPU) and handed to its simulator by
     /// UUID through the status volume (templates/README.md, "One GPU per pair").
@@ -354,6 +358,29 @@ pub struct ResourcesContext {
     pub sidecar: ContainerResources,
     /// `sizeLimit` of the Pod's `/dev/shm`: the per-pair size times the Job's pairs.
     pub shm: String,
+    /// `sizeLimit`s of the disk-backed volumes.
+    pub volumes: VolumesContext,
+}
+
+/// `sizeLimit`s of the Pod's disk-backed `emptyDir` volumes ([`VolumeSizes`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct VolumesContext {
+    /// `logs`: the per-pair size times the Job's pairs.
+    pub logs: String,
+    /// `lb-bin`.
+    pub bin: String,
+    /// Each of `leaderboard`, `scenario-runner` and `carla-api`.
+    pub sources: String,
+}
+
+impl VolumesContext {
+    fn of(sizes: VolumeSizes, pairs: u32) -> Self {
+        VolumesContext {
+            logs: format!("{}Gi", sizes.logs_per_pair_gib * pairs),
+            bin: format!("{}Mi", sizes.bin_mib),
+            sources: format!("{}Mi", sizes.sources_mib),
+        }
+    }
 }
 
 /// This Job within the submission.
@@ -766,10 +793,11 @@ impl JobContext {
             aws: AwsContext::of(settings),
             kubernetes: KubernetesContext::of(settings),
             resources: ResourcesContext {
-                simulator: settings.resources.simulator.into(),
-                agent: ContainerResources::from(settings.resources.agent).with_gpu(),
-                sidecar: Allotment::SIDECAR.into(),
+                simulator: ContainerResources::of(settings.resources.simulator, Storage::SIMULATOR),
+                agent: ContainerResources::of(settings.resources.agent, Storage::AGENT).with_gpu(),
+                sidecar: ContainerResources::of(Allotment::SIDECAR, Storage::SIDECAR),
                 shm: format!("{}Mi", settings.resources.shm_mib * job.pairs.len() as u32),
+                volumes: VolumesContext::of(VolumeSizes::JOB, job.pairs.len() as u32),
             },
             timers: settings.timers.clone(),
             sources: settings.sources.clone(),

@@ -110,6 +110,14 @@ fn check_volumes(pod: &PodSpec, context: &JobContext) -> Result<(), RenderError>
             ));
         }
         let Some(dir) = &v.empty_dir else { continue };
+        if dir.size_limit.is_none() {
+            // Unbounded, a disk-backed volume fills the node's disk: the kubelet then evicts
+            // pods of every team on it for disk pressure, not only the writer's.
+            return Err(refuse(
+                format!("{at}.emptyDir.sizeLimit"),
+                "every emptyDir volume must have a size limit",
+            ));
+        }
         if dir.medium.as_deref() == Some("Memory") {
             let Some(limit) = &dir.size_limit else {
                 return Err(refuse(
@@ -216,13 +224,21 @@ fn check_resources(
             &expected.limits,
         ),
     ] {
-        for (name, value) in [("cpu", &want.cpu), ("memory", &want.memory)] {
+        for (name, value, rule) in [
+            ("cpu", &want.cpu, "requests equal limits"),
+            ("memory", &want.memory, "requests equal limits"),
+            (
+                "ephemeral-storage",
+                &want.storage,
+                "a pod filling the node's disk evicts others",
+            ),
+        ] {
             let got = map.and_then(|m| m.get(name)).map(|q| q.0.as_str());
             if got != Some(value.as_str()) {
                 return Err(refuse(
                     format!("{at}.{kind}.{name}"),
                     format!(
-                        "is `{}`; the settings give `{value}` (requests equal limits)",
+                        "is `{}`; the settings give `{value}` ({rule})",
                         got.unwrap_or("unset")
                     ),
                 ));

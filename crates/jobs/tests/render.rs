@@ -899,16 +899,20 @@ fn every_container_is_confined_and_sized_from_the_settings() {
                 // Participants' images run as root; everything else is CARLA's user.
                 assert_eq!(sc.run_as_non_root, (!agent).then_some(true), "{}", c.name);
                 assert_eq!(sc.run_as_user, (!agent).then_some(1000), "{}", c.name);
-                let (cpu, memory) = match c.name.split('-').next().unwrap() {
-                    "simulator" => ("4000m", "16384Mi"),
-                    "agent" => ("6000m", "24576Mi"),
-                    _ => ("500m", "512Mi"),
+                // Disk: a request for what it normally writes, a limit where the kubelet
+                // evicts it as a failure of its own.
+                let (cpu, memory, disk, disk_limit) = match c.name.split('-').next().unwrap() {
+                    "simulator" => ("4000m", "16384Mi", "1Gi", "4Gi"),
+                    "agent" => ("6000m", "24576Mi", "4Gi", "16Gi"),
+                    _ => ("500m", "512Mi", "1Gi", "1Gi"),
                 };
                 let mut expected: BTreeMap<String, String> = [
                     ("limits.cpu", cpu),
                     ("limits.memory", memory),
+                    ("limits.ephemeral-storage", disk_limit),
                     ("requests.cpu", cpu),
                     ("requests.memory", memory),
+                    ("requests.ephemeral-storage", disk),
                 ]
                 .into_iter()
                 .map(|(k, v)| (k.to_owned(), v.to_owned()))
@@ -920,6 +924,52 @@ fn every_container_is_confined_and_sized_from_the_settings() {
                     }
                 }
                 assert_eq!(resources(c), expected, "{}", c.name);
+            }
+        }
+    }
+}
+
+#[test]
+fn every_volume_of_the_rendered_jobs_is_bounded_and_every_container_limits_its_disk() {
+    for (leaderboard, workers) in [(Leaderboard::V2, 6), (Leaderboard::V1, 3)] {
+        for job in jobs(leaderboard, 20, workers, "team") {
+            let pod = pod(&job);
+            let pairs = (pod.containers.len() as u32 - 1) / 2;
+            let sizes: BTreeMap<&str, &str> = pod
+                .volumes
+                .iter()
+                .flatten()
+                .filter_map(|v| {
+                    let dir = v.empty_dir.as_ref()?;
+                    Some((
+                        v.name.as_str(),
+                        dir.size_limit.as_ref().map_or("none", |q| q.0.as_str()),
+                    ))
+                })
+                .collect();
+            let logs = format!("{}Gi", 8 * pairs);
+            let expected = BTreeMap::from([
+                ("logs", logs.as_str()),
+                ("lb-bin", "256Mi"),
+                ("leaderboard", "2048Mi"),
+                ("scenario-runner", "2048Mi"),
+                ("carla-api", "2048Mi"),
+                ("dshm", sizes["dshm"]),
+                ("handoff", "1Mi"),
+                ("gpu-pin", "1Mi"),
+            ]);
+            assert_eq!(
+                sizes,
+                expected,
+                "{}",
+                job.metadata.name.as_deref().unwrap_or("")
+            );
+            for c in pod.init_containers.iter().flatten().chain(&pod.containers) {
+                let r = resources(c);
+                for kind in ["requests", "limits"] {
+                    let disk = &r[&format!("{kind}.ephemeral-storage")];
+                    assert!(disk.ends_with("Gi"), "{} {kind}: {disk}", c.name);
+                }
             }
         }
     }
@@ -983,7 +1033,7 @@ fn a_template_that_loosens_the_confinement_does_not_load() {
     securityContext:
       allowPrivilegeEscalation: false
       capabilities: {drop: [ALL]}";
-    let cases: [(&str, &str, &str); 12] = [
+    let cases: [(&str, &str, &str); 14] = [
         (AGENT_CAPS, "    securityContext:\n      allowPrivilegeEscalation: false", "containers[1].securityContext.capabilities.drop"),
         ("capabilities: {drop: [ALL]}\n    resources.$: $.resources.agent", "capabilities: {drop: [ALL], add: [NET_RAW]}\n    resources.$: $.resources.agent", "containers[1].securityContext.capabilities.add"),
         ("      runAsNonRoot: true\n", "      runAsNonRoot: false\n", ".securityContext.runAsNonRoot"),
@@ -995,7 +1045,9 @@ fn a_template_that_loosens_the_confinement_does_not_load() {
         ("resources.$: $.resources.agent", "resources: {limits: {cpu: '64', memory: 512Gi}}", "containers[1].resources.requests.cpu"),
         ("resources.$: $.resources.agent", "resources.$: $.resources.simulator", "containers[1].resources.requests.cpu"),
         ("        automountServiceAccountToken: false\n", "        automountServiceAccountToken: false\n        hostPID: true\n", "spec.template.spec.hostPID"),
-        ("          - {name: logs, emptyDir: {}}", "          - {name: logs, hostPath: {path: /var/log}}", "volumes[0].hostPath"),
+        ("          - {name: logs, emptyDir: {sizeLimit.$: $.resources.volumes.logs}}", "          - {name: logs, hostPath: {path: /var/log}}", "volumes[0].hostPath"),
+        ("{name: carla-api, emptyDir: {sizeLimit.$: $.resources.volumes.sources}}", "{name: carla-api, emptyDir: {}}", "volumes[4].emptyDir.sizeLimit"),
+        ("resources.$: $.resources.agent", "resources: {limits: {cpu: 6000m, memory: 24576Mi, nvidia.com/gpu: '1'}, requests: {cpu: 6000m, memory: 24576Mi, nvidia.com/gpu: '1'}}", "containers[1].resources.requests.ephemeral-storage"),
     ];
     for (from, to, path) in cases {
         for template in [LEADERBOARD_20, LEADERBOARD_10] {

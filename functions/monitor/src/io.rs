@@ -7,8 +7,9 @@ use std::time::Duration;
 
 use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
-use lb_cluster::{Cluster, VerdictPolicy};
-use lb_domain::cost::{self, NodeKind, Totals};
+use lb_cluster::{Cluster, ClusterError, VerdictPolicy};
+use lb_domain::cost::{self, Ledger, NodeKind, PodSeen, Totals};
+use lb_domain::disruption;
 use lb_domain::monitor::StatusRead;
 use lb_domain::protocol::Marker;
 use lb_domain::queue::Hold;
@@ -80,7 +81,7 @@ impl<'a> Shell<'a> {
             Step::ShowPlace(note) => Answer::Shown(self.show_place(note).await?),
             Step::Observe => self.observe(run).await?,
             Step::ResultsWritten => Answer::ResultsWritten(results::written(&self.store).await),
-            Step::ExtendDeadlines(jobs) => self.extend_deadlines(jobs).await,
+            Step::SetDeadlines(jobs) => self.set_deadlines(jobs).await,
             Step::MarkStarted(jobs) => Answer::Started(self.mark_started(&jobs).await?),
             Step::ListResults => Answer::Listed(self.list().await?),
             Step::CollectResults => Answer::Collected(self.collect(run).await?),
@@ -200,36 +201,61 @@ impl<'a> Shell<'a> {
             }
             Err(e) => return Err(e),
         };
-        let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
-        let mut kinds = BTreeMap::new();
-        let mut counted = true;
-        for node in run.monitor.usage.unknown_nodes(&pods) {
-            match cluster.node_kind(&node).await {
-                Ok(kind) => _ = kinds.insert(node, kind.unwrap_or_else(NodeKind::unknown)),
-                Err(e) => {
-                    warn!(submission_id = self.id(), %node, error = %e, "node not read: GPU usage counted next round");
-                    counted = false;
-                    break;
-                }
+        let mut pods = cost::pods_seen(&observation.jobs, observation.observed_at);
+        let usage = &run.monitor.usage;
+        let counted = match self.read_nodes(&cluster, usage, &mut pods).await {
+            Ok(kinds) => Some((pods, kinds)),
+            Err((node, e)) => {
+                warn!(submission_id = self.id(), %node, error = %e, "node not read: GPU usage counted next round");
+                None
             }
-        }
+        };
         self.cluster = Some(cluster);
-        let counted = counted.then_some((pods, kinds));
         Ok(Answer::Observed(Box::new(Sighting {
             observation,
             counted,
+            policy,
         })))
+    }
+
+    /// The nodes the count needs: the kinds of those new pods run on, and whether the node of
+    /// a pod the kubelet evicted is leaving (its disruption judged by it). The first node that
+    /// cannot be read, with why.
+    async fn read_nodes(
+        &self,
+        cluster: &Cluster,
+        usage: &Ledger,
+        pods: &mut [PodSeen],
+    ) -> std::result::Result<BTreeMap<String, NodeKind>, (String, ClusterError)> {
+        let mut kinds = BTreeMap::new();
+        for node in usage.unknown_nodes(pods) {
+            let kind = cluster
+                .node_kind(&node)
+                .await
+                .map_err(|e| (node.clone(), e))?;
+            kinds.insert(node, kind.unwrap_or_else(NodeKind::unknown));
+        }
+        let mut leaving = BTreeMap::new();
+        for node in usage.nodes_to_judge(pods) {
+            let facts = cluster
+                .node_facts(&node)
+                .await
+                .map_err(|e| (node.clone(), e))?;
+            leaving.insert(node, disruption::leaving(facts.as_ref()));
+        }
+        cost::judge(pods, &leaving);
+        Ok(kinds)
     }
 
     /// A patch that fails is tried again next round: the value set does not depend on what
     /// the Job has.
-    async fn extend_deadlines(&self, jobs: Vec<(String, u64)>) -> Answer {
+    async fn set_deadlines(&self, jobs: Vec<(String, u64)>) -> Answer {
         let Some(cluster) = &self.cluster else {
             return Answer::Done;
         };
         for (job, seconds) in jobs {
-            if let Err(e) = cluster.extend_deadline(&job, seconds).await {
-                warn!(submission_id = self.id(), job, error = %e, "Job deadline not extended this round");
+            if let Err(e) = cluster.set_deadline(&job, seconds).await {
+                warn!(submission_id = self.id(), job, error = %e, "Job deadline not set this round");
             }
         }
         Answer::Done

@@ -426,7 +426,7 @@ fn pod_span(job: u32, (start, end): (f64, f64), spot: bool, reclaimed: bool) -> 
         ended_at: Some(end as u64),
         gpus: 1,
         node: Some(if spot { "spot" } else { "on-demand" }.into()),
-        disrupted: reclaimed,
+        disruption: reclaimed.then_some(lb_domain::disruption::Disruption::Reclaim),
         succeeded: !reclaimed,
     }
 }

@@ -1075,6 +1075,27 @@ fn submission_pods_may_reach_dns_and_the_endpoint_subnets_only() {
     for ng in CLUSTER.resources_of("AWS::EKS::Nodegroup") {
         assert!(CLUSTER.property(&ng, &["LaunchTemplate"]).is_ok(), "{ng}");
     }
+    // GPU nodes: a PID limit per pod (nodeadm's NodeConfig, merged with the node group's).
+    let user_data = CLUSTER
+        .text(
+            "GpuLaunchTemplate",
+            &["LaunchTemplateData", "UserData", "Fn::Base64"],
+        )
+        .unwrap();
+    let part = user_data
+        .split("Content-Type: application/node.eks.aws")
+        .nth(1)
+        .expect("a NodeConfig part");
+    let config: Value =
+        serde_yaml::from_str(part.split("--LEADERBOARD--").next().unwrap()).unwrap();
+    assert_eq!(config["kind"], "NodeConfig");
+    let limit = CLUSTER
+        .eval(&CLUSTER.root()["Parameters"]["GpuPodPidsLimit"]["Default"])
+        .unwrap();
+    assert_eq!(
+        config["spec"]["kubelet"]["config"]["podPidsLimit"].to_string(),
+        limit
+    );
     // The VPC CNI enforces NetworkPolicies only when told to.
     let cni = CLUSTER
         .text("VpcCniAddon", &["ConfigurationValues"])

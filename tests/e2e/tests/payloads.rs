@@ -150,6 +150,8 @@ fn worst_usage() -> Ledger {
         lost_since: Some(u64::MAX),
         lost_until: u64::MAX,
         failed: "z".repeat(MAX_WORKERS as usize),
+        reclaims: "z".repeat(MAX_WORKERS as usize),
+        charged: "z".repeat(MAX_WORKERS as usize),
     }
 }
 

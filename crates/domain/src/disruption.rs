@@ -1,0 +1,188 @@
+//! Whose a pod's disruption is: the control plane's (a reclaim: the pair's next pod resumes for
+//! free and the time lost is given back) or the pod's own (counted as a crash), with the caps
+//! on what reclaims may give.
+//!
+//! The Job's Pod failure policy cannot tell them apart: its `onPodConditions` pattern matches
+//! a condition's type and status only, never its reason, so its `Ignore` rule lets every
+//! `DisruptionTarget` pass uncounted. The Monitor reads the reason and counts the pod's own
+//! against the pair's retries itself.
+
+use serde::{Deserialize, Serialize};
+
+/// Reasons the control plane writes for events outside the pod: a drain or a scale-down
+/// through the Eviction API, a `NoExecute` taint, a deleted node's pods collected, the
+/// scheduler preempting for a higher priority. A participant's code reaches none of them: its
+/// pods have no service-account token.
+pub const CONTROL_PLANE_REASONS: [&str; 4] = [
+    "EvictionByEvictionAPI",
+    "DeletionByTaintManager",
+    "DeletionByPodGC",
+    "PreemptionByScheduler",
+];
+
+/// The kubelet's own reason: node-pressure eviction (disk, inodes, PIDs, memory), graceful
+/// node shutdown, or admitting a critical pod. Only the pressure case can be the pod's doing.
+pub const BY_KUBELET: &str = "TerminationByKubelet";
+
+/// The messages of the kubelet's terminations that are the platform's: graceful node shutdown
+/// (`pkg/kubelet/nodeshutdown`) and admitting a critical pod (`pkg/kubelet/preemption`).
+/// Pressure evictions say "The node was low on resource: ...".
+pub const KUBELET_PLATFORM_MESSAGES: [&str; 2] = [
+    "Pod was terminated in response to imminent node shutdown.",
+    "Pod was preempted by Kubelet to accommodate a critical pod.",
+];
+
+/// Node taints that mean the node is going away: cordoned (drain), chosen by the Cluster
+/// Autoscaler or Karpenter for removal, shut down, out of service, unreachable.
+const LEAVING_TAINTS: [&str; 7] = [
+    "node.kubernetes.io/unschedulable",
+    "ToBeDeletedByClusterAutoscaler",
+    "karpenter.sh/disrupted",
+    "node.cloudprovider.kubernetes.io/shutdown",
+    "node.kubernetes.io/out-of-service",
+    "node.kubernetes.io/not-ready",
+    "node.kubernetes.io/unreachable",
+];
+
+/// Replacements per pair that reclaims get free. A Spot GPU node is interrupted a few times a
+/// month at worst, and a pair runs on one node at a time: three reclaims of one pair within an
+/// evaluation's 72 hours is already rare. Beyond them a reclaim counts as a crash, against the
+/// Job's `backoffLimit`, so no chain of disruptions runs a pair forever.
+pub const FREE_RECLAIMS_PER_PAIR: u32 = 3;
+
+/// Most seconds reclaims may take off the 72-hour limit (and add to the Jobs' deadlines): 12
+/// hours, a sixth of the limit. Each reclaim costs the evaluation the interrupted route and a
+/// new node's start (minutes to an hour); the free reclaims of every pair fit within it, and
+/// an evaluation ends by 84 hours of wall time whatever its pods do.
+pub const MAX_TIME_OFF: u64 = 12 * 3600;
+
+/// How a pod's `DisruptionTarget` reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Disruption {
+    /// The control plane's: a reclaim.
+    Reclaim,
+    /// The kubelet's for pressure: a reclaim only if its node is leaving (see [`judge`]).
+    ByKubelet,
+    /// The pod's own: counted as a crash.
+    Own,
+}
+
+/// A `DisruptionTarget` condition's reason and message, read.
+pub fn classify(reason: &str, message: Option<&str>) -> Disruption {
+    let platform = |m: &str| KUBELET_PLATFORM_MESSAGES.contains(&m.trim());
+    match reason {
+        r if CONTROL_PLANE_REASONS.contains(&r) => Disruption::Reclaim,
+        BY_KUBELET if message.is_some_and(platform) => Disruption::Reclaim,
+        BY_KUBELET => Disruption::ByKubelet,
+        // A reason this code does not know is not taken as free: new free reasons are added
+        // above once the control plane is seen writing them.
+        _ => Disruption::Own,
+    }
+}
+
+/// What a node's object says.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct NodeFacts {
+    /// `spec.unschedulable` (cordoned).
+    pub unschedulable: bool,
+    /// Its taints' keys.
+    pub taints: Vec<String>,
+    /// Its `Ready` condition is `True`.
+    pub ready: bool,
+}
+
+/// Whether a node (`None`: gone) is leaving: deleted, cordoned, tainted for removal, or not
+/// ready. A node under disk, inode or PID pressure stays `Ready` and untainted for removal:
+/// it is not leaving, and a pressure eviction on it is a pod's doing.
+pub fn leaving(node: Option<&NodeFacts>) -> bool {
+    node.is_none_or(|n| {
+        n.unschedulable
+            || !n.ready
+            || n.taints
+                .iter()
+                .any(|t| LEAVING_TAINTS.contains(&t.as_str()))
+    })
+}
+
+/// A kubelet's disruption judged by its node: a reclaim when the node is leaving, the pod's
+/// own otherwise. Others pass unchanged.
+pub fn judge(disruption: Disruption, node_leaving: bool) -> Disruption {
+    match disruption {
+        Disruption::ByKubelet if node_leaving => Disruption::Reclaim,
+        Disruption::ByKubelet => Disruption::Own,
+        other => other,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn node(unschedulable: bool, ready: bool, taints: &[&str]) -> NodeFacts {
+        NodeFacts {
+            unschedulable,
+            ready,
+            taints: taints.iter().map(|t| t.to_string()).collect(),
+        }
+    }
+
+    #[test]
+    fn only_the_control_plane_s_reasons_and_a_leaving_node_s_kubelet_are_reclaims() {
+        let healthy = node(false, true, &["nvidia.com/gpu"]);
+        let pressured = node(
+            false,
+            true,
+            &["nvidia.com/gpu", "node.kubernetes.io/disk-pressure"],
+        );
+        let cordoned = node(true, true, &["node.kubernetes.io/unschedulable"]);
+        let scaling_down = node(false, true, &["ToBeDeletedByClusterAutoscaler"]);
+        let not_ready = node(false, false, &[]);
+        let pressure = Some("The node was low on resource: ephemeral-storage. ");
+        let cases: [(&str, Option<&str>, Option<&NodeFacts>, Disruption); 13] = [
+            (
+                "EvictionByEvictionAPI",
+                None,
+                Some(&healthy),
+                Disruption::Reclaim,
+            ),
+            ("DeletionByTaintManager", None, None, Disruption::Reclaim),
+            ("DeletionByPodGC", None, None, Disruption::Reclaim),
+            (
+                "PreemptionByScheduler",
+                None,
+                Some(&healthy),
+                Disruption::Reclaim,
+            ),
+            // The participant filled the node's disk, or its inodes or PIDs.
+            (BY_KUBELET, pressure, Some(&healthy), Disruption::Own),
+            (BY_KUBELET, pressure, Some(&pressured), Disruption::Own),
+            // The node is going anyway.
+            (BY_KUBELET, pressure, None, Disruption::Reclaim),
+            (BY_KUBELET, pressure, Some(&cordoned), Disruption::Reclaim),
+            (
+                BY_KUBELET,
+                pressure,
+                Some(&scaling_down),
+                Disruption::Reclaim,
+            ),
+            (BY_KUBELET, pressure, Some(&not_ready), Disruption::Reclaim),
+            (
+                BY_KUBELET,
+                Some(KUBELET_PLATFORM_MESSAGES[0]),
+                Some(&healthy),
+                Disruption::Reclaim,
+            ),
+            (
+                BY_KUBELET,
+                Some(KUBELET_PLATFORM_MESSAGES[1]),
+                Some(&healthy),
+                Disruption::Reclaim,
+            ),
+            ("SomethingNew", None, None, Disruption::Own),
+        ];
+        for (reason, message, node, expected) in cases {
+            let judged = judge(classify(reason, message), leaving(node));
+            assert_eq!(judged, expected, "{reason} {message:?} {node:?}");
+        }
+    }
+}
