@@ -26,8 +26,9 @@ enum Act {
     Wait,
     /// Evicts it through the Eviction API.
     Evict,
-    /// Extends the Job's `activeDeadlineSeconds` by a merge patch, as the Monitor does.
-    Extend(i64),
+    /// Sets the Job's `activeDeadlineSeconds` by a merge patch, as the Monitor does: extended
+    /// by the time reclaims cost, or lowered to end a pair out of retries.
+    SetDeadline(i64),
     /// Deletes the Job with foreground propagation, as Finalize does.
     DeleteForeground,
     /// Taints its node `NoExecute` with a key it does not tolerate (lifted once it is done).
@@ -56,7 +57,7 @@ struct Case {
 
 /// The behaviours the pipeline relies on, one Job each. `{marker}` is a host file unique to
 /// the run: a pod that finds it is a replacement.
-const CASES: [Case; 8] = [
+const CASES: [Case; 9] = [
     Case {
         name: "an exit code the policy fails the Job on",
         script: "exit 42",
@@ -86,7 +87,14 @@ const CASES: [Case; 8] = [
         name: "the active deadline, extended by a merge patch before it passes",
         script: "touch {marker}; sleep 8",
         deadline: Some(5),
-        act: Act::Extend(60),
+        act: Act::SetDeadline(60),
+    },
+    Case {
+        name: "the active deadline, lowered to 1 s by a merge patch while its pod runs",
+        // As the Monitor ends a pair out of retries (`lb_domain::monitor::END_NOW`).
+        script: "touch {marker}; trap 'sleep 0.5; exit 143' TERM; sleep 300 & wait",
+        deadline: Some(3600),
+        act: Act::SetDeadline(1),
     },
     Case {
         name: "the Job deleted with foreground propagation while its pod runs",
@@ -207,7 +215,7 @@ async fn run(client: kube::Client, index: usize, case: &Case, scratch: &Path) ->
                             disruptions.push(reason);
                         }
                     }
-                    Act::Extend(seconds) => {
+                    Act::SetDeadline(seconds) => {
                         let patch = json!({"spec": {"activeDeadlineSeconds": seconds}});
                         jobs.patch(&name, &PatchParams::default(), &Patch::Merge(&patch))
                             .await
