@@ -455,6 +455,8 @@ const KNOWN_ATTRIBUTES: &[&str] = &[
     "cost_usd",
     "orchestration_usd",
     "state_transitions",
+    "log_bytes_stored",
+    "uploads_refused",
 ];
 
 /// A DynamoDB value as plain JSON (numbers as numbers when they fit).

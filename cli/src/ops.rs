@@ -1,11 +1,12 @@
 //! `lbctl status`, `lbctl list` and `lbctl cancel`: the submissions of a real deployment as
 //! its DynamoDB records and S3 markers show them, and the operator's cancel.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 use clap::Args;
 use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER, STATUS_DIR};
+use lb_domain::protocol::{Marker, Role};
 use serde_json::{json, Value};
 
 use crate::deployment::{clean, Deployment, DeploymentArgs, Found, Record, ScanFilter, Usage};
@@ -108,9 +109,76 @@ struct Markers {
     error: Option<String>,
 }
 
+/// Names `--json` lists at most; the summary counts them all.
+const MAX_LISTED: usize = 100;
+
 impl Markers {
     fn cancel_requested(&self) -> bool {
         self.names.iter().any(|n| n == CANCEL_MARKER)
+    }
+
+    /// The markers counted, a line per pair, whatever their number: what each container did
+    /// (started, crashed, done), which Jobs' logcopy finished, and how many objects are no
+    /// marker of the protocol (left by an older system, or by hand).
+    fn summary(&self) -> Vec<String> {
+        let mut pairs: BTreeMap<u32, [u32; 5]> = BTreeMap::new();
+        let (mut logcopy, mut other) = (0, 0);
+        for name in &self.names {
+            let slot = match Marker::parse(name) {
+                Some(Marker::Start { pair, .. }) => (pair, 0),
+                Some(Marker::Crash {
+                    role: Role::Simulator,
+                    pair,
+                    ..
+                }) => (pair, 1),
+                Some(Marker::Done {
+                    role: Role::Simulator,
+                    pair,
+                }) => (pair, 2),
+                Some(Marker::Crash {
+                    role: Role::Agent,
+                    pair,
+                    ..
+                }) => (pair, 3),
+                Some(Marker::Done {
+                    role: Role::Agent,
+                    pair,
+                }) => (pair, 4),
+                Some(Marker::LogcopyDone { .. }) => {
+                    logcopy += 1;
+                    continue;
+                }
+                Some(Marker::Cancel) => continue,
+                None => {
+                    other += 1;
+                    continue;
+                }
+            };
+            pairs.entry(slot.0).or_default()[slot.1] += 1;
+        }
+        let mut lines: Vec<String> = pairs
+            .iter()
+            .map(|(pair, [starts, sim_crashes, sim_done, agent_crashes, agent_done])| {
+                let done = |n: &u32| if *n > 0 { ", done" } else { "" };
+                format!(
+                    "pair {pair}: simulator started {starts}, crashed {sim_crashes}{}; agent crashed {agent_crashes}{}",
+                    done(sim_done),
+                    done(agent_done)
+                )
+            })
+            .collect();
+        if logcopy > 0 {
+            lines.push(format!("logcopy done in {logcopy} Job(s)"));
+        }
+        if self.cancel_requested() {
+            lines.push(format!("{CANCEL_MARKER}  <- cancel requested"));
+        }
+        if other > 0 {
+            lines.push(format!(
+                "{other} object(s) that are no marker of the protocol"
+            ));
+        }
+        lines
     }
 }
 
@@ -285,7 +353,9 @@ fn status_json(id: u64, queue: &[(&str, Place)], found: &Found, markers: &[Marke
         "markers": markers.iter().map(|m| json!({
             "leaderboard": m.leaderboard,
             "location": m.location,
-            "names": m.names,
+            "names": m.names.iter().take(MAX_LISTED).collect::<Vec<_>>(),
+            "count": m.names.len(),
+            "summary": m.summary(),
             "cancel_requested": m.cancel_requested(),
             "error": m.error,
         })).collect::<Vec<_>>(),
@@ -321,13 +391,8 @@ fn print_status(
         } else if m.names.is_empty() {
             outln!("  (none)");
         }
-        for name in &m.names {
-            let note = if name == CANCEL_MARKER {
-                "  <- cancel requested"
-            } else {
-                ""
-            };
-            outln!("  {}{note}", clean(name));
+        for line in m.summary() {
+            outln!("  {line}");
         }
     }
 }
@@ -371,6 +436,14 @@ fn print_record(record: &Record) {
     }
     if let Some(usage) = record.usage() {
         outln!("  {:<12} {}", "GPUs", usage.describe());
+    }
+    if let Some(bytes) = record.number("log_bytes_stored") {
+        let refused = record.number("uploads_refused").unwrap_or(0);
+        let gib = bytes as f64 / f64::from(1u32 << 30);
+        outln!(
+            "  {:<12} {gib:.2} GiB kept in S3; {refused} file(s) refused (not the protocol's, too large, or over the logs' budget)",
+            "logs"
+        );
     }
     if let Some(error) = record.text("error") {
         outln!("  {:<12} {}", "error", clean(error));

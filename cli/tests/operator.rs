@@ -145,12 +145,29 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
             ("cost_usd", AttributeValue::N("5.62".into())),
             ("orchestration_usd", AttributeValue::N("0.0312".into())),
             ("state_transitions", AttributeValue::N("1180".into())),
+            ("log_bytes_stored", AttributeValue::N("3221225472".into())),
+            ("uploads_refused", AttributeValue::N("2".into())),
         ],
     )
     .await;
     put_record(sdk, TABLE_10, 1, 103, "SUBMITTED", &[]).await;
-    put_object(sdk, BUCKET_20, "101/containers-status/agent-1.start0").await;
-    put_object(sdk, BUCKET_20, "101/containers-status/simulator-1.start0").await;
+    for marker in [
+        "agent-1.crash0",
+        "simulator-1.start0",
+        "simulator-1.crash0",
+        "simulator-1.start1",
+    ] {
+        put_object(sdk, BUCKET_20, &format!("101/containers-status/{marker}")).await;
+    }
+    // Names no pod of the protocol writes (beyond any attempt), by the hundred.
+    for n in 16..166 {
+        put_object(
+            sdk,
+            BUCKET_20,
+            &format!("101/containers-status/simulator-1.start{n}"),
+        )
+        .await;
+    }
 
     let out = lbctl(&["status", "101"], &env, None);
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
@@ -164,11 +181,17 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
         "5/20",
         IMAGE,
         "s3://leaderboard-20-results/101/containers-status/",
-        "agent-1.start0",
-        "simulator-1.start0",
+        "pair 1: simulator started 2, crashed 1; agent crashed 1",
+        "150 object(s) that are no marker of the protocol",
     ] {
         assert!(text.contains(expected), "`{expected}` missing:\n{text}");
     }
+    // Counted, not listed: the output stays a screen whatever the bucket holds.
+    assert!(text.lines().count() < 40, "{text}");
+    let out = lbctl(&["status", "101", "--json"], &env, None);
+    let status: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(status["markers"][0]["count"], 154, "{status}");
+    assert_eq!(status["markers"][0]["names"].as_array().unwrap().len(), 100);
 
     // A FINISHED result some of whose routes have no recording says so.
     let out = lbctl(&["status", "102"], &env, None);
@@ -179,6 +202,11 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
     );
     assert!(
         stdout(&out).contains("GPUs         8.00 GPU-hours (6.00 on Spot, 0.25 run again after reclaims), about $5.62; orchestration about $0.0312"),
+        "{}",
+        show(&out)
+    );
+    assert!(
+        stdout(&out).contains("logs         3.00 GiB kept in S3; 2 file(s) refused"),
         "{}",
         show(&out)
     );
@@ -317,7 +345,11 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
         .unwrap();
     let out = lbctl(&["status", "101"], &env, None);
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
-    assert!(stdout(&out).contains("agent-1.start0"), "{}", show(&out));
+    assert!(
+        stdout(&out).contains("pair 1: simulator started 2"),
+        "{}",
+        show(&out)
+    );
     assert!(stdout(&out).contains("(unreadable: "), "{}", show(&out));
     assert!(
         stderr(&out).contains("warning: listing the markers under `s3://leaderboard-10-results/101/containers-status/`"),

@@ -5,13 +5,19 @@
 //! A file is recorded as uploaded only after S3 accepted it, so an S3 outage loses nothing:
 //! the pass stops at the first S3 error, the next one (after an exponential backoff) tries
 //! again. Memory is bounded by one part ([`PART_BYTES`]) plus one entry per tracked file.
+//!
+//! What goes is decided by [`UploadBudget`]: the protocol's names for this Job only, each kind
+//! within its size, the logs within their bytes per pair. What it refuses is counted once per
+//! name and reported with the bytes stored (`logs/logcopy/job<J>.json`) after each pass.
 
 use std::io::{self, Read, Seek};
 use std::os::unix::fs::MetadataExt;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use lb_domain::protocol::{self, job_end, JobEnd, Marker, CANCEL_MARKER, STATUS_DIR};
+use lb_domain::protocol::STATUS_DIR;
+use lb_domain::protocol::{self, job_end, JobEnd, LogKind, Marker, CANCEL_MARKER, LOGS_DIR};
+use lb_domain::uploads::{self, UploadBudget, UploadReport};
 use sha2::{Digest, Sha256};
 use tracing::{debug, info, warn};
 
@@ -114,9 +120,9 @@ pub struct PassStats {
     pub same_content: usize,
     /// Files that could not be read (they are tried again next pass).
     pub unreadable: usize,
-    /// Files left alone: another pair's results or markers, or names the protocol does not
-    /// define.
-    pub not_ours: usize,
+    /// Files left alone: another pair's results or markers, names the protocol does not
+    /// define, files larger than their kind may be, logs beyond the pairs' bytes.
+    pub refused: usize,
 }
 
 /// The uploader's state.
@@ -126,6 +132,9 @@ pub struct Logcopy<'a> {
     status: StatusDir,
     dev: u64,
     tracker: Tracker,
+    budget: UploadBudget,
+    /// The report as last written to S3.
+    reported: Option<UploadReport>,
 }
 
 impl<'a> Logcopy<'a> {
@@ -144,14 +153,69 @@ impl<'a> Logcopy<'a> {
             status,
             dev,
             tracker: Tracker::default(),
+            budget: UploadBudget::new(&cfg.pairs, cfg.common.job_index),
+            reported: None,
         })
     }
 
-    /// Whether this Job's logcopy uploads the file (`lb_domain::protocol::uploads`): its own
-    /// pairs' results and markers and the logs, never another pair's objects or files the
-    /// protocol does not name.
-    fn ours(&self, rel: &str) -> bool {
-        protocol::uploads(rel, &self.cfg.pairs, self.cfg.common.job_index)
+    /// Whether this Job's logcopy uploads the file now (`lb_domain::uploads`): its own pairs'
+    /// results and markers and logs, each within its size and the logs within their bytes;
+    /// never another pair's objects or files the protocol does not name. A refusal is counted
+    /// (once per name).
+    fn admit(&mut self, entry: &tree::Entry, last: Option<&tree::Uploaded>) -> bool {
+        let size = entry.meta.size;
+        match self
+            .budget
+            .admit(&entry.rel, size, last.map(|u| u.meta.size))
+        {
+            Ok(()) => true,
+            Err(why) => {
+                if self.budget.refuse(&entry.rel, size) {
+                    info!(rel = %entry.rel, bytes = size, ?why, "not uploaded");
+                }
+                false
+            }
+        }
+    }
+
+    /// The S3 object tag of a file: its logs' kind, which the buckets' lifecycle rules keep
+    /// for their own time (`infra/app.yaml`).
+    fn tag(&self, rel: &str) -> Option<&'static str> {
+        let under_logs = rel.strip_prefix(LOGS_DIR)?.strip_prefix('/')?;
+        protocol::log_kind(under_logs, &self.cfg.pairs).map(LogKind::tag)
+    }
+
+    /// Continues the count of the Job's earlier pods, if any stored one (a report that cannot
+    /// be read now counts from zero: the bucket's rules still bound what is kept).
+    async fn resume_budget(&mut self) {
+        let key = self.key(&uploads::report_key(self.cfg.common.job_index));
+        match self.s3.get_small(&key, uploads::MAX_REPORT_BYTES).await {
+            Ok(Some(bytes)) => {
+                if let Some(earlier) = UploadReport::parse(&bytes) {
+                    info!(
+                        log_bytes = earlier.log_bytes,
+                        "continuing the Job's earlier pods' log bytes"
+                    );
+                    self.budget.resume(&earlier);
+                    self.reported = Some(*self.budget.report());
+                }
+            }
+            Ok(None) => {}
+            Err(e) => warn!(error = %e, "the earlier pods' upload report not read"),
+        }
+    }
+
+    /// Writes what was stored and refused when it changed since it was last written.
+    async fn report(&mut self) -> Result<(), S3Error> {
+        let report = *self.budget.report();
+        if self.reported.as_ref() == Some(&report) {
+            return Ok(());
+        }
+        let key = self.key(&uploads::report_key(self.cfg.common.job_index));
+        let body = report.to_bytes();
+        self.s3.put(&key, body, Some(LogKind::Log.tag())).await?;
+        self.reported = Some(report);
+        Ok(())
     }
 
     fn key(&self, rel: &str) -> String {
@@ -166,6 +230,7 @@ impl<'a> Logcopy<'a> {
             bucket = %self.s3.bucket(),
             "logcopy started"
         );
+        self.resume_budget().await;
         let mut failures = 0u32;
         loop {
             let period = tokio::select! {
@@ -220,11 +285,11 @@ impl<'a> Logcopy<'a> {
     pub async fn wake_pass(&mut self) -> Result<usize, S3Error> {
         let mut uploaded = 0;
         for entry in tree::scan_wake_worthy(&self.cfg.logs_root, self.dev) {
-            if !self.ours(&entry.rel) {
-                continue;
-            }
             let last = self.tracker.get(&entry.rel).copied();
             if tree::action(last.as_ref(), &entry.meta) == Action::Skip {
+                continue;
+            }
+            if !self.admit(&entry, last.as_ref()) {
                 continue;
             }
             match self.sync_file(&entry, last.as_ref()).await {
@@ -278,12 +343,12 @@ impl<'a> Logcopy<'a> {
             ..PassStats::default()
         };
         for entry in &entries {
-            if !self.ours(&entry.rel) {
-                stats.not_ours += 1;
-                continue;
-            }
             let last = self.tracker.get(&entry.rel).copied();
             if tree::action(last.as_ref(), &entry.meta) == Action::Skip {
+                continue;
+            }
+            if !self.admit(entry, last.as_ref()) {
+                stats.refused += 1;
                 continue;
             }
             match self.sync_file(entry, last.as_ref()).await {
@@ -312,11 +377,13 @@ impl<'a> Logcopy<'a> {
             uploaded_bytes = stats.uploaded_bytes,
             same_content = stats.same_content,
             unreadable = stats.unreadable,
-            not_ours = stats.not_ours,
+            refused = stats.refused,
+            log_bytes = self.budget.report().log_bytes,
             tracked = self.tracker.len(),
             elapsed_ms = started.elapsed().as_millis() as u64,
             "logcopy pass"
         );
+        self.report().await?;
         Ok(stats)
     }
 
@@ -353,7 +420,7 @@ impl<'a> Logcopy<'a> {
                 return Ok(None);
             }
             let len = bytes.len() as u64;
-            self.s3.put(&key, bytes).await?;
+            self.s3.put(&key, bytes, self.tag(&entry.rel)).await?;
             self.tracker.record(&entry.rel, meta, hash);
             debug!(%key, bytes = len, "uploaded");
             return Ok(Some(len));
@@ -368,7 +435,7 @@ impl<'a> Logcopy<'a> {
         }
         let hash = self
             .s3
-            .put_multipart(&key, &mut file, meta.size, &path)
+            .put_multipart(&key, &mut file, meta.size, (&path, self.tag(&entry.rel)))
             .await?;
         self.tracker.record(&entry.rel, meta, hash);
         debug!(%key, bytes = meta.size, "uploaded in parts");
@@ -406,7 +473,11 @@ impl<'a> Logcopy<'a> {
                     warn!(error = %e, "cannot write the done marker locally");
                 }
                 self.s3
-                    .put(&self.key(&format!("{STATUS_DIR}/{marker}")), Vec::new())
+                    .put(
+                        &self.key(&format!("{STATUS_DIR}/{marker}")),
+                        Vec::new(),
+                        None,
+                    )
                     .await
             };
             let result = tokio::select! {

@@ -139,13 +139,14 @@ impl S3 {
         }
     }
 
-    /// Writes an object from memory.
-    pub async fn put(&self, key: &str, bytes: Vec<u8>) -> Result<(), S3Error> {
+    /// Writes an object from memory, with this tag (`key=value`) when one is given.
+    pub async fn put(&self, key: &str, bytes: Vec<u8>, tag: Option<&str>) -> Result<(), S3Error> {
         let len = bytes.len() as i64;
         self.client
             .put_object()
             .bucket(&self.bucket)
             .key(key)
+            .set_tagging(tag.map(str::to_owned))
             .content_length(len)
             .body(ByteStream::from(bytes))
             .send()
@@ -196,6 +197,34 @@ impl S3 {
         }
     }
 
+    /// A small object's bytes, at most `limit` of them (`None`: no such object, or larger).
+    pub async fn get_small(&self, key: &str, limit: usize) -> Result<Option<Vec<u8>>, S3Error> {
+        let resp = match self
+            .client
+            .get_object()
+            .bucket(&self.bucket)
+            .key(key)
+            .send()
+            .await
+        {
+            Ok(resp) => resp,
+            Err(e) if e.as_service_error().is_some_and(|s| s.is_no_such_key()) => return Ok(None),
+            Err(e) => return Err(s3_err("GetObject", key)(e)),
+        };
+        if resp.content_length().unwrap_or(0) > limit as i64 {
+            return Ok(None);
+        }
+        let mut body = resp.body;
+        let mut bytes = Vec::new();
+        while let Some(chunk) = body.next().await {
+            bytes.extend_from_slice(&chunk.map_err(s3_err("GetObject", key))?);
+            if bytes.len() > limit {
+                return Ok(None);
+            }
+        }
+        Ok(Some(bytes))
+    }
+
     /// Streams an object into `dest` (through a temporary file beside it, then renamed).
     /// Returns `false` when there is no such object.
     pub async fn download(&self, key: &str, dest: &Path) -> Result<bool, UploadError> {
@@ -241,13 +270,14 @@ impl S3 {
         key: &str,
         file: &mut std::fs::File,
         size: u64,
-        path: &str,
+        (path, tag): (&str, Option<&str>),
     ) -> Result<[u8; 32], UploadError> {
         let upload = self
             .client
             .create_multipart_upload()
             .bucket(&self.bucket)
             .key(key)
+            .set_tagging(tag.map(str::to_owned))
             .send()
             .await
             .map_err(s3_err("CreateMultipartUpload", key))?;

@@ -171,9 +171,27 @@ fn another_pairs_results_and_markers_and_unnamed_files_never_leave_the_pod() {
     write(vols.status().as_path(), "simulation.cancel", b"");
     write(vols.status().as_path(), "flood.txt", b"1");
     write(vols.root(), "agent_results.json", b"{}");
+    // Marker names beyond any attempt a pod reaches, a "marker" with a body, and a file at
+    // the top of the logs volume: none is the protocol's or the evaluation's logs.
+    for n in 16..40 {
+        write(
+            vols.status().as_path(),
+            &format!("simulator-1.start{n}"),
+            b"",
+        );
+    }
+    write(vols.status().as_path(), "simulator-1.start0", &[7; 4096]);
+    write(vols.root(), "logs/fill.bin", &[0; 64 * 1024]);
+    // The evaluation's logs, each tagged for the bucket's rules.
+    write(vols.root(), "logs/agent/agent1/agent.log", b"route 0\n");
+    write(
+        vols.root(),
+        "logs/agent/agent1/recorder/RouteScenario_0.log",
+        b"CARLA",
+    );
     let mut lc = logcopy(&vols, &moto, None, &[]);
     let first = lc.wait_event("logcopy pass", LIMIT, |_| true);
-    assert_eq!(first["fields"]["not_ours"], 5, "{}", lc.log());
+    assert_eq!(first["fields"]["refused"], 5 + 24 + 2, "{}", lc.log());
     // Rewritten many times between passes: still nothing of it leaves.
     for n in 0..20 {
         write(
@@ -197,9 +215,31 @@ fn another_pairs_results_and_markers_and_unnamed_files_never_leave_the_pod() {
         "containers-status/simulation.cancel",
         "containers-status/flood.txt",
         "agent_results.json",
+        "containers-status/simulator-1.start16",
+        "containers-status/simulator-1.start0",
+        "logs/fill.bin",
     ] {
         assert!(moto.get(&key(foreign)).is_none(), "{foreign} was uploaded");
     }
+    // Its own start and, the cancel it saw being the end of its Job, its done marker.
+    let markers = moto.keys(&key("containers-status/"));
+    let expected =
+        ["logcopy-0.done", "simulator-1.start1"].map(|m| key(&format!("containers-status/{m}")));
+    assert_eq!(markers, expected);
+    // What logcopy refused, each name once however often it was rewritten, and the logs'
+    // bytes it stored.
+    let report = moto.get(&key("logs/logcopy/job0.json")).unwrap();
+    let report: serde_json::Value = serde_json::from_slice(&report).unwrap();
+    assert_eq!(report["refused_files"], 5 + 24 + 2, "{report}");
+    assert_eq!(report["log_bytes"], 8 + 5, "{report}");
+    assert_eq!(
+        moto.tags(&key("logs/agent/agent1/agent.log")),
+        ["retention=log"]
+    );
+    assert_eq!(
+        moto.tags(&key("logs/agent/agent1/recorder/RouteScenario_0.log")),
+        ["retention=recording"]
+    );
 }
 
 #[test]
@@ -252,29 +292,29 @@ fn an_s3_outage_loses_nothing() {
     let moto = Moto::start();
     let proxy = Proxy::start(moto.server.addr());
     let vols = Volumes::new();
-    write(vols.root(), "logs/a.log", b"a1");
+    write(vols.root(), "logs/agent/agent1/a.log", b"a1");
     let mut lc = logcopy(&vols, &moto, Some(&proxy.endpoint()), &[]);
     lc.wait_event("logcopy pass", LIMIT, |p| p["fields"]["uploaded"] == 1);
 
     proxy.set_up(false);
-    write(vols.root(), "logs/a.log", b"a1 a2");
-    write(vols.root(), "logs/b.log", b"b1");
+    write(vols.root(), "logs/agent/agent1/a.log", b"a1 a2");
+    write(vols.root(), "logs/agent/agent1/b.log", b"b1");
     let big: Vec<u8> = (0..10 * 1024 * 1024u32).map(|i| (i % 241) as u8).collect();
-    write(vols.root(), "logs/c.bin", &big);
+    write(vols.root(), "logs/agent/agent1/c.bin", &big);
     lc.wait_event("S3 is failing; the next pass retries", LIMIT, |e| {
         e["fields"]["failures"].as_u64() >= Some(2)
     });
     assert_eq!(
-        moto.get(&key("logs/a.log")).unwrap(),
+        moto.get(&key("logs/agent/agent1/a.log")).unwrap(),
         b"a1",
         "nothing got through"
     );
 
     proxy.set_up(true);
     wait_until("everything uploaded", LIMIT, || {
-        moto.get(&key("logs/a.log")).as_deref() == Some(&b"a1 a2"[..])
-            && moto.get(&key("logs/b.log")).as_deref() == Some(&b"b1"[..])
-            && moto.get(&key("logs/c.bin")).as_deref() == Some(&big[..])
+        moto.get(&key("logs/agent/agent1/a.log")).as_deref() == Some(&b"a1 a2"[..])
+            && moto.get(&key("logs/agent/agent1/b.log")).as_deref() == Some(&b"b1"[..])
+            && moto.get(&key("logs/agent/agent1/c.bin")).as_deref() == Some(&big[..])
     });
     lc.signal(Signal::SIGTERM);
     write(vols.status().as_path(), "simulator-1.crash0", b"");

@@ -376,7 +376,8 @@ impl SubmissionsTable {
 
 /// The usage attributes (`SET` clauses and their values): GPU-seconds in all, on Spot, run
 /// again after a reclaim, the evaluation's seconds lost to reclaims, the estimate in dollars
-/// when every second had a price, and the orchestration's own when counted.
+/// when every second had a price, the logs' bytes stored and the uploads refused when read,
+/// and the orchestration's own when counted.
 fn usage_update(usage: &Totals) -> (Vec<String>, HashMap<String, AttributeValue>) {
     let mut set = vec![
         "gpu_seconds = :gpu".to_string(),
@@ -393,6 +394,11 @@ fn usage_update(usage: &Totals) -> (Vec<String>, HashMap<String, AttributeValue>
     if let Some(dollars) = usage.dollars {
         set.push("cost_usd = :cost".into());
         values.insert(":cost".into(), n(format!("{dollars:.2}")));
+    }
+    if let Some(stored) = usage.stored {
+        set.push("log_bytes_stored = :stored, uploads_refused = :refused".into());
+        values.insert(":stored".into(), n(stored.log_bytes));
+        values.insert(":refused".into(), n(stored.refused_files));
     }
     if let Some(orchestration) = usage.orchestration {
         set.push("orchestration_usd = :orchestration, state_transitions = :transitions".into());
@@ -468,6 +474,9 @@ fn final_update(record: &FinalRecord) -> Update {
             "orchestration_usd",
             "state_transitions",
         ]),
+    }
+    if record.usage.is_none_or(|u| u.stored.is_none()) {
+        remove.extend(["log_bytes_stored", "uploads_refused"]);
     }
     if record.usage.is_none_or(|u| u.dollars.is_none()) {
         remove.push("cost_usd");

@@ -136,6 +136,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
             mb_ms: 100 * 512 * 1000,
             dynamo_requests: 1000,
         }),
+        stored: None,
     };
     table
         .mark_running(
@@ -183,6 +184,11 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         recordings: Some((4, 5)),
         usage: Some(lb_domain::cost::Totals {
             dollars: None,
+            stored: Some(lb_domain::uploads::UploadReport {
+                log_bytes: 3 << 30,
+                refused_files: 2,
+                refused_bytes: 200 << 20,
+            }),
             ..usage
         }),
     };
@@ -208,6 +214,12 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(item["recordings_expected"], AttributeValue::N("5".into()));
     assert_eq!(item["gpu_seconds"], AttributeValue::N("7200".into()));
     assert!(!item.contains_key("cost_usd"), "no price: no estimate");
+    // What the logs keep in S3, and what logcopy refused to upload.
+    assert_eq!(
+        item["log_bytes_stored"],
+        AttributeValue::N("3221225472".into())
+    );
+    assert_eq!(item["uploads_refused"], AttributeValue::N("2".into()));
     // Now a resume may claim it, and its finish clears the old error and stores every metric.
     assert_eq!(
         table.claim(&record("exec-4", true)).await.unwrap(),

@@ -245,6 +245,8 @@ pub struct Totals {
     pub dollars: Option<f64>,
     /// What the orchestration did for it, when counted.
     pub orchestration: Option<Orchestration>,
+    /// What its pods' logcopy stored in S3 and refused, when read (Finalize's).
+    pub stored: Option<crate::uploads::UploadReport>,
 }
 
 /// Seconds by which a pod's start (the kubelet's clock) may follow the round that listed it

@@ -27,3 +27,4 @@ pub mod status;
 pub mod submission;
 #[cfg(feature = "test-util")]
 pub mod testutil;
+pub mod uploads;

@@ -157,7 +157,7 @@ pub fn wakes_submission(key: &str) -> Option<u64> {
 /// Whether the logcopy of the Job `job` running `pairs` uploads the file at `rel` (relative to
 /// the logs volume): under `agent/` only these pairs' results files, under `containers-status/`
 /// only the markers of these pairs and of this Job's logcopy (never the cancel marker: the
-/// Monitor writes it), the logs under `logs/`, and nothing else. The volume is written by the
+/// Monitor writes it), under `logs/` only these pairs' logs ([`log_kind`]), and nothing else. The volume is written by the
 /// participant's code: another pair's results or markers, or files the protocol does not name,
 /// would otherwise overwrite another pair's objects or wake the execution for nothing.
 pub fn uploads(rel: &str, pairs: &[PairId], job: u32) -> bool {
@@ -165,9 +165,50 @@ pub fn uploads(rel: &str, pairs: &[PairId], job: u32) -> bool {
     match dir {
         AGENT_DIR => pair_of_results_name(name).is_some_and(|pair| pairs.contains(&pair)),
         STATUS_DIR => Marker::parse(name).is_some_and(|m| m.belongs_to_job(pairs, job)),
-        LOGS_DIR => !name.is_empty(),
+        LOGS_DIR => log_kind(name, pairs).is_some(),
         _ => false,
     }
+}
+
+/// What a file under `logs/` is, and so how long it is kept.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LogKind {
+    /// A CARLA recording of a route (`agent/agent<ID>/recorder/...`): kept as long as the
+    /// leaderboard needs it.
+    Recording,
+    /// The evaluation's logs: CARLA's output, the evaluator's output and debug files.
+    Log,
+}
+
+impl LogKind {
+    /// The S3 object tag the buckets' lifecycle rules select by (`infra/app.yaml`).
+    pub fn tag(self) -> &'static str {
+        match self {
+            LogKind::Recording => "retention=recording",
+            LogKind::Log => "retention=log",
+        }
+    }
+}
+
+/// Whether a path relative to the logs directory is one of these pairs' logs, and which kind:
+/// `simulator/simulator<ID>.log` or anything under `agent/agent<ID>/` (the evaluator's
+/// output, its debug checkpoint, the recorder's files). Anything else under `logs/` is not the
+/// evaluation's and is not uploaded.
+pub fn log_kind(rel: &str, pairs: &[PairId]) -> Option<LogKind> {
+    pairs.iter().find_map(|&pair| {
+        if rel == simulator_log(pair) {
+            return Some(LogKind::Log);
+        }
+        let dir = agent_logs_dir(pair);
+        let rest = rel.strip_prefix(dir.as_str())?.strip_prefix('/')?;
+        if rest.is_empty() || rest.ends_with('/') {
+            return None;
+        }
+        Some(match rest.starts_with("recorder/") {
+            true => LogKind::Recording,
+            false => LogKind::Log,
+        })
+    })
 }
 
 /// `simulator/simulator<ID>.log`: CARLA's output, relative to the logs directory.
@@ -294,8 +335,20 @@ fn canonical_number(text: &str) -> Option<u32> {
     text.parse().ok()
 }
 
+/// The highest attempt a marker may name. Every pod of a pair starts from a status directory
+/// its init cleared, and each of its containers runs once (`restartPolicy: Never`): a pod's
+/// attempts are 0, or 1 when a container catches up on its partner's crash
+/// ([`start_attempt`]). The bound keeps every pair's marker names a small set (at most
+/// [`MARKERS_PER_PAIR`]), so a pod writing new names cannot make an S3 object, an event, a
+/// wake or a write for each.
+pub const MAX_CRASH_ID: u32 = 15;
+
+/// The most marker names one pair can have: a start and two crashes per attempt, two dones.
+pub const MARKERS_PER_PAIR: u32 = 3 * (MAX_CRASH_ID + 1) + 2;
+
 impl Marker {
-    /// Parses a file name; anything that is not exactly a marker name is `None`.
+    /// Parses a file name; anything that is not exactly a marker name (or names an attempt
+    /// above [`MAX_CRASH_ID`]) is `None`.
     pub fn parse(name: &str) -> Option<Marker> {
         if name == CANCEL_MARKER {
             return Some(Marker::Cancel);
@@ -315,7 +368,7 @@ impl Marker {
             return Some(Marker::Done { role, pair: number });
         }
         if let Some(id) = event.strip_prefix("crash") {
-            let crash_id = canonical_number(id)?;
+            let crash_id = canonical_number(id).filter(|&n| n <= MAX_CRASH_ID)?;
             return Some(Marker::Crash {
                 role,
                 pair: number,
@@ -323,7 +376,7 @@ impl Marker {
             });
         }
         if let (Role::Simulator, Some(id)) = (role, event.strip_prefix("start")) {
-            let crash_id = canonical_number(id)?;
+            let crash_id = canonical_number(id).filter(|&n| n <= MAX_CRASH_ID)?;
             return Some(Marker::Start {
                 pair: number,
                 crash_id,
@@ -681,6 +734,17 @@ mod tests {
             ("containers-status/logcopy-1.done", true),
             ("logs/simulator/simulator3.log", true),
             ("logs/agent/agent3/recorder/route0.log", true),
+            ("logs/agent/agent4/agent.log", true),
+            // Not the evaluation's logs, or another pair's.
+            ("logs/fill.bin", false),
+            ("logs/simulator/simulator1.log", false),
+            ("logs/agent/agent1/agent.log", false),
+            ("logs/agent/agent3", false),
+            ("logs/other/agent3/x", false),
+            // Attempts beyond any a pod can reach: a flood of new names.
+            ("containers-status/simulator-4.start16", false),
+            ("containers-status/agent-3.crash4294967295", false),
+            ("containers-status/simulator-3.crash15", true),
             // Another pair's (another pod's) results and markers: never over its objects.
             ("agent/partial_agent_results1.json", false),
             ("containers-status/agent-1.done", false),

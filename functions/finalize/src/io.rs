@@ -17,6 +17,7 @@ use lb_domain::protocol::{self, LOGS_DIR};
 use lb_domain::settings::Target;
 use lb_domain::status::RecordStatus;
 use lb_domain::submission::SubmissionStatus;
+use lb_domain::uploads::{self, UploadReport};
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, Meter};
 use lb_pipeline::payload::{RunState, SubmissionInfo};
@@ -236,7 +237,13 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             progress: snapshot.map_or((0, 0), |s| s.progress),
             error,
             recordings: recordings.map(|r| (r.found, r.expected)),
-            usage: self.run.map(|run| self.usage(run)),
+            usage: match self.run {
+                Some(run) => Some(Totals {
+                    stored: self.stored(run.jobs).await,
+                    ..self.usage(run)
+                }),
+                None => None,
+            },
         };
         let sub = self.submission;
         let ours = (self.table)
@@ -264,6 +271,28 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             orchestration: Some(run.monitor.orchestration + this),
             ..ledger.summary(&self.deps.clients.settings.prices)
         }
+    }
+
+    /// What the Jobs' logcopy stored and refused, from their reports (`None` when none was
+    /// read: a report that cannot be read is left out, and said).
+    async fn stored(&self, jobs: u32) -> Option<UploadReport> {
+        let mut total: Option<UploadReport> = None;
+        for job in 0..jobs {
+            let key = uploads::report_key(job);
+            match self
+                .store
+                .get_tail(&key, uploads::MAX_REPORT_BYTES as u64)
+                .await
+            {
+                Ok(Some(bytes)) => match UploadReport::parse(&bytes) {
+                    Some(report) => total = Some(total.unwrap_or_default().plus(report)),
+                    None => warn!(%key, "the upload report is not one"),
+                },
+                Ok(None) => {}
+                Err(e) => warn!(%key, error = %e, "the upload report could not be read"),
+            }
+        }
+        total
     }
 
     /// A finished evaluation's duration, from its first pair's start, joins its track's pace

@@ -87,6 +87,8 @@ pub struct LeftBehind {
     pub recordings: Option<(u64, u64)>,
     /// Its record's GPU usage: `gpu_seconds`, `spot`, `run_again`, `cost_usd`.
     pub usage: Option<Value>,
+    /// Objects under its `containers-status/` in S3: the markers logcopy let through.
+    pub status_objects: Option<usize>,
 }
 
 /// `agent_results.json` in numbers.

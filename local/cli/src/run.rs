@@ -1071,6 +1071,12 @@ async fn left_behind(
             .ok()
             .map(|(jobs, _)| jobs.len());
     }
+    let store = lb_aws::s3::SubmissionStore::new(
+        lb_aws::s3_client(sdk),
+        settings_bucket(settings, leaderboard),
+        submission,
+    );
+    left.status_objects = store.markers().await.ok().map(|m| m.len());
     let dynamo = aws_sdk_dynamodb::Client::new(sdk);
     let queue =
         lb_aws::admission::AdmissionTable::new(dynamo.clone(), local_stack::stack::ADMISSION_TABLE);
@@ -1099,6 +1105,8 @@ async fn left_behind(
                     "cost_usd": amount("cost_usd"),
                     "orchestration_usd": amount("orchestration_usd"),
                     "state_transitions": number("state_transitions"),
+                    "log_bytes_stored": number("log_bytes_stored"),
+                    "uploads_refused": number("uploads_refused"),
                 })
             });
         }

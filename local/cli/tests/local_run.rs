@@ -290,6 +290,22 @@ fn a_wake_flood_costs_rounds_at_the_least_interval_and_continues_under_its_budge
     let longest = report["history_events"].as_u64().unwrap();
     assert!(longest < budget, "{longest} events: {report}");
     assert_rounds_bounded(&report, 0.05);
+    // Each agent also wrote a new marker name every tick and a 200 MiB file at the top of
+    // the logs volume: no marker beyond the protocol's bounded set reached S3 (so none woke
+    // the execution or was written down), the large file stayed in the pod, and logcopy
+    // counted what it refused once per name.
+    let left = &report["left_behind"];
+    let pairs = 4;
+    let markers = left["status_objects"].as_u64().unwrap();
+    let bound = u64::from(lb_domain::protocol::MARKERS_PER_PAIR) * pairs + pairs;
+    assert!(markers <= bound, "{markers} markers: {report}");
+    let usage = &left["usage"];
+    assert!(
+        usage["log_bytes_stored"].as_u64().unwrap() < 1 << 20,
+        "{report}"
+    );
+    let refused = usage["uploads_refused"].as_u64().unwrap();
+    assert!(refused > 2 * pairs, "{report}");
 
     // At production pacing (nothing scaled), with the deployment's budget: FINISHED in one
     // execution, a round per least interval at most while the wake function sees dozens of

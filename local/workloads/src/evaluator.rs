@@ -169,7 +169,7 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
         tokio::spawn(crate::faults::flood(
             faults.status_dir.clone(),
             run.cfg.args.checkpoint.clone(),
-            hz,
+            (hz, faults.pair_id),
         ));
     }
     for cfg in plan.iter().skip(start) {

@@ -389,20 +389,38 @@ impl EvaluatorFaults {
     }
 }
 
+/// Where the flood's large file goes: the top of the shared logs volume, as a participant's
+/// code at `/tmp/logs/fill.bin` can.
+const FILL_FILE: &str = "/tmp/logs/fill.bin";
+
+/// Its size: the reproduction wrote 200 MiB.
+const FILL_BYTES: u64 = 200 << 20;
+
 /// Rewrites `status_dir/flood.txt` and the results file `checkpoint` `hz` times a second,
-/// forever (the flood fault). The results keep their records: only a trailing newline comes
-/// and goes, so every rewrite is new content for logcopy. Each rewrite is a read and an atomic
-/// replace with no await between them, so on the evaluator's single thread it never loses one
-/// of the evaluator's own writes.
-pub async fn flood(status_dir: PathBuf, checkpoint: PathBuf, hz: u32) {
+/// forever (the flood fault), and writes a new marker name each time (an attempt beyond any a
+/// pod reaches, `simulator-<pair>.start<16 + n>`); first, a 200 MiB file on the logs volume
+/// (sparse: it takes no disk, its size is what matters). The results keep their records:
+/// only a trailing newline comes and goes, so every rewrite is new content for logcopy. Each
+/// rewrite is a read and an atomic replace with no await between them, so on the evaluator's
+/// single thread it never loses one of the evaluator's own writes.
+pub async fn flood(status_dir: PathBuf, checkpoint: PathBuf, (hz, pair): (u32, Option<u32>)) {
     let period = Duration::from_secs_f64(1.0 / f64::from(hz.max(1)));
     let junk = status_dir.join("flood.txt");
+    if let Err(error) = std::fs::File::create(FILL_FILE).and_then(|f| f.set_len(FILL_BYTES)) {
+        tracing::debug!(%error, "flood: cannot write the large file");
+    }
     let mut count = 0u64;
     loop {
         tokio::time::sleep(period).await;
         count += 1;
         if let Err(error) = std::fs::write(&junk, format!("{count}\n")) {
             tracing::debug!(%error, "flood: cannot write the status file");
+        }
+        if let Some(pair) = pair {
+            let name = format!("simulator-{pair}.start{}", 16 + count);
+            if let Err(error) = std::fs::write(status_dir.join(name), b"") {
+                tracing::debug!(%error, "flood: cannot write a marker name");
+            }
         }
         if let Ok(text) = std::fs::read_to_string(&checkpoint) {
             let body = text.trim_end_matches('\n');

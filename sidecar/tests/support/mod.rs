@@ -428,6 +428,7 @@ impl Moto {
             ["create-bucket"] => ("PUT", format!("/{}", self.bucket)),
             ["put", key] => ("PUT", format!("/{}/{key}", self.bucket)),
             ["get", key] => ("GET", format!("/{}/{key}", self.bucket)),
+            ["tagging", key] => ("GET", format!("/{}/{key}?tagging", self.bucket)),
             ["delete", key] => ("DELETE", format!("/{}/{key}", self.bucket)),
             ["list", prefix] => (
                 "GET",
@@ -449,6 +450,24 @@ impl Moto {
             (404, _) => None,
             (status, body) => panic!("get {key}: {status} {}", String::from_utf8_lossy(&body)),
         }
+    }
+
+    /// The object's tags as `key=value`, in the order S3 lists them.
+    pub fn tags(&self, key: &str) -> Vec<String> {
+        let (status, body) = self.cli(&["tagging", key], &[]);
+        assert_eq!(status, 200, "tagging {key}");
+        let xml = String::from_utf8_lossy(&body);
+        let field = |tag: &str, from: &str| -> String {
+            let open = format!("<{tag}>");
+            from.split_once(&open)
+                .and_then(|(_, rest)| rest.split_once(&format!("</{tag}>")))
+                .map(|(v, _)| v.to_owned())
+                .unwrap_or_default()
+        };
+        xml.split("<Tag>")
+            .skip(1)
+            .map(|t| format!("{}={}", field("Key", t), field("Value", t)))
+            .collect()
     }
 
     pub fn exists(&self, key: &str) -> bool {

@@ -5,6 +5,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use lb_domain::protocol::LogKind;
 use lb_infra::template::{Template, APP, CLUSTER};
 use local_stack::moto::MotoServer;
 use serde_json::Value;
@@ -223,6 +224,32 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
             "true",
             "{bucket}"
         );
+        // What is kept and for how long, by the tags logcopy gives the logs: the bulk logs
+        // expire, recordings (and untagged results and markers) stay.
+        let lifecycle = APP
+            .property(&bucket, &["LifecycleConfiguration", "Rules"])
+            .unwrap();
+        let by_tag = |tag: &str| {
+            let (key, value) = tag.split_once('=').unwrap();
+            lifecycle
+                .as_sequence()
+                .unwrap()
+                .iter()
+                .find(|r| {
+                    r["TagFilters"][0]["Key"].as_str() == Some(key)
+                        && r["TagFilters"][0]["Value"].as_str() == Some(value)
+                })
+                .unwrap_or_else(|| panic!("{bucket}: no rule for {tag}"))
+        };
+        let logs = by_tag(LogKind::Log.tag());
+        assert_eq!(APP.eval(&logs["ExpirationInDays"]).unwrap(), "180");
+        let recordings = by_tag(LogKind::Recording.tag());
+        assert!(recordings.get("ExpirationInDays").is_none(), "{bucket}");
+        assert!(lifecycle
+            .as_sequence()
+            .unwrap()
+            .iter()
+            .all(|r| r.get("ExpirationInDays").is_none() || r.get("TagFilters").is_some()));
     }
     let rules = report["rules"].as_array().unwrap();
     assert_eq!(rules.len(), 4, "{rules:?}");

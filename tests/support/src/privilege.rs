@@ -150,6 +150,15 @@ pub fn needed_actions(symbols: &str) -> BTreeSet<String> {
     if symbols.contains("16aws_sdk_dynamodb5types16_condition_check14ConditionCheck7builder") {
         needed.insert("dynamodb:ConditionCheckItem".into());
     }
+    // An upload that tags its object (`set_tagging` on `PutObject` or
+    // `CreateMultipartUpload`) needs `s3:PutObjectTagging` beside the upload's own action.
+    let tags = [
+        "22PutObjectFluentBuilder11set_tagging",
+        "34CreateMultipartUploadFluentBuilder11set_tagging",
+    ];
+    if tags.iter().any(|t| symbols.contains(t)) {
+        needed.insert("s3:PutObjectTagging".into());
+    }
     needed
 }
 
