@@ -145,6 +145,7 @@ async fn eight_submissions_hammering_evalai_through_one_budget_are_never_throttl
                     participant_team: 1,
                     submitted_image_uri: "example/agent:1".into(),
                     created_by: None,
+                    submission_metadata: None,
                 })
                 .unwrap()
                 .id

@@ -9,6 +9,7 @@
 pub mod budget;
 mod model;
 mod retry;
+pub mod stream;
 
 pub use budget::{Admission, AdmissionFuture, Budget, BudgetPolicy, Priority};
 pub use model::{validate_result, Submission, MAX_TEAM_NAME};
@@ -167,6 +168,14 @@ pub const MAX_METADATA_BYTES: usize = 256 * 1024;
 
 /// The largest response we read from EvalAI (a page of a submissions list is far smaller).
 pub const MAX_RESPONSE_BYTES: usize = 8 * 1024 * 1024;
+
+/// The largest element of a submission list kept: an element is a few hundred bytes of ours
+/// plus what its participant wrote (metadata, a method's description). A larger one is skipped
+/// and logged, and the rest of the list stands.
+pub const MAX_LIST_ELEMENT_BYTES: usize = 256 * 1024;
+
+/// The most a submission list is read to, element by element in constant memory.
+pub const MAX_LIST_BYTES: usize = 512 * 1024 * 1024;
 
 /// What replaces stdout when EvalAI refused even the bounded final update.
 pub const MINIMAL_STDOUT: &str = "The evaluation's output was too large for EvalAI to accept; \
@@ -344,7 +353,10 @@ impl EvalAiClient {
             url.push_str(&format!("&submitted_after={after}"));
         }
         let ask = Ask::new(self.priority, 1);
-        let body = match self.send(Method::GET, &url, None, challenge, ask).await {
+        let body = match self
+            .send_as(Method::GET, &url, None, (challenge, ask), ReadAs::List)
+            .await
+        {
             Err(EvalAiError::NotFound(_)) => {
                 return Err(EvalAiError::Config(format!(
                     "EvalAI has no challenge `{challenge}`"
@@ -597,7 +609,13 @@ impl EvalAiClient {
         let ask = Ask::new(priority, 1);
         loop {
             match self
-                .once(method.clone(), url, Some(&body), at.submission, ask)
+                .once(
+                    method.clone(),
+                    url,
+                    Some(&body),
+                    (at.submission, ask),
+                    ReadAs::Json,
+                )
                 .await
             {
                 Ok(_) => {
@@ -630,9 +648,21 @@ impl EvalAiClient {
         id: u64,
         ask: Ask,
     ) -> Result<Value> {
+        self.send_as(method, url, body, (id, ask), ReadAs::Json)
+            .await
+    }
+
+    async fn send_as(
+        &self,
+        method: Method,
+        url: &str,
+        body: Option<&Value>,
+        (id, ask): (u64, Ask),
+        read: ReadAs,
+    ) -> Result<Value> {
         let mut attempts = Attempts::new(&self.policy);
         loop {
-            match self.once(method.clone(), url, body, id, ask).await {
+            match self.once(method.clone(), url, body, (id, ask), read).await {
                 Ok(value) => return Ok(value),
                 Err(Failure::Final(e)) => return Err(e),
                 Err(Failure::Retry { reason, after }) => attempts.wait(reason, after).await?,
@@ -645,8 +675,8 @@ impl EvalAiClient {
         method: Method,
         url: &str,
         body: Option<&Value>,
-        id: u64,
-        ask: Ask,
+        (id, ask): (u64, Ask),
+        read: ReadAs,
     ) -> Result<Value, Failure> {
         self.admit(ask).await.map_err(Failure::Final)?;
         let mut request = self
@@ -687,6 +717,9 @@ impl EvalAiClient {
             .get(reqwest::header::LOCATION)
             .and_then(|v| v.to_str().ok())
             .map(str::to_owned);
+        if status.is_success() && read == ReadAs::List {
+            return read_list(response).await.map_err(Failure::Final);
+        }
         let text = match read_bounded(response, MAX_RESPONSE_BYTES).await {
             Ok(text) => text,
             Err(e) => return Err(Failure::Final(e)),
@@ -807,6 +840,64 @@ async fn read_bounded(mut response: reqwest::Response, max: usize) -> Result<Str
             Err(_) => return Ok(String::from_utf8_lossy(&body).into_owned()),
         }
     }
+}
+
+/// How a successful response's body is read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ReadAs {
+    /// Whole, up to [`MAX_RESPONSE_BYTES`].
+    Json,
+    /// A list, element by element ([`stream::ListSplitter`]): each element up to
+    /// [`MAX_LIST_ELEMENT_BYTES`] (a larger or malformed one is skipped and logged), the whole
+    /// up to [`MAX_LIST_BYTES`].
+    List,
+}
+
+/// A JSON list's elements, each parsed on its own as it arrives.
+async fn read_list(mut response: reqwest::Response) -> Result<Value> {
+    let mut splitter = stream::ListSplitter::new(MAX_LIST_ELEMENT_BYTES);
+    let (mut pieces, mut items, mut read) = (Vec::new(), Vec::new(), 0usize);
+    loop {
+        let chunk = match response.chunk().await {
+            Ok(Some(chunk)) => chunk,
+            Ok(None) => break,
+            Err(e) => {
+                return Err(EvalAiError::InvalidResponse(format!(
+                    "the list was cut short: {}",
+                    e.without_url()
+                )))
+            }
+        };
+        read += chunk.len();
+        if read > MAX_LIST_BYTES {
+            return Err(EvalAiError::InvalidResponse(format!(
+                "a list over {MAX_LIST_BYTES} bytes"
+            )));
+        }
+        splitter
+            .feed(&chunk, &mut pieces)
+            .map_err(EvalAiError::InvalidResponse)?;
+        for piece in pieces.drain(..) {
+            match piece {
+                stream::Piece::Element(bytes) => match serde_json::from_slice::<Value>(&bytes) {
+                    Ok(item) => items.push(item),
+                    Err(e) => {
+                        warn!(element = items.len(), error = %e, "a list element that is not JSON, skipped")
+                    }
+                },
+                stream::Piece::Oversized { index, bytes } => {
+                    warn!(
+                        element = index,
+                        bytes,
+                        limit = MAX_LIST_ELEMENT_BYTES,
+                        "a list element over the limit, skipped"
+                    );
+                }
+            }
+        }
+    }
+    splitter.finish().map_err(EvalAiError::InvalidResponse)?;
+    Ok(Value::Array(items))
 }
 
 /// Why a single request failed.

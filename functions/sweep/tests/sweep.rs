@@ -22,6 +22,7 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
             participant_team: 1,
             submitted_image_uri: "123456789012.dkr.ecr.us-west-2.amazonaws.com/t:1".into(),
             created_by: None,
+            submission_metadata: None,
         })
         .unwrap()
         .id
@@ -103,4 +104,60 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
     let err = sweep::handle(&deps).await.unwrap_err();
     assert_eq!(err.name(), "SweepIncomplete");
     assert!(err.to_string().contains("challenge 99"), "{err}");
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn another_team_s_huge_cancelled_submissions_do_not_blind_the_sweep() {
+    let (stack, _) = test_support::stack::provisioned().await;
+    let config = local_stack::stack::function_config();
+    let deps = Deps::load(&stack.sdk, &config, RecordingCallbacks::default())
+        .await
+        .unwrap();
+    let fake = stack.fake();
+    let new = |team: u64, metadata: Option<serde_json::Value>| {
+        fake.add_submission(NewSubmission {
+            challenge_phase: 1,
+            participant_team: team,
+            submitted_image_uri: "123456789012.dkr.ecr.us-west-2.amazonaws.com/t:1".into(),
+            created_by: None,
+            submission_metadata: metadata,
+        })
+        .unwrap()
+        .id
+    };
+    // Ours waits; then team 2 makes five submissions of 2.4 MB of metadata each (14 MB of
+    // list, over any whole-body cap) and cancels them, after ours arrived.
+    let ours = new(1, None);
+    let at = deps
+        .evalai
+        .submission(ours)
+        .await
+        .unwrap()
+        .submitted_ms
+        .unwrap()
+        / 1000;
+    let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    update_item(&client, wait_for_change_since("token-ours", ours, 1, 0, at))
+        .await
+        .unwrap();
+    let huge = serde_json::json!({"notes": "x".repeat(2_400_000)});
+    for _ in 0..5 {
+        let id = new(2, Some(huge.clone()));
+        fake.cancel(id).unwrap();
+    }
+    fake.cancel(ours).unwrap();
+    // One read of the list, element by element: the five skipped, ours found and woken.
+    let started = std::time::Instant::now();
+    let sweep = sweep::handle(&deps).await.unwrap();
+    assert_eq!(
+        (sweep.cancelled.clone(), sweep.woken.clone()),
+        (vec![ours], vec![ours])
+    );
+    assert_eq!(deps.callbacks.reported(), ["token-ours"]);
+    assert!(
+        started.elapsed() < std::time::Duration::from_secs(30),
+        "{:?}",
+        started.elapsed()
+    );
 }

@@ -450,6 +450,7 @@ fn submissions(
                             participant_team: team,
                             submitted_image_uri: image.into(),
                             created_by: None,
+                            submission_metadata: None,
                         })
                         .map_err(|e| anyhow::anyhow!("{e}"))?;
                     arrivals.push((new.id, team));

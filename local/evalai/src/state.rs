@@ -150,6 +150,10 @@ pub struct NewSubmission {
     /// Creator (default: the team's first member).
     #[serde(default)]
     pub created_by: Option<u64>,
+    /// What the participant's form sent as `submission_metadata` (any JSON, any size: EvalAI
+    /// bounds neither).
+    #[serde(default)]
+    pub submission_metadata: Option<serde_json::Value>,
 }
 
 /// Why an admin operation was refused.
@@ -720,7 +724,7 @@ impl World {
                 is_baseline: false,
                 is_verified_by_host: false,
                 job_name: Some(Vec::new()),
-                submission_metadata: None,
+                submission_metadata: new.submission_metadata.as_ref().map(PyValue::from_json),
                 files: SubmissionFiles::default(),
             },
         );

@@ -146,6 +146,7 @@ async fn admin_can_add_a_submission_that_the_api_then_serves() {
             participant_team: 1,
             submitted_image_uri: "repo/img:2".to_owned(),
             created_by: Some(2),
+            submission_metadata: None,
         })
         .unwrap();
     assert_eq!(added.id, 4);

@@ -578,6 +578,7 @@ async fn rush(full: bool, mode: Mode) -> f64 {
                 participant_team: team,
                 submitted_image_uri: "example/agent:1".into(),
                 created_by: None,
+                submission_metadata: None,
             })
             .unwrap()
             .id;
