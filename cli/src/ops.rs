@@ -97,6 +97,69 @@ pub struct Release {
     pub yes: bool,
     #[command(flatten)]
     pub deployment: DeploymentArgs,
+    /// Where the execution holding the place is looked up, for advice that fits it.
+    #[command(flatten)]
+    pub machine: crate::executions::StateMachineArgs,
+}
+
+/// Where the execution that holds a place stands, as far as `lbctl` could tell.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Holder {
+    /// Step Functions says it runs.
+    Running(String),
+    /// Step Functions says it ended (`FAILED`, `ABORTED`, ...).
+    Ended(String, String),
+    /// Not looked up (no state machine given) or not found, with why.
+    Unknown(String),
+}
+
+/// What to do about a place whose record is in flight, for the execution's real state.
+pub fn release_advice(id: u64, holder: &Holder) -> String {
+    match holder {
+        Holder::Running(name) => format!(
+            "its execution `{name}` runs and holds this place: `lbctl cancel {id}` ends it, and \
+             the place comes back with its end (--force releases the place anyway, and its team \
+             may then exceed its cap)"
+        ),
+        Holder::Ended(name, status) => format!(
+            "its execution `{name}` ended {status} before its Finalize gave the place back (EvalAI \
+             or the cluster may have been out of reach): the reaper's pass, every 5 minutes, \
+             finalizes it, releases the place and tells EvalAI once it answers; `lbctl release \
+             {id} --force` releases the place now"
+        ),
+        Holder::Unknown(why) => format!(
+            "{why}. If its execution still runs, `lbctl cancel {id}` ends it and the place comes \
+             back with its end; if it ended, the reaper's pass (every 5 minutes) releases the \
+             place, or --force releases it now. --state-machine ARN lets lbctl tell which"
+        ),
+    }
+}
+
+/// Where the execution `name` of `state_machine` stands.
+async fn holder(sdk: &aws_config::SdkConfig, state_machine: Option<&str>, name: &str) -> Holder {
+    let Some(machine) = state_machine else {
+        return Holder::Unknown(format!(
+            "its execution `{name}` was not looked up (no --state-machine)"
+        ));
+    };
+    let Some(arn) = lb_aws::executions::execution_arn(machine, name) else {
+        return Holder::Unknown(format!("no execution ARN from `{machine}`"));
+    };
+    let out = aws_sdk_sfn::Client::new(sdk)
+        .describe_execution()
+        .execution_arn(&arn)
+        .send()
+        .await;
+    match out {
+        Ok(out) => match out.status() {
+            aws_sdk_sfn::types::ExecutionStatus::Running => Holder::Running(name.to_owned()),
+            status => Holder::Ended(name.to_owned(), status.as_str().to_owned()),
+        },
+        Err(e) => Holder::Unknown(format!(
+            "its execution `{name}` could not be read ({})",
+            aws_sdk_sfn::error::DisplayErrorContext(&e)
+        )),
+    }
 }
 
 /// The markers of one submission in one leaderboard's bucket.
@@ -889,9 +952,15 @@ pub async fn release(args: Release) -> Result<u8> {
         .map(|r| format!("{} in `{}`", clean(r.status_word()), r.table))
         .collect();
     if !in_flight.is_empty() && !args.force {
+        let claimed = found.records.iter().find_map(|r| r.text("claimed_by"));
+        let holder = match claimed.filter(|n| !n.is_empty() && *n != "-") {
+            Some(name) => holder(&deployment.sdk, args.machine.arn().ok(), name).await,
+            None => Holder::Unknown("its record names no execution".into()),
+        };
         return Err(CliError::Refused(format!(
-            "submission `{id}` is in flight ({}): its run holds this place; `lbctl cancel {id}` ends it (--force releases the place anyway, and its team may then exceed its cap)",
-            in_flight.join(", ")
+            "submission `{id}` is in flight ({}): {}",
+            in_flight.join(", "),
+            release_advice(id, &holder)
         )));
     }
     for (leaderboard, team) in &held {

@@ -705,11 +705,51 @@ async fn release_gives_back_a_leaked_place_after_its_id_is_typed_back() {
     assert_eq!(holders().await, ["302"]);
     assert_eq!(table.entry("2.0", 301).await.unwrap(), None);
 
-    // A running submission's place is refused without --force; nothing held is not found.
+    // A running submission's place is refused without --force, with advice that fits where
+    // its execution stands: unknown without the state machine, then running, then ended.
     let out = lbctl(&["release", "302", "--yes"], &env, None);
     assert_eq!(out.status.code(), Some(1), "{}", show(&out));
     assert!(
         stderr(&out).contains("is in flight (RUNNING"),
+        "{}",
+        show(&out)
+    );
+    assert!(
+        stderr(&out).contains("If its execution still runs"),
+        "{}",
+        show(&out)
+    );
+    let machine = state_machine(&stack.sdk).await;
+    let sfn = aws_sdk_sfn::Client::new(&stack.sdk);
+    let execution = sfn
+        .start_execution()
+        .state_machine_arn(&machine)
+        .name("exec-302")
+        .input("{}")
+        .send()
+        .await
+        .unwrap()
+        .execution_arn;
+    let claimed = [("claimed_by", AttributeValue::S("exec-302".into()))];
+    put_record(&stack.sdk, TABLE_20, 5, 302, "RUNNING", &claimed).await;
+    env.push(("LB_STATE_MACHINE_ARN", machine.clone()));
+    let out = lbctl(&["release", "302", "--yes"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("execution `exec-302` runs and holds this place: `lbctl cancel 302`"),
+        "{}",
+        show(&out)
+    );
+    sfn.stop_execution()
+        .execution_arn(&execution)
+        .send()
+        .await
+        .unwrap();
+    let out = lbctl(&["release", "302", "--yes"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("execution `exec-302` ended ABORTED")
+            && stderr(&out).contains("reaper's pass"),
         "{}",
         show(&out)
     );
