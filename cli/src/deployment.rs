@@ -456,6 +456,7 @@ const KNOWN_ATTRIBUTES: &[&str] = &[
     "orchestration_usd",
     "state_transitions",
     "log_bytes_stored",
+    "image_digest",
     "uploads_refused",
 ];
 

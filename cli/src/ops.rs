@@ -483,6 +483,7 @@ fn print_record(record: &Record) {
             format!("{} (phase {})", text("track_name"), number("track_id")),
         ),
         ("image", text("submitted_image_uri")),
+        ("runs digest", text("image_digest")),
         ("workers", number("parallelization_workers")),
         (
             "routes",

@@ -147,6 +147,10 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
             ("state_transitions", AttributeValue::N("1180".into())),
             ("log_bytes_stored", AttributeValue::N("3221225472".into())),
             ("uploads_refused", AttributeValue::N("2".into())),
+            (
+                "image_digest",
+                AttributeValue::S(format!("sha256:{}", "d".repeat(64))),
+            ),
         ],
     )
     .await;
@@ -202,6 +206,11 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
     );
     assert!(
         stdout(&out).contains("GPUs         8.00 GPU-hours (6.00 on Spot, 0.25 run again after reclaims), about $5.62; orchestration about $0.0312"),
+        "{}",
+        show(&out)
+    );
+    assert!(
+        stdout(&out).contains(&format!("runs digest  sha256:{}", "d".repeat(64))),
         "{}",
         show(&out)
     );

@@ -253,14 +253,18 @@ impl SubmissionsTable {
         &self,
         team_id: u64,
         submission_id: u64,
-        start_time: &str,
-        results: &str,
+        (start_time, results): (&str, &str),
         progress: (u64, u64),
-        usage: Option<&Totals>,
+        (usage, image): (Option<&Totals>, Option<&str>),
     ) -> Result<()> {
         let update = |first: bool| {
             let mut expression = "SET submission_status = :running, results = :results, routes_done = :done, routes_total = :total".to_string();
-            let (usage_set, usage_values) = usage.map(usage_update).unwrap_or_default();
+            let (mut usage_set, mut usage_values) = usage.map(usage_update).unwrap_or_default();
+            if let Some(image) = image {
+                // The digest every pod of the run is held to (`lb_domain::monitor::hold_image`).
+                usage_set.push("image_digest = :image".into());
+                usage_values.insert(":image".into(), s(image));
+            }
             for set in usage_set {
                 expression.push_str(", ");
                 expression.push_str(&set);

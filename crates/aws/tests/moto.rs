@@ -116,7 +116,13 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     );
     // A resume while the first run is still going: refused too.
     table
-        .mark_running(7, 42, "2026-11-21 05:01:00 UTC", "s3://b/42", (0, 20), None)
+        .mark_running(
+            7,
+            42,
+            ("2026-11-21 05:01:00 UTC", "s3://b/42"),
+            (0, 20),
+            (None, None),
+        )
         .await
         .unwrap();
     let item = table.get(7, 42).await.unwrap().unwrap();
@@ -142,14 +148,17 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         .mark_running(
             7,
             42,
-            "2026-11-21 05:30:00 UTC",
-            "s3://b/42",
+            ("2026-11-21 05:30:00 UTC", "s3://b/42"),
             (4, 20),
-            Some(&usage),
+            (Some(&usage), Some(&format!("sha256:{}", "a".repeat(64)))),
         )
         .await
         .unwrap();
     let item = table.get(7, 42).await.unwrap().unwrap();
+    assert_eq!(
+        item["image_digest"],
+        text(&format!("sha256:{}", "a".repeat(64)))
+    );
     assert_eq!(item["start_time"], text("2026-11-21 05:01:00 UTC"));
     assert_eq!(item["routes_done"], AttributeValue::N("4".into()));
     assert_eq!(item["gpu_seconds"], AttributeValue::N("7200".into()));
@@ -229,7 +238,13 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(item["submission_status"], text("RESUMING"));
     assert_eq!(item["start_time"], text("-"), "the resume starts afresh");
     table
-        .mark_running(7, 42, "2026-11-21 07:00:00 UTC", "s3://b/42", (3, 20), None)
+        .mark_running(
+            7,
+            42,
+            ("2026-11-21 07:00:00 UTC", "s3://b/42"),
+            (3, 20),
+            (None, None),
+        )
         .await
         .unwrap();
     let metrics: Vec<(&'static str, Option<String>)> = lb_domain::results::METRICS

@@ -297,6 +297,7 @@ fn container_view(spec: &Container, status: Option<&ContainerStatus>, init: bool
             ready: false,
             restart_count: 0,
             last_exit: None,
+            digest: None,
         };
     };
     let state = match &status.state {
@@ -330,7 +331,17 @@ fn container_view(spec: &Container, status: Option<&ContainerStatus>, init: bool
             .as_ref()
             .and_then(|s| s.terminated.as_ref())
             .map(exit),
+        digest: digest(&status.image_id),
     }
+}
+
+/// The `sha256:...` of a kubelet's `imageID` (`repo@sha256:...`, or a runtime's own prefix
+/// before it); `None` while it has none.
+fn digest(image_id: &str) -> Option<String> {
+    let at = image_id.rfind("sha256:")?;
+    let digest = &image_id[at..];
+    let hex = &digest["sha256:".len()..];
+    (hex.len() == 64 && hex.bytes().all(|b| b.is_ascii_hexdigit())).then(|| digest.to_owned())
 }
 
 #[cfg(test)]

@@ -204,6 +204,9 @@ pub struct ContainerView {
     pub restart_count: i32,
     /// How its previous run ended.
     pub last_exit: Option<Exit>,
+    /// The digest of the image it runs (`sha256:...`), as the kubelet reports it once pulled.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub digest: Option<String>,
 }
 
 /// A container's current state.
@@ -800,6 +803,7 @@ mod tests {
             ready: false,
             restart_count: 0,
             last_exit: None,
+            digest: None,
         }
     }
 

@@ -102,6 +102,33 @@ pub fn spent_pairs(jobs: &[JobView], usage: &Ledger) -> BTreeMap<String, String>
         .collect()
 }
 
+/// Holds every pod's participant image (its `agent-*` containers') to the first digest seen:
+/// records it in `first` when none is, and says why the run ends when a pod ran another. The
+/// tag EvalAI gave can be pushed again while the evaluation runs, and a replacement pod (after
+/// a crash or a reclaim) or a pair on a new node would pull the new code.
+pub fn hold_image(first: &mut Option<String>, jobs: &[JobView]) -> Option<String> {
+    let mut pods: Vec<&crate::cluster::PodView> = jobs.iter().flat_map(|j| &j.pods).collect();
+    pods.sort_by_key(|p| p.start_time);
+    let mut seen = pods
+        .iter()
+        .flat_map(|p| &p.containers)
+        .filter(|c| c.name.starts_with("agent-"))
+        .filter_map(|c| Some((c.digest.as_deref()?, c.image.as_str())));
+    if first.is_none() {
+        *first = seen.next().map(|(digest, _)| digest.to_owned());
+    }
+    let held = first.as_deref()?;
+    let (other, image) = seen.find(|(digest, _)| *digest != held)?;
+    let short = |d: &str| d.chars().take(19).collect::<String>();
+    Some(format!(
+        "the evaluation stopped: your image `{image}` was pushed again while it ran (its pods \
+         started with {}..., a later one ran {}...). Every pair must run the same code: submit \
+         again, with a new tag for new code",
+        short(held),
+        short(other)
+    ))
+}
+
 /// Why EvalAI's status is read this round, if it is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StatusRead {
@@ -188,6 +215,57 @@ mod tests {
             "the evaluation ran longer than the 72 hours allowed (not counting the 50 minutes \
              it lost to reclaimed GPU nodes)"
         );
+    }
+
+    #[test]
+    fn every_pod_runs_the_image_the_first_one_ran() {
+        let digest = |c: char| format!("sha256:{}", c.to_string().repeat(64));
+        let pod = |name: &str, start: i64, agent: Option<String>| -> crate::cluster::PodView {
+            serde_json::from_value(serde_json::json!({
+                "name": name, "job": "lb-7-0", "phase": "Running", "reason": null,
+                "message": null, "node": "n", "terminating": false, "unschedulable": null,
+                "start_time": jiff::Timestamp::from_second(start).unwrap(),
+                "containers": [
+                    {"name": "simulator-1", "image": "carla:0.9.15", "init": false,
+                     "state": {"state": "NotCreated"}, "ready": true, "restart_count": 0,
+                     "last_exit": null, "digest": digest('c')},
+                    {"name": "agent-1", "image": "team/agent:v1", "init": false,
+                     "state": {"state": "NotCreated"}, "ready": true, "restart_count": 0,
+                     "last_exit": null, "digest": agent},
+                ],
+            }))
+            .unwrap()
+        };
+        let jobs = |pods: Vec<crate::cluster::PodView>| {
+            let mut job = crate::testutil::job("lb-7-0", JobState::Running, None);
+            job.pods = pods;
+            vec![job]
+        };
+        // Not pulled yet: nothing held. The first digest seen is held.
+        let mut held = None;
+        assert_eq!(hold_image(&mut held, &jobs(vec![pod("a", 10, None)])), None);
+        assert_eq!(held, None);
+        let first = jobs(vec![pod("a", 10, Some(digest('a')))]);
+        assert_eq!(hold_image(&mut held, &first), None);
+        assert_eq!(held, Some(digest('a')));
+        // A replacement pod on the same image: fine; on an image pushed again under the tag:
+        // the run ends, naming both.
+        let same = jobs(vec![
+            pod("a", 10, Some(digest('a'))),
+            pod("b", 20, Some(digest('a'))),
+        ]);
+        assert_eq!(hold_image(&mut held, &same), None);
+        let pushed = jobs(vec![pod("b", 20, Some(digest('b')))]);
+        let reason = hold_image(&mut held, &pushed).unwrap();
+        assert!(
+            reason.contains("`team/agent:v1` was pushed again"),
+            "{reason}"
+        );
+        assert!(
+            reason.contains("sha256:aaaaaaaaaaaa...") && reason.contains("sha256:bbbbbbbbbbbb..."),
+            "{reason}"
+        );
+        assert_eq!(held, Some(digest('a')), "the first stays held");
     }
 
     #[test]

@@ -101,6 +101,8 @@ pub enum Step {
         progress: (u64, u64),
         /// The GPUs and orchestration so far.
         usage: Totals,
+        /// The participant image's digest every pod runs, once one was pulled.
+        image: Option<String>,
     },
     /// Whether every Job's logcopy is done ([`Answer::Ending`]).
     CheckEnding,
@@ -673,6 +675,10 @@ impl Round {
         let Some(seen) = &self.sighting else {
             return self.done();
         };
+        let image = &mut self.run.monitor.image;
+        if let Some(reason) = monitor::hold_image(image, &seen.observation.jobs) {
+            return self.end(RunPhase::Failed, Some(reason));
+        }
         let monitor = &self.run.monitor;
         match &seen.observation.verdict {
             Verdict::Running => {
@@ -688,6 +694,7 @@ impl Round {
                     (Some(_), None) => Step::RecordRunning {
                         progress: monitor.progress,
                         usage: monitor.usage.summary(&self.cx.prices),
+                        image: monitor.image.clone(),
                     },
                 }
             }

@@ -147,6 +147,10 @@ pub struct MonitorState {
     /// their files' bytes changed) send nothing.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub posted: Option<String>,
+    /// The participant image's digest (`sha256:...`) the first pod ran: every pod after it
+    /// must run the same, whatever the tag points to since.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image: Option<String>,
     /// Routes done and planned.
     #[serde(default)]
     pub progress: (u64, u64),
@@ -232,6 +236,7 @@ impl MonitorState {
             rounds: 0,
             fingerprint: None,
             posted: None,
+            image: None,
             progress: (0, total),
             reason: None,
             unreachable_since: None,

@@ -94,7 +94,11 @@ impl<'a> Shell<'a> {
                 );
                 Answer::Done
             }
-            Step::RecordRunning { progress, usage } => self.record(progress, &usage).await,
+            Step::RecordRunning {
+                progress,
+                usage,
+                image,
+            } => self.record(progress, (&usage, image.as_deref())).await,
             Step::CheckEnding => Answer::Ending(self.ending(run).await),
             Step::Done => Answer::Done,
         })
@@ -361,12 +365,17 @@ impl<'a> Shell<'a> {
     }
 
     /// Progress and usage on the record; a failure is tried again next round.
-    async fn record(&self, progress: (u64, u64), usage: &Totals) -> Answer {
+    async fn record(
+        &self,
+        progress: (u64, u64),
+        (usage, image): (&Totals, Option<&str>),
+    ) -> Answer {
         let table = &self.target.deployment.submissions_table;
         let table = SubmissionsTable::new(self.deps.clients.dynamo.clone(), table);
         let (time, location) = (clients::now_record_time(), self.store.location());
         let (team, id) = (self.submission.team_id, self.id());
-        let marked = table.mark_running(team, id, &time, &location, progress, Some(usage));
+        let marked =
+            table.mark_running(team, id, (&time, &location), progress, (Some(usage), image));
         if let Err(e) = marked.await {
             warn!(submission_id = id, error = %e, "progress not recorded this round");
         }

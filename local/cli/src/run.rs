@@ -1108,6 +1108,7 @@ async fn left_behind(
                     "state_transitions": number("state_transitions"),
                     "log_bytes_stored": number("log_bytes_stored"),
                     "uploads_refused": number("uploads_refused"),
+                    "image_digest": item.get("image_digest").and_then(|v| v.as_s().ok()),
                 })
             });
         }

@@ -108,6 +108,7 @@ fn run(phase: RunPhase) -> RunState {
             )),
             // A SHA-256 in hex, as every digest.
             posted: Some("f".repeat(64)),
+            image: Some(format!("sha256:{}", "f".repeat(64))),
             progress: (u64::MAX, u64::MAX),
             reason: Some(worst(MAX_REASON_BYTES * 4)),
             unreachable_since: Some(u64::MAX),
