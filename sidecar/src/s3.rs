@@ -197,9 +197,12 @@ impl S3 {
         }
     }
 
-    /// A small object's bytes, at most `limit` of them (`None`: no such object, or larger).
-    pub async fn get_small(&self, key: &str, limit: usize) -> Result<Option<Vec<u8>>, S3Error> {
-        let resp = match self
+    /// An object's GetObject answer, its body still to read (`None`: no such object).
+    async fn get(
+        &self,
+        key: &str,
+    ) -> Result<Option<aws_sdk_s3::operation::get_object::GetObjectOutput>, S3Error> {
+        match self
             .client
             .get_object()
             .bucket(&self.bucket)
@@ -207,9 +210,16 @@ impl S3 {
             .send()
             .await
         {
-            Ok(resp) => resp,
-            Err(e) if e.as_service_error().is_some_and(|s| s.is_no_such_key()) => return Ok(None),
-            Err(e) => return Err(s3_err("GetObject", key)(e)),
+            Ok(resp) => Ok(Some(resp)),
+            Err(e) if e.as_service_error().is_some_and(|s| s.is_no_such_key()) => Ok(None),
+            Err(e) => Err(s3_err("GetObject", key)(e)),
+        }
+    }
+
+    /// A small object's bytes, at most `limit` of them (`None`: no such object, or larger).
+    pub async fn get_small(&self, key: &str, limit: usize) -> Result<Option<Vec<u8>>, S3Error> {
+        let Some(resp) = self.get(key).await? else {
+            return Ok(None);
         };
         if resp.content_length().unwrap_or(0) > limit as i64 {
             return Ok(None);
@@ -228,17 +238,8 @@ impl S3 {
     /// Streams an object into `dest` (through a temporary file beside it, then renamed).
     /// Returns `false` when there is no such object.
     pub async fn download(&self, key: &str, dest: &Path) -> Result<bool, UploadError> {
-        let resp = match self
-            .client
-            .get_object()
-            .bucket(&self.bucket)
-            .key(key)
-            .send()
-            .await
-        {
-            Ok(resp) => resp,
-            Err(e) if e.as_service_error().is_some_and(|s| s.is_no_such_key()) => return Ok(false),
-            Err(e) => return Err(s3_err("GetObject", key)(e).into()),
+        let Some(resp) = self.get(key).await? else {
+            return Ok(false);
         };
         let local = |source| UploadError::Read {
             path: dest.display().to_string(),

@@ -7,26 +7,35 @@ use fake_evalai::NewSubmission;
 use local_stack::integrations::{update_item, wait_for_change, wait_for_change_since};
 use sweep::Deps;
 
-#[tokio::test]
-#[ignore = "needs moto"]
-async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waiting() {
+/// A provisioned stack and the sweep's dependencies on it, reporting to a recorder.
+async fn sweep_on_a_stack() -> (local_stack::stack::Stack, Deps<RecordingCallbacks>) {
     let (stack, _) = test_support::stack::provisioned().await;
     let config = local_stack::stack::function_config();
     let deps = Deps::load(&stack.sdk, &config, RecordingCallbacks::default())
         .await
         .unwrap();
+    (stack, deps)
+}
+
+/// A new submission of `team` on phase 1, with this metadata; its id.
+fn submit(fake: &fake_evalai::FakeEvalAi, team: u64, metadata: Option<serde_json::Value>) -> u64 {
+    fake.add_submission(NewSubmission {
+        challenge_phase: 1,
+        participant_team: team,
+        submitted_image_uri: "123456789012.dkr.ecr.us-west-2.amazonaws.com/t:1".into(),
+        created_by: None,
+        submission_metadata: metadata,
+    })
+    .unwrap()
+    .id
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waiting() {
+    let (stack, deps) = sweep_on_a_stack().await;
     let fake = stack.fake();
-    let new = || {
-        fake.add_submission(NewSubmission {
-            challenge_phase: 1,
-            participant_team: 1,
-            submitted_image_uri: "123456789012.dkr.ecr.us-west-2.amazonaws.com/t:1".into(),
-            created_by: None,
-            submission_metadata: None,
-        })
-        .unwrap()
-        .id
-    };
+    let new = || submit(fake, 1, None);
     let (a, b, c) = (new(), new(), new());
     let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
     // a and b wait; c does not (its execution is in a Monitor round, or not ours). Each wait
@@ -109,23 +118,9 @@ async fn one_request_per_challenge_finds_the_cancels_and_wakes_only_those_waitin
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn another_team_s_huge_cancelled_submissions_do_not_blind_the_sweep() {
-    let (stack, _) = test_support::stack::provisioned().await;
-    let config = local_stack::stack::function_config();
-    let deps = Deps::load(&stack.sdk, &config, RecordingCallbacks::default())
-        .await
-        .unwrap();
+    let (stack, deps) = sweep_on_a_stack().await;
     let fake = stack.fake();
-    let new = |team: u64, metadata: Option<serde_json::Value>| {
-        fake.add_submission(NewSubmission {
-            challenge_phase: 1,
-            participant_team: team,
-            submitted_image_uri: "123456789012.dkr.ecr.us-west-2.amazonaws.com/t:1".into(),
-            created_by: None,
-            submission_metadata: metadata,
-        })
-        .unwrap()
-        .id
-    };
+    let new = |team, metadata| submit(fake, team, metadata);
     // Ours waits; then team 2 makes five submissions of 2.4 MB of metadata each (14 MB of
     // list, over any whole-body cap) and cancels them, after ours arrived.
     let ours = new(1, None);
