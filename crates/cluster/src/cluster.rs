@@ -451,13 +451,17 @@ impl Cluster {
         }
     }
 
+    /// Node `name`, `None` when it is gone.
+    async fn node(&self, name: &str) -> Result<Option<Node>> {
+        self.call("get node", self.nodes().get_opt(name))
+            .await?
+            .map_err(|e| ClusterError::from_kube("get node", name, e))
+    }
+
     /// What node `name`'s object says of its going: cordoned, its taints, `Ready`. `None` when
     /// the node is gone.
     pub async fn node_facts(&self, name: &str) -> Result<Option<NodeFacts>> {
-        let node = self
-            .call("get node", self.nodes().get_opt(name))
-            .await?
-            .map_err(|e| ClusterError::from_kube("get node", name, e))?;
+        let node = self.node(name).await?;
         Ok(node.map(|node| {
             let spec = node.spec.unwrap_or_default();
             let ready = node
@@ -483,10 +487,7 @@ impl Cluster {
     /// (`node.kubernetes.io/instance-type`, `eks.amazonaws.com/capacityType`): what a pod on
     /// it costs. `None` when the node is gone (a reclaimed one goes soon after its pods).
     pub async fn node_kind(&self, name: &str) -> Result<Option<NodeKind>> {
-        let node = self
-            .call("get node", self.nodes().get_opt(name))
-            .await?
-            .map_err(|e| ClusterError::from_kube("get node", name, e))?;
+        let node = self.node(name).await?;
         Ok(node.map(|node| {
             let labels = node.metadata.labels.unwrap_or_default();
             let label = |key: &str| labels.get(key).map(String::as_str);
