@@ -335,12 +335,13 @@ fn container_view(spec: &Container, status: Option<&ContainerStatus>, init: bool
     }
 }
 
-/// The `sha256:...` of a kubelet's `imageID` (`repo@sha256:...`, or a runtime's own prefix
-/// before it); `None` while it has none.
+/// The registry digest (`sha256:...`) of a kubelet's `imageID` when it names one
+/// (`repo@sha256:...`, after any runtime prefix); `None` while it has none, or when it is a bare
+/// local image id: that is another kind of digest, which compared with a registry digest would
+/// flag the same image as two.
 fn digest(image_id: &str) -> Option<String> {
-    let at = image_id.rfind("sha256:")?;
-    let digest = &image_id[at..];
-    let hex = &digest["sha256:".len()..];
+    let (_, digest) = image_id.rsplit_once('@')?;
+    let hex = digest.strip_prefix("sha256:")?;
     (hex.len() == 64 && hex.bytes().all(|b| b.is_ascii_hexdigit())).then(|| digest.to_owned())
 }
 
@@ -939,6 +940,27 @@ mod tests {
         assert_eq!(obs.jobs[0].state, JobState::Complete);
         assert_eq!(obs.jobs[1].state, JobState::Running);
         assert_eq!(obs.jobs[1].pods[0].name, "lb-4242-team-77-1-r5t6y");
+    }
+
+    #[test]
+    fn only_a_registry_digest_is_an_image_s_digest() {
+        let hex = "ab".repeat(32);
+        for (image_id, expected) in [
+            (
+                format!("docker.io/team/agent@sha256:{hex}"),
+                Some(format!("sha256:{hex}")),
+            ),
+            (
+                format!("docker-pullable://team/agent@sha256:{hex}"),
+                Some(format!("sha256:{hex}")),
+            ),
+            // A runtime's local image id, or nothing yet: not comparable.
+            (format!("sha256:{hex}"), None),
+            (String::new(), None),
+            ("team/agent@sha256:short".into(), None),
+        ] {
+            assert_eq!(digest(&image_id), expected, "{image_id}");
+        }
     }
 
     #[test]
