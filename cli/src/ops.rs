@@ -7,6 +7,7 @@ use clap::Args;
 use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::{SubmissionStore, CANCEL_MARKER, STATUS_DIR};
 use lb_domain::protocol::{Marker, Role};
+use lb_domain::status::ExecutionStatus;
 use serde_json::{json, Value};
 
 use crate::deployment::{clean, Deployment, DeploymentArgs, Found, Record, ScanFilter, Usage};
@@ -135,7 +136,8 @@ pub fn release_advice(id: u64, holder: &Holder) -> String {
     }
 }
 
-/// Where the execution `name` of `state_machine` stands.
+/// Where the run that execution `name` of `state_machine` began stands now: the execution it
+/// continued as, when it did (`lb_aws::executions::current`).
 async fn holder(sdk: &aws_config::SdkConfig, state_machine: Option<&str>, name: &str) -> Holder {
     let Some(machine) = state_machine else {
         return Holder::Unknown(format!(
@@ -145,20 +147,17 @@ async fn holder(sdk: &aws_config::SdkConfig, state_machine: Option<&str>, name: 
     let Some(arn) = lb_aws::executions::execution_arn(machine, name) else {
         return Holder::Unknown(format!("no execution ARN from `{machine}`"));
     };
-    let out = aws_sdk_sfn::Client::new(sdk)
-        .describe_execution()
-        .execution_arn(&arn)
-        .send()
-        .await;
-    match out {
-        Ok(out) => match out.status() {
-            aws_sdk_sfn::types::ExecutionStatus::Running => Holder::Running(name.to_owned()),
-            status => Holder::Ended(name.to_owned(), status.as_str().to_owned()),
-        },
-        Err(e) => Holder::Unknown(format!(
-            "its execution `{name}` could not be read ({})",
-            aws_sdk_sfn::error::DisplayErrorContext(&e)
-        )),
+    let executions = lb_aws::tasks::StepFunctions::new(aws_sdk_sfn::Client::new(sdk));
+    match lb_aws::executions::current(&executions, &arn).await {
+        Ok(Some((now, described))) => {
+            let now = now.rsplit(':').next().unwrap_or(name).to_owned();
+            match described.status {
+                ExecutionStatus::Running => Holder::Running(now),
+                status => Holder::Ended(now, status.as_str().to_owned()),
+            }
+        }
+        Ok(None) => Holder::Unknown(format!("Step Functions has no execution `{name}`")),
+        Err(e) => Holder::Unknown(format!("its execution `{name}` could not be read ({e})")),
     }
 }
 

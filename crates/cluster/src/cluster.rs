@@ -451,52 +451,34 @@ impl Cluster {
         }
     }
 
-    /// Node `name`, `None` when it is gone.
-    async fn node(&self, name: &str) -> Result<Option<Node>> {
-        self.call("get node", self.nodes().get_opt(name))
-            .await?
-            .map_err(|e| ClusterError::from_kube("get node", name, e))
-    }
-
-    /// What node `name`'s object says of its going: cordoned, its taints, `Ready`. `None` when
-    /// the node is gone.
-    pub async fn node_facts(&self, name: &str) -> Result<Option<NodeFacts>> {
-        let node = self.node(name).await?;
-        Ok(node.map(|node| {
-            let spec = node.spec.unwrap_or_default();
-            let ready = node
-                .status
-                .and_then(|s| s.conditions)
-                .unwrap_or_default()
-                .iter()
-                .any(|c| c.type_ == "Ready" && c.status == "True");
-            NodeFacts {
-                unschedulable: spec.unschedulable.unwrap_or(false),
-                taints: spec
-                    .taints
-                    .unwrap_or_default()
-                    .into_iter()
-                    .map(|t| t.key)
-                    .collect(),
-                ready,
-            }
-        }))
-    }
-
     /// What node `name` is, from the labels its node group gives it
     /// (`node.kubernetes.io/instance-type`, `eks.amazonaws.com/capacityType`): what a pod on
-    /// it costs. `None` when the node is gone (a reclaimed one goes soon after its pods).
-    pub async fn node_kind(&self, name: &str) -> Result<Option<NodeKind>> {
-        let node = self.node(name).await?;
+    /// it costs; and what its object says of its going: cordoned, its taints, `Ready`. One
+    /// read for both. `None` when the node is gone (a reclaimed one goes soon after its pods).
+    pub async fn node(&self, name: &str) -> Result<Option<(NodeKind, NodeFacts)>> {
+        let node = self
+            .call("get node", self.nodes().get_opt(name))
+            .await?
+            .map_err(|e| ClusterError::from_kube("get node", name, e))?;
         Ok(node.map(|node| {
             let labels = node.metadata.labels.unwrap_or_default();
             let label = |key: &str| labels.get(key).map(String::as_str);
-            NodeKind {
+            let kind = NodeKind {
                 instance_type: label("node.kubernetes.io/instance-type")
                     .unwrap_or("unknown")
                     .to_string(),
                 capacity: CapacityType::from_label(label(lb_domain::settings::Capacity::LABEL)),
-            }
+            };
+            let spec = node.spec.unwrap_or_default();
+            let conditions = node.status.and_then(|s| s.conditions).unwrap_or_default();
+            let facts = NodeFacts {
+                unschedulable: spec.unschedulable.unwrap_or(false),
+                taints: (spec.taints.unwrap_or_default().into_iter())
+                    .map(|t| t.key)
+                    .collect(),
+                ready: (conditions.iter()).any(|c| c.type_ == "Ready" && c.status == "True"),
+            };
+            (kind, facts)
         }))
     }
 

@@ -222,30 +222,29 @@ impl<'a> Shell<'a> {
         })))
     }
 
-    /// The nodes the count needs: the kinds of those new pods run on, and whether the node of
-    /// a pod the kubelet evicted is leaving (its disruption judged by it). The first node that
-    /// cannot be read, with why.
+    /// The nodes the count needs, each read once: the kinds of those new pods run on, and
+    /// whether the node of a pod the kubelet evicted is leaving (its disruption judged by it).
+    /// The first node that cannot be read, with why.
     async fn read_nodes(
         &self,
         cluster: &Cluster,
         usage: &Ledger,
         pods: &mut [PodSeen],
     ) -> std::result::Result<BTreeMap<String, NodeKind>, (String, ClusterError)> {
-        let mut kinds = BTreeMap::new();
-        for node in usage.unknown_nodes(pods) {
-            let kind = cluster
-                .node_kind(&node)
-                .await
-                .map_err(|e| (node.clone(), e))?;
-            kinds.insert(node, kind.unwrap_or_else(NodeKind::unknown));
-        }
-        let mut leaving = BTreeMap::new();
-        for node in usage.nodes_to_judge(pods) {
-            let facts = cluster
-                .node_facts(&node)
-                .await
-                .map_err(|e| (node.clone(), e))?;
-            leaving.insert(node, disruption::leaving(facts.as_ref()));
+        let unknown = usage.unknown_nodes(pods);
+        let to_judge = usage.nodes_to_judge(pods);
+        let needed: std::collections::BTreeSet<&String> = unknown.iter().chain(&to_judge).collect();
+        let (mut kinds, mut leaving) = (BTreeMap::new(), BTreeMap::new());
+        for node in needed {
+            let read = cluster.node(node).await.map_err(|e| (node.clone(), e))?;
+            if unknown.contains(node) {
+                let kind = read.as_ref().map(|(kind, _)| kind.clone());
+                kinds.insert(node.clone(), kind.unwrap_or_else(NodeKind::unknown));
+            }
+            if to_judge.contains(node) {
+                let facts = read.as_ref().map(|(_, facts)| facts);
+                leaving.insert(node.clone(), disruption::leaving(facts));
+            }
         }
         cost::judge(pods, &leaving);
         Ok(kinds)

@@ -122,7 +122,7 @@ async fn the_real_control_plane_admits_our_manifests_and_only_the_pipeline_s_own
     assert_eq!(seen.jobs.len(), jobs.len());
     let first = &seen.jobs[0].name;
     assert!(cluster.set_deadline(first, 300_000).await.unwrap());
-    assert_eq!(cluster.node_kind("no-such-node").await.unwrap(), None);
+    assert_eq!(cluster.node("no-such-node").await.unwrap(), None);
     cluster
         .delete_all("4242", None)
         .await
