@@ -272,6 +272,17 @@ impl Record {
             .map(String::as_str)
     }
 
+    /// A list of strings' attribute (`recordings_failed`); anything else in it is left out.
+    pub fn texts(&self, key: &str) -> Vec<&str> {
+        match self.item.get(key) {
+            Some(AttributeValue::L(items)) => items
+                .iter()
+                .filter_map(|v| v.as_s().ok().map(String::as_str))
+                .collect(),
+            _ => Vec::new(),
+        }
+    }
+
     /// A non-negative integer attribute, stored as a string (the original layout) or a number.
     pub fn number(&self, key: &str) -> Option<u64> {
         match self.item.get(key)? {
@@ -448,6 +459,7 @@ const KNOWN_ATTRIBUTES: &[&str] = &[
     "claimed_by",
     "recordings_found",
     "recordings_expected",
+    "recordings_failed",
     "gpu_seconds",
     "gpu_seconds_spot",
     "gpu_seconds_run_again",

@@ -49,12 +49,15 @@ pub struct Logs {
 
 /// Whether a log (relative to the submission's folder) is one to show.
 fn wanted(key: &str, worker: Option<u32>, recorder: bool) -> bool {
+    if let Some(rel) = key.strip_prefix("recorder/") {
+        let pair = rel
+            .split_once('/')
+            .and_then(|(dir, _)| dir.strip_prefix("pair"));
+        return recorder && worker.is_none_or(|n| pair == Some(n.to_string().as_str()));
+    }
     let Some(rel) = key.strip_prefix("logs/") else {
         return false;
     };
-    if is_recording(rel) {
-        return recorder;
-    }
     match worker {
         None => true,
         Some(n) => {
@@ -84,8 +87,9 @@ fn workers_with_logs<'a>(
         .collect()
 }
 
+/// A CARLA recording (`recorder/pair<ID>/...`): binary, large.
 fn is_recording(key: &str) -> bool {
-    key.contains("/recorder/") || key.ends_with(".log.rec")
+    key.starts_with("recorder/")
 }
 
 /// `lbctl logs`.
@@ -163,10 +167,11 @@ async fn print_new(
     printed: &BTreeMap<String, u64>,
 ) -> Result<BTreeMap<String, u64>> {
     let mut offsets = printed.clone();
-    let listed = store
-        .logs()
-        .await
-        .map_err(|e| CliError::aws(format!("listing the logs of `{}`", args.submission), e))?;
+    let listing = |e| CliError::aws(format!("listing the logs of `{}`", args.submission), e);
+    let mut listed = store.logs().await.map_err(listing)?;
+    if args.recorder {
+        listed.extend(store.recordings().await.map_err(listing)?);
+    }
     let mut out = std::io::stdout().lock();
     for (key, size) in listed {
         if !wanted(&key, args.worker, args.recorder) {
@@ -269,7 +274,8 @@ mod tests {
         let keys = [
             "logs/agent/agent1/agent.log",
             "logs/agent/agent12/agent.log",
-            "logs/agent/agent1/recorder/RouteScenario_0.log",
+            "recorder/pair1/RouteScenario_0_rep0.log",
+            "recorder/pair2/RouteScenario_1_rep0.log",
             "logs/simulator/simulator1.log",
             "logs/simulator/simulator2.log",
             "logs/logcopy/logcopy-0.log",
@@ -290,6 +296,14 @@ mod tests {
             ]
         );
         assert_eq!(shown(None, false).len(), 5);
-        assert_eq!(shown(None, true).len(), 6);
+        assert_eq!(shown(None, true).len(), 7);
+        assert_eq!(
+            shown(Some(2), true),
+            [
+                "recorder/pair2/RouteScenario_1_rep0.log",
+                "logs/simulator/simulator2.log",
+                "logs/logcopy/logcopy-0.log"
+            ]
+        );
     }
 }

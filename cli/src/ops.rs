@@ -472,7 +472,14 @@ fn print_record(record: &Record) {
         record.leaderboard
     );
     let rows = [
-        ("status", text("submission_status")),
+        (
+            "status",
+            format!(
+                "{}{}",
+                text("submission_status"),
+                if unaudited(record) { "*" } else { "" }
+            ),
+        ),
         (
             "team",
             format!("{} (id {})", text("team_name"), number("team_id")),
@@ -511,16 +518,19 @@ fn print_record(record: &Record) {
     if let Some(error) = record.text("error") {
         outln!("  {:<12} {}", "error", clean(error));
     }
-    if let Some((found, expected)) = recordings(record) {
-        let note = if found < expected {
+    if let Some((passed, expected)) = recordings(record) {
+        let note = if passed < expected {
             format!(
-                " ({} route(s) without a CARLA recording: these scores cannot be audited; docs/security.md)",
-                expected - found
+                " ({} route(s) without a CARLA recording that passed the audit: these scores cannot be audited; docs/security.md)",
+                expected - passed
             )
         } else {
             String::new()
         };
-        outln!("  {:<12} {found}/{expected}{note}", "recordings");
+        outln!("  {:<12} {passed}/{expected} passed{note}", "recordings");
+        for failure in record.texts("recordings_failed") {
+            outln!("  {:<12} {}", "", clean(failure));
+        }
     }
     for (key, value) in record.extra_attributes() {
         outln!("  {:<12} {value}", clean(key));
@@ -656,7 +666,7 @@ fn print_list(
         outln!("team {team}: {}", usage.describe());
     }
     if shown.iter().any(|r| unaudited(r)) {
-        outln!("* some routes have no CARLA recording: the scores cannot be audited (lbctl status <submission>)");
+        outln!("* some routes have no CARLA recording that passed the audit: the scores cannot be audited (lbctl status <submission>)");
     }
 }
 
@@ -705,7 +715,8 @@ fn short_age(age: time::Duration) -> String {
     }
 }
 
-/// A result's routes with their CARLA recording, and its routes (FINISHED records only).
+/// A result's routes whose CARLA recording passed the audit, and the routes that need one
+/// (FINISHED records only).
 fn recordings(record: &Record) -> Option<(u64, u64)> {
     Some((
         record.number("recordings_found")?,
@@ -713,7 +724,7 @@ fn recordings(record: &Record) -> Option<(u64, u64)> {
     ))
 }
 
-/// A FINISHED result some of whose routes lack their recording.
+/// A FINISHED result some of whose routes lack a recording that passed the audit.
 fn unaudited(record: &Record) -> bool {
     recordings(record).is_some_and(|(found, expected)| found < expected)
 }

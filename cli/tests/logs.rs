@@ -50,12 +50,7 @@ async fn logs_prints_each_workers_logs_and_follows_them_until_the_end() {
     put_log(sdk, "logs/agent/agent2/agent.log", "agent two starts\n").await;
     put_log(sdk, "logs/simulator/simulator1.log", "CARLA 1 up\n").await;
     put_log(sdk, "logs/logcopy/logcopy-0.log", "uploaded 3 files\n").await;
-    put_log(
-        sdk,
-        "logs/agent/agent1/recorder/RouteScenario_0.log",
-        "BINARY",
-    )
-    .await;
+    put_log(sdk, "recorder/pair1/RouteScenario_0_rep0.log", "BINARY").await;
     put_log(sdk, "agent/partial_agent_results1.json", "{}").await;
 
     let out = lbctl(&["logs", "1"], &env, None);
@@ -98,7 +93,9 @@ async fn logs_prints_each_workers_logs_and_follows_them_until_the_end() {
 
     let out = lbctl(&["logs", "1", "--recorder"], &env, None);
     assert!(
-        stdout(&out).contains("==> logs/agent/agent1/recorder/RouteScenario_0.log <== (6 bytes, a recording: not printed)"),
+        stdout(&out).contains(
+            "==> recorder/pair1/RouteScenario_0_rep0.log <== (6 bytes, a recording: not printed)"
+        ),
         "{}",
         show(&out)
     );

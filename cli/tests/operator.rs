@@ -135,9 +135,16 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
                 "end_time",
                 AttributeValue::S("2026-01-02 00:00:00 UTC".into()),
             ),
-            // Two of its routes have no CARLA recording (Finalize counted them).
+            // Two of its routes have no CARLA recording that passed (Finalize's audit).
             ("recordings_found", AttributeValue::N("18".into())),
             ("recordings_expected", AttributeValue::N("20".into())),
+            (
+                "recordings_failed",
+                AttributeValue::L(vec![
+                    AttributeValue::S("RouteScenario_3_rep0: no recording in pair 2's folder".into()),
+                    AttributeValue::S("RouteScenario_7_rep0: not a CARLA recording (no CARLA_RECORDER header)\x1b[2J".into()),
+                ]),
+            ),
             // Its GPUs, as Finalize wrote them.
             ("gpu_seconds", AttributeValue::N("28800".into())),
             ("gpu_seconds_spot", AttributeValue::N("21600".into())),
@@ -197,13 +204,18 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
     assert_eq!(status["markers"][0]["count"], 154, "{status}");
     assert_eq!(status["markers"][0]["names"].as_array().unwrap().len(), 100);
 
-    // A FINISHED result some of whose routes have no recording says so.
+    // A FINISHED result some of whose routes have no recording that passed says so, and
+    // which routes and why.
     let out = lbctl(&["status", "102"], &env, None);
-    assert!(
-        stdout(&out).contains("recordings   18/20 (2 route(s) without a CARLA recording: these scores cannot be audited"),
-        "{}",
-        show(&out)
-    );
+    for line in [
+        "status       FINISHED*",
+        "recordings   18/20 passed (2 route(s) without a CARLA recording that passed the audit: these scores cannot be audited",
+        "             RouteScenario_3_rep0: no recording in pair 2's folder\n",
+        "             RouteScenario_7_rep0: not a CARLA recording (no CARLA_RECORDER header)",
+    ] {
+        assert!(stdout(&out).contains(line), "{line}: {}", show(&out));
+    }
+    assert!(!stdout(&out).contains('\x1b'), "{}", show(&out));
     assert!(
         stdout(&out).contains("GPUs         8.00 GPU-hours (6.00 on Spot, 0.25 run again after reclaims), about $5.62; orchestration about $0.0312"),
         "{}",

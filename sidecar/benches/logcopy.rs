@@ -107,7 +107,7 @@ fn make_tree(root: &Path, total: u64) -> usize {
     }
     let small = (total / 2) >> 20;
     for i in 0..small {
-        let dir = root.join("logs/agent/agent1/recorder");
+        let dir = root.join("recorder/pair1");
         std::fs::create_dir_all(&dir).unwrap();
         fill(&mut chunk);
         std::fs::write(dir.join(format!("RouteScenario_{i}_rep0.log")), &chunk).unwrap();

@@ -39,7 +39,9 @@ pub struct AgentPaths {
     pub checkpoint: PathBuf,
     /// `DEBUG_CHECKPOINT_ENDPOINT`: `$LB_LOGS_DIR/agent/agent<ID>/live_results.json`.
     pub live_results: PathBuf,
-    /// `RECORD_PATH`: `$LB_LOGS_DIR/agent/agent<ID>/recorder`.
+    /// `RECORD_PATH`: the pair's recordings folder as its simulator mounts it: the evaluator
+    /// only passes the path to CARLA, which writes the files (`protocol::
+    /// SIMULATOR_RECORDER_MOUNT`); this container does not mount it.
     pub recorder: PathBuf,
     /// The evaluator's output: `$LB_LOGS_DIR/agent/agent<ID>/agent.log`.
     pub log: PathBuf,
@@ -53,7 +55,7 @@ impl AgentPaths {
         AgentPaths {
             checkpoint: p.agent_dir.join(protocol::partial_results_name(p.pair)),
             live_results: dir.join("live_results.json"),
-            recorder: dir.join("recorder"),
+            recorder: PathBuf::from(protocol::SIMULATOR_RECORDER_MOUNT),
             log: dir.join("agent.log"),
         }
     }
@@ -322,10 +324,9 @@ impl<'a> Agent<'a> {
         paths: &AgentPaths,
     ) -> Result<Result<Supervised, Phase>, PairError> {
         let (p, id, attempt) = (&self.cfg.pair, self.id, self.attempt);
-        for dir in [&paths.recorder, &p.agent_dir] {
-            if let Err(e) = fs::create_dir_all(dir) {
-                warn!(dir = %dir.display(), error = %e, "cannot create a directory for the evaluator");
-            }
+        if let Err(e) = fs::create_dir_all(&p.agent_dir) {
+            let dir = p.agent_dir.display();
+            warn!(%dir, error = %e, "cannot create a directory for the evaluator");
         }
         let resuming = resume(attempt, &paths.checkpoint);
         // CARLA's port, as its sidecar announced it before writing the start marker.

@@ -297,14 +297,19 @@ fn make_logs_tree(cfg: &InitConfig) -> Result<(), InitError> {
         root.join(LOGS_DIR).join("logcopy"),
     ];
     for &pair in &cfg.pairs {
-        let agent = root.join(LOGS_DIR).join(protocol::agent_logs_dir(pair));
-        dirs.push(agent.join("recorder"));
-        dirs.push(agent);
+        dirs.push(root.join(LOGS_DIR).join(protocol::agent_logs_dir(pair)));
     }
     for dir in dirs {
         fs::create_dir_all(&dir).map_err(write_err(&dir))?;
         // NB: explicit chmod: mkdir's mode is filtered by the umask.
         open_up(&dir, 0o777)?;
+    }
+    // The recordings: written by CARLA (UID 1000, as init) in the simulator's container only,
+    // which alone mounts its pair's folder; closed to everyone else as well.
+    for &pair in &cfg.pairs {
+        let dir = root.join(protocol::recorder_dir(pair));
+        fs::create_dir_all(&dir).map_err(write_err(&dir))?;
+        open_up(&dir, 0o755)?;
     }
     Ok(())
 }

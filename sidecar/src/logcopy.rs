@@ -16,7 +16,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use lb_domain::protocol::STATUS_DIR;
-use lb_domain::protocol::{self, job_end, JobEnd, LogKind, Marker, CANCEL_MARKER, LOGS_DIR};
+use lb_domain::protocol::{self, job_end, JobEnd, LogKind, Marker, CANCEL_MARKER};
 use lb_domain::uploads::{self, UploadBudget, UploadReport};
 use sha2::{Digest, Sha256};
 use tracing::{debug, info, warn};
@@ -181,8 +181,7 @@ impl<'a> Logcopy<'a> {
     /// The S3 object tag of a file: its logs' kind, which the buckets' lifecycle rules keep
     /// for their own time (`infra/app.yaml`).
     fn tag(&self, rel: &str) -> Option<&'static str> {
-        let under_logs = rel.strip_prefix(LOGS_DIR)?.strip_prefix('/')?;
-        protocol::log_kind(under_logs, &self.cfg.pairs).map(LogKind::tag)
+        protocol::kept_as(rel, &self.cfg.pairs).map(LogKind::tag)
     }
 
     /// Continues the count of the Job's earlier pods, if any stored one (a report that cannot

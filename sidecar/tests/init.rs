@@ -46,10 +46,7 @@ fn init_fills_the_volumes_and_clears_this_jobs_stale_state_on_a_participant_resu
         b"{\"other job\": 1}",
     );
     moto.put(&key("logs/agent/agent1/agent.log"), b"first pod\n");
-    moto.put(
-        &key("logs/agent/agent1/recorder/RouteScenario_0_rep0.log"),
-        b"big",
-    );
+    moto.put(&key("recorder/pair1/RouteScenario_0_rep0.log"), b"big");
     moto.put(&key("logs/simulator/simulator1.log"), b"carla\n");
     moto.put(&key("logs/simulator/simulator2.log"), b"other\n");
     // And a stale local marker (an init re-run in the same pod).
@@ -78,11 +75,13 @@ fn init_fills_the_volumes_and_clears_this_jobs_stale_state_on_a_participant_resu
         "containers-status",
         "agent",
         "logs/simulator",
-        "logs/agent/agent1/recorder",
+        "logs/agent/agent1",
         "logs/logcopy",
     ] {
         assert_eq!(mode(&vols.root().join(dir)), 0o777, "{dir}");
     }
+    // The recordings' folder: CARLA's alone (only its simulator mounts it).
+    assert_eq!(mode(&vols.root().join("recorder/pair1")), 0o755);
     // This Job's markers are gone, locally and in S3; the other Job's stay; cancel removed.
     assert_eq!(
         moto.keys(&key("containers-status/")),
@@ -104,7 +103,7 @@ fn init_fills_the_volumes_and_clears_this_jobs_stale_state_on_a_participant_resu
     assert!(!vols.root().join("logs/simulator/simulator2.log").exists());
     assert!(!vols
         .root()
-        .join("logs/agent/agent1/recorder/RouteScenario_0_rep0.log")
+        .join("recorder/pair1/RouteScenario_0_rep0.log")
         .exists());
 }
 

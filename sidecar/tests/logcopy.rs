@@ -186,12 +186,19 @@ fn another_pairs_results_and_markers_and_unnamed_files_never_leave_the_pod() {
     write(vols.root(), "logs/agent/agent1/agent.log", b"route 0\n");
     write(
         vols.root(),
-        "logs/agent/agent1/recorder/RouteScenario_0.log",
+        "recorder/pair1/RouteScenario_0_rep0.log",
         b"CARLA",
     );
+    // Another pair's recording, and a name no route has, in the recordings' folders.
+    write(
+        vols.root(),
+        "recorder/pair2/RouteScenario_5_rep0.log",
+        b"CARLA",
+    );
+    write(vols.root(), "recorder/pair1/notes.txt", b"x");
     let mut lc = logcopy(&vols, &moto, None, &[]);
     let first = lc.wait_event("logcopy pass", LIMIT, |_| true);
-    assert_eq!(first["fields"]["refused"], 5 + 24 + 2, "{}", lc.log());
+    assert_eq!(first["fields"]["refused"], 5 + 24 + 4, "{}", lc.log());
     // Rewritten many times between passes: still nothing of it leaves.
     for n in 0..20 {
         write(
@@ -218,6 +225,8 @@ fn another_pairs_results_and_markers_and_unnamed_files_never_leave_the_pod() {
         "containers-status/simulator-1.start16",
         "containers-status/simulator-1.start0",
         "logs/fill.bin",
+        "recorder/pair2/RouteScenario_5_rep0.log",
+        "recorder/pair1/notes.txt",
     ] {
         assert!(moto.get(&key(foreign)).is_none(), "{foreign} was uploaded");
     }
@@ -230,14 +239,14 @@ fn another_pairs_results_and_markers_and_unnamed_files_never_leave_the_pod() {
     // bytes it stored.
     let report = moto.get(&key("logs/logcopy/job0.json")).unwrap();
     let report: serde_json::Value = serde_json::from_slice(&report).unwrap();
-    assert_eq!(report["refused_files"], 5 + 24 + 2, "{report}");
+    assert_eq!(report["refused_files"], 5 + 24 + 4, "{report}");
     assert_eq!(report["log_bytes"], 8 + 5, "{report}");
     assert_eq!(
         moto.tags(&key("logs/agent/agent1/agent.log")),
         ["retention=log"]
     );
     assert_eq!(
-        moto.tags(&key("logs/agent/agent1/recorder/RouteScenario_0.log")),
+        moto.tags(&key("recorder/pair1/RouteScenario_0_rep0.log")),
         ["retention=recording"]
     );
 }

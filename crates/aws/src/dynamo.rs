@@ -13,6 +13,7 @@ use std::collections::HashMap;
 use aws_sdk_dynamodb::types::AttributeValue;
 use aws_sdk_dynamodb::Client;
 
+use lb_domain::audit::Recordings;
 use lb_domain::cost::Totals;
 
 use crate::{condition_failed, AwsError, Result};
@@ -74,9 +75,9 @@ pub struct FinalRecord {
     pub progress: (u64, u64),
     /// Why it failed, readable.
     pub error: Option<String>,
-    /// Routes with their CARLA recording / routes of the result (FINISHED only): what an
-    /// operator can audit (`lb_domain::audit`).
-    pub recordings: Option<(u64, u64)>,
+    /// The audit of the result's CARLA recordings (FINISHED only): what an operator can check
+    /// of its scores (`lb_domain::audit`).
+    pub recordings: Option<Recordings>,
     /// The GPUs it used and their price (a run from before the Monitor counted them: none).
     pub usage: Option<Totals>,
 }
@@ -454,14 +455,23 @@ fn final_update(record: &FinalRecord) -> Update {
     }
     names.insert("#found".into(), "recordings_found".into());
     names.insert("#expected".into(), "recordings_expected".into());
-    match record.recordings {
-        Some((found, expected)) => {
+    names.insert("#failed".into(), "recordings_failed".into());
+    match &record.recordings {
+        Some(audited) => {
             set.push("#found = :found, #expected = :expected".into());
-            values.insert(":found".into(), n(found));
-            values.insert(":expected".into(), n(expected));
+            values.insert(":found".into(), n(audited.passed));
+            values.insert(":expected".into(), n(audited.expected));
+            match audited.failures.is_empty() {
+                true => remove.push("#failed"),
+                false => {
+                    set.push("#failed = :failed".into());
+                    let failed = audited.failures.iter().map(s).collect();
+                    values.insert(":failed".into(), AttributeValue::L(failed));
+                }
+            }
         }
-        // Nor an old run's count of recordings.
-        None => remove.extend(["#found", "#expected"]),
+        // Nor an old run's audit of recordings.
+        None => remove.extend(["#found", "#expected", "#failed"]),
     }
     match &record.usage {
         Some(usage) => {

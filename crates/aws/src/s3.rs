@@ -150,14 +150,36 @@ impl SubmissionStore {
 
     /// The files under `logs/`, relative to the submission's folder, with their sizes.
     pub async fn logs(&self) -> Result<Vec<(String, u64)>> {
+        self.sized(lb_domain::protocol::LOGS_DIR).await
+    }
+
+    /// The files under `recorder/` (the CARLA recordings), relative to the submission's
+    /// folder, with their sizes.
+    pub async fn recordings(&self) -> Result<Vec<(String, u64)>> {
+        self.sized(lb_domain::protocol::RECORDER_DIR).await
+    }
+
+    async fn sized(&self, dir: &str) -> Result<Vec<(String, u64)>> {
         let mut out: Vec<(String, u64)> = self
-            .list(&format!("{}/", lb_domain::protocol::LOGS_DIR))
+            .list(&format!("{dir}/"))
             .await?
             .into_iter()
             .map(|l| (l.relative, l.size))
             .collect();
         out.sort();
         Ok(out)
+    }
+
+    /// The first `bytes` of `key` (relative to the submission's folder), `None` when it does
+    /// not exist.
+    pub async fn get_head(&self, key: &str, bytes: u64) -> Result<Option<Vec<u8>>> {
+        let last = bytes.saturating_sub(1);
+        let body = self.ranged(key, format!("bytes=0-{last}")).await?;
+        // NB: a server that ignores the range sends everything; keep the head only.
+        Ok(body.map(|mut b| {
+            b.truncate(bytes as usize);
+            b
+        }))
     }
 
     async fn ranged(&self, key: &str, range: String) -> Result<Option<Vec<u8>>> {

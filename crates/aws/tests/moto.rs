@@ -190,7 +190,11 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         metrics: vec![("driving_score", None)],
         progress: (5, 20),
         error: Some("CARLA crashed too often".into()),
-        recordings: Some((4, 5)),
+        recordings: Some(lb_domain::audit::Recordings {
+            passed: 4,
+            expected: 5,
+            failures: vec!["RouteScenario_3_rep0: no recording in pair 2's folder".into()],
+        }),
         usage: Some(lb_domain::cost::Totals {
             dollars: None,
             stored: Some(lb_domain::uploads::UploadReport {
@@ -221,6 +225,12 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     );
     assert_eq!(item["recordings_found"], AttributeValue::N("4".into()));
     assert_eq!(item["recordings_expected"], AttributeValue::N("5".into()));
+    assert_eq!(
+        item["recordings_failed"],
+        AttributeValue::L(vec![text(
+            "RouteScenario_3_rep0: no recording in pair 2's folder"
+        )])
+    );
     assert_eq!(item["gpu_seconds"], AttributeValue::N("7200".into()));
     assert!(!item.contains_key("cost_usd"), "no price: no estimate");
     // What the logs keep in S3, and what logcopy refused to upload.
@@ -282,7 +292,13 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(item["team_name"], text("Team 🚗 One"));
     assert!(!item.contains_key("error"));
     // Nor the old run's count of recordings, when this one has none.
-    assert!(!item.contains_key("recordings_found") && !item.contains_key("recordings_expected"));
+    for attribute in [
+        "recordings_found",
+        "recordings_expected",
+        "recordings_failed",
+    ] {
+        assert!(!item.contains_key(attribute), "{attribute}");
+    }
     assert!(!item.contains_key("gpu_seconds"), "nor its usage");
     for (attribute, value) in metrics {
         assert_eq!(item[attribute], text(&value.unwrap()), "{attribute}");

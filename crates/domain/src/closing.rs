@@ -12,9 +12,9 @@
 //! team. EvalAI gets the final word before the record, and the place is given back last, so
 //! the team never shows more evaluations in progress than its cap.
 
-use std::collections::HashSet;
+use std::collections::HashMap;
 
-use crate::audit::{self, Recordings};
+use crate::audit::{self, Recordings, Window};
 use crate::finalize::{self, Outcome, Posted};
 use crate::protocol::CANCEL_MARKER;
 use crate::py::Num;
@@ -63,8 +63,11 @@ pub enum Step {
         /// The participant's stderr: the reason and the agent's log tail.
         stderr: String,
     },
-    /// List the uploaded logs ([`Answer::Logs`]), to count the recordings.
-    ListLogs,
+    /// List the recordings folder (`recorder/`, [`Answer::Listed`]), to audit the recordings.
+    ListRecordings,
+    /// Read the first [`audit::HEAD_BYTES`] of each of these recordings (submission-relative
+    /// keys, [`Answer::Heads`]).
+    ReadHeads(Vec<String>),
     /// Write the final record ([`Answer::Recorded`]).
     WriteRecord {
         /// The record's status.
@@ -116,8 +119,8 @@ pub struct Merged {
     pub finished_pairs: Vec<u32>,
     /// (attribute, value) per metric, for the qualifier's verdict.
     pub metrics: Vec<(&'static str, Num)>,
-    /// The merged records' route ids, for the recordings' audit.
-    pub route_ids: Vec<String>,
+    /// The merged records as the recordings' audit needs them.
+    pub routes: Vec<audit::Route>,
     /// The summary the participant's stdout ends with.
     pub summary: String,
 }
@@ -144,8 +147,10 @@ pub enum Answer {
     Tail(Option<String>),
     /// What EvalAI did with the final update.
     Posted(Posted),
-    /// The uploaded logs, (path under the logs folder, size) (`None`: not listed).
-    Logs(Option<Vec<(String, u64)>>),
+    /// The recordings folder: (submission-relative key, size) (`None`: not listed).
+    Listed(Option<Vec<(String, u64)>>),
+    /// The heads read, by key (a head that could not be read is left out).
+    Heads(HashMap<String, Vec<u8>>),
     /// The record was written (`false`: the claim moved on, the record is another's).
     Recorded(bool),
 }
@@ -160,7 +165,8 @@ enum Stage {
     Tail(u32),
     Admit,
     Post,
-    Logs,
+    Listing,
+    Heads,
     Record,
     Pace,
     Leave,
@@ -181,6 +187,8 @@ pub struct Closing<'a> {
     /// The qualifier's verdict and the tracks a pass admits to.
     verdict: Option<(String, Vec<String>)>,
     recordings: Option<Recordings>,
+    /// The recordings listed, until their heads are read.
+    listed: Option<Vec<(String, u64)>>,
 }
 
 impl<'a> Closing<'a> {
@@ -195,6 +203,7 @@ impl<'a> Closing<'a> {
             tail: None,
             verdict: None,
             recordings: None,
+            listed: None,
         }
     }
 
@@ -213,7 +222,8 @@ impl<'a> Closing<'a> {
                     .unwrap_or_default(),
             ),
             Stage::Post => self.post(),
-            Stage::Logs => Step::ListLogs,
+            Stage::Listing => Step::ListRecordings,
+            Stage::Heads => Step::ReadHeads(self.heads_to_read()),
             Stage::Record => self.record(),
             Stage::Pace => Step::RecordPace,
             Stage::Leave => Step::LeaveQueue,
@@ -234,8 +244,15 @@ impl<'a> Closing<'a> {
             }
             (Stage::Admit, Answer::Done) => Stage::Post,
             (Stage::Post, Answer::Posted(posted)) => self.posted(posted),
-            (Stage::Logs, Answer::Logs(logs)) => {
-                self.recordings = logs.map(|logs| self.audit(&logs));
+            (Stage::Listing, Answer::Listed(listed)) => {
+                self.listed = listed;
+                match self.listed.is_some() {
+                    true => Stage::Heads,
+                    false => Stage::Record,
+                }
+            }
+            (Stage::Heads, Answer::Heads(heads)) => {
+                self.recordings = self.audit(&heads);
                 Stage::Record
             }
             (Stage::Record, Answer::Recorded(_)) => self.recorded(),
@@ -363,21 +380,31 @@ impl<'a> Closing<'a> {
         let finished = outcome.status == SubmissionStatus::Finished;
         self.outcome = Some(outcome);
         if finished && self.merged.is_some() {
-            Stage::Logs
+            Stage::Listing
         } else {
             Stage::Record
         }
     }
 
-    fn audit(&self, logs: &[(String, u64)]) -> Recordings {
-        let present: HashSet<&str> = logs
-            .iter()
-            .filter(|(_, size)| *size > 0)
-            .filter_map(|(key, _)| audit::recording_of(key))
-            .collect();
-        let route_ids = self.merged.iter().flat_map(|m| m.route_ids.iter());
-        let expected = audit::expected_recordings(route_ids.map(String::as_str));
-        audit::audit(&expected, &present)
+    fn expected(&self) -> Vec<audit::Expected> {
+        self.merged
+            .as_ref()
+            .map_or_else(Vec::new, |m| audit::expected(&m.routes))
+    }
+
+    fn heads_to_read(&self) -> Vec<String> {
+        let listed = self.listed.as_deref().unwrap_or_default();
+        audit::heads_to_read(&self.expected(), listed)
+    }
+
+    /// The recordings judged (`None` without a run to date them by).
+    fn audit(&self, heads: &HashMap<String, Vec<u8>>) -> Option<Recordings> {
+        let run = self.cx.run?;
+        let listed = self.listed.as_deref()?;
+        let window = Window {
+            launched_at: run.launched_at,
+        };
+        Some(audit::audit(&self.expected(), listed, heads, window))
     }
 
     fn record(&self) -> Step {
@@ -469,14 +496,30 @@ mod tests {
             progress: if complete { (4, 4) } else { (2, 4) },
             finished_pairs: if complete { vec![1, 2] } else { vec![1] },
             metrics: vec![("driving_score", Num::Float(score))],
-            route_ids: vec!["RouteScenario_0_rep0".into(), "RouteScenario_1_rep0".into()],
+            routes: (0..2)
+                .map(|n| audit::Route {
+                    pair: 1,
+                    id: format!("RouteScenario_{n}_rep0"),
+                    game_seconds: 1.0,
+                    scores: true,
+                })
+                .collect(),
             summary: "summary".into(),
         })
     }
 
     fn recording(route: u32, size: u64) -> (String, u64) {
-        let key = format!("logs/agent/agent1/recorder/RouteScenario_{route}_rep0.log");
+        let key = format!("recorder/pair1/RouteScenario_{route}_rep0.log");
         (key, size)
+    }
+
+    /// Every head asked for, as CARLA writes it, dated at the run's launch.
+    fn heads(keys: &[String]) -> Answer {
+        let mut head = audit::MAGIC.to_vec();
+        head.extend_from_slice(&0i64.to_le_bytes());
+        head.extend_from_slice(&5u16.to_le_bytes());
+        head.extend_from_slice(b"Town1");
+        Answer::Heads(keys.iter().map(|k| (k.clone(), head.clone())).collect())
     }
 
     /// A world where everything goes well: the record is ours and in flight, the run left
@@ -495,7 +538,10 @@ mod tests {
             }),
             Step::ReadAgentTail(_) => Answer::Tail(Some("Traceback: boom".into())),
             Step::Post { .. } => Answer::Posted(Posted::Written),
-            Step::ListLogs => Answer::Logs(Some(vec![recording(0, 10), recording(1, 10)])),
+            Step::ListRecordings => {
+                Answer::Listed(Some(vec![recording(0, 1000), recording(1, 1000)]))
+            }
+            Step::ReadHeads(keys) => heads(keys),
             Step::WriteRecord { .. } => Answer::Recorded(true),
             _ => Answer::Done,
         }
@@ -531,7 +577,8 @@ mod tests {
                 Step::ReadAgentTail(_) => "tail",
                 Step::Admit(_) => "admit",
                 Step::Post { .. } => "post",
-                Step::ListLogs => "logs",
+                Step::ListRecordings => "recordings",
+                Step::ReadHeads(_) => "heads",
                 Step::WriteRecord { .. } => "record",
                 Step::RecordPace => "pace",
                 Step::LeaveQueue => "leave",
@@ -550,7 +597,15 @@ mod tests {
         let run = run(RunPhase::Finished, true);
         let (steps, stands) = drive(cx(Some(&run), None), world(Some(merged(true, 90.0)), &[]));
         let order = [
-            "standing", "stop", "read", "post", "logs", "record", "pace", "leave",
+            "standing",
+            "stop",
+            "read",
+            "post",
+            "recordings",
+            "heads",
+            "record",
+            "pace",
+            "leave",
         ];
         assert_eq!(kinds(&steps), order);
         let Step::Post { status, stdout, .. } = find(&steps, "post") else {
@@ -718,23 +773,31 @@ mod tests {
     }
 
     #[test]
-    fn only_non_empty_recordings_count_and_an_unlisted_folder_counts_nothing() {
+    fn only_whole_recordings_pass_and_an_unlisted_folder_counts_nothing() {
         let run = run(RunPhase::Finished, false);
         let mut world = world(Some(merged(true, 90.0)), &[]);
         let (steps, _) = drive(cx(Some(&run), None), |step| match step {
-            Step::ListLogs => Answer::Logs(Some(vec![recording(0, 10), recording(1, 0)])),
+            Step::ListRecordings => Answer::Listed(Some(vec![recording(0, 1000), recording(1, 1)])),
             step => world(step),
         });
+        // Only the whole one's head is read.
+        let Step::ReadHeads(keys) = find(&steps, "heads") else {
+            unreachable!()
+        };
+        assert_eq!(keys, &[recording(0, 0).0]);
         let Step::WriteRecord { recordings, .. } = find(&steps, "record") else {
             unreachable!()
         };
-        let counted = recordings.clone().unwrap();
-        assert_eq!((counted.found, counted.expected), (1, 2));
-        assert_eq!(counted.missing, ["RouteScenario_1_rep0"]);
+        let audited = recordings.clone().unwrap();
+        assert_eq!((audited.passed, audited.expected), (1, 2));
+        assert_eq!(
+            audited.failures,
+            ["RouteScenario_1_rep0: 1 bytes for 1.0 s of simulated time (at least 630 expected)"]
+        );
         // Not started: no pace to record.
         assert!(!kinds(&steps).contains(&"pace"), "{steps:?}");
         let (steps, _) = drive(cx(Some(&run), None), |step| match step {
-            Step::ListLogs => Answer::Logs(None),
+            Step::ListRecordings => Answer::Listed(None),
             step => world(step),
         });
         let Step::WriteRecord { recordings, .. } = find(&steps, "record") else {

@@ -21,6 +21,12 @@ pub const STATUS_DIR: &str = "containers-status";
 pub const AGENT_DIR: &str = "agent";
 /// The logs directory's name in the logs tree and in S3.
 pub const LOGS_DIR: &str = "logs";
+/// The CARLA recordings' directory in the logs tree and in S3: a folder per pair
+/// (`recorder/pair<ID>`), which only that pair's simulator container mounts.
+pub const RECORDER_DIR: &str = "recorder";
+/// Where a simulator container mounts its pair's recordings folder: the path the evaluator
+/// gives CARLA (`RECORD_PATH`), which the server, not the evaluator, writes into.
+pub const SIMULATOR_RECORDER_MOUNT: &str = "/tmp/recorder";
 
 /// The files the Monitor and Finalize derive from the workers' results, relative to the
 /// submission's S3 prefix (and to `lb-sidecar merge`'s output directory): the merged results
@@ -104,7 +110,8 @@ pub mod env {
     pub const CHECKPOINT_ENDPOINT: &str = "CHECKPOINT_ENDPOINT";
     /// Exported to the evaluator: its live results file.
     pub const DEBUG_CHECKPOINT_ENDPOINT: &str = "DEBUG_CHECKPOINT_ENDPOINT";
-    /// Exported to the evaluator: its recorder directory.
+    /// Exported to the evaluator: the recorder directory, a path in the simulator's
+    /// container ([`super::SIMULATOR_RECORDER_MOUNT`]).
     pub const RECORD_PATH: &str = "RECORD_PATH";
 }
 
@@ -166,14 +173,37 @@ pub fn uploads(rel: &str, pairs: &[PairId], job: u32) -> bool {
         AGENT_DIR => pair_of_results_name(name).is_some_and(|pair| pairs.contains(&pair)),
         STATUS_DIR => Marker::parse(name).is_some_and(|m| m.belongs_to_job(pairs, job)),
         LOGS_DIR => log_kind(name, pairs).is_some(),
+        RECORDER_DIR => recording_of(name).is_some_and(|(pair, _)| pairs.contains(&pair)),
         _ => false,
     }
+}
+
+/// `recorder/pair<ID>`: a pair's recordings folder, relative to the logs volume and to the
+/// submission's S3 prefix.
+pub fn recorder_dir(pair: PairId) -> String {
+    format!("{RECORDER_DIR}/pair{pair}")
+}
+
+/// The pair and route of a recording's path relative to the recordings directory
+/// (`pair<ID>/RouteScenario_<n>[_rep<r>].log`): the name the evaluator gives CARLA for a
+/// route; `None` for anything else (a name no route has is not the evaluation's).
+pub fn recording_of(rel: &str) -> Option<(PairId, &str)> {
+    let (dir, file) = rel.split_once('/')?;
+    let pair: PairId = dir.strip_prefix("pair")?.parse().ok()?;
+    if pair == 0 || dir != format!("pair{pair}") {
+        return None;
+    }
+    let stem = file.strip_suffix(".log")?;
+    let route = stem.strip_prefix("RouteScenario_")?;
+    let (number, rep) = route.split_once("_rep").unwrap_or((route, "0"));
+    let digits = |t: &str| !t.is_empty() && t.len() <= 12 && t.bytes().all(|b| b.is_ascii_digit());
+    (digits(number) && digits(rep)).then_some((pair, stem))
 }
 
 /// What a file under `logs/` is, and so how long it is kept.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LogKind {
-    /// A CARLA recording of a route (`agent/agent<ID>/recorder/...`): kept as long as the
+    /// A CARLA recording of a route (`recorder/pair<ID>/...`): kept as long as the
     /// leaderboard needs it.
     Recording,
     /// The evaluation's logs: CARLA's output, the evaluator's output and debug files.
@@ -190,10 +220,10 @@ impl LogKind {
     }
 }
 
-/// Whether a path relative to the logs directory is one of these pairs' logs, and which kind:
+/// Whether a path relative to the logs directory is one of these pairs' logs:
 /// `simulator/simulator<ID>.log` or anything under `agent/agent<ID>/` (the evaluator's
-/// output, its debug checkpoint, the recorder's files). Anything else under `logs/` is not the
-/// evaluation's and is not uploaded.
+/// output, its debug checkpoint). Anything else under `logs/` is not the evaluation's and is
+/// not uploaded. (The recordings are not under `logs/`: see [`RECORDER_DIR`].)
 pub fn log_kind(rel: &str, pairs: &[PairId]) -> Option<LogKind> {
     pairs.iter().find_map(|&pair| {
         if rel == simulator_log(pair) {
@@ -201,14 +231,21 @@ pub fn log_kind(rel: &str, pairs: &[PairId]) -> Option<LogKind> {
         }
         let dir = agent_logs_dir(pair);
         let rest = rel.strip_prefix(dir.as_str())?.strip_prefix('/')?;
-        if rest.is_empty() || rest.ends_with('/') {
-            return None;
-        }
-        Some(match rest.starts_with("recorder/") {
-            true => LogKind::Recording,
-            false => LogKind::Log,
-        })
+        (!rest.is_empty() && !rest.ends_with('/')).then_some(LogKind::Log)
     })
+}
+
+/// The kind of an uploaded file relative to the logs volume, for its retention tag: these
+/// pairs' logs and recordings; `None` for the protocol's other files.
+pub fn kept_as(rel: &str, pairs: &[PairId]) -> Option<LogKind> {
+    let (dir, name) = rel.split_once('/')?;
+    match dir {
+        LOGS_DIR => log_kind(name, pairs),
+        RECORDER_DIR => recording_of(name)
+            .filter(|(pair, _)| pairs.contains(pair))
+            .map(|_| LogKind::Recording),
+        _ => None,
+    }
 }
 
 /// `simulator/simulator<ID>.log`: CARLA's output, relative to the logs directory.
@@ -735,6 +772,15 @@ mod tests {
             ("logs/simulator/simulator3.log", true),
             ("logs/agent/agent3/recorder/route0.log", true),
             ("logs/agent/agent4/agent.log", true),
+            ("recorder/pair3/RouteScenario_7_rep0.log", true),
+            ("recorder/pair4/RouteScenario_12.log", true),
+            // Another pair's recordings, or names no route has.
+            ("recorder/pair1/RouteScenario_0_rep0.log", false),
+            ("recorder/pair3/fill.bin", false),
+            ("recorder/pair3/RouteScenario_x_rep0.log", false),
+            ("recorder/pair03/RouteScenario_7_rep0.log", false),
+            ("recorder/pair3/deep/RouteScenario_7_rep0.log", false),
+            ("recorder/RouteScenario_7_rep0.log", false),
             // Not the evaluation's logs, or another pair's.
             ("logs/fill.bin", false),
             ("logs/simulator/simulator1.log", false),
@@ -760,6 +806,28 @@ mod tests {
             ("", false),
         ] {
             assert_eq!(uploads(rel, &pairs, job), up, "{rel}");
+        }
+    }
+
+    #[test]
+    fn recordings_are_kept_as_recordings_and_everything_else_under_logs_as_logs() {
+        let pairs = [3];
+        for (rel, kind) in [
+            (
+                "recorder/pair3/RouteScenario_7_rep0.log",
+                Some(LogKind::Recording),
+            ),
+            ("logs/simulator/simulator3.log", Some(LogKind::Log)),
+            // The agent's own folder is the participant's: what it writes there is a log.
+            (
+                "logs/agent/agent3/recorder/RouteScenario_7_rep0.log",
+                Some(LogKind::Log),
+            ),
+            ("recorder/pair4/RouteScenario_7_rep0.log", None),
+            ("agent/partial_agent_results3.json", None),
+            ("containers-status/agent-3.done", None),
+        ] {
+            assert_eq!(kept_as(rel, &pairs), kind, "{rel}");
         }
     }
 

@@ -11,7 +11,7 @@ use std::collections::HashSet;
 
 use serde::{Deserialize, Serialize};
 
-use crate::protocol::{log_kind, PairId, AGENT_DIR, LOGS_DIR, STATUS_DIR};
+use crate::protocol::{kept_as, PairId, AGENT_DIR, LOGS_DIR, STATUS_DIR};
 
 /// The largest results file uploaded: what the Monitor reads at most.
 pub const MAX_RESULTS_BYTES: u64 = crate::results::MAX_FILE_BYTES as u64;
@@ -113,7 +113,7 @@ impl UploadBudget {
         if !crate::protocol::uploads(rel, &self.pairs, self.job) {
             return Err(Refusal::NotOurs);
         }
-        let (dir, name) = rel.split_once('/').unwrap_or(("", rel));
+        let (dir, _) = rel.split_once('/').unwrap_or(("", rel));
         let max = match dir {
             AGENT_DIR => MAX_RESULTS_BYTES,
             STATUS_DIR => MAX_MARKER_BYTES,
@@ -122,7 +122,7 @@ impl UploadBudget {
         if size > max {
             return Err(Refusal::TooLarge);
         }
-        if dir == LOGS_DIR && log_kind(name, &self.pairs).is_some() {
+        if kept_as(rel, &self.pairs).is_some() {
             let grown = size.saturating_sub(last.unwrap_or(0));
             let stored = self.report.log_bytes.saturating_add(grown);
             if stored > self.log_limit {
@@ -190,12 +190,12 @@ mod tests {
             // The 200 MiB file written at the top of the logs volume.
             ("logs/fill.bin", 200 << 20, None, Err(Refusal::NotOurs)),
             (
-                "logs/agent/agent3/recorder/route0.log",
+                "recorder/pair3/RouteScenario_0_rep0.log",
                 MAX_LOG_BYTES + 1,
                 None,
                 Err(Refusal::TooLarge),
             ),
-            ("logs/agent/agent3/recorder/route0.log", GIB, None, Ok(())),
+            ("recorder/pair3/RouteScenario_0_rep0.log", GIB, None, Ok(())),
             // A log that grows counts its growth only.
             ("logs/agent/agent3/agent.log", GIB, Some(GIB - 10), Ok(())),
             (
@@ -212,7 +212,7 @@ mod tests {
         assert_eq!(budget.report().log_bytes, 2 * GIB + 10);
         // Files deleted after their upload stay counted: the pair's 8 GiB run out.
         for route in 2..8 {
-            let rel = format!("logs/agent/agent3/recorder/route{route}.log");
+            let rel = format!("recorder/pair3/RouteScenario_{route}_rep0.log");
             assert_eq!(budget.admit(&rel, GIB - 10, None), Ok(()), "{rel}");
         }
         let rel = "logs/agent/agent3/recorder/route8.log";

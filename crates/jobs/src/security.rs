@@ -1,6 +1,7 @@
 //! The least a submission's containers get, checked on every rendered Job: no root where the
 //! images allow it, no capabilities, the runtime's seccomp filter, requests equal to limits
-//! from the settings, a bounded `/dev/shm`. A template that loosens any of it does not render.
+//! from the settings, a bounded `/dev/shm`, the recordings out of the participant's reach. A
+//! template that loosens any of it does not render.
 
 use k8s_openapi::api::batch::v1::Job;
 use k8s_openapi::api::core::v1::{Container, PodSpec, ResourceRequirements};
@@ -16,6 +17,9 @@ pub const UNPRIVILEGED_UID: i64 = 1000;
 
 /// Containers that may run as root: the participant's agents.
 const ROOT_ALLOWED_PREFIX: &str = "agent-";
+
+/// The volume every container's logs, results and markers are in.
+const LOGS_VOLUME: &str = "logs";
 
 /// The volume mounted at `/dev/shm`.
 pub const SHM_VOLUME: &str = "dshm";
@@ -197,6 +201,7 @@ fn check_container(c: &Container, at: &str, context: &JobContext) -> Result<(), 
             return Err(refuse(at_sc("runAsUser"), "must not be 0"));
         }
     }
+    check_recordings(c, at)?;
     let expected = if c.name.starts_with("simulator-") {
         &context.resources.simulator
     } else if c.name.starts_with("agent-") {
@@ -205,6 +210,47 @@ fn check_container(c: &Container, at: &str, context: &JobContext) -> Result<(), 
         &context.resources.sidecar
     };
     check_resources(c.resources.as_ref(), expected, &format!("{at}.resources"))
+}
+
+/// The CARLA recordings stay out of the participant's reach: an agent mounts only subfolders of
+/// the logs volume and none under `recorder/`, and each simulator mounts its pair's folder
+/// where the evaluator points CARLA (`docs/security.md`, "Recordings").
+fn check_recordings(c: &Container, at: &str) -> Result<(), RenderError> {
+    use lb_domain::protocol::{recorder_dir, RECORDER_DIR, SIMULATOR_RECORDER_MOUNT};
+    let mounts = c.volume_mounts.as_deref().unwrap_or_default();
+    let logs = || {
+        mounts
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| m.name == LOGS_VOLUME)
+    };
+    if c.name.starts_with(ROOT_ALLOWED_PREFIX) {
+        for (i, m) in logs() {
+            let sub = m.sub_path.as_deref().unwrap_or_default();
+            if sub.is_empty() || sub.split('/').next() == Some(RECORDER_DIR) {
+                return Err(refuse(
+                    format!("{at}.volumeMounts[{i}].subPath"),
+                    format!("`{}` may mount only its own folders of `{LOGS_VOLUME}`, never the recordings", c.name),
+                ));
+            }
+        }
+    }
+    if let Some(pair) = c.name.strip_prefix("simulator-") {
+        let own = recorder_dir(pair.parse().unwrap_or_default());
+        let mounted = logs().any(|(_, m)| {
+            m.mount_path == SIMULATOR_RECORDER_MOUNT && m.sub_path.as_deref() == Some(&own)
+        });
+        if !mounted {
+            return Err(refuse(
+                format!("{at}.volumeMounts"),
+                format!(
+                    "`{}` must mount `{own}` of `{LOGS_VOLUME}` at {SIMULATOR_RECORDER_MOUNT}",
+                    c.name
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 fn check_resources(

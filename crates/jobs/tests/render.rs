@@ -976,6 +976,50 @@ fn every_volume_of_the_rendered_jobs_is_bounded_and_every_container_limits_its_d
 }
 
 #[test]
+fn only_a_pair_s_simulator_mounts_its_recordings_folder_where_the_evaluator_points_carla() {
+    use lb_domain::protocol::{recorder_dir, RECORDER_DIR, SIMULATOR_RECORDER_MOUNT};
+    for (leaderboard, workers) in [(Leaderboard::V2, 6), (Leaderboard::V1, 3)] {
+        for job in jobs(leaderboard, 20, workers, "team") {
+            let pod = pod(&job);
+            for c in pod.init_containers.iter().flatten().chain(&pod.containers) {
+                let logs_mounts: Vec<(&str, &str)> = (c.volume_mounts.iter().flatten())
+                    .filter(|m| m.name == "logs")
+                    .map(|m| (m.mount_path.as_str(), m.sub_path.as_deref().unwrap_or("")))
+                    .collect();
+                let recorder: Vec<&(&str, &str)> = logs_mounts
+                    .iter()
+                    .filter(|(_, sub)| sub.starts_with(RECORDER_DIR))
+                    .collect();
+                let role = c.name.split_once('-').map(|(role, _)| role);
+                match (role, c.name.rsplit_once('-')) {
+                    (Some("simulator"), Some((_, pair))) => {
+                        let pair: u32 = pair.parse().unwrap();
+                        let own = recorder_dir(pair);
+                        assert_eq!(
+                            recorder,
+                            [&(SIMULATOR_RECORDER_MOUNT, own.as_str())],
+                            "{}",
+                            c.name
+                        );
+                    }
+                    // Ours, reading the whole volume to upload it.
+                    _ if ["logcopy", "private-contents"].contains(&c.name.as_str()) => {}
+                    // The participant's container: only its own subfolders, never the root.
+                    _ => {
+                        assert!(recorder.is_empty(), "{}: {logs_mounts:?}", c.name);
+                        assert!(
+                            logs_mounts.iter().all(|(_, sub)| !sub.is_empty()),
+                            "{}: {logs_mounts:?}",
+                            c.name
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
 fn an_operators_pair_resources_reach_the_containers() {
     let mut s = settings(Leaderboard::V2);
     s.resources = lb_domain::resources::PairShare {
@@ -1033,7 +1077,7 @@ fn a_template_that_loosens_the_confinement_does_not_load() {
     securityContext:
       allowPrivilegeEscalation: false
       capabilities: {drop: [ALL]}";
-    let cases: [(&str, &str, &str); 14] = [
+    let cases: [(&str, &str, &str); 16] = [
         (AGENT_CAPS, "    securityContext:\n      allowPrivilegeEscalation: false", "containers[1].securityContext.capabilities.drop"),
         ("capabilities: {drop: [ALL]}\n    resources.$: $.resources.agent", "capabilities: {drop: [ALL], add: [NET_RAW]}\n    resources.$: $.resources.agent", "containers[1].securityContext.capabilities.add"),
         ("      runAsNonRoot: true\n", "      runAsNonRoot: false\n", ".securityContext.runAsNonRoot"),
@@ -1048,6 +1092,9 @@ fn a_template_that_loosens_the_confinement_does_not_load() {
         ("          - {name: logs, emptyDir: {sizeLimit.$: $.resources.volumes.logs}}", "          - {name: logs, hostPath: {path: /var/log}}", "volumes[0].hostPath"),
         ("{name: carla-api, emptyDir: {sizeLimit.$: $.resources.volumes.sources}}", "{name: carla-api, emptyDir: {}}", "volumes[4].emptyDir.sizeLimit"),
         ("resources.$: $.resources.agent", "resources: {limits: {cpu: 6000m, memory: 24576Mi, nvidia.com/gpu: '1'}, requests: {cpu: 6000m, memory: 24576Mi, nvidia.com/gpu: '1'}}", "containers[1].resources.requests.ephemeral-storage"),
+        // The participant's container reaching the recordings: the whole volume, or the folder.
+        ("      - {name: logs, mountPath: /tmp/agent, subPath: agent}", "      - {name: logs, mountPath: /tmp/agent}", "containers[1].volumeMounts[1].subPath"),
+        ("      - {name: logs, mountPath: /tmp/recorder, subPath.$: \"States.Format('recorder/pair{}', $.pair.id)\"}\n", "", "containers[0].volumeMounts"),
     ];
     for (from, to, path) in cases {
         for template in [LEADERBOARD_20, LEADERBOARD_10] {

@@ -3,6 +3,7 @@
 
 use futures_util::{StreamExt as _, TryStreamExt as _};
 use lb_aws::s3::{EvalAiObjects, PartialObject, SubmissionStore, MAX_PARTIAL_BYTES};
+use lb_domain::audit;
 use lb_domain::py::Num;
 use lb_domain::results::{
     self, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions, Merged, ResultsFile,
@@ -33,8 +34,8 @@ pub struct Snapshot {
     pub finished_pairs: Vec<u32>,
     /// (DynamoDB attribute, value) per metric.
     pub metrics: Vec<(&'static str, Num)>,
-    /// The merged records' route ids, in order (what the recordings are checked against).
-    pub route_ids: Vec<String>,
+    /// The merged records as the recordings' audit needs them, in order.
+    pub routes: Vec<audit::Route>,
 }
 
 /// The workers' files as one listing found them.
@@ -152,9 +153,9 @@ pub async fn collect_listed(
     } = merge_partials(store, &partials, leaderboard, &pairs, repetitions).await?;
     let files = EvalAiFiles::generate(merged.as_ref(), leaderboard);
     let merged_json = merged.as_ref().map(|m| m.to_json());
-    let route_ids = merged.as_ref().map_or_else(Vec::new, |m| {
-        m.records.iter().map(|r| r.route_id.raw.clone()).collect()
-    });
+    let routes = merged
+        .as_ref()
+        .map_or_else(Vec::new, |m| audited_routes(m, &pairs));
     let metrics = metrics(&files, leaderboard);
     store
         .put_evalai_files(&EvalAiObjects {
@@ -174,8 +175,31 @@ pub async fn collect_listed(
         complete,
         finished_pairs,
         metrics,
-        route_ids,
+        routes,
     })
+}
+
+/// Each merged record with the pair whose subset holds its route (the merge took each pair's
+/// records from that pair's file only, within its subset), its simulated time and whether it
+/// scores.
+fn audited_routes(merged: &Merged, pairs: &[(u32, RouteSubset)]) -> Vec<audit::Route> {
+    merged
+        .records
+        .iter()
+        .filter_map(|r| {
+            let pair = pairs
+                .iter()
+                .find(|(_, subset)| subset.contains(r.route_id.route))?
+                .0;
+            Some(audit::Route {
+                pair,
+                id: r.route_id.raw.clone(),
+                game_seconds: r.meta.duration_game.as_f64(),
+                scores: r.scores.score_route.as_f64() > 0.0
+                    || r.scores.score_composed.as_f64() > 0.0,
+            })
+        })
+        .collect()
 }
 
 /// The workers' files, a few at a time, in order: the reads are independent.

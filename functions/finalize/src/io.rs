@@ -3,12 +3,15 @@
 //! every step is idempotent); the best-effort ones (the agent's log, the logs' listing, the
 //! pace, the team's wake-up) are logged and answered as unread.
 
+use std::collections::HashMap;
 use std::time::Duration;
+
+use futures_util::StreamExt as _;
 
 use lb_aws::dynamo::{FinalRecord, QualifierTable, SubmissionsTable};
 use lb_aws::s3::SubmissionStore;
 use lb_aws::tasks::Callbacks;
-use lb_domain::audit::Recordings;
+use lb_domain::audit::{self, Recordings};
 use lb_domain::closing::{Answer, Left, Merged, Read, Record, Step};
 use lb_domain::cost::{self, Totals};
 use lb_domain::finalize::Posted;
@@ -31,6 +34,9 @@ use crate::Deps;
 /// Bytes read from the end of an agent's log: enough for [`MAX_TAIL_CHARS`] characters of
 /// multi-byte text and the escapes that are stripped from it.
 const TAIL_BYTES: u64 = 64 * 1024;
+
+/// Recordings' heads read at once: a result has a recording per route, up to hundreds.
+const HEAD_READS: usize = 16;
 
 /// What the shell keeps between steps: its clients, and the results it read (posted and
 /// recorded whole; the closing only sees what it decides on).
@@ -100,13 +106,14 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 let texts = (status, stdout, stderr);
                 Answer::Posted(post_final(self.deps, sub, self.merged(), texts).await?)
             }
-            Step::ListLogs => Answer::Logs(match self.store.logs().await {
-                Ok(logs) => Some(logs),
+            Step::ListRecordings => Answer::Listed(match self.store.recordings().await {
+                Ok(listed) => Some(listed),
                 Err(e) => {
-                    warn!(error = %e, "logs not listed: the recordings are not counted");
+                    warn!(error = %e, "recordings not listed: they are not audited");
                     None
                 }
             }),
+            Step::ReadHeads(keys) => Answer::Heads(self.heads(keys).await),
             Step::WriteRecord {
                 status,
                 error,
@@ -177,7 +184,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 progress: s.progress,
                 finished_pairs: s.finished_pairs.clone(),
                 metrics: s.metrics.clone(),
-                route_ids: s.route_ids.clone(),
+                routes: s.routes.clone(),
                 summary: s.files.stdout.clone(),
             }),
             Err(e) if e.is_transient() => Read::NotNow(e.chain()),
@@ -214,12 +221,12 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         error: Option<String>,
         recordings: Option<Recordings>,
     ) -> Result<bool> {
-        if let Some(counted) = recordings.as_ref().filter(|r| !r.complete()) {
+        if let Some(audited) = recordings.as_ref().filter(|r| !r.complete()) {
             warn!(
-                found = counted.found,
-                expected = counted.expected,
-                missing = ?counted.missing,
-                "FINISHED without every route's CARLA recording: these scores cannot be audited"
+                passed = audited.passed,
+                expected = audited.expected,
+                failures = ?audited.failures,
+                "FINISHED without every route's CARLA recording passing: these scores cannot be audited"
             );
         }
         let snapshot = self.merged();
@@ -236,7 +243,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 .collect(),
             progress: snapshot.map_or((0, 0), |s| s.progress),
             error,
-            recordings: recordings.map(|r| (r.found, r.expected)),
+            recordings,
             usage: match self.run {
                 Some(run) => Some(Totals {
                     stored: self.stored(run.jobs).await,
@@ -275,6 +282,26 @@ impl<'a, C: Callbacks> Shell<'a, C> {
 
     /// What the Jobs' logcopy stored and refused, from their reports (`None` when none was
     /// read: a report that cannot be read is left out, and said).
+    /// The first bytes of each recording, a few at a time (one per route of the result); a
+    /// head that cannot be read is left out, and its route fails the audit.
+    async fn heads(&self, keys: Vec<String>) -> HashMap<String, Vec<u8>> {
+        let store = &self.store;
+        futures_util::stream::iter(keys)
+            .map(|key| async move {
+                match store.get_head(&key, audit::HEAD_BYTES).await {
+                    Ok(head) => head.map(|head| (key, head)),
+                    Err(e) => {
+                        warn!(%key, error = %e, "a recording's head could not be read");
+                        None
+                    }
+                }
+            })
+            .buffer_unordered(HEAD_READS)
+            .filter_map(std::future::ready)
+            .collect()
+            .await
+    }
+
     async fn stored(&self, jobs: u32) -> Option<UploadReport> {
         let mut total: Option<UploadReport> = None;
         for job in 0..jobs {

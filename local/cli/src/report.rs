@@ -83,8 +83,11 @@ pub struct LeftBehind {
     pub places_held: Option<usize>,
     /// Its record's status.
     pub record_status: Option<String>,
-    /// Its record's routes with a CARLA recording, and its routes (FINISHED only).
+    /// Its record's routes whose CARLA recording passed the audit, and the routes that need
+    /// one (FINISHED only).
     pub recordings: Option<(u64, u64)>,
+    /// The routes whose recording did not pass, each with why (the first few).
+    pub recordings_failed: Vec<String>,
     /// Its record's GPU usage: `gpu_seconds`, `spot`, `run_again`, `cost_usd`.
     pub usage: Option<Value>,
     /// Objects under its `containers-status/` in S3: the markers logcopy let through.
@@ -164,7 +167,25 @@ impl RunReport {
         if let Some(caught) = &self.caught_error {
             outln!("caught error   {caught}");
         }
-        outln!("EvalAI status  {}", self.evalai_status);
+        let unaudited = self
+            .left_behind
+            .recordings
+            .is_some_and(|(passed, expected)| passed < expected);
+        outln!(
+            "EvalAI status  {}{}",
+            self.evalai_status,
+            if unaudited {
+                " (FINISHED*: not every route's recording passed the audit)"
+            } else {
+                ""
+            }
+        );
+        if let Some((passed, expected)) = self.left_behind.recordings {
+            outln!("recordings     {passed}/{expected} passed the audit");
+            for failure in &self.left_behind.recordings_failed {
+                outln!("               {failure}");
+            }
+        }
         for answer in &self.reaped {
             outln!("reaper         {answer}");
         }

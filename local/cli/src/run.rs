@@ -208,6 +208,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
         times: (started, ended),
         record_log: &record_log,
         expected: scenario.expected(),
+        audit_passes: scenario.audit_passes(),
     };
     let (report, latency) = ran.report(&evalai).await;
     finish(&args, &stack, (report, latency, many), &kubeconfig).await
@@ -659,6 +660,8 @@ struct Ran<'a> {
     times: (Instant, Instant),
     record_log: &'a Path,
     expected: &'static str,
+    /// Whether a finished run's recordings must pass the audit.
+    audit_passes: bool,
 }
 
 impl Ran<'_> {
@@ -702,6 +705,20 @@ impl Ran<'_> {
         (Some(queue), latency)
     }
 
+    /// What the first submission left: its Jobs, places, record.
+    async fn left_behind(&self) -> crate::report::LeftBehind {
+        let (submission, team) = self.arrivals[0];
+        let (sdk, leaderboard) = (&self.stack.sdk, self.args.leaderboard);
+        left_behind(
+            sdk,
+            self.settings,
+            leaderboard,
+            self.kubeconfig,
+            (team, submission),
+        )
+        .await
+    }
+
     /// The run's report: what EvalAI shows, what the run left, and whether it is as expected;
     /// with the latencies measured (`--latency`).
     async fn report(self, evalai: &lb_evalai::EvalAiClient) -> (RunReport, Option<Latency>) {
@@ -711,12 +728,14 @@ impl Ran<'_> {
         let bucket = settings_bucket(self.settings, args.leaderboard);
         let expected = self.expected;
         let (queue, latency) = self.on_fake_evalai();
+        let left = self.left_behind().await;
         let reclaim = self.findings.reclaim;
         let ok = self.acted
             && reclaim
                 .as_ref()
                 .is_none_or(crate::reclaim::ReclaimReport::as_expected)
             && status_on_evalai == expected
+            && audit_as_expected(expected, &left, self.audit_passes)
             && queue
                 .as_ref()
                 .is_none_or(|q| !many || q.all_ended(expected));
@@ -773,17 +792,16 @@ impl Ran<'_> {
             seconds: started.elapsed().as_secs_f64(),
             queue,
             reaped: self.reaped,
-            left_behind: left_behind(
-                &stack.sdk,
-                self.settings,
-                args.leaderboard,
-                self.kubeconfig,
-                (self.arrivals[0].1, submission),
-            )
-            .await,
+            left_behind: left,
         };
         (report, latency)
     }
+}
+
+/// A finished run's recordings pass the audit unless the scenario tampers with them.
+fn audit_as_expected(expected: &str, left: &crate::report::LeftBehind, passes: bool) -> bool {
+    let audited = left.recordings.map(|(passed, needed)| passed == needed);
+    expected != "finished" || audited == Some(passes)
 }
 
 /// Prints and writes the report, keeps the stack up when asked: the exit code.
@@ -1096,6 +1114,12 @@ async fn left_behind(
         if let Ok(Some(item)) = records.get(team, submission).await {
             let number = |key: &str| item.get(key)?.as_n().ok()?.parse::<u64>().ok();
             left.recordings = number("recordings_found").zip(number("recordings_expected"));
+            left.recordings_failed = match item.get("recordings_failed") {
+                Some(aws_sdk_dynamodb::types::AttributeValue::L(items)) => (items.iter())
+                    .filter_map(|v| v.as_s().ok().cloned())
+                    .collect(),
+                _ => Vec::new(),
+            };
             let amount = |key: &str| item.get(key)?.as_n().ok()?.parse::<f64>().ok();
             left.usage = number("gpu_seconds").map(|gpu_seconds| {
                 serde_json::json!({

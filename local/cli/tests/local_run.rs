@@ -52,7 +52,11 @@ fn text<'a>(report: &'a Value, key: &str) -> &'a str {
 #[ignore = "needs moto"]
 fn the_happy_path_and_the_forged_and_reclaimed_runs_finish_with_the_same_scores() {
     let happy = scenario("happy", "FINISHED", &Value::Null);
-    for (name, expected) in [("forge", "FINISHED"), ("spot", "FINISHED")] {
+    for (name, expected) in [
+        ("forge", "FINISHED"),
+        ("forge-recordings", "FINISHED"),
+        ("spot", "FINISHED"),
+    ] {
         scenario(name, expected, &happy["scores"]);
     }
 }
@@ -185,6 +189,29 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
                 usage["orchestration_usd"].as_f64().unwrap() > 0.0,
                 "{report}"
             );
+        }
+        "forge-recordings" => {
+            // The scores stand on EvalAI, but not one scoring route's recording passed: each
+            // holds CARLA's header only, and the 1-byte files the agents left in their own
+            // logs are not recordings at all.
+            assert_eq!(&report["scores"], happy_scores, "{report}");
+            assert_eq!(
+                report["left_behind"]["recordings"],
+                json!([0, 20]),
+                "{report}"
+            );
+            let failed = report["left_behind"]["recordings_failed"]
+                .as_array()
+                .unwrap();
+            assert_eq!(failed.len(), 5, "the first few are named: {report}");
+            assert!(
+                failed[0]
+                    .as_str()
+                    .unwrap()
+                    .starts_with("RouteScenario_0_rep0: 45 bytes for 1216.8 s of simulated time"),
+                "{report}"
+            );
+            assert!(stdout.contains("FINISHED*"), "{stdout}");
         }
         "forge" => {
             // Pair 2's results as pair 2 wrote them: the same scores as the happy run,

@@ -1,14 +1,16 @@
-//! The fake CARLA server: listens where CARLA would, holds client connections, prints
-//! CARLA-like lines, exits 0 on SIGTERM/SIGINT and crashes on request.
+//! The fake CARLA server: listens where CARLA would, holds client connections, records what
+//! a client asks it to ([`crate::recorder`]), prints CARLA-like lines, exits 0 on
+//! SIGTERM/SIGINT and crashes on request.
 
 use std::net::{Ipv4Addr, TcpListener as StdListener};
 use std::time::Duration;
 
-use tokio::io::AsyncReadExt as _;
+use tokio::io::{AsyncBufReadExt as _, AsyncReadExt as _, BufReader};
 use tokio::net::{TcpListener, TcpStream};
 
 use crate::args::CarlaConfig;
 use crate::faults::{crash, CrashSignal, OnceDir};
+use crate::recorder::{Recorder, MAX_LINE};
 use crate::signals::Signals;
 
 /// How often `FAKE_CARLA_CRASH_FILE` is looked for.
@@ -100,8 +102,9 @@ pub async fn run(cfg: CarlaConfig) -> u8 {
             return 1;
         }
     };
-    tokio::spawn(serve(rpc, "rpc"));
-    tokio::spawn(serve(streaming, "streaming"));
+    let recorder = Recorder::new(cfg.map.as_deref());
+    tokio::spawn(serve(rpc, "rpc", Some(recorder)));
+    tokio::spawn(serve(streaming, "streaming", None));
     say(&format!(
         "fake-carla: CARLA server stand-in, map {}, flags [{}]",
         cfg.map.as_deref().unwrap_or("(default)"),
@@ -199,19 +202,48 @@ fn bind(rpc: u16, streaming: Option<u16>) -> Result<(TcpListener, TcpListener, P
     Err(last_error)
 }
 
-/// Accepts clients forever; each connection is held until the client closes it.
-async fn serve(listener: TcpListener, which: &'static str) {
+/// Accepts clients forever; each connection is held until the client closes it, and on the
+/// RPC port its recorder commands are done.
+async fn serve(listener: TcpListener, which: &'static str, recorder: Option<Recorder>) {
     loop {
         match listener.accept().await {
             Ok((stream, peer)) => {
                 tracing::debug!(port = which, %peer, "client connected");
-                tokio::spawn(hold(stream));
+                match recorder.clone() {
+                    Some(recorder) => tokio::spawn(commands(stream, recorder)),
+                    None => tokio::spawn(hold(stream)),
+                };
             }
             Err(error) => {
                 // NB: e.g. out of file descriptors; back off instead of spinning.
                 tracing::warn!(port = which, %error, "accept failed");
                 tokio::time::sleep(Duration::from_millis(100)).await;
             }
+        }
+    }
+}
+
+/// Reads a client's command lines, at most [`MAX_LINE`] bytes each (a longer one ends the
+/// connection, as a real server drops a client that sends garbage).
+async fn commands(stream: TcpStream, recorder: Recorder) {
+    let mut reader = BufReader::new(stream);
+    let mut line = Vec::new();
+    loop {
+        let buf = match reader.fill_buf().await {
+            Ok(buf) if !buf.is_empty() => buf,
+            _ => return,
+        };
+        let end = buf.iter().position(|&b| b == b'\n');
+        let chunk = &buf[..end.map_or(buf.len(), |i| i + 1)];
+        line.extend_from_slice(chunk);
+        let used = chunk.len();
+        reader.consume(used);
+        if line.len() > MAX_LINE {
+            return;
+        }
+        if end.is_some() {
+            recorder.command(&String::from_utf8_lossy(&line));
+            line.clear();
         }
     }
 }

@@ -12,7 +12,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use lb_domain::results::Leaderboard;
-use tokio::io::AsyncReadExt as _;
+use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
 use tokio::net::TcpStream;
 
 use crate::args::EvaluatorConfig;
@@ -50,6 +50,9 @@ impl Exit {
 
 /// How often a running route prints progress, so idle watchdogs see life in long routes.
 const PROGRESS_EVERY: Duration = Duration::from_secs(1);
+
+/// Simulated frames per second: the Leaderboard runs CARLA synchronously at 20 Hz.
+const SIMULATED_HZ: f64 = 20.0;
 /// How long one connection attempt to CARLA may take.
 const CONNECT_ATTEMPT: Duration = Duration::from_secs(1);
 
@@ -343,7 +346,7 @@ impl Run {
         }
 
         say(&bold("> Running the route"));
-        self.record_file(cfg);
+        self.start_recorder(cfg, carla).await;
         let faults = &self.cfg.faults;
         if let Some(sel) = faults.crash_at.filter(|s| s.matches(cfg.route, cfg.rep)) {
             let fault = format!("crash-at-route-{}", sel.label());
@@ -378,6 +381,7 @@ impl Run {
         match self.drive(cfg, &record, carla, signals).await {
             Driven::Done => {
                 say(&bold("> Stopping the route"));
+                self.recorder(carla, "stop_recorder").await;
                 self.register(cfg, record, "Started")
             }
             Driven::CarlaGone(fraction) => {
@@ -405,6 +409,11 @@ impl Run {
         let start = Instant::now();
         let mut next_report = start;
         let mut buf = [0u8; 1024];
+        // The simulated frames CARLA was told to tick (and record) so far.
+        let frames = |fraction: f64| {
+            (fraction * record.meta.duration_game.as_f64().max(0.0) * SIMULATED_HZ) as u64
+        };
+        let mut ticked = 0;
         loop {
             let elapsed = start.elapsed();
             let fraction = if total.is_zero() {
@@ -422,9 +431,11 @@ impl Run {
                     self.checkpoint_total()
                 ));
                 self.live_results(record, fraction);
+                ticked = self.tick(carla, ticked, frames(fraction)).await;
             }
             if elapsed >= total {
                 self.live_results(record, 1.0);
+                self.tick(carla, ticked, frames(1.0)).await;
                 return Driven::Done;
             }
             let wait = (total - elapsed).min(next_report.saturating_duration_since(Instant::now()));
@@ -651,23 +662,58 @@ impl Run {
         }
     }
 
-    /// The recorder file CARLA would write for `--record` (it runs server-side; the fake
-    /// server does not know the route, so the evaluator leaves it).
-    fn record_file(&self, cfg: &RouteConfig) {
+    /// `client.start_recorder("<--record>/<route>_rep<r>.log")`: CARLA, not the evaluator,
+    /// writes the file, in its own container. With `FAKE_EVALUATOR_FORGE_RECORDINGS` the
+    /// participant's code then stops the recorder and leaves 1-byte files of the route's name
+    /// where the recordings used to be.
+    async fn start_recorder(&self, cfg: &RouteConfig, carla: &mut TcpStream) {
         if self.cfg.args.record.is_empty() {
             return;
         }
-        let dir = Path::new(&self.cfg.args.record);
-        let path = dir.join(format!("{}_rep{}.log", cfg.name, cfg.rep));
-        let written = std::fs::create_dir_all(dir).and_then(|()| {
-            std::fs::write(
-                &path,
-                format!("fake CARLA recorder log for {}\n", cfg.route_id),
-            )
-        });
-        if let Err(error) = written {
-            tracing::warn!(path = %path.display(), %error, "cannot write the recorder file");
+        let name = format!("{}_rep{}.log", cfg.name, cfg.rep);
+        let path = Path::new(&self.cfg.args.record).join(&name);
+        let command = format!("start_recorder {}", path.display());
+        self.recorder(carla, &command).await;
+        if !self.cfg.faults.forge_recordings {
+            return;
         }
+        self.recorder(carla, "stop_recorder").await;
+        let Some(own) = self
+            .cfg
+            .args
+            .debug_checkpoint
+            .as_deref()
+            .and_then(Path::parent)
+        else {
+            return;
+        };
+        let forged = own.join("recorder").join(&name);
+        let written = std::fs::create_dir_all(own.join("recorder"))
+            .and_then(|()| std::fs::write(&forged, b"\0"));
+        match written {
+            Ok(()) => {
+                tracing::warn!(path = %forged.display(), "injected: recorder stopped, a 1-byte recording left")
+            }
+            Err(error) => tracing::warn!(%error, "cannot forge a recording"),
+        }
+    }
+
+    /// Sends CARLA one recorder command (`lb_workloads::carla`'s line protocol).
+    async fn recorder(&self, carla: &mut TcpStream, command: &str) {
+        if self.cfg.args.record.is_empty() {
+            return;
+        }
+        if let Err(error) = carla.write_all(format!("{command}\n").as_bytes()).await {
+            tracing::warn!(%error, command, "cannot reach CARLA's recorder");
+        }
+    }
+
+    /// Ticks CARLA up to `to` simulated frames from `from`; the frames ticked.
+    async fn tick(&self, carla: &mut TcpStream, from: u64, to: u64) -> u64 {
+        if to > from {
+            self.recorder(carla, &format!("tick {}", to - from)).await;
+        }
+        to.max(from)
     }
 
     /// `write_live_results` (2.0 only) to `--debug-checkpoint`.

@@ -323,6 +323,11 @@ pub struct EvaluatorFaults {
     pub forge_pair: Option<u32>,
     /// This pair (`LB_PAIR_ID`).
     pub pair_id: Option<u32>,
+    /// `FAKE_EVALUATOR_FORGE_RECORDINGS=1`: the participant's code tampers with the
+    /// recordings as far as its container lets it: it stops CARLA's recorder as soon as the
+    /// evaluator started it (a recording of nothing but its header), and writes a 1-byte file
+    /// of each route's name where the recordings used to be (its own logs' `recorder/`).
+    pub forge_recordings: bool,
     /// `FAKE_EVALUATOR_PLANT_GPU=<UUID>[,<UUID>...]`: once (with a once directory), write the
     /// first of these that is not this container's own GPU into the pair's GPU handoff
     /// (`$LB_HANDOFF_DIR/gpu-$LB_PAIR_ID`, default `/tmp/handoff`), then crash.
@@ -375,6 +380,8 @@ impl EvaluatorFaults {
                     .filter(|id| *id > 0)
                     .ok_or_else(|| "not a pair id (1 or more)".to_string())
             })?,
+            forge_recordings: env_value(env, "FAKE_EVALUATOR_FORGE_RECORDINGS", switch)?
+                .unwrap_or(false),
             plant_gpu: env
                 .non_empty("FAKE_EVALUATOR_PLANT_GPU")
                 .map(|v| v.split(',').map(|u| u.trim().to_owned()).collect())

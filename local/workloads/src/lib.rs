@@ -10,6 +10,7 @@ pub mod carla;
 pub mod evaluator;
 pub mod faults;
 pub mod imports;
+pub mod recorder;
 pub mod records;
 pub mod signals;
 

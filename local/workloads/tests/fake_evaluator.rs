@@ -39,6 +39,8 @@ fn merge_files(paths: &[std::path::PathBuf], lb: Leaderboard) -> String {
 fn a_five_route_subset_writes_a_checkpoint_the_domain_reader_accepts_with_its_global_record() {
     let dir = tempfile::tempdir().unwrap();
     let carla = start_carla(dir.path(), &[], &[]);
+    // The recordings' folder, as the simulator's mount of it (CARLA creates no folder).
+    std::fs::create_dir_all(dir.path().join("recorder")).unwrap();
     let args = evaluator_args(dir.path(), carla.port, "5-9", 1, false);
     let (status, stdout, stderr) = run_evaluator(dir.path(), &args, &[]);
     assert_eq!(status.code(), Some(0), "{stdout}\n{stderr}");
@@ -110,10 +112,25 @@ fn a_five_route_subset_writes_a_checkpoint_the_domain_reader_accepts_with_its_gl
         live.starts_with("Route id: RouteScenario_9_rep0\n\nScores:\n"),
         "{live}"
     );
-    assert!(dir
-        .path()
-        .join("recorder/RouteScenario_5_rep0.log")
-        .exists());
+    // CARLA, not the evaluator, wrote each route's recording: its header and a frame per
+    // simulated tick, as large as the audit wants for the route's simulated time.
+    for record in &file.records {
+        let path = dir
+            .path()
+            .join(format!("recorder/{}.log", record.route_id.raw));
+        let recording = std::fs::read(&path).unwrap();
+        let expected = lb_domain::audit::Expected {
+            pair: 1,
+            stem: record.route_id.raw.clone(),
+            game_seconds: record.meta.duration_game.as_f64(),
+        };
+        assert!(recording.starts_with(lb_domain::audit::MAGIC));
+        assert!(
+            recording.len() as u64 >= expected.min_bytes(),
+            "{}",
+            path.display()
+        );
+    }
     assert!(temp_files(dir.path()).is_empty());
 }
 

@@ -6,6 +6,7 @@ mod cancel;
 mod crash;
 mod crash_loop;
 mod forge;
+mod forge_recordings;
 mod hang;
 mod happy;
 mod no_node;
@@ -61,6 +62,10 @@ pub enum Scenario {
     /// Every other pair's agent writes pair 2's results file and done marker in its own pod:
     /// none of it leaves the pod, pair 2's honest results stand, FINISHED.
     Forge,
+    /// Every agent stops CARLA's recorder as soon as the evaluator started it and leaves
+    /// 1-byte files of its routes' names in its own logs: FINISHED on EvalAI, and `FINISHED*`
+    /// for operators, every scoring route named with why its recording did not pass.
+    ForgeRecordings,
     /// Every agent plants another GPU's UUID in its pair's handoff and crashes once: each
     /// simulator renders on its own pair's GPU at every attempt, FINISHED (a node of 4 GPUs
     /// unless --gpus says otherwise).
@@ -90,6 +95,7 @@ impl Scenario {
             Scenario::NoNode => Box::new(no_node::NoNode),
             Scenario::WakeFlood => Box::new(wake_flood::WakeFlood),
             Scenario::Forge => Box::new(forge::Forge),
+            Scenario::ForgeRecordings => Box::new(forge_recordings::ForgeRecordings),
             Scenario::PlantGpu => Box::new(plant_gpu::PlantGpu),
             Scenario::Spot => Box::new(spot::Spot::default()),
             Scenario::Stop => Box::new(stop::Stop),
@@ -133,6 +139,11 @@ pub trait Rehearsal: Send + Sync {
 
     /// The images' and the node's behaviour (`once`: a folder for once-only faults).
     fn set_up(&self, _behaviour: &mut Behaviour, _once: &Path) {}
+
+    /// Whether a finished run's CARLA recordings pass the audit.
+    fn audit_passes(&self) -> bool {
+        true
+    }
 
     /// The participant's image.
     fn image(&self) -> &'static str {
