@@ -3,6 +3,7 @@
 
 mod latency;
 mod queue_report;
+mod reaper;
 mod reclaim;
 mod relay;
 mod report;

@@ -155,12 +155,13 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     // The wake table's wait, on moto's DynamoDB; a continuation, on the executor.
     let tasks = local_stack::integrations::with_services(tasks, &stack.sdk, late.clone());
     let acted = Arc::new(AtomicBool::new(!scenario.acts()));
+    let reaper_failures = Arc::new(AtomicU64::new(0));
     scenario.begin(&begin(
         &args,
         &stack,
         &settings,
         kubeconfig.clone(),
-        (submission, &acted),
+        (submission, &acted, &reaper_failures),
     ));
     let many = arrivals.len() > 1;
     let watch = Watch::default();
@@ -169,12 +170,14 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     let executor = executor(&args, tasks, on_event)?;
     late.bind(executor.clone());
     // Step Functions' "Execution Status Change" events go to Finalize as the reaper, as the
-    // deployment's EventBridge rule sends them.
-    let reaper = spawn_reaper(&executor, reaper_deps);
+    // deployment's EventBridge rule and Lambda's asynchronous invocation deliver them.
+    let template = local_stack::stack::app_template(&settings);
+    let scaled = (&template, args.time_scale);
+    let mut reaper = crate::reaper::Reaper::spawn(&executor, reaper_deps, scaled, reaper_failures)?;
     // S3's events and the cancel sweep wake the waiting execution, as in the deployment.
     let relays = crate::relay::spawn(
         &stack.sdk,
-        &local_stack::stack::app_template(&settings),
+        &template,
         &local_stack::stack::function_config(),
         executor.clone(),
         args.time_scale,
@@ -183,6 +186,7 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     .await?;
     let at = (challenge, phase, scenario.image());
     let executions = start(&stack, &executor, at, (&arrivals, teams.len()), started).await?;
+    reaper.schedule(scaled, executions[0].2.arn())?;
     scenario.started(&executor, executions[0].2.arn(), &watch.rounds, &acted);
     let (mut results, chains) = wait_all(&executor, executions, many, started).await;
     let reaped = reaper.collect(ended_without_finalize(&results)).await;
@@ -252,7 +256,7 @@ fn begin(
     stack: &Stack,
     settings: &lb_domain::settings::Settings,
     kubeconfig: PathBuf,
-    (submission, acted): (u64, &Arc<AtomicBool>),
+    (submission, acted, reaper_failures): (u64, &Arc<AtomicBool>, &Arc<AtomicU64>),
 ) -> Begin {
     Begin {
         kubeconfig: stack
@@ -268,6 +272,7 @@ fn begin(
         fake_evalai: stack.fake_evalai.as_ref().map(|f| f.url()),
         cancel_after_round: args.cancel_after_round,
         acted: acted.clone(),
+        reaper_failures: reaper_failures.clone(),
     }
 }
 
@@ -1015,55 +1020,6 @@ async fn merged_summary(
         routes: per_route.len(),
         per_route: per_route.values().copied().collect(),
     })
-}
-
-/// The reaper's deliveries and what it answered.
-struct Reaper {
-    answers: tokio::sync::mpsc::UnboundedReceiver<Value>,
-}
-
-impl Reaper {
-    /// The answers to the first `count` ended executions (bounded: a reaper that never
-    /// answers is reported as such, not waited on forever).
-    async fn collect(mut self, count: usize) -> Vec<Value> {
-        let mut answers = Vec::new();
-        while answers.len() < count {
-            match tokio::time::timeout(Duration::from_secs(600), self.answers.recv()).await {
-                Ok(Some(answer)) => answers.push(answer),
-                Ok(None) | Err(_) => {
-                    answers.push(serde_json::json!({"error": "the reaper did not answer"}));
-                    break;
-                }
-            }
-        }
-        answers
-    }
-}
-
-/// Delivers every execution's status change to `finalize` (which leaves alone those that
-/// reached it) and keeps the answers of those that ended without it.
-fn spawn_reaper(
-    executor: &Executor,
-    finalize: Arc<finalize::Deps<local_stack::events::LateCallbacks>>,
-) -> Reaper {
-    let mut changes = executor.status_changes();
-    let (tx, answers) = tokio::sync::mpsc::unbounded_channel();
-    tokio::spawn(async move {
-        while let Some(event) = changes.recv().await {
-            let status = event["detail"]["status"]
-                .as_str()
-                .and_then(|s| s.parse().ok());
-            if !status.is_some_and(|s| lb_domain::reaper::REAPED_STATUSES.contains(&s)) {
-                continue;
-            }
-            let answer = match lb_pipeline::serve::call(&*finalize, event).await {
-                Ok(out) => out,
-                Err(e) => serde_json::json!({"error": e.chain()}),
-            };
-            let _ = tx.send(answer);
-        }
-    });
-    Reaper { answers }
 }
 
 /// What an ended run left: its Jobs, its team's places, its record's status.

@@ -78,6 +78,12 @@ fn a_cancel_ends_cancelled_and_a_stopped_execution_is_reaped() {
 
 #[test]
 #[ignore = "needs moto"]
+fn a_run_stopped_while_evalai_is_down_is_ended_by_the_reaper_s_pass_once_it_is_back() {
+    scenario("evalai-down", "FAILED", &Value::Null);
+}
+
+#[test]
+#[ignore = "needs moto"]
 fn an_unpullable_image_a_crash_loop_and_no_node_fail_with_their_reasons() {
     for name in ["unpullable", "crash-loop", "no-node"] {
         scenario(name, "FAILED", &Value::Null);
@@ -160,7 +166,33 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
                 stderr.contains("stopped by an operator before it finished"),
                 "{report}"
             );
-            assert_eq!(report["reaped"][0][0]["outcome"], "FAILED", "{report}");
+            let reaped = &report["reaped"][0];
+            assert_eq!(reaped["via"], "event", "{report}");
+            assert_eq!(reaped["attempts"], 1, "{report}");
+            assert_eq!(reaped["answer"][0]["outcome"], "FAILED", "{report}");
+            let left = &report["left_behind"];
+            assert_eq!(left["jobs"], 0, "{report}");
+            assert_eq!(left["places_held"], 0, "{report}");
+            assert_eq!(left["record_status"], "FAILED", "{report}");
+        }
+        "evalai-down" => {
+            // EvalAI failed through Finalize and through the three attempts of the reaper's
+            // event, which was then dropped; once EvalAI was back, the scheduled pass ended
+            // the run: nothing left, EvalAI told.
+            assert_eq!(text(&report, "execution"), "ABORTED", "{report}");
+            assert!(
+                stderr.contains("stopped by an operator before it finished"),
+                "{report}"
+            );
+            let reaped = report["reaped"].as_array().unwrap();
+            let event = reaped.iter().find(|r| r["via"] == "event").unwrap();
+            assert_eq!(event["attempts"], 3, "{report}");
+            assert_eq!(event["dropped"], true, "{report}");
+            let pass = reaped
+                .iter()
+                .find(|r| r["via"] == "scheduled pass")
+                .unwrap();
+            assert_eq!(pass["answer"][0]["outcome"], "FAILED", "{report}");
             let left = &report["left_behind"];
             assert_eq!(left["jobs"], 0, "{report}");
             assert_eq!(left["places_held"], 0, "{report}");
@@ -282,7 +314,7 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
             "{scenario}: {report}"
         );
     }
-    if !["crash-loop", "unpullable", "no-node", "stop"].contains(&scenario) {
+    if !["crash-loop", "unpullable", "no-node", "stop", "evalai-down"].contains(&scenario) {
         assert!(report["evalai_stderr"].is_null(), "{scenario}: {report}");
     }
     report

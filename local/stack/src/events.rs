@@ -189,6 +189,30 @@ impl SqsEventSource {
     }
 }
 
+/// How Lambda runs again an asynchronous invocation (what EventBridge makes of its Lambda
+/// targets) whose function returned an error: Lambda's documented waits, one minute before
+/// the second attempt and two before the third, as many as the function's
+/// `EventInvokeConfig.MaximumRetryAttempts` allows (Lambda's default, 2, without one); after
+/// the last, the event is dropped. (EventBridge's own `RetryPolicy` covers only handing the
+/// event to Lambda, which local mode does not fail.)
+pub fn async_retry_waits(
+    template: &Template,
+    function: &str,
+) -> Result<Vec<Duration>, TemplateError> {
+    const WAITS: [Duration; 2] = [Duration::from_secs(60), Duration::from_secs(120)];
+    template.property(function, &[])?;
+    let retries = match template.property(function, &["EventInvokeConfig", "MaximumRetryAttempts"])
+    {
+        Ok(v) => v.as_u64().filter(|n| *n <= 2).ok_or_else(|| {
+            TemplateError::Invalid(format!(
+                "`{function}`: `EventInvokeConfig.MaximumRetryAttempts` is not 0, 1 or 2"
+            ))
+        })?,
+        Err(_) => 2,
+    };
+    Ok(WAITS[..retries as usize].to_vec())
+}
+
 /// The period of the scheduled rule `id` (`ScheduleExpression: rate(<n> <unit>)`, units as
 /// EventBridge spells them).
 pub fn schedule_period(template: &Template, id: &str) -> Result<Duration, TemplateError> {
@@ -336,5 +360,31 @@ mod tests {
         );
         let err = schedule_period(&lb_infra::template::APP, "WakeRule").unwrap_err();
         assert!(err.to_string().contains("ScheduleExpression"), "{err}");
+        assert_eq!(
+            schedule_period(&lb_infra::template::APP, "ReaperSchedule").unwrap(),
+            Duration::from_secs(300)
+        );
+    }
+
+    #[test]
+    fn a_failed_reaper_runs_again_after_lambda_s_waits_as_its_invoke_config_allows() {
+        let app = &lb_infra::template::APP;
+        assert_eq!(
+            async_retry_waits(app, "FinalizeFunction").unwrap(),
+            [Duration::from_secs(60), Duration::from_secs(120)]
+        );
+        // Without an EventInvokeConfig, Lambda's default: two retries.
+        assert_eq!(async_retry_waits(app, "WakeFunction").unwrap().len(), 2);
+        let none = Template::parse(
+            "Resources:\n  F:\n    Type: AWS::Serverless::Function\n    Properties:\n      EventInvokeConfig: {MaximumRetryAttempts: 0}\n",
+        )
+        .unwrap();
+        assert!(async_retry_waits(&none, "F").unwrap().is_empty());
+        let bad = Template::parse(
+            "Resources:\n  F:\n    Type: AWS::Serverless::Function\n    Properties:\n      EventInvokeConfig: {MaximumRetryAttempts: 5}\n",
+        )
+        .unwrap();
+        assert!(async_retry_waits(&bad, "F").is_err());
+        assert!(async_retry_waits(app, "NoSuchFunction").is_err());
     }
 }

@@ -5,6 +5,7 @@
 mod cancel;
 mod crash;
 mod crash_loop;
+mod evalai_down;
 mod forge;
 mod forge_recordings;
 mod hang;
@@ -80,6 +81,11 @@ pub enum Scenario {
     /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
     /// `failed` with the reason and writes the final record.
     Stop,
+    /// EvalAI fails from the moment the run is finished: Finalize cannot post, an operator
+    /// stops the execution, every attempt of the reaper's event fails and it is dropped; once
+    /// EvalAI is back the reaper's scheduled pass deletes the Jobs, gives the place back and
+    /// tells EvalAI `failed`.
+    EvalaiDown,
 }
 
 impl Scenario {
@@ -99,6 +105,7 @@ impl Scenario {
             Scenario::PlantGpu => Box::new(plant_gpu::PlantGpu),
             Scenario::Spot => Box::new(spot::Spot::default()),
             Scenario::Stop => Box::new(stop::Stop),
+            Scenario::EvalaiDown => Box::new(evalai_down::EvalAiDown::default()),
         }
     }
 }
@@ -120,6 +127,26 @@ pub struct Begin {
     pub cancel_after_round: u64,
     /// Set once the scenario did its act (for those that [`act`](Rehearsal::acts)).
     pub acted: Arc<AtomicBool>,
+    /// Attempts of the reaper's event deliveries that failed so far.
+    pub reaper_failures: Arc<AtomicU64>,
+}
+
+/// `PUT <url><path>` with a JSON body on a fake's admin API: its HTTP status.
+pub async fn admin_put(url: &str, path: &str, body: &str) -> std::io::Result<u16> {
+    use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
+    let host = url.strip_prefix("http://").unwrap_or(url);
+    let mut stream = tokio::net::TcpStream::connect(host).await?;
+    let request = format!(
+        "PUT {path} HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    stream.write_all(request.as_bytes()).await?;
+    let mut head = [0u8; 12];
+    stream.read_exact(&mut head).await?;
+    let status = std::str::from_utf8(&head[9..12])
+        .ok()
+        .and_then(|s| s.parse().ok());
+    status.ok_or_else(|| std::io::Error::other("not an HTTP answer"))
 }
 
 /// What a scenario found, for the report.
