@@ -125,6 +125,13 @@ pub fn execution_name(submission: u64) -> String {
 
 pub use lb_aws::executions::execution_arn;
 
+/// `image` named by the registry digest `digest` (`sha256:...`), when both are well formed.
+fn pinned(image: &str, digest: &str) -> Option<String> {
+    let reference = lb_jobs::parse_image(image).ok()?;
+    let pinned = reference.pinned(digest).to_string();
+    lb_jobs::parse_image(&pinned).ok().map(|_| pinned)
+}
+
 fn image_ok(image: &str) -> Result<()> {
     if image.trim().is_empty()
         || image.len() > 1000
@@ -262,8 +269,13 @@ pub async fn resume(args: Resume) -> Result<u8> {
             record.table
         ))
     })?;
-    let image = record
+    // The digest the run ran (the routes kept were driven by it), else the tag as submitted.
+    let pinned = record
         .text("submitted_image_uri")
+        .and_then(|i| pinned(i, record.text("image_digest")?));
+    let image = pinned
+        .as_deref()
+        .or(record.text("submitted_image_uri"))
         .filter(|i| image_ok(i).is_ok());
     let challenge = match args.challenge {
         Some(c) => c,
@@ -383,6 +395,20 @@ fn resume_refusal(status: Option<RecordStatus>, force: bool, id: u64) -> Option<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_resume_runs_the_digest_the_run_ran() {
+        let digest = format!("sha256:{}", "c".repeat(64));
+        let tag = "342236305043.dkr.ecr.us-west-2.amazonaws.com/team-one:agent-v1";
+        assert_eq!(
+            pinned(tag, &digest).as_deref(),
+            Some(
+                format!("342236305043.dkr.ecr.us-west-2.amazonaws.com/team-one@{digest}").as_str()
+            )
+        );
+        assert_eq!(pinned(tag, "sha256:nothex"), None);
+        assert_eq!(pinned("not an image", &digest), None);
+    }
 
     #[test]
     fn the_input_is_the_pipes_one_element_batch_with_a_missing_image_null() {

@@ -8,6 +8,7 @@
 pub mod admission;
 pub mod budget;
 pub mod dynamo;
+pub mod ecr;
 pub mod eks;
 mod error;
 pub mod executions;

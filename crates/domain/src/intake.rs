@@ -32,6 +32,16 @@ pub fn invalid_image(image: &str, problem: &str) -> String {
     )
 }
 
+/// What the participant reads when the registry has no image of the reference's tag (never
+/// pushed, or deleted since).
+pub fn image_not_found(image: &str) -> String {
+    format!(
+        "the docker image `{}` is not in its registry; push it again with `evalai push` and \
+         submit again",
+        image.escape_debug()
+    )
+}
+
 /// What the participant reads when their team has not passed the qualifier the track needs.
 pub fn not_qualified(team: &str, qualifier: &str, track: &str) -> String {
     format!("team `{team}` has not passed the qualifier track `{qualifier}` yet, which `{track}` requires")

@@ -51,6 +51,54 @@ impl fmt::Display for ImageRef {
     }
 }
 
+/// An image in Amazon ECR named by its tag: what can be resolved to the digest it names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EcrTagged<'a> {
+    /// The registry: its AWS account id.
+    pub registry: &'a str,
+    /// The registry's region.
+    pub region: &'a str,
+    /// The repository's name.
+    pub repository: &'a str,
+    /// The tag.
+    pub tag: &'a str,
+}
+
+impl ImageRef {
+    /// The ECR image this names by tag (`<account>.dkr.ecr[-fips].<region>.amazonaws.com[.cn]/
+    /// <repository>:<tag>`); `None` for another registry or a reference that has a digest.
+    pub fn ecr_tagged(&self) -> Option<EcrTagged<'_>> {
+        if self.digest.is_some() {
+            return None;
+        }
+        let host = self.domain.as_deref()?;
+        let host = host
+            .strip_suffix(".amazonaws.com")
+            .or_else(|| host.strip_suffix(".amazonaws.com.cn"))?;
+        let (registry, rest) = host.split_once('.')?;
+        let region = rest
+            .strip_prefix("dkr.ecr.")
+            .or_else(|| rest.strip_prefix("dkr.ecr-fips."))?;
+        let account = registry.len() == 12 && registry.bytes().all(|b| b.is_ascii_digit());
+        let region_ok = !region.is_empty() && !region.contains('.');
+        (account && region_ok).then_some(EcrTagged {
+            registry,
+            region,
+            repository: &self.path,
+            tag: self.tag.as_deref().unwrap_or("latest"),
+        })
+    }
+
+    /// The same image named by `digest` alone: every pull gets exactly these bytes.
+    pub fn pinned(&self, digest: &str) -> ImageRef {
+        ImageRef {
+            tag: None,
+            digest: Some(digest.to_owned()),
+            ..self.clone()
+        }
+    }
+}
+
 fn alnum_lower(c: u8) -> bool {
     c.is_ascii_lowercase() || c.is_ascii_digit()
 }
@@ -229,6 +277,37 @@ mod tests {
         ] {
             let r = parse_image(ok).unwrap_or_else(|e| panic!("{ok}: {e}"));
             assert_eq!(r.to_string(), ok);
+        }
+    }
+
+    #[test]
+    fn an_ecr_tag_is_what_can_be_pinned_to_its_digest() {
+        let digest = format!("sha256:{}", "ab".repeat(32));
+        let r = parse_image("342236305043.dkr.ecr.us-west-2.amazonaws.com/team/agent:v3").unwrap();
+        let ecr = r.ecr_tagged().unwrap();
+        assert_eq!(
+            (ecr.registry, ecr.region, ecr.repository, ecr.tag),
+            ("342236305043", "us-west-2", "team/agent", "v3")
+        );
+        assert_eq!(
+            r.pinned(&digest).to_string(),
+            format!("342236305043.dkr.ecr.us-west-2.amazonaws.com/team/agent@{digest}")
+        );
+        // No tag is `latest`, as a pull reads it.
+        let latest =
+            parse_image("342236305043.dkr.ecr-fips.us-gov-west-1.amazonaws.com/a").unwrap();
+        assert_eq!(
+            latest.ecr_tagged().map(|e| (e.region, e.tag)),
+            Some(("us-gov-west-1", "latest"))
+        );
+        for other in [
+            "carlasim/carla:0.9.15",
+            "ghcr.io/org/img:v1",
+            "12345.dkr.ecr.us-west-2.amazonaws.com/a:v1",
+            "342236305043.dkr.ecr.us-west-2.amazonaws.com.evil.io/a:v1",
+            "342236305043.dkr.ecr.us-west-2.amazonaws.com/a:v1@sha256:0123456789abcdef0123456789abcdef",
+        ] {
+            assert_eq!(parse_image(other).unwrap().ecr_tagged(), None, "{other}");
         }
     }
 

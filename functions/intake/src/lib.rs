@@ -1,10 +1,12 @@
 //! Intake (stage 1): validate the message, read the submission on EvalAI, decide whether it is
-//! ours to run, gate on the qualifier, choose the worker count and claim it in DynamoDB.
+//! ours to run, pin the image's tag to its digest, gate on the qualifier, choose the worker
+//! count and claim it in DynamoDB.
 //!
 //! Nothing here touches the Job cluster: a skipped or rejected submission costs nothing.
 
 use aws_config::SdkConfig;
 use lb_aws::dynamo::{Claim, NewRecord, QualifierTable, SubmissionsTable};
+use lb_aws::ecr::{Lookup, Registry, Repository};
 use lb_domain::intake;
 use lb_domain::settings::{Settings, Target};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
@@ -16,7 +18,7 @@ use std::future::Future;
 use tracing::{info, warn};
 
 /// What Intake needs: read access to EvalAI and the settings, the submissions and qualifier
-/// tables.
+/// tables, the participants' image registry.
 #[derive(Debug, Clone)]
 pub struct Deps {
     /// The operator's configuration.
@@ -25,6 +27,8 @@ pub struct Deps {
     pub evalai: EvalAiClient,
     /// DynamoDB.
     pub dynamo: aws_sdk_dynamodb::Client,
+    /// ECR, where the participants' images are.
+    pub registry: Registry,
 }
 
 impl Deps {
@@ -42,6 +46,7 @@ impl Deps {
             settings,
             evalai,
             dynamo: aws_sdk_dynamodb::Client::new(sdk),
+            registry: Registry::new(sdk),
         })
     }
 }
@@ -92,11 +97,23 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
     };
     // Before anything is claimed: an image no cluster can pull would hold the claim for a run
     // that cannot start, and an oversized one would grow every state's payload.
-    if let Err(problem) = lb_jobs::parse_image(&image) {
-        let reason = intake::invalid_image(&image, &problem);
-        return Ok(decided(Action::Reject, Some(reason), info));
-    }
-    info.image = image;
+    let reference = match lb_jobs::parse_image(&image) {
+        Ok(reference) => reference,
+        Err(problem) => {
+            let reason = intake::invalid_image(&image, &problem);
+            return Ok(decided(Action::Reject, Some(reason), info));
+        }
+    };
+    // The Jobs run the digest the tag names now: every pair and every replacement pod runs
+    // the same code, whatever is pushed to the tag later.
+    info.image = match pinned(deps, &reference).await? {
+        Pinned::Digest(pinned) => pinned,
+        Pinned::AsGiven => image.clone(),
+        Pinned::NotFound => {
+            let reason = intake::image_not_found(&image);
+            return Ok(decided(Action::Reject, Some(reason), info));
+        }
+    };
     if let Some(qualifier) = target.required_qualifier() {
         let table = QualifierTable::new(deps.dynamo.clone(), &target.deployment.qualifier_table);
         // The item `(team, track)` admits: a pass recorded by the original system counts.
@@ -110,7 +127,7 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
         .worker_override(info.team_id, info.submission_id)
         .await?;
     info.workers = intake::worker_count(overridden, target.track_settings.workers, info.routes);
-    Ok(match table.claim(&new_record(&info)).await? {
+    Ok(match table.claim(&new_record(&info, &image)).await? {
         Claim::Claimed => decided(Action::Run, None, info),
         Claim::Duplicate { status, claimed_by } => {
             let reason = intake::duplicate(claimed_by.as_deref(), status.as_deref());
@@ -154,15 +171,49 @@ fn described(
     })
 }
 
-/// The record the claim writes.
-fn new_record(info: &SubmissionInfo) -> NewRecord {
+/// What the Jobs will name the participant's image by.
+enum Pinned {
+    /// Its digest (`repo@sha256:...`).
+    Digest(String),
+    /// The reference as given: not an ECR tag, or the registry would not say (the Monitor
+    /// then holds the pods to the first digest they run).
+    AsGiven,
+    /// The registry has no such image.
+    NotFound,
+}
+
+/// Resolves an ECR tag to the digest it names now (`lb_aws::ecr`).
+async fn pinned(deps: &Deps, reference: &lb_jobs::ImageRef) -> Result<Pinned> {
+    let Some(ecr) = reference.ecr_tagged() else {
+        return Ok(Pinned::AsGiven);
+    };
+    let repository = Repository {
+        registry: ecr.registry,
+        region: ecr.region,
+        name: ecr.repository,
+    };
+    Ok(match deps.registry.digest_of(&repository, ecr.tag).await? {
+        Lookup::Digest(digest) => {
+            info!(%digest, "the image's tag resolved");
+            Pinned::Digest(reference.pinned(&digest).to_string())
+        }
+        Lookup::NotFound => Pinned::NotFound,
+        Lookup::Refused(why) => {
+            warn!(%why, "the image's tag not resolved: the Jobs name the tag");
+            Pinned::AsGiven
+        }
+    })
+}
+
+/// The record the claim writes: the image as the participant submitted it.
+fn new_record(info: &SubmissionInfo, submitted: &str) -> NewRecord {
     NewRecord {
         team_id: info.team_id,
         submission_id: info.submission_id,
         team_name: info.team_name.clone(),
         track_id: info.phase_id,
         track_name: info.track.clone(),
-        image: info.image.clone(),
+        image: submitted.to_owned(),
         workers: info.workers,
         submitted_time: clients::now_record_time(),
         claimed_by: info.execution.clone(),

@@ -40,6 +40,57 @@ async fn record(
 
 #[tokio::test]
 #[ignore = "needs moto"]
+async fn an_ecr_tag_is_pinned_to_its_digest_and_a_tag_never_pushed_is_refused_at_once() {
+    let (stack, deps) = stack(LOCAL_SETTINGS).await;
+    let tag = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v7";
+    let digest = local_stack::registry::push(&stack.sdk, tag)
+        .await
+        .unwrap()
+        .unwrap();
+    let message = |submission: u64, image: &str| {
+        json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": submission,
+               "submitted_image_uri": image})
+    };
+    let out = handle(input(message(1, tag), "exec-1"), &deps)
+        .await
+        .unwrap();
+    assert_eq!(out.action, Action::Run, "{out:?}");
+    // The Jobs run the digest; the record keeps what the participant submitted.
+    let info = out.submission.unwrap();
+    assert_eq!(
+        info.image,
+        format!("123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one@{digest}")
+    );
+    let item = record(&stack, 1, 1).await.unwrap();
+    assert_eq!(item["submitted_image_uri"], AttributeValue::S(tag.into()));
+
+    // A tag the registry does not have: refused before anything is claimed, saying so.
+    let never = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:never-pushed";
+    let second = stack
+        .fake()
+        .add_submission(fake_evalai::NewSubmission {
+            challenge_phase: 1,
+            participant_team: 1,
+            submitted_image_uri: never.into(),
+            created_by: None,
+            submission_metadata: None,
+        })
+        .unwrap()
+        .id;
+    let out = handle(input(message(second, never), "exec-2"), &deps)
+        .await
+        .unwrap();
+    assert_eq!(out.action, Action::Reject, "{out:?}");
+    let reason = out.reason.unwrap();
+    assert!(
+        reason.contains(never) && reason.contains("not in its registry"),
+        "{reason}"
+    );
+    assert!(record(&stack, 1, second).await.is_none(), "nothing claimed");
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
 async fn a_new_submission_is_claimed_once_and_a_duplicate_delivery_skipped() {
     let (stack, deps) = stack(LOCAL_SETTINGS).await;
     // As EvalAI publishes a new submission: string challenge/phase ids, int submission id.
@@ -90,17 +141,22 @@ async fn a_message_without_image_uses_the_input_file_and_the_override_sets_worke
         .await
         .unwrap();
     stack.fake().resume(1).unwrap_err(); // not failed on EvalAI: the fake refuses, as EvalAI does
-    let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1});
-    let out = handle(input(message, "exec-1"), &deps).await.unwrap();
-    let info = out.submission.unwrap();
-    // The fake's input file holds the image the participant pushed.
-    let expected = stack
+                                         // The fake's input file holds the image the participant pushed (to the registry too).
+    let pushed = stack
         .fake()
         .submission(1)
         .unwrap()
         .submitted_image_uri
         .unwrap();
-    assert_eq!(info.image, expected);
+    let digest = local_stack::registry::push(&stack.sdk, &pushed)
+        .await
+        .unwrap()
+        .unwrap();
+    let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1});
+    let out = handle(input(message, "exec-1"), &deps).await.unwrap();
+    let info = out.submission.unwrap();
+    let repository = pushed.rsplit_once(':').unwrap().0;
+    assert_eq!(info.image, format!("{repository}@{digest}"));
     assert_eq!(
         out.action,
         Action::Skip,

@@ -83,6 +83,8 @@ pub struct LeftBehind {
     pub places_held: Option<usize>,
     /// Its record's status.
     pub record_status: Option<String>,
+    /// The digest the participant's tag names in the registry (the Jobs run it).
+    pub registry_digest: Option<String>,
     /// Its record's routes whose CARLA recording passed the audit, and the routes that need
     /// one (FINISHED only).
     pub recordings: Option<(u64, u64)>,

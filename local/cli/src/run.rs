@@ -228,7 +228,7 @@ async fn set_up(
 ) -> anyhow::Result<(Stack, lb_domain::settings::Settings, PathBuf)> {
     let (mut stack, settings) = start_stack(args, teams, started).await?;
     let record_log = stack.workdir.path().join("record-writes.log");
-    let kubeconfig = start_workloads(args, scenario, &mut stack, &settings, &record_log)?;
+    let kubeconfig = start_workloads(args, scenario, &mut stack, &settings, &record_log).await?;
     say(
         started,
         format!(
@@ -391,7 +391,7 @@ async fn start_stack(
 }
 
 /// The local Kubernetes API and the images, as the scenario sets them up: the kubeconfig.
-fn start_workloads(
+async fn start_workloads(
     args: &LocalRun,
     scenario: &dyn Rehearsal,
     stack: &mut Stack,
@@ -413,11 +413,17 @@ fn start_workloads(
             record_log.display().to_string(),
         );
     }
+    // The participant's image is in the registry under its tag (Intake pins the Jobs to its
+    // digest); the unpullable one is there too, but no node can pull it.
     let image = scenario.image();
+    local_stack::registry::push(&stack.sdk, image).await?;
+    let repository = lb_jobs::parse_image(image)
+        .map(|r| format!("{}/{}", r.domain.unwrap_or_default(), r.path))
+        .unwrap_or_default();
     let unpullable: &[&str] = if image == crate::scenario::IMAGE {
         &[]
     } else {
-        &[image]
+        &[repository.as_str()]
     };
     match args.kube {
         KubeKind::Local => stack.start_workloads(settings, &bins, &behaviour, unpullable),
@@ -714,14 +720,10 @@ impl Ran<'_> {
     async fn left_behind(&self) -> crate::report::LeftBehind {
         let (submission, team) = self.arrivals[0];
         let (sdk, leaderboard) = (&self.stack.sdk, self.args.leaderboard);
-        left_behind(
-            sdk,
-            self.settings,
-            leaderboard,
-            self.kubeconfig,
-            (team, submission),
-        )
-        .await
+        let at = (team, submission);
+        let mut left = left_behind(sdk, self.settings, leaderboard, self.kubeconfig, at).await;
+        left.registry_digest = registry_digest(sdk, self.args.scenario.rehearsal().image()).await;
+        left
     }
 
     /// The run's report: what EvalAI shows, what the run left, and whether it is as expected;
@@ -1020,6 +1022,24 @@ async fn merged_summary(
         routes: per_route.len(),
         per_route: per_route.values().copied().collect(),
     })
+}
+
+/// The digest the participant's tag names in the registry now.
+async fn registry_digest(sdk: &aws_config::SdkConfig, image: &str) -> Option<String> {
+    let reference = lb_jobs::parse_image(image).ok()?;
+    let ecr = reference.ecr_tagged()?;
+    let repository = lb_aws::ecr::Repository {
+        registry: ecr.registry,
+        region: ecr.region,
+        name: ecr.repository,
+    };
+    match lb_aws::ecr::Registry::new(sdk)
+        .digest_of(&repository, ecr.tag)
+        .await
+    {
+        Ok(lb_aws::ecr::Lookup::Digest(digest)) => Some(digest),
+        _ => None,
+    }
 }
 
 /// What an ended run left: its Jobs, its team's places, its record's status.

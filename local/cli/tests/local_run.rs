@@ -127,7 +127,8 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
     );
     // A failure tells the participant why, and shows their agent's own last words.
     match scenario {
-        "unpullable" => assert!(stderr.contains("never-pushed"), "{report}"),
+        // Pushed, but no node can pull it: the Jobs named it by its digest.
+        "unpullable" => assert!(stderr.contains("team-one@sha256:"), "{report}"),
         "crash-loop" => {
             assert!(
                 stderr.contains("The last lines of agent 1's output:"),
@@ -199,6 +200,17 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
             assert_eq!(left["record_status"], "FAILED", "{report}");
         }
         "happy" => {
+            // Intake pinned the Jobs to the digest the tag names in the registry: every pod
+            // ran exactly it (a pod pulled by tag reports another digest here).
+            let digest = &report["left_behind"]["registry_digest"];
+            assert!(
+                digest.as_str().is_some_and(|d| d.starts_with("sha256:")),
+                "{report}"
+            );
+            assert_eq!(
+                &report["left_behind"]["usage"]["image_digest"], digest,
+                "{report}"
+            );
             // Every route's recording is in S3, and the record says so.
             assert_eq!(
                 report["left_behind"]["recordings"],

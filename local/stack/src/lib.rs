@@ -5,6 +5,7 @@ pub mod integrations;
 pub mod moto;
 pub mod pipe;
 pub mod real;
+pub mod registry;
 pub mod stack;
 pub mod workloads;
 

@@ -243,6 +243,9 @@ fn main() {
         let bins = tokio::task::spawn_blocking(Binaries::build).await.unwrap().unwrap();
         let (mut stack, settings) = test_support::stack::provisioned().await;
         stack.start_workloads(&settings, &bins, &Behaviour::default(), &[]).unwrap();
+        // The participant's image in the registry: Intake resolves its tag (one ECR call).
+        let image = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v1";
+        local_stack::registry::push(&stack.sdk, image).await.unwrap();
         let env: HashMap<String, String> = stack
             .moto
             .sdk_env()

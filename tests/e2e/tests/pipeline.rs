@@ -48,8 +48,20 @@ async fn harness(behaviour: Behaviour, unpullable: &[&str]) -> Harness {
         .unwrap()
         .unwrap();
     let (mut stack, settings) = test_support::stack::provisioned().await;
+    // The participant's images are in the registry (Intake pins the Jobs to their digests);
+    // an unpullable one is there too, but its repository is one no node can pull from.
+    for image in std::iter::once(&PARTICIPANT_IMAGE).chain(unpullable) {
+        local_stack::registry::push(&stack.sdk, image)
+            .await
+            .unwrap();
+    }
+    let repositories: Vec<String> = unpullable
+        .iter()
+        .map(|i| i.rsplit_once(':').map_or(*i, |(repo, _)| repo).to_owned())
+        .collect();
+    let unpullable: Vec<&str> = repositories.iter().map(String::as_str).collect();
     stack
-        .start_workloads(&settings, &bins, &behaviour, unpullable)
+        .start_workloads(&settings, &bins, &behaviour, &unpullable)
         .unwrap();
     let kubeconfig = stack.kubeconfig.clone().unwrap();
     let Handlers {
@@ -271,7 +283,9 @@ async fn a_20_route_4_worker_submission_goes_from_message_to_scores() {
             agent.keys().all(|k| !k.starts_with("AWS_")),
             "no AWS access for the participant"
         );
-        assert_eq!(agent_spec["image"], PARTICIPANT_IMAGE);
+        // The digest the tag named at Intake, never the tag.
+        assert_eq!(agent_spec["image"], submission.image.as_str());
+        assert!(submission.image.contains("team-one@sha256:"));
         assert_eq!(agent_spec["resources"]["limits"]["nvidia.com/gpu"], "1");
     }
     // Two pairs run; two wait Pending with the scheduler's own reason.
@@ -501,19 +515,22 @@ async fn a_participant_cancel_ends_cancelled_with_the_jobs_gone() {
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn an_image_that_cannot_be_pulled_fails_with_a_message_the_participant_can_act_on() {
-    let bad = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:does-not-exist";
+    // In the registry, but no node can pull it (the Jobs name it by its digest).
+    let bad = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-two:unpullable";
     let h = harness(Behaviour::default(), &[bad]).await;
     let submission = h.intake(bad).await;
+    let bad = submission.image.clone();
+    assert!(bad.contains("team-two@sha256:"), "{bad}");
     let run = h.launch(&submission).await;
     let run = h.monitor_until_done(&submission, run, |_| {}).await;
     assert_eq!(run.monitor.state, RunPhase::Failed);
     let reason = run.monitor.reason.clone().unwrap();
-    assert!(reason.contains(bad), "{reason}");
+    assert!(reason.contains(&bad), "{reason}");
     let out = h.finalize(&submission, &run).await;
     assert_eq!(out.status.as_str(), "FAILED");
     let evalai = h.stack.fake().submission(1).unwrap();
     assert_eq!(evalai.status, "failed");
-    assert!(evalai.files.stderr.unwrap_or_default().contains(bad));
+    assert!(evalai.files.stderr.unwrap_or_default().contains(&bad));
     let (jobs, pods) = h.cluster_jobs().await;
     assert!(jobs.is_empty() && pods.is_empty(), "no orphaned Job");
 }

@@ -65,7 +65,12 @@ fn container_id() -> String {
     format!("local-kube://{:016x}{:016x}", random_u64(), random_u64())
 }
 
+/// The image's id as a runtime reports it: an image pulled by digest is that digest; one
+/// pulled by tag gets a stable digest of its own.
 fn image_id(image: &str) -> String {
+    if image.contains("@sha256:") {
+        return image.to_owned();
+    }
     let digest = Sha256::digest(image.as_bytes());
     let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
     let repo = image.split('@').next().unwrap_or(image);
@@ -710,6 +715,8 @@ mod tests {
 
     #[test]
     fn image_ids_are_stable_digests() {
+        let pinned = format!("r.example/team@sha256:{}", "a".repeat(64));
+        assert_eq!(image_id(&pinned), pinned, "pulled by digest: that digest");
         let a = image_id("carla:0.9.15");
         assert!(a.starts_with("carla:0.9.15@sha256:"));
         assert_eq!(a.len(), "carla:0.9.15@sha256:".len() + 64);
