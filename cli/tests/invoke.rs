@@ -13,6 +13,12 @@ use serde_json::{json, Value};
 async fn invoke_intake_claims_a_submission_and_reports_errors_as_lambda_does() {
     let (stack, env) = common::stack(Fixture::default()).await;
     let image = "342236305043.dkr.ecr.us-west-2.amazonaws.com/team-one:agent-v1";
+    // Pushed: Intake pins the tag to its digest.
+    let digest = local_stack::registry::push(&stack.sdk, image)
+        .await
+        .unwrap()
+        .unwrap();
+    let pinned = format!("342236305043.dkr.ecr.us-west-2.amazonaws.com/team-one@{digest}");
 
     // The happy run, from a file: the Pipe's batch of one, as EvalAI sends a new submission.
     let dir = tempfile::tempdir().unwrap();
@@ -36,7 +42,7 @@ async fn invoke_intake_claims_a_submission_and_reports_errors_as_lambda_does() {
     let result: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(result["action"], "run", "{result}");
     assert_eq!(result["submission"]["team_id"], 1, "{result}");
-    assert_eq!(result["submission"]["image"], image, "{result}");
+    assert_eq!(result["submission"]["image"], pinned, "{result}");
     assert_eq!(result["submission"]["workers"], 4, "{result}");
     let record = aws_sdk_dynamodb::Client::new(&stack.sdk)
         .get_item()

@@ -184,6 +184,35 @@ impl<'a> Logcopy<'a> {
         protocol::kept_as(rel, &self.cfg.pairs).map(LogKind::tag)
     }
 
+    /// The results files init restored from S3 are S3's already: known as uploaded, so this
+    /// pod does not write them again unchanged. (Each write moves the object's time, which
+    /// the Monitor reads as its pair's last results: a reclaimed pod's run-again time counts
+    /// from it.) A file that differs from the object, or cannot be compared, uploads as usual.
+    async fn seed_restored_results(&mut self) {
+        for &pair in &self.cfg.pairs {
+            let rel = format!(
+                "{}/{}",
+                protocol::AGENT_DIR,
+                protocol::partial_results_name(pair)
+            );
+            let Ok((mut file, meta)) = tree::open_checked(&self.cfg.logs_root, &rel, self.dev)
+            else {
+                continue;
+            };
+            let mut local = Vec::new();
+            let limit = uploads::MAX_RESULTS_BYTES;
+            if meta.size > limit || (&mut file).take(limit).read_to_end(&mut local).is_err() {
+                continue;
+            }
+            let stored = self.s3.get_small(&self.key(&rel), limit as usize).await;
+            if matches!(stored, Ok(Some(ref bytes)) if *bytes == local) {
+                let hash: [u8; 32] = Sha256::digest(&local).into();
+                self.tracker.record(&rel, meta, hash);
+                debug!(%rel, "restored results known as uploaded");
+            }
+        }
+    }
+
     /// Continues the count of the Job's earlier pods, if any stored one (a report that cannot
     /// be read now counts from zero: the bucket's rules still bound what is kept).
     async fn resume_budget(&mut self) {
@@ -230,6 +259,7 @@ impl<'a> Logcopy<'a> {
             "logcopy started"
         );
         self.resume_budget().await;
+        self.seed_restored_results().await;
         let mut failures = 0u32;
         loop {
             let period = tokio::select! {

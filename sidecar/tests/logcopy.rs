@@ -278,6 +278,30 @@ fn sigterm_makes_a_final_upload_and_exits_cleanly_without_the_done_marker() {
 
 #[test]
 #[ignore = "needs moto"]
+fn a_new_pod_does_not_write_again_the_results_init_restored_but_writes_a_changed_one() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    // As init leaves them: pair 1's results as S3 has them, pair 2's (another Job's pod of
+    // this one) changed since.
+    let (mine, changed) = (
+        "agent/partial_agent_results1.json",
+        "agent/partial_agent_results2.json",
+    );
+    moto.put(&key(mine), b"{\"routes\": 3}");
+    moto.put(&key(changed), b"{\"routes\": 3}");
+    write(vols.root(), mine, b"{\"routes\": 3}");
+    write(vols.root(), changed, b"{\"routes\": 4}");
+    let mut lc = logcopy(&vols, &moto, None, &[("LB_PAIRS", "1,2")]);
+    let first = lc.wait_event("logcopy pass", LIMIT, |_| true);
+    // Only the changed one went up: the restored one's object (and its time) stays as it was.
+    assert_eq!(first["fields"]["uploaded"], 1, "{}", lc.log());
+    assert_eq!(moto.get(&key(changed)).unwrap(), b"{\"routes\": 4}");
+    lc.signal(Signal::SIGTERM);
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+}
+
+#[test]
+#[ignore = "needs moto"]
 fn on_sigterm_the_results_reach_s3_at_once_even_if_the_pod_is_killed_soon_after() {
     let moto = Moto::start();
     let vols = Volumes::new();

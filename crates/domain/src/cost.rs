@@ -197,6 +197,25 @@ pub struct Ledger {
     /// its `backoffLimit` all the same ([`Ledger::charged_to`]).
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub charged: String,
+    /// Each Job's pod counted running at the last round: its start as that round saw it, in
+    /// base 36, comma-separated (empty: none). A pod seen now with another start is that
+    /// one's replacement, however soon after the round it started: the one before went
+    /// between the two rounds.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub starts: String,
+}
+
+/// `n` in base 36 (lowercase).
+fn base36(mut n: u64) -> String {
+    let mut digits = Vec::new();
+    loop {
+        digits.push(char::from_digit((n % 36) as u32, 36).unwrap_or('0'));
+        n /= 36;
+        if n == 0 {
+            break;
+        }
+    }
+    digits.iter().rev().collect()
 }
 
 /// Digit `job` of a per-Job base-36 count (`0` when absent).
@@ -326,10 +345,45 @@ impl Ledger {
     /// then with its start clamped to the round's clock, which is read before the list and
     /// is not the kubelet's.
     fn continues(&self, pod: &PodSeen) -> Option<Running> {
-        self.running(pod.job).filter(|r| {
-            pod.started_at <= self.last.saturating_add(CLOCK_SLACK)
-                && (pod.disruption.is_some() || !r.disrupted)
-        })
+        self.running(pod.job)
+            .filter(|r| self.same_pod(pod) && (pod.disruption.is_some() || !r.disrupted))
+    }
+
+    /// Whether `pod` is the one its Job ran at the last round: the start that round saw, or
+    /// (that start clamped to the round's clock, or not remembered by an older state) a start
+    /// within [`CLOCK_SLACK`] of it.
+    fn same_pod(&self, pod: &PodSeen) -> bool {
+        let slack = || pod.started_at <= self.last.saturating_add(CLOCK_SLACK);
+        match self.start_of(pod.job) {
+            None => slack(),
+            Some(seen) => pod.started_at == seen || (seen >= self.last && slack()),
+        }
+    }
+
+    /// The start of the Job's pod counted running at the last round, if remembered.
+    fn start_of(&self, job: u32) -> Option<u64> {
+        let field = self.starts.split(',').nth(job as usize)?;
+        u64::from_str_radix(field, 36).ok().filter(|s| *s != 0)
+    }
+
+    /// Remembers the start of the Job's pod counted running now (0: none); trailing Jobs
+    /// with none are left out.
+    fn set_start(&mut self, job: u32, start: u64) {
+        let mut fields: Vec<String> = match self.starts.is_empty() {
+            true => Vec::new(),
+            false => self.starts.split(',').map(str::to_owned).collect(),
+        };
+        let job = job as usize;
+        if fields.len() <= job {
+            fields.resize(job + 1, String::new());
+        }
+        fields[job] = match start {
+            0 => String::new(),
+            s => base36(s),
+        };
+        let kept = fields.len() - fields.iter().rev().take_while(|f| f.is_empty()).count();
+        fields.truncate(kept);
+        self.starts = fields.join(",");
     }
 
     /// A pod that ended by the last round was counted then (a Job's ended pods stay listed
@@ -456,6 +510,8 @@ impl Ledger {
             let (mark, caught_up) = after_round(pod, running, now);
             resumed = resumed.max(caught_up);
             self.set_mark(pod.job, mark);
+            let start = matches!(mark, JobMark::Running(_)).then_some(pod.started_at);
+            self.set_start(pod.job, start.unwrap_or(0));
             handled.insert(pod.job);
         }
         self.charge_gone((&handled, &listed), (results_at, failed), now);
@@ -523,6 +579,7 @@ impl Ledger {
                     JobMark::Idle
                 };
                 self.set_mark(job, mark);
+                self.set_start(job, 0);
             }
         }
     }
@@ -541,9 +598,8 @@ impl Ledger {
     /// The Jobs with a pod listed that started by the last round: their pod of then is still
     /// there (running, or ended, perhaps within that round's second), not gone.
     fn listed_before(&self, pods: &[PodSeen]) -> BTreeSet<u32> {
-        let by = self.last.saturating_add(CLOCK_SLACK);
         pods.iter()
-            .filter(|p| p.started_at <= by)
+            .filter(|p| self.same_pod(p))
             .map(|p| p.job)
             .collect()
     }
@@ -1041,6 +1097,33 @@ mod tests {
         assert!(!ended.went_unfailed(&done, &none_failed));
         ended.account(&done, &kinds, (&results, &none_failed), 1000);
         assert_eq!((ended.totals().run_again, ended.lost_at(1000)), (0, 0));
+        // Replaced within the clock's slack of the round that saw the first pod (its start
+        // then well before that round): another start is another pod, gone and replaced.
+        let before = BTreeMap::from([(0, 450)]);
+        let seen_at_500 = || {
+            let mut ledger = Ledger::default();
+            ledger.account(&running, &kinds, (&before, &none_failed), 500);
+            ledger
+        };
+        let mut soon = seen_at_500();
+        let quick = [pod(0, 503, None, "od-a", false)];
+        assert!(soon.went_unfailed(&quick, &none_failed));
+        soon.account(&quick, &kinds, (&before, &none_failed), 1000);
+        assert_eq!(
+            soon.totals().run_again,
+            53,
+            "since the results at 450: {soon:?}"
+        );
+        assert_eq!(soon.lost_at(1000), 53, "to the next pod's start: {soon:?}");
+        // A state from before the starts were kept judges by the clock's slack alone.
+        let mut older = seen_at_500();
+        older.starts.clear();
+        // Starts are kept compactly, per Job.
+        assert_eq!(soon.start_of(0), Some(503));
+        assert_eq!(base36(503), "dz");
+        assert_eq!(u64::from_str_radix(&base36(u64::MAX), 36), Ok(u64::MAX));
+        older.account(&quick, &kinds, (&before, &none_failed), 1000);
+        assert_eq!(older.totals().run_again, 0, "{older:?}");
         // A round that could not read the Jobs' counts decides nothing.
         let mut unknown = start();
         unknown.account(&replaced, &kinds, (&results, &BTreeMap::new()), 1000);

@@ -184,6 +184,48 @@ async fn drain(
     evicted
 }
 
+/// Evicts one running pod of the submission through the Eviction API and waits, bounded,
+/// until the API no longer has it: the pod and its `DisruptionTarget` reason as read right
+/// after the eviction.
+pub async fn evict_one_until_gone(
+    kubeconfig: &std::path::Path,
+    namespace: &str,
+    submission: u64,
+) -> Option<(String, Option<String>)> {
+    let cluster = lb_cluster::Cluster::from_kubeconfig(kubeconfig, None)
+        .await
+        .ok()?;
+    let cluster = cluster.with_namespace(namespace.to_owned());
+    let client = node_agent::client(kubeconfig).await.ok()?;
+    let api: Api<Pod> = Api::namespaced(client, cluster.namespace());
+    let seen = cluster.observe(&submission.to_string()).await.ok()?;
+    let pod = seen
+        .jobs
+        .iter()
+        .flat_map(|j| &j.pods)
+        .find(|p| p.phase == "Running" && !p.terminating)?
+        .name
+        .clone();
+    if let Err(e) = api.evict(&pod, &EvictParams::default()).await {
+        cli::outln!("           scenario: evicting {pod} failed: {e}");
+        return None;
+    }
+    let reason = disruption_of(&api, &pod).await;
+    let deadline = tokio::time::Instant::now() + GONE_WITHIN;
+    while api.get_opt(&pod).await.ok().flatten().is_some() {
+        if tokio::time::Instant::now() >= deadline {
+            cli::outln!("           scenario: {pod} was evicted but is still there");
+            break;
+        }
+        tokio::time::sleep(LOOK_EVERY).await;
+    }
+    cli::outln!("           scenario: {pod} evicted and gone before the round looks");
+    Some((pod, reason))
+}
+
+/// How long an evicted pod may take to go.
+const GONE_WITHIN: Duration = Duration::from_secs(60);
+
 /// The reason of pod `name`'s `DisruptionTarget` condition, if it has one.
 async fn disruption_of(api: &Api<Pod>, name: &str) -> Option<String> {
     let pod = api.get_opt(name).await.ok()??;

@@ -12,7 +12,7 @@ use cli::outln;
 use local_stepfunctions::{EventType, Executor, HistoryEvent};
 use serde_json::Value;
 
-use super::{admin_put, Begin, Rehearsal};
+use super::{admin_request, Begin, Rehearsal};
 
 /// Attempts of one status-change event: the first and Lambda's two retries.
 const ATTEMPTS: u64 = 3;
@@ -93,7 +93,9 @@ async fn wait_for(done: impl Fn() -> bool) {
 async fn set_down(url: &str, down: bool) {
     let rate = if down { 1.0 } else { 0.0 };
     let body = format!("{{\"error_500_rate\": {rate}}}");
-    let status = admin_put(url, "/_admin/faults", &body).await;
+    let status = admin_request("PUT", url, "/_admin/faults", &body)
+        .await
+        .map(|(status, _)| status);
     let what = if down { "down" } else { "back" };
     outln!("           scenario: EvalAI is {what} ({status:?})");
 }

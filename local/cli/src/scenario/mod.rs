@@ -3,9 +3,11 @@
 //! submission must end. Adding one is a file here and a line in [`Scenario`].
 
 mod cancel;
+mod cancel_flood;
 mod crash;
 mod crash_loop;
 mod evalai_down;
+mod evict_between_rounds;
 mod forge;
 mod forge_recordings;
 mod hang;
@@ -46,6 +48,9 @@ pub enum Scenario {
     /// The participant cancels on EvalAI after the first round: CANCELLED once the sweep (or
     /// a partial update's status read) notices, nothing left.
     Cancel,
+    /// As `cancel`, with another team's five cancelled submissions of 2.4 MB of metadata each
+    /// in EvalAI's list: the sweep still finds the cancel, CANCELLED.
+    CancelFlood,
     /// The participant's image cannot be pulled: FAILED with a message naming it.
     Unpullable,
     /// The first pair's evaluator crashes at every attempt: out of retries, FAILED, and the
@@ -76,6 +81,10 @@ pub enum Scenario {
     /// pod replaces it once it has stopped, without using a retry; each interrupted route runs
     /// again once. FINISHED (routes of at least 1.5 s, so that the drain lands mid-route).
     Spot,
+    /// One pod is evicted (Eviction API) and gone between two Monitor rounds: no round sees
+    /// it, yet its route shows as run again in the record and the lost time is counted.
+    /// FINISHED (routes of at least 1.5 s).
+    EvictBetweenRounds,
     /// An operator stops the execution (StopExecution) after its first Monitor round: the
     /// reaper (Finalize, on Step Functions' status-change event, which local mode delivers as
     /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
@@ -96,6 +105,7 @@ impl Scenario {
             Scenario::Crash => Box::new(crash::Crash),
             Scenario::Hang => Box::new(hang::Hang),
             Scenario::Cancel => Box::new(cancel::Cancel::default()),
+            Scenario::CancelFlood => Box::new(cancel_flood::CancelFlood::default()),
             Scenario::Unpullable => Box::new(unpullable::Unpullable),
             Scenario::CrashLoop => Box::new(crash_loop::CrashLoop),
             Scenario::NoNode => Box::new(no_node::NoNode),
@@ -104,6 +114,9 @@ impl Scenario {
             Scenario::ForgeRecordings => Box::new(forge_recordings::ForgeRecordings),
             Scenario::PlantGpu => Box::new(plant_gpu::PlantGpu),
             Scenario::Spot => Box::new(spot::Spot::default()),
+            Scenario::EvictBetweenRounds => {
+                Box::new(evict_between_rounds::EvictBetweenRounds::default())
+            }
             Scenario::Stop => Box::new(stop::Stop),
             Scenario::EvalaiDown => Box::new(evalai_down::EvalAiDown::default()),
         }
@@ -129,24 +142,35 @@ pub struct Begin {
     pub acted: Arc<AtomicBool>,
     /// Attempts of the reaper's event deliveries that failed so far.
     pub reaper_failures: Arc<AtomicU64>,
+    /// The submission's results in S3 (moto), as the Monitor reads them.
+    pub store: lb_aws::s3::SubmissionStore,
 }
 
-/// `PUT <url><path>` with a JSON body on a fake's admin API: its HTTP status.
-pub async fn admin_put(url: &str, path: &str, body: &str) -> std::io::Result<u16> {
+/// `<method> <url><path>` with a JSON body on a fake's admin API: its HTTP status and body
+/// (bounded by the run's timeout: the fake answers at once).
+pub async fn admin_request(
+    method: &str,
+    url: &str,
+    path: &str,
+    body: &str,
+) -> std::io::Result<(u16, String)> {
     use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
     let host = url.strip_prefix("http://").unwrap_or(url);
     let mut stream = tokio::net::TcpStream::connect(host).await?;
     let request = format!(
-        "PUT {path} HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        "{method} {path} HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
         body.len()
     );
     stream.write_all(request.as_bytes()).await?;
-    let mut head = [0u8; 12];
-    stream.read_exact(&mut head).await?;
-    let status = std::str::from_utf8(&head[9..12])
-        .ok()
-        .and_then(|s| s.parse().ok());
-    status.ok_or_else(|| std::io::Error::other("not an HTTP answer"))
+    let mut answer = Vec::new();
+    stream.read_to_end(&mut answer).await?;
+    let answer = String::from_utf8_lossy(&answer);
+    let status = answer.get(9..12).and_then(|s| s.parse().ok());
+    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    match status {
+        Some(status) => Ok((status, body.to_owned())),
+        None => Err(std::io::Error::other("not an HTTP answer")),
+    }
 }
 
 /// What a scenario found, for the report.
@@ -196,7 +220,9 @@ pub trait Rehearsal: Send + Sync {
     ) {
     }
 
-    /// Monitor round `n` begins: its act, `true` once done (tried every round until then).
+    /// Monitor round `n` begins: its act, `true` once done (tried every round until then). It
+    /// runs before the round's task is invoked, so what it does is done before the round
+    /// looks (the executor waits for it).
     fn round_begins(&self, _n: u64) -> bool {
         true
     }
