@@ -252,6 +252,13 @@ async fn look(cluster: &lb_cluster::Cluster, submission: u64, report: &mut Recla
     }
 }
 
+/// What the watcher saw, with each route's runs from the agents' logs (`None`: no watcher).
+pub async fn report(watcher: Option<Reclaim>, logs: &[String]) -> Option<ReclaimReport> {
+    let mut report = watcher?.finish().await;
+    count_route_runs(logs, &mut report);
+    Some(report)
+}
+
 /// Counts the runs of each route in the agents' logs (`========= Preparing RouteScenario_3
 /// (repetition 0) =========`), which a new pod continues.
 pub fn count_route_runs(logs: &[String], report: &mut ReclaimReport) {

@@ -14,7 +14,7 @@ use local_stack::workloads::Behaviour;
 use serde_json::Value;
 
 use super::{Begin, Findings, Rehearsal};
-use crate::reclaim::{count_route_runs, evict_one_until_gone, Reclaim};
+use crate::reclaim::{evict_one_until_gone, Reclaim};
 
 /// The least seconds per route: the eviction must land mid-route.
 const ROUTE_SECONDS: f64 = 4.0;
@@ -115,19 +115,15 @@ impl Rehearsal for EvictBetweenRounds {
             .unwrap_or_else(PoisonError::into_inner)
             .clone();
         Box::pin(async move {
-            let mut report = match watcher {
-                Some(watcher) => watcher.finish().await,
-                None => Default::default(),
-            };
-            if let Some((pod, reason)) = evicted {
+            let mut reclaim = crate::reclaim::report(watcher, logs).await;
+            if let (Some(report), Some((pod, reason))) = (reclaim.as_mut(), evicted) {
                 if let Some(reason) = reason {
                     report.disrupted.insert(pod.clone(), reason);
                 }
                 report.evicted = vec![pod];
             }
-            count_route_runs(logs, &mut report);
             Findings {
-                reclaim: Some(report),
+                reclaim,
                 ..Findings::default()
             }
         })

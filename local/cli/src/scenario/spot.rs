@@ -10,7 +10,7 @@ use local_stack::workloads::Behaviour;
 use serde_json::Value;
 
 use super::{Begin, Findings, Rehearsal};
-use crate::reclaim::{count_route_runs, Reclaim};
+use crate::reclaim::Reclaim;
 
 /// The least seconds per route: the drain must land mid-route.
 const SPOT_ROUTE_SECONDS: f64 = 1.5;
@@ -66,16 +66,8 @@ impl Rehearsal for Spot {
             .unwrap_or_else(PoisonError::into_inner)
             .take();
         Box::pin(async move {
-            let reclaim = match watcher {
-                Some(watcher) => {
-                    let mut report = watcher.finish().await;
-                    count_route_runs(logs, &mut report);
-                    Some(report)
-                }
-                None => None,
-            };
             Findings {
-                reclaim,
+                reclaim: crate::reclaim::report(watcher, logs).await,
                 ..Findings::default()
             }
         })
