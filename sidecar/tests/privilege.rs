@@ -25,7 +25,7 @@ fn the_jobs_role_allows_exactly_what_the_sidecar_calls() {
             let scoped = if action == "s3:ListBucket" {
                 r == bucket
             } else {
-                ["agent", "logs", "containers-status"]
+                ["agent", "logs", "containers-status", "recorder"]
                     .iter()
                     .any(|prefix| r == &format!("{bucket}/*/{prefix}/*"))
             };
@@ -34,6 +34,20 @@ fn the_jobs_role_allows_exactly_what_the_sidecar_calls() {
                 "`{action}` on `{r}` reaches beyond the sidecar's prefixes"
             );
         }
+    }
+    // Every folder logcopy uploads is writable, and the logs' and recordings' tags too (the
+    // actions alone do not say where: a folder missing here fails only in the deployment).
+    use lb_domain::protocol::{AGENT_DIR, LOGS_DIR, RECORDER_DIR, STATUS_DIR};
+    let allows = |action: &str, dir: &str| {
+        allowed
+            .get(action)
+            .is_some_and(|r| r.contains(&format!("{bucket}/*/{dir}/*")))
+    };
+    for dir in [AGENT_DIR, STATUS_DIR, LOGS_DIR, RECORDER_DIR] {
+        assert!(allows("s3:PutObject", dir), "logcopy cannot upload `{dir}/`");
+    }
+    for dir in [LOGS_DIR, RECORDER_DIR] {
+        assert!(allows("s3:PutObjectTagging", dir), "logcopy cannot tag `{dir}/`");
     }
     // Not the merged results nor the EvalAI files: those are the functions' to write.
     assert!(!allowed
