@@ -44,10 +44,16 @@ fn the_jobs_role_allows_exactly_what_the_sidecar_calls() {
             .is_some_and(|r| r.contains(&format!("{bucket}/*/{dir}/*")))
     };
     for dir in [AGENT_DIR, STATUS_DIR, LOGS_DIR, RECORDER_DIR] {
-        assert!(allows("s3:PutObject", dir), "logcopy cannot upload `{dir}/`");
+        assert!(
+            allows("s3:PutObject", dir),
+            "logcopy cannot upload `{dir}/`"
+        );
     }
     for dir in [LOGS_DIR, RECORDER_DIR] {
-        assert!(allows("s3:PutObjectTagging", dir), "logcopy cannot tag `{dir}/`");
+        assert!(
+            allows("s3:PutObjectTagging", dir),
+            "logcopy cannot tag `{dir}/`"
+        );
     }
     // Not the merged results nor the EvalAI files: those are the functions' to write.
     assert!(!allowed
