@@ -8,17 +8,6 @@ use aws_sdk_ecr::Client;
 
 use crate::{AwsError, Result};
 
-/// A repository of ECR, as an image reference names it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Repository<'a> {
-    /// The registry (its AWS account id).
-    pub registry: &'a str,
-    /// Its region.
-    pub region: &'a str,
-    /// The repository's name.
-    pub name: &'a str,
-}
-
 /// What the registry says of a tag.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Lookup {
@@ -28,6 +17,15 @@ pub enum Lookup {
     NotFound,
     /// The registry would not say (no permission on it): the tag stays as given.
     Refused(String),
+}
+
+/// ECR's client in `region` (an image's registry may be in any), with `sdk`'s credentials
+/// and endpoint.
+pub fn client(sdk: &SdkConfig, region: &str) -> Client {
+    let config = aws_sdk_ecr::config::Builder::from(sdk)
+        .region(aws_config::Region::new(region.to_owned()))
+        .build();
+    Client::from_conf(config)
 }
 
 /// ECR, in whichever region an image names.
@@ -42,15 +40,18 @@ impl Registry {
         Registry { sdk: sdk.clone() }
     }
 
-    /// The digest `tag` names in `repository` now.
-    pub async fn digest_of(&self, repository: &Repository<'_>, tag: &str) -> Result<Lookup> {
-        let config = aws_sdk_ecr::config::Builder::from(&self.sdk)
-            .region(aws_config::Region::new(repository.region.to_owned()))
-            .build();
-        let out = Client::from_conf(config)
+    /// The digest `tag` names now in `repository` of `registry` (an account id) in `region`
+    /// (`lb_jobs::EcrTagged` has them).
+    pub async fn digest_of(
+        &self,
+        (registry, region): (&str, &str),
+        repository: &str,
+        tag: &str,
+    ) -> Result<Lookup> {
+        let out = client(&self.sdk, region)
             .describe_images()
-            .registry_id(repository.registry)
-            .repository_name(repository.name)
+            .registry_id(registry)
+            .repository_name(repository)
             .image_ids(ImageIdentifier::builder().image_tag(tag).build())
             .send()
             .await;

@@ -172,8 +172,7 @@ pub fn uploads(rel: &str, pairs: &[PairId], job: u32) -> bool {
     match dir {
         AGENT_DIR => pair_of_results_name(name).is_some_and(|pair| pairs.contains(&pair)),
         STATUS_DIR => Marker::parse(name).is_some_and(|m| m.belongs_to_job(pairs, job)),
-        LOGS_DIR => log_kind(name, pairs).is_some(),
-        RECORDER_DIR => recording_of(name).is_some_and(|(pair, _)| pairs.contains(&pair)),
+        LOGS_DIR | RECORDER_DIR => kept_as(rel, pairs).is_some(),
         _ => false,
     }
 }

@@ -6,7 +6,7 @@
 
 use aws_config::SdkConfig;
 use lb_aws::dynamo::{Claim, NewRecord, QualifierTable, SubmissionsTable};
-use lb_aws::ecr::{Lookup, Registry, Repository};
+use lb_aws::ecr::{Lookup, Registry};
 use lb_domain::intake;
 use lb_domain::settings::{Settings, Target};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
@@ -187,22 +187,24 @@ async fn pinned(deps: &Deps, reference: &lb_jobs::ImageRef) -> Result<Pinned> {
     let Some(ecr) = reference.ecr_tagged() else {
         return Ok(Pinned::AsGiven);
     };
-    let repository = Repository {
-        registry: ecr.registry,
-        region: ecr.region,
-        name: ecr.repository,
-    };
-    Ok(match deps.registry.digest_of(&repository, ecr.tag).await? {
-        Lookup::Digest(digest) => {
-            info!(%digest, "the image's tag resolved");
-            Pinned::Digest(reference.pinned(&digest).to_string())
-        }
-        Lookup::NotFound => Pinned::NotFound,
-        Lookup::Refused(why) => {
-            warn!(%why, "the image's tag not resolved: the Jobs name the tag");
-            Pinned::AsGiven
-        }
-    })
+    let registry = (ecr.registry, ecr.region);
+    Ok(
+        match deps
+            .registry
+            .digest_of(registry, ecr.repository, ecr.tag)
+            .await?
+        {
+            Lookup::Digest(digest) => {
+                info!(%digest, "the image's tag resolved");
+                Pinned::Digest(reference.pinned(&digest).to_string())
+            }
+            Lookup::NotFound => Pinned::NotFound,
+            Lookup::Refused(why) => {
+                warn!(%why, "the image's tag not resolved: the Jobs name the tag");
+                Pinned::AsGiven
+            }
+        },
+    )
 }
 
 /// The record the claim writes: the image as the participant submitted it.

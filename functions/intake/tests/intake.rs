@@ -140,8 +140,9 @@ async fn a_message_without_image_uses_the_input_file_and_the_override_sets_worke
         .send()
         .await
         .unwrap();
-    stack.fake().resume(1).unwrap_err(); // not failed on EvalAI: the fake refuses, as EvalAI does
-                                         // The fake's input file holds the image the participant pushed (to the registry too).
+    // Not failed on EvalAI: the fake refuses, as EvalAI does.
+    stack.fake().resume(1).unwrap_err();
+    // The fake's input file holds the image the participant pushed (to the registry too).
     let pushed = stack
         .fake()
         .submission(1)

@@ -1034,13 +1034,9 @@ async fn merged_summary(
 async fn registry_digest(sdk: &aws_config::SdkConfig, image: &str) -> Option<String> {
     let reference = lb_jobs::parse_image(image).ok()?;
     let ecr = reference.ecr_tagged()?;
-    let repository = lb_aws::ecr::Repository {
-        registry: ecr.registry,
-        region: ecr.region,
-        name: ecr.repository,
-    };
-    match lb_aws::ecr::Registry::new(sdk)
-        .digest_of(&repository, ecr.tag)
+    let registry = lb_aws::ecr::Registry::new(sdk);
+    match registry
+        .digest_of((ecr.registry, ecr.region), ecr.repository, ecr.tag)
         .await
     {
         Ok(lb_aws::ecr::Lookup::Digest(digest)) => Some(digest),

@@ -20,10 +20,7 @@ pub async fn push(sdk: &SdkConfig, image: &str) -> Result<Option<String>, StackE
     let Some(ecr) = reference.ecr_tagged() else {
         return Ok(None);
     };
-    let config = aws_sdk_ecr::config::Builder::from(sdk)
-        .region(aws_config::Region::new(ecr.region.to_owned()))
-        .build();
-    let client = aws_sdk_ecr::Client::from_conf(config);
+    let client = lb_aws::ecr::client(sdk, ecr.region);
     let created = client
         .create_repository()
         .registry_id(ecr.registry)

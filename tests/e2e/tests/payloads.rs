@@ -153,7 +153,7 @@ fn worst_usage() -> Ledger {
         failed: "z".repeat(MAX_WORKERS as usize),
         reclaims: "z".repeat(MAX_WORKERS as usize),
         charged: "z".repeat(MAX_WORKERS as usize),
-        starts: vec!["3w5e11264sgsf"; MAX_WORKERS as usize].join(","),
+        starts: vec![u64::MAX; MAX_WORKERS as usize].into(),
     }
 }
 

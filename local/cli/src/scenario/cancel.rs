@@ -1,13 +1,13 @@
 //! The participant cancels on EvalAI after a Monitor round: CANCELLED once the sweep (or a
 //! partial update's own status read) notices, nothing left.
 
-use std::sync::{Mutex, OnceLock, PoisonError};
+use std::sync::{Mutex, OnceLock};
 use std::time::Instant;
 
 use cli::outln;
 use serde_json::Value;
 
-use super::{Begin, Findings, Rehearsal};
+use super::{held, Begin, Findings, Rehearsal};
 
 /// A participant's cancel.
 #[derive(Default)]
@@ -39,10 +39,7 @@ impl Rehearsal for Cancel {
         if monitor["rounds"] != *after {
             return;
         }
-        self.cancelled_at
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get_or_insert_with(Instant::now);
+        held(&self.cancelled_at).get_or_insert_with(Instant::now);
         // The participant's button, on the fake's admin endpoint, without holding up the
         // executor's event callback.
         if let Some(url) = fake {
@@ -60,10 +57,7 @@ impl Rehearsal for Cancel {
         &'a self,
         _logs: &'a [String],
     ) -> std::pin::Pin<Box<dyn std::future::Future<Output = Findings> + Send + 'a>> {
-        let cancelled_at = *self
-            .cancelled_at
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner);
+        let cancelled_at = *held(&self.cancelled_at);
         Box::pin(async move {
             Findings {
                 cancelled_at,

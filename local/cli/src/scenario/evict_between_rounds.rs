@@ -6,14 +6,14 @@
 use std::path::{Path, PathBuf};
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Mutex, OnceLock, PoisonError};
+use std::sync::{Mutex, OnceLock};
 use std::time::{Duration, SystemTime};
 
 use lb_aws::s3::SubmissionStore;
 use local_stack::workloads::Behaviour;
 use serde_json::Value;
 
-use super::{Begin, Findings, Rehearsal};
+use super::{held, Begin, Findings, Rehearsal};
 use crate::reclaim::{evict_one_until_gone, Reclaim};
 
 /// The least seconds per route: the eviction must land mid-route.
@@ -67,7 +67,7 @@ impl Rehearsal for EvictBetweenRounds {
             false,
             std::sync::Arc::new(AtomicBool::new(false)),
         );
-        *self.watcher.lock().unwrap_or_else(PoisonError::into_inner) = Some(watcher);
+        *held(&self.watcher) = Some(watcher);
     }
 
     /// Runs before the round's task: the eviction completes, and the pod is gone, before the
@@ -89,7 +89,7 @@ impl Rehearsal for EvictBetweenRounds {
             })
         });
         let done = evicted.is_some();
-        *self.evicted.lock().unwrap_or_else(PoisonError::into_inner) = evicted;
+        *held(&self.evicted) = evicted;
         done
     }
 
@@ -104,16 +104,8 @@ impl Rehearsal for EvictBetweenRounds {
         &'a self,
         logs: &'a [String],
     ) -> Pin<Box<dyn std::future::Future<Output = Findings> + Send + 'a>> {
-        let watcher = self
-            .watcher
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .take();
-        let evicted = self
-            .evicted
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone();
+        let watcher = held(&self.watcher).take();
+        let evicted = held(&self.evicted).clone();
         Box::pin(async move {
             let mut reclaim = crate::reclaim::report(watcher, logs).await;
             if let (Some(report), Some((pod, reason))) = (reclaim.as_mut(), evicted) {

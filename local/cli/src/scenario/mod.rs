@@ -146,6 +146,12 @@ pub struct Begin {
     pub store: lb_aws::s3::SubmissionStore,
 }
 
+/// A scenario's shared slot, locked: a hook that panicked does not keep the others out.
+pub fn held<T>(slot: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    slot.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// `<method> <url><path>` with a JSON body on a fake's admin API: its HTTP status and body
 /// (bounded by the run's timeout: the fake answers at once).
 pub async fn admin_request(

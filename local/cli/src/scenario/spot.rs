@@ -4,12 +4,12 @@
 
 use std::path::Path;
 use std::pin::Pin;
-use std::sync::{Mutex, PoisonError};
+use std::sync::Mutex;
 
 use local_stack::workloads::Behaviour;
 use serde_json::Value;
 
-use super::{Begin, Findings, Rehearsal};
+use super::{held, Begin, Findings, Rehearsal};
 use crate::reclaim::Reclaim;
 
 /// The least seconds per route: the drain must land mid-route.
@@ -44,13 +44,13 @@ impl Rehearsal for Spot {
             run.cordons,
             run.acted.clone(),
         );
-        *self.watcher.lock().unwrap_or_else(PoisonError::into_inner) = Some(watcher);
+        *held(&self.watcher) = Some(watcher);
     }
 
     /// A route is under way: the node goes now (once; the watcher ignores more cues).
     fn round_ended(&self, monitor: &Value) {
         if monitor["progress"][0].as_u64() >= Some(1) {
-            if let Some(watcher) = &*self.watcher.lock().unwrap_or_else(PoisonError::into_inner) {
+            if let Some(watcher) = &*held(&self.watcher) {
                 watcher.cue().notify_one();
             }
         }
@@ -60,11 +60,7 @@ impl Rehearsal for Spot {
         &'a self,
         logs: &'a [String],
     ) -> Pin<Box<dyn std::future::Future<Output = Findings> + Send + 'a>> {
-        let watcher = self
-            .watcher
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .take();
+        let watcher = held(&self.watcher).take();
         Box::pin(async move {
             Findings {
                 reclaim: crate::reclaim::report(watcher, logs).await,
