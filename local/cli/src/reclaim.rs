@@ -30,15 +30,24 @@ pub struct ReclaimReport {
     pub route_runs: BTreeMap<String, u32>,
     /// Routes that ran more than once.
     pub routes_run_again: usize,
+    /// Routes a pod was in when it stopped and a later pod of its pair went on (from the
+    /// agents' logs): the routes a reclaim interrupted. A pod evicted while its pair was still
+    /// setting up, or between two routes, interrupted none.
+    pub interrupted: Vec<String>,
 }
 
 impl ReclaimReport {
     /// What a reclaim should come to: pods evicted, each with the condition the API server
-    /// writes, no retry used, no route run more than twice, and at most one route per evicted
-    /// pod run again (the one it was in).
+    /// writes, no retry used, and exactly the routes the evicted pods were in run again, each
+    /// once more (at most one per evicted pod).
     pub fn as_expected(&self) -> bool {
         !self.evicted.is_empty()
-            && self.routes_run_again <= self.evicted.len()
+            && self.interrupted.len() <= self.evicted.len()
+            && self.routes_run_again == self.interrupted.len()
+            && self
+                .interrupted
+                .iter()
+                .all(|r| self.route_runs.get(r) == Some(&2))
             && self
                 .evicted
                 .iter()
@@ -260,36 +269,94 @@ pub async fn report(watcher: Option<Reclaim>, logs: &[String]) -> Option<Reclaim
 }
 
 /// Counts the runs of each route in the agents' logs (`========= Preparing RouteScenario_3
-/// (repetition 0) =========`), which a new pod continues.
+/// (repetition 0) =========`), which a new pod continues, and the routes a pod stopped in: a
+/// pod's part of the log starts where the sidecar says its evaluator started, and a route is
+/// over once its statistics are registered.
 pub fn count_route_runs(logs: &[String], report: &mut ReclaimReport) {
     for log in logs {
+        let mut within: Option<&str> = None;
         for line in log.lines() {
-            let Some(rest) = line.split("Preparing ").nth(1) else {
-                continue;
-            };
-            let route = rest.split_whitespace().next().unwrap_or_default();
-            if route.starts_with("RouteScenario_") {
-                *report.route_runs.entry(route.to_owned()).or_default() += 1;
+            if line.contains(EVALUATOR_STARTED) {
+                report.interrupted.extend(within.take().map(str::to_owned));
+            } else if line.contains(ROUTE_REGISTERED) {
+                within = None;
+            } else if let Some(rest) = line.split("Preparing ").nth(1) {
+                let route = rest.split_whitespace().next().unwrap_or_default();
+                if route.starts_with("RouteScenario_") {
+                    *report.route_runs.entry(route.to_owned()).or_default() += 1;
+                    within = Some(route);
+                }
             }
         }
     }
     report.routes_run_again = report.route_runs.values().filter(|n| **n > 1).count();
 }
 
+/// The agent sidecar's line as a pod's evaluator starts (`lb_sidecar::agent`).
+const EVALUATOR_STARTED: &str = ": evaluator started on routes ";
+
+/// The evaluator's line once a route's record is written.
+const ROUTE_REGISTERED: &str = "> Registering the route statistics";
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// A pod's part of a pair's log: the evaluator started, then `routes` prepared, the last
+    /// one registered when `finished`.
+    fn part(routes: &[u32], finished: bool) -> String {
+        let mut log =
+            "[lb-sidecar t] agent 1 attempt 0: evaluator started on routes 0-4\n".to_owned();
+        for (i, route) in routes.iter().enumerate() {
+            log += &format!("========= Preparing RouteScenario_{route} (repetition 0) =========\n");
+            log += "> Running the route\n";
+            if finished || i + 1 < routes.len() {
+                log += "> Registering the route statistics\n";
+            }
+        }
+        log
+    }
+
     #[test]
-    fn a_route_prepared_twice_ran_again() {
-        let mut report = ReclaimReport::default();
+    fn the_route_a_pod_stopped_in_and_ran_again_is_the_one_interrupted() {
+        let mut report = ReclaimReport {
+            evicted: vec!["pod-a".into(), "pod-b".into()],
+            disrupted: [
+                ("pod-a", "EvictionByEvictionAPI"),
+                ("pod-b", "EvictionByEvictionAPI"),
+            ]
+            .map(|(p, r)| (p.to_owned(), r.to_owned()))
+            .into(),
+            ..ReclaimReport::default()
+        };
+        // Pair 1 stopped in route 1; pair 2's pod went while its pair was setting up.
         let logs = [
-            "========= Preparing RouteScenario_0 (repetition 0) =========\nagent 1 attempt 0\n========= Preparing RouteScenario_1 (repetition 0) =========\n========= Preparing RouteScenario_1 (repetition 0) =========\n".to_owned(),
-            "========= Preparing RouteScenario_5 (repetition 0) =========\n".to_owned(),
+            part(&[0, 1], false) + &part(&[1, 2], true),
+            "[lb-sidecar t] SIGTERM\n".to_owned() + &part(&[5, 6], true),
         ];
         count_route_runs(&logs, &mut report);
         assert_eq!(report.route_runs["RouteScenario_1"], 2);
-        assert_eq!(report.route_runs.len(), 3);
+        assert_eq!(report.route_runs.len(), 5);
         assert_eq!(report.routes_run_again, 1);
+        assert_eq!(report.interrupted, ["RouteScenario_1"]);
+        assert!(report.as_expected());
+    }
+
+    #[test]
+    fn a_route_run_again_that_no_pod_stopped_in_is_not_what_a_reclaim_does() {
+        let mut report = ReclaimReport {
+            evicted: vec!["pod-a".into()],
+            disrupted: [("pod-a".to_owned(), "EvictionByEvictionAPI".to_owned())].into(),
+            ..ReclaimReport::default()
+        };
+        // A finished route prepared again: the evaluator lost its checkpoint.
+        count_route_runs(&[part(&[0], true) + &part(&[0], true)], &mut report);
+        assert_eq!(report.routes_run_again, 1);
+        assert!(report.interrupted.is_empty());
+        assert!(!report.as_expected());
+        // The run ended inside a route: no later pod went on, so nothing was interrupted.
+        let mut ended = ReclaimReport::default();
+        count_route_runs(&[part(&[0, 1], false)], &mut ended);
+        assert!(ended.interrupted.is_empty());
     }
 }

@@ -254,11 +254,12 @@ impl RunReport {
         }
         if let Some(r) = &self.reclaim {
             outln!(
-                "reclaim        {} pod(s) evicted, {} with DisruptionTarget; retries used {}; {} route(s) run again",
+                "reclaim        {} pod(s) evicted, {} with DisruptionTarget; retries used {}; {} route(s) run again, {} interrupted",
                 r.evicted.len(),
                 r.disrupted.len(),
                 r.retries_used,
-                r.routes_run_again
+                r.routes_run_again,
+                r.interrupted.len()
             );
         }
         if let Some(m) = latency {

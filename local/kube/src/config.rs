@@ -29,7 +29,9 @@ pub struct Timing {
     pub pod_backoff: Duration,
     /// How long an unpullable image shows `ErrImagePull` before `ImagePullBackOff` (and back).
     pub image_pull_backoff: Duration,
-    /// Cap on `terminationGracePeriodSeconds` between SIGTERM and SIGKILL.
+    /// Cap on `terminationGracePeriodSeconds` between SIGTERM and SIGKILL. Long enough for
+    /// what a pod does on SIGTERM (logcopy's final upload) on a loaded machine, as a kubelet
+    /// gives it the whole grace; a process that ignores SIGTERM waits this long.
     pub max_grace_period: Duration,
 }
 
@@ -40,7 +42,7 @@ impl Default for Timing {
             max_backoff: Duration::from_secs(2),
             pod_backoff: Duration::from_millis(200),
             image_pull_backoff: Duration::from_secs(1),
-            max_grace_period: Duration::from_secs(2),
+            max_grace_period: Duration::from_secs(30),
         }
     }
 }
