@@ -310,10 +310,16 @@ impl<'a> Logcopy<'a> {
     }
 
     /// Uploads the results files and markers that changed since they were last uploaded
-    /// (the full pass's bookkeeping: nothing is uploaded twice). Logs wait for their period.
+    /// (the full pass's bookkeeping: nothing is uploaded twice), then the recordings CARLA
+    /// finished (`tree::scan_finished_recordings`). Logs wait for their period.
     pub async fn wake_pass(&mut self) -> Result<usize, S3Error> {
         let mut uploaded = 0;
-        for entry in tree::scan_wake_worthy(&self.cfg.logs_root, self.dev) {
+        let root = &self.cfg.logs_root;
+        let recordings = tree::scan_finished_recordings(root, self.dev, &self.cfg.pairs);
+        for entry in tree::scan_wake_worthy(root, self.dev)
+            .into_iter()
+            .chain(recordings)
+        {
             let last = self.tracker.get(&entry.rel).copied();
             if tree::action(last.as_ref(), &entry.meta) == Action::Skip {
                 continue;

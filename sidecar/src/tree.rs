@@ -12,7 +12,7 @@ use std::os::unix::fs::{MetadataExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use lb_domain::protocol::STATUS_DIR;
+use lb_domain::protocol::{PairId, STATUS_DIR};
 use nix::fcntl::OFlag;
 use sha2::{Digest, Sha256};
 
@@ -192,6 +192,51 @@ pub fn scan_wake_worthy(root: &Path, dev: u64) -> Vec<Entry> {
     out
 }
 
+/// The recordings of these pairs that CARLA has finished: in each pair's folder
+/// (`recorder/pair<ID>`), every recording but the last modified, since a simulator records one
+/// route at a time and starts the next route's file only after it stopped the last. Uploaded
+/// between passes, so a pod lost at once (a node gone without notice) loses no finished
+/// route's recording while its results, uploaded within a second, stand. The last one, and a
+/// folder's newest tied in time, wait for the period. One listing per pair, no walk.
+pub fn scan_finished_recordings(root: &Path, dev: u64, pairs: &[PairId]) -> Vec<Entry> {
+    let mut out = Vec::new();
+    for &pair in pairs {
+        let dir = lb_domain::protocol::recorder_dir(pair);
+        let Ok(listing) = fs::read_dir(root.join(&dir)) else {
+            continue;
+        };
+        let found: Vec<Entry> = listing
+            .filter_map(Result::ok)
+            .filter_map(|item| {
+                let name = item.file_name().to_str()?.to_owned();
+                let meta = item.metadata().ok()?;
+                let regular = meta.is_file() && meta.dev() == dev;
+                let rel = format!("{dir}/{name}");
+                let recording = lb_domain::protocol::kept_as(&rel, &[pair]).is_some();
+                (regular && key_ok(&name) && recording).then(|| Entry {
+                    rel,
+                    path: item.path(),
+                    meta: FileMeta::of(&meta),
+                })
+            })
+            .take(MAX_FILES)
+            .collect();
+        out.extend(superseded(found));
+    }
+    out
+}
+
+/// All but the last modified of one folder's recordings (none when the newest time is shared:
+/// which is being written is then unknown), by name.
+fn superseded(mut found: Vec<Entry>) -> Vec<Entry> {
+    let Some(newest) = found.iter().map(|e| e.meta.mtime_ns).max() else {
+        return found;
+    };
+    found.retain(|e| e.meta.mtime_ns < newest);
+    found.sort_by(|a, b| a.rel.cmp(&b.rel));
+    found
+}
+
 /// A name that is safe as part of an S3 key and a local path: printable, not `.`/`..`.
 pub fn key_ok(name: &str) -> bool {
     !name.is_empty()
@@ -349,6 +394,34 @@ mod tests {
             mtime_ns,
             ino: 7,
         }
+    }
+
+    #[test]
+    fn only_recordings_older_than_the_newest_are_finished() {
+        let entry = |name: &str, mtime_ns| Entry {
+            rel: format!("recorder/pair1/{name}"),
+            path: PathBuf::from(name),
+            meta: meta(1, mtime_ns),
+        };
+        let names = |found: Vec<Entry>| found.into_iter().map(|e| e.rel).collect::<Vec<_>>();
+        let folder = vec![
+            entry("R_2.log", 30),
+            entry("R_0.log", 10),
+            entry("R_1.log", 20),
+        ];
+        assert_eq!(
+            names(superseded(folder)),
+            ["recorder/pair1/R_0.log", "recorder/pair1/R_1.log"]
+        );
+        // The newest time shared: either may be the one being written; both wait.
+        let tied = vec![
+            entry("R_0.log", 10),
+            entry("R_1.log", 20),
+            entry("R_2.log", 20),
+        ];
+        assert_eq!(names(superseded(tied)), ["recorder/pair1/R_0.log"]);
+        assert!(superseded(vec![entry("R_0.log", 10)]).is_empty());
+        assert!(superseded(Vec::new()).is_empty());
     }
 
     #[test]

@@ -302,6 +302,42 @@ fn a_new_pod_does_not_write_again_the_results_init_restored_but_writes_a_changed
 
 #[test]
 #[ignore = "needs moto"]
+fn a_recording_carla_finished_is_sent_within_seconds_and_the_one_it_writes_waits() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    // A long period: only the between-pass check can send within seconds.
+    let mut lc = logcopy(&vols, &moto, None, &[("LB_PERIOD_SECONDS", "120")]);
+    lc.wait_event("logcopy pass", LIMIT, |_| true);
+    let (done, writing) = (
+        "recorder/pair1/RouteScenario_0_rep0.log",
+        "recorder/pair1/RouteScenario_1_rep0.log",
+    );
+    write(vols.root(), done, b"route 0 recorded");
+    write(vols.root(), writing, b"route 1 so far");
+    let earlier = std::time::SystemTime::now() - Duration::from_secs(30);
+    std::fs::File::options()
+        .write(true)
+        .open(vols.root().join(done))
+        .and_then(|f| f.set_modified(earlier))
+        .unwrap();
+    wait_until("the finished recording in S3", LIMIT, || {
+        moto.get(&key(done)).is_some()
+    });
+    assert_eq!(lc.events("logcopy pass").len(), 1, "no full pass meanwhile");
+    assert_eq!(moto.tags(&key(done)), ["retention=recording"]);
+    // The one still being written waits for the period (or the final upload).
+    std::thread::sleep(Duration::from_secs(3));
+    assert!(moto.get(&key(writing)).is_none(), "{}", lc.log());
+
+    lc.signal(Signal::SIGTERM);
+    write(vols.status().as_path(), "simulator-1.crash0", b"");
+    write(vols.status().as_path(), "agent-1.crash0", b"");
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+    assert_eq!(moto.get(&key(writing)).unwrap(), b"route 1 so far");
+}
+
+#[test]
+#[ignore = "needs moto"]
 fn on_sigterm_the_results_reach_s3_at_once_even_if_the_pod_is_killed_soon_after() {
     let moto = Moto::start();
     let vols = Volumes::new();
