@@ -43,15 +43,15 @@ SHARED_SKIP := $(if $(wildcard ../shared/fixtures),,--skip _when_it_is_beside_th
 real-kube: kubectl ## Build the pinned real Kubernetes control plane the tests hold local-kube to (cached outside the clone)
 	bash local/realkube/build.sh
 
-test: venv lint-venv kubectl real-kube ## The whole suite, emulator tests included, two test binaries at a time (README's and CI's command)
+test: venv lint-venv kubectl real-kube own-cache ## The whole suite, emulator tests included, two test binaries at a time (README's and CI's command)
 	@$(if $(SHARED_SKIP),echo "no shared set beside the repository: the kept copies are not compared",:)
 	CARGO=$(CARGO) $(PYTHON) tests/suite.py -- --include-ignored $(SHARED_SKIP)
 	$(CARGO) test --workspace --doc
 
-test-unit: ## Tests that need nothing but cargo (what plain `cargo test` runs)
+test-unit: own-cache ## Tests that need nothing but cargo (what plain `cargo test` runs)
 	$(CARGO) test --workspace
 
-lint: ## rustfmt check and clippy with warnings as errors
+lint: own-cache ## rustfmt check and clippy with warnings as errors
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
 
@@ -79,7 +79,7 @@ sidecar: $(SIDECAR_TOOLS) ## lb-sidecar for the Job images (glibc 2.17, checked)
 
 # Local runs in real time (time scale 1), 40 routes of 5 s on 4 pairs.
 LATENCY_RUN := local run --time-scale 1 --routes 40 --workers 4 --route-seconds 5 --latency --timeout 900
-bench-latency: venv kubectl ## Record -> partial update and last write -> final status, with and without S3's events (targets: p50 < 15 s, p99 < 60 s, final < 60 s)
+bench-latency: venv kubectl own-cache ## Record -> partial update and last write -> final status, with and without S3's events (targets: p50 < 15 s, p99 < 60 s, final < 60 s)
 	$(CARGO) build --quiet --workspace --bins
 	@for run in "events, partial_update_seconds 20 (the default)|" \
 	            "events, partial_update_seconds 30|--partial-update-seconds 30" \
@@ -101,12 +101,25 @@ LAMBDA_TOOLS := $(VENV)/.lambda-tools
 FUNCTIONS := intake launch monitor finalize wake sweep
 TARGET_DIR := $(or $(CARGO_TARGET_DIR),target)
 
+# The target cache outside the clone serves every clone on the machine, and cargo knows a
+# workspace crate by its path inside the workspace and by file times, not by clone: after a
+# build in another clone, an older clone's crates pass as built, holding that clone's paths
+# (`env!("CARGO_MANIFEST_DIR")`, from which the tests run cargo) and files (`include_str!`).
+# A clone taking the cache over makes its own files newer than anything built from another.
+.PHONY: own-cache
+own-cache:
+	@mkdir -p $(TARGET_DIR); stamp=$(TARGET_DIR)/.clone; \
+	if [ "$$(cat $$stamp 2>/dev/null)" != "$(CURDIR)" ]; then \
+		{ git ls-files -z 2>/dev/null || true; } | xargs -0 -r touch -c; \
+		echo "$(CURDIR)" > $$stamp; \
+	fi
+
 $(LAMBDA_TOOLS): functions/build-requirements.txt
 	test -x $(VENV)/bin/pip || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install --quiet --disable-pip-version-check -r functions/build-requirements.txt
 	touch $@
 
-build: $(LAMBDA_TOOLS) ## Lambda bootstraps (cargo lambda build --release) into $(TARGET_DIR)/lambda/<fn>/
+build: $(LAMBDA_TOOLS) own-cache ## Lambda bootstraps (cargo lambda build --release) into $(TARGET_DIR)/lambda/<fn>/
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda build --release --$(LAMBDA_ARCH) $(addprefix -p ,$(FUNCTIONS))
 	@for f in $(FUNCTIONS); do ls -l $(TARGET_DIR)/lambda/$$f/bootstrap; done
 
@@ -163,7 +176,7 @@ cluster-manifests: $(DEPLOY_TOOLS) ## Apply infra/k8s/ to LEADERBOARD's cluster 
 		sed -e "s|\$${CLUSTER_NAME}|leaderboard-$(LEADERBOARD)|g" -e "s|\$${AUTOSCALER_ROLE_ARN}|$$role|g" \
 			infra/k8s/$$f.yaml | kubectl apply -f -; done
 
-local: venv kubectl ## One whole submission on this machine (ARGS="--scenario crash" etc.)
+local: venv kubectl own-cache ## One whole submission on this machine (ARGS="--scenario crash" etc.)
 	$(CARGO) build --quiet --workspace --bins
 	$(TARGET_DIR)/debug/lbctl local run $(ARGS)
 
