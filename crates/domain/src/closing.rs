@@ -379,7 +379,8 @@ impl<'a> Closing<'a> {
         let outcome = finalize::settle(outcome, posted);
         let finished = outcome.status == SubmissionStatus::Finished;
         self.outcome = Some(outcome);
-        if finished && self.merged.is_some() {
+        let recorded = self.cx.run.is_some_and(|run| run.recorder);
+        if finished && recorded && self.merged.is_some() {
             Stage::Listing
         } else {
             Stage::Record
@@ -475,6 +476,7 @@ mod tests {
             ],
             repetitions: 1,
             launched_at: 0,
+            recorder: true,
             monitor,
             queue: QueueState::arriving(0),
         }
@@ -804,6 +806,26 @@ mod tests {
             unreachable!()
         };
         assert_eq!(*recordings, None);
+    }
+
+    #[test]
+    fn a_run_launched_before_the_recorder_is_not_audited() {
+        let mut run = run(RunPhase::Finished, true);
+        run.recorder = false;
+        let (steps, _) = drive(cx(Some(&run), None), world(Some(merged(true, 90.0)), &[]));
+        assert!(!kinds(&steps).contains(&"recordings"), "{steps:?}");
+        let Step::WriteRecord {
+            status, recordings, ..
+        } = find(&steps, "record")
+        else {
+            unreachable!()
+        };
+        assert_eq!((*status, recordings), (RecordStatus::Finished, &None));
+        // Its state as that version left it: no field, so not audited.
+        let mut state = serde_json::to_value(&run).unwrap();
+        assert!(state.get("recorder").is_none(), "{state}");
+        state["recorder"] = true.into();
+        assert!(serde_json::from_value::<RunState>(state).unwrap().recorder);
     }
 
     #[test]

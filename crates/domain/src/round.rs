@@ -723,6 +723,7 @@ mod tests {
             pairs: Vec::new(),
             repetitions: 1,
             launched_at: NOW - 600,
+            recorder: true,
             monitor: MonitorState {
                 status_read_at: Some(NOW - 60),
                 ..MonitorState::starting(30, 0, 10, "exec-1", 0)

@@ -53,6 +53,11 @@ pub struct RunState {
     pub repetitions: u32,
     /// When the Jobs were created (seconds since the Unix epoch).
     pub launched_at: u64,
+    /// The Jobs' simulators record each route in their own folder, which only they can write
+    /// (`protocol::RECORDER_DIR`): Finalize audits the recordings only then. A run whose Jobs
+    /// an earlier version launched (recordings in the agents' logs) is not audited.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub recorder: bool,
     /// The Monitor's state between rounds.
     pub monitor: MonitorState,
     /// Its place in the leaderboard's queue (a run from before the queue was admitted).

@@ -221,6 +221,9 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         error: Option<String>,
         recordings: Option<Recordings>,
     ) -> Result<bool> {
+        if status == RecordStatus::Finished && self.run.is_some_and(|run| !run.recorder) {
+            info!("launched by a version before the recorder's own folder: recordings not audited");
+        }
         if let Some(audited) = recordings.as_ref().filter(|r| !r.complete()) {
             warn!(
                 passed = audited.passed,

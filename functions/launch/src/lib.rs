@@ -284,6 +284,7 @@ impl Prepared {
             pairs: self.pairs,
             repetitions: self.settings.repetitions,
             launched_at: now,
+            recorder: true,
             queue,
             monitor: MonitorState::starting(
                 FIRST_WAIT.as_secs(),

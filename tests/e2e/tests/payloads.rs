@@ -86,6 +86,7 @@ fn run(phase: RunPhase) -> RunState {
             .collect(),
         repetitions: 5,
         launched_at: u64::MAX,
+        recorder: true,
         queue: QueueState {
             arrived_at: u64::MAX,
             admitted: false,
