@@ -38,12 +38,14 @@ pub struct ReclaimReport {
 
 impl ReclaimReport {
     /// What a reclaim should come to: pods evicted, each with the condition the API server
-    /// writes, no retry used, and exactly the routes the evicted pods were in run again, each
-    /// once more (at most one per evicted pod).
+    /// writes, no retry used, the routes the evicted pods were in (at most one each) run again
+    /// once, and no route more than twice. A finished route may run again too, at most one per
+    /// evicted pod: its results had not reached S3 when the replacement read them (seen on
+    /// the real control plane under load; it costs one route's GPU time, not a result).
     pub fn as_expected(&self) -> bool {
         !self.evicted.is_empty()
             && self.interrupted.len() <= self.evicted.len()
-            && self.routes_run_again == self.interrupted.len()
+            && self.finished_run_again() <= self.evicted.len()
             && self
                 .interrupted
                 .iter()
@@ -54,6 +56,11 @@ impl ReclaimReport {
                 .all(|p| self.disrupted.get(p).map(String::as_str) == Some("EvictionByEvictionAPI"))
             && self.retries_used == 0
             && self.route_runs.values().all(|n| *n <= 2)
+    }
+
+    /// Routes run again that no pod stopped in.
+    pub fn finished_run_again(&self) -> usize {
+        self.routes_run_again.saturating_sub(self.interrupted.len())
     }
 }
 
@@ -193,13 +200,14 @@ async fn drain(
     evicted
 }
 
-/// Evicts one running pod of the submission through the Eviction API and waits, bounded,
-/// until the API no longer has it: the pod and its `DisruptionTarget` reason as read right
-/// after the eviction.
+/// Evicts one running pod of the submission (of the Job with index `job`, when given) through
+/// the Eviction API and waits, bounded, until the API no longer has it: the pod and its
+/// `DisruptionTarget` reason as read right after the eviction.
 pub async fn evict_one_until_gone(
     kubeconfig: &std::path::Path,
     namespace: &str,
     submission: u64,
+    job: Option<u32>,
 ) -> Option<(String, Option<String>)> {
     let cluster = lb_cluster::Cluster::from_kubeconfig(kubeconfig, None)
         .await
@@ -211,6 +219,7 @@ pub async fn evict_one_until_gone(
     let pod = seen
         .jobs
         .iter()
+        .filter(|j| job.is_none_or(|index| j.index == Some(index)))
         .flat_map(|j| &j.pods)
         .find(|p| p.phase == "Running" && !p.terminating)?
         .name
@@ -349,11 +358,23 @@ mod tests {
             disrupted: [("pod-a".to_owned(), "EvictionByEvictionAPI".to_owned())].into(),
             ..ReclaimReport::default()
         };
-        // A finished route prepared again: the evaluator lost its checkpoint.
-        count_route_runs(&[part(&[0], true) + &part(&[0], true)], &mut report);
-        assert_eq!(report.routes_run_again, 1);
+        // Finished routes prepared again, more than one per evicted pod: the evaluator lost
+        // its checkpoint.
+        let again = part(&[0, 1], true) + &part(&[0, 1], true);
+        count_route_runs(&[again], &mut report);
+        assert_eq!(report.routes_run_again, 2);
         assert!(report.interrupted.is_empty());
+        assert_eq!(report.finished_run_again(), 2);
         assert!(!report.as_expected());
+        // One: its results had not reached S3 when the replacement read them.
+        let mut one = ReclaimReport {
+            route_runs: BTreeMap::new(),
+            routes_run_again: 0,
+            ..report.clone()
+        };
+        count_route_runs(&[part(&[0, 1], true) + &part(&[1], true)], &mut one);
+        assert_eq!(one.finished_run_again(), 1);
+        assert!(one.as_expected());
         // The run ended inside a route: no later pod went on, so nothing was interrupted.
         let mut ended = ReclaimReport::default();
         count_route_runs(&[part(&[0, 1], false)], &mut ended);

@@ -324,10 +324,15 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
             assert!(runs.values().all(|n| n == 1 || n == 2), "{report}");
             let interrupted = reclaim["interrupted"].as_array().unwrap();
             assert!(interrupted.len() <= evicted.len(), "{report}");
-            assert_eq!(reclaim["routes_run_again"], interrupted.len(), "{report}");
             for route in interrupted {
                 assert_eq!(runs[route.as_str().unwrap()], 2, "{report}");
             }
+            // A finished route whose results had not reached S3 may run again: one per pod.
+            let again = reclaim["routes_run_again"].as_u64().unwrap() as usize;
+            assert!(
+                again.saturating_sub(interrupted.len()) <= evicted.len(),
+                "{report}"
+            );
             assert_eq!(report["merged"]["records"], 20, "{report}");
             assert_eq!(&report["scores"], happy_scores, "{report}");
             // All of it on the Spot node; what was run again (the seconds after each

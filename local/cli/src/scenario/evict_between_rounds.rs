@@ -19,8 +19,9 @@ use crate::reclaim::{evict_one_until_gone, Reclaim};
 /// The least seconds per route: the eviction must land mid-route.
 const ROUTE_SECONDS: f64 = 4.0;
 
-/// How long after its pair's last results the pod is evicted: whole seconds of a route run
-/// again, which the record counts in whole seconds.
+/// How long after its pair's last results the pod is evicted (S3's times are whole seconds:
+/// between 1 and 3 s): whole seconds of a route run again, which the record counts in whole
+/// seconds, and a second at least before the route ends.
 const INTO_THE_ROUTE: Duration = Duration::from_secs(2);
 
 /// An eviction no round sees.
@@ -82,10 +83,11 @@ impl Rehearsal for EvictBetweenRounds {
         let store = self.store.get();
         let evicted = tokio::task::block_in_place(|| {
             tokio::runtime::Handle::current().block_on(async {
-                if let Some(store) = store {
-                    into_a_route(store).await;
-                }
-                evict_one_until_gone(kubeconfig, namespace, *submission).await
+                let job = match store {
+                    Some(store) => into_a_route(store).await,
+                    None => None,
+                };
+                evict_one_until_gone(kubeconfig, namespace, *submission, job).await
             })
         });
         let done = evicted.is_some();
@@ -122,21 +124,24 @@ impl Rehearsal for EvictBetweenRounds {
     }
 }
 
-/// Waits (bounded) until the latest results write is [`INTO_THE_ROUTE`] old: the pods are then
-/// that far into their next routes, whose time a replacement runs again.
-async fn into_a_route(store: &SubmissionStore) {
+/// Waits (bounded) until a pair's last results write is [`INTO_THE_ROUTE`] old: its pod is then
+/// that far into its next route, whose time a replacement runs again. The Job of that pair
+/// (`None`: none came to it in time). The pairs are asked one by one, not all at once: pairs
+/// whose routes end a second apart are never all two seconds into theirs.
+async fn into_a_route(store: &SubmissionStore) -> Option<u32> {
     for _ in 0..100 {
-        let latest = store
-            .partials()
-            .await
-            .ok()
-            .and_then(|p| p.iter().filter_map(|o| o.modified).max());
         let now = SystemTime::now()
             .duration_since(SystemTime::UNIX_EPOCH)
             .map_or(0, |d| d.as_secs());
-        if latest.is_some_and(|at| now.saturating_sub(at) >= INTO_THE_ROUTE.as_secs()) {
-            return;
+        let partials = store.partials().await.unwrap_or_default();
+        let due = partials.iter().find(|p| {
+            p.modified
+                .is_some_and(|at| now.saturating_sub(at) == INTO_THE_ROUTE.as_secs())
+        });
+        if let Some(partial) = due {
+            return lb_domain::plan::job_of_pair(partial.pair_id);
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
+    None
 }
