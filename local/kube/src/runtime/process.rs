@@ -246,11 +246,20 @@ pub fn exit_code(status: &ExitStatus) -> i32 {
         .unwrap_or(-1)
 }
 
-/// SIGTERM the group, wait up to `grace` for the leader, then SIGKILL the group; returns the
-/// leader's exit status.
+/// SIGTERM the container's main process, wait up to `grace` for it, then SIGKILL the group;
+/// returns the main process's exit status. As a container runtime does, only the main process
+/// is told: the processes it started are its to stop (a pair's sidecar keeps CARLA up until
+/// the evaluator has stopped), and whatever is left goes with it, as a PID namespace does.
 pub async fn terminate(child: &mut Child, pgid: i32, grace: Duration) -> Option<ExitStatus> {
     if !grace.is_zero() {
-        signal_group(pgid, Signal::SIGTERM);
+        match child.id().and_then(|pid| i32::try_from(pid).ok()) {
+            Some(pid) if pid > 1 => {
+                let _ = nix::sys::signal::kill(Pid::from_raw(pid), Signal::SIGTERM);
+            }
+            _ => {
+                signal_group(pgid, Signal::SIGTERM);
+            }
+        }
         if let Ok(Ok(status)) = tokio::time::timeout(grace, child.wait()).await {
             signal_group(pgid, Signal::SIGKILL);
             return Some(status);
