@@ -254,12 +254,13 @@ impl RunReport {
         }
         if let Some(r) = &self.reclaim {
             outln!(
-                "reclaim        {} pod(s) evicted, {} with DisruptionTarget; retries used {}; {} route(s) run again, {} interrupted",
+                "reclaim        {} pod(s) evicted, {} with DisruptionTarget; retries used {}; {} route(s) run again ({} interrupted, {} resumed behind them)",
                 r.evicted.len(),
                 r.disrupted.len(),
                 r.retries_used,
                 r.routes_run_again,
-                r.interrupted.len()
+                r.interrupted.len(),
+                r.resumed_behind.len()
             );
         }
         if let Some(m) = latency {
