@@ -560,6 +560,53 @@ async fn deleting_a_running_job_in_the_foreground_leaves_no_process_and_no_pod_b
 }
 
 #[tokio::test]
+async fn a_stopping_containers_sigterm_reaches_its_main_process_only() {
+    // As a container runtime does: the processes the main one started are its to stop (a
+    // pair's sidecar stops CARLA after the evaluator), and go with it once it exits.
+    let dir = tempfile::tempdir().unwrap();
+    let (_lk, client) = start(Config::default()).await;
+    let jobs: Api<Job> = Api::namespaced(client, "default");
+    let d = dir.path().display();
+    let spec = job(&format!(
+        r#"
+metadata: {{name: ordered}}
+spec:
+  template:
+    spec:
+      restartPolicy: Never
+      terminationGracePeriodSeconds: 5
+      containers:
+      - name: c
+        image: busybox
+        command: [sh, -c]
+        args:
+        - |
+          sh -c 'trap "echo child >> {d}/term" TERM; while :; do sleep 0.1; done' &
+          echo $! > {d}/child
+          trap 'echo main >> {d}/term; sleep 0.5; exit 0' TERM
+          while :; do sleep 0.1; done
+"#
+    ));
+    jobs.create(&PostParams::default(), &spec).await.unwrap();
+    let child = read_pid(&dir.path().join("child")).await;
+    assert!(alive(child));
+    jobs.delete("ordered", &DeleteParams::foreground())
+        .await
+        .unwrap();
+    eventually("the job to disappear", || async {
+        jobs.get_opt("ordered")
+            .await
+            .unwrap()
+            .is_none()
+            .then_some(())
+    })
+    .await;
+    let told = std::fs::read_to_string(dir.path().join("term")).unwrap_or_default();
+    assert_eq!(told, "main\n", "only the main process gets SIGTERM");
+    assert!(!alive(child), "the child went with the main process");
+}
+
+#[tokio::test]
 async fn deleting_in_the_background_answers_a_success_status_and_kills_the_pods() {
     let dir = tempfile::tempdir().unwrap();
     let (_lk, client) = start(Config::default()).await;
