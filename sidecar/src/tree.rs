@@ -160,36 +160,34 @@ fn walk(
 /// lands before the results it vouches for). Two directory listings, no walk: cheap enough
 /// to run every second between full passes.
 pub fn scan_wake_worthy(root: &Path, dev: u64) -> Vec<Entry> {
-    let mut out = Vec::new();
-    for (dir, keep) in [
-        (
-            lb_domain::protocol::AGENT_DIR,
-            (|name: &str| lb_domain::protocol::pair_of_results_name(name).is_some())
-                as fn(&str) -> bool,
-        ),
-        (lb_domain::protocol::STATUS_DIR, |_: &str| true),
-    ] {
-        let Ok(listing) = fs::read_dir(root.join(dir)) else {
-            continue;
-        };
-        let mut found: Vec<Entry> = listing
-            .filter_map(Result::ok)
-            .filter_map(|item| {
-                let name = item.file_name().to_str()?.to_owned();
-                let meta = item.metadata().ok()?;
-                let regular = meta.is_file() && meta.dev() == dev;
-                (regular && key_ok(&name) && keep(&name)).then(|| Entry {
-                    rel: format!("{dir}/{name}"),
-                    path: item.path(),
-                    meta: FileMeta::of(&meta),
-                })
-            })
-            .take(MAX_FILES)
-            .collect();
-        found.sort_by(|a, b| a.rel.cmp(&b.rel));
-        out.extend(found);
-    }
+    let results = |name: &str| lb_domain::protocol::pair_of_results_name(name).is_some();
+    let mut out = list_dir(root, lb_domain::protocol::AGENT_DIR, dev, results);
+    out.extend(list_dir(root, STATUS_DIR, dev, |_| true));
     out
+}
+
+/// The regular files on the logs volume directly in `dir` whose names `keep` takes, by name
+/// (at most [`MAX_FILES`]; none when `dir` cannot be listed).
+fn list_dir(root: &Path, dir: &str, dev: u64, keep: impl Fn(&str) -> bool) -> Vec<Entry> {
+    let Ok(listing) = fs::read_dir(root.join(dir)) else {
+        return Vec::new();
+    };
+    let mut found: Vec<Entry> = listing
+        .filter_map(Result::ok)
+        .filter_map(|item| {
+            let name = item.file_name().to_str()?.to_owned();
+            let meta = item.metadata().ok()?;
+            let regular = meta.is_file() && meta.dev() == dev;
+            (regular && key_ok(&name) && keep(&name)).then(|| Entry {
+                rel: format!("{dir}/{name}"),
+                path: item.path(),
+                meta: FileMeta::of(&meta),
+            })
+        })
+        .take(MAX_FILES)
+        .collect();
+    found.sort_by(|a, b| a.rel.cmp(&b.rel));
+    found
 }
 
 /// The recordings of these pairs that CARLA has finished: in each pair's folder
@@ -202,26 +200,9 @@ pub fn scan_finished_recordings(root: &Path, dev: u64, pairs: &[PairId]) -> Vec<
     let mut out = Vec::new();
     for &pair in pairs {
         let dir = lb_domain::protocol::recorder_dir(pair);
-        let Ok(listing) = fs::read_dir(root.join(&dir)) else {
-            continue;
-        };
-        let found: Vec<Entry> = listing
-            .filter_map(Result::ok)
-            .filter_map(|item| {
-                let name = item.file_name().to_str()?.to_owned();
-                let meta = item.metadata().ok()?;
-                let regular = meta.is_file() && meta.dev() == dev;
-                let rel = format!("{dir}/{name}");
-                let recording = lb_domain::protocol::kept_as(&rel, &[pair]).is_some();
-                (regular && key_ok(&name) && recording).then(|| Entry {
-                    rel,
-                    path: item.path(),
-                    meta: FileMeta::of(&meta),
-                })
-            })
-            .take(MAX_FILES)
-            .collect();
-        out.extend(superseded(found));
+        let recording =
+            |name: &str| lb_domain::protocol::kept_as(&format!("{dir}/{name}"), &[pair]).is_some();
+        out.extend(superseded(list_dir(root, &dir, dev, recording)));
     }
     out
 }

@@ -487,6 +487,14 @@ spec:
     assert_eq!(c.reason.as_deref(), Some("DeadlineExceeded"));
 }
 
+/// Waits (bounded) until the API no longer has Job `name`.
+async fn gone(jobs: &Api<Job>, name: &str) {
+    eventually("the job to disappear", || async {
+        jobs.get_opt(name).await.unwrap().is_none().then_some(())
+    })
+    .await;
+}
+
 fn sleeper(name: &str, dir: &Path) -> Job {
     job(&format!(
         r#"
@@ -533,14 +541,7 @@ async fn deleting_a_running_job_in_the_foreground_leaves_no_process_and_no_pod_b
         j.metadata.finalizers,
         Some(vec!["foregroundDeletion".to_owned()])
     );
-    eventually("the job to disappear", || async {
-        jobs.get_opt("sleeper")
-            .await
-            .unwrap()
-            .is_none()
-            .then_some(())
-    })
-    .await;
+    gone(&jobs, "sleeper").await;
     assert!(pods_of(&pods, "sleeper").await.is_empty());
     assert!(!alive(pid), "container process {pid} survived");
     assert!(
@@ -593,14 +594,7 @@ spec:
     jobs.delete("ordered", &DeleteParams::foreground())
         .await
         .unwrap();
-    eventually("the job to disappear", || async {
-        jobs.get_opt("ordered")
-            .await
-            .unwrap()
-            .is_none()
-            .then_some(())
-    })
-    .await;
+    gone(&jobs, "ordered").await;
     let told = std::fs::read_to_string(dir.path().join("term")).unwrap_or_default();
     assert_eq!(told, "main\n", "only the main process gets SIGTERM");
     assert!(!alive(child), "the child went with the main process");
