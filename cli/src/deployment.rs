@@ -1,12 +1,13 @@
 //! A real deployment as the operator commands see it: the settings secret and the submissions
 //! tables and buckets it names, reached with the standard AWS environment.
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::BTreeSet;
 
 use aws_config::SdkConfig;
 use aws_sdk_dynamodb::types::AttributeValue;
 use clap::Args;
-use lb_aws::dynamo::RecordStatus;
+use lb_aws::dynamo::SubmissionsTable;
+use lb_aws::record::StoredRecord;
 use lb_domain::settings::{LeaderboardSettings, Settings};
 use serde_json::{json, Map, Value};
 
@@ -68,6 +69,11 @@ pub struct Deployment {
     pub admission: Option<lb_aws::admission::AdmissionTable>,
 }
 
+/// Parses an EvalAI id: EvalAI's primary keys are positive Postgres integers.
+pub(crate) fn evalai_id() -> impl clap::builder::TypedValueParser<Value = u64> {
+    clap::value_parser!(u64).range(1..=lb_domain::submission::MAX_ID)
+}
+
 /// One submission record and where it was found.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Record {
@@ -75,20 +81,18 @@ pub struct Record {
     pub leaderboard: String,
     /// The table.
     pub table: String,
-    /// The item as stored.
-    pub item: HashMap<String, AttributeValue>,
+    /// The record as stored, read back typed.
+    pub stored: StoredRecord,
 }
 
-/// What to keep of a Scan.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ScanFilter {
-    /// Every record.
-    All,
-    /// The records of one submission id (any team).
-    Submission(u64),
-    /// Records still queued or running.
-    InFlight,
+impl std::ops::Deref for Record {
+    type Target = StoredRecord;
+    fn deref(&self) -> &StoredRecord {
+        &self.stored
+    }
 }
+
+pub use lb_aws::dynamo::ScanFilter;
 
 /// The records found, and the tables whose Scan stopped at [`MAX_SCAN_PAGES`].
 #[derive(Debug, Clone, Default)]
@@ -202,143 +206,40 @@ impl Deployment {
             if !seen.insert(lb.submissions_table.as_str()) {
                 continue;
             }
-            let (items, complete) = self.scan(&lb.submissions_table, filter).await?;
+            let table = SubmissionsTable::new(self.dynamo.clone(), &lb.submissions_table);
+            let (records, complete) = table
+                .scan(filter, MAX_SCAN_PAGES)
+                .await
+                .map_err(|e| CliError::aws(format!("reading `{}`", lb.submissions_table), e))?;
             if !complete {
                 found.truncated.push(lb.submissions_table.clone());
             }
-            found.records.extend(items.into_iter().map(|item| Record {
-                leaderboard: name.to_string(),
-                table: lb.submissions_table.clone(),
-                item,
-            }));
+            found
+                .records
+                .extend(records.into_iter().map(|stored| Record {
+                    leaderboard: name.to_string(),
+                    table: lb.submissions_table.clone(),
+                    stored,
+                }));
         }
         found
             .records
-            .sort_by_key(|r| std::cmp::Reverse(r.submission_id().unwrap_or(0)));
+            .sort_by_key(|r| std::cmp::Reverse(r.submission_id.unwrap_or(0)));
         Ok(found)
-    }
-
-    /// One table's Scan, paginated, at most [`MAX_SCAN_PAGES`] pages; `false` when cut short.
-    async fn scan(
-        &self,
-        table: &str,
-        filter: ScanFilter,
-    ) -> Result<(Vec<HashMap<String, AttributeValue>>, bool)> {
-        let mut items = Vec::new();
-        let mut start: Option<HashMap<String, AttributeValue>> = None;
-        for _ in 0..MAX_SCAN_PAGES {
-            let mut request = self
-                .dynamo
-                .scan()
-                .table_name(table)
-                .consistent_read(true)
-                .set_exclusive_start_key(start.take());
-            request = match filter {
-                ScanFilter::All => request,
-                ScanFilter::Submission(id) => request
-                    .filter_expression("submission_id = :id")
-                    // The original layout: ids are strings.
-                    .expression_attribute_values(":id", AttributeValue::S(id.to_string())),
-                ScanFilter::InFlight => {
-                    let [a, b, c] =
-                        RecordStatus::IN_FLIGHT.map(|s| AttributeValue::S(s.as_str().into()));
-                    request
-                        .filter_expression("submission_status IN (:a, :b, :c)")
-                        .expression_attribute_values(":a", a)
-                        .expression_attribute_values(":b", b)
-                        .expression_attribute_values(":c", c)
-                }
-            };
-            let page = request
-                .send()
-                .await
-                .map_err(|e| CliError::sdk(format!("dynamodb `Scan` of `{table}`"), e))?;
-            items.extend(page.items.unwrap_or_default());
-            match page.last_evaluated_key {
-                Some(key) if !key.is_empty() => start = Some(key),
-                _ => return Ok((items, true)),
-            }
-        }
-        Ok((items, false))
     }
 }
 
 impl Record {
-    /// A string attribute.
-    pub fn text(&self, key: &str) -> Option<&str> {
-        self.item
-            .get(key)
-            .and_then(|v| v.as_s().ok())
-            .map(String::as_str)
-    }
-
-    /// A list of strings' attribute (`recordings_failed`); anything else in it is left out.
-    pub fn texts(&self, key: &str) -> Vec<&str> {
-        match self.item.get(key) {
-            Some(AttributeValue::L(items)) => items
-                .iter()
-                .filter_map(|v| v.as_s().ok().map(String::as_str))
-                .collect(),
-            _ => Vec::new(),
-        }
-    }
-
-    /// A non-negative integer attribute, stored as a string (the original layout) or a number.
-    pub fn number(&self, key: &str) -> Option<u64> {
-        match self.item.get(key)? {
-            AttributeValue::S(v) | AttributeValue::N(v) => v.trim().parse().ok(),
-            _ => None,
-        }
-    }
-
-    /// A non-negative amount stored as a number (`cost_usd`).
-    pub fn amount(&self, key: &str) -> Option<f64> {
-        match self.item.get(key)? {
-            AttributeValue::N(v) => v
-                .trim()
-                .parse()
-                .ok()
-                .filter(|v: &f64| v.is_finite() && *v >= 0.0),
-            _ => None,
-        }
-    }
-
     /// The GPUs the run used so far (the Monitor writes them each round, Finalize at the end).
     pub fn usage(&self) -> Option<Usage> {
-        Some(Usage {
-            gpu_seconds: self.number("gpu_seconds")?,
-            spot: self.number("gpu_seconds_spot").unwrap_or(0),
-            run_again: self.number("gpu_seconds_run_again").unwrap_or(0),
-            lost: self.number("seconds_lost_to_reclaims").unwrap_or(0),
-            dollars: self.amount("cost_usd"),
-            orchestration: self.amount("orchestration_usd"),
+        self.stored.usage.map(|u| Usage {
+            gpu_seconds: u.gpu_seconds,
+            spot: u.spot,
+            run_again: u.run_again,
+            lost: u.lost,
+            dollars: u.dollars,
+            orchestration: u.orchestration,
         })
-    }
-
-    /// `submission_id`.
-    pub fn submission_id(&self) -> Option<u64> {
-        self.number("submission_id")
-    }
-
-    /// `team_id`.
-    pub fn team_id(&self) -> Option<u64> {
-        self.number("team_id")
-    }
-
-    /// `submission_status`, when it is one of ours (`None`: absent, or a word the deployment
-    /// never writes; [`status_word`](Self::status_word) shows it).
-    pub fn status(&self) -> Option<RecordStatus> {
-        self.status_word().parse().ok()
-    }
-
-    /// `submission_status` as stored, for display.
-    pub fn status_word(&self) -> &str {
-        self.text("submission_status").unwrap_or("")
-    }
-
-    /// FINISHED, FAILED or CANCELLED.
-    pub fn is_final(&self) -> bool {
-        self.status().is_some_and(RecordStatus::is_final)
     }
 
     /// The record as JSON, with where it was found.
@@ -354,14 +255,9 @@ impl Record {
 
     /// Attributes that are not part of the record's fixed layout (the metrics, mostly).
     pub fn extra_attributes(&self) -> Vec<(&str, String)> {
-        let mut out: Vec<(&str, String)> = self
-            .item
-            .iter()
-            .filter(|(k, _)| !KNOWN_ATTRIBUTES.contains(&k.as_str()))
-            .map(|(k, v)| (k.as_str(), clean(&attribute_json(v).to_string())))
-            .collect();
-        out.sort();
-        out
+        (self.stored.extra_attributes().into_iter())
+            .map(|(k, v)| (k, clean(&attribute_json(v).to_string())))
+            .collect()
     }
 }
 
@@ -439,39 +335,6 @@ impl Usage {
     }
 }
 
-/// Attributes Intake, Monitor and Finalize write besides the metrics.
-const KNOWN_ATTRIBUTES: &[&str] = &[
-    "team_id",
-    "submission_id",
-    "submission_status",
-    "team_name",
-    "track_id",
-    "track_name",
-    "submitted_image_uri",
-    "parallelization_workers",
-    "submitted_time",
-    "start_time",
-    "end_time",
-    "routes_done",
-    "routes_total",
-    "results",
-    "error",
-    "claimed_by",
-    "recordings_found",
-    "recordings_expected",
-    "recordings_failed",
-    "gpu_seconds",
-    "gpu_seconds_spot",
-    "gpu_seconds_run_again",
-    "seconds_lost_to_reclaims",
-    "cost_usd",
-    "orchestration_usd",
-    "state_transitions",
-    "log_bytes_stored",
-    "image_digest",
-    "uploads_refused",
-];
-
 /// A DynamoDB value as plain JSON (numbers as numbers when they fit).
 pub fn attribute_json(value: &AttributeValue) -> Value {
     let number = |n: &str| -> Value {
@@ -511,7 +374,7 @@ pub fn attribute_json(value: &AttributeValue) -> Value {
 pub fn clean(text: &str) -> String {
     text.chars()
         .flat_map(|c| {
-            if c.is_control() || lb_domain::logtail::is_invisible_format(c) {
+            if c.is_control() || lb_domain::job::logtail::is_invisible_format(c) {
                 c.escape_default().collect::<Vec<_>>()
             } else {
                 vec![c]
@@ -528,10 +391,12 @@ mod tests {
         Record {
             leaderboard: "2.0".into(),
             table: "t".into(),
-            item: pairs
-                .iter()
-                .map(|(k, v)| (k.to_string(), v.clone()))
-                .collect(),
+            stored: StoredRecord::from_item(
+                pairs
+                    .iter()
+                    .map(|(k, v)| (k.to_string(), v.clone()))
+                    .collect(),
+            ),
         }
     }
 
@@ -559,8 +424,8 @@ mod tests {
     #[test]
     fn a_malformed_record_reads_as_missing_values_not_a_panic() {
         let r = record(&[("submission_id", AttributeValue::S("seven".into()))]);
-        assert_eq!(r.submission_id(), None);
-        assert_eq!((r.status(), r.status_word()), (None, ""));
+        assert_eq!(r.submission_id, None);
+        assert_eq!((r.status, r.status_word.as_str()), (None, ""));
         assert!(!r.is_final());
     }
 

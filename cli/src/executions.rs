@@ -11,9 +11,9 @@ use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
 use lb_infra::pipe;
 use serde_json::{json, Map, Value};
 
+use crate::deployment::evalai_id;
 use crate::deployment::{clean, Deployment, DeploymentArgs, EvalAiTokenArgs, Record, ScanFilter};
 use crate::error::{CliError, Result};
-use crate::ops::evalai_id;
 
 /// Where the submission state machine is.
 #[derive(Debug, Clone, Args)]
@@ -257,13 +257,13 @@ pub async fn resume(args: Resume) -> Result<u8> {
     let deployment = Deployment::load(&args.deployment).await?;
     let found = deployment.records(None, ScanFilter::Submission(id)).await?;
     let record = only_record(&found.records, id)?;
-    if let Some(why) = resume_refusal(record.status(), args.force, id) {
+    if let Some(why) = resume_refusal(record.status, args.force, id) {
         return Err(CliError::Refused(format!(
             "submission `{id}` cannot be resumed: it is `{}`{why}",
-            clean(record.status_word())
+            clean(record.status_word.as_str())
         )));
     }
-    let phase = record.number("track_id").ok_or_else(|| {
+    let phase = record.track_id.ok_or_else(|| {
         CliError::Refused(format!(
             "the record of submission `{id}` in `{}` has no numeric `track_id` (the phase)",
             record.table
@@ -271,15 +271,16 @@ pub async fn resume(args: Resume) -> Result<u8> {
     })?;
     // The digest the run ran (the routes kept were driven by it), else the tag as submitted.
     let pinned = record
-        .text("submitted_image_uri")
-        .and_then(|i| pinned(i, record.text("image_digest")?));
+        .image
+        .as_deref()
+        .and_then(|i| pinned(i, record.image_digest.as_deref()?));
     let image = pinned
         .as_deref()
-        .or(record.text("submitted_image_uri"))
+        .or(record.image.as_deref())
         .filter(|i| image_ok(i).is_ok());
     let challenge = match args.challenge {
         Some(c) => c,
-        None => claimed_challenge(&deployment.sdk, state_machine, record.text("claimed_by"))
+        None => claimed_challenge(&deployment.sdk, state_machine, record.claimed_by.as_deref())
             .await
             .map_err(|why| {
                 CliError::Usage(format!(
@@ -317,7 +318,7 @@ fn only_record(records: &[Record], id: u64) -> Result<&Record> {
         many => {
             let places: Vec<String> = many
                 .iter()
-                .map(|r| format!("team {:?} in `{}`", r.team_id(), r.table))
+                .map(|r| format!("team {:?} in `{}`", r.team_id, r.table))
                 .collect();
             Err(CliError::Refused(format!(
                 "submission `{id}` has {} records ({}): resolve that by hand",

@@ -8,11 +8,11 @@ use std::time::Duration;
 
 use clap::Args;
 use lb_aws::s3::SubmissionStore;
-use lb_domain::logtail::printable;
+use lb_domain::job::logtail::printable;
 
-use crate::deployment::{Deployment, DeploymentArgs, Record, ScanFilter};
+use crate::deployment::evalai_id;
+use crate::deployment::{Deployment, DeploymentArgs, ScanFilter};
 use crate::error::{CliError, Result};
-use crate::ops::evalai_id;
 
 /// Longest `--follow` (a 72-hour evaluation and its queue, with room).
 const MAX_FOLLOW: Duration = Duration::from_secs(96 * 3600);
@@ -228,14 +228,14 @@ async fn follow_from(
             .records
             .into_iter()
             .next();
-        let done = record.as_ref().is_some_and(Record::is_final);
+        let done = record.as_ref().is_some_and(|r| r.is_final());
         for bucket in &buckets {
             let store = SubmissionStore::new(deployment.s3.clone(), bucket, id);
             printed = print_new(&store, args, &printed).await?;
         }
         if done {
             let status = record
-                .map(|r| r.status_word().to_owned())
+                .map(|r| r.status_word.as_str().to_owned())
                 .unwrap_or_default();
             errln!("lbctl: submission {id} ended `{status}`");
             return Ok(0);

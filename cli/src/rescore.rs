@@ -6,16 +6,16 @@ use std::path::PathBuf;
 
 use clap::Args;
 use lb_aws::s3::SubmissionStore;
-use lb_domain::finalize::rescore_refusal;
-use lb_domain::plan::{plan, PlanInput};
+use lb_domain::job::plan::{plan, PlanInput};
 use lb_domain::results::{EvalAiFiles, Leaderboard, RouteSubset};
+use lb_domain::run::finalize::rescore_refusal;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::results::merge_partials;
 
+use crate::deployment::evalai_id;
 use crate::deployment::{Deployment, DeploymentArgs, EvalAiTokenArgs, Record, ScanFilter};
 use crate::error::{CliError, Result};
-use crate::ops::evalai_id;
 
 /// `lbctl rescore` options.
 #[derive(Debug, Clone, Args)]
@@ -58,7 +58,7 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
     let id = args.submission;
     let record = one_record(&deployment, &args).await?;
     let phase = record
-        .number("track_id")
+        .track_id
         .ok_or_else(|| CliError::Refused(format!("the record of `{id}` has no `track_id`")))?;
     let target = deployment
         .settings
@@ -66,10 +66,10 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
         .map_err(|e| CliError::Usage(format!("the record's phase: {e}")))?;
     let leaderboard = target.leaderboard;
     let workers = record
-        .number("parallelization_workers")
+        .workers
         .and_then(|w| u32::try_from(w).ok())
         .unwrap_or(target.track_settings.workers);
-    let team = record.text("team_name").unwrap_or("team").to_owned();
+    let team = record.team_name.as_deref().unwrap_or("team").to_owned();
     let the_plan = plan(PlanInput {
         submission_id: id,
         team_name: &team,
@@ -113,7 +113,7 @@ pub async fn rescore(args: Rescore) -> Result<u8> {
         return Ok(0);
     }
     let invalid = merged.and_then(|m| m.invalid_reason);
-    if let Some(why) = rescore_refusal(record.status(), complete, progress, invalid) {
+    if let Some(why) = rescore_refusal(record.status, complete, progress, invalid) {
         return Err(CliError::Refused(format!(
             "submission `{id}`: {why}; nothing is posted"
         )));

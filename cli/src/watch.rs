@@ -9,13 +9,14 @@ use std::time::{Duration, Instant};
 use clap::Args;
 use lb_aws::dynamo::RecordStatus;
 use lb_aws::s3::SubmissionStore;
-use lb_domain::disruption::Disruption;
+use lb_domain::cluster::disruption::Disruption;
 use lb_domain::results::{read_worker_file, Leaderboard, WorkerFile, MAX_FILE_BYTES};
 use lb_pipeline::cluster::Clusters;
 
+use crate::deployment::evalai_id;
 use crate::deployment::{clean, Deployment, DeploymentArgs, EvalAiTokenArgs, Record, ScanFilter};
 use crate::error::{CliError, Result};
-use crate::ops::{evalai_id, queue_positions};
+use crate::ops::queue_positions;
 
 /// Longest watch (a 72-hour evaluation and its queue, with room).
 const MAX_WATCH: Duration = Duration::from_secs(96 * 3600);
@@ -149,26 +150,20 @@ fn screen_of(record: &Record, id: u64) -> Screen {
         leaderboard: record.leaderboard.clone(),
         team: format!(
             "{} (id {})",
-            clean(record.text("team_name").unwrap_or("-")),
-            record
-                .number("team_id")
-                .map_or("-".into(), |n| n.to_string())
+            clean(record.team_name.as_deref().unwrap_or("-")),
+            record.team_id.map_or("-".into(), |n| n.to_string())
         ),
-        track: clean(record.text("track_name").unwrap_or("-")),
-        status: record.status_word().to_owned(),
-        record_status: record.status(),
-        started: clean(record.text("start_time").unwrap_or("-")),
-        ended: clean(record.text("end_time").unwrap_or("-")),
+        track: clean(record.track_name.as_deref().unwrap_or("-")),
+        status: record.status_word.as_str().to_owned(),
+        record_status: record.status,
+        started: clean(record.start_time.as_deref().unwrap_or("-")),
+        ended: clean(record.end_time.as_deref().unwrap_or("-")),
         routes: format!(
             "{}/{}",
-            record
-                .number("routes_done")
-                .map_or("-".into(), |n| n.to_string()),
-            record
-                .number("routes_total")
-                .map_or("-".into(), |n| n.to_string())
+            record.routes.0.map_or("-".into(), |n| n.to_string()),
+            record.routes.1.map_or("-".into(), |n| n.to_string())
         ),
-        error: record.text("error").map(clean),
+        error: record.error.as_deref().map(clean),
         usage: record.usage().map(|u| u.describe()),
         ..Screen::default()
     };
@@ -312,7 +307,7 @@ fn pods(observation: &lb_cluster::Observation) -> Vec<PodLine> {
                 // The Monitor's judgement, as far as the pod alone tells it: a kubelet's
                 // eviction is free only when its node is leaving, which the node tells.
                 let message = pod.disruption_message.as_deref();
-                let whose = match lb_domain::disruption::classify(reason, message) {
+                let whose = match lb_domain::cluster::disruption::classify(reason, message) {
                     Disruption::Reclaim => "a reclaim: not counted, a new pod resumes",
                     Disruption::ByKubelet => "by the kubelet: free only if its node is leaving",
                     Disruption::Own => "counted as a crash",
@@ -321,7 +316,7 @@ fn pods(observation: &lb_cluster::Observation) -> Vec<PodLine> {
             }
             PodLine {
                 name: clean(&pod.name),
-                phase: clean(&pod.phase),
+                phase: clean(pod.phase.as_str()),
                 restarts,
                 detail: detail.trim().to_owned(),
             }

@@ -680,7 +680,7 @@ async fn a_reader_that_stops_early_ends_the_output_not_the_command_with_a_panic(
 #[tokio::test]
 #[ignore = "needs moto"]
 async fn release_gives_back_a_leaked_place_after_its_id_is_typed_back() {
-    use lb_domain::queue::{Entry, EntryState};
+    use lb_domain::capacity::queue::{Entry, EntryState};
     let (stack, mut env) = common::stack(Fixture::default()).await;
     env.push((
         "LB_ADMISSION_TABLE",

@@ -57,10 +57,10 @@ async fn watch_follows_a_submission_from_the_queue_to_its_scores() {
     let job: lb_cluster::Job = serde_json::from_value(serde_json::json!({
         "apiVersion": "batch/v1", "kind": "Job",
         "metadata": {"name": "lb-1-team-one-0", "namespace": "default",
-                     "labels": {lb_domain::plan::SUBMISSION_LABEL: "1",
+                     "labels": {lb_domain::job::plan::SUBMISSION_LABEL: "1",
                                 "app.kubernetes.io/managed-by": "leaderboard-cloud"}},
         "spec": {"backoffLimit": 4, "template": {
-            "metadata": {"labels": {lb_domain::plan::SUBMISSION_LABEL: "1",
+            "metadata": {"labels": {lb_domain::job::plan::SUBMISSION_LABEL: "1",
                                     "app.kubernetes.io/managed-by": "leaderboard-cloud"}},
             "spec": {"restartPolicy": "OnFailure",
                      "containers": [{"name": "agent-1", "image": "never-pushed:1"}]}}}

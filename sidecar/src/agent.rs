@@ -15,7 +15,9 @@ use std::io::{self, Read};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use lb_domain::protocol::{self, agent_step, env, exit, partner_finished, AgentStep, Marker, Role};
+use lb_domain::job::protocol::{
+    self, agent_step, env, exit, partner_finished, AgentStep, Marker, Role,
+};
 use lb_domain::results::{read_worker_file, ResultsError, WorkerFile, MAX_FILE_BYTES};
 use tracing::{info, warn};
 

@@ -8,7 +8,7 @@ use std::ffi::OsString;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use lb_domain::protocol::{env, parse_pairs, PairId};
+use lb_domain::job::protocol::{env, parse_pairs, PairId};
 use lb_domain::results::{Leaderboard, RouteSubset};
 
 /// A variable is missing or malformed.

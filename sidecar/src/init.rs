@@ -12,7 +12,7 @@ use std::io;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 
-use lb_domain::protocol::{
+use lb_domain::job::protocol::{
     self, is_pair_log, Marker, AGENT_DIR, CANCEL_MARKER, LOGS_DIR, STATUS_DIR,
 };
 use tracing::{info, warn};
@@ -61,11 +61,11 @@ pub enum InitError {
 
 impl InitError {
     /// The container's exit code: a malformed environment fails every pod alike
-    /// (`lb_domain::protocol::exit::MISCONFIGURED`).
+    /// (`lb_domain::job::protocol::exit::MISCONFIGURED`).
     pub fn exit_code(&self) -> std::process::ExitCode {
         let code = match self {
-            InitError::Env(_) => lb_domain::protocol::exit::MISCONFIGURED,
-            _ => lb_domain::protocol::exit::CRASHED,
+            InitError::Env(_) => lb_domain::job::protocol::exit::MISCONFIGURED,
+            _ => lb_domain::job::protocol::exit::CRASHED,
         };
         std::process::ExitCode::from(code)
     }

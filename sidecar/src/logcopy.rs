@@ -15,9 +15,9 @@ use std::os::unix::fs::MetadataExt;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use lb_domain::protocol::STATUS_DIR;
-use lb_domain::protocol::{self, job_end, JobEnd, LogKind, Marker, CANCEL_MARKER};
-use lb_domain::uploads::{self, UploadBudget, UploadReport};
+use lb_domain::job::protocol::STATUS_DIR;
+use lb_domain::job::protocol::{self, job_end, JobEnd, LogKind, Marker, CANCEL_MARKER};
+use lb_domain::job::uploads::{self, UploadBudget, UploadReport};
 use sha2::{Digest, Sha256};
 use tracing::{debug, info, warn};
 
@@ -64,11 +64,11 @@ pub enum LogcopyError {
 
 impl LogcopyError {
     /// The container's exit code: a malformed environment fails every pod alike
-    /// (`lb_domain::protocol::exit::MISCONFIGURED`).
+    /// (`lb_domain::job::protocol::exit::MISCONFIGURED`).
     pub fn exit_code(&self) -> std::process::ExitCode {
         let code = match self {
-            LogcopyError::Env(_) => lb_domain::protocol::exit::MISCONFIGURED,
-            _ => lb_domain::protocol::exit::CRASHED,
+            LogcopyError::Env(_) => lb_domain::job::protocol::exit::MISCONFIGURED,
+            _ => lb_domain::job::protocol::exit::CRASHED,
         };
         std::process::ExitCode::from(code)
     }
@@ -158,7 +158,7 @@ impl<'a> Logcopy<'a> {
         })
     }
 
-    /// Whether this Job's logcopy uploads the file now (`lb_domain::uploads`): its own pairs'
+    /// Whether this Job's logcopy uploads the file now (`lb_domain::job::uploads`): its own pairs'
     /// results and markers and logs, each within its size and the logs within their bytes;
     /// never another pair's objects or files the protocol does not name. A refusal is counted
     /// (once per name).

@@ -4,7 +4,7 @@ use std::fs;
 use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 
-use lb_domain::protocol::derived;
+use lb_domain::job::protocol::derived;
 use lb_domain::results::{
     self, read_worker_files, EvalAiFiles, Expected, MergeOptions, MergeOutcome, ResultsError,
     ResultsFile, WorkerFile, WorkerInput, MAX_FILE_BYTES,

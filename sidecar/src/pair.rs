@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
-use lb_domain::protocol::{exit, Marker, Markers, PairId, PairView};
+use lb_domain::job::protocol::{exit, Marker, Markers, PairId, PairView};
 use tracing::warn;
 
 use crate::config::EnvError;
@@ -26,7 +26,7 @@ pub enum PairOutcome {
 }
 
 impl PairOutcome {
-    /// The container's exit code (`lb_domain::protocol::exit`).
+    /// The container's exit code (`lb_domain::job::protocol::exit`).
     pub fn exit_code(self) -> ExitCode {
         match self {
             PairOutcome::Done | PairOutcome::Cancelled => ExitCode::SUCCESS,
@@ -69,7 +69,7 @@ pub enum PairError {
 
 impl PairError {
     /// The container's exit code: a malformed environment is the Job's and fails every pod
-    /// alike (`lb_domain::protocol::exit::MISCONFIGURED`); the rest may pass on a new pod.
+    /// alike (`lb_domain::job::protocol::exit::MISCONFIGURED`); the rest may pass on a new pod.
     pub fn exit_code(&self) -> ExitCode {
         match self {
             PairError::Env(_) => ExitCode::from(exit::MISCONFIGURED),

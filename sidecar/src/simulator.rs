@@ -14,7 +14,9 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use lb_domain::protocol::{self, partner_finished, simulator_step, Marker, Role, SimulatorStep};
+use lb_domain::job::protocol::{
+    self, partner_finished, simulator_step, Marker, Role, SimulatorStep,
+};
 use tracing::{info, warn};
 
 use crate::config::{process_env, Env, PairConfig};

@@ -4,7 +4,7 @@ use std::fs;
 use std::io;
 use std::path::{Path, PathBuf};
 
-use lb_domain::protocol::{Marker, Markers};
+use lb_domain::job::protocol::{Marker, Markers};
 
 /// A `containers-status` directory.
 #[derive(Debug, Clone)]

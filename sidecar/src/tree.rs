@@ -12,7 +12,7 @@ use std::os::unix::fs::{MetadataExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use lb_domain::protocol::{PairId, STATUS_DIR};
+use lb_domain::job::protocol::{PairId, STATUS_DIR};
 use nix::fcntl::OFlag;
 use sha2::{Digest, Sha256};
 
@@ -154,14 +154,14 @@ fn walk(
     Ok(())
 }
 
-/// The files whose upload wakes the submission's Monitor (`lb_domain::protocol::
+/// The files whose upload wakes the submission's Monitor (`lb_domain::job::protocol::
 /// wakes_submission`): the workers' results files directly under `agent/`, then the markers
 /// under `containers-status/` (results before markers, as in [`scan`], so a done marker never
 /// lands before the results it vouches for). Two directory listings, no walk: cheap enough
 /// to run every second between full passes.
 pub fn scan_wake_worthy(root: &Path, dev: u64) -> Vec<Entry> {
-    let results = |name: &str| lb_domain::protocol::pair_of_results_name(name).is_some();
-    let mut out = list_dir(root, lb_domain::protocol::AGENT_DIR, dev, results);
+    let results = |name: &str| lb_domain::job::protocol::pair_of_results_name(name).is_some();
+    let mut out = list_dir(root, lb_domain::job::protocol::AGENT_DIR, dev, results);
     out.extend(list_dir(root, STATUS_DIR, dev, |_| true));
     out
 }
@@ -199,9 +199,10 @@ fn list_dir(root: &Path, dir: &str, dev: u64, keep: impl Fn(&str) -> bool) -> Ve
 pub fn scan_finished_recordings(root: &Path, dev: u64, pairs: &[PairId]) -> Vec<Entry> {
     let mut out = Vec::new();
     for &pair in pairs {
-        let dir = lb_domain::protocol::recorder_dir(pair);
-        let recording =
-            |name: &str| lb_domain::protocol::kept_as(&format!("{dir}/{name}"), &[pair]).is_some();
+        let dir = lb_domain::job::protocol::recorder_dir(pair);
+        let recording = |name: &str| {
+            lb_domain::job::protocol::kept_as(&format!("{dir}/{name}"), &[pair]).is_some()
+        };
         out.extend(superseded(list_dir(root, &dir, dev, recording)));
     }
     out

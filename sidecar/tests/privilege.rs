@@ -37,7 +37,7 @@ fn the_jobs_role_allows_exactly_what_the_sidecar_calls() {
     }
     // Every folder logcopy uploads is writable, and the logs' and recordings' tags too (the
     // actions alone do not say where: a folder missing here fails only in the deployment).
-    use lb_domain::protocol::{AGENT_DIR, LOGS_DIR, RECORDER_DIR, STATUS_DIR};
+    use lb_domain::job::protocol::{AGENT_DIR, LOGS_DIR, RECORDER_DIR, STATUS_DIR};
     let allows = |action: &str, dir: &str| {
         allowed
             .get(action)

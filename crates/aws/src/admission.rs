@@ -1,5 +1,5 @@
 //! The admission table: each leaderboard's evaluation queue and its teams' holds
-//! (`lb_domain::queue` decides the order). Admitting is one `TransactWriteItems`: the team's
+//! (`lb_domain::capacity::queue` decides the order). Admitting is one `TransactWriteItems`: the team's
 //! hold, conditional on the team holding fewer than its cap, and the entry's move from
 //! `waiting` to `admitted`, conditional on it still waiting. Two Launches or Monitors racing
 //! for a team's last place cannot both get it, and a retried admission changes nothing.
@@ -11,7 +11,7 @@
 //!   `expires_at` (N, DynamoDB TTL) past any queue time and evaluation.
 //! - `team#<id>`: a team's holds: `holders` (SS of submission ids).
 //! - `pace#<track>`: `durations` (L of N): the seconds its latest evaluations ran, oldest first
-//!   (`lb_domain::queue::RECENT_DURATIONS` of them), for the queue note's estimated start.
+//!   (`lb_domain::capacity::queue::RECENT_DURATIONS` of them), for the queue note's estimated start.
 //!
 //! Admission decides on the holders as they are when it writes, never on an earlier read of
 //! the queue: the hold is conditional on the set's size, and a holder whose entry is gone
@@ -22,7 +22,7 @@ use std::collections::HashMap;
 
 use aws_sdk_dynamodb::types::{AttributeValue, TransactWriteItem, Update};
 use aws_sdk_dynamodb::Client;
-use lb_domain::queue::{Entry, EntryState};
+use lb_domain::capacity::queue::{Entry, EntryState};
 
 use crate::{condition_failed, AwsError, Result};
 
@@ -475,11 +475,11 @@ impl AdmissionTable {
     }
 
     /// Adds an evaluation of `track` that ran `seconds` to its pace, keeping the latest
-    /// [`RECENT_DURATIONS`](lb_domain::queue::RECENT_DURATIONS). Two at once may keep one of
+    /// [`RECENT_DURATIONS`](lb_domain::capacity::queue::RECENT_DURATIONS). Two at once may keep one of
     /// the two: the pace is an estimate's input, not a record.
     pub async fn record_pace(&self, queue: &str, track: &str, seconds: u64) -> Result<()> {
         let mut durations = self.pace(queue, track).await?;
-        durations.truncate(lb_domain::queue::RECENT_DURATIONS - 1);
+        durations.truncate(lb_domain::capacity::queue::RECENT_DURATIONS - 1);
         durations.insert(0, seconds);
         let list = durations.iter().rev().map(|&d| n(d)).collect();
         let mut item = pace_key(queue, track);

@@ -13,9 +13,10 @@ use std::collections::HashMap;
 use aws_sdk_dynamodb::types::AttributeValue;
 use aws_sdk_dynamodb::Client;
 
-use lb_domain::audit::Recordings;
-use lb_domain::cost::Totals;
+use lb_domain::capacity::cost::Totals;
+use lb_domain::run::audit::Recordings;
 
+use crate::record::{attr, StoredRecord};
 use crate::{condition_failed, AwsError, Result};
 
 pub use lb_domain::status::RecordStatus;
@@ -52,8 +53,8 @@ pub enum Claim {
     Claimed,
     /// Someone else already evaluates (or evaluated) it: stop without touching anything.
     Duplicate {
-        /// The record's status, if it could be read.
-        status: Option<String>,
+        /// The record's status, if it could be read and is one of ours.
+        status: Option<RecordStatus>,
         /// The execution that holds it.
         claimed_by: Option<String>,
     },
@@ -76,10 +77,21 @@ pub struct FinalRecord {
     /// Why it failed, readable.
     pub error: Option<String>,
     /// The audit of the result's CARLA recordings (FINISHED only): what an operator can check
-    /// of its scores (`lb_domain::audit`).
+    /// of its scores (`lb_domain::run::audit`).
     pub recordings: Option<Recordings>,
     /// The GPUs it used and their price (a run from before the Monitor counted them: none).
     pub usage: Option<Totals>,
+}
+
+/// What to keep of a Scan.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ScanFilter {
+    /// Every record.
+    All,
+    /// The records of one submission id (any team).
+    Submission(u64),
+    /// Records still queued or running.
+    InFlight,
 }
 
 /// The submissions table.
@@ -125,13 +137,75 @@ impl SubmissionsTable {
 
     fn key(team_id: u64, submission_id: u64) -> HashMap<String, AttributeValue> {
         HashMap::from([
-            ("team_id".to_string(), s(team_id.to_string())),
-            ("submission_id".to_string(), s(submission_id.to_string())),
+            (attr::TEAM_ID.to_string(), s(team_id.to_string())),
+            (
+                attr::SUBMISSION_ID.to_string(),
+                s(submission_id.to_string()),
+            ),
         ])
     }
 
-    /// The whole record, if any.
-    pub async fn get(
+    /// The record read back typed, if any.
+    pub async fn record(&self, team_id: u64, submission_id: u64) -> Result<Option<StoredRecord>> {
+        Ok(self
+            .get(team_id, submission_id)
+            .await?
+            .map(StoredRecord::from_item))
+    }
+
+    /// The table's records (or those `filter` keeps), a Scan of at most `max_pages` pages;
+    /// `false` when it stopped there.
+    pub async fn scan(
+        &self,
+        filter: ScanFilter,
+        max_pages: usize,
+    ) -> Result<(Vec<StoredRecord>, bool)> {
+        let mut records = Vec::new();
+        let mut start: Option<HashMap<String, AttributeValue>> = None;
+        for _ in 0..max_pages {
+            let mut request = self
+                .client
+                .scan()
+                .table_name(&self.table)
+                .consistent_read(true)
+                .set_exclusive_start_key(start.take());
+            request = match filter {
+                ScanFilter::All => request,
+                ScanFilter::Submission(id) => request
+                    .filter_expression("#id = :id")
+                    .expression_attribute_names("#id", attr::SUBMISSION_ID)
+                    // The original layout: ids are strings.
+                    .expression_attribute_values(":id", s(id.to_string())),
+                ScanFilter::InFlight => {
+                    let [a, b, c] = RecordStatus::IN_FLIGHT.map(|v| s(v.as_str()));
+                    request
+                        .filter_expression("#status IN (:a, :b, :c)")
+                        .expression_attribute_names("#status", attr::STATUS)
+                        .expression_attribute_values(":a", a)
+                        .expression_attribute_values(":b", b)
+                        .expression_attribute_values(":c", c)
+                }
+            };
+            let page = request
+                .send()
+                .await
+                .map_err(|e| AwsError::sdk("dynamodb", "Scan", e))?;
+            records.extend(
+                page.items
+                    .unwrap_or_default()
+                    .into_iter()
+                    .map(StoredRecord::from_item),
+            );
+            match page.last_evaluated_key {
+                Some(key) if !key.is_empty() => start = Some(key),
+                _ => return Ok((records, true)),
+            }
+        }
+        Ok((records, false))
+    }
+
+    /// The whole item, if any.
+    async fn get(
         &self,
         team_id: u64,
         submission_id: u64,
@@ -158,7 +232,7 @@ impl SubmissionsTable {
             what: format!("team {team_id} submission {submission_id}"),
             problem,
         };
-        let text = match item.get("parallelization_workers") {
+        let text = match item.get(attr::WORKERS) {
             None => return Ok(None),
             Some(AttributeValue::S(v)) if v.trim().is_empty() || v.trim() == UNKNOWN => {
                 return Ok(None)
@@ -193,19 +267,16 @@ impl SubmissionsTable {
         };
         let mut item = Self::key(record.team_id, record.submission_id);
         item.extend([
-            ("submission_status".to_string(), s(status.as_str())),
-            ("team_name".to_string(), s(&record.team_name)),
-            ("track_id".to_string(), s(record.track_id.to_string())),
-            ("track_name".to_string(), s(&record.track_name)),
-            ("submitted_image_uri".to_string(), s(&record.image)),
-            (
-                "parallelization_workers".to_string(),
-                s(record.workers.to_string()),
-            ),
-            ("submitted_time".to_string(), s(&record.submitted_time)),
-            ("start_time".to_string(), s(UNKNOWN)),
-            ("end_time".to_string(), s(UNKNOWN)),
-            ("claimed_by".to_string(), s(&record.claimed_by)),
+            (attr::STATUS.to_string(), s(status.as_str())),
+            (attr::TEAM_NAME.to_string(), s(&record.team_name)),
+            (attr::TRACK_ID.to_string(), s(record.track_id.to_string())),
+            (attr::TRACK_NAME.to_string(), s(&record.track_name)),
+            (attr::IMAGE.to_string(), s(&record.image)),
+            (attr::WORKERS.to_string(), s(record.workers.to_string())),
+            (attr::SUBMITTED_TIME.to_string(), s(&record.submitted_time)),
+            (attr::START_TIME.to_string(), s(UNKNOWN)),
+            (attr::END_TIME.to_string(), s(UNKNOWN)),
+            (attr::CLAIMED_BY.to_string(), s(&record.claimed_by)),
         ]);
         let mut request = self
             .client
@@ -234,13 +305,13 @@ impl SubmissionsTable {
                         .and_then(|v| v.as_s().ok())
                         .cloned()
                 };
-                if text("claimed_by").as_deref() == Some(record.claimed_by.as_str()) {
+                if text(attr::CLAIMED_BY).as_deref() == Some(record.claimed_by.as_str()) {
                     // Our own earlier attempt (a Lambda retry): the claim is ours.
                     return Ok(Claim::Claimed);
                 }
                 Ok(Claim::Duplicate {
-                    status: text("submission_status"),
-                    claimed_by: text("claimed_by"),
+                    status: text(attr::STATUS).and_then(|s| s.parse().ok()),
+                    claimed_by: text(attr::CLAIMED_BY),
                 })
             }
             Err(e) => Err(AwsError::sdk("dynamodb", "PutItem", e)),
@@ -262,7 +333,7 @@ impl SubmissionsTable {
             let mut expression = "SET submission_status = :running, results = :results, routes_done = :done, routes_total = :total".to_string();
             let (mut usage_set, mut usage_values) = usage.map(usage_update).unwrap_or_default();
             if let Some(image) = image {
-                // The digest every pod of the run is held to (`lb_domain::monitor::hold_image`).
+                // The digest every pod of the run is held to (`lb_domain::run::monitor::hold_image`).
                 usage_set.push("image_digest = :image".into());
                 usage_values.insert(":image".into(), s(image));
             }
@@ -321,7 +392,7 @@ impl SubmissionsTable {
             return Ok(None);
         };
         let text = |k: &str| item.get(k).and_then(|v| v.as_s().ok()).cloned();
-        let status = text("submission_status")
+        let status = text(attr::STATUS)
             .map(|s| s.parse::<RecordStatus>())
             .transpose()
             .map_err(|e| AwsError::Malformed {
@@ -329,9 +400,9 @@ impl SubmissionsTable {
                 problem: e.to_string(),
             })?;
         Ok(Some(Standing {
-            claimed_by: text("claimed_by"),
+            claimed_by: text(attr::CLAIMED_BY),
             status,
-            error: text("error"),
+            error: text(attr::ERROR),
         }))
     }
 
@@ -346,8 +417,8 @@ impl SubmissionsTable {
         record: &FinalRecord,
     ) -> Result<bool> {
         let (expression, mut names, mut values) = final_update(record);
-        names.insert("#claimed_by".into(), "claimed_by".into());
-        names.insert("#status".into(), "submission_status".into());
+        names.insert("#claimed_by".into(), attr::CLAIMED_BY.into());
+        names.insert("#status".into(), attr::STATUS.into());
         values.insert(":me".into(), s(claimed_by));
         let in_flight: Vec<String> = RecordStatus::IN_FLIGHT
             .iter()
@@ -444,7 +515,7 @@ fn final_update(record: &FinalRecord) -> Update {
         values.insert(format!(":m{i}"), s(value.as_deref().unwrap_or(UNKNOWN)));
     }
     let mut remove = Vec::new();
-    names.insert("#error".into(), "error".into());
+    names.insert("#error".into(), attr::ERROR.into());
     match &record.error {
         Some(error) => {
             set.push("#error = :error".into());
@@ -453,9 +524,9 @@ fn final_update(record: &FinalRecord) -> Update {
         // A resumed submission that now finishes must not keep the old run's error.
         None => remove.push("#error"),
     }
-    names.insert("#found".into(), "recordings_found".into());
-    names.insert("#expected".into(), "recordings_expected".into());
-    names.insert("#failed".into(), "recordings_failed".into());
+    names.insert("#found".into(), attr::RECORDINGS_FOUND.into());
+    names.insert("#expected".into(), attr::RECORDINGS_EXPECTED.into());
+    names.insert("#failed".into(), attr::RECORDINGS_FAILED.into());
     match &record.recordings {
         Some(audited) => {
             set.push("#found = :found, #expected = :expected".into());
@@ -481,19 +552,19 @@ fn final_update(record: &FinalRecord) -> Update {
         }
         // Nor an old run's usage, when this one counted none.
         None => remove.extend([
-            "gpu_seconds",
-            "gpu_seconds_spot",
-            "gpu_seconds_run_again",
-            "seconds_lost_to_reclaims",
-            "orchestration_usd",
-            "state_transitions",
+            attr::GPU_SECONDS,
+            attr::GPU_SECONDS_SPOT,
+            attr::GPU_SECONDS_RUN_AGAIN,
+            attr::SECONDS_LOST,
+            attr::ORCHESTRATION_USD,
+            attr::STATE_TRANSITIONS,
         ]),
     }
     if record.usage.is_none_or(|u| u.stored.is_none()) {
-        remove.extend(["log_bytes_stored", "uploads_refused"]);
+        remove.extend([attr::LOG_BYTES_STORED, attr::UPLOADS_REFUSED]);
     }
     if record.usage.is_none_or(|u| u.dollars.is_none()) {
-        remove.push("cost_usd");
+        remove.push(attr::COST_USD);
     }
     let mut expression = format!("SET {}", set.join(", "));
     if !remove.is_empty() {

@@ -24,7 +24,7 @@ pub struct Described {
     /// The error it failed with, if any.
     pub error: Option<String>,
     /// The execution its run continued as, when it ended to start one
-    /// (`lb_domain::history::continued_as` of its output).
+    /// (`lb_domain::run::history::continued_as` of its output).
     pub continued_as: Option<String>,
 }
 
@@ -92,7 +92,7 @@ impl Executions for StepFunctions {
                     error: out.error().map(str::to_owned),
                     continued_as: output
                         .as_ref()
-                        .and_then(lb_domain::history::continued_as)
+                        .and_then(lb_domain::run::history::continued_as)
                         .map(str::to_owned),
                 }))
             }

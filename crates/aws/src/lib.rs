@@ -12,6 +12,7 @@ pub mod ecr;
 pub mod eks;
 mod error;
 pub mod executions;
+pub mod record;
 pub mod s3;
 pub mod secrets;
 pub mod tasks;

@@ -7,8 +7,8 @@ use aws_sdk_s3::Client;
 use crate::{AwsError, Result};
 
 // The marker folder and the cancel marker are the in-Job protocol's names.
-use lb_domain::protocol::{self, derived};
-pub use lb_domain::protocol::{CANCEL_MARKER, STATUS_DIR};
+use lb_domain::job::protocol::{self, derived};
+pub use lb_domain::job::protocol::{CANCEL_MARKER, STATUS_DIR};
 /// Biggest worker results file we read (the results engine refuses more anyway).
 pub const MAX_PARTIAL_BYTES: u64 = 64 << 20;
 
@@ -150,13 +150,13 @@ impl SubmissionStore {
 
     /// The files under `logs/`, relative to the submission's folder, with their sizes.
     pub async fn logs(&self) -> Result<Vec<(String, u64)>> {
-        self.sized(lb_domain::protocol::LOGS_DIR).await
+        self.sized(lb_domain::job::protocol::LOGS_DIR).await
     }
 
     /// The files under `recorder/` (the CARLA recordings), relative to the submission's
     /// folder, with their sizes.
     pub async fn recordings(&self) -> Result<Vec<(String, u64)>> {
-        self.sized(lb_domain::protocol::RECORDER_DIR).await
+        self.sized(lb_domain::job::protocol::RECORDER_DIR).await
     }
 
     async fn sized(&self, dir: &str) -> Result<Vec<(String, u64)>> {

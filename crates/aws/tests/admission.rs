@@ -5,7 +5,7 @@
 use std::collections::BTreeSet;
 
 use lb_aws::admission::{AdmissionTable, Admit};
-use lb_domain::queue::{ahead, Entry, EntryState};
+use lb_domain::capacity::queue::{ahead, Entry, EntryState};
 use local_stack::stack::ADMISSION_TABLE;
 use local_stack::Stack;
 
@@ -232,7 +232,7 @@ async fn arrival_survives_a_retry_and_starts_move_the_queue_forward() {
     );
     // The track's pace: the latest durations, most recent first, beside the entries.
     assert!(table.pace(QUEUE, "SENSORS").await.unwrap().is_empty());
-    let recent = lb_domain::queue::RECENT_DURATIONS as u64;
+    let recent = lb_domain::capacity::queue::RECENT_DURATIONS as u64;
     for seconds in 1..=recent + 3 {
         table.record_pace(QUEUE, "SENSORS", seconds).await.unwrap();
     }

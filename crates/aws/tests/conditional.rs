@@ -21,9 +21,10 @@ use aws_sdk_dynamodb::Client;
 use aws_smithy_mocks::{mock, mock_client, Rule, RuleMode};
 use lb_aws::admission::{AdmissionTable, Admit};
 use lb_aws::budget::BudgetTable;
+use lb_aws::dynamo::RecordStatus;
 use lb_aws::dynamo::{Claim, NewRecord, SubmissionsTable};
 use lb_aws::wake::WakeTable;
-use lb_domain::queue::{Entry, EntryState};
+use lb_domain::capacity::queue::{Entry, EntryState};
 use lb_evalai::{Admission, BudgetPolicy, Priority};
 
 fn client(rules: &[&Rule]) -> Client {
@@ -99,7 +100,7 @@ async fn the_claim_is_conditional_and_a_refusal_is_a_duplicate_unless_the_claim_
     assert_eq!(
         table.claim(&record("exec-1")).await.unwrap(),
         Claim::Duplicate {
-            status: Some("RUNNING".into()),
+            status: Some(RecordStatus::Running),
             claimed_by: Some("exec-0".into())
         }
     );

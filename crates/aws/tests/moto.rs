@@ -87,7 +87,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     );
     // Written at intake in the original layout: string keys and values, `-` for the times
     // not known yet, EvalAI's status upper-cased.
-    let item = table.get(7, 42).await.unwrap().unwrap();
+    let item = table.record(7, 42).await.unwrap().unwrap().item;
     for (attribute, value) in [
         ("team_id", "7"),
         ("submission_id", "42"),
@@ -110,7 +110,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(
         table.claim(&record("exec-2", false)).await.unwrap(),
         Claim::Duplicate {
-            status: Some("SUBMITTED".into()),
+            status: Some(RecordStatus::Submitted),
             claimed_by: Some("exec-1".into())
         }
     );
@@ -125,18 +125,18 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         )
         .await
         .unwrap();
-    let item = table.get(7, 42).await.unwrap().unwrap();
+    let item = table.record(7, 42).await.unwrap().unwrap().item;
     assert_eq!(item["submission_status"], text("RUNNING"));
     assert_eq!(item["start_time"], text("2026-11-21 05:01:00 UTC"));
     assert_eq!(item["results"], text("s3://b/42"));
     // Later rounds keep the first start time, and record the GPUs used so far.
-    let usage = lb_domain::cost::Totals {
+    let usage = lb_domain::capacity::cost::Totals {
         gpu_seconds: 7200,
         spot: 3600,
         run_again: 60,
         lost: 240,
         dollars: Some(2.0468),
-        orchestration: Some(lb_domain::cost::Orchestration {
+        orchestration: Some(lb_domain::capacity::cost::Orchestration {
             transitions: 400,
             invocations: 100,
             mb_ms: 100 * 512 * 1000,
@@ -154,7 +154,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         )
         .await
         .unwrap();
-    let item = table.get(7, 42).await.unwrap().unwrap();
+    let item = table.record(7, 42).await.unwrap().unwrap().item;
     assert_eq!(
         item["image_digest"],
         text(&format!("sha256:{}", "a".repeat(64)))
@@ -190,14 +190,14 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         metrics: vec![("driving_score", None)],
         progress: (5, 20),
         error: Some("CARLA crashed too often".into()),
-        recordings: Some(lb_domain::audit::Recordings {
+        recordings: Some(lb_domain::run::audit::Recordings {
             passed: 4,
             expected: 5,
             failures: vec!["RouteScenario_3_rep0: no recording in pair 2's folder".into()],
         }),
-        usage: Some(lb_domain::cost::Totals {
+        usage: Some(lb_domain::capacity::cost::Totals {
             dollars: None,
-            stored: Some(lb_domain::uploads::UploadReport {
+            stored: Some(lb_domain::job::uploads::UploadReport {
                 log_bytes: 3 << 30,
                 refused_files: 2,
                 refused_bytes: 200 << 20,
@@ -208,7 +208,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     // Only the execution holding the claim writes the final record, and only once.
     assert!(!table.finish(7, 42, "exec-2", &failed).await.unwrap());
     assert_eq!(
-        table.get(7, 42).await.unwrap().unwrap()["submission_status"],
+        table.record(7, 42).await.unwrap().unwrap().item["submission_status"],
         text("RUNNING")
     );
     assert!(table.finish(7, 42, "exec-1", &failed).await.unwrap());
@@ -217,7 +217,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(standing.claimed_by.as_deref(), Some("exec-1"));
     assert_eq!(standing.status, Some(RecordStatus::Failed));
     assert_eq!(standing.error.as_deref(), Some("CARLA crashed too often"));
-    let item = table.get(7, 42).await.unwrap().unwrap();
+    let item = table.record(7, 42).await.unwrap().unwrap().item;
     assert_eq!(
         item["driving_score"],
         text("-"),
@@ -244,7 +244,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         table.claim(&record("exec-4", true)).await.unwrap(),
         Claim::Claimed
     );
-    let item = table.get(7, 42).await.unwrap().unwrap();
+    let item = table.record(7, 42).await.unwrap().unwrap().item;
     assert_eq!(item["submission_status"], text("RESUMING"));
     assert_eq!(item["start_time"], text("-"), "the resume starts afresh");
     table
@@ -281,7 +281,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         .await
         .unwrap();
     assert!(finished, "the resume's execution holds the claim");
-    let item = table.get(7, 42).await.unwrap().unwrap();
+    let item = table.record(7, 42).await.unwrap().unwrap().item;
     assert_eq!(item["submission_status"], text("FINISHED"));
     assert_eq!(
         item["start_time"],

@@ -1,10 +1,12 @@
 //! The Cluster Autoscaler's events about a pending pod, read from the API
-//! (`lb_domain::autoscaler` judges what they say).
+//! (`lb_domain::cluster::autoscaler` judges what they say).
 
 use k8s_openapi::api::core::v1::Event;
 use k8s_openapi::jiff::Timestamp;
 
-pub use lb_domain::autoscaler::{Outlook, ScaleUpWord, COMPONENT, NOT_TRIGGERED, TRIGGERED};
+pub use lb_domain::cluster::autoscaler::{
+    Outlook, ScaleUpWord, COMPONENT, NOT_TRIGGERED, TRIGGERED,
+};
 
 /// The latest autoscaler word among `events` about the pod with uid `pod_uid`. Only the
 /// autoscaler's own events count: anyone allowed to create events could write one with its

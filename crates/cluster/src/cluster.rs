@@ -9,8 +9,8 @@ use k8s_openapi::api::core::v1::{Event, Node, Pod};
 use k8s_openapi::jiff::Timestamp;
 use kube::api::{Api, DeleteParams, ListParams, Patch, PatchParams, PostParams};
 use kube::config::{KubeConfigOptions, Kubeconfig};
-use lb_domain::cost::{CapacityType, NodeKind};
-use lb_domain::disruption::NodeFacts;
+use lb_domain::capacity::cost::{CapacityType, NodeKind};
+use lb_domain::cluster::disruption::NodeFacts;
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info, instrument, warn};
 
@@ -168,6 +168,12 @@ impl Cluster {
     pub fn with_policy(mut self, policy: VerdictPolicy) -> Self {
         self.policy = policy;
         self
+    }
+
+    /// The patience its observations are judged with (and after which the autoscaler's word
+    /// on an unschedulable pod is read).
+    pub fn policy(&self) -> &VerdictPolicy {
+        &self.policy
     }
 
     /// The namespace of every call.
@@ -423,13 +429,8 @@ impl Cluster {
             Some(uid) => self.pod_events(&uid).await,
             None => Vec::new(),
         };
-        let obs = observe::observe(submission_id, &jobs, &pods, &events, now, &self.policy);
-        debug!(
-            jobs = obs.jobs.len(),
-            restarts = obs.restarts(),
-            verdict = ?obs.verdict,
-            "observed"
-        );
+        let obs = observe::observe(submission_id, &jobs, &pods, &events, now);
+        debug!(jobs = obs.jobs.len(), restarts = obs.restarts(), "observed");
         Ok(obs)
     }
 

@@ -3,7 +3,7 @@
 use crate::error::{ClusterError, Result};
 
 // NB: the keys are the plan's, the ones the Job templates put on every Job and Pod.
-pub use lb_domain::plan::{
+pub use lb_domain::job::plan::{
     EXECUTION_LABEL as EXECUTION, JOB_INDEX_LABEL as JOB_INDEX, LEADERBOARD_LABEL as LEADERBOARD,
     MANAGED_BY as MANAGED_BY_VALUE, MANAGED_BY_LABEL as MANAGED_BY,
     SUBMISSION_LABEL as SUBMISSION_ID, TEAM_ID_LABEL as TEAM_ID,
@@ -35,7 +35,7 @@ pub fn validate_submission_id(id: &str) -> Result<()> {
 /// The execution label's value for an execution name (the label-safe form the Job templates
 /// put on Jobs and Pods).
 pub fn execution_value(execution: &str) -> String {
-    lb_domain::plan::label_value(execution)
+    lb_domain::job::plan::label_value(execution)
 }
 
 /// The execution label of an object's labels, `None` when absent or empty (Jobs launched

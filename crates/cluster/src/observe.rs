@@ -1,5 +1,5 @@
 //! Pure mapping from a submission's Jobs and Pods (as the API server returns them) to the views
-//! `lb_domain::cluster` judges: per-Job states, container states, and the verdict on them.
+//! `lb_domain::cluster::view` judges: per-Job states, container states, and the verdict on them.
 
 use std::collections::BTreeMap;
 
@@ -8,9 +8,11 @@ use k8s_openapi::api::core::v1::{Container, ContainerStatus, Event, Pod, PodStat
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{ObjectMeta, Time};
 use k8s_openapi::jiff::Timestamp;
 
+use lb_domain::status::PodPhase;
+
 use crate::autoscaler;
 use crate::labels;
-pub use lb_domain::cluster::{
+pub use lb_domain::cluster::view::{
     started, verdict, waited_at_least, ContainerState, ContainerView, Exit, FailureKind, JobState,
     JobView, Observation, PodView, Unschedulable, Verdict, VerdictPolicy,
 };
@@ -27,7 +29,7 @@ pub fn needs_autoscaler_word(
         .filter(|p| p.metadata.deletion_timestamp.is_none())
         .filter(|p| {
             let status = p.status.as_ref();
-            status.and_then(|s| s.phase.as_deref()) == Some("Pending")
+            PodPhase::reported(status.and_then(|s| s.phase.as_deref())) == PodPhase::Pending
                 && status
                     .and_then(unschedulable_of)
                     .and_then(|u| u.since)
@@ -44,7 +46,6 @@ pub fn observe(
     pods: &[Pod],
     events: &[Event],
     now: Timestamp,
-    policy: &VerdictPolicy,
 ) -> Observation {
     let mut views: Vec<JobView> = jobs.iter().map(job_view).collect();
     views.sort_by(|a, b| (a.index, &a.name).cmp(&(b.index, &b.name)));
@@ -70,13 +71,11 @@ pub fn observe(
             None => stray_pods.push(pod),
         }
     }
-    let verdict = verdict(&views, now, policy);
     Observation {
         submission_id: submission_id.to_string(),
         observed_at: now,
         jobs: views,
         stray_pods,
-        verdict,
     }
 }
 
@@ -201,7 +200,7 @@ fn pod_view(pod: &Pod) -> PodView {
         gpus: gpus(&spec),
         autoscaler: None,
         job: owning_job(&pod.metadata),
-        phase: status.phase.unwrap_or_else(|| "Unknown".into()),
+        phase: PodPhase::reported(status.phase.as_deref()),
         reason: status.reason,
         message: status.message,
         node: spec.node_name,
@@ -227,7 +226,7 @@ const MAX_DISRUPTION_MESSAGE: usize = 200;
 
 /// The reason and message of a pod's `DisruptionTarget` condition: something is taking it away
 /// (a drained or reclaimed node, preemption, an eviction, the kubelet), and its Job will not
-/// count it; whose doing it was is the Monitor's to judge (`lb_domain::disruption`).
+/// count it; whose doing it was is the Monitor's to judge (`lb_domain::cluster::disruption`).
 fn disruption(status: &k8s_openapi::api::core::v1::PodStatus) -> Option<(String, Option<String>)> {
     status
         .conditions
@@ -348,6 +347,46 @@ fn digest(image_id: &str) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An observation with the verdict `policy` reaches on it, as the Monitor's round judges.
+    #[derive(Debug, Clone)]
+    struct Judged {
+        obs: Observation,
+        policy: VerdictPolicy,
+        verdict: Verdict,
+    }
+
+    impl std::ops::Deref for Judged {
+        type Target = Observation;
+        fn deref(&self) -> &Observation {
+            &self.obs
+        }
+    }
+
+    impl Judged {
+        /// The verdict on a run of `count` Jobs.
+        fn expect_jobs(self, count: u32) -> Judged {
+            let verdict = self.obs.judge(count, &BTreeMap::new(), &self.policy);
+            Judged { verdict, ..self }
+        }
+    }
+
+    /// [`super::observe`], judged with `policy`.
+    fn observe(
+        submission_id: &str,
+        jobs: &[Job],
+        pods: &[Pod],
+        events: &[Event],
+        now: Timestamp,
+        policy: &VerdictPolicy,
+    ) -> Judged {
+        let obs = super::observe(submission_id, jobs, pods, events, now);
+        Judged {
+            verdict: obs.verdict(policy),
+            obs,
+            policy: *policy,
+        }
+    }
     use std::time::Duration;
 
     /// Jobs and Pods of a `kubectl get jobs,pods -o yaml` style `List`.
@@ -370,12 +409,12 @@ mod tests {
         format!("2025-03-14T{hh:02}:{mm:02}:00Z").parse().unwrap()
     }
 
-    fn run(text: &str) -> Observation {
+    fn run(text: &str) -> Judged {
         run_at(text, at(9, 45), &VerdictPolicy::default())
     }
 
     /// `jobs` and `pods` at 09:45 with the default policy and no events.
-    fn observe_at_945(jobs: &[Job], pods: &[Pod]) -> Observation {
+    fn observe_at_945(jobs: &[Job], pods: &[Pod]) -> Judged {
         observe(
             "4242",
             jobs,
@@ -386,12 +425,12 @@ mod tests {
         )
     }
 
-    fn run_at(text: &str, now: Timestamp, policy: &VerdictPolicy) -> Observation {
+    fn run_at(text: &str, now: Timestamp, policy: &VerdictPolicy) -> Judged {
         let (jobs, pods) = load(text);
         observe("4242", &jobs, &pods, &[], now, policy)
     }
 
-    fn failed(obs: &Observation) -> (FailureKind, Option<&str>, Option<&str>, &str) {
+    fn failed(obs: &Judged) -> (FailureKind, Option<&str>, Option<&str>, &str) {
         match &obs.verdict {
             Verdict::Failed {
                 kind,
@@ -485,7 +524,7 @@ mod tests {
         assert_eq!((job.active, job.ready), (1, 1));
         assert_eq!(job.start_time, Some(at(9, 0)));
         let pod = &job.pods[0];
-        assert_eq!(pod.phase, "Running");
+        assert_eq!(pod.phase, PodPhase::Running);
         assert_eq!(
             pod.node.as_deref(),
             Some("ip-10-0-12-34.us-west-2.compute.internal")
@@ -561,7 +600,7 @@ mod tests {
             assert_eq!(job.succeeded, 1);
             assert!(job.completion_time.is_some());
             assert_eq!(job.pods.len(), 1);
-            assert_eq!(job.pods[0].phase, "Succeeded");
+            assert_eq!(job.pods[0].phase, PodPhase::Succeeded);
         }
         assert_eq!(obs.clone().expect_jobs(2).verdict, Verdict::Finished);
     }
@@ -1003,7 +1042,11 @@ mod tests {
         assert_eq!(obs.verdict, Verdict::Running);
         let job = &obs.jobs[0];
         assert_eq!((job.failed, job.active), (1, 1));
-        let evicted = job.pods.iter().find(|p| p.phase == "Failed").unwrap();
+        let evicted = job
+            .pods
+            .iter()
+            .find(|p| p.phase == PodPhase::Failed)
+            .unwrap();
         assert_eq!(evicted.reason.as_deref(), Some("Evicted"));
         assert!(evicted
             .message
@@ -1174,7 +1217,7 @@ mod tests {
         let pods = vec![Pod::default()];
         let obs = observe_at_945(&jobs, &pods);
         assert_eq!(obs.jobs[0].state, JobState::Pending);
-        assert_eq!(obs.stray_pods[0].phase, "Unknown");
+        assert_eq!(obs.stray_pods[0].phase, PodPhase::Unknown);
         assert_eq!(obs.verdict, Verdict::Running);
     }
 
@@ -1182,10 +1225,10 @@ mod tests {
     fn the_observation_round_trips_through_json() {
         for text in [RUNNING, BACKOFF, PULL_BACKOFF, UNSCHEDULABLE] {
             let obs = run(text);
-            let json = serde_json::to_value(&obs).unwrap();
+            let json = serde_json::to_value(&obs.obs).unwrap();
             let back: Observation = serde_json::from_value(json.clone()).unwrap();
-            assert_eq!(back, obs);
-            assert!(json["verdict"]["verdict"].is_string());
+            assert_eq!(back, obs.obs);
+            assert!(json["jobs"].is_array());
         }
         let json = serde_json::to_value(run(BACKOFF).verdict).unwrap();
         assert_eq!(json["kind"], "BackoffLimitExceeded");

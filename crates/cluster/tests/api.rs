@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use http::{Method, Request, Response, StatusCode};
 use kube::client::Body;
-use lb_cluster::{Cluster, ClusterError, FailureKind, Job, Timeouts, Verdict};
+use lb_cluster::{Cluster, ClusterError, FailureKind, Job, Timeouts, Verdict, VerdictPolicy};
 use serde_json::{json, Value};
 
 type Handle = tower_test::mock::Handle<Request<Body>, Response<Body>>;
@@ -453,7 +453,7 @@ async fn observe_lists_jobs_and_pods_by_label_and_maps_them_to_a_verdict() {
     assert_eq!(obs.submission_id, "4242");
     assert_eq!(obs.jobs.len(), 1);
     assert_eq!(obs.jobs[0].pods.len(), 1);
-    match &obs.verdict {
+    match &obs.verdict(&VerdictPolicy::default()) {
         Verdict::Failed {
             kind, container, ..
         } => {
@@ -480,7 +480,7 @@ async fn a_pod_waiting_past_the_grace_is_looked_up_in_the_autoscalers_events() {
     })
     .await
     .unwrap();
-    match &obs.verdict {
+    match &obs.verdict(&VerdictPolicy::default()) {
         Verdict::Failed { kind, message, .. } => {
             assert_eq!(*kind, FailureKind::NoNodeFits);
             assert!(
@@ -510,7 +510,7 @@ async fn events_the_role_may_not_list_leave_the_pod_to_the_schedulers_limits() {
     .await
     .unwrap();
     // Waiting since 2025 for GPUs: the queue limit (not the autoscaler) ended it.
-    match &obs.verdict {
+    match &obs.verdict(&VerdictPolicy::default()) {
         Verdict::Failed { kind, .. } => assert_eq!(*kind, FailureKind::Unschedulable),
         other => panic!("{other:?}"),
     }
@@ -526,7 +526,10 @@ async fn observe_of_a_finished_submission_is_finished() {
     })
     .await
     .unwrap();
-    assert_eq!(obs.clone().expect_jobs(2).verdict, Verdict::Finished);
+    assert_eq!(
+        obs.judge(2, &Default::default(), &VerdictPolicy::default()),
+        Verdict::Finished
+    );
 }
 
 #[tokio::test]

@@ -6,7 +6,7 @@ use axum::extract::Path;
 use axum::http::{HeaderMap, StatusCode};
 use axum::routing::get;
 use axum::{Json, Router};
-use lb_cluster::{eks_config, Cluster, FailureKind, Timeouts, Verdict};
+use lb_cluster::{eks_config, Cluster, FailureKind, Timeouts, Verdict, VerdictPolicy};
 use secrecy::ExposeSecret;
 use serde_json::{json, Value};
 
@@ -87,7 +87,7 @@ async fn a_kubeconfig_context_gives_the_server_the_token_and_the_namespace() {
         .unwrap();
     assert!(obs.jobs.is_empty());
     assert!(matches!(
-        obs.verdict,
+        obs.verdict(&VerdictPolicy::default()),
         Verdict::Failed {
             kind: FailureKind::JobsMissing,
             ..

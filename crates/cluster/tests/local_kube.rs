@@ -122,16 +122,19 @@ async fn a_job_of_shell_containers_is_observed_running_then_finished() {
         })
     })
     .await;
-    assert_eq!(running.verdict, Verdict::Running);
+    assert_eq!(running.verdict(cluster.policy()), Verdict::Running);
     assert_eq!(running.jobs.len(), 1);
     assert_eq!(running.jobs[0].index, Some(0));
 
     let finished = observe_until(&cluster, "5001", "Finished", |o| {
-        o.verdict == Verdict::Finished
+        o.verdict(cluster.policy()) == Verdict::Finished
     })
     .await;
     assert_eq!(finished.jobs[0].state, JobState::Complete);
-    assert_eq!(finished.clone().expect_jobs(1).verdict, Verdict::Finished);
+    assert_eq!(
+        finished.judge(1, &Default::default(), cluster.policy()),
+        Verdict::Finished
+    );
     let agent = finished.jobs[0].pods[0]
         .containers
         .iter()
@@ -151,8 +154,11 @@ async fn a_crashing_job_is_observed_failed_with_backoff_limit_exceeded() {
         &[("agent-1", "team/agent:v1", "echo crash; exit 3")],
     );
     bounded(cluster.create_or_adopt(&j)).await.unwrap();
-    let obs = observe_until(&cluster, "5002", "Failed", |o| o.verdict.is_terminal()).await;
-    match &obs.verdict {
+    let obs = observe_until(&cluster, "5002", "Failed", |o| {
+        o.verdict(cluster.policy()).is_terminal()
+    })
+    .await;
+    match &obs.verdict(cluster.policy()) {
         Verdict::Failed {
             kind, job, message, ..
         } => {
@@ -186,10 +192,10 @@ async fn an_unpullable_participant_image_is_observed_failed_naming_the_image() {
     );
     bounded(cluster.create_or_adopt(&j)).await.unwrap();
     let obs = observe_until(&cluster, "5003", "an image failure", |o| {
-        o.verdict.is_terminal()
+        o.verdict(cluster.policy()).is_terminal()
     })
     .await;
-    match &obs.verdict {
+    match &obs.verdict(cluster.policy()) {
         Verdict::Failed {
             kind,
             container,
@@ -372,8 +378,11 @@ async fn zero_hopeless_limits_do_not_fail_a_healthy_job() {
         &[("simulator-1", "busybox", "sleep 1")],
     );
     bounded(cluster.create_or_adopt(&j)).await.unwrap();
-    let obs = observe_until(&cluster, "5009", "Finished", |o| o.verdict.is_terminal()).await;
-    assert_eq!(obs.verdict, Verdict::Finished);
+    let obs = observe_until(&cluster, "5009", "Finished", |o| {
+        o.verdict(cluster.policy()).is_terminal()
+    })
+    .await;
+    assert_eq!(obs.verdict(cluster.policy()), Verdict::Finished);
 }
 
 /// `job` labelled as launched by `execution`, Job and Pods alike.
@@ -525,7 +534,7 @@ async fn a_pod_no_node_could_ever_hold_fails_and_a_pod_waiting_for_room_waits() 
         o.jobs[0].pods.iter().any(|p| p.autoscaler.is_some())
     })
     .await;
-    assert_eq!(queued.verdict, Verdict::Running);
+    assert_eq!(queued.verdict(cluster.policy()), Verdict::Running);
     let word = queued.jobs[0].pods[0].autoscaler.as_ref().unwrap();
     assert_eq!(
         word.message,
@@ -542,8 +551,8 @@ async fn a_pod_no_node_could_ever_hold_fails_and_a_pod_waiting_for_room_waits() 
             "its pods request more nvidia.com/gpu than a node of any node group",
         ),
     ] {
-        let obs = observe_until(&cluster, sub, "a verdict", |o| o.verdict.is_terminal()).await;
-        match &obs.verdict {
+        let obs = observe_until(&cluster, sub, "a verdict", |o| o.verdict(cluster.policy()).is_terminal()).await;
+        match &obs.verdict(cluster.policy()) {
             Verdict::Failed { kind, message, .. } => {
                 assert_eq!(*kind, FailureKind::NoNodeFits, "{message}");
                 assert!(message.contains(expect), "{sub}: {message}");

@@ -7,8 +7,8 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::py::Num;
-use crate::resources::{self, PairShare};
+use crate::cluster::resources::{self, PairShare};
+use crate::results::py::Num;
 
 use crate::results::Leaderboard;
 
@@ -23,9 +23,9 @@ pub struct Settings {
     /// Per leaderboard (`"1.0"`, `"2.0"`): cluster, storage, images, tracks.
     pub leaderboards: BTreeMap<Leaderboard, LeaderboardSettings>,
     /// Dollars per instance-hour by EC2 instance type, on-demand and Spot: what a
-    /// submission's GPU-seconds are priced at (`lb_domain::cost`). Empty: no estimate.
+    /// submission's GPU-seconds are priced at (`lb_domain::capacity::cost`). Empty: no estimate.
     #[serde(default)]
-    pub prices: BTreeMap<String, crate::cost::InstancePrice>,
+    pub prices: BTreeMap<String, crate::capacity::cost::InstancePrice>,
 }
 
 /// EvalAI endpoint settings.
@@ -89,8 +89,8 @@ pub struct LeaderboardSettings {
     /// and whose GPU model the Jobs ask for. Pairs run on any node of that GPU model
     /// (`infra/cluster.yaml`'s node groups), never on one instance type name.
     pub instance_type: String,
-    /// The GPU model the Jobs select nodes by (`lb_domain::resources::GPU_MODEL_LABEL`); by
-    /// default the instance type's (required for a type `lb_domain::resources` does not know).
+    /// The GPU model the Jobs select nodes by (`lb_domain::cluster::resources::GPU_MODEL_LABEL`); by
+    /// default the instance type's (required for a type `lb_domain::cluster::resources` does not know).
     #[serde(default)]
     pub gpu_model: Option<String>,
     /// Which capacity the pairs may run on: `on-demand`, `spot`, or `spot-then-on-demand` (the
@@ -119,11 +119,11 @@ pub struct LeaderboardSettings {
     #[serde(default = "default_queue_hours")]
     pub max_queue_hours: u64,
     /// How many evaluations one team may hold at once (admitted or running); its further
-    /// submissions wait their turn without holding back other teams' (`crate::queue`).
+    /// submissions wait their turn without holding back other teams' (`crate::capacity::queue`).
     #[serde(default = "default_team_limit")]
     pub team_limit: u32,
     /// CPU, memory and `/dev/shm` of each simulator-agent pair; by default derived from
-    /// `instance_type` (required for a type `lb_domain::resources` does not know).
+    /// `instance_type` (required for a type `lb_domain::cluster::resources` does not know).
     #[serde(default)]
     pub pair_resources: Option<PairShare>,
     /// The least interval between two partial updates of one submission on EvalAI, seconds
@@ -234,8 +234,15 @@ fn default_team_limit() -> u32 {
     2
 }
 
+/// The default least interval between two partial updates of one submission on EvalAI: a
+/// route's record reaches its participant within 20 s at most, 10 s in the median. Safe with
+/// many submissions in flight because every update takes from the shared EvalAI budget
+/// (`lb_evalai::budget`), which skips a routine update rather than exceed the host token's
+/// limit.
+pub const PARTIAL_UPDATE_INTERVAL: std::time::Duration = std::time::Duration::from_secs(20);
+
 fn default_partial_update_seconds() -> u64 {
-    crate::schedule::PARTIAL_UPDATE_INTERVAL.as_secs()
+    PARTIAL_UPDATE_INTERVAL.as_secs()
 }
 
 /// Images of the Job containers (the participant's comes with the submission).
@@ -427,7 +434,7 @@ impl LeaderboardSettings {
     fn check_gpu_model(&self) -> Result<(), (&'static str, String)> {
         self.gpu_model()?;
         match &self.gpu_model {
-            Some(model) if model.is_empty() || !crate::plan::is_label_value(model) => Err((
+            Some(model) if model.is_empty() || !crate::job::plan::is_label_value(model) => Err((
                 "gpu_model",
                 "must be a non-empty Kubernetes label value".into(),
             )),
@@ -508,13 +515,13 @@ impl Target<'_> {
 /// both prices must be finite and not negative.
 fn check_price(
     instance_type: &str,
-    price: &crate::cost::InstancePrice,
+    price: &crate::capacity::cost::InstancePrice,
 ) -> Result<(), (String, String)> {
     let path = |field: &str| format!("prices.{instance_type}{field}");
     if resources::capacity(instance_type).is_none_or(|c| c.gpus == 0) {
         return Err((
             path(""),
-            "is not a GPU instance type this version knows (crates/domain/src/resources.rs)".into(),
+            "is not a GPU instance type this version knows (crates/domain/src/cluster/resources.rs)".into(),
         ));
     }
     for (field, value) in [(".on_demand", price.on_demand), (".spot", price.spot)] {

@@ -1,6 +1,6 @@
 //! Our statuses as types, parsed once where they arrive: the submission record's
-//! `submission_status`, Step Functions' execution statuses, what Finalize settled and what the
-//! reaper did. Past the edge no status is compared as a string.
+//! `submission_status`, Step Functions' execution statuses, pods' phases, what Finalize settled
+//! and what the reaper did. Past the edge no status is compared as a string.
 
 use std::fmt;
 use std::str::FromStr;
@@ -72,6 +72,7 @@ macro_rules! words {
         }
     };
 }
+pub(crate) use words;
 
 words! {
     /// `submission_status` of the submission record, upper-cased as the original system wrote
@@ -89,6 +90,42 @@ words! {
         Failed => "FAILED",
         /// Cancelled by the participant.
         Cancelled => "CANCELLED",
+    }
+}
+
+words! {
+    /// A pod's `status.phase`, as Kubernetes reports it.
+    PodPhase, "pod phase" {
+        /// Accepted, not every container started yet (scheduling, pulling images).
+        Pending => "Pending",
+        /// Bound to a node, a container running or starting again.
+        Running => "Running",
+        /// Every container ended with exit code 0.
+        Succeeded => "Succeeded",
+        /// Every container ended, one at least in failure (or the pod was stopped).
+        Failed => "Failed",
+        /// The node could not be reached (or no phase was reported).
+        Unknown => "Unknown",
+    }
+}
+
+impl PodPhase {
+    /// The phase a status reports, read at the edge: a missing phase or one this version does
+    /// not know is [`PodPhase::Unknown`], as Kubernetes itself says of a pod it cannot read.
+    pub fn reported(phase: Option<&str>) -> PodPhase {
+        phase
+            .and_then(|p| p.parse().ok())
+            .unwrap_or(PodPhase::Unknown)
+    }
+
+    /// Whether the pod ended: its containers will not run again.
+    pub fn has_ended(self) -> bool {
+        matches!(self, PodPhase::Succeeded | PodPhase::Failed)
+    }
+
+    /// Whether the pod is on its way or running: pending or running.
+    pub fn is_live(self) -> bool {
+        matches!(self, PodPhase::Pending | PodPhase::Running)
     }
 }
 

@@ -17,10 +17,10 @@ pub fn results_fixtures_dir() -> PathBuf {
 /// pods listed, and this `activeDeadlineSeconds`.
 pub fn job(
     name: &str,
-    state: crate::cluster::JobState,
+    state: crate::cluster::view::JobState,
     deadline: Option<u64>,
-) -> crate::cluster::JobView {
-    crate::cluster::JobView {
+) -> crate::cluster::view::JobView {
+    crate::cluster::view::JobView {
         name: name.into(),
         index: Some(0),
         state,
@@ -34,5 +34,28 @@ pub fn job(
         deadline,
         backoff_limit: Some(4),
         pods: Vec::new(),
+    }
+}
+
+/// A pod `name` of Job `job` in `phase`, on no node and never started (the GPU count takes
+/// no pod without a start), with no containers.
+pub fn pod(name: &str, job: &str, phase: crate::status::PodPhase) -> crate::cluster::view::PodView {
+    crate::cluster::view::PodView {
+        name: name.into(),
+        job: Some(job.into()),
+        phase,
+        reason: None,
+        message: None,
+        node: None,
+        start_time: None,
+        terminating: false,
+        uid: None,
+        node_selector: None,
+        disruption: None,
+        disruption_message: None,
+        gpus: 1,
+        unschedulable: None,
+        autoscaler: None,
+        containers: Vec::new(),
     }
 }

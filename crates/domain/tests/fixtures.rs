@@ -204,7 +204,7 @@ fn invalid_fixture_reports_the_validation_message() {
     let case = case("l_");
     let opts = options(&case, None);
     let merged = merge(load(&case), opts).unwrap().merged;
-    assert_eq!(merged.entry_status, "Invalid");
+    assert_eq!(merged.entry_status.as_str(), "Invalid");
     assert_eq!(merged.invalid_reason, Some("Missing 'sensors' data"));
     assert!(!merged.eligible);
 }
@@ -224,7 +224,7 @@ fn a_missing_worker_keeps_the_result_partial_when_the_plan_is_known() {
     let outcome = merge(files.clone(), opts).unwrap();
     assert!(!outcome.complete);
     assert_eq!(outcome.merged.progress, (15, 20));
-    assert_eq!(outcome.merged.entry_status, "Started");
+    assert_eq!(outcome.merged.entry_status.as_str(), "Started");
     let evalai = EvalAiFiles::generate(Some(&outcome.merged), case.leaderboard);
     assert!(evalai
         .stdout
@@ -232,7 +232,7 @@ fn a_missing_worker_keeps_the_result_partial_when_the_plan_is_known() {
     assert!(evalai
         .accuracies()
         .iter()
-        .all(|(_, v)| *v == lb_domain::py::Num::Int(0)));
+        .all(|(_, v)| *v == lb_domain::results::py::Num::Int(0)));
 }
 
 #[test]
@@ -299,13 +299,13 @@ fn leaderboard_1_rates_skip_a_route_that_never_moved_and_stay_int_only_when_all_
     // Route 5 has two vehicle collisions and 0 % completion: it adds nothing.
     assert!(matches!(
         global.infraction("collisions_vehicle"),
-        Some(lb_domain::py::Num::Float(_))
+        Some(lb_domain::results::py::Num::Float(_))
     ));
     // Every route of a worker that drove nothing: the rates keep upstream's int 0.
     let mut still = files;
     for f in &mut still {
         for r in &mut f.records {
-            r.scores.score_route = lb_domain::py::Num::Float(0.0);
+            r.scores.score_route = lb_domain::results::py::Num::Float(0.0);
         }
     }
     let global = merge(still, options(&case, None))
@@ -316,7 +316,7 @@ fn leaderboard_1_rates_skip_a_route_that_never_moved_and_stay_int_only_when_all_
     assert!(global
         .infractions
         .iter()
-        .all(|(_, v)| *v == lb_domain::py::Num::Int(0)));
+        .all(|(_, v)| *v == lb_domain::results::py::Num::Int(0)));
 }
 
 /// Every file under `root`, as paths relative to it, sorted.

@@ -184,7 +184,7 @@ the scores above are complete, and the challenge hosts keep the full output.";
 /// `text` cut to at most `max` bytes, keeping its start (verdict and scores come first), with
 /// a visible note saying so.
 pub fn bounded_text(text: &str, max: usize) -> std::borrow::Cow<'_, str> {
-    lb_domain::logtail::cut_with_note(text, max, || {
+    lb_domain::job::logtail::cut_with_note(text, max, || {
         format!(
             "\n\n[... cut here: the first {max} of {} bytes are shown; the complete output is \
              kept with the submission's results]\n",

@@ -8,12 +8,12 @@
 
 use std::collections::BTreeMap;
 
-use lb_domain::plan::{
+use lb_domain::cluster::resources::{Allotment, PairAllotment, Storage, VolumeSizes};
+use lb_domain::job::plan::{
     is_dns_label, is_label_key, is_label_value, label_value, JobPlan, Plan, COMPONENT_LABEL,
     COMPONENT_SUBMISSION, EXECUTION_LABEL, JOB_INDEX_LABEL, LEADERBOARD_LABEL, MANAGED_BY,
     MANAGED_BY_LABEL, SUBMISSION_LABEL, TEAM_ID_LABEL, TEAM_LABEL, TRACK_LABEL,
 };
-use lb_domain::resources::{Allotment, PairAllotment, Storage, VolumeSizes};
 use lb_domain::results::Leaderboard;
 use lb_domain::settings::LeaderboardSettings;
 use lb_domain::submission::SubmissionInfo;
@@ -211,7 +211,7 @@ impl JobSettings {
             carla_image: deployment.images.carla.clone(),
             private_contents_image: deployment.images.private_contents.clone(),
             backoff_limit: 4,
-            active_deadline_seconds: lb_domain::schedule::JOB_DEADLINE.as_secs(),
+            active_deadline_seconds: lb_domain::run::schedule::JOB_DEADLINE.as_secs(),
             ttl_seconds_after_finished: 24 * 3600,
             termination_grace_seconds: 60,
             repetitions,
@@ -287,7 +287,7 @@ pub struct KubernetesContext {
     pub node_selector: BTreeMap<String, String>,
     /// `backoffLimit`.
     pub backoff_limit: u32,
-    /// The `FailJob` rule's exit codes (`lb_domain::protocol::exit::FAIL_JOB`).
+    /// The `FailJob` rule's exit codes (`lb_domain::job::protocol::exit::FAIL_JOB`).
     pub fail_job_exit_codes: Vec<u8>,
     /// `activeDeadlineSeconds`.
     pub active_deadline_seconds: u64,
@@ -644,7 +644,7 @@ fn check_bounds(s: &JobSettings) -> Result<(), ContextError> {
 /// characters, terminal escapes, or bidirectional and zero-width format characters (which can
 /// make a name read as another).
 fn printable(text: &str, max_chars: usize) -> String {
-    lb_domain::logtail::printable(text)
+    lb_domain::job::logtail::printable(text)
         .chars()
         .filter(|c| !c.is_control())
         .take(max_chars)
@@ -671,7 +671,7 @@ impl KubernetesContext {
             service_account: settings.service_account.clone(),
             node_selector: settings.node_selector.clone(),
             backoff_limit: settings.backoff_limit,
-            fail_job_exit_codes: lb_domain::protocol::exit::FAIL_JOB.to_vec(),
+            fail_job_exit_codes: lb_domain::job::protocol::exit::FAIL_JOB.to_vec(),
             active_deadline_seconds: settings.active_deadline_seconds,
             ttl_seconds_after_finished: settings.ttl_seconds_after_finished,
             termination_grace_seconds: settings.termination_grace_seconds,
@@ -855,7 +855,7 @@ impl JobContext {
             "arn:aws:iam::123456789012:role/leaderboard-s3",
         )
         .expect("the sample deployment is valid");
-        let plan = lb_domain::plan::plan(lb_domain::plan::PlanInput {
+        let plan = lb_domain::job::plan::plan(lb_domain::job::plan::PlanInput {
             submission_id: 1,
             team_name: "sample",
             routes: 20,

@@ -21,7 +21,7 @@ pub mod validate;
 
 use k8s_openapi::api::batch::v1::Job;
 use lb_asl::AslError;
-use lb_domain::plan::Plan;
+use lb_domain::job::plan::Plan;
 use lb_domain::results::Leaderboard;
 
 pub use context::{ContextError, JobContext, JobSettings, Timers};

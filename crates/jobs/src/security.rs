@@ -216,7 +216,7 @@ fn check_container(c: &Container, at: &str, context: &JobContext) -> Result<(), 
 /// the logs volume and none under `recorder/`, and each simulator mounts its pair's folder
 /// where the evaluator points CARLA (`docs/security.md`, "Recordings").
 fn check_recordings(c: &Container, at: &str) -> Result<(), RenderError> {
-    use lb_domain::protocol::{recorder_dir, RECORDER_DIR, SIMULATOR_RECORDER_MOUNT};
+    use lb_domain::job::protocol::{recorder_dir, RECORDER_DIR, SIMULATOR_RECORDER_MOUNT};
     let mounts = c.volume_mounts.as_deref().unwrap_or_default();
     let logs = || {
         mounts

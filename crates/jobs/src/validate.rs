@@ -10,8 +10,8 @@ use std::collections::{BTreeMap, HashSet};
 
 use k8s_openapi::api::batch::v1::{Job, JobSpec};
 use k8s_openapi::api::core::v1::{Container, PodSpec};
-use lb_domain::plan::{is_dns_label, is_label_key, is_label_value, SUBMISSION_LABEL};
-use lb_domain::protocol::exit;
+use lb_domain::job::plan::{is_dns_label, is_label_key, is_label_value, SUBMISSION_LABEL};
+use lb_domain::job::protocol::exit;
 use serde_json::Value;
 
 use crate::RenderError;
@@ -166,7 +166,7 @@ fn check_labels(labels: Option<&BTreeMap<String, String>>, at: &str) -> Result<(
 
 /// The rules of a pair's Job on failures: a failed pod is replaced by a new one (which
 /// resumes) only once it has stopped, a disrupted pod is never counted, and the exits no
-/// retry can change fail the Job at once (`lb_domain::protocol::exit`).
+/// retry can change fail the Job at once (`lb_domain::job::protocol::exit`).
 fn check_failure_policy(spec: &JobSpec) -> Result<(), RenderError> {
     if spec.pod_replacement_policy.as_deref() != Some("Failed") {
         return Err(spec_error(
@@ -201,7 +201,7 @@ fn check_failure_policy(spec: &JobSpec) -> Result<(), RenderError> {
     if !fails_job {
         return Err(spec_error(
             "spec.podFailurePolicy.rules",
-            format!("must end the Job (`FailJob`) on the exit codes {want:?} (lb_domain::protocol::exit)"),
+            format!("must end the Job (`FailJob`) on the exit codes {want:?} (lb_domain::job::protocol::exit)"),
         ));
     }
     Ok(())

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 
 use k8s_openapi::api::batch::v1::Job;
 use k8s_openapi::api::core::v1::{Container, PodSpec};
-use lb_domain::plan::{plan, PlanInput, SUBMISSION_LABEL, TEAM_LABEL};
+use lb_domain::job::plan::{plan, PlanInput, SUBMISSION_LABEL, TEAM_LABEL};
 use lb_domain::results::Leaderboard;
 use lb_domain::settings::{Images, LeaderboardSettings};
 use lb_jobs::template::{LEADERBOARD_10, LEADERBOARD_20};
@@ -779,9 +779,9 @@ proptest! {
         prop_assert_eq!(jobs.len(), 2);
         for job in &jobs {
             let n = job.metadata.name.as_deref().unwrap();
-            prop_assert!(lb_domain::plan::is_dns_label(n), "{}", n);
+            prop_assert!(lb_domain::job::plan::is_dns_label(n), "{}", n);
             let label = &job.metadata.labels.as_ref().unwrap()[TEAM_LABEL];
-            prop_assert!(lb_domain::plan::is_label_value(label), "{:?}", label);
+            prop_assert!(lb_domain::job::plan::is_label_value(label), "{:?}", label);
             let annotation = &job.metadata.annotations.as_ref().unwrap()["leaderboard.carla.org/team-name"];
             prop_assert!(!annotation.chars().any(char::is_control));
             prop_assert!(annotation.chars().count() <= 256);
@@ -977,7 +977,7 @@ fn every_volume_of_the_rendered_jobs_is_bounded_and_every_container_limits_its_d
 
 #[test]
 fn only_a_pair_s_simulator_mounts_its_recordings_folder_where_the_evaluator_points_carla() {
-    use lb_domain::protocol::{recorder_dir, RECORDER_DIR, SIMULATOR_RECORDER_MOUNT};
+    use lb_domain::job::protocol::{recorder_dir, RECORDER_DIR, SIMULATOR_RECORDER_MOUNT};
     for (leaderboard, workers) in [(Leaderboard::V2, 6), (Leaderboard::V1, 3)] {
         for job in jobs(leaderboard, 20, workers, "team") {
             let pod = pod(&job);
@@ -1022,12 +1022,12 @@ fn only_a_pair_s_simulator_mounts_its_recordings_folder_where_the_evaluator_poin
 #[test]
 fn an_operators_pair_resources_reach_the_containers() {
     let mut s = settings(Leaderboard::V2);
-    s.resources = lb_domain::resources::PairShare {
-        simulator: lb_domain::resources::ContainerShare {
+    s.resources = lb_domain::cluster::resources::PairShare {
+        simulator: lb_domain::cluster::resources::ContainerShare {
             cpu: 3.5,
             memory_gib: 12.0,
         },
-        agent: lb_domain::resources::ContainerShare {
+        agent: lb_domain::cluster::resources::ContainerShare {
             cpu: 7.0,
             memory_gib: 30.5,
         },

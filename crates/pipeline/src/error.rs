@@ -3,7 +3,7 @@
 
 use lb_aws::AwsError;
 use lb_cluster::ClusterError;
-use lb_domain::plan::PlanError;
+use lb_domain::job::plan::PlanError;
 use lb_domain::results::ResultsError;
 use lb_domain::settings::SettingsError;
 use lb_domain::submission::MessageError;
@@ -158,7 +158,7 @@ impl From<FnError> for lambda_runtime::Diagnostic {
     fn from(error: FnError) -> Self {
         lambda_runtime::Diagnostic {
             error_type: error.name().to_string(),
-            error_message: crate::payload::printable_bounded(
+            error_message: lb_domain::run::state::printable_bounded(
                 &error.chain(),
                 MAX_ERROR_MESSAGE_BYTES,
             ),

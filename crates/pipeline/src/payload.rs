@@ -5,7 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
-pub use lb_domain::run::{
+pub use lb_domain::run::state::{
     bounded_reason, printable_bounded, MonitorState, PairRoutes, QueueState, RunPhase, RunState,
     MAX_REASON_BYTES,
 };
@@ -92,7 +92,7 @@ impl ExecutionState {
 
     /// The caught error in words (`Name: message`), if a Catch put one there.
     pub fn caught_error(&self) -> Option<String> {
-        self.error.as_ref().map(lb_domain::finalize::caught)
+        self.error.as_ref().map(lb_domain::run::finalize::caught)
     }
 }
 

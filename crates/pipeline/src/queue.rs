@@ -1,14 +1,15 @@
 //! A submission's turn in its leaderboard's queue, as Launch and the Monitor ask for it: put it
 //! in the queue (once), admit it when its team has room and it is the team's oldest waiting,
-//! and count who is ahead (`lb_domain::queue` for the rules, `lb_aws::admission` for the table).
+//! and count who is ahead (`lb_domain::capacity::queue` for the rules, `lb_aws::admission` for the table).
 
 use std::time::Duration;
 
 use lb_aws::admission::{AdmissionTable, Admit};
 use lb_aws::tasks::{Callbacks, Reported};
 use lb_aws::wake::WakeTable;
-pub use lb_domain::queue::Standing;
-use lb_domain::queue::{self, Entry, EntryState, Hold};
+pub use lb_domain::capacity::queue::Standing;
+pub use lb_domain::capacity::queue::TeamQueue;
+use lb_domain::capacity::queue::{self, Entry, EntryState, Hold};
 
 use crate::payload::SubmissionInfo;
 use crate::Result;
@@ -30,11 +31,41 @@ pub enum Admission {
 }
 
 impl Admission {
-    /// The table, where there is one (the reaper's pass and `lbctl` read it whole).
-    pub fn table(&self) -> Option<&AdmissionTable> {
+    /// The places held in `queue`, per team (none without a queue).
+    pub async fn holds(&self, queue: &str) -> Result<Vec<(u64, Vec<String>)>> {
         match self {
-            Admission::Queue(table) => Some(table),
-            Admission::Unlimited => None,
+            Admission::Queue(table) => Ok(table.holds(queue).await?),
+            Admission::Unlimited => Ok(Vec::new()),
+        }
+    }
+
+    /// The execution that put `submission_id` in `queue`, when its entry names one.
+    pub async fn execution_of(&self, queue: &str, submission_id: u64) -> Result<Option<String>> {
+        match self {
+            Admission::Queue(table) => Ok(table.execution_of(queue, submission_id).await?),
+            Admission::Unlimited => Ok(None),
+        }
+    }
+
+    /// Gives `submission_id`'s place in `team`'s queue back and takes its entry out.
+    pub async fn give_back(&self, team: TeamQueue<'_>, submission_id: u64) -> Result<()> {
+        if let Admission::Queue(table) = self {
+            table.release(team.queue, submission_id, team.team).await?;
+        }
+        Ok(())
+    }
+
+    /// [`wake_team_next`]; without a queue nobody waits.
+    pub async fn wake_team_next<C: Callbacks>(
+        &self,
+        wakes: &WakeTable,
+        callbacks: &C,
+        team: TeamQueue<'_>,
+        now: u64,
+    ) -> Result<Vec<Woken>> {
+        match self {
+            Admission::Queue(table) => wake_team_next(table, wakes, callbacks, team, now).await,
+            Admission::Unlimited => Ok(Vec::new()),
         }
     }
 
@@ -229,8 +260,8 @@ pub enum Woken {
     Stale(u64),
 }
 
-/// Wakes the executions of team `team_id`'s oldest waiting submissions in `leaderboard`, one
-/// per place open under `limit` (none when nobody waits or no place is open), so their
+/// Wakes the executions of `team`'s oldest waiting submissions in its queue, one per place
+/// open under its limit (none when nobody waits or no place is open), so their
 /// Monitor rounds ask now instead of at their next poll (five minutes into a queue, half an
 /// hour into a long one), through the same [`WakeTable::wake`] the wake function uses. A
 /// failed report stops there with the error: the rest ask at their polls.
@@ -238,13 +269,13 @@ pub async fn wake_team_next<C: Callbacks>(
     table: &AdmissionTable,
     wakes: &WakeTable,
     callbacks: &C,
-    (leaderboard, team_id, limit): (&str, u64, u32),
+    team: TeamQueue<'_>,
     now: u64,
 ) -> Result<Vec<Woken>> {
-    let entries = table.entries(leaderboard).await?;
-    let held = table.holders(leaderboard, team_id).await?.len();
+    let entries = table.entries(team.queue).await?;
+    let held = table.holders(team.queue, team.team).await?.len();
     let mut woken = Vec::new();
-    for next in queue::next_of_team(&entries, team_id, queue::free_places(limit, held)) {
+    for next in queue::next_of_team(&entries, team.team, queue::free_places(team.limit, held)) {
         let id = next.submission_id;
         woken.push(match wakes.wake(id, now, callbacks).await? {
             None => Woken::NotWaiting(id),

@@ -3,12 +3,12 @@
 
 use futures_util::{StreamExt as _, TryStreamExt as _};
 use lb_aws::s3::{EvalAiObjects, PartialObject, SubmissionStore, MAX_PARTIAL_BYTES};
-use lb_domain::audit;
-use lb_domain::py::Num;
+use lb_domain::results::py::Num;
 use lb_domain::results::{
     self, read_worker_files, EvalAiFiles, Expected, Leaderboard, MergeOptions, Merged, ResultsFile,
     RouteSubset, WorkerFile, WorkerInput,
 };
+use lb_domain::run::audit;
 use tracing::warn;
 
 use crate::payload::PairRoutes;
@@ -52,7 +52,7 @@ pub async fn written(store: &SubmissionStore) -> std::collections::BTreeMap<u32,
     match store.partials().await {
         Ok(partials) => partials
             .iter()
-            .filter_map(|p| Some((lb_domain::plan::job_of_pair(p.pair_id)?, p.modified?)))
+            .filter_map(|p| Some((lb_domain::job::plan::job_of_pair(p.pair_id)?, p.modified?)))
             .collect(),
         Err(e) => {
             warn!(error = %e, "results not listed: a reclaimed pod's time counts as run again");
@@ -108,7 +108,7 @@ pub fn fingerprint_of_pairs<E: AsRef<str>>(files: impl IntoIterator<Item = (u32,
         .collect()
 }
 
-/// Downloads the workers' files, merges them and writes the EvalAI files to S3.
+/// Downloads the workers' files and merges them; nothing is written ([`store`] keeps them).
 ///
 /// A worker file is the participant's container's output: its errors (`ResultsInvalid`, ...)
 /// are raised with their names so the run fails with a readable reason.
@@ -157,14 +157,6 @@ pub async fn collect_listed(
         .as_ref()
         .map_or_else(Vec::new, |m| audited_routes(m, &pairs));
     let metrics = metrics(&files, leaderboard);
-    store
-        .put_evalai_files(&EvalAiObjects {
-            merged: merged_json.as_deref(),
-            results: &files.results_json(),
-            stdout: &files.stdout,
-            metadata: files.metadata.as_deref(),
-        })
-        .await?;
     let content = digest(merged_json.as_deref().unwrap_or_default().as_bytes());
     Ok(Snapshot {
         fingerprint,
@@ -177,6 +169,20 @@ pub async fn collect_listed(
         metrics,
         routes,
     })
+}
+
+/// Keeps a merge in S3: `agent_results.json` and the three files EvalAI gets, as sent.
+pub async fn store(store: &SubmissionStore, snapshot: &Snapshot) -> Result<(), FnError> {
+    let files = &snapshot.files;
+    store
+        .put_evalai_files(&EvalAiObjects {
+            merged: snapshot.merged_json.as_deref(),
+            results: &files.results_json(),
+            stdout: &files.stdout,
+            metadata: files.metadata.as_deref(),
+        })
+        .await?;
+    Ok(())
 }
 
 /// Each merged record with the pair whose subset holds its route (the merge took each pair's

@@ -74,15 +74,58 @@ pub async fn serve<F: Function>(
     let function = &function;
     lambda_runtime::run(lambda_runtime::service_fn(
         move |event: lambda_runtime::LambdaEvent<Value>| async move {
-            crate::clients::within_deadline(&event.context, call(function, event.payload)).await
+            within_deadline(&event.context, call(function, event.payload)).await
         },
     ))
     .await
 }
 
+/// What a handler keeps for itself after its last EvalAI call: raising its error or writing
+/// its record.
+pub const REPORT_MARGIN: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// The instant a Lambda invocation's EvalAI calls must be done by: its deadline (from the
+/// runtime's context, milliseconds since the epoch) less [`REPORT_MARGIN`].
+pub fn invocation_deadline(context: &lambda_runtime::Context) -> std::time::Instant {
+    let left = context
+        .deadline()
+        .duration_since(std::time::SystemTime::now())
+        .unwrap_or_default()
+        .saturating_sub(REPORT_MARGIN);
+    std::time::Instant::now() + left
+}
+
+/// Runs one invocation's work with its EvalAI calls bounded by the invocation's deadline,
+/// and the whole of it (AWS SDK and Kubernetes calls included) cut at half the margin after
+/// it: a transient `DeadlineExceeded` the state machine retries (every handler is
+/// idempotent), rather than Lambda's own timeout, which no Retry names.
+pub async fn within_deadline<T>(
+    context: &lambda_runtime::Context,
+    work: impl std::future::Future<Output = Result<T, FnError>>,
+) -> Result<T, FnError> {
+    let deadline = invocation_deadline(context);
+    bounded(deadline, deadline + REPORT_MARGIN / 2, work).await
+}
+
+async fn bounded<T>(
+    evalai_deadline: std::time::Instant,
+    cutoff: std::time::Instant,
+    work: impl std::future::Future<Output = Result<T, FnError>>,
+) -> Result<T, FnError> {
+    let work = lb_evalai::within(evalai_deadline, work);
+    match tokio::time::timeout_at(tokio::time::Instant::from_std(cutoff), work).await {
+        Ok(done) => done,
+        Err(_) => {
+            tracing::warn!("the invocation's time ran out; the state machine retries it");
+            Err(FnError::DeadlineExceeded)
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
     #[derive(serde::Deserialize)]
     struct Echo {
@@ -126,5 +169,41 @@ mod tests {
             "{}",
             e.chain()
         );
+    }
+
+    #[test]
+    fn the_evalai_deadline_leaves_the_handler_its_margin() {
+        let mut context = lambda_runtime::Context::default();
+        let in_30s = SystemTime::now() + Duration::from_secs(30);
+        context.deadline = in_30s.duration_since(UNIX_EPOCH).unwrap().as_millis() as u64;
+        let left = invocation_deadline(&context).saturating_duration_since(Instant::now());
+        assert!(
+            left > Duration::from_secs(19) && left <= Duration::from_secs(20),
+            "{left:?}"
+        );
+        // A deadline already past gives no time at all, not a panic.
+        context.deadline = 1;
+        assert!(invocation_deadline(&context) <= Instant::now());
+    }
+
+    #[tokio::test]
+    async fn work_that_outlasts_the_invocation_ends_as_a_transient_deadline_error() {
+        let now = Instant::now();
+        let stuck = async {
+            // An SDK or Kubernetes call that hangs (no EvalAI deadline applies to it).
+            tokio::time::sleep(Duration::from_secs(3600)).await;
+            Ok::<_, FnError>(())
+        };
+        let err = bounded(now, now + Duration::from_millis(50), stuck)
+            .await
+            .unwrap_err();
+        assert_eq!(err.name(), "DeadlineExceeded");
+        assert!(err.is_transient());
+        assert!(FnError::transient_names().contains(&err.name()));
+        assert!(now.elapsed() < Duration::from_secs(5));
+        let quick = bounded(now, now + Duration::from_secs(5), async {
+            Ok::<_, FnError>(7)
+        });
+        assert_eq!(quick.await.unwrap(), 7);
     }
 }

@@ -5,9 +5,9 @@ use test_support::{Answer, RecordingCallbacks};
 
 use lb_aws::admission::AdmissionTable;
 use lb_aws::wake::WakeTable;
-use lb_domain::queue::{Entry, EntryState};
+use lb_domain::capacity::queue::{Entry, EntryState};
 use lb_pipeline::payload::SubmissionInfo;
-use lb_pipeline::queue::{take_turn, wake_team_next, Woken};
+use lb_pipeline::queue::{take_turn, wake_team_next, TeamQueue, Woken};
 use local_stack::integrations::{update_item, wait_for_change};
 use local_stack::stack::{ADMISSION_TABLE, WAKE_TABLE};
 
@@ -45,7 +45,19 @@ async fn a_place_given_back_wakes_the_teams_oldest_waiting_submission() {
             .await
             .unwrap();
     }
-    let wake = |team| wake_team_next(&table, &wakes, &callbacks, ("2.0", team, 1), 1_000);
+    let wake = |team| {
+        wake_team_next(
+            &table,
+            &wakes,
+            &callbacks,
+            TeamQueue {
+                queue: "2.0",
+                team,
+                limit: 1,
+            },
+            1_000,
+        )
+    };
     // Nobody of team 6 waits; team 5 has no place open.
     assert_eq!(wake(6).await.unwrap(), []);
     assert_eq!(wake(5).await.unwrap(), []);
@@ -114,9 +126,19 @@ async fn every_place_given_back_is_offered_at_once() {
     // Both end (a cluster lost, say): both places are offered, to the two oldest.
     table.release("2.0", 1, 8).await.unwrap();
     table.release("2.0", 2, 8).await.unwrap();
-    let woken = wake_team_next(&table, &wakes, &callbacks, ("2.0", 8, 2), 1_000)
-        .await
-        .unwrap();
+    let woken = wake_team_next(
+        &table,
+        &wakes,
+        &callbacks,
+        TeamQueue {
+            queue: "2.0",
+            team: 8,
+            limit: 2,
+        },
+        1_000,
+    )
+    .await
+    .unwrap();
     assert_eq!(woken, [Woken::Delivered(3), Woken::Delivered(4)]);
     // Whichever round comes first, both take their places; 5 still waits its turn.
     for id in [4, 3] {

@@ -53,6 +53,14 @@ async fn the_finished_fixture_merges_to_the_official_files_and_lands_in_s3() {
     assert_eq!(snapshot.progress, (20, 20));
     assert_eq!(snapshot.metrics.len(), 15);
     assert_eq!(snapshot.fingerprint, fingerprint(&store).await.unwrap());
+    // A read writes nothing: the files are kept only when asked.
+    assert!(store
+        .get_bounded("42/evalai/stdout.txt", 1 << 20)
+        .await
+        .is_err());
+    lb_pipeline::results::store(&store, &snapshot)
+        .await
+        .unwrap();
     let expected = |name: &str| std::fs::read_to_string(case.join("expected").join(name)).unwrap();
     assert_eq!(
         stored(&store, "42/evalai/stdout.txt").await,

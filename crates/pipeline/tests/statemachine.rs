@@ -5,8 +5,8 @@
 use std::collections::{BTreeSet, HashSet};
 use std::path::PathBuf;
 
-use lb_domain::history;
-use lb_domain::schedule::{quiet_rounds, MAX_EVALUATION, MIN_ROUND_INTERVAL};
+use lb_domain::run::history;
+use lb_domain::run::schedule::{quiet_rounds, MAX_EVALUATION, MIN_ROUND_INTERVAL};
 use lb_pipeline::FnError;
 use serde_json::{Map, Value};
 

@@ -1,4 +1,4 @@
-//! Finalize's I/O: each step `lb_domain::closing` asks for, performed and answered in its
+//! Finalize's I/O: each step `lb_domain::run::closing` asks for, performed and answered in its
 //! terms. A failed required step fails the attempt (the state machine retries Finalize, whose
 //! every step is idempotent); the best-effort ones (the agent's log, the logs' listing, the
 //! pace, the team's wake-up) are logged and answered as unread.
@@ -11,31 +11,26 @@ use futures_util::StreamExt as _;
 use lb_aws::dynamo::{FinalRecord, QualifierTable, SubmissionsTable};
 use lb_aws::s3::SubmissionStore;
 use lb_aws::tasks::Callbacks;
-use lb_domain::audit::{self, Recordings};
-use lb_domain::closing::{Answer, Left, Merged, Read, Record, Step};
-use lb_domain::cost::{self, Totals};
-use lb_domain::finalize::Posted;
-use lb_domain::logtail::{participant_tail, MAX_TAIL_CHARS};
-use lb_domain::protocol::{self, LOGS_DIR};
+use lb_domain::capacity::cost::{self, Totals};
+use lb_domain::job::uploads::{self, UploadReport};
+use lb_domain::run::audit::{self, Recordings};
+use lb_domain::run::closing::{Answer, Left, Merged, Read, Record, Step};
+use lb_domain::run::finalize::Posted;
 use lb_domain::settings::Target;
 use lb_domain::status::RecordStatus;
 use lb_domain::submission::SubmissionStatus;
-use lb_domain::uploads::{self, UploadReport};
 use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients::{self, Meter};
-use lb_pipeline::payload::{RunState, SubmissionInfo};
-use lb_pipeline::queue;
-use lb_pipeline::results::{collect, Snapshot};
+use lb_pipeline::payload::{PairRoutes, SubmissionInfo};
+use lb_pipeline::queue::TeamQueue;
+use lb_pipeline::results::{self, Snapshot};
 use lb_pipeline::Result;
 use tracing::{info, warn};
 
 use crate::Deps;
 
-/// Bytes read from the end of an agent's log: enough for [`MAX_TAIL_CHARS`] characters of
-/// multi-byte text and the escapes that are stripped from it.
-const TAIL_BYTES: u64 = 64 * 1024;
-
-/// Recordings' heads read at once: a result has a recording per route, up to hundreds.
+/// Recordings' heads (or upload reports) read at once: a result has a recording per route, up
+/// to hundreds.
 const HEAD_READS: usize = 16;
 
 /// What the shell keeps between steps: its clients, and the results it read (posted and
@@ -44,7 +39,6 @@ pub struct Shell<'a, C> {
     deps: &'a Deps<C>,
     target: &'a Target<'a>,
     submission: &'a SubmissionInfo,
-    run: Option<&'a RunState>,
     meter: &'a Meter<'a>,
     store: SubmissionStore,
     table: SubmissionsTable,
@@ -57,7 +51,6 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         deps: &'a Deps<C>,
         target: &'a Target<'a>,
         submission: &'a SubmissionInfo,
-        run: Option<&'a RunState>,
         meter: &'a Meter<'a>,
     ) -> Self {
         let (s3, dynamo) = (deps.clients.s3.clone(), deps.clients.dynamo.clone());
@@ -66,7 +59,6 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             deps,
             target,
             submission,
-            run,
             meter,
             store: SubmissionStore::new(s3, bucket, submission.submission_id),
             table: SubmissionsTable::new(dynamo, &target.deployment.submissions_table),
@@ -84,12 +76,19 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         Ok(match step {
             Step::ReadStanding => Answer::Standing(self.standing().await?),
             Step::StopJobs => self.stop_jobs().await.map(|()| Answer::Done)?,
-            Step::ReadLeft => Answer::Left(self.read_left().await?),
+            Step::ReadLeft { results } => Answer::Left(self.read_left(results).await?),
+            Step::StoreFiles => {
+                if let Some(snapshot) = self.merged() {
+                    results::store(&self.store, snapshot).await?;
+                }
+                Answer::Done
+            }
             Step::TryAgain => match self.snapshot.take() {
                 Some(Err(e)) => return Err(e),
                 _ => Answer::Done,
             },
-            Step::ReadAgentTail(pair) => Answer::Tail(self.agent_tail(pair).await),
+            Step::ReadAgentTail { key, bytes } => Answer::Tail(self.agent_tail(&key, bytes).await),
+            Step::ReadReports(keys) => Answer::Reports(self.reports(keys).await),
             Step::Admit(tracks) => {
                 let table = &self.target.deployment.qualifier_table;
                 let table = QualifierTable::new(self.deps.clients.dynamo.clone(), table);
@@ -118,8 +117,12 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 status,
                 error,
                 recordings,
-            } => Answer::Recorded(self.write_record(status, error, recordings).await?),
-            Step::RecordPace => self.record_pace().await,
+                usage,
+            } => {
+                let usage = usage.map(|totals| self.with_this_invocation(totals));
+                Answer::Recorded(self.write_record(status, error, recordings, usage).await?)
+            }
+            Step::RecordPace { seconds } => self.record_pace(seconds).await,
             Step::LeaveQueue => leave_queue(self.deps, sub).await.map(|()| Answer::Done)?,
             Step::Done => Answer::Done,
         })
@@ -163,18 +166,11 @@ impl<'a, C: Callbacks> Shell<'a, C> {
     }
 
     /// The markers and the results, read at once (the reads are independent).
-    async fn read_left(&mut self) -> Result<Left> {
+    async fn read_left(&mut self, of: Option<(Vec<PairRoutes>, u32)>) -> Result<Left> {
         let results = async {
-            let run = self.run?;
-            Some(
-                collect(
-                    &self.store,
-                    self.target.leaderboard,
-                    &run.pairs,
-                    run.repetitions,
-                )
-                .await,
-            )
+            let (pairs, repetitions) = of?;
+            let leaderboard = self.target.leaderboard;
+            Some(results::collect(&self.store, leaderboard, &pairs, repetitions).await)
         };
         let (markers, snapshot) = tokio::join!(self.store.markers(), results);
         let markers = markers?;
@@ -198,14 +194,11 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         self.snapshot.as_ref()?.as_ref().ok()
     }
 
-    /// The end of a crashed agent's output, cleaned for the participant's page. Its container
-    /// holds no secret (no AWS credentials, no token), so its output has none of ours to leak.
-    async fn agent_tail(&self, pair: u32) -> Option<String> {
-        let key = format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair));
-        match self.store.get_tail(&key, TAIL_BYTES).await {
-            Ok(bytes) => bytes
-                .map(|bytes| participant_tail(&bytes, MAX_TAIL_CHARS))
-                .filter(|tail| !tail.is_empty()),
+    /// The end of a crashed agent's output, as stored. Its container holds no secret (no AWS
+    /// credentials, no token), so its output has none of ours to leak.
+    async fn agent_tail(&self, key: &str, bytes: u64) -> Option<Vec<u8>> {
+        match self.store.get_tail(key, bytes).await {
+            Ok(tail) => tail,
             Err(e) => {
                 warn!(%key, error = %e, "the agent's log could not be read");
                 None
@@ -220,10 +213,8 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         status: RecordStatus,
         error: Option<String>,
         recordings: Option<Recordings>,
+        usage: Option<Totals>,
     ) -> Result<bool> {
-        if status == RecordStatus::Finished && self.run.is_some_and(|run| !run.recorder) {
-            info!("launched by a version before the recorder's own folder: recordings not audited");
-        }
         if let Some(audited) = recordings.as_ref().filter(|r| !r.complete()) {
             warn!(
                 passed = audited.passed,
@@ -247,13 +238,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             progress: snapshot.map_or((0, 0), |s| s.progress),
             error,
             recordings,
-            usage: match self.run {
-                Some(run) => Some(Totals {
-                    stored: self.stored(run.jobs).await,
-                    ..self.usage(run)
-                }),
-                None => None,
-            },
+            usage,
         };
         let sub = self.submission;
         let ours = (self.table)
@@ -270,21 +255,16 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         Ok(ours)
     }
 
-    /// What the run's GPUs came to: the Monitor's count, with the pods still running at its
-    /// last round charged until now (their Jobs were just deleted); and the orchestration's,
-    /// this Finalize so far and the states after it included.
-    fn usage(&self, run: &RunState) -> Totals {
-        let mut ledger = run.monitor.usage.clone();
-        ledger.close_all(clients::now_epoch_seconds());
+    /// The run's usage as the closing counted it, with this Finalize's share of the
+    /// orchestration (the states after it included).
+    fn with_this_invocation(&self, totals: Totals) -> Totals {
         let this = self.meter.invocation(cost::CLOSING_TRANSITIONS);
         Totals {
-            orchestration: Some(run.monitor.orchestration + this),
-            ..ledger.summary(&self.deps.clients.settings.prices)
+            orchestration: totals.orchestration.map(|o| o + this),
+            ..totals
         }
     }
 
-    /// What the Jobs' logcopy stored and refused, from their reports (`None` when none was
-    /// read: a report that cannot be read is left out, and said).
     /// The first bytes of each recording, a few at a time (one per route of the result); a
     /// head that cannot be read is left out, and its route fails the audit.
     async fn heads(&self, keys: Vec<String>) -> HashMap<String, Vec<u8>> {
@@ -305,35 +285,39 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             .await
     }
 
-    async fn stored(&self, jobs: u32) -> Option<UploadReport> {
-        let mut total: Option<UploadReport> = None;
-        for job in 0..jobs {
-            let key = uploads::report_key(job);
-            match self
-                .store
-                .get_tail(&key, uploads::MAX_REPORT_BYTES as u64)
-                .await
-            {
-                Ok(Some(bytes)) => match UploadReport::parse(&bytes) {
-                    Some(report) => total = Some(total.unwrap_or_default().plus(report)),
-                    None => warn!(%key, "the upload report is not one"),
-                },
-                Ok(None) => {}
-                Err(e) => warn!(%key, error = %e, "the upload report could not be read"),
-            }
-        }
-        total
+    /// The Jobs' upload reports, read at once (a report that cannot be read, or is not one,
+    /// is left out, and said).
+    async fn reports(&self, keys: Vec<String>) -> Vec<UploadReport> {
+        let store = &self.store;
+        futures_util::stream::iter(keys)
+            .map(|key| async move {
+                match store.get_tail(&key, uploads::MAX_REPORT_BYTES as u64).await {
+                    Ok(Some(bytes)) => {
+                        let report = UploadReport::parse(&bytes);
+                        if report.is_none() {
+                            warn!(%key, "the upload report is not one");
+                        }
+                        report
+                    }
+                    Ok(None) => None,
+                    Err(e) => {
+                        warn!(%key, error = %e, "the upload report could not be read");
+                        None
+                    }
+                }
+            })
+            .buffer_unordered(HEAD_READS)
+            .filter_map(std::future::ready)
+            .collect()
+            .await
     }
 
-    /// A finished evaluation's duration, from its first pair's start, joins its track's pace
-    /// (the queue note's estimate). Best effort.
-    async fn record_pace(&self) -> Answer {
-        if let Some(started) = self.run.and_then(|r| r.monitor.started_at) {
-            let seconds = clients::now_epoch_seconds().saturating_sub(started);
-            let admission = &self.deps.clients.admission;
-            if let Err(e) = admission.record_pace(self.submission, seconds).await {
-                warn!(submission_id = self.id(), error = %e, "pace not recorded");
-            }
+    /// A finished evaluation's duration joins its track's pace (the queue note's estimate).
+    /// Best effort.
+    async fn record_pace(&self, seconds: u64) -> Answer {
+        let admission = &self.deps.clients.admission;
+        if let Err(e) = admission.record_pace(self.submission, seconds).await {
+            warn!(submission_id = self.id(), error = %e, "pace not recorded");
         }
         Answer::Done
     }
@@ -381,18 +365,21 @@ pub async fn leave_queue<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionIn
 }
 
 /// Wakes the team's next waiting submissions, one per open place (see
-/// [`queue::wake_team_next`]). Best effort: a failure is logged, and its poll still comes.
+/// [`lb_pipeline::queue::wake_team_next`]). Best effort: a failure is logged, and its poll still comes.
 async fn wake_next<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) {
     let id = submission.submission_id;
-    let (Some(table), Some(wakes)) = (deps.clients.admission.table(), &deps.wakes) else {
-        return;
-    };
     let woken = match deps.clients.settings.target(submission.phase_id) {
         Ok(target) => {
-            let team = (submission.leaderboard.as_str(), submission.team_id);
-            let team = (team.0, team.1, target.deployment.team_limit);
+            let team = TeamQueue {
+                queue: submission.leaderboard.as_str(),
+                team: submission.team_id,
+                limit: target.deployment.team_limit,
+            };
             let now = clients::now_epoch_seconds();
-            queue::wake_team_next(table, wakes, &deps.callbacks, team, now).await
+            let admission = &deps.clients.admission;
+            admission
+                .wake_team_next(&deps.wakes, &deps.callbacks, team, now)
+                .await
         }
         Err(e) => Err(e.into()),
     };

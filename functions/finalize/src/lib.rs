@@ -1,6 +1,7 @@
-//! Finalize (stage 5 and the failure path): decide the final status, make the final merge,
-//! record the qualifier outcome, post the final update to EvalAI (confirmed by a GET), write
-//! the final DynamoDB record and delete the Jobs.
+//! Finalize (stage 5 and the failure path): end a claimed run in the order
+//! `lb_domain::run::closing` decides: stop the Jobs, read what the run left and decide the final
+//! status, post the final update to EvalAI (confirmed by a GET), write the final DynamoDB record
+//! and give the team's place back.
 //!
 //! It only ever acts on a submission this execution claimed (or rejected): an execution that
 //! failed before its claim must not touch a submission another execution is evaluating.
@@ -17,7 +18,7 @@ use lb_aws::dynamo::RecordStatus;
 use lb_aws::executions::Executions;
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
-use lb_domain::closing::{Closing, Context, Step};
+use lb_domain::run::closing::{Closing, Context, Step};
 use lb_domain::status::Settled;
 use lb_domain::submission::SubmissionStatus;
 use lb_pipeline::clients::{self, RunClients};
@@ -40,7 +41,7 @@ pub struct Deps<C = StepFunctions> {
     /// How long to wait for deleted pods.
     pub delete_wait: Duration,
     /// The wake table, to wake the team's next submission when a place is given back.
-    pub wakes: Option<WakeTable>,
+    pub wakes: WakeTable,
     /// Where its token is reported (the embedded executor in local mode).
     pub callbacks: C,
 }
@@ -60,10 +61,7 @@ impl Deps {
         clusters: Clusters,
     ) -> Result<Deps> {
         let clients = RunClients::load(sdk, config, clusters).await?;
-        let wakes = config
-            .wake_table
-            .as_deref()
-            .map(|t| WakeTable::new(clients.dynamo.clone(), t));
+        let wakes = WakeTable::new(clients.dynamo.clone(), config.wake_table()?);
         Ok(Deps {
             clients,
             delete_wait: DELETE_WAIT,
@@ -244,7 +242,7 @@ pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Resul
     finish_run(deps, &submission, state.run, error).await
 }
 
-/// Ends a claimed run: `lb_domain::closing` decides each step and its order, the shell
+/// Ends a claimed run: `lb_domain::run::closing` decides each step and its order, the shell
 /// performs it and answers.
 async fn finish_run<C: Callbacks>(
     deps: &Deps<C>,
@@ -263,8 +261,10 @@ async fn finish_run<C: Callbacks>(
         run: run.as_ref(),
         track: &submission.track,
         qualifier: (target.track_settings.qualifier).then_some(&target.deployment.qualifier),
+        now: clients::now_epoch_seconds(),
+        prices: &deps.clients.settings.prices,
     });
-    let mut shell = io::Shell::new(deps, &target, submission, run.as_ref(), &meter);
+    let mut shell = io::Shell::new(deps, &target, submission, &meter);
     loop {
         match closing.poll() {
             Step::Done => break,

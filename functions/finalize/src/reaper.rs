@@ -6,12 +6,12 @@
 //! run (an event lost, a place held from before the rule existed).
 
 use aws_lambda_events::event::eventbridge::EventBridgeEvent;
-use lb_aws::admission::AdmissionTable;
 use lb_aws::executions::{self, execution_arn, Executions};
 use lb_aws::tasks::Callbacks;
-use lb_domain::reaper::{self, Verdict, REAPED_STATUSES};
+use lb_domain::run::reaper::{self, Verdict, REAPED_STATUSES};
 use lb_domain::status::{ExecutionStatus, Reaping};
-use lb_pipeline::{queue, FnError, Result};
+use lb_pipeline::queue::TeamQueue;
+use lb_pipeline::{FnError, Result};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use tracing::{error, info, warn};
@@ -152,17 +152,15 @@ pub async fn reconcile<C: Callbacks + Executions>(
             machine.escape_debug()
         )));
     }
-    // Without a queue nothing is held.
-    let Some(table) = deps.clients.admission.table() else {
-        return Ok(Vec::new());
-    };
     let mut reaped = Vec::new();
     let mut failed = Vec::new();
+    let admission = &deps.clients.admission;
     for (queue, leaderboard) in &deps.clients.settings.leaderboards {
         let (queue, limit) = (queue.as_str(), leaderboard.team_limit);
-        for (team, holders) in table.holds(queue).await? {
+        for (team, holders) in admission.holds(queue).await? {
+            let team = TeamQueue { queue, team, limit };
             for holder in holders {
-                match check(deps, table, &machine, (queue, team, limit), &holder).await {
+                match check(deps, &machine, team, &holder).await {
                     Ok(Some(done)) => reaped.push(done),
                     Ok(None) => {}
                     Err(e) => failed.push(format!("{queue} place of `{holder}`: {e}")),
@@ -186,15 +184,14 @@ pub async fn reconcile<C: Callbacks + Executions>(
 /// entries named their execution, left to its TTL).
 async fn check<C: Callbacks + Executions>(
     deps: &Deps<C>,
-    table: &AdmissionTable,
     machine: &str,
-    (queue, team, limit): (&str, u64, u32),
+    team: TeamQueue<'_>,
     holder: &str,
 ) -> Result<Option<Reaped>> {
     let Ok(id) = holder.parse::<u64>() else {
         return Ok(None);
     };
-    let Some(name) = table.execution_of(queue, id).await? else {
+    let Some(name) = deps.clients.admission.execution_of(team.queue, id).await? else {
         return Ok(None);
     };
     let Some(arn) = execution_arn(machine, &name) else {
@@ -209,14 +206,14 @@ async fn check<C: Callbacks + Executions>(
             if done.outcome == Reaping::Left {
                 // Ended and nothing to finish, yet still holding: Finalize ran but its
                 // release did not.
-                give_back(deps, table, (queue, team, limit), id).await?;
+                give_back(deps, team, id).await?;
                 done.outcome = Reaping::Released;
             }
             Ok(Some(done))
         }
         None => {
             warn!(submission_id = id, execution = %arn, "a place held by an execution Step Functions does not know: given back");
-            give_back(deps, table, (queue, team, limit), id).await?;
+            give_back(deps, team, id).await?;
             Ok(Some(Reaped {
                 execution: arn,
                 status: None,
@@ -228,21 +225,17 @@ async fn check<C: Callbacks + Executions>(
 
 /// Gives `id`'s place back and wakes the team's next waiting submissions (best effort: their
 /// polls come anyway).
-async fn give_back<C: Callbacks>(
-    deps: &Deps<C>,
-    table: &AdmissionTable,
-    (queue, team, limit): (&str, u64, u32),
-    id: u64,
-) -> Result<()> {
-    table.release(queue, id, team).await?;
-    if let Some(wakes) = &deps.wakes {
-        let now = lb_pipeline::clients::now_epoch_seconds();
-        match queue::wake_team_next(table, wakes, &deps.callbacks, (queue, team, limit), now).await
-        {
-            Ok(woken) => info!(submission_id = id, ?woken, "the team's next submissions"),
-            Err(e) => {
-                warn!(submission_id = id, error = %e, "cannot wake the team's next; its poll comes")
-            }
+async fn give_back<C: Callbacks>(deps: &Deps<C>, team: TeamQueue<'_>, id: u64) -> Result<()> {
+    let admission = &deps.clients.admission;
+    admission.give_back(team, id).await?;
+    let now = lb_pipeline::clients::now_epoch_seconds();
+    match admission
+        .wake_team_next(&deps.wakes, &deps.callbacks, team, now)
+        .await
+    {
+        Ok(woken) => info!(submission_id = id, ?woken, "the team's next submissions"),
+        Err(e) => {
+            warn!(submission_id = id, error = %e, "cannot wake the team's next; its poll comes")
         }
     }
     Ok(())

@@ -7,7 +7,7 @@
 use aws_config::SdkConfig;
 use lb_aws::dynamo::{Claim, NewRecord, QualifierTable, SubmissionsTable};
 use lb_aws::ecr::{Lookup, Registry};
-use lb_domain::intake;
+use lb_domain::run::intake;
 use lb_domain::settings::{Settings, Target};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
 use lb_evalai::{EvalAiClient, Submission};
@@ -76,7 +76,7 @@ fn decided(action: Action, reason: Option<String>, submission: SubmissionInfo) -
 }
 
 /// Decides what to do with one submission message: each fact is read only when the rules
-/// before it let the submission through (`lb_domain::intake` has the rules).
+/// before it let the submission through (`lb_domain::run::intake` has the rules).
 pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
     let message = SubmissionMessage::from_pipe(&input.message)?;
     let target = deps.settings.target(message.phase_id)?;
@@ -130,7 +130,7 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
     Ok(match table.claim(&new_record(&info, &image)).await? {
         Claim::Claimed => decided(Action::Run, None, info),
         Claim::Duplicate { status, claimed_by } => {
-            let reason = intake::duplicate(claimed_by.as_deref(), status.as_deref());
+            let reason = intake::duplicate(claimed_by.as_deref(), status);
             decided(Action::Skip, Some(reason), info)
         }
     })

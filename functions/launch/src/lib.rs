@@ -8,11 +8,11 @@
 //! state machine comes back here (`LaunchAdmitted`) to create them.
 
 use aws_config::SdkConfig;
-use lb_domain::cost::{self, Orchestration};
-use lb_domain::history;
-use lb_domain::plan::{plan, Plan, PlanInput};
-use lb_domain::schedule::queue_wait;
-use lb_domain::schedule::FIRST_WAIT;
+use lb_domain::capacity::cost::{self, Orchestration};
+use lb_domain::job::plan::{plan, Plan, PlanInput};
+use lb_domain::run::history;
+use lb_domain::run::schedule::queue_wait;
+use lb_domain::run::schedule::FIRST_WAIT;
 use lb_domain::settings::{Settings, Target};
 use lb_evalai::{EvalAiClient, SubmissionRef, WriteOutcome};
 use lb_jobs::{render_plan, JobSettings};
@@ -88,7 +88,7 @@ pub struct LaunchInput {
     #[serde(default)]
     pub queue: Option<QueueState>,
     /// This execution's history so far, as the Monitor counted it (`LaunchAdmitted`): the
-    /// count goes on from there (`lb_domain::history`).
+    /// count goes on from there (`lb_domain::run::history`).
     #[serde(default)]
     pub events: Option<u64>,
     /// `$$.Execution.Name`: whose history `events` counts (a continued run's execution is not
@@ -145,7 +145,7 @@ async fn launch(input: LaunchInput, deps: &Deps) -> Result<RunState> {
     let now = clients::now_epoch_seconds();
     // The first Launch tells EvalAI `queued` even when the team's cap holds it back.
     let first = input.queue.is_none();
-    let arrived_ms = lb_domain::queue::arrival_ms(submission.arrived_ms, now);
+    let arrived_ms = lb_domain::capacity::queue::arrival_ms(submission.arrived_ms, now);
     let mut place = input
         .queue
         .unwrap_or_else(|| QueueState::arriving(arrived_ms / 1000));

@@ -3,21 +3,18 @@
 //! later round can change are returned (the state machine's Retry and Catch see them).
 
 use std::collections::BTreeMap;
-use std::time::Duration;
 
 use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
-use lb_cluster::{Cluster, ClusterError, VerdictPolicy};
-use lb_domain::cost::{self, Ledger, NodeKind, PodSeen, Totals};
-use lb_domain::disruption;
-use lb_domain::monitor::StatusRead;
-use lb_domain::protocol::Marker;
-use lb_domain::queue::Hold;
-use lb_domain::round::{Answer, Collected, Sighting, Step, Write};
+use lb_cluster::Cluster;
+use lb_domain::capacity::cost::Totals;
+use lb_domain::capacity::queue::Hold;
+use lb_domain::run::monitor::StatusRead;
+use lb_domain::run::round::{Answer, Collected, NodeRead, Step, Write};
 use lb_domain::settings::Target;
 use lb_evalai::{EvalAiError, PartialUpdate, Priority, SubmissionRef, WriteOutcome};
 use lb_pipeline::clients;
-use lb_pipeline::payload::{RunState, SubmissionInfo};
+use lb_pipeline::payload::{PairRoutes, SubmissionInfo};
 use lb_pipeline::results::{self, Listing, Snapshot};
 use lb_pipeline::{FnError, Result};
 use tracing::{info, warn};
@@ -64,8 +61,8 @@ impl<'a> Shell<'a> {
         }
     }
 
-    /// Performs `step` of a round whose run state is `run`.
-    pub async fn perform(&mut self, step: Step, run: &RunState) -> Result<Answer> {
+    /// Performs `step`.
+    pub async fn perform(&mut self, step: Step) -> Result<Answer> {
         let admission = &self.deps.clients.admission;
         Ok(match step {
             Step::Adopt(execution) => Answer::Adopted(self.adopt(&execution).await),
@@ -79,12 +76,16 @@ impl<'a> Shell<'a> {
             Step::ReadAhead => Answer::Ahead(self.read_ahead().await),
             Step::ComposeNote(place, hold) => Answer::Note(self.compose(place, hold).await),
             Step::ShowPlace(note) => Answer::Shown(self.show_place(note).await?),
-            Step::Observe => self.observe(run).await?,
+            Step::Observe => self.observe().await?,
+            Step::ReadNodes(nodes) => Answer::Nodes(self.read_nodes(nodes).await),
             Step::ResultsWritten => Answer::ResultsWritten(results::written(&self.store).await),
             Step::SetDeadlines(jobs) => self.set_deadlines(jobs).await,
             Step::MarkStarted(jobs) => Answer::Started(self.mark_started(&jobs).await?),
             Step::ListResults => Answer::Listed(self.list().await?),
-            Step::CollectResults => Answer::Collected(self.collect(run).await?),
+            Step::CollectResults { pairs, repetitions } => {
+                Answer::Collected(self.collect(&pairs, repetitions).await?)
+            }
+            Step::StoreFiles => Answer::Stored(self.store_files().await?),
             Step::PostPartial => Answer::Posted(self.post_partial().await?),
             Step::PutCancelMarker => {
                 self.store.put_cancel_marker().await?;
@@ -99,7 +100,7 @@ impl<'a> Shell<'a> {
                 usage,
                 image,
             } => self.record(progress, (&usage, image.as_deref())).await,
-            Step::CheckEnding => Answer::Ending(self.ending(run).await),
+            Step::ListMarkers { since } => Answer::Markers(self.markers(since).await),
             Step::Done => Answer::Done,
         })
     }
@@ -177,77 +178,43 @@ impl<'a> Shell<'a> {
         written(self.id(), "queue place", shown)
     }
 
-    /// The submission's Jobs and pods as the cluster reports them now, and the kinds of the
-    /// nodes new pods run on. The cluster out of reach (a 500, a timeout, DescribeCluster
-    /// failing) skips the verdict this round.
-    async fn observe(&mut self, run: &RunState) -> Result<Answer> {
-        let deployment = self.target.deployment;
-        let policy = VerdictPolicy {
-            queue_limit: Duration::from_secs(deployment.max_queue_hours * 3600),
-            ..self.deps.policy
-        };
+    /// The submission's Jobs and pods as the cluster reports them now. The cluster out of
+    /// reach (a 500, a timeout, DescribeCluster failing) skips the verdict this round.
+    async fn observe(&mut self) -> Result<Answer> {
         let seen = async {
-            let cluster = self
-                .deps
-                .clients
-                .clusters
-                .connect(deployment)
-                .await?
-                .with_policy(policy);
+            let clusters = &self.deps.clients.clusters;
+            let cluster = clusters.connect(self.target.deployment).await?;
+            let cluster = cluster.with_policy(self.deps.policy);
             let observation = cluster.observe(&self.id().to_string()).await?;
             Ok::<_, FnError>((cluster, observation))
         };
-        let (cluster, observation) = match seen.await {
-            Ok(seen) => seen,
+        match seen.await {
+            Ok((cluster, observation)) => {
+                self.cluster = Some(cluster);
+                Ok(Answer::Observed(Box::new(observation)))
+            }
             Err(e) if e.is_transient() => {
                 warn!(submission_id = self.id(), error = %e.chain(), "cluster not reached this round");
-                return Ok(Answer::Unreachable(e.name()));
+                Ok(Answer::Unreachable(e.name()))
             }
-            Err(e) => return Err(e),
-        };
-        let mut pods = cost::pods_seen(&observation.jobs, observation.observed_at);
-        let usage = &run.monitor.usage;
-        let counted = match self.read_nodes(&cluster, usage, &mut pods).await {
-            Ok(kinds) => Some((pods, kinds)),
-            Err((node, e)) => {
-                warn!(submission_id = self.id(), %node, error = %e, "node not read: GPU usage counted next round");
-                None
-            }
-        };
-        self.cluster = Some(cluster);
-        Ok(Answer::Observed(Box::new(Sighting {
-            observation,
-            counted,
-            policy,
-        })))
+            Err(e) => Err(e),
+        }
     }
 
-    /// The nodes the count needs, each read once: the kinds of those new pods run on, and
-    /// whether the node of a pod the kubelet evicted is leaving (its disruption judged by it).
-    /// The first node that cannot be read, with why.
-    async fn read_nodes(
-        &self,
-        cluster: &Cluster,
-        usage: &Ledger,
-        pods: &mut [PodSeen],
-    ) -> std::result::Result<BTreeMap<String, NodeKind>, (String, ClusterError)> {
-        let unknown = usage.unknown_nodes(pods);
-        let to_judge = usage.nodes_to_judge(pods);
-        let needed: std::collections::BTreeSet<&String> = unknown.iter().chain(&to_judge).collect();
-        let (mut kinds, mut leaving) = (BTreeMap::new(), BTreeMap::new());
-        for node in needed {
-            let read = cluster.node(node).await.map_err(|e| (node.clone(), e))?;
-            if unknown.contains(node) {
-                let kind = read.as_ref().map(|(kind, _)| kind.clone());
-                kinds.insert(node.clone(), kind.unwrap_or_else(NodeKind::unknown));
-            }
-            if to_judge.contains(node) {
-                let facts = read.as_ref().map(|(_, facts)| facts);
-                leaving.insert(node.clone(), disruption::leaving(facts));
+    /// The nodes asked for, each read once (`None`: one could not be read).
+    async fn read_nodes(&self, nodes: Vec<String>) -> Option<BTreeMap<String, NodeRead>> {
+        let cluster = self.cluster.as_ref()?;
+        let mut read = BTreeMap::new();
+        for node in nodes {
+            match cluster.node(&node).await {
+                Ok(found) => _ = read.insert(node, found),
+                Err(e) => {
+                    warn!(submission_id = self.id(), %node, error = %e, "node not read: GPU usage counted next round");
+                    return None;
+                }
             }
         }
-        cost::judge(pods, &leaving);
-        Ok(kinds)
+        Some(read)
     }
 
     /// A patch that fails is tried again next round: the value set does not depend on what
@@ -310,18 +277,13 @@ impl<'a> Shell<'a> {
         }
     }
 
-    async fn collect(&mut self, run: &RunState) -> Result<Collected> {
+    async fn collect(&mut self, pairs: &[PairRoutes], repetitions: u32) -> Result<Collected> {
         let Some(listing) = self.listing.take() else {
             return Ok(Collected::NotNow);
         };
         let leaderboard = self.target.leaderboard;
-        let collected = results::collect_listed(
-            &self.store,
-            listing,
-            leaderboard,
-            &run.pairs,
-            run.repetitions,
-        );
+        let collected =
+            results::collect_listed(&self.store, listing, leaderboard, pairs, repetitions);
         match collected.await {
             Ok(snapshot) => {
                 let merged = Collected::Merged {
@@ -341,6 +303,22 @@ impl<'a> Shell<'a> {
                 warn!(submission_id = self.id(), error = %e.chain(), "results unusable this round");
                 Ok(Collected::Unusable)
             }
+        }
+    }
+
+    /// The merge and the files EvalAI gets kept in S3 before they are sent.
+    async fn store_files(&mut self) -> Result<bool> {
+        let Some(snapshot) = &self.snapshot else {
+            return Ok(false);
+        };
+        match results::store(&self.store, snapshot).await {
+            Ok(()) => Ok(true),
+            Err(e) if e.is_transient() => {
+                warn!(submission_id = self.id(), error = %e.chain(), "results not stored this round");
+                self.snapshot = None;
+                Ok(false)
+            }
+            Err(e) => Err(e),
         }
     }
 
@@ -381,16 +359,13 @@ impl<'a> Shell<'a> {
         Answer::Done
     }
 
-    /// Whether every Job of this run has written `logcopy-<J>.done` (since the launch).
-    async fn ending(&self, run: &RunState) -> bool {
-        match self.store.markers_since(run.launched_at).await {
-            Ok(names) => (0..run.jobs).all(|job| {
-                let marker = Marker::LogcopyDone { job }.to_string();
-                names.contains(&marker)
-            }),
+    /// The status markers written since `since` (epoch seconds; `None`: not listed).
+    async fn markers(&self, since: u64) -> Option<Vec<String>> {
+        match self.store.markers_since(since).await {
+            Ok(names) => Some(names),
             Err(e) => {
                 warn!(submission_id = self.id(), error = %e, "markers not listed this round");
-                false
+                None
             }
         }
     }

@@ -1,5 +1,5 @@
 //! Monitor (stage 4): one round of the wait -> Monitor -> Choice loop, as read -> decide ->
-//! apply: `lb_domain::round` decides every step and which rule wins; this shell performs each
+//! apply: `lb_domain::run::round` decides every step and which rule wins; this shell performs each
 //! step it asks for (`io`) and answers with what it found.
 //!
 //! A round runs when something changed (a results file or marker landed in S3, the cancel
@@ -12,13 +12,14 @@
 mod io;
 
 use std::future::Future;
+use std::time::Duration;
 
 use aws_config::SdkConfig;
 use lb_aws::wake::{WakeTable, RETENTION_SECONDS};
 use lb_cluster::VerdictPolicy;
-use lb_domain::cost;
-use lb_domain::history;
-use lb_domain::round::{Context, Round, Step};
+use lb_domain::capacity::cost;
+use lb_domain::run::history;
+use lb_domain::run::round::{Context, Round, Step};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
@@ -101,7 +102,7 @@ impl Function for Deps {
 }
 
 /// One monitor round: the round asks, the shell performs and answers, until it is over;
-/// then whether the run goes on in this execution (`lb_domain::history`).
+/// then whether the run goes on in this execution (`lb_domain::run::history`).
 pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     let MonitorInput {
         submission,
@@ -126,6 +127,10 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             note_interval: QUEUE_NOTE_INTERVAL.as_secs(),
             prices: deps.clients.settings.prices.clone(),
             wake_retention: RETENTION_SECONDS,
+            policy: VerdictPolicy {
+                queue_limit: Duration::from_secs(deployment.max_queue_hours * 3600),
+                ..deps.policy
+            },
         },
     );
     let mut shell = io::Shell::new(deps, &target, &submission);
@@ -134,7 +139,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             Step::Done => break,
             // Boxed: the steps' futures are large, and nested in the runtime's they overflow
             // the compiler's layout depth.
-            step => round.answer(Box::pin(shell.perform(step, round.run())).await?),
+            step => round.answer(Box::pin(shell.perform(step)).await?),
         }
     }
     let mut run = round.finish(deps.history_budget, &submission.execution);

@@ -79,7 +79,7 @@ pub fn submission_of(body: &str) -> std::result::Result<u64, Ignored> {
         .key
         .ok_or_else(|| Ignored::NotAnS3Event("no detail.object.key".into()))?;
     debug!(bucket = detail.bucket.name.as_deref().unwrap_or(""), %key, "object created");
-    lb_domain::protocol::wakes_submission(&key).ok_or(Ignored::OtherKey(key))
+    lb_domain::job::protocol::wakes_submission(&key).ok_or(Ignored::OtherKey(key))
 }
 
 impl<C: Callbacks> Function for Deps<C> {

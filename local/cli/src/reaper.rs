@@ -65,7 +65,7 @@ impl Reaper {
                 let status = event["detail"]["status"]
                     .as_str()
                     .and_then(|s| s.parse().ok());
-                if !status.is_some_and(|s| lb_domain::reaper::REAPED_STATUSES.contains(&s)) {
+                if !status.is_some_and(|s| lb_domain::run::reaper::REAPED_STATUSES.contains(&s)) {
                     continue;
                 }
                 let (finalize, tx, failed) = (deliver.0.clone(), deliver.1.clone(), failed.clone());

@@ -14,6 +14,8 @@ use serde::Serialize;
 use tokio::sync::{watch, Notify};
 use tokio::task::JoinHandle;
 
+use lb_domain::status::PodPhase;
+
 /// How often the Jobs and pods are looked at.
 const LOOK_EVERY: Duration = Duration::from_millis(200);
 
@@ -150,7 +152,7 @@ async fn cordon(
     api: &Api<Pod>,
     submission: u64,
 ) -> Option<std::collections::BTreeSet<String>> {
-    let selector = format!("{}={submission}", lb_domain::plan::SUBMISSION_LABEL);
+    let selector = format!("{}={submission}", lb_domain::job::plan::SUBMISSION_LABEL);
     let params = kube::api::ListParams::default().labels(&selector);
     let pods = api.list(&params).await.ok()?.items;
     let on = |p: &Pod| p.spec.as_ref().and_then(|s| s.node_name.clone());
@@ -182,7 +184,7 @@ async fn drain(
     let mut evicted = Vec::new();
     let pods = seen.jobs.iter().flat_map(|j| &j.pods);
     let on_node = |name: &String| on_node.as_ref().is_none_or(|n| n.contains(name));
-    for pod in pods.filter(|p| p.phase == "Running" && !p.terminating && on_node(&p.name)) {
+    for pod in pods.filter(|p| p.phase == PodPhase::Running && !p.terminating && on_node(&p.name)) {
         match api.evict(&pod.name, &EvictParams::default()).await {
             Ok(_) => {
                 let reason = disruption_of(api, &pod.name).await;
@@ -219,7 +221,7 @@ pub async fn evict_one_until_gone(
         .iter()
         .filter(|j| job.is_none_or(|index| j.index == Some(index)))
         .flat_map(|j| &j.pods)
-        .find(|p| p.phase == "Running" && !p.terminating)?
+        .find(|p| p.phase == PodPhase::Running && !p.terminating)?
         .name
         .clone();
     if let Err(e) = api.evict(&pod, &EvictParams::default()).await {

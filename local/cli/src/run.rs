@@ -83,7 +83,7 @@ pub struct LocalRun {
     pub cancel_after_round: u64,
     /// The events one execution may take before the run continues as a new execution (the
     /// deployment's is 10,000; a small one rehearses continuations in a short run).
-    #[arg(long, default_value_t = lb_domain::history::EXECUTION_BUDGET, value_parser = clap::value_parser!(u64).range(lb_domain::history::MIN_BUDGET..=lb_domain::history::EXECUTION_BUDGET))]
+    #[arg(long, default_value_t = lb_domain::run::history::EXECUTION_BUDGET, value_parser = clap::value_parser!(u64).range(lb_domain::run::history::MIN_BUDGET..=lb_domain::run::history::EXECUTION_BUDGET))]
     pub history_budget: u64,
     /// Wall-clock limit of the whole run, in seconds.
     #[arg(long, default_value_t = 600)]
@@ -343,7 +343,7 @@ fn settings_for(args: &LocalRun) -> anyhow::Result<Value> {
     // The Monitor's clock is real while the executor scales every wait: the least interval
     // between partial updates is scaled here, or a fast run would defer its updates and spin.
     let interval = args.partial_update_seconds.unwrap_or(
-        (lb_domain::schedule::PARTIAL_UPDATE_INTERVAL.as_secs_f64() * args.time_scale)
+        (lb_domain::settings::PARTIAL_UPDATE_INTERVAL.as_secs_f64() * args.time_scale)
             .round()
             .max(1.0) as u64,
     );
@@ -649,7 +649,7 @@ fn ended_without_finalize(results: &[ExecutionResult]) -> usize {
         .iter()
         .filter(|r| {
             let status = local_stack::events::execution_status(Some(r.status));
-            lb_domain::reaper::REAPED_STATUSES.contains(&status)
+            lb_domain::run::reaper::REAPED_STATUSES.contains(&status)
         })
         .count()
 }
@@ -773,7 +773,7 @@ impl Ran<'_> {
             caught_error: result
                 .output
                 .as_ref()
-                .and_then(lb_domain::finalize::caught_error)
+                .and_then(lb_domain::run::finalize::caught_error)
                 .map(|c| clean(&c)),
             evalai_status: status_on_evalai,
             evalai_stderr: on_fake
@@ -867,7 +867,7 @@ async fn follow(
         let next = (result.status == local_stepfunctions::Status::Succeeded)
             .then_some(result.output.as_ref())
             .flatten()
-            .and_then(lb_domain::history::continued_as)
+            .and_then(lb_domain::run::history::continued_as)
             .map(str::to_owned);
         let Some(next) = next else { break };
         let Some(mut continued) = executor.wait_for(&next).await else {
@@ -914,7 +914,7 @@ async fn simulator_gpus(
         bucket,
         submission,
         pairs,
-        lb_domain::protocol::simulator_log,
+        lb_domain::job::protocol::simulator_log,
     )
     .await;
     (1..)
@@ -960,7 +960,12 @@ async fn agent_logs(
     submission: u64,
     pairs: u32,
 ) -> Vec<String> {
-    let agent_log = |pair| format!("{}/agent.log", lb_domain::protocol::agent_logs_dir(pair));
+    let agent_log = |pair| {
+        format!(
+            "{}/agent.log",
+            lb_domain::job::protocol::agent_logs_dir(pair)
+        )
+    };
     pair_logs(sdk, bucket, submission, pairs, agent_log).await
 }
 
@@ -976,7 +981,7 @@ async fn pair_logs(
     for pair in 1..=pairs {
         let key = format!(
             "{submission}/{}/{}",
-            lb_domain::protocol::LOGS_DIR,
+            lb_domain::job::protocol::LOGS_DIR,
             rel(pair)
         );
         let object = lb_aws::s3_client(sdk)
@@ -1009,7 +1014,7 @@ async fn merged_summary(
         .bucket(bucket)
         .key(format!(
             "{submission}/{}",
-            lb_domain::protocol::derived::MERGED
+            lb_domain::job::protocol::derived::MERGED
         ))
         .send()
         .await
@@ -1086,31 +1091,22 @@ async fn left_behind(
         .map(|l| &l.submissions_table)
     {
         let records = lb_aws::dynamo::SubmissionsTable::new(dynamo, table);
-        if let Ok(Some(standing)) = records.standing(team, submission).await {
-            left.record_status = standing.status.map(|s| s.as_str().to_owned());
-        }
-        if let Ok(Some(item)) = records.get(team, submission).await {
-            let number = |key: &str| item.get(key)?.as_n().ok()?.parse::<u64>().ok();
-            left.recordings = number("recordings_found").zip(number("recordings_expected"));
-            left.recordings_failed = match item.get("recordings_failed") {
-                Some(aws_sdk_dynamodb::types::AttributeValue::L(items)) => (items.iter())
-                    .filter_map(|v| v.as_s().ok().cloned())
-                    .collect(),
-                _ => Vec::new(),
-            };
-            let amount = |key: &str| item.get(key)?.as_n().ok()?.parse::<f64>().ok();
-            left.usage = number("gpu_seconds").map(|gpu_seconds| {
+        if let Ok(Some(record)) = records.record(team, submission).await {
+            left.record_status = Some(record.status_word.clone()).filter(|s| !s.is_empty());
+            left.recordings = record.recordings;
+            left.recordings_failed = record.recordings_failed.clone();
+            left.usage = record.usage.map(|usage| {
                 serde_json::json!({
-                    "gpu_seconds": gpu_seconds,
-                    "spot": number("gpu_seconds_spot"),
-                    "run_again": number("gpu_seconds_run_again"),
-                    "lost_to_reclaims": number("seconds_lost_to_reclaims"),
-                    "cost_usd": amount("cost_usd"),
-                    "orchestration_usd": amount("orchestration_usd"),
-                    "state_transitions": number("state_transitions"),
-                    "log_bytes_stored": number("log_bytes_stored"),
-                    "uploads_refused": number("uploads_refused"),
-                    "image_digest": item.get("image_digest").and_then(|v| v.as_s().ok()),
+                    "gpu_seconds": usage.gpu_seconds,
+                    "spot": usage.spot,
+                    "run_again": usage.run_again,
+                    "lost_to_reclaims": usage.lost,
+                    "cost_usd": usage.dollars,
+                    "orchestration_usd": usage.orchestration,
+                    "state_transitions": record.state_transitions,
+                    "log_bytes_stored": record.log_bytes_stored,
+                    "uploads_refused": record.uploads_refused,
+                    "image_digest": record.image_digest,
                 })
             });
         }

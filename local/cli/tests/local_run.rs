@@ -374,7 +374,7 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
 fn a_wake_flood_costs_rounds_at_the_least_interval_and_continues_under_its_budget() {
     // Every agent rewrites a status file and its results file 4 times a second; a small
     // history budget makes the run continue as new executions within seconds.
-    let budget = lb_domain::history::MIN_BUDGET;
+    let budget = lb_domain::run::history::MIN_BUDGET;
     let (report, stdout) = local_run(
         &[
             "--scenario",
@@ -405,7 +405,7 @@ fn a_wake_flood_costs_rounds_at_the_least_interval_and_continues_under_its_budge
     let left = &report["left_behind"];
     let pairs = 4;
     let markers = left["status_objects"].as_u64().unwrap();
-    let bound = u64::from(lb_domain::protocol::MARKERS_PER_PAIR) * pairs + pairs;
+    let bound = u64::from(lb_domain::job::protocol::MARKERS_PER_PAIR) * pairs + pairs;
     assert!(markers <= bound, "{markers} markers: {report}");
     // What is stored is the 20 routes' recordings (about 15 MB at 20 frames a simulated
     // second) and the logs: none of the 200 MiB file.
@@ -476,7 +476,7 @@ fn results_rewritten_with_the_same_records_send_nothing_new() {
 /// Each round is followed by the least interval (scaled by `time_scale`): the rounds are
 /// bounded by the run's length, however often the files change.
 fn assert_rounds_bounded(report: &Value, time_scale: f64) {
-    let hold = lb_domain::schedule::MIN_ROUND_INTERVAL.as_secs_f64() * time_scale;
+    let hold = lb_domain::run::schedule::MIN_ROUND_INTERVAL.as_secs_f64() * time_scale;
     let seconds = report["seconds"].as_f64().unwrap();
     let rounds = report["rounds"].as_u64().unwrap();
     assert!(

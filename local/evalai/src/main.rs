@@ -39,12 +39,11 @@ async fn main() -> anyhow::Result<()> {
         None => Fixture::default(),
     };
     let server = FakeEvalAi::bind(SocketAddr::new(args.host, args.port), fixture).await?;
+    let stop = fake_evalai::shutdown_signal().context("installing the SIGINT/SIGTERM handlers")?;
     let mut stdout = std::io::stdout();
     writeln!(stdout, "{}", server.url()).context("writing the URL to stdout")?;
     stdout.flush().context("flushing stdout")?;
-    fake_evalai::shutdown_signal()
-        .await
-        .context("waiting for SIGINT/SIGTERM")?;
+    stop.await;
     tracing::info!("stopping");
     server.shutdown().await;
     Ok(())

@@ -287,19 +287,17 @@ impl Drop for FakeEvalAi {
     }
 }
 
-/// Resolves on SIGINT or SIGTERM (the binary's stop signal).
-pub async fn shutdown_signal() -> std::io::Result<()> {
-    #[cfg(unix)]
-    {
-        use tokio::signal::unix::{signal, SignalKind};
-        let mut term = signal(SignalKind::terminate())?;
+/// Installs the SIGINT and SIGTERM handlers now, and gives the wait for either: installed
+/// before the server announces itself, a signal sent as soon as it is reachable is never lost
+/// to the default action (which would end the process without its shutdown).
+pub fn shutdown_signal() -> std::io::Result<impl std::future::Future<Output = ()>> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut term = signal(SignalKind::terminate())?;
+    let mut int = signal(SignalKind::interrupt())?;
+    Ok(async move {
         tokio::select! {
-            r = tokio::signal::ctrl_c() => r,
-            _ = term.recv() => Ok(()),
+            _ = term.recv() => {}
+            _ = int.recv() => {}
         }
-    }
-    #[cfg(not(unix))]
-    {
-        tokio::signal::ctrl_c().await
-    }
+    })
 }

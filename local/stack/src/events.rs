@@ -279,7 +279,7 @@ impl Executions for ExecutorCallbacks {
             continued_as: d
                 .output
                 .as_ref()
-                .and_then(lb_domain::history::continued_as)
+                .and_then(lb_domain::run::history::continued_as)
                 .map(str::to_owned),
         }))
     }

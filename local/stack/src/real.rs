@@ -43,11 +43,11 @@ pub fn node_of(settings: &Settings, behaviour: &Behaviour) -> NodeOf {
     let instance_type = behaviour.node_instance_type.clone().or(shared);
     let labels = instance_type
         .as_deref()
-        .and_then(lb_domain::resources::gpu_model)
+        .and_then(lb_domain::cluster::resources::gpu_model)
         .map(|model| {
             BTreeMap::from([
                 (
-                    lb_domain::resources::GPU_MODEL_LABEL.to_owned(),
+                    lb_domain::cluster::resources::GPU_MODEL_LABEL.to_owned(),
                     model.to_owned(),
                 ),
                 (

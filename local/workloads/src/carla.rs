@@ -5,12 +5,12 @@
 use std::net::{Ipv4Addr, TcpListener as StdListener};
 use std::time::Duration;
 
-use tokio::io::{AsyncBufReadExt as _, AsyncReadExt as _, BufReader};
+use tokio::io::{AsyncBufReadExt as _, AsyncReadExt as _, AsyncWriteExt as _, BufReader};
 use tokio::net::{TcpListener, TcpStream};
 
 use crate::args::CarlaConfig;
 use crate::faults::{crash, CrashSignal, OnceDir};
-use crate::recorder::{Recorder, MAX_LINE};
+use crate::recorder::{Recorder, MAX_LINE, RECORDER_DONE};
 use crate::signals::Signals;
 
 /// How often `FAKE_CARLA_CRASH_FILE` is looked for.
@@ -244,6 +244,10 @@ async fn commands(stream: TcpStream, recorder: Recorder) {
         if end.is_some() {
             recorder.command(&String::from_utf8_lossy(&line));
             line.clear();
+            // NB: an RPC call returns once the server did it; the client waits for this.
+            if reader.get_mut().write_all(RECORDER_DONE).await.is_err() {
+                return;
+            }
         }
     }
 }

@@ -11,7 +11,7 @@ use std::io::Write as _;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use lb_domain::results::Leaderboard;
+use lb_domain::results::{EntryStatus, Leaderboard};
 use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
 use tokio::net::TcpStream;
 
@@ -19,6 +19,9 @@ use crate::args::EvaluatorConfig;
 use crate::faults::{spawn_child, OnceDir};
 use crate::records::{self, Checkpoint, RecordsError, RouteConfig, Template};
 use crate::signals::{Signals, Stop};
+
+/// How long a call to CARLA's recorder may take.
+const RECORDER_CALL: Duration = Duration::from_secs(10);
 
 /// How a run ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -334,7 +337,7 @@ impl Run {
             ));
             let record =
                 records::setup_failure(self.template.record(cfg, self.cfg.args.repetitions));
-            return self.register(cfg, record, "Started");
+            return self.register(cfg, record, EntryStatus::Started);
         }
         if !self.sensors_initialized {
             self.sensors_initialized = true;
@@ -382,7 +385,7 @@ impl Run {
             Driven::Done => {
                 say(&bold("> Stopping the route"));
                 self.recorder(carla, "stop_recorder").await;
-                self.register(cfg, record, "Started")
+                self.register(cfg, record, EntryStatus::Started)
             }
             Driven::CarlaGone(fraction) => {
                 say("\n\x1b[91mError during the simulation:");
@@ -460,13 +463,13 @@ impl Run {
         &mut self,
         cfg: &RouteConfig,
         record: lb_domain::results::RouteRecord,
-        entry_status: &str,
+        entry_status: EntryStatus,
     ) -> Option<Exit> {
         say(&bold("> Registering the route statistics"));
         if let Err(e) = self.checkpoint.set_record(cfg.index, record) {
             return Some(self.not_enough_entries(&e));
         }
-        self.checkpoint.entry_status = entry_status.to_owned();
+        self.checkpoint.entry_status = entry_status;
         self.checkpoint.done = cfg.index as u64 + 1;
         let written = self
             .write("self.statistics_manager.write_statistics()")
@@ -512,7 +515,7 @@ impl Run {
         if let Err(e) = self.checkpoint.set_record(cfg.index, record) {
             return self.not_enough_entries(&e);
         }
-        self.checkpoint.entry_status = "Crashed".to_owned();
+        self.checkpoint.entry_status = EntryStatus::Crashed;
         // 2.0 saves the progress after the crashed route; 1.0 exits before `save_state`.
         if self.lb == Leaderboard::V2 {
             self.checkpoint.done = cfg.index as u64 + 1;
@@ -577,9 +580,9 @@ impl Run {
         let Some(dir) = self.cfg.args.checkpoint.parent() else {
             return;
         };
-        let forged = dir.join(lb_domain::protocol::partial_results_name(other));
-        let marker = lb_domain::protocol::Marker::Done {
-            role: lb_domain::protocol::Role::Agent,
+        let forged = dir.join(lb_domain::job::protocol::partial_results_name(other));
+        let marker = lb_domain::job::protocol::Marker::Done {
+            role: lb_domain::job::protocol::Role::Agent,
             pair: other,
         };
         let written = records::write_atomic(&forged, self.checkpoint.to_json().as_bytes())
@@ -698,13 +701,21 @@ impl Run {
         }
     }
 
-    /// Sends CARLA one recorder command (`lb_workloads::carla`'s line protocol).
+    /// Calls CARLA's recorder with one command (`lb_workloads::carla`'s line protocol) and
+    /// waits, bounded, until it is done: the recording exists once `start_recorder` returns.
     async fn recorder(&self, carla: &mut TcpStream, command: &str) {
         if self.cfg.args.record.is_empty() {
             return;
         }
-        if let Err(error) = carla.write_all(format!("{command}\n").as_bytes()).await {
-            tracing::warn!(%error, command, "cannot reach CARLA's recorder");
+        let call = async {
+            carla.write_all(format!("{command}\n").as_bytes()).await?;
+            let mut done = [0u8; crate::recorder::RECORDER_DONE.len()];
+            carla.read_exact(&mut done).await.map(|_| ())
+        };
+        match tokio::time::timeout(RECORDER_CALL, call).await {
+            Ok(Ok(())) => {}
+            Ok(Err(error)) => tracing::warn!(%error, command, "cannot reach CARLA's recorder"),
+            Err(_) => tracing::warn!(command, "CARLA's recorder did not answer"),
         }
     }
 

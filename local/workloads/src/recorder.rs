@@ -3,7 +3,8 @@
 //!
 //! The fake evaluator drives it with a line protocol on the RPC connection (the real client
 //! speaks msgpack-RPC; the fake one only needs these three calls): `start_recorder <path>`,
-//! `tick <frames>`, `stop_recorder`. A relative path is CARLA's `Saved` folder (here the
+//! `tick <frames>`, `stop_recorder`, each answered `ok` once done, as an RPC call returns once
+//! the server did it. A relative path is CARLA's `Saved` folder (here the
 //! server's working directory), as `ACarlaRecorder::GetRecorderFilename` resolves it; like
 //! CARLA, the server does not create missing folders.
 
@@ -11,6 +12,10 @@ use std::fs::File;
 use std::io::{BufWriter, Write as _};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
+
+/// The answer to each command, once it is done: a client's call returns on it, as a
+/// msgpack-RPC call to CARLA returns once the server has done it.
+pub const RECORDER_DONE: &[u8] = b"ok\n";
 
 /// The longest command line read; anything longer is not the fake evaluator's.
 pub const MAX_LINE: usize = 4096;

@@ -8,10 +8,10 @@
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
-use lb_domain::py::{self, Num};
+use lb_domain::results::py::{self, Num};
 use lb_domain::results::{
-    self, Leaderboard, MergeOptions, Merged, Meta, ResultsError, ResultsFile, RouteId, RouteRecord,
-    Scores, WorkerFile,
+    self, EntryStatus, Leaderboard, MergeOptions, Merged, Meta, ResultsError, ResultsFile, RouteId,
+    RouteKind, RouteRecord, RouteStatus, Scores, WorkerFile,
 };
 
 /// Fixture `a_4workers_20routes_finished`'s merged file: 20 Leaderboard 2.0 records.
@@ -179,11 +179,7 @@ impl Template {
         let records: Vec<RouteRecord> = file
             .records
             .into_iter()
-            .filter(|r| {
-                r.status != "Started"
-                    && !r.status.contains("Simulation crashed")
-                    && !r.status.contains("Agent's sensors were invalid")
-            })
+            .filter(|r| r.status.kind() != RouteKind::Started && r.status.cause().is_none())
             .collect();
         if records.is_empty() {
             return Err(RecordsError::TemplateEmpty {
@@ -234,7 +230,7 @@ pub fn started_record(cfg: &RouteConfig, leaderboard: Leaderboard) -> RouteRecor
             route: 0,
             rep: 0,
         },
-        status: "Started".to_owned(),
+        status: RouteStatus::read("Started".to_owned()),
         num_infractions: (leaderboard == Leaderboard::V2).then_some(zero),
         infractions: leaderboard
             .infraction_kinds()
@@ -259,7 +255,7 @@ pub fn started_record(cfg: &RouteConfig, leaderboard: Leaderboard) -> RouteRecor
 /// A route whose agent could not be set up, as fixture `l` shows it: no infractions,
 /// completion 0, penalty 1.0, no time spent, the route length kept.
 pub fn setup_failure(mut record: RouteRecord) -> RouteRecord {
-    record.status = AGENT_SETUP_FAILED.to_owned();
+    record.status = RouteStatus::read(AGENT_SETUP_FAILED.to_owned());
     for (_, messages) in &mut record.infractions {
         messages.clear();
     }
@@ -284,7 +280,7 @@ pub fn simulation_crashed(mut record: RouteRecord, fraction: f64) -> RouteRecord
     } else {
         0.0
     };
-    record.status = SIMULATION_CRASHED.to_owned();
+    record.status = RouteStatus::read(SIMULATION_CRASHED.to_owned());
     let route = py::round(record.scores.score_route.as_f64() * f, 2);
     record.scores.score_route = Num::Float(route);
     record.scores.score_composed =
@@ -311,7 +307,7 @@ pub struct Checkpoint {
     /// The agent's sensors, once it has been set up.
     pub sensors: Vec<String>,
     /// `entry_status` (`""` in a fresh Leaderboard 1.0 file).
-    pub entry_status: String,
+    pub entry_status: EntryStatus,
     /// Per record, whether this process produced it (rather than read it back on resume).
     fresh: Vec<bool>,
 }
@@ -327,8 +323,8 @@ impl Checkpoint {
             records: Vec::new(),
             sensors: Vec::new(),
             entry_status: match leaderboard {
-                Leaderboard::V1 => String::new(),
-                Leaderboard::V2 => "Started".to_owned(),
+                Leaderboard::V1 => EntryStatus::Blank,
+                Leaderboard::V2 => EntryStatus::Started,
             },
             fresh: Vec::new(),
         }
@@ -378,7 +374,9 @@ impl Checkpoint {
                     fresh: vec![false; file.records.len()],
                     records: file.records,
                     sensors: file.sensors,
-                    entry_status: file.entry_status.unwrap_or_default(),
+                    entry_status: (file.entry_status.as_deref())
+                        .and_then(|s| s.parse().ok())
+                        .unwrap_or(EntryStatus::Blank),
                     ..fresh
                 };
                 if next <= total {
@@ -422,15 +420,15 @@ impl Checkpoint {
             records: self.records.clone(),
             progress: (self.done, self.total),
             global: None,
-            entry_status: self.entry_status.clone(),
-            eligible: self.entry_status == "Finished",
+            entry_status: self.entry_status,
+            eligible: self.entry_status == EntryStatus::Finished,
             sensors: self.sensors.clone(),
             values: Vec::new(),
             labels: Vec::new(),
             invalid_reason: None,
         };
         let text = merged.to_json();
-        if self.leaderboard == Leaderboard::V1 && self.entry_status.is_empty() {
+        if self.leaderboard == Leaderboard::V1 && self.entry_status == EntryStatus::Blank {
             // NB: 1.0's `create_default_json_msg` starts with `"eligible": ""`, which the
             // typed writer cannot express; sorted keys put it at one known place.
             return text.replacen("\n    \"eligible\": false,", "\n    \"eligible\": \"\",", 1);
@@ -500,8 +498,10 @@ impl Checkpoint {
                 .records
                 .iter()
                 .enumerate()
-                .filter(|(i, r)| !(self.fresh.get(*i) == Some(&true) && r.status == "Completed"))
-                .map(|(_, r)| (r.route_id.raw.clone(), r.index, r.status.clone()))
+                .filter(|(i, r)| {
+                    !(self.fresh.get(*i) == Some(&true) && r.status.kind() == RouteKind::Completed)
+                })
+                .map(|(_, r)| (r.route_id.raw.clone(), r.index, r.status.to_string()))
                 .collect();
             no_exceptions = global.exceptions.is_empty();
             global.status = if no_exceptions { "Completed" } else { "Failed" }.to_owned();
@@ -732,7 +732,7 @@ mod tests {
             fresh: vec![true; file.records.len()],
             records: file.records,
             sensors: file.sensors,
-            entry_status: "Started".into(),
+            entry_status: EntryStatus::Started,
         };
         cp.finish(sensors_initialized).unwrap().1
     }
@@ -783,7 +783,7 @@ mod tests {
             fresh: vec![false; file.records.len()],
             records: file.records,
             sensors: file.sensors,
-            entry_status: "Started".into(),
+            entry_status: EntryStatus::Started,
         };
         assert_eq!(cp.to_json(), text);
         let text = fixture("c1_simulation_crash_last_route/input/worker3.json");
@@ -796,7 +796,7 @@ mod tests {
             fresh: vec![false; file.records.len()],
             records: file.records,
             sensors: file.sensors,
-            entry_status: "Crashed".into(),
+            entry_status: EntryStatus::Crashed,
         };
         assert_eq!(cp.to_json(), text);
     }
@@ -823,7 +823,7 @@ mod tests {
         let mut cp = Checkpoint::new(Leaderboard::V2, path.clone(), 4);
         for cfg in &p[..2] {
             let mut r = t.record(cfg, 1);
-            r.status = "Completed".into();
+            r.status = RouteStatus::read("Completed".into());
             cp.set_record(cfg.index, r).unwrap();
         }
         cp.done = 2;
@@ -833,10 +833,10 @@ mod tests {
         assert_eq!(state.records.len(), 2);
 
         let mut r = t.record(&p[2], 1);
-        r.status = SIMULATION_CRASHED.into();
+        r.status = RouteStatus::read(SIMULATION_CRASHED.into());
         cp.set_record(2, r).unwrap();
         cp.done = 3;
-        cp.entry_status = "Crashed".into();
+        cp.entry_status = EntryStatus::Crashed;
         cp.write().unwrap();
         let (_, at) = Checkpoint::resume(Leaderboard::V2, path.clone(), &p);
         assert_eq!(at, Ok(1), "upstream repeats the route before a crash");

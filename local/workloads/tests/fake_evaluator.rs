@@ -88,7 +88,7 @@ fn a_five_route_subset_writes_a_checkpoint_the_domain_reader_accepts_with_its_gl
     let failed: Vec<&str> = file
         .records
         .iter()
-        .filter(|r| r.status.contains("Failed"))
+        .filter(|r| r.status.as_str().contains("Failed"))
         .map(|r| r.route_id.raw.as_str())
         .collect();
     let exceptions: Vec<&str> = global["meta"]["exceptions"]
@@ -119,12 +119,12 @@ fn a_five_route_subset_writes_a_checkpoint_the_domain_reader_accepts_with_its_gl
             .path()
             .join(format!("recorder/{}.log", record.route_id.raw));
         let recording = std::fs::read(&path).unwrap();
-        let expected = lb_domain::audit::Expected {
+        let expected = lb_domain::run::audit::Expected {
             pair: 1,
             stem: record.route_id.raw.clone(),
             game_seconds: record.meta.duration_game.as_f64(),
         };
-        assert!(recording.starts_with(lb_domain::audit::MAGIC));
+        assert!(recording.starts_with(lb_domain::run::audit::MAGIC));
         assert!(
             recording.len() as u64 >= expected.min_bytes(),
             "{}",
@@ -280,8 +280,11 @@ fn carla_dying_mid_route_records_a_crashed_route_and_exits_non_zero_then_resume_
     let file = read_checkpoint(&path, Leaderboard::V2, Some("0-4"));
     assert_eq!(file.progress, (2, 5));
     assert_eq!(file.records.len(), 2);
-    assert_eq!(file.records[0].status, "Completed");
-    assert_eq!(file.records[1].status, "Failed - Simulation crashed");
+    assert_eq!(file.records[0].status.as_str(), "Completed");
+    assert_eq!(
+        file.records[1].status.as_str(),
+        "Failed - Simulation crashed"
+    );
     assert!(
         file.records[1].meta.duration_system.as_f64() < 399.133,
         "cut short"

@@ -209,13 +209,13 @@ async fn run_ended(kubeconfig: &Path, submission: &str) {
     let deadline = Instant::now() + Duration::from_secs(240);
     loop {
         let seen = cluster.observe(submission).await.unwrap();
-        if seen.verdict == lb_domain::cluster::Verdict::Finished {
+        let verdict = seen.verdict(cluster.policy());
+        if verdict == lb_domain::cluster::view::Verdict::Finished {
             return;
         }
         assert!(
             Instant::now() < deadline,
-            "the run did not end: {:?}",
-            seen.verdict
+            "the run did not end: {verdict:?}"
         );
         tokio::time::sleep(Duration::from_millis(500)).await;
     }

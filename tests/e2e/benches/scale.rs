@@ -30,9 +30,9 @@ use std::time::{Duration, Instant};
 use fake_evalai::{Fixture, NewSubmission};
 use lb_aws::admission::AdmissionTable;
 use lb_aws::budget::BudgetTable;
-use lb_domain::cost::{PodSeen, Totals};
-use lb_domain::queue::{free_places, next_of_team};
-use lb_domain::schedule::queue_wait;
+use lb_domain::capacity::cost::{PodSeen, Totals};
+use lb_domain::capacity::queue::{free_places, next_of_team};
+use lb_domain::run::schedule::queue_wait;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::{
     AuthScheme, BudgetPolicy, EvalAiClient, EvalAiError, FinalUpdate, HostToken, PartialUpdate,
@@ -100,7 +100,7 @@ struct Seen {
     /// The start estimated when it was queued, real-life seconds after its arrival.
     predicted_start: Option<f64>,
     /// Its pods' GPU time, real-life seconds, as the Monitor counts it.
-    usage: lb_domain::cost::Ledger,
+    usage: lb_domain::capacity::cost::Ledger,
     /// Times its pairs were reclaimed.
     reclaims: u32,
 }
@@ -244,12 +244,12 @@ async fn submission(world: World, info: SubmissionInfo, seed: u64, arrival: Dura
         .expect("mark running in the queue");
     let started = Instant::now();
     let real_now = |at: Instant| (at - arrived).as_secs_f64() * SCALE;
-    let kind = |spot: bool| lb_domain::cost::NodeKind {
+    let kind = |spot: bool| lb_domain::capacity::cost::NodeKind {
         instance_type: "g5.12xlarge".into(),
         capacity: if spot {
-            lb_domain::cost::CapacityType::Spot
+            lb_domain::capacity::cost::CapacityType::Spot
         } else {
-            lb_domain::cost::CapacityType::OnDemand
+            lb_domain::capacity::cost::CapacityType::OnDemand
         },
     };
     let mut pod_started = started;
@@ -402,15 +402,15 @@ async fn predict(
     let entries = queue.entries(LEADERBOARD).await.expect("the queue");
     let running = entries
         .iter()
-        .filter(|e| e.state == lb_domain::queue::EntryState::Running)
+        .filter(|e| e.state == lb_domain::capacity::queue::EntryState::Running)
         .count() as u32;
     let latest: Vec<u64> = recent.lock().unwrap().iter().rev().copied().collect();
     let estimate = match standing.hold {
-        lb_domain::queue::Hold::TeamLimit { limit } => {
-            lb_domain::queue::estimate_team_turn(standing.team_ahead, limit, &latest)
+        lb_domain::capacity::queue::Hold::TeamLimit { limit } => {
+            lb_domain::capacity::queue::estimate_team_turn(standing.team_ahead, limit, &latest)
         }
-        lb_domain::queue::Hold::Capacity => {
-            lb_domain::queue::estimate_start(standing.ahead, running, &latest)
+        lb_domain::capacity::queue::Hold::Capacity => {
+            lb_domain::capacity::queue::estimate_start(standing.ahead, running, &latest)
         }
     };
     // Nothing running yet (the rush's first minutes): the estimate is "soon".
@@ -426,15 +426,15 @@ fn pod_span(job: u32, (start, end): (f64, f64), spot: bool, reclaimed: bool) -> 
         ended_at: Some(end as u64),
         gpus: 1,
         node: Some(if spot { "spot" } else { "on-demand" }.into()),
-        disruption: reclaimed.then_some(lb_domain::disruption::Disruption::Reclaim),
+        disruption: reclaimed.then_some(lb_domain::cluster::disruption::Disruption::Reclaim),
         succeeded: !reclaimed,
     }
 }
 
 /// The node kinds of [`pod_span`]'s nodes.
 fn kinds(
-    kind: &dyn Fn(bool) -> lb_domain::cost::NodeKind,
-) -> BTreeMap<String, lb_domain::cost::NodeKind> {
+    kind: &dyn Fn(bool) -> lb_domain::capacity::cost::NodeKind,
+) -> BTreeMap<String, lb_domain::capacity::cost::NodeKind> {
     BTreeMap::from([
         ("spot".into(), kind(true)),
         ("on-demand".into(), kind(false)),
@@ -553,9 +553,9 @@ async fn rush(full: bool, mode: Mode) -> f64 {
         },
     });
     // The track's durations before the rush (its recent evaluations), spread over its range.
-    let before: Vec<u64> = (0..lb_domain::queue::RECENT_DURATIONS)
+    let before: Vec<u64> = (0..lb_domain::capacity::queue::RECENT_DURATIONS)
         .map(|i| {
-            let share = i as f64 / (lb_domain::queue::RECENT_DURATIONS - 1) as f64;
+            let share = i as f64 / (lb_domain::capacity::queue::RECENT_DURATIONS - 1) as f64;
             (60.0 * (minutes.0 + (minutes.1 - minutes.0) * share)) as u64
         })
         .collect();

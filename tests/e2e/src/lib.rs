@@ -1,1 +1,4 @@
-//! End-to-end tests live in `tests/`; this library is empty.
+//! End-to-end tests: the pipeline's handlers in the state machine's order against the local
+//! stack, real Jobs included.
+//!
+//! They live in `tests/` and `benches/`; this library is empty.

@@ -5,7 +5,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use lb_domain::protocol::LogKind;
+use lb_domain::job::protocol::LogKind;
 use lb_infra::template::{Template, APP, CLUSTER};
 use local_stack::moto::MotoServer;
 use serde_json::Value;
@@ -1266,7 +1266,7 @@ fn the_autoscaler_grows_the_spot_gpu_group_first_and_both_groups_carry_the_gpu_m
         let name = CLUSTER.text(&id, &["NodegroupName"]).unwrap();
         let labels = CLUSTER.property(&id, &["Labels"]).unwrap();
         assert_eq!(
-            CLUSTER.eval(&labels[lb_domain::resources::GPU_MODEL_LABEL]),
+            CLUSTER.eval(&labels[lb_domain::cluster::resources::GPU_MODEL_LABEL]),
             Some(default("GpuModel")),
             "{id}"
         );
@@ -1294,15 +1294,15 @@ fn the_autoscaler_grows_the_spot_gpu_group_first_and_both_groups_carry_the_gpu_m
     let settings = lb_domain::settings::Settings::from_json(&settings).unwrap();
     let board = &settings.leaderboards[&lb_domain::results::Leaderboard::V2];
     assert_eq!(board.gpu_model().unwrap(), default("GpuModel"));
-    let shape = lb_domain::resources::capacity(&board.instance_type).unwrap();
+    let shape = lb_domain::cluster::resources::capacity(&board.instance_type).unwrap();
     for (_, types) in groups.values() {
         for t in types {
             assert_eq!(
-                lb_domain::resources::gpu_model(t),
+                lb_domain::cluster::resources::gpu_model(t),
                 Some(default("GpuModel").as_str()),
                 "{t}"
             );
-            let node = lb_domain::resources::capacity(t).unwrap();
+            let node = lb_domain::cluster::resources::capacity(t).unwrap();
             assert!(
                 node.vcpus / node.gpus >= shape.vcpus / shape.gpus
                     && node.memory_gib / node.gpus >= shape.memory_gib / shape.gpus

@@ -91,7 +91,7 @@ const CASES: [Case; 9] = [
     },
     Case {
         name: "the active deadline, lowered to 1 s by a merge patch while its pod runs",
-        // As the Monitor ends a pair out of retries (`lb_domain::monitor::END_NOW`).
+        // As the Monitor ends a pair out of retries (`lb_domain::run::monitor::END_NOW`).
         script: "touch {marker}; trap 'sleep 0.5; exit 143' TERM; sleep 300 & wait",
         deadline: Some(3600),
         act: Act::SetDeadline(1),

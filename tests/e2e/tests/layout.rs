@@ -10,7 +10,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use lb_domain::results::Leaderboard;
+use lb_domain::results::{EntryStatus, Leaderboard, RouteKind, RouteStatus};
 use lb_domain::submission::SubmissionStatus;
 use serde_json::Value;
 
@@ -407,30 +407,93 @@ fn shipped_source(rel: &str) -> bool {
         && rel.contains("/src/")
 }
 
+/// The rehearsal's functions still longer than a screen, with their length when the rule came
+/// to `local/`: the list only shrinks (an entry may not grow, and one split must leave it).
+const LONG_IN_THE_REHEARSAL: &[(&str, &str, usize)] = &[
+    ("local/evalai/src/fixture.rs", "validate", 185),
+    ("local/evalai/src/routes/meta.rs", "apply", 118),
+    ("local/evalai/src/routes/mod.rs", "entry", 97),
+    ("local/evalai/src/routes/views.rs", "plan_results", 132),
+    ("local/evalai/src/state.rs", "from_fixture", 132),
+    ("local/evalai/src/timefmt.rs", "parse", 81),
+    ("local/kube/src/api/pods.rs", "log_inner", 112),
+    ("local/kube/src/api/watch.rs", "watch", 117),
+    ("local/kube/src/objects/validation.rs", "validate_job", 143),
+    (
+        "local/kube/src/objects/validation.rs",
+        "validate_container",
+        108,
+    ),
+    ("local/kube/src/runtime/kubelet.rs", "run_container", 97),
+    ("local/kube/src/runtime/kubelet.rs", "attempts", 152),
+    ("local/kube/src/runtime/mod.rs", "delete_job", 84),
+    ("local/realkube/src/lib.rs", "start", 85),
+    ("local/realkube/src/lib.rs", "credentials", 105),
+    ("local/stack/src/workloads.rs", "image_map", 140),
+    ("local/stepfunctions/src/choice.rs", "compile", 96),
+    ("local/stepfunctions/src/definition.rs", "state", 120),
+    ("local/stepfunctions/src/definition.rs", "task", 141),
+    ("local/stepfunctions/src/definition.rs", "map_state", 94),
+    ("local/stepfunctions/src/executor.rs", "start", 116),
+    ("local/stepfunctions/src/executor.rs", "run_state", 106),
+    ("local/stepfunctions/src/executor.rs", "attempt_task", 165),
+    ("local/stepfunctions/src/executor.rs", "attempt_map", 130),
+    ("local/workloads/src/args.rs", "parse_carla", 126),
+    ("local/workloads/src/args.rs", "parse_evaluator", 231),
+    ("local/workloads/src/carla.rs", "run", 88),
+    ("local/workloads/src/evaluator.rs", "run", 108),
+    ("local/workloads/src/evaluator.rs", "route", 104),
+];
+
 #[test]
-fn no_shipped_function_is_longer_than_a_screen() {
-    // The rehearsal's run too: a newcomer adds a scenario there.
-    let long: Vec<String> = files(&["rs"])
-        .into_iter()
-        .filter(|(_, rel)| shipped_source(rel) || rel.starts_with("local/cli/src/"))
-        .flat_map(|(path, rel)| {
-            let source = std::fs::read_to_string(path).unwrap();
-            long_functions(&source, MAX_FUNCTION_LINES)
-                .into_iter()
-                .map(move |(name, n)| format!("{rel}: {name} has {n} lines"))
-        })
-        .collect();
+fn no_function_is_longer_than_a_screen_and_the_rehearsals_exceptions_only_shrink() {
+    let mut long = Vec::new();
+    let mut listed_and_found = 0;
+    for (path, rel) in files(&["rs"]) {
+        if !(shipped_source(&rel) || rel.starts_with("local/") && rel.contains("/src/")) {
+            continue;
+        }
+        let source = std::fs::read_to_string(path).unwrap();
+        for (name, n) in long_functions(&source, MAX_FUNCTION_LINES) {
+            let allowed = LONG_IN_THE_REHEARSAL
+                .iter()
+                .find(|(file, f, _)| *file == rel && *f == name);
+            match allowed {
+                Some((_, _, was)) if n <= *was => listed_and_found += 1,
+                Some((_, _, was)) => {
+                    long.push(format!("{rel}: {name} grew from {was} to {n} lines"))
+                }
+                None => long.push(format!("{rel}: {name} has {n} lines")),
+            }
+        }
+    }
     assert!(long.is_empty(), "split these:\n{}", long.join("\n"));
+    assert_eq!(
+        listed_and_found,
+        LONG_IN_THE_REHEARSAL.len(),
+        "a function of LONG_IN_THE_REHEARSAL is within a screen now (or gone): take it off the list"
+    );
 }
 
 /// The words of the statuses, outcomes and leaderboards we keep as types (`lb_domain::status`,
 /// `SubmissionStatus`, `Leaderboard`), from the types themselves: past parsing, none is
 /// compared as a string.
 fn typed_words() -> Vec<&'static str> {
-    use lb_domain::status::{ExecutionStatus, Reaping, RecordStatus, Settled};
+    use lb_domain::status::{ExecutionStatus, PodPhase, Reaping, RecordStatus, Settled};
     let mut words: Vec<&'static str> = RecordStatus::ALL.iter().map(|s| s.as_str()).collect();
     words.extend(ExecutionStatus::ALL.iter().map(|s| s.as_str()));
     words.extend(SubmissionStatus::ALL.iter().map(|s| s.as_str()));
+    words.extend(PodPhase::ALL.iter().map(|s| s.as_str()));
+    // The results format's words: an entry's status, and those a route's status is exactly.
+    // NB: `Invalid` is also a reason of Kubernetes' own `Status`, which is not ours to type.
+    let entry = EntryStatus::ALL.iter().map(|s| s.as_str());
+    words.extend(entry.filter(|w| !w.is_empty() && *w != "Invalid"));
+    let route_words = ["Perfect", "Completed", "Started"];
+    words.extend(
+        route_words
+            .into_iter()
+            .filter(|w| RouteStatus::read(w.to_string()).kind() != RouteKind::Other),
+    );
     words.extend([Settled::Unclaimed, Settled::Superseded].map(Settled::as_str));
     words.extend([Reaping::Left, Reaping::Released].map(Reaping::as_str));
     words.extend([Leaderboard::V1, Leaderboard::V2].map(Leaderboard::as_str));
@@ -565,7 +628,13 @@ fn every_crate_readme_names_each_of_its_public_modules() {
         let dir = entry.unwrap().path();
         let lib = std::fs::read_to_string(dir.join("src/lib.rs")).unwrap();
         let readme = std::fs::read_to_string(dir.join("README.md")).unwrap_or_default();
-        for module in public_modules(&lib) {
+        // A folder's modules are named too: the README is the map of the folders.
+        let folders = public_modules(&lib).into_iter().flat_map(|module| {
+            let inner = std::fs::read_to_string(dir.join("src").join(&module).join("mod.rs"));
+            let inner = inner.map(|m| public_modules(&m)).unwrap_or_default();
+            std::iter::once(module).chain(inner)
+        });
+        for module in folders.collect::<Vec<_>>() {
             if !readme.contains(&format!("`{module}`")) {
                 missing.push(format!("{}: `{module}`", dir.display()));
             }
@@ -621,4 +690,430 @@ fn a_long_function_is_found_and_a_test_module_is_not_counted() {
     );
     assert_eq!(long_functions(&source, 80), [("long".to_string(), 82)]);
     assert!(long_functions(&source, 82).is_empty());
+}
+
+/// The domain's root modules and folders, lowest layer first: each may use its own and those
+/// before it, never one after it, so the run's rules sit on the cluster's view, capacity and
+/// the results, and nothing below knows a stage.
+const DOMAIN_LAYERS: &[&str] = &[
+    "errors",
+    "status",
+    "results",
+    "submission",
+    "job",
+    "cluster",
+    "capacity",
+    "settings",
+    "run",
+];
+
+/// The root modules of the domain a source names through `crate::` (code, doc links and
+/// `error_names!`'s helpers alike).
+fn domain_uses(source: &str) -> Vec<String> {
+    let mut used: Vec<String> = source
+        .split("crate::")
+        .skip(1)
+        .map(|rest| {
+            rest.chars()
+                .take_while(|c| c.is_alphanumeric() || *c == '_')
+                .collect::<String>()
+        })
+        .map(|name| match name.as_str() {
+            "error_names" | "__transient" => "errors".to_owned(),
+            _ => name,
+        })
+        .collect();
+    used.sort();
+    used.dedup();
+    used
+}
+
+#[test]
+fn the_domain_is_folders_in_layers_and_none_uses_a_higher_one() {
+    let src = root().join("crates/domain/src");
+    let lib = std::fs::read_to_string(src.join("lib.rs")).unwrap();
+    let mut declared = public_modules(&lib);
+    declared.retain(|m| m != "testutil");
+    let mut layers = DOMAIN_LAYERS.to_vec();
+    layers.sort();
+    assert_eq!(
+        declared, layers,
+        "lib.rs's modules are the layers, each placed in DOMAIN_LAYERS"
+    );
+    let flat: Vec<String> = std::fs::read_dir(&src)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|f| f.ends_with(".rs"))
+        .collect();
+    assert!(
+        flat.len() <= 6,
+        "crates/domain/src holds {} flat files: {flat:?}",
+        flat.len()
+    );
+    let mut wrong = Vec::new();
+    for (level, layer) in DOMAIN_LAYERS.iter().enumerate() {
+        let single = src.join(format!("{layer}.rs"));
+        let sources: Vec<PathBuf> = if single.is_file() {
+            vec![single]
+        } else {
+            std::fs::read_dir(src.join(layer))
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .collect()
+        };
+        for path in sources {
+            let source = std::fs::read_to_string(&path).unwrap();
+            for used in domain_uses(&source) {
+                let above = DOMAIN_LAYERS
+                    .iter()
+                    .position(|l| *l == used)
+                    .map(|p| p > level);
+                if above.unwrap_or(false) {
+                    wrong.push(format!("{}: uses `{used}`", path.display()));
+                }
+            }
+        }
+    }
+    assert!(
+        wrong.is_empty(),
+        "a lower layer uses a higher one:\n{}",
+        wrong.join("\n")
+    );
+    assert_eq!(
+        domain_uses("use crate::run::x;\n/// [`crate::job::y`]\ncrate::error_names! {}"),
+        ["errors", "job", "run"]
+    );
+}
+
+/// A shipped crate's files as module paths (`run::round` for `src/run/round.rs`, `run` for
+/// `src/run/mod.rs`), each with the source it holds outside its `#[cfg(test)]` module and
+/// comments.
+fn crate_modules(src: &Path) -> Vec<(String, String)> {
+    let mut out = Vec::new();
+    let mut dirs = vec![src.to_path_buf()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                dirs.push(path);
+                continue;
+            }
+            let Some(rel) = path.strip_prefix(src).unwrap().to_str() else {
+                continue;
+            };
+            let Some(rel) = rel.strip_suffix(".rs") else {
+                continue;
+            };
+            let module = match rel {
+                "lib" | "main" => String::new(),
+                _ => rel.trim_end_matches("/mod").replace('/', "::"),
+            };
+            let text = std::fs::read_to_string(&path).unwrap();
+            let code: Vec<&str> = text
+                .lines()
+                .take_while(|l| !l.trim_start().starts_with("#[cfg(test)]"))
+                .filter(|l| !l.trim_start().starts_with("//"))
+                .collect();
+            out.push((module, code.join("\n")));
+        }
+    }
+    out
+}
+
+/// The import edges between a crate's files: `a -> b` when `a` names `crate::b...` (the
+/// longest module path that is a file) outside tests and comments.
+fn import_edges(modules: &[(String, String)]) -> Vec<(String, String)> {
+    let known: std::collections::BTreeSet<&str> = modules.iter().map(|(m, _)| m.as_str()).collect();
+    let mut edges = Vec::new();
+    for (module, code) in modules {
+        for rest in code.split("crate::").skip(1) {
+            let path: String = rest
+                .chars()
+                .take_while(|c| c.is_alphanumeric() || *c == '_' || *c == ':')
+                .collect();
+            let mut target = path.trim_end_matches(':').to_owned();
+            while !target.is_empty() && !known.contains(target.as_str()) {
+                target = target
+                    .rsplit_once("::")
+                    .map(|(a, _)| a.to_owned())
+                    .unwrap_or_default();
+            }
+            if !target.is_empty()
+                && &target != module
+                && !module.starts_with(&format!("{target}::"))
+            {
+                edges.push((module.clone(), target));
+            }
+        }
+    }
+    edges.sort();
+    edges.dedup();
+    edges
+}
+
+/// One import circle among the edges, as the modules around it, if there is one.
+fn a_circle(edges: &[(String, String)]) -> Option<Vec<String>> {
+    fn visit<'a>(
+        node: &'a str,
+        edges: &'a [(String, String)],
+        path: &mut Vec<&'a str>,
+        done: &mut std::collections::BTreeSet<&'a str>,
+    ) -> Option<Vec<String>> {
+        if let Some(at) = path.iter().position(|n| *n == node) {
+            return Some(path[at..].iter().map(|s| s.to_string()).collect());
+        }
+        if !done.insert(node) {
+            return None;
+        }
+        path.push(node);
+        for (_, to) in edges.iter().filter(|(from, _)| from == node) {
+            if let Some(circle) = visit(to, edges, path, done) {
+                return Some(circle);
+            }
+        }
+        path.pop();
+        None
+    }
+    let mut done = std::collections::BTreeSet::new();
+    edges
+        .iter()
+        .find_map(|(from, _)| visit(from, edges, &mut Vec::new(), &mut done))
+}
+
+#[test]
+fn no_shipped_crate_has_an_import_circle_among_its_files() {
+    let meta = metadata();
+    let root = root();
+    let mut circles = Vec::new();
+    for package in meta["packages"].as_array().unwrap() {
+        let manifest = package["manifest_path"].as_str().unwrap();
+        let name = folder(manifest, &root);
+        if !ships(&name) {
+            continue;
+        }
+        let src = Path::new(manifest).parent().unwrap().join("src");
+        if let Some(circle) = a_circle(&import_edges(&crate_modules(&src))) {
+            circles.push(format!("{name}: {}", circle.join(" -> ")));
+        }
+    }
+    assert!(
+        circles.is_empty(),
+        "import circles:\n{}",
+        circles.join("\n")
+    );
+    // The rule finds a circle through a longer path, and a tree has none.
+    let modules = [
+        ("a".to_owned(), "use crate::b::c::Thing;".to_owned()),
+        ("b::c".to_owned(), "use crate::d;".to_owned()),
+        ("d".to_owned(), "crate::a::f()".to_owned()),
+    ];
+    assert_eq!(
+        a_circle(&import_edges(&modules)).unwrap(),
+        ["a", "b::c", "d"]
+    );
+    assert_eq!(a_circle(&import_edges(&modules[..2])), None);
+}
+
+/// The first paragraph of a source's `//!` header, on one line, without its final period.
+fn header_summary(source: &str) -> String {
+    let lines: Vec<&str> = source
+        .lines()
+        .map_while(|l| l.strip_prefix("//!"))
+        .map(str::trim)
+        .take_while(|l| !l.is_empty())
+        .collect();
+    lines.join(" ").trim_end_matches('.').to_owned()
+}
+
+#[test]
+fn each_package_says_what_it_is_once_in_its_header_and_its_manifest_repeats_it() {
+    let meta = metadata();
+    let root = root();
+    let mut drift = Vec::new();
+    for package in meta["packages"].as_array().unwrap() {
+        let manifest = package["manifest_path"].as_str().unwrap();
+        let dir = Path::new(manifest).parent().unwrap();
+        let lib = dir.join("src/lib.rs");
+        let top = if lib.is_file() {
+            lib
+        } else {
+            dir.join("src/main.rs")
+        };
+        let summary = header_summary(&std::fs::read_to_string(&top).unwrap());
+        let description = package["description"].as_str().unwrap_or_default();
+        if summary.is_empty() || description != summary {
+            drift.push(format!(
+                "{}: description `{description}`, header `{summary}`",
+                folder(manifest, &root)
+            ));
+        }
+    }
+    assert!(
+        drift.is_empty(),
+        "say it once, in the header, and copy it:\n{}",
+        drift.join("\n")
+    );
+    assert_eq!(
+        header_summary("//! One\n//! two.\n//!\n//! Three.\nuse x;"),
+        "One two"
+    );
+}
+
+#[test]
+fn every_module_opens_with_a_header_saying_what_it_holds() {
+    let bare: Vec<String> = files(&["rs"])
+        .into_iter()
+        .filter(|(_, rel)| {
+            (shipped_source(rel) || rel.starts_with("local/")) && rel.contains("/src/")
+        })
+        .filter(|(_, rel)| !rel.ends_with("/main.rs"))
+        .filter(|(path, _)| header_summary(&std::fs::read_to_string(path).unwrap()).is_empty())
+        .map(|(_, rel)| rel)
+        .collect();
+    assert!(
+        bare.is_empty(),
+        "modules without a `//!` header:\n{}",
+        bare.join("\n")
+    );
+}
+
+/// The lines of a source (outside `#[cfg(test)]`) that name one of the submission record's
+/// attributes as a string, in a file that handles DynamoDB items (`AttributeValue`).
+fn record_attribute_names(source: &str) -> Vec<String> {
+    let code: Vec<&str> = source
+        .lines()
+        .take_while(|l| !l.trim_start().starts_with("#[cfg(test)]"))
+        .collect();
+    if !code.iter().any(|l| l.contains("AttributeValue")) {
+        return Vec::new();
+    }
+    code.iter()
+        .filter(|l| !l.trim_start().starts_with("//"))
+        .filter(|l| {
+            // NB: `"name": value` is a JSON object's key (a payload's), not an attribute.
+            lb_aws::record::attr::LAYOUT.iter().any(|name| {
+                let quoted = format!("\"{name}\"");
+                l.match_indices(&quoted)
+                    .any(|(at, _)| !l[at + quoted.len()..].starts_with(':'))
+            })
+        })
+        .map(|l| l.trim().to_owned())
+        .collect()
+}
+
+#[test]
+fn only_lb_aws_names_the_submission_records_attributes() {
+    let found: Vec<String> = files(&["rs"])
+        .into_iter()
+        .filter(|(_, rel)| {
+            (shipped_source(rel) || rel.starts_with("local/") && rel.contains("/src/"))
+                && !rel.starts_with("crates/aws/")
+        })
+        .flat_map(|(path, rel)| {
+            let source = std::fs::read_to_string(path).unwrap();
+            record_attribute_names(&source)
+                .into_iter()
+                .map(move |line| format!("{rel}: {line}"))
+        })
+        .collect();
+    assert!(
+        found.is_empty(),
+        "read the record through lb_aws::record::StoredRecord:\n{}",
+        found.join("\n")
+    );
+    let example = "use x::AttributeValue;\nlet s = item.get(\"gpu_seconds\");\n// \"cost_usd\"\n#[cfg(test)]\nlet t = item.get(\"error\");";
+    assert_eq!(
+        record_attribute_names(example),
+        ["let s = item.get(\"gpu_seconds\");"]
+    );
+    assert!(record_attribute_names("let s = body[\"gpu_seconds\"];").is_empty());
+    let payload = "use x::AttributeValue;\njson!({\"submission_id\": 7});";
+    assert!(record_attribute_names(payload).is_empty());
+}
+
+/// The decisions a shell takes from `lb_domain` (outside `#[cfg(test)]`): a function imported
+/// by name, or one called through a module it imports (`cost::judge(`) or by its whole path.
+/// Types, constants and methods on types (parsing at the edge) are not decisions.
+fn domain_decisions(source: &str) -> Vec<String> {
+    let code: Vec<&str> = source
+        .lines()
+        .take_while(|l| !l.trim_start().starts_with("#[cfg(test)]"))
+        .filter(|l| !l.trim_start().starts_with("//"))
+        .collect();
+    let code = code.join("\n");
+    let lowercase = |s: &str| s.chars().next().is_some_and(|c| c.is_ascii_lowercase());
+    let mut found = Vec::new();
+    let mut modules = Vec::new();
+    for import in code.split("use lb_domain::").skip(1) {
+        let import = import.split(';').next().unwrap_or_default();
+        let (path, items) = match import.split_once('{') {
+            Some((path, items)) => (path.trim_end_matches("::"), items.trim_end_matches('}')),
+            None => import.rsplit_once("::").unwrap_or(("", import)),
+        };
+        for item in items.split(',').map(str::trim).filter(|i| !i.is_empty()) {
+            if item == "self" {
+                modules.push(path.rsplit("::").next().unwrap_or(path).to_owned());
+            } else if lowercase(item) {
+                found.push(format!("imports `{path}::{item}`"));
+            }
+        }
+    }
+    let called = |prefix: &str| {
+        code.split(prefix)
+            .skip(1)
+            .filter_map(|rest| {
+                let name: String = rest
+                    .chars()
+                    .take_while(|c| c.is_alphanumeric() || *c == '_')
+                    .collect();
+                (lowercase(&name) && rest[name.len()..].starts_with('(')).then_some(name)
+            })
+            .collect::<Vec<_>>()
+    };
+    for module in modules {
+        for name in called(&format!("{module}::")) {
+            found.push(format!("calls `{module}::{name}`"));
+        }
+    }
+    for rest in code.split("lb_domain::").skip(1) {
+        let path: String = rest
+            .chars()
+            .take_while(|c| c.is_alphanumeric() || *c == '_' || *c == ':')
+            .collect();
+        let last = path.rsplit("::").next().unwrap_or_default();
+        if lowercase(last) && rest[path.len()..].starts_with('(') {
+            found.push(format!("calls `lb_domain::{path}`"));
+        }
+    }
+    found
+}
+
+#[test]
+fn the_monitor_and_finalize_shells_perform_steps_and_take_no_decision_from_the_domain() {
+    let mut found = Vec::new();
+    for shell in [
+        "functions/monitor/src/io.rs",
+        "functions/finalize/src/io.rs",
+    ] {
+        let source = std::fs::read_to_string(root().join(shell)).unwrap();
+        found.extend(
+            domain_decisions(&source)
+                .into_iter()
+                .map(|d| format!("{shell}: {d}")),
+        );
+    }
+    assert!(
+        found.is_empty(),
+        "the round or the closing decides; the shell only performs:\n{}",
+        found.join("\n")
+    );
+    let example = "use lb_domain::capacity::cost::{self, Totals};\nuse lb_domain::job::logtail::participant_tail;\nfn f() { cost::judge(x); let _ = cost::LIMIT; lb_domain::cluster::disruption::leaving(None); Totals::default(); }";
+    assert_eq!(
+        domain_decisions(example),
+        [
+            "imports `job::logtail::participant_tail`",
+            "calls `cost::judge`",
+            "calls `lb_domain::cluster::disruption::leaving`"
+        ]
+    );
 }

@@ -3,10 +3,10 @@
 //! which no Catch handles): every field at its bound, every string made of the character
 //! JSON escapes longest, run through `statemachine/submission.asl.json` in the executor.
 
-use lb_domain::cost::{CapacityType, Ledger, NodeKind, UsageLine};
+use lb_domain::capacity::cost::{CapacityType, Ledger, NodeKind, UsageLine};
 use std::collections::{BTreeMap, HashMap};
 
-use lb_domain::plan::{MAX_ROUTES, MAX_WORKERS};
+use lb_domain::job::plan::{MAX_ROUTES, MAX_WORKERS};
 use lb_pipeline::error::MAX_ERROR_MESSAGE_BYTES;
 use lb_pipeline::payload::{
     Action, IntakeOutput, MonitorState, PairRoutes, QueueState, RunPhase, RunState, SubmissionInfo,
@@ -120,7 +120,7 @@ fn run(phase: RunPhase) -> RunState {
             continue_as: Some("c".repeat(80)),
             handover: true,
             usage: worst_usage(),
-            orchestration: lb_domain::cost::Orchestration {
+            orchestration: lb_domain::capacity::cost::Orchestration {
                 transitions: u64::MAX,
                 invocations: u64::MAX,
                 mb_ms: u64::MAX,
@@ -133,7 +133,7 @@ fn run(phase: RunPhase) -> RunState {
 /// The most a run's GPU count holds: every kind it tells apart, with a label value's longest
 /// instance type, and a pod running in every Job.
 fn worst_usage() -> Ledger {
-    let lines = (0..lb_domain::cost::MAX_LINES)
+    let lines = (0..lb_domain::capacity::cost::MAX_LINES)
         .map(|i| UsageLine {
             kind: NodeKind {
                 instance_type: format!("{i:x}").repeat(63),

@@ -7,7 +7,7 @@ use std::fmt::Write as _;
 
 use super::merge::Merged;
 use super::Leaderboard;
-use crate::py::{self, DumpOptions, Num, PyValue};
+use crate::results::py::{self, DumpOptions, Num, PyValue};
 
 /// What the original generator printed when there was no merged file to copy.
 pub const METADATA_MISSING_MESSAGE: &str =

@@ -3,9 +3,13 @@
 //! Float operations follow the Python source operation by operation (same order, same
 //! rounding points) so that every digit matches; the comments name the upstream step.
 
-use super::model::{ResultsFile, RouteRecord};
+use super::model::{Cause, ResultsFile, RouteKind, RouteRecord};
 use super::{Leaderboard, MetricSource, ResultsError};
-use crate::py::{self, DumpOptions, JsonWriter, Num};
+use crate::results::py::{self, DumpOptions, JsonWriter, Num};
+use crate::status::UnknownStatus;
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+use std::fmt;
+use std::str::FromStr;
 
 /// Digits of `round()` for scores (Leaderboard 2.0).
 const ROUND_DIGITS_SCORE: usize = 6;
@@ -47,6 +51,28 @@ pub struct MergeOutcome {
     pub complete: bool,
 }
 
+crate::status::words! {
+    /// The merged file's `entry_status`, as the official tooling writes it.
+    EntryStatus, "entry_status" {
+        /// Not every route's record is in.
+        Started => "Started",
+        /// Every route ended (2.0), and nothing named the agent (1.0).
+        Finished => "Finished",
+        /// A route's simulation crashed.
+        Crashed => "Crashed",
+        /// The agent's sensors were invalid.
+        Rejected => "Rejected",
+        /// Validation found the file lacking.
+        Invalid => "Invalid",
+        /// 1.0: routes are missing.
+        FinishedWithMissingData => "Finished with missing data",
+        /// 1.0: a route's status names the agent.
+        FinishedWithAgentErrors => "Finished with agent errors",
+        /// 1.0: a fresh file, before its first route (`create_default_json_msg`).
+        Blank => "",
+    }
+}
+
 /// The merged document.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Merged {
@@ -59,7 +85,7 @@ pub struct Merged {
     /// Global statistics, when complete.
     pub global: Option<GlobalRecord>,
     /// `Started`, `Finished`, `Crashed`, `Rejected`, `Invalid` (1.0: `Finished with ...`).
-    pub entry_status: String,
+    pub entry_status: EntryStatus,
     /// Whether the result may be published as a leaderboard entry.
     pub eligible: bool,
     /// The agent's sensors.
@@ -162,7 +188,7 @@ pub fn merge(files: Vec<ResultsFile>, opts: MergeOptions) -> Result<MergeOutcome
         records,
         progress: (total_records, total_progress),
         global: None,
-        entry_status: "Started".to_owned(),
+        entry_status: EntryStatus::Started,
         eligible: false,
         sensors,
         values: Vec::new(),
@@ -329,24 +355,30 @@ fn global_v2(merged: &mut Merged, total_routes: u64) {
 
     // Means and the global result.
     let mut means = [0.0f64; 3];
-    let mut status = "Perfect".to_owned();
+    let mut failed = false;
+    let mut first_imperfect: Option<&str> = None;
     let mut exceptions = Vec::new();
     for r in records {
         for (mean, key) in means.iter_mut().zip(SCORE_KEYS) {
             *mean += score_of(r, key).as_f64() / n;
         }
-        let result = if r.status.contains("Failed") {
-            "Failed"
-        } else {
-            r.status.as_str()
-        };
-        if result == "Failed" {
-            exceptions.push((r.route_id.raw.clone(), r.index, r.status.clone()));
-            status = "Failed".to_owned();
-        } else if status == "Perfect" && result != "Perfect" {
-            status = result.to_owned();
+        match r.status.kind() {
+            RouteKind::Failed => {
+                let word = r.status.as_str().to_owned();
+                exceptions.push((r.route_id.raw.clone(), r.index, word));
+                failed = true;
+            }
+            RouteKind::Perfect => {}
+            _ => _ = first_imperfect.get_or_insert(r.status.as_str()),
         }
     }
+    // NB: `Failed` over everything, else the first route's word that is not `Perfect` (any
+    // word, as the official tooling copies it).
+    let status = match (failed, first_imperfect) {
+        (true, _) => "Failed".to_owned(),
+        (false, Some(word)) => word.to_owned(),
+        (false, None) => "Perfect".to_owned(),
+    };
     let means = means.map(|m| py::round(m, ROUND_DIGITS_SCORE));
     let (total_length, duration_game, duration_system) = totals(records);
 
@@ -380,12 +412,12 @@ fn global_v2(merged: &mut Merged, total_routes: u64) {
     merged.labels = metrics.iter().map(|m| m.file_label).collect();
 
     // Entry status: the last crashed or rejected route decides.
-    let mut entry_status = "Finished";
+    let mut entry_status = EntryStatus::Finished;
     for r in records {
-        if r.status.contains("Simulation crashed") {
-            entry_status = "Crashed";
-        } else if r.status.contains("Agent's sensors were invalid") {
-            entry_status = "Rejected";
+        match r.status.cause() {
+            Some(Cause::SimulationCrashed) => entry_status = EntryStatus::Crashed,
+            Some(Cause::SensorsInvalid) => entry_status = EntryStatus::Rejected,
+            None => {}
         }
     }
     merged.global = Some(global);
@@ -460,9 +492,9 @@ fn infraction_value(r: &RouteRecord, kind: &str) -> Num {
     Num::Float(metres / 1000.0)
 }
 
-fn set_entry_status(merged: &mut Merged, status: &str) {
-    merged.entry_status = status.to_owned();
-    merged.eligible = status == "Finished";
+fn set_entry_status(merged: &mut Merged, status: EntryStatus) {
+    merged.entry_status = status;
+    merged.eligible = status == EntryStatus::Finished;
 }
 
 /// `validate_and_write_statistics(sensors_initialized=True, crashed=False)`.
@@ -471,20 +503,20 @@ fn validate_v2(merged: &mut Merged) {
         Some("Missing 'sensors' data")
     } else if merged.values.is_empty() {
         Some("Missing 'values' data")
-    } else if merged.entry_status == "Started" {
+    } else if merged.entry_status == EntryStatus::Started {
         Some("'entry_status' has the 'Started' value")
     } else if merged.progress.0 != merged.progress.1
         || merged.progress.0 != merged.records.len() as u64
     {
         Some("'progress' data doesn't match its expected value")
-    } else if merged.records.iter().any(|r| r.status == "Started") {
+    } else if (merged.records.iter()).any(|r| r.status.kind() == RouteKind::Started) {
         Some("Found a route record with missing data")
     } else {
         None
     };
     if let Some(reason) = reason {
         merged.invalid_reason = Some(reason);
-        set_entry_status(merged, "Invalid");
+        set_entry_status(merged, EntryStatus::Invalid);
     }
 }
 
@@ -511,22 +543,14 @@ fn global_v1(merged: &mut Merged, total_routes: u64) {
         }
         // NB: upstream compares with `is not 'Completed'`, which is always true for strings
         // read from JSON: every route is an "exception" and the status is always Failed.
-        exceptions.push((r.route_id.raw.clone(), r.index, r.status.clone()));
+        exceptions.push((
+            r.route_id.raw.clone(),
+            r.index,
+            r.status.as_str().to_owned(),
+        ));
     }
-    let n = total_routes as f64;
-    let means = sums.map(|s| s.as_f64() / n);
-    let std_dev = if total_routes == 1 {
-        [StdDev::NaNString; 3]
-    } else {
-        let mut acc = [0.0f64; 3];
-        for r in records {
-            for ((a, key), mean) in acc.iter_mut().zip(SCORE_KEYS).zip(means) {
-                let diff = score_of(r, key).as_f64() - mean;
-                *a += diff * diff;
-            }
-        }
-        acc.map(|a| StdDev::Value(Num::Float((a / (total_routes - 1) as f64).sqrt())))
-    };
+    let means = sums.map(|s| s.as_f64() / total_routes as f64);
+    let std_dev = std_devs_v1(records, means, total_routes);
     let (total_length, duration_game, duration_system) = totals(records);
     let global = GlobalRecord {
         status: "Failed".to_owned(),
@@ -558,15 +582,31 @@ fn global_v1(merged: &mut Merged, total_routes: u64) {
         .collect();
     merged.labels = metrics.iter().map(|m| m.file_label).collect();
     let (status, eligible) = if merged.progress.0 != merged.progress.1 {
-        ("Finished with missing data", false)
-    } else if records.iter().any(|r| r.status.contains("Agent")) {
-        ("Finished with agent errors", true)
+        (EntryStatus::FinishedWithMissingData, false)
+    } else if records.iter().any(|r| r.status.names_agent()) {
+        (EntryStatus::FinishedWithAgentErrors, true)
     } else {
-        ("Finished", true)
+        (EntryStatus::Finished, true)
     };
     merged.global = Some(global);
-    merged.entry_status = status.to_owned();
+    merged.entry_status = status;
     merged.eligible = eligible;
+}
+
+/// The scores' sample standard deviations around the unrounded `means`, as the official 1.0
+/// merge computes them (`'NaN'` for a single route).
+fn std_devs_v1(records: &[RouteRecord], means: [f64; 3], total_routes: u64) -> [StdDev; 3] {
+    if total_routes == 1 {
+        return [StdDev::NaNString; 3];
+    }
+    let mut acc = [0.0f64; 3];
+    for r in records {
+        for ((a, key), mean) in acc.iter_mut().zip(SCORE_KEYS).zip(means) {
+            let diff = score_of(r, key).as_f64() - mean;
+            *a += diff * diff;
+        }
+    }
+    acc.map(|a| StdDev::Value(Num::Float((a / (total_routes - 1) as f64).sqrt())))
 }
 
 impl Merged {
@@ -599,7 +639,7 @@ impl Merged {
             &mut w,
             Field::Obj(vec![
                 ("_checkpoint", checkpoint),
-                ("entry_status", Field::Str(&self.entry_status)),
+                ("entry_status", Field::Str(self.entry_status.as_str())),
                 ("eligible", Field::Bool(self.eligible)),
                 ("sensors", Field::Strs(&self.sensors)),
                 ("values", Field::Strs(&self.values)),
@@ -650,7 +690,7 @@ fn record_field(r: &RouteRecord) -> Field<'_> {
     let mut fields = Vec::with_capacity(7);
     fields.push(("index", Field::Num(Num::Int(r.index))));
     fields.push(("route_id", Field::Str(&r.route_id.raw)));
-    fields.push(("status", Field::Str(&r.status)));
+    fields.push(("status", Field::Str(r.status.as_str())));
     if let Some(n) = r.num_infractions {
         fields.push(("num_infractions", Field::Num(n)));
     }

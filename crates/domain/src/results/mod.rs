@@ -7,12 +7,16 @@
 mod evalai;
 mod merge;
 mod model;
+pub mod py;
 
 pub use evalai::{EvalAiFiles, METADATA_MISSING_MESSAGE};
-pub use merge::{merge, Expected, GlobalRecord, MergeOptions, MergeOutcome, Merged, StdDev};
+pub use merge::{
+    merge, EntryStatus, Expected, GlobalRecord, MergeOptions, MergeOutcome, Merged, StdDev,
+};
 pub use model::{
-    read_worker_file, read_worker_files, EmptyReason, Kind, Meta, ResultsFile, RouteId,
-    RouteRecord, RouteSubset, Scores, WorkerFile, WorkerInput, MAX_FILE_BYTES, MAX_NUMBER,
+    read_worker_file, read_worker_files, Cause, EmptyReason, Kind, Meta, ResultsFile, RouteId,
+    RouteKind, RouteRecord, RouteStatus, RouteSubset, Scores, WorkerFile, WorkerInput,
+    MAX_FILE_BYTES, MAX_NUMBER,
 };
 
 use std::fmt;

@@ -14,7 +14,7 @@ use serde::de::{self, Deserializer, MapAccess, Visitor};
 use serde::Deserialize;
 
 use super::{Leaderboard, ResultsError};
-use crate::py::Num;
+use crate::results::py::Num;
 
 /// The largest results file we read. The official evaluator writes a few KiB per route; a
 /// 10,000-route worker file stays far below this.
@@ -175,6 +175,93 @@ pub struct Meta {
     pub duration_system: Num,
 }
 
+/// A route record's `status`: its exact text, which the files we write repeat byte for byte,
+/// read once for what the official tooling reads in it (by substring, as Python's `in`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RouteStatus {
+    text: String,
+    kind: RouteKind,
+    cause: Option<Cause>,
+    names_agent: bool,
+}
+
+/// What a route's status says of how it ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RouteKind {
+    /// `Perfect`: completed without infractions.
+    Perfect,
+    /// `Completed`.
+    Completed,
+    /// `Started`: the record was written before the route ended (missing data).
+    Started,
+    /// Any status naming `Failed` (`Failed - Agent crashed`, ...).
+    Failed,
+    /// A status the tooling gives no meaning to (kept, and counted as the others are).
+    Other,
+}
+
+/// What ended a run, as a route's status names it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Cause {
+    /// `Simulation crashed`: the entry is `Crashed`.
+    SimulationCrashed,
+    /// `Agent's sensors were invalid`: the entry is `Rejected`.
+    SensorsInvalid,
+}
+
+impl RouteStatus {
+    /// The status as the worker wrote it.
+    pub fn read(text: String) -> RouteStatus {
+        let kind = match text.as_str() {
+            _ if text.contains("Failed") => RouteKind::Failed,
+            "Perfect" => RouteKind::Perfect,
+            "Completed" => RouteKind::Completed,
+            "Started" => RouteKind::Started,
+            _ => RouteKind::Other,
+        };
+        let cause = if text.contains("Simulation crashed") {
+            Some(Cause::SimulationCrashed)
+        } else if text.contains("Agent's sensors were invalid") {
+            Some(Cause::SensorsInvalid)
+        } else {
+            None
+        };
+        let names_agent = text.contains("Agent");
+        RouteStatus {
+            text,
+            kind,
+            cause,
+            names_agent,
+        }
+    }
+
+    /// The exact text.
+    pub fn as_str(&self) -> &str {
+        &self.text
+    }
+
+    /// How the route ended.
+    pub fn kind(&self) -> RouteKind {
+        self.kind
+    }
+
+    /// The crash or rejection it names, if any.
+    pub fn cause(&self) -> Option<Cause> {
+        self.cause
+    }
+
+    /// Whether it names the agent (Leaderboard 1.0's `"Agent" in status`).
+    pub fn names_agent(&self) -> bool {
+        self.names_agent
+    }
+}
+
+impl std::fmt::Display for RouteStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.text)
+    }
+}
+
 /// One route's record, validated.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RouteRecord {
@@ -182,8 +269,8 @@ pub struct RouteRecord {
     pub index: i64,
     /// The route id.
     pub route_id: RouteId,
-    /// `Perfect`, `Completed`, `Started` or `Failed - <reason>`.
-    pub status: String,
+    /// `Perfect`, `Completed`, `Started` or `Failed - <reason>`, read once.
+    pub status: RouteStatus,
     /// Total infractions (Leaderboard 2.0 only).
     pub num_infractions: Option<Num>,
     /// Infraction messages per kind, in the file's order.
@@ -663,7 +750,7 @@ fn validate_record(
     Ok(RouteRecord {
         index,
         route_id,
-        status: r.status,
+        status: RouteStatus::read(r.status),
         num_infractions: r.num_infractions,
         infractions: r.infractions.0.into_iter().map(|(k, v)| (k.0, v)).collect(),
         scores: r.scores,

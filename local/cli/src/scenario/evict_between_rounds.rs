@@ -139,7 +139,7 @@ async fn into_a_route(store: &SubmissionStore) -> Option<u32> {
                 .is_some_and(|at| now.saturating_sub(at) == INTO_THE_ROUTE.as_secs())
         });
         if let Some(partial) = due {
-            return lb_domain::plan::job_of_pair(partial.pair_id);
+            return lb_domain::job::plan::job_of_pair(partial.pair_id);
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }

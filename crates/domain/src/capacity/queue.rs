@@ -59,6 +59,17 @@ impl Entry {
     }
 }
 
+/// A team in one leaderboard's queue, with the number of evaluations it may hold at once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TeamQueue<'a> {
+    /// The queue: the leaderboard's short name.
+    pub queue: &'a str,
+    /// The team's EvalAI id.
+    pub team: u64,
+    /// Its `team_limit`.
+    pub limit: u32,
+}
+
 /// When a submission arrived for its place in the queue, epoch milliseconds: when EvalAI
 /// received it, never later than `now` (epoch seconds; a clock ahead is not believed), and
 /// `now` when EvalAI did not say (a resume arrives anew).

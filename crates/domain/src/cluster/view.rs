@@ -8,8 +8,9 @@ use std::time::Duration;
 use jiff::Timestamp;
 use serde::{Deserialize, Serialize};
 
-use crate::autoscaler::{Outlook, ScaleUpWord};
-use crate::protocol::exit;
+use crate::cluster::autoscaler::{Outlook, ScaleUpWord};
+use crate::job::protocol::exit;
+use crate::status::PodPhase;
 
 /// Waiting reasons that mean an image will not arrive by waiting.
 const PULL_FAILURES: [&str; 4] = [
@@ -75,8 +76,6 @@ pub struct Observation {
     /// Pods labelled with the submission whose Job is not among `jobs` (leftovers of a
     /// deleted Job). They never decide the verdict.
     pub stray_pods: Vec<PodView>,
-    /// What the Monitor should do.
-    pub verdict: Verdict,
 }
 
 /// One Job.
@@ -141,7 +140,7 @@ pub struct PodView {
     /// The Job it belongs to (owner reference or `job-name` label).
     pub job: Option<String>,
     /// `Pending`, `Running`, `Succeeded`, `Failed` or `Unknown`.
-    pub phase: String,
+    pub phase: PodPhase,
     /// `status.reason`, e.g. `Evicted`.
     pub reason: Option<String>,
     /// `status.message`.
@@ -163,7 +162,7 @@ pub struct PodView {
     #[serde(default)]
     pub disruption: Option<String>,
     /// That condition's message: the kubelet's tells a node shutdown from node pressure
-    /// (`lb_domain::disruption::classify`). Kept short.
+    /// (`lb_domain::cluster::disruption::classify`). Kept short.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub disruption_message: Option<String>,
     /// The GPUs (`nvidia.com/gpu`) it holds while it runs: its containers' limits added up.
@@ -332,54 +331,58 @@ impl Observation {
         self.jobs.iter().filter_map(|j| j.start_time).min()
     }
 
-    /// Takes the Jobs in `spent` (by name, with why) as out of retries, whatever Kubernetes
-    /// says of them: their pods' disruptions of their own counted against `backoffLimit` by
-    /// the Monitor, which the Job controller cannot (its Pod failure policy ignores every
-    /// `DisruptionTarget`). Each pair gives up as a Job past its `backoffLimit` does: its
-    /// neighbours go on, and the verdict is decided again over the Jobs so marked.
-    pub fn give_up(&mut self, spent: &BTreeMap<String, String>, policy: &VerdictPolicy) {
-        let missing = matches!(
-            self.verdict,
+    /// The verdict on these Jobs as they stand, with `policy`'s patience ([`verdict`]).
+    pub fn verdict(&self, policy: &VerdictPolicy) -> Verdict {
+        verdict(&self.jobs, self.observed_at, policy)
+    }
+
+    /// The verdict on a run of `expected` Jobs whose Jobs in `spent` (by name, with why) are
+    /// out of retries, whatever Kubernetes says of them: their pods' disruptions of their own
+    /// counted against `backoffLimit` by the Monitor, which the Job controller cannot (its Pod
+    /// failure policy ignores every `DisruptionTarget`). Each such pair gives up as a Job past
+    /// its `backoffLimit` does: its neighbours go on. A Job index below `expected` that is
+    /// absent (deleted outside the pipeline, or never created) fails a verdict not already
+    /// failed: `Finished` over half the Jobs is not a finished submission.
+    pub fn judge(
+        &self,
+        expected: u32,
+        spent: &BTreeMap<String, String>,
+        policy: &VerdictPolicy,
+    ) -> Verdict {
+        let seen = self.verdict(policy);
+        let missing: Vec<String> = (0..expected)
+            .filter(|i| !self.jobs.iter().any(|j| j.index == Some(*i)))
+            .map(|i| i.to_string())
+            .collect();
+        if !missing.is_empty() && !matches!(seen, Verdict::Failed { .. }) {
+            return Verdict::Failed {
+                kind: FailureKind::JobsMissing,
+                job: None,
+                container: None,
+                message: format!(
+                    "the evaluation stopped unexpectedly: its Kubernetes Job(s) with index {} of {expected} no longer exist",
+                    missing.join(", ")
+                ),
+            };
+        }
+        let jobs_gone = matches!(
+            seen,
             Verdict::Failed {
                 kind: FailureKind::JobsMissing,
                 ..
             }
         );
-        if spent.is_empty() || missing {
-            return;
+        if spent.is_empty() || jobs_gone {
+            return seen;
         }
-        for job in self.jobs.iter_mut().filter(|j| spent.contains_key(&j.name)) {
+        let mut jobs = self.jobs.clone();
+        for job in jobs.iter_mut().filter(|j| spent.contains_key(&j.name)) {
             job.state = JobState::Failed {
                 reason: OUT_OF_RETRIES.into(),
                 message: spent[&job.name].clone(),
             };
         }
-        self.verdict = verdict(&self.jobs, self.observed_at, policy);
-    }
-
-    /// Fails a verdict that is not already failed when a Job index below `count` is absent
-    /// (deleted outside the pipeline, or never created): `Finished` over half the Jobs is not
-    /// a finished submission.
-    pub fn expect_jobs(mut self, count: u32) -> Self {
-        if matches!(self.verdict, Verdict::Failed { .. }) {
-            return self;
-        }
-        let missing: Vec<String> = (0..count)
-            .filter(|i| !self.jobs.iter().any(|j| j.index == Some(*i)))
-            .map(|i| i.to_string())
-            .collect();
-        if !missing.is_empty() {
-            self.verdict = Verdict::Failed {
-                kind: FailureKind::JobsMissing,
-                job: None,
-                container: None,
-                message: format!(
-                    "the evaluation stopped unexpectedly: its Kubernetes Job(s) with index {} of {count} no longer exist",
-                    missing.join(", ")
-                ),
-            };
-        }
-        self
+        verdict(&jobs, self.observed_at, policy)
     }
 }
 
@@ -434,7 +437,7 @@ fn live(jobs: &[JobView]) -> impl Iterator<Item = (&JobView, &PodView)> {
             !j.terminating && !matches!(j.state, JobState::Complete | JobState::Failed { .. })
         })
         .flat_map(|j| j.pods.iter().map(move |p| (j, p)))
-        .filter(|(_, p)| !p.terminating && matches!(p.phase.as_str(), "Pending" | "Running"))
+        .filter(|(_, p)| !p.terminating && p.phase.is_live())
 }
 
 /// `reason: message`, the message quoted, or the reason alone.
@@ -670,7 +673,7 @@ pub fn started(jobs: &[JobView]) -> bool {
         j.state == JobState::Complete
             || j.pods
                 .iter()
-                .any(|p| matches!(p.phase.as_str(), "Running" | "Succeeded" | "Failed"))
+                .any(|p| p.phase == PodPhase::Running || p.phase.has_ended())
     })
 }
 
@@ -732,7 +735,7 @@ fn failures(job: &JobView) -> String {
     if job.failed > 0 {
         parts.push(format!("{} failed pod(s)", job.failed));
     }
-    let last_failed = job.pods.iter().rev().find(|p| p.phase == "Failed");
+    let last_failed = job.pods.iter().rev().find(|p| p.phase == PodPhase::Failed);
     let exits: Vec<String> = last_failed
         .into_iter()
         .flat_map(|p| &p.containers)
@@ -818,7 +821,7 @@ mod tests {
         PodView {
             name: "pod".into(),
             job: Some("job-0".into()),
-            phase: phase.into(),
+            phase: phase.parse().unwrap(),
             reason: None,
             message: None,
             node: None,
@@ -862,7 +865,7 @@ mod tests {
 
     fn unschedulable(message: &str) -> PodView {
         PodView {
-            phase: "Pending".into(),
+            phase: PodPhase::Pending,
             start_time: None,
             unschedulable: Some(Unschedulable {
                 since: Some(at(9, 0)),
@@ -1082,7 +1085,7 @@ mod tests {
     #[test]
     fn the_autoscaler_s_word_that_no_group_fits_ends_the_wait_after_the_grace() {
         let word = |at_| ScaleUpWord {
-            reason: crate::autoscaler::NOT_TRIGGERED.into(),
+            reason: crate::cluster::autoscaler::NOT_TRIGGERED.into(),
             message:
                 "pod didn't trigger scale-up: 1 node(s) didn't match Pod's node affinity/selector"
                     .into(),

@@ -11,7 +11,7 @@ use std::collections::HashSet;
 
 use serde::{Deserialize, Serialize};
 
-use crate::protocol::{kept_as, PairId, AGENT_DIR, LOGS_DIR, STATUS_DIR};
+use crate::job::protocol::{kept_as, PairId, AGENT_DIR, LOGS_DIR, STATUS_DIR};
 
 /// The largest results file uploaded: what the Monitor reads at most.
 pub const MAX_RESULTS_BYTES: u64 = crate::results::MAX_FILE_BYTES as u64;
@@ -24,7 +24,7 @@ pub const MAX_MARKER_BYTES: u64 = 1024;
 pub const MAX_LOG_BYTES: u64 = 1 << 30;
 
 /// Bytes of logs one pair may keep in S3 over the whole evaluation: the `logs` volume's size
-/// per pair (`lb_domain::resources::VolumeSizes`), so deleting and writing again, or a new
+/// per pair (`lb_domain::cluster::resources::VolumeSizes`), so deleting and writing again, or a new
 /// pod, cannot upload more than the volume could ever hold at once.
 pub const LOG_BYTES_PER_PAIR: u64 = 8 << 30;
 
@@ -110,7 +110,7 @@ impl UploadBudget {
     /// uploaded at `last` bytes (`None`: never), goes to S3. An upload it admits is counted
     /// as stored; call [`UploadBudget::refuse`] with a refusal.
     pub fn admit(&mut self, rel: &str, size: u64, last: Option<u64>) -> Result<(), Refusal> {
-        if !crate::protocol::uploads(rel, &self.pairs, self.job) {
+        if !crate::job::protocol::uploads(rel, &self.pairs, self.job) {
             return Err(Refusal::NotOurs);
         }
         let (dir, _) = rel.split_once('/').unwrap_or(("", rel));

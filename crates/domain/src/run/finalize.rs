@@ -4,7 +4,7 @@
 
 use serde_json::Value;
 
-use crate::protocol::{Marker, Role};
+use crate::job::protocol::{Marker, Role};
 use crate::status::RecordStatus;
 use crate::submission::SubmissionStatus;
 
@@ -189,7 +189,7 @@ pub fn participant_reason(error: &str) -> String {
         format!("the evaluation failed: {error}")
     } else if let Some((_, cause)) = error
         .split_once(": ")
-        .filter(|_| crate::reaper::ERROR_NAMES.contains(&name))
+        .filter(|_| crate::run::reaper::ERROR_NAMES.contains(&name))
     {
         // The reaper's own words about how the execution ended: nothing internal in them.
         format!("{cause}, not because of your agent; the organisers have been alerted")

@@ -2,7 +2,7 @@
 //! on EvalAI wakes the waiting execution), and otherwise after a safety-net interval that
 //! grows with the evaluation's age; never sooner than [`MIN_ROUND_INTERVAL`] after the last
 //! round. A quiet 72-hour evaluation fits one execution's history; a busy one continues as new
-//! executions (`crate::history`).
+//! executions (`crate::run::history`).
 
 use std::time::Duration;
 
@@ -17,16 +17,9 @@ pub const JOB_DEADLINE: Duration = Duration::from_secs(MAX_EVALUATION.as_secs() 
 /// The first wait after launch: pods need time to pull images and start CARLA.
 pub const FIRST_WAIT: Duration = Duration::from_secs(30);
 
-/// The default least interval between two partial updates of one submission on EvalAI: a
-/// route's record reaches its participant within 20 s at most, 10 s in the median. Safe with
-/// many submissions in flight because every update takes from the shared EvalAI budget
-/// (`lb_evalai::budget`), which skips a routine update rather than exceed the host token's
-/// limit.
-pub const PARTIAL_UPDATE_INTERVAL: Duration = Duration::from_secs(20);
-
 /// The least time between two Monitor rounds, whatever wakes the loop: every round is
 /// followed by a hold at least this long, so a pod that changes its files many times a second
-/// costs at most a round each time this elapses (`lb_domain::history` bounds what those rounds
+/// costs at most a round each time this elapses (`lb_domain::run::history` bounds what those rounds
 /// cost one execution).
 pub const MIN_ROUND_INTERVAL: Duration = Duration::from_secs(10);
 
@@ -89,7 +82,7 @@ mod tests {
         for minute in 0..(72 * 60) {
             let interval = safety_net(Duration::from_secs(minute * 60));
             assert!(interval >= last);
-            assert!(interval > PARTIAL_UPDATE_INTERVAL);
+            assert!(interval > crate::settings::PARTIAL_UPDATE_INTERVAL);
             last = interval;
         }
     }

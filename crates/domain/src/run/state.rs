@@ -1,6 +1,6 @@
 //! A run's state as the state machine carries it between stages (`$.run`): what Launch
 //! started, the Monitor's round-to-round state, its place in the queue. Pure data, so the
-//! Monitor's round (`crate::round`) can decide on it without I/O.
+//! Monitor's round (`crate::run::round`) can decide on it without I/O.
 
 use serde::{Deserialize, Serialize, Serializer};
 
@@ -11,8 +11,8 @@ pub const MAX_REASON_BYTES: usize = 4 * 1024;
 /// `text` printable (no control characters, which JSON writes six bytes long) and cut to
 /// `max` bytes with a note: what a payload may carry of a reason or an error message.
 pub fn printable_bounded(text: &str, max: usize) -> String {
-    let text = crate::logtail::printable(text);
-    crate::logtail::cut_with_note(&text, max, || " [... cut]".into()).into_owned()
+    let text = crate::job::logtail::printable(text);
+    crate::job::logtail::cut_with_note(&text, max, || " [... cut]".into()).into_owned()
 }
 
 /// Serializes a reason printable and cut to [`MAX_REASON_BYTES`], whoever built it.
@@ -65,7 +65,7 @@ pub struct RunState {
     pub queue: QueueState,
 }
 
-/// A run's place in the queue (`crate::queue`): held by its team's cap until admitted,
+/// A run's place in the queue (`crate::capacity::queue`): held by its team's cap until admitted,
 /// then its pods wait for a GPU until the first pair starts.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -174,7 +174,7 @@ pub struct MonitorState {
     /// record's `start_time` is that moment. Unset while the Jobs wait for capacity (`queued`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub started_at: Option<u64>,
-    /// This execution's history so far, an upper bound in events (`crate::history`).
+    /// This execution's history so far, an upper bound in events (`crate::run::history`).
     #[serde(default)]
     pub events: u64,
     /// The execution `events` counts for; a round in another one (a continuation's first)
@@ -191,18 +191,21 @@ pub struct MonitorState {
     /// it, so each round tries to name this one until it did.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub handover: bool,
-    /// The GPUs its pods held so far (`crate::cost`).
-    #[serde(default, skip_serializing_if = "crate::cost::Ledger::is_empty")]
-    pub usage: crate::cost::Ledger,
+    /// The GPUs its pods held so far (`crate::capacity::cost`).
+    #[serde(
+        default,
+        skip_serializing_if = "crate::capacity::cost::Ledger::is_empty"
+    )]
+    pub usage: crate::capacity::cost::Ledger,
     /// What the orchestration did for it so far (every stage since its Intake).
     #[serde(default)]
-    pub orchestration: crate::cost::Orchestration,
+    pub orchestration: crate::capacity::cost::Orchestration,
 }
 
 impl MonitorState {
     /// Where the state machine goes after the task that left this state.
-    pub fn after(&self) -> crate::cost::After {
-        use crate::cost::After;
+    pub fn after(&self) -> crate::capacity::cost::After {
+        use crate::capacity::cost::After;
         match self.state {
             RunPhase::Running => After::Wait {
                 poll: self.poll,
@@ -251,8 +254,8 @@ impl MonitorState {
             generation: 0,
             continue_as: None,
             handover: false,
-            usage: crate::cost::Ledger::default(),
-            orchestration: crate::cost::Orchestration::default(),
+            usage: crate::capacity::cost::Ledger::default(),
+            orchestration: crate::capacity::cost::Orchestration::default(),
         }
     }
 }

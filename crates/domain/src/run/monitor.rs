@@ -5,10 +5,10 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use crate::cluster::{JobState, JobView};
-use crate::cost::Ledger;
-use crate::disruption::FREE_RECLAIMS_PER_PAIR;
-use crate::schedule::{JOB_DEADLINE, MAX_EVALUATION, STATUS_FALLBACK};
+use crate::capacity::cost::Ledger;
+use crate::cluster::disruption::FREE_RECLAIMS_PER_PAIR;
+use crate::cluster::view::{JobState, JobView};
+use crate::run::schedule::{JOB_DEADLINE, MAX_EVALUATION, STATUS_FALLBACK};
 
 /// Why the run ends after the cluster's API was out of reach since `since` (epoch seconds):
 /// only an outage of `bound_hours` or more does; a shorter one skips the round's verdict while
@@ -107,7 +107,7 @@ pub fn spent_pairs(jobs: &[JobView], usage: &Ledger) -> BTreeMap<String, String>
 /// tag EvalAI gave can be pushed again while the evaluation runs, and a replacement pod (after
 /// a crash or a reclaim) or a pair on a new node would pull the new code.
 pub fn hold_image(first: &mut Option<String>, jobs: &[JobView]) -> Option<String> {
-    let mut pods: Vec<&crate::cluster::PodView> = jobs.iter().flat_map(|j| &j.pods).collect();
+    let mut pods: Vec<&crate::cluster::view::PodView> = jobs.iter().flat_map(|j| &j.pods).collect();
     pods.sort_by_key(|p| p.start_time);
     let mut seen = pods
         .iter()
@@ -220,23 +220,24 @@ mod tests {
     #[test]
     fn every_pod_runs_the_image_the_first_one_ran() {
         let digest = |c: char| format!("sha256:{}", c.to_string().repeat(64));
-        let pod = |name: &str, start: i64, agent: Option<String>| -> crate::cluster::PodView {
-            serde_json::from_value(serde_json::json!({
-                "name": name, "job": "lb-7-0", "phase": "Running", "reason": null,
-                "message": null, "node": "n", "terminating": false, "unschedulable": null,
-                "start_time": jiff::Timestamp::from_second(start).unwrap(),
-                "containers": [
-                    {"name": "simulator-1", "image": "carla:0.9.15", "init": false,
-                     "state": {"state": "NotCreated"}, "ready": true, "restart_count": 0,
-                     "last_exit": null, "digest": digest('c')},
-                    {"name": "agent-1", "image": "team/agent:v1", "init": false,
-                     "state": {"state": "NotCreated"}, "ready": true, "restart_count": 0,
-                     "last_exit": null, "digest": agent},
-                ],
-            }))
-            .unwrap()
-        };
-        let jobs = |pods: Vec<crate::cluster::PodView>| {
+        let pod =
+            |name: &str, start: i64, agent: Option<String>| -> crate::cluster::view::PodView {
+                serde_json::from_value(serde_json::json!({
+                    "name": name, "job": "lb-7-0", "phase": "Running", "reason": null,
+                    "message": null, "node": "n", "terminating": false, "unschedulable": null,
+                    "start_time": jiff::Timestamp::from_second(start).unwrap(),
+                    "containers": [
+                        {"name": "simulator-1", "image": "carla:0.9.15", "init": false,
+                         "state": {"state": "NotCreated"}, "ready": true, "restart_count": 0,
+                         "last_exit": null, "digest": digest('c')},
+                        {"name": "agent-1", "image": "team/agent:v1", "init": false,
+                         "state": {"state": "NotCreated"}, "ready": true, "restart_count": 0,
+                         "last_exit": null, "digest": agent},
+                    ],
+                }))
+                .unwrap()
+            };
+        let jobs = |pods: Vec<crate::cluster::view::PodView>| {
             let mut job = crate::testutil::job("lb-7-0", JobState::Running, None);
             job.pods = pods;
             vec![job]

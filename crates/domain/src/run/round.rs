@@ -14,14 +14,15 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use crate::cluster::{self, Observation, Verdict, VerdictPolicy};
-use crate::cost::{InstancePrice, NodeKind, PodSeen, Totals};
-use crate::disruption::Disruption;
-use crate::history;
-use crate::monitor::{self, StatusRead};
-use crate::queue::{self, Hold, Standing};
-use crate::run::{RunPhase, RunState};
-use crate::schedule::{queue_wait, safety_net, MIN_ROUND_INTERVAL, POLL_WITHOUT_WAKE};
+use crate::capacity::cost::{self, InstancePrice, NodeKind, PodSeen, Totals};
+use crate::capacity::queue::{self, Hold, Standing};
+use crate::cluster::disruption::{self, Disruption, NodeFacts};
+use crate::cluster::view::{self as cluster, Observation, Verdict, VerdictPolicy};
+use crate::job::protocol::Marker;
+use crate::run::history;
+use crate::run::monitor::{self, StatusRead};
+use crate::run::schedule::{queue_wait, safety_net, MIN_ROUND_INTERVAL, POLL_WITHOUT_WAKE};
+use crate::run::state::{PairRoutes, RunPhase, RunState};
 use crate::submission::SubmissionStatus;
 
 /// How soon to look again once every Job's logcopy is done.
@@ -52,6 +53,9 @@ pub struct Context {
     pub prices: BTreeMap<String, InstancePrice>,
     /// How long the wake item is kept after a round, seconds (its DynamoDB TTL).
     pub wake_retention: u64,
+    /// How patient the cluster's verdict is (its `queue_limit` the leaderboard's
+    /// `max_queue_hours`).
+    pub policy: VerdictPolicy,
 }
 
 /// What the shell is asked to do next.
@@ -79,6 +83,9 @@ pub enum Step {
     /// Look at the submission's Jobs and pods ([`Answer::Observed`] or
     /// [`Answer::Unreachable`]).
     Observe,
+    /// Read these nodes: the kinds of those new pods run on, and whether the node of a pod
+    /// the kubelet evicted is leaving ([`Answer::Nodes`]).
+    ReadNodes(Vec<String>),
     /// When each Job's pair last wrote results (epoch seconds; [`Answer::ResultsWritten`]).
     ResultsWritten,
     /// Set these Jobs' `activeDeadlineSeconds` to these seconds: grown by the time reclaims
@@ -89,8 +96,16 @@ pub enum Step {
     MarkStarted(Vec<String>),
     /// List the workers' results ([`Answer::Listed`]).
     ListResults,
-    /// Read and merge the listed results ([`Answer::Collected`]).
-    CollectResults,
+    /// Read and merge the listed results of these pairs ([`Answer::Collected`]).
+    CollectResults {
+        /// The pairs and the routes each runs.
+        pairs: Vec<PairRoutes>,
+        /// Repetitions of each route.
+        repetitions: u32,
+    },
+    /// Keep the merged results and the files EvalAI gets in S3, before they are sent
+    /// ([`Answer::Stored`]).
+    StoreFiles,
     /// Send the merged results as a partial update ([`Answer::Posted`]).
     PostPartial,
     /// Write the S3 cancel marker ([`Answer::Done`]): the sidecars stop the Jobs.
@@ -104,8 +119,12 @@ pub enum Step {
         /// The participant image's digest every pod runs, once one was pulled.
         image: Option<String>,
     },
-    /// Whether every Job's logcopy is done ([`Answer::Ending`]).
-    CheckEnding,
+    /// The status markers written since the run's launch (epoch seconds;
+    /// [`Answer::Markers`]): whether every Job's logcopy is done.
+    ListMarkers {
+        /// The run's launch.
+        since: u64,
+    },
     /// The round is over: [`Round::finish`] gives the run state.
     Done,
 }
@@ -144,18 +163,18 @@ pub enum Collected {
     Unusable,
 }
 
-/// What the cluster showed this round.
+/// What the cluster showed this round, as the round judged it.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Sighting {
+struct Sighting {
     /// The Jobs, their pods and the verdict.
-    pub observation: Observation,
+    observation: Observation,
     /// The pods as the GPU count takes them and the kinds of the nodes new ones run on
     /// (`None`: a node could not be read, and the count waits for the next round).
-    pub counted: Option<(Vec<PodSeen>, BTreeMap<String, NodeKind>)>,
-    /// The patience the verdict was reached with: the round decides it again when the pairs
-    /// out of retries are known ([`Observation::give_up`]).
-    pub policy: VerdictPolicy,
+    counted: Option<(Vec<PodSeen>, BTreeMap<String, NodeKind>)>,
 }
+
+/// A node as the shell read it: its kind and its facts (`None`: it is gone).
+pub type NodeRead = Option<(NodeKind, NodeFacts)>;
 
 /// What the shell found doing a [`Step`].
 #[derive(Debug, Clone, PartialEq)]
@@ -177,7 +196,11 @@ pub enum Answer {
     /// What EvalAI did with the queue note.
     Shown(Write),
     /// The cluster as seen.
-    Observed(Box<Sighting>),
+    Observed(Box<Observation>),
+    /// The files EvalAI gets are in S3 (`false`: not this round, so nothing is sent).
+    Stored(bool),
+    /// The nodes asked for (`None`: one could not be read, and the count waits).
+    Nodes(Option<BTreeMap<String, NodeRead>>),
     /// The cluster's API was out of reach; the error's stable name.
     Unreachable(&'static str),
     /// When each Job's pair last wrote results.
@@ -190,8 +213,8 @@ pub enum Answer {
     Collected(Collected),
     /// What EvalAI did with the partial update.
     Posted(Write),
-    /// Every Job's logcopy is done.
-    Ending(bool),
+    /// The markers' names (`None`: not listed this round).
+    Markers(Option<Vec<String>>),
 }
 
 /// Where a round is: the stage whose step is outstanding.
@@ -226,6 +249,12 @@ pub struct Round {
     /// What EvalAI said of the submission this round (a write's refusal, a read).
     status: Option<SubmissionStatus>,
     sighting: Option<Sighting>,
+    /// The pods the GPU count takes, while the nodes it needs are read.
+    pods: Option<Vec<PodSeen>>,
+    /// The cluster's verdict, once the pairs out of retries are known.
+    verdict: Option<Verdict>,
+    /// What the shell is asked to do next.
+    next: Step,
     /// The place of the queue note being shown (`None`: the note goes).
     showing: Option<u32>,
     /// The listed fingerprint while results are read.
@@ -256,7 +285,7 @@ impl Round {
             }
         }
         monitor.events += history::round_events(cx.retries);
-        Round {
+        let mut round = Round {
             run,
             cx,
             stage: Stage::Adopt,
@@ -264,10 +293,15 @@ impl Round {
             cancel_flagged: false,
             status: None,
             sighting: None,
+            pods: None,
+            verdict: None,
+            next: Step::Done,
             showing: None,
             listed: None,
             merged: None,
-        }
+        };
+        round.next = round.drive();
+        round
     }
 
     /// The run state as the round leaves it so far.
@@ -276,7 +310,13 @@ impl Round {
     }
 
     /// What the shell does next; [`Step::Done`] once the round is over.
-    pub fn poll(&mut self) -> Step {
+    pub fn poll(&self) -> Step {
+        self.next.clone()
+    }
+
+    /// Moves to the next step: one that follows from the last answer, else the current
+    /// stage's, past the stages with nothing to do.
+    fn drive(&mut self) -> Step {
         if let Some(step) = self.pending.take() {
             return step;
         }
@@ -316,23 +356,7 @@ impl Round {
                 return Some(Step::TakeTurn { arrived_ms, limit });
             }
             Stage::Observe => return Some(Step::Observe),
-            Stage::Deadlines => {
-                let set = self.sighting.as_mut().map_or_else(Vec::new, |seen| {
-                    let usage = &self.run.monitor.usage;
-                    let jobs = &seen.observation.jobs;
-                    let spent = monitor::spent_pairs(jobs, usage);
-                    let set = monitor::deadlines_to_set(jobs, usage.deadline_extension(), &spent)
-                        .into_iter()
-                        .map(|(job, seconds)| (job.to_owned(), seconds))
-                        .collect();
-                    seen.observation.give_up(&spent, &seen.policy);
-                    set
-                });
-                if !set.is_empty() {
-                    return Some(Step::SetDeadlines(set));
-                }
-                self.advance(Stage::Started);
-            }
+            Stage::Deadlines => return self.deadlines(),
             Stage::Started => {
                 let jobs = self.sighting.as_ref().map(|seen| &seen.observation.jobs);
                 match jobs {
@@ -363,9 +387,38 @@ impl Round {
             },
             Stage::Cancel => return Some(Step::PutCancelMarker),
             Stage::Verdict => return Some(self.verdict()),
-            Stage::Ending => return Some(Step::CheckEnding),
+            Stage::Ending => {
+                let since = self.run.launched_at;
+                return Some(Step::ListMarkers { since });
+            }
             Stage::Done => return Some(Step::Done),
         }
+        None
+    }
+
+    /// The Jobs' deadlines to set (grown by the time reclaims cost, or ended for a pair out of
+    /// retries), and the cluster's verdict once those pairs are known.
+    fn deadlines(&mut self) -> Option<Step> {
+        let (expected, policy) = (self.run.jobs, &self.cx.policy);
+        let judged = self.sighting.as_ref().map(|seen| {
+            let usage = &self.run.monitor.usage;
+            let jobs = &seen.observation.jobs;
+            let spent = monitor::spent_pairs(jobs, usage);
+            let set: Vec<(String, u64)> =
+                monitor::deadlines_to_set(jobs, usage.deadline_extension(), &spent)
+                    .into_iter()
+                    .map(|(job, seconds)| (job.to_owned(), seconds))
+                    .collect();
+            (set, seen.observation.judge(expected, &spent, policy))
+        });
+        let set = judged.map_or_else(Vec::new, |(set, verdict)| {
+            self.verdict = Some(verdict);
+            set
+        });
+        if !set.is_empty() {
+            return Some(Step::SetDeadlines(set));
+        }
+        self.advance(Stage::Started);
         None
     }
 
@@ -373,6 +426,11 @@ impl Round {
     /// fits no outstanding step is a bug in the shell: the round ends there, with the run
     /// state as it stands (the next round starts from it).
     pub fn answer(&mut self, answer: Answer) {
+        self.take(answer);
+        self.next = self.drive();
+    }
+
+    fn take(&mut self, answer: Answer) {
         let now = self.cx.now;
         match (self.stage, answer) {
             (Stage::Adopt, Answer::Adopted(done)) => {
@@ -393,6 +451,7 @@ impl Round {
             }
             (Stage::Turn | Stage::Note, Answer::Shown(write)) => self.shown(write),
             (Stage::Observe, Answer::Observed(seen)) => self.observed(*seen),
+            (Stage::Observe, Answer::Nodes(nodes)) => self.nodes_read(nodes),
             (Stage::Observe, Answer::ResultsWritten(at)) => self.charge(&at),
             (Stage::Observe, Answer::Unreachable(error)) => self.unreachable(error),
             (Stage::Deadlines, Answer::Done) => self.advance(Stage::Started),
@@ -405,6 +464,12 @@ impl Round {
             (Stage::Note, Answer::Ahead(ahead)) => self.ahead(ahead),
             (Stage::Results, Answer::Listed(fingerprint)) => self.listed(fingerprint),
             (Stage::Results, Answer::Collected(collected)) => self.collected(collected),
+            (Stage::Results, Answer::Stored(true)) => self.pending = Some(Step::PostPartial),
+            (Stage::Results, Answer::Stored(false)) => {
+                self.merged = None;
+                self.shorten_wait(self.cx.partial_update_seconds);
+                self.advance(Stage::Status);
+            }
             (Stage::Results, Answer::Posted(write)) => self.posted(write),
             (Stage::Status, Answer::Status(status)) => {
                 self.read_status(status);
@@ -416,10 +481,10 @@ impl Round {
             }
             (Stage::Cancel, Answer::Done) => _ = self.end(RunPhase::Cancelled, None),
             (Stage::Verdict, Answer::Done) => self.advance(Stage::Ending),
-            (Stage::Ending, Answer::Ending(ending)) => {
+            (Stage::Ending, Answer::Markers(names)) => {
                 // Every Job's logcopy is done: the Jobs complete within seconds, and nothing
                 // more will land in S3 to wake us.
-                if ending {
+                if names.is_some_and(|names| self.logcopy_done(&names)) {
                     self.shorten_wait(ENDING_POLL.as_secs());
                 }
                 self.advance(Stage::Done);
@@ -439,6 +504,14 @@ impl Round {
             monitor.state = RunPhase::Continued;
         }
         self.run
+    }
+
+    /// Whether every Job of the run has written `logcopy-<J>.done`.
+    fn logcopy_done(&self, names: &[String]) -> bool {
+        (0..self.run.jobs).all(|job| {
+            let marker = Marker::LogcopyDone { job }.to_string();
+            names.contains(&marker)
+        })
     }
 
     fn advance(&mut self, stage: Stage) {
@@ -549,19 +622,68 @@ impl Round {
         }
     }
 
-    /// The cluster reached: the count of GPU time waits for the results' times when a pod
-    /// was taken away (its run-again time counts from its pair's last write).
-    fn observed(&mut self, mut seen: Sighting) {
+    /// The cluster reached: the pods the GPU count takes, and the nodes it must read first
+    /// (the kinds of those new pods run on, and whether an evicting kubelet's node is leaving).
+    fn observed(&mut self, observation: Observation) {
         self.run.monitor.unreachable_since = None;
-        seen.observation = seen.observation.expect_jobs(self.run.jobs);
-        let failed = crate::cost::failures(&seen.observation.jobs);
+        let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
         let usage = &self.run.monitor.usage;
-        let disrupted = seen.counted.as_ref().is_some_and(|(pods, _)| {
-            pods.iter()
-                .any(|p| p.disruption == Some(Disruption::Reclaim))
-                || usage.went_unfailed(pods, &failed)
+        let mut nodes = usage.unknown_nodes(&pods);
+        nodes.extend(usage.nodes_to_judge(&pods));
+        nodes.sort();
+        nodes.dedup();
+        self.sighting = Some(Sighting {
+            observation,
+            counted: None,
         });
-        self.sighting = Some(seen);
+        if nodes.is_empty() {
+            self.counted(pods, BTreeMap::new());
+        } else {
+            self.pods = Some(pods);
+            self.pending = Some(Step::ReadNodes(nodes));
+        }
+    }
+
+    /// The nodes read: new pods' kinds, and each kubelet's disruption judged by its node
+    /// ([`disruption::leaving`]). A node that could not be read leaves the count to the next
+    /// round.
+    fn nodes_read(&mut self, nodes: Option<BTreeMap<String, NodeRead>>) {
+        let pods = self.pods.take().unwrap_or_default();
+        let Some(nodes) = nodes else {
+            return self.charge(&BTreeMap::new());
+        };
+        let usage = &self.run.monitor.usage;
+        let read = |node: &String| nodes.get(node).and_then(Option::as_ref);
+        let kinds = (usage.unknown_nodes(&pods).into_iter())
+            .map(|node| {
+                let kind = read(&node).map(|(kind, _)| kind.clone());
+                (node, kind.unwrap_or_else(NodeKind::unknown))
+            })
+            .collect();
+        let leaving = (usage.nodes_to_judge(&pods).into_iter())
+            .map(|node| {
+                let leaving = disruption::leaving(read(&node).map(|(_, facts)| facts));
+                (node, leaving)
+            })
+            .collect();
+        let mut pods = pods;
+        cost::judge(&mut pods, &leaving);
+        self.counted(pods, kinds);
+    }
+
+    /// The pods counted: the count of GPU time waits for the results' times when a pod was
+    /// taken away (its run-again time counts from its pair's last write).
+    fn counted(&mut self, pods: Vec<PodSeen>, kinds: BTreeMap<String, NodeKind>) {
+        let Some(seen) = self.sighting.as_mut() else {
+            return self.charge(&BTreeMap::new());
+        };
+        let failed = cost::failures(&seen.observation.jobs);
+        let usage = &self.run.monitor.usage;
+        let disrupted = pods
+            .iter()
+            .any(|p| p.disruption == Some(Disruption::Reclaim))
+            || usage.went_unfailed(&pods, &failed);
+        seen.counted = Some((pods, kinds));
         if disrupted {
             self.pending = Some(Step::ResultsWritten);
         } else {
@@ -574,7 +696,7 @@ impl Round {
         if let Some(seen) = &self.sighting {
             if let Some((pods, kinds)) = &seen.counted {
                 let at = u64::try_from(seen.observation.observed_at.as_second()).unwrap_or(0);
-                let failed = crate::cost::failures(&seen.observation.jobs);
+                let failed = cost::failures(&seen.observation.jobs);
                 self.run
                     .monitor
                     .usage
@@ -616,7 +738,10 @@ impl Round {
             return self.advance(Stage::Status);
         }
         self.listed = Some(fingerprint);
-        self.pending = Some(Step::CollectResults);
+        self.pending = Some(Step::CollectResults {
+            pairs: self.run.pairs.clone(),
+            repetitions: self.run.repetitions,
+        });
     }
 
     fn collected(&mut self, collected: Collected) {
@@ -633,7 +758,7 @@ impl Round {
                     return self.advance(Stage::Status);
                 }
                 self.merged = Some((fingerprint, content));
-                self.pending = Some(Step::PostPartial);
+                self.pending = Some(Step::StoreFiles);
             }
             Collected::NotNow => {
                 self.shorten_wait(self.cx.partial_update_seconds);
@@ -679,8 +804,11 @@ impl Round {
         if let Some(reason) = monitor::hold_image(image, &seen.observation.jobs) {
             return self.end(RunPhase::Failed, Some(reason));
         }
+        let Some(verdict) = &self.verdict else {
+            return self.done();
+        };
         let monitor = &self.run.monitor;
-        match &seen.observation.verdict {
+        match verdict {
             Verdict::Running => {
                 let lost = monitor.usage.time_off(self.cx.now);
                 match (
@@ -710,9 +838,10 @@ impl Round {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cluster::{FailureKind, JobState, JobView};
-    use crate::run::{MonitorState, QueueState};
-    use crate::schedule::{MAX_EVALUATION, STATUS_FALLBACK};
+    use crate::cluster::view::{JobState, JobView};
+    use crate::run::schedule::{MAX_EVALUATION, STATUS_FALLBACK};
+    use crate::run::state::{MonitorState, QueueState};
+    use crate::status::PodPhase;
 
     const NOW: u64 = 1_000_000;
     const INTERVAL: u64 = 20;
@@ -748,26 +877,27 @@ mod tests {
             note_interval: 300,
             prices: BTreeMap::new(),
             wake_retention: 3600,
+            policy: VerdictPolicy::default(),
         }
     }
 
-    /// The cluster with its one Job `started` or still pending, and this verdict.
-    fn seen(started: bool, verdict: Verdict) -> Answer {
-        let state = if started {
-            JobState::Complete
-        } else {
-            JobState::Pending
-        };
-        Answer::Observed(Box::new(Sighting {
-            observation: Observation {
-                submission_id: "7".into(),
-                observed_at: jiff::Timestamp::from_second(NOW as i64).unwrap(),
-                jobs: vec![crate::testutil::job("lb-7-0", state, None)],
-                stray_pods: Vec::new(),
-                verdict,
-            },
-            counted: Some((Vec::new(), BTreeMap::new())),
-            policy: VerdictPolicy::default(),
+    /// The cluster with its one Job in `state`, its pod running when `started`.
+    fn seen(started: bool, state: JobState) -> Answer {
+        let mut job = crate::testutil::job("lb-7-0", state, None);
+        if started {
+            let pod = crate::testutil::pod("lb-7-0-a", "lb-7-0", PodPhase::Running);
+            job.pods.push(pod);
+        }
+        observed(vec![job])
+    }
+
+    /// The cluster with these Jobs.
+    fn observed(jobs: Vec<JobView>) -> Answer {
+        Answer::Observed(Box::new(Observation {
+            submission_id: "7".into(),
+            observed_at: jiff::Timestamp::from_second(NOW as i64).unwrap(),
+            jobs,
+            stray_pods: Vec::new(),
         }))
     }
 
@@ -793,14 +923,15 @@ mod tests {
 
     /// A world where nothing happens: the wake count read, the cluster running, the results
     /// as last sent, EvalAI saying `running`.
-    fn quiet(verdict: Verdict) -> impl FnMut(&Step) -> Answer {
+    fn quiet(state: JobState) -> impl FnMut(&Step) -> Answer {
         move |step| match step {
             Step::Adopt(_) => Answer::Adopted(true),
             Step::ReadWake => Answer::Wake(Some((4, false))),
-            Step::Observe => seen(true, verdict.clone()),
+            Step::Observe => seen(true, state.clone()),
             Step::ListResults => Answer::Listed(Some("etag-1".into())),
             Step::ReadStatus(_) => Answer::Status(Some(SubmissionStatus::Running)),
-            Step::CheckEnding => Answer::Ending(false),
+            Step::StoreFiles => Answer::Stored(true),
+            Step::ListMarkers { .. } => Answer::Markers(Some(Vec::new())),
             _ => Answer::Done,
         }
     }
@@ -823,15 +954,17 @@ mod tests {
                 Step::ComposeNote(..) => "compose",
                 Step::ShowPlace(_) => "show",
                 Step::Observe => "observe",
+                Step::ReadNodes(_) => "nodes",
                 Step::ResultsWritten => "written",
                 Step::SetDeadlines(_) => "deadlines",
                 Step::MarkStarted(_) => "started",
                 Step::ListResults => "list",
-                Step::CollectResults => "collect",
+                Step::CollectResults { .. } => "collect",
+                Step::StoreFiles => "store",
                 Step::PostPartial => "post",
                 Step::PutCancelMarker => "cancel",
                 Step::RecordRunning { .. } => "record",
-                Step::CheckEnding => "ending",
+                Step::ListMarkers { .. } => "ending",
                 Step::Done => "done",
             })
             .collect()
@@ -839,7 +972,7 @@ mod tests {
 
     #[test]
     fn a_quiet_running_round_records_progress_and_reads_nothing_it_does_not_need() {
-        let (steps, run) = drive(started(run(true)), cx(), quiet(Verdict::Running));
+        let (steps, run) = drive(started(run(true)), cx(), quiet(JobState::Running));
         assert_eq!(
             kinds(&steps),
             ["wake", "observe", "list", "record", "ending"]
@@ -859,7 +992,7 @@ mod tests {
                 assert_eq!(*read, StatusRead::ConfirmCancel);
                 Answer::Status(Some(SubmissionStatus::Cancelled))
             }
-            other => quiet(Verdict::Finished)(other),
+            other => quiet(JobState::Complete)(other),
         });
         assert_eq!(
             kinds(&steps),
@@ -873,7 +1006,7 @@ mod tests {
     fn a_flag_evalai_does_not_confirm_leaves_the_verdict_to_decide() {
         let (steps, run) = drive(started(run(true)), cx(), |step| match step {
             Step::ReadWake => Answer::Wake(Some((5, true))),
-            other => quiet(Verdict::Finished)(other),
+            other => quiet(JobState::Complete)(other),
         });
         assert_eq!(kinds(&steps), ["wake", "observe", "list", "status"]);
         assert_eq!(run.monitor.state, RunPhase::Finished);
@@ -884,7 +1017,7 @@ mod tests {
         let mut waiting = run(true);
         waiting.monitor.status_read_at = Some(NOW);
         let (steps, run) = drive(waiting, cx(), |step| match step {
-            Step::Observe => seen(false, Verdict::Running),
+            Step::Observe => seen(false, JobState::Pending),
             Step::ReadAhead => Answer::Ahead(Some((3, 1))),
             Step::ComposeNote(place, hold) => {
                 assert_eq!((*place, *hold), ((3, 0, 1), Hold::Capacity));
@@ -894,7 +1027,7 @@ mod tests {
                 assert_eq!(note, &Some((3, "3 ahead".into())));
                 Answer::Shown(Write::Cancelled)
             }
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(
             kinds(&steps),
@@ -908,18 +1041,18 @@ mod tests {
     fn changed_results_go_once_per_interval_and_hold_the_next_wait() {
         let world = |step: &Step| match step {
             Step::ListResults => Answer::Listed(Some("etag-2".into())),
-            Step::CollectResults => Answer::Collected(Collected::Merged {
+            Step::CollectResults { .. } => Answer::Collected(Collected::Merged {
                 progress: (3, 10),
                 fingerprint: "etag-2".into(),
                 content: "records-2".into(),
             }),
             Step::PostPartial => Answer::Posted(Write::Written),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         };
         let (steps, run) = drive(started(run(true)), cx(), world);
         assert_eq!(
             kinds(&steps),
-            ["wake", "observe", "list", "collect", "post", "record", "ending"]
+            ["wake", "observe", "list", "collect", "store", "post", "record", "ending"]
         );
         assert_eq!(run.monitor.fingerprint.as_deref(), Some("etag-2"));
         assert_eq!(run.monitor.posted.as_deref(), Some("records-2"));
@@ -947,12 +1080,12 @@ mod tests {
         sent.monitor.posted = Some("records-2".into());
         let (steps, run) = drive(sent, cx(), |step| match step {
             Step::ListResults => Answer::Listed(Some("etag-3".into())),
-            Step::CollectResults => Answer::Collected(Collected::Merged {
+            Step::CollectResults { .. } => Answer::Collected(Collected::Merged {
                 progress: (3, 10),
                 fingerprint: "etag-3".into(),
                 content: "records-2".into(),
             }),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(
             kinds(&steps),
@@ -983,9 +1116,9 @@ mod tests {
         ] {
             let (_, run) = drive(started(run(true)), cx(), |step| match step {
                 Step::ListResults => Answer::Listed(Some("etag-2".into())),
-                Step::CollectResults => Answer::Collected(collected.clone()),
+                Step::CollectResults { .. } => Answer::Collected(collected.clone()),
                 Step::PostPartial => Answer::Posted(posted),
-                other => quiet(Verdict::Running)(other),
+                other => quiet(JobState::Running)(other),
             });
             assert_eq!(run.monitor.wait_seconds, INTERVAL);
             assert_eq!(run.monitor.fingerprint.as_deref(), Some("etag-1"));
@@ -993,8 +1126,8 @@ mod tests {
         // Broken files are not read again until they change.
         let (_, run) = drive(started(run(true)), cx(), |step| match step {
             Step::ListResults => Answer::Listed(Some("etag-3".into())),
-            Step::CollectResults => Answer::Collected(Collected::Unusable),
-            other => quiet(Verdict::Running)(other),
+            Step::CollectResults { .. } => Answer::Collected(Collected::Unusable),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(run.monitor.fingerprint.as_deref(), Some("etag-3"));
     }
@@ -1003,7 +1136,7 @@ mod tests {
     fn an_unreachable_cluster_skips_the_verdict_until_the_leaderboard_s_bound() {
         let world = |step: &Step| match step {
             Step::Observe => Answer::Unreachable("KubeUnavailable"),
-            other => quiet(Verdict::Finished)(other),
+            other => quiet(JobState::Complete)(other),
         };
         let (steps, run) = drive(started(run(true)), cx(), world);
         assert_eq!(kinds(&steps), ["wake", "observe", "list"]);
@@ -1038,7 +1171,7 @@ mod tests {
                 assert_eq!(note, &None);
                 Answer::Shown(Write::Written)
             }
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(
             kinds(&steps),
@@ -1051,7 +1184,7 @@ mod tests {
         let (_, run) = drive(self::run(true), cx(), |step| match step {
             Step::MarkStarted(_) => Answer::Started(false),
             Step::ReadAhead => Answer::Ahead(None),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(run.monitor.started_at, None);
     }
@@ -1069,7 +1202,7 @@ mod tests {
                 assert_eq!((*arrived_ms, *limit), ((NOW - 600) * 1000, 2));
                 Answer::Turn(standing(true))
             }
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(kinds(&steps), ["wake", "turn"]);
         assert_eq!(run.monitor.state, RunPhase::Admitted);
@@ -1081,7 +1214,7 @@ mod tests {
                 Answer::Note("4 ahead".into())
             }
             Step::ShowPlace(_) => Answer::Shown(Write::Written),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(kinds(&steps), ["wake", "turn", "compose", "show"]);
         assert_eq!((run.queue.shown, run.queue.shown_at), (Some(4), Some(NOW)));
@@ -1097,14 +1230,14 @@ mod tests {
         let (steps, run) = drive(run(false), cx(), |step| match step {
             Step::ReadWake => Answer::Wake(Some((1, true))),
             Step::ReadStatus(_) => Answer::Status(Some(SubmissionStatus::Cancelled)),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(kinds(&steps), ["wake", "status"]);
         assert_eq!(run.monitor.state, RunPhase::Cancelled);
 
         let mut long = self::run(false);
         long.queue.arrived_at = NOW - 24 * 3600;
-        let (steps, run) = drive(long, cx(), quiet(Verdict::Running));
+        let (steps, run) = drive(long, cx(), quiet(JobState::Running));
         assert_eq!(kinds(&steps), ["wake"]);
         assert_eq!(run.monitor.state, RunPhase::Failed);
         assert!(run
@@ -1118,7 +1251,7 @@ mod tests {
     fn an_unread_wake_count_makes_the_next_wait_a_poll() {
         let (_, run) = drive(started(run(true)), cx(), |step| match step {
             Step::ReadWake => Answer::Wake(None),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert!(run.monitor.poll);
         assert_eq!(run.monitor.wait_seconds, POLL_WITHOUT_WAKE.as_secs());
@@ -1128,7 +1261,7 @@ mod tests {
     fn the_status_fallback_is_read_when_due_and_yields_to_an_update() {
         let mut stale = started(run(true));
         stale.monitor.status_read_at = Some(NOW - STATUS_FALLBACK.as_secs());
-        let (steps, _) = drive(stale.clone(), cx(), quiet(Verdict::Running));
+        let (steps, _) = drive(stale.clone(), cx(), quiet(JobState::Running));
         assert_eq!(
             kinds(&steps),
             ["wake", "observe", "list", "status", "record", "ending"]
@@ -1136,38 +1269,37 @@ mod tests {
         // A partial update's own read of the status stands for it.
         let (steps, _) = drive(stale, cx(), |step| match step {
             Step::ListResults => Answer::Listed(Some("etag-2".into())),
-            Step::CollectResults => Answer::Collected(Collected::Merged {
+            Step::CollectResults { .. } => Answer::Collected(Collected::Merged {
                 progress: (1, 10),
                 fingerprint: "etag-2".into(),
                 content: "records-2".into(),
             }),
             Step::PostPartial => Answer::Posted(Write::Written),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert!(!kinds(&steps).contains(&"status"), "{steps:?}");
     }
 
     #[test]
     fn the_verdict_ends_a_finished_failed_or_overrun_run() {
-        let (_, run) = drive(started(run(true)), cx(), quiet(Verdict::Finished));
+        let (_, run) = drive(started(run(true)), cx(), quiet(JobState::Complete));
         assert_eq!(run.monitor.state, RunPhase::Finished);
 
-        let failed = Verdict::Failed {
-            kind: FailureKind::ParticipantImagePull,
-            job: None,
-            container: None,
-            message: "the image cannot be pulled".into(),
+        let failed = JobState::Failed {
+            reason: "BackoffLimitExceeded".into(),
+            message: "Job has reached the specified backoff limit".into(),
         };
         let (_, run) = drive(started(self::run(true)), cx(), quiet(failed));
         assert_eq!(run.monitor.state, RunPhase::Failed);
-        assert_eq!(
-            run.monitor.reason.as_deref(),
-            Some("the image cannot be pulled")
+        let reason = run.monitor.reason.unwrap();
+        assert!(
+            reason.contains("failed more often than the retry limit"),
+            "{reason}"
         );
 
         let mut long = started(self::run(true));
         long.monitor.started_at = Some(NOW - MAX_EVALUATION.as_secs() - 1);
-        let (steps, run) = drive(long, cx(), quiet(Verdict::Running));
+        let (steps, run) = drive(long, cx(), quiet(JobState::Running));
         assert!(!kinds(&steps).contains(&"record"));
         assert_eq!(run.monitor.state, RunPhase::Failed);
         assert!(run.monitor.reason.unwrap().contains("72 hours"));
@@ -1176,8 +1308,8 @@ mod tests {
     #[test]
     fn every_job_s_logcopy_done_shortens_the_wait() {
         let (_, run) = drive(started(run(true)), cx(), |step| match step {
-            Step::CheckEnding => Answer::Ending(true),
-            other => quiet(Verdict::Running)(other),
+            Step::ListMarkers { .. } => Answer::Markers(Some(vec!["logcopy-0.done".into()])),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(run.monitor.wait_seconds, ENDING_POLL.as_secs());
     }
@@ -1195,11 +1327,11 @@ mod tests {
                 assert_eq!(execution, "exec-1-c1");
                 Answer::Adopted(false)
             }
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(kinds(&steps)[..2], ["adopt", "wake"]);
         assert!(run.monitor.handover, "tried again next round");
-        let (steps, run) = drive(run, cx, quiet(Verdict::Running));
+        let (steps, run) = drive(run, cx, quiet(JobState::Running));
         assert_eq!(kinds(&steps)[..3], ["adopt", "wake", "observe"]);
         assert!(!run.monitor.handover);
     }
@@ -1216,43 +1348,190 @@ mod tests {
         assert_eq!(run.monitor.generation, 1);
     }
 
+    /// The cluster with one running pod of Job 0 on `node`, started a minute ago, evicted by
+    /// its kubelet when `evicted`.
+    fn on_node(node: &str, evicted: bool) -> Answer {
+        let mut pod = crate::testutil::pod("lb-7-0-a", "lb-7-0", PodPhase::Running);
+        pod.node = Some(node.into());
+        pod.start_time = Some(jiff::Timestamp::from_second(NOW as i64 - 60).unwrap());
+        if evicted {
+            pod.disruption = Some(crate::cluster::disruption::BY_KUBELET.into());
+        }
+        let mut job = crate::testutil::job("lb-7-0", JobState::Running, None);
+        job.pods.push(pod);
+        observed(vec![job])
+    }
+
+    fn node(capacity: &str, leaving: bool) -> NodeRead {
+        let kind = NodeKind {
+            instance_type: "g5.12xlarge".into(),
+            capacity: crate::capacity::cost::CapacityType::from_label(Some(capacity)),
+        };
+        let facts = NodeFacts {
+            unschedulable: leaving,
+            taints: Vec::new(),
+            ready: true,
+        };
+        Some((kind, facts))
+    }
+
+    #[test]
+    fn the_round_reads_the_node_of_a_new_pod_once_and_counts_its_gpus_on_that_kind() {
+        let mut asked = Vec::new();
+        let (steps, run) = drive(started(run(true)), cx(), |step| match step {
+            Step::Observe => on_node("n1", false),
+            Step::ReadNodes(nodes) => {
+                asked.push(nodes.clone());
+                Answer::Nodes(Some(BTreeMap::from([("n1".into(), node("SPOT", false))])))
+            }
+            other => quiet(JobState::Running)(other),
+        });
+        assert_eq!(asked, [vec!["n1".to_string()]]);
+        assert_eq!(kinds(&steps)[..3], ["wake", "observe", "nodes"]);
+        let line = &run.monitor.usage.lines[0];
+        assert_eq!(
+            line.kind.capacity,
+            crate::capacity::cost::CapacityType::Spot
+        );
+        assert_eq!(line.held, 60);
+    }
+
+    #[test]
+    fn a_node_that_cannot_be_read_leaves_the_count_to_the_next_round() {
+        let (steps, run) = drive(started(run(true)), cx(), |step| match step {
+            Step::Observe => on_node("n1", false),
+            Step::ReadNodes(_) => Answer::Nodes(None),
+            other => quiet(JobState::Running)(other),
+        });
+        assert!(
+            kinds(&steps).contains(&"record"),
+            "the round goes on: {steps:?}"
+        );
+        assert!(run.monitor.usage.lines.is_empty());
+    }
+
+    #[test]
+    fn a_kubelet_eviction_is_a_reclaim_on_a_leaving_node_and_the_pods_own_on_a_staying_one() {
+        for (leaving, reclaim) in [(true, true), (false, false)] {
+            let (steps, _) = drive(started(run(true)), cx(), |step| match step {
+                Step::Observe => on_node("n2", true),
+                Step::ReadNodes(nodes) => {
+                    assert_eq!(nodes, &["n2".to_string()]);
+                    Answer::Nodes(Some(BTreeMap::from([(
+                        "n2".into(),
+                        node("ON_DEMAND", leaving),
+                    )])))
+                }
+                Step::ResultsWritten => Answer::ResultsWritten(BTreeMap::new()),
+                other => quiet(JobState::Running)(other),
+            });
+            // A reclaim asks when the pair last wrote results: its time since is run again.
+            assert_eq!(
+                kinds(&steps).contains(&"written"),
+                reclaim,
+                "leaving {leaving}: {steps:?}"
+            );
+        }
+        // A node gone is judged leaving.
+        let (steps, _) = drive(started(run(true)), cx(), |step| match step {
+            Step::Observe => on_node("n3", true),
+            Step::ReadNodes(_) => Answer::Nodes(Some(BTreeMap::from([("n3".into(), None)]))),
+            Step::ResultsWritten => Answer::ResultsWritten(BTreeMap::new()),
+            other => quiet(JobState::Running)(other),
+        });
+        assert!(kinds(&steps).contains(&"written"), "{steps:?}");
+    }
+
+    #[test]
+    fn results_not_stored_are_not_sent_and_the_wait_shortens_to_the_interval() {
+        let (steps, run) = drive(started(run(true)), cx(), |step| match step {
+            Step::ListResults => Answer::Listed(Some("etag-2".into())),
+            Step::CollectResults { .. } => Answer::Collected(Collected::Merged {
+                progress: (3, 10),
+                fingerprint: "etag-2".into(),
+                content: "c2".into(),
+            }),
+            Step::StoreFiles => Answer::Stored(false),
+            other => quiet(JobState::Running)(other),
+        });
+        assert!(!kinds(&steps).contains(&"post"), "{steps:?}");
+        assert_eq!(run.monitor.wait_seconds, INTERVAL);
+        assert_ne!(run.monitor.fingerprint.as_deref(), Some("etag-2"));
+    }
+
+    #[test]
+    fn the_cluster_verdict_is_the_rounds_own_with_the_leaderboard_s_patience() {
+        // A Job gone from a run of two fails it, however the other ends.
+        let mut two = started(run(true));
+        two.jobs = 2;
+        let (_, after) = drive(two, cx(), quiet(JobState::Complete));
+        assert_eq!(after.monitor.state, RunPhase::Failed);
+        assert!(after.monitor.reason.unwrap().contains("index 1 of 2"));
+        // A pod waiting for capacity past the leaderboard's queue limit fails the run; within
+        // it, the run waits.
+        let mut pod = crate::testutil::pod("lb-7-0-a", "lb-7-0", PodPhase::Pending);
+        pod.unschedulable = Some(crate::cluster::view::Unschedulable {
+            since: Some(jiff::Timestamp::from_second(NOW as i64 - 7200).unwrap()),
+            message: "0/3 nodes are available: 3 Insufficient nvidia.com/gpu.".into(),
+        });
+        let mut job = crate::testutil::job("lb-7-0", JobState::Pending, None);
+        job.pods.push(pod);
+        for (limit_hours, ends) in [(1, true), (3, false)] {
+            let mut cx = cx();
+            cx.policy.queue_limit = Duration::from_secs(limit_hours * 3600);
+            let seen = observed(vec![job.clone()]);
+            let (steps, after) = drive(run(true), cx, |step| match step {
+                Step::Observe => seen.clone(),
+                Step::ReadAhead => Answer::Ahead(None),
+                Step::ListResults => Answer::Listed(None),
+                other => quiet(JobState::Running)(other),
+            });
+            let failed = after.monitor.state == RunPhase::Failed;
+            assert_eq!(
+                failed, ends,
+                "{limit_hours} h: {steps:?} {:?}",
+                after.monitor
+            );
+        }
+    }
+
     #[test]
     fn the_jobs_deadlines_grow_by_the_time_reclaims_cost() {
         let mut reclaimed = started(run(true));
         reclaimed.monitor.usage.lost = 600;
-        let mut observed = seen(true, Verdict::Running);
+        let mut observed = seen(true, JobState::Running);
         if let Answer::Observed(seen) = &mut observed {
-            seen.observation.jobs[0].state = JobState::Running;
-            seen.observation.jobs[0].deadline = Some(crate::schedule::JOB_DEADLINE.as_secs());
+            seen.jobs[0].state = JobState::Running;
+            seen.jobs[0].deadline = Some(crate::run::schedule::JOB_DEADLINE.as_secs());
         }
         let (steps, _) = drive(reclaimed, cx(), |step| match step {
             Step::Observe => observed.clone(),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
-        let wanted = crate::schedule::JOB_DEADLINE.as_secs() + 600;
+        let wanted = crate::run::schedule::JOB_DEADLINE.as_secs() + 600;
         assert!(steps.contains(&Step::SetDeadlines(vec![("lb-7-0".into(), wanted)])));
     }
 
     #[test]
     fn the_72_hour_limit_binds_whatever_the_pods_do() {
         let max = MAX_EVALUATION.as_secs();
-        let off = crate::disruption::MAX_TIME_OFF;
+        let off = crate::cluster::disruption::MAX_TIME_OFF;
         // However much time reclaims cost (here the whole run, and more), at most the cap is
         // taken off the limit, and the Jobs' deadlines grow by no more.
         for (running_for, ends) in [(max + off, false), (max + off + 1, true)] {
             let mut run = started(run(true));
             run.monitor.started_at = Some(NOW - running_for);
             run.monitor.usage.lost = 10 * max;
-            let mut observed = seen(true, Verdict::Running);
+            let mut observed = seen(true, JobState::Running);
             if let Answer::Observed(seen) = &mut observed {
-                seen.observation.jobs[0].state = JobState::Running;
-                seen.observation.jobs[0].deadline = Some(crate::schedule::JOB_DEADLINE.as_secs());
+                seen.jobs[0].state = JobState::Running;
+                seen.jobs[0].deadline = Some(crate::run::schedule::JOB_DEADLINE.as_secs());
             }
             let (steps, run) = drive(run, cx(), |step| match step {
                 Step::Observe => observed.clone(),
-                other => quiet(Verdict::Running)(other),
+                other => quiet(JobState::Running)(other),
             });
-            let wanted = crate::schedule::JOB_DEADLINE.as_secs() + off;
+            let wanted = crate::run::schedule::JOB_DEADLINE.as_secs() + off;
             assert!(steps.contains(&Step::SetDeadlines(vec![("lb-7-0".into(), wanted)])));
             assert_eq!(run.monitor.state == RunPhase::Failed, ends, "{running_for}");
         }
@@ -1264,7 +1543,7 @@ mod tests {
             index: Some(index),
             failed,
             state: JobState::Running,
-            deadline: Some(crate::schedule::JOB_DEADLINE.as_secs()),
+            deadline: Some(crate::run::schedule::JOB_DEADLINE.as_secs()),
             ..crate::testutil::job(name, JobState::Running, None)
         };
         // Pair 1: 2 crashes its Job counted and 3 kubelet evictions on a healthy node the
@@ -1276,23 +1555,11 @@ mod tests {
         let observe = |first: JobState, second: JobState| {
             let mut jobs = vec![job("lb-7-0", 0, 2), job("lb-7-1", 1, 4)];
             (jobs[0].state, jobs[1].state) = (first, second);
-            let at = jiff::Timestamp::from_second(NOW as i64).unwrap();
-            let verdict = cluster::verdict(&jobs, at, &VerdictPolicy::default());
-            Answer::Observed(Box::new(Sighting {
-                observation: Observation {
-                    submission_id: "7".into(),
-                    observed_at: at,
-                    jobs,
-                    stray_pods: Vec::new(),
-                    verdict,
-                },
-                counted: Some((Vec::new(), BTreeMap::new())),
-                policy: VerdictPolicy::default(),
-            }))
+            observed(jobs)
         };
         let (steps, after) = drive(run.clone(), cx(), |step| match step {
             Step::Observe => observe(JobState::Running, JobState::Running),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         let end = vec![("lb-7-0".to_string(), monitor::END_NOW)];
         assert!(steps.contains(&Step::SetDeadlines(end)), "{steps:?}");
@@ -1305,14 +1572,14 @@ mod tests {
         };
         let (steps, after) = drive(run.clone(), cx(), |step| match step {
             Step::Observe => observe(deadline.clone(), JobState::Running),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert!(!kinds(&steps).contains(&"deadlines"), "{steps:?}");
         assert_eq!(after.monitor.state, RunPhase::Running);
         // Once the neighbour is done, the submission ends as when pairs give up, saying why.
         let (_, after) = drive(run, cx(), |step| match step {
             Step::Observe => observe(deadline.clone(), JobState::Complete),
-            other => quiet(Verdict::Running)(other),
+            other => quiet(JobState::Running)(other),
         });
         assert_eq!(after.monitor.state, RunPhase::Failed);
         let reason = after.monitor.reason.unwrap();

@@ -10,7 +10,7 @@
 
 use std::collections::HashMap;
 
-use crate::protocol::{recorder_dir, recording_of, PairId, RECORDER_DIR};
+use crate::job::protocol::{recorder_dir, recording_of, PairId, RECORDER_DIR};
 
 /// The first bytes of every CARLA recording (`CarlaRecorderInfo`): format version 1 as a
 /// little-endian `u16`, then the magic as an `FString` (a `u16` length, 14, and its bytes).

@@ -159,7 +159,7 @@ mod tests {
         assert_eq!(state["intake"]["action"], "run");
         assert_eq!(finalize_state(json!([1]), "E", "c"), json!([1]));
         assert_eq!(
-            crate::finalize::caught_error(&state).as_deref(),
+            crate::run::finalize::caught_error(&state).as_deref(),
             Some("ExecutionAborted: stopped")
         );
         // The participant reads the reaper's plain words, never only an error name.
@@ -167,9 +167,9 @@ mod tests {
             panic!("reaped")
         };
         let state = finalize_state(json!({}), error, &cause);
-        let caught = crate::finalize::caught_error(&state).unwrap();
+        let caught = crate::run::finalize::caught_error(&state).unwrap();
         assert_eq!(
-            crate::finalize::participant_reason(&caught),
+            crate::run::finalize::participant_reason(&caught),
             "the evaluation was stopped by an operator before it finished, not because of your agent; the organisers have been alerted"
         );
     }

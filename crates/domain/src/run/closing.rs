@@ -6,22 +6,29 @@
 //! nothing, and a repeated one reports what stands and gives the place back. Otherwise the
 //! Jobs stop first (GPUs cost money, and their logcopy makes its last upload on the way out),
 //! then what the run left is read and the final status decided
-//! ([`crate::finalize::outcome`]); results that cannot be read for now fail the attempt (the
+//! ([`crate::run::finalize::outcome`]); results that cannot be read for now fail the attempt (the
 //! state machine retries it) unless the outcome does not need them. A failed run's
 //! participant reads the end of its most crashed agent's log; a passed qualifier admits its
 //! team. EvalAI gets the final word before the record, and the place is given back last, so
 //! the team never shows more evaluations in progress than its cap.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
-use crate::audit::{self, Recordings, Window};
-use crate::finalize::{self, Outcome, Posted};
-use crate::protocol::CANCEL_MARKER;
-use crate::py::Num;
-use crate::run::{RunPhase, RunState};
+use crate::capacity::cost::{InstancePrice, Totals};
+use crate::job::logtail::{participant_tail, MAX_TAIL_CHARS};
+use crate::job::protocol::{self, CANCEL_MARKER, LOGS_DIR};
+use crate::job::uploads::{self, UploadReport};
+use crate::results::py::Num;
+use crate::run::audit::{self, Recordings, Window};
+use crate::run::finalize::{self, Outcome, Posted};
+use crate::run::state::{PairRoutes, RunPhase, RunState};
 use crate::settings::QualifierSettings;
 use crate::status::{RecordStatus, Settled};
 use crate::submission::SubmissionStatus;
+
+/// Bytes read from the end of an agent's log: enough for [`MAX_TAIL_CHARS`] characters of
+/// multi-byte text and the escapes that are stripped from it.
+pub const TAIL_BYTES: u64 = 64 * 1024;
 
 /// What Finalize knows before it reads anything.
 #[derive(Debug, Clone, Copy)]
@@ -36,22 +43,40 @@ pub struct Context<'a> {
     pub track: &'a str,
     /// The qualifier's settings, when the track is a qualifier.
     pub qualifier: Option<&'a QualifierSettings>,
+    /// Now, epoch seconds: the pods still running at the last round are charged until now.
+    pub now: u64,
+    /// The GPU prices the run's usage is priced at.
+    pub prices: &'a BTreeMap<String, InstancePrice>,
 }
 
 /// What the shell is asked to do next.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Step {
     /// Read the submission's record ([`Answer::Standing`]).
     ReadStanding,
     /// Delete this execution's Jobs and wait, bounded, for their pods ([`Answer::Done`]).
     StopJobs,
-    /// Read the markers, and the merged results when there was a run ([`Answer::Left`]).
-    ReadLeft,
+    /// Read the markers, and the merged results of these pairs when there was a run
+    /// ([`Answer::Left`]).
+    ReadLeft {
+        /// The run's pairs and the repetitions of each route (`None`: no run).
+        results: Option<(Vec<PairRoutes>, u32)>,
+    },
+    /// Keep the merge and the files EvalAI gets in S3, before the final update
+    /// ([`Answer::Done`]).
+    StoreFiles,
     /// The results could not be read for now and the outcome needs them: fail with the
     /// read's error, so the state machine tries Finalize again.
     TryAgain,
-    /// Read the end of this pair's agent log ([`Answer::Tail`]).
-    ReadAgentTail(u32),
+    /// Read the end of the agent's log at this key, at most `bytes` ([`Answer::Tail`]).
+    ReadAgentTail {
+        /// The log's key under the submission.
+        key: String,
+        /// How much of its end.
+        bytes: u64,
+    },
+    /// Read the upload reports of the run's Jobs at these keys ([`Answer::Reports`]).
+    ReadReports(Vec<String>),
     /// Admit the team to these main tracks: it passed their qualifier ([`Answer::Done`]).
     Admit(Vec<String>),
     /// Post the final update to EvalAI ([`Answer::Posted`]).
@@ -77,9 +102,15 @@ pub enum Step {
         /// What can be audited of a FINISHED result (`None`: another outcome, or the logs
         /// could not be listed).
         recordings: Option<Recordings>,
+        /// What the run used: its pods charged until now, its orchestration so far and what
+        /// its Jobs' logcopy stored; `None` without a run.
+        usage: Option<Totals>,
     },
     /// Add this run's duration to its track's pace, best effort ([`Answer::Done`]).
-    RecordPace,
+    RecordPace {
+        /// Seconds from its first pair's start to now.
+        seconds: u64,
+    },
     /// Give the team its place back and wake its next submission ([`Answer::Done`]).
     LeaveQueue,
     /// Finalize is over: [`Closing::finish`] says what stands.
@@ -143,8 +174,10 @@ pub enum Answer {
     Standing(Option<Record>),
     /// What the run left.
     Left(Left),
-    /// The end of the agent's log, made fit to show (`None`: unreadable or empty).
-    Tail(Option<String>),
+    /// The end of the agent's log as stored (`None`: unreadable or absent).
+    Tail(Option<Vec<u8>>),
+    /// The upload reports that could be read and are reports.
+    Reports(Vec<UploadReport>),
     /// What EvalAI did with the final update.
     Posted(Posted),
     /// The recordings folder: (submission-relative key, size) (`None`: not listed).
@@ -160,6 +193,8 @@ enum Stage {
     Standing,
     Stop,
     Read,
+    /// Keeping the merged results, then on to [`Closing::after_store`].
+    Store,
     TryAgain,
     /// Reading this pair's agent log.
     Tail(u32),
@@ -178,6 +213,8 @@ enum Stage {
 pub struct Closing<'a> {
     cx: Context<'a>,
     stage: Stage,
+    /// Where the closing goes once the merge is kept.
+    after_store: Stage,
     /// What stands once decided, and why.
     settled: Option<(Settled, Option<String>)>,
     outcome: Option<Outcome>,
@@ -187,6 +224,9 @@ pub struct Closing<'a> {
     /// The qualifier's verdict and the tracks a pass admits to.
     verdict: Option<(String, Vec<String>)>,
     recordings: Option<Recordings>,
+    /// What the Jobs' logcopy stored and refused, added up, once the reports are read
+    /// (`Some(None)`: none could be read).
+    reports: Option<Option<UploadReport>>,
     /// The recordings listed, until their heads are read.
     listed: Option<Vec<(String, u64)>>,
 }
@@ -197,12 +237,14 @@ impl<'a> Closing<'a> {
         Closing {
             cx,
             stage: Stage::Standing,
+            after_store: Stage::Done,
             settled: None,
             outcome: None,
             merged: None,
             tail: None,
             verdict: None,
             recordings: None,
+            reports: None,
             listed: None,
         }
     }
@@ -212,9 +254,15 @@ impl<'a> Closing<'a> {
         match self.stage {
             Stage::Standing => Step::ReadStanding,
             Stage::Stop => Step::StopJobs,
-            Stage::Read => Step::ReadLeft,
+            Stage::Read => Step::ReadLeft {
+                results: (self.cx.run).map(|run| (run.pairs.clone(), run.repetitions)),
+            },
+            Stage::Store => Step::StoreFiles,
             Stage::TryAgain => Step::TryAgain,
-            Stage::Tail(pair) => Step::ReadAgentTail(pair),
+            Stage::Tail(pair) => Step::ReadAgentTail {
+                key: format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair)),
+                bytes: TAIL_BYTES,
+            },
             Stage::Admit => Step::Admit(
                 self.verdict
                     .as_ref()
@@ -224,8 +272,17 @@ impl<'a> Closing<'a> {
             Stage::Post => self.post(),
             Stage::Listing => Step::ListRecordings,
             Stage::Heads => Step::ReadHeads(self.heads_to_read()),
-            Stage::Record => self.record(),
-            Stage::Pace => Step::RecordPace,
+            Stage::Record => match (self.cx.run, &self.reports) {
+                (Some(run), None) => {
+                    Step::ReadReports((0..run.jobs).map(uploads::report_key).collect())
+                }
+                _ => self.record(),
+            },
+            Stage::Pace => {
+                let started = self.cx.run.and_then(|r| r.monitor.started_at);
+                let seconds = started.map_or(0, |at| self.cx.now.saturating_sub(at));
+                Step::RecordPace { seconds }
+            }
             Stage::Leave => Step::LeaveQueue,
             Stage::Done => Step::Done,
         }
@@ -237,10 +294,27 @@ impl<'a> Closing<'a> {
         self.stage = match (self.stage, answer) {
             (Stage::Standing, Answer::Standing(record)) => self.stood(record.unwrap_or_default()),
             (Stage::Stop, Answer::Done) => Stage::Read,
-            (Stage::Read, Answer::Left(left)) => self.decide(left),
-            (Stage::Tail(pair), Answer::Tail(tail)) => {
-                self.tail = tail.map(|tail| (pair, tail));
+            (Stage::Read, Answer::Left(left)) => {
+                let merged = matches!(left.results, Some(Read::Merged(_)));
+                match self.decide(left) {
+                    Stage::TryAgain => Stage::TryAgain,
+                    next if merged => {
+                        self.after_store = next;
+                        Stage::Store
+                    }
+                    next => next,
+                }
+            }
+            (Stage::Store, Answer::Done) => self.after_store,
+            (Stage::Tail(pair), Answer::Tail(bytes)) => {
+                let tail = bytes.map(|bytes| participant_tail(&bytes, MAX_TAIL_CHARS));
+                self.tail = tail.filter(|t| !t.is_empty()).map(|tail| (pair, tail));
                 Stage::Post
+            }
+            (Stage::Record, Answer::Reports(reports)) => {
+                let total = reports.into_iter().reduce(UploadReport::plus);
+                self.reports = Some(total);
+                Stage::Record
             }
             (Stage::Admit, Answer::Done) => Stage::Post,
             (Stage::Post, Answer::Posted(posted)) => self.posted(posted),
@@ -420,7 +494,22 @@ impl<'a> Closing<'a> {
                 .map(str::to_owned)
                 .or_else(|| outcome.reason.clone()),
             recordings: self.recordings.clone(),
+            usage: self.usage(),
         }
+    }
+
+    /// What the run's GPUs came to: the Monitor's count, with the pods still running at its
+    /// last round charged until now (their Jobs were just deleted), and the orchestration's
+    /// so far.
+    fn usage(&self) -> Option<Totals> {
+        let run = self.cx.run?;
+        let mut ledger = run.monitor.usage.clone();
+        ledger.close_all(self.cx.now);
+        Some(Totals {
+            orchestration: Some(run.monitor.orchestration),
+            stored: self.reports.flatten(),
+            ..ledger.summary(self.cx.prices)
+        })
     }
 
     /// The status stands whether or not the record was ours to write (a resume that claimed
@@ -453,7 +542,7 @@ fn record_status(status: SubmissionStatus) -> RecordStatus {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::run::{MonitorState, PairRoutes, QueueState};
+    use crate::run::state::{MonitorState, PairRoutes, QueueState};
     use std::collections::BTreeMap;
 
     const EXECUTION: &str = "exec-1";
@@ -489,8 +578,12 @@ mod tests {
             run,
             track: "qualifier",
             qualifier: None,
+            now: 0,
+            prices: &NO_PRICES,
         }
     }
+
+    static NO_PRICES: BTreeMap<String, InstancePrice> = BTreeMap::new();
 
     fn merged(complete: bool, score: f64) -> Read {
         Read::Merged(Merged {
@@ -534,11 +627,19 @@ mod tests {
                 status: Some(RecordStatus::Running),
                 error: None,
             })),
-            Step::ReadLeft => Answer::Left(Left {
+            Step::ReadLeft { .. } => Answer::Left(Left {
                 markers: markers.clone(),
                 results: results.clone(),
             }),
-            Step::ReadAgentTail(_) => Answer::Tail(Some("Traceback: boom".into())),
+            Step::ReadAgentTail { .. } => Answer::Tail(Some(b"Traceback: boom".to_vec())),
+            Step::ReadReports(keys) => Answer::Reports(
+                keys.iter()
+                    .map(|_| UploadReport {
+                        log_bytes: 10,
+                        ..UploadReport::default()
+                    })
+                    .collect(),
+            ),
             Step::Post { .. } => Answer::Posted(Posted::Written),
             Step::ListRecordings => {
                 Answer::Listed(Some(vec![recording(0, 1000), recording(1, 1000)]))
@@ -574,15 +675,17 @@ mod tests {
             .map(|s| match s {
                 Step::ReadStanding => "standing",
                 Step::StopJobs => "stop",
-                Step::ReadLeft => "read",
+                Step::ReadLeft { .. } => "read",
                 Step::TryAgain => "again",
-                Step::ReadAgentTail(_) => "tail",
+                Step::StoreFiles => "store",
+                Step::ReadAgentTail { .. } => "tail",
+                Step::ReadReports(_) => "reports",
                 Step::Admit(_) => "admit",
                 Step::Post { .. } => "post",
                 Step::ListRecordings => "recordings",
                 Step::ReadHeads(_) => "heads",
                 Step::WriteRecord { .. } => "record",
-                Step::RecordPace => "pace",
+                Step::RecordPace { .. } => "pace",
                 Step::LeaveQueue => "leave",
                 Step::Done => "done",
             })
@@ -602,9 +705,11 @@ mod tests {
             "standing",
             "stop",
             "read",
+            "store",
             "post",
             "recordings",
             "heads",
+            "reports",
             "record",
             "pace",
             "leave",
@@ -621,6 +726,7 @@ mod tests {
             status,
             error,
             recordings,
+            ..
         } = find(&steps, "record")
         else {
             unreachable!()
@@ -672,7 +778,7 @@ mod tests {
         let (steps, stands) = drive(cx(Some(&run), None), world(not_now(), &[CANCEL_MARKER]));
         assert_eq!(
             kinds(&steps),
-            ["standing", "stop", "read", "post", "record", "leave"]
+            ["standing", "stop", "read", "post", "reports", "record", "leave"]
         );
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Cancelled));
         let caught = "States.Timeout: the task timed out";
@@ -701,9 +807,14 @@ mod tests {
         );
         assert_eq!(
             kinds(&steps),
-            ["standing", "stop", "read", "tail", "post", "record", "leave"]
+            ["standing", "stop", "read", "store", "tail", "post", "reports", "record", "leave"]
         );
-        assert_eq!(steps[3], Step::ReadAgentTail(2));
+        let key = "logs/agent/agent2/agent.log".to_string();
+        let tail = Step::ReadAgentTail {
+            key,
+            bytes: TAIL_BYTES,
+        };
+        assert_eq!(steps[4], tail);
         let Step::Post {
             status,
             stderr,
@@ -738,7 +849,7 @@ mod tests {
             ..cx(Some(&run), None)
         };
         let (steps, _) = drive(cx, world(Some(merged(true, 90.0)), &[]));
-        assert_eq!(steps[3], Step::Admit(vec!["sensors".into()]));
+        assert_eq!(steps[4], Step::Admit(vec!["sensors".into()]));
         let Step::Post { stdout, .. } = find(&steps, "post") else {
             unreachable!()
         };
@@ -752,6 +863,51 @@ mod tests {
     }
 
     #[test]
+    fn the_record_charges_the_pods_still_running_until_now_and_keeps_the_orchestration() {
+        let mut run = run(RunPhase::Finished, true);
+        // One pod on an unpriced kind running since the last round, 100 s ago.
+        let pod = crate::capacity::cost::PodSeen {
+            job: 0,
+            started_at: 900,
+            ended_at: None,
+            gpus: 1,
+            node: Some("n1".into()),
+            disruption: None,
+            succeeded: false,
+        };
+        let kind = crate::capacity::cost::NodeKind::unknown();
+        let kinds = BTreeMap::from([("n1".to_string(), kind)]);
+        let (written, failed) = (BTreeMap::new(), BTreeMap::new());
+        run.monitor
+            .usage
+            .account(&[pod], &kinds, (&written, &failed), 1_000);
+        let at_end = Context {
+            now: 1_100,
+            ..cx(Some(&run), None)
+        };
+        let (steps, _) = drive(at_end, world(Some(merged(true, 90.0)), &[]));
+        let Step::WriteRecord { usage, .. } = find(&steps, "record") else {
+            unreachable!()
+        };
+        let totals = usage.unwrap();
+        assert_eq!(totals.gpu_seconds, 200);
+        assert_eq!(totals.orchestration, Some(run.monitor.orchestration));
+        // What every Job's logcopy stored, added up from the reports read before the record.
+        let Step::ReadReports(keys) = find(&steps, "reports") else {
+            unreachable!()
+        };
+        assert_eq!(keys.len() as u32, run.jobs);
+        let stored = totals.stored.unwrap();
+        assert_eq!(stored.log_bytes, 10 * u64::from(run.jobs));
+        // Without a run there is nothing to charge.
+        let (steps, _) = drive(cx(None, Some("States.TaskFailed")), world(None, &[]));
+        assert!(matches!(
+            find(&steps, "record"),
+            Step::WriteRecord { usage: None, .. }
+        ));
+    }
+
+    #[test]
     fn evalai_s_final_word_is_what_the_record_and_the_answer_say() {
         let run = run(RunPhase::Finished, true);
         let mut world = world(Some(merged(true, 90.0)), &[]);
@@ -762,7 +918,7 @@ mod tests {
         // A cancel on EvalAI: no recordings to audit, no pace to record.
         assert_eq!(
             kinds(&steps),
-            ["standing", "stop", "read", "post", "record", "leave"]
+            ["standing", "stop", "read", "store", "post", "reports", "record", "leave"]
         );
         let Step::WriteRecord { status, .. } = find(&steps, "record") else {
             unreachable!()

@@ -10,8 +10,9 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use serde::{Deserialize, Serialize};
 
-use crate::cluster::{ContainerState, JobView};
-use crate::disruption::{self, Disruption, FREE_RECLAIMS_PER_PAIR, MAX_TIME_OFF};
+use crate::cluster::disruption::{self, Disruption, FREE_RECLAIMS_PER_PAIR, MAX_TIME_OFF};
+use crate::cluster::view::{ContainerState, JobView};
+use crate::status::PodPhase;
 
 /// The capacity a pod's node was, from its `eks.amazonaws.com/capacityType` label.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -88,7 +89,7 @@ pub fn pods_seen(jobs: &[JobView], observed_at: jiff::Timestamp) -> Vec<PodSeen>
             let Some(started_at) = pod.start_time.map(epoch) else {
                 continue;
             };
-            let ended = matches!(pod.phase.as_str(), "Succeeded" | "Failed");
+            let ended = pod.phase.has_ended();
             let finished = pod
                 .containers
                 .iter()
@@ -108,7 +109,7 @@ pub fn pods_seen(jobs: &[JobView], observed_at: jiff::Timestamp) -> Vec<PodSeen>
                     .disruption
                     .as_deref()
                     .map(|reason| disruption::classify(reason, pod.disruption_message.as_deref())),
-                succeeded: pod.phase == "Succeeded",
+                succeeded: pod.phase == PodPhase::Succeeded,
             });
         }
     }
@@ -328,7 +329,7 @@ pub struct Totals {
     /// What the orchestration did for it, when counted.
     pub orchestration: Option<Orchestration>,
     /// What its pods' logcopy stored in S3 and refused, when read (Finalize's).
-    pub stored: Option<crate::uploads::UploadReport>,
+    pub stored: Option<crate::job::uploads::UploadReport>,
 }
 
 /// Seconds by which a pod's start (the kubelet's clock) may follow the round that listed it
@@ -909,7 +910,7 @@ impl Ledger {
         let mut out = Estimate::default();
         for line in &self.lines {
             let kind = &line.kind;
-            let gpus = crate::resources::capacity(&kind.instance_type).map(|c| c.gpus);
+            let gpus = crate::cluster::resources::capacity(&kind.instance_type).map(|c| c.gpus);
             match (prices.get(&kind.instance_type), gpus) {
                 (Some(price), Some(gpus)) if gpus > 0 => {
                     let hourly = match kind.capacity {

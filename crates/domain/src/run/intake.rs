@@ -1,6 +1,7 @@
 //! Intake's rules: which submissions start, what the participant reads when one is refused,
 //! and how many simulator-agent pairs it gets. Intake fetches the facts and acts on these.
 
+use crate::status::RecordStatus;
 use crate::submission::SubmissionStatus;
 
 /// Why a submission with this EvalAI status is not ours to start, if it is not.
@@ -54,11 +55,11 @@ pub fn worker_count(overridden: Option<u32>, track_default: u32, routes: u32) ->
 }
 
 /// Why a second delivery of a claimed submission is skipped.
-pub fn duplicate(claimed_by: Option<&str>, status: Option<&str>) -> String {
+pub fn duplicate(claimed_by: Option<&str>, status: Option<RecordStatus>) -> String {
     format!(
         "already claimed by `{}` (record status `{}`): a duplicate delivery",
         claimed_by.unwrap_or_default(),
-        status.unwrap_or_default()
+        status.map_or("", RecordStatus::as_str)
     )
 }
 

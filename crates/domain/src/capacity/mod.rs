@@ -1,0 +1,4 @@
+//! Capacity and cost: what a run's pods cost, and who of a leaderboard's queue runs next.
+
+pub mod cost;
+pub mod queue;
