@@ -1117,3 +1117,34 @@ fn the_monitor_and_finalize_shells_perform_steps_and_take_no_decision_from_the_d
         ]
     );
 }
+
+/// Where the ledger's compact form lives: the only shipped file that may spell base 36.
+const LEDGER_CODE: &str = "crates/domain/src/capacity/ledger_code.rs";
+
+#[test]
+fn the_ledgers_compact_form_is_spelled_in_one_module() {
+    let spelled = |source: &str| {
+        source
+            .lines()
+            .take_while(|l| !l.trim_start().starts_with("#[cfg(test)]"))
+            .filter(|l| !l.trim_start().starts_with("//"))
+            .any(|l| {
+                let l = l.replace(' ', "");
+                ["_radix(", "_digit("].iter().any(|call| l.contains(call)) && l.contains(",36)")
+                    || l.contains(".to_digit(36)")
+            })
+    };
+    let found: Vec<String> = files(&["rs"])
+        .into_iter()
+        .filter(|(_, rel)| shipped_source(rel) && rel != LEDGER_CODE)
+        .filter(|(path, _)| spelled(&std::fs::read_to_string(path).unwrap()))
+        .map(|(_, rel)| rel)
+        .collect();
+    assert!(found.is_empty(), "base 36 outside {LEDGER_CODE}: {found:?}");
+    let here = std::fs::read_to_string(root().join(LEDGER_CODE)).unwrap();
+    assert!(
+        spelled(&here),
+        "the rule no longer finds the encoding it is for"
+    );
+    assert!(!spelled("let n = u64::from_str_radix(s, 16);"));
+}

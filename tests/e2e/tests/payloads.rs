@@ -3,7 +3,9 @@
 //! which no Catch handles): every field at its bound, every string made of the character
 //! JSON escapes longest, run through `statemachine/submission.asl.json` in the executor.
 
-use lb_domain::capacity::cost::{CapacityType, Ledger, NodeKind, UsageLine};
+use lb_domain::capacity::cost::{
+    CapacityType, JobEntry, JobMark, Ledger, NodeKind, Running, UsageLine, COUNT_CAP,
+};
 use std::collections::{BTreeMap, HashMap};
 
 use lb_domain::job::plan::{MAX_ROUTES, MAX_WORKERS};
@@ -143,18 +145,25 @@ fn worst_usage() -> Ledger {
             run_again: u64::MAX,
         })
         .collect();
+    // Every Job running disrupted on the last line, at the largest counts and starts.
+    let entry = JobEntry {
+        mark: JobMark::Running(Running {
+            line: lb_domain::capacity::cost::MAX_LINES - 1,
+            disrupted: true,
+        }),
+        failed: Some(COUNT_CAP),
+        reclaims: COUNT_CAP,
+        charged: COUNT_CAP,
+        start: Some(u64::MAX),
+    };
     Ledger {
         lines,
-        jobs: "P".repeat(MAX_WORKERS as usize),
+        jobs: vec![entry; MAX_WORKERS as usize],
         gpus: u32::MAX,
         last: u64::MAX,
         lost: u64::MAX,
         lost_since: Some(u64::MAX),
         lost_until: u64::MAX,
-        failed: "z".repeat(MAX_WORKERS as usize),
-        reclaims: "z".repeat(MAX_WORKERS as usize),
-        charged: "z".repeat(MAX_WORKERS as usize),
-        starts: vec![u64::MAX; MAX_WORKERS as usize].into(),
     }
 }
 

@@ -1,4 +1,5 @@
 //! Capacity and cost: what a run's pods cost, and who of a leaderboard's queue runs next.
 
 pub mod cost;
+mod ledger_code;
 pub mod queue;

@@ -1551,7 +1551,10 @@ mod tests {
         // controller decides alone.
         let mut run = started(run(true));
         run.jobs = 2;
-        run.monitor.usage.charged = "3".into();
+        run.monitor.usage.jobs = vec![crate::capacity::cost::JobEntry {
+            charged: 3,
+            ..Default::default()
+        }];
         let observe = |first: JobState, second: JobState| {
             let mut jobs = vec![job("lb-7-0", 0, 2), job("lb-7-1", 1, 4)];
             (jobs[0].state, jobs[1].state) = (first, second);
