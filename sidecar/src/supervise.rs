@@ -15,6 +15,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
+use lb_proc::descendants;
 use nix::errno::Errno;
 use nix::sys::signal::{kill, killpg, Signal};
 use nix::sys::wait::{waitpid, WaitPidFlag, WaitStatus};
@@ -334,53 +335,6 @@ impl Pump {
     }
 }
 
-/// The live descendants of `root` (not `root` itself), from `/proc`.
-pub fn descendants(root: Pid) -> Vec<Pid> {
-    let Ok(entries) = fs::read_dir("/proc") else {
-        return Vec::new();
-    };
-    let mut parent_of: Vec<(i32, i32)> = Vec::new();
-    for entry in entries.flatten() {
-        let Some(pid) = entry
-            .file_name()
-            .to_str()
-            .and_then(|n| n.parse::<i32>().ok())
-        else {
-            continue;
-        };
-        if let Ok(stat) = fs::read_to_string(entry.path().join("stat")) {
-            if let Some((ppid, state)) = parse_stat(&stat) {
-                // NB: zombies are gone already; they only wait to be reaped.
-                if state != 'Z' {
-                    parent_of.push((pid, ppid));
-                }
-            }
-        }
-    }
-    let mut found = vec![root.as_raw()];
-    let mut i = 0;
-    while i < found.len() {
-        let parent = found[i];
-        for &(pid, ppid) in &parent_of {
-            if ppid == parent && !found.contains(&pid) {
-                found.push(pid);
-            }
-        }
-        i += 1;
-    }
-    found.into_iter().skip(1).map(Pid::from_raw).collect()
-}
-
-/// `(ppid, state)` from `/proc/<pid>/stat`; the command name may hold spaces and parentheses,
-/// so the fields are read after its last `)`.
-fn parse_stat(stat: &str) -> Option<(i32, char)> {
-    let rest = &stat[stat.rfind(')')? + 1..];
-    let mut fields = rest.split_whitespace();
-    let state = fields.next()?.chars().next()?;
-    let ppid = fields.next()?.parse().ok()?;
-    Some((ppid, state))
-}
-
 /// Whether TCP `port` is listened on in this network by processes outside the sidecar's tree
 /// only: it answers, but not from the child (on a network pods share, another pod's CARLA).
 /// `false` when `/proc` cannot tell.
@@ -457,15 +411,5 @@ mod tests {
         assert!(listened_by_another(port));
         drop(held);
         assert!(!listened_by_another(port), "nobody listens any more");
-    }
-
-    #[test]
-    fn stat_lines_with_odd_command_names_parse() {
-        assert_eq!(
-            parse_stat("1234 (a) b (c)) S 77 1234 1234 0 -1"),
-            Some((77, 'S'))
-        );
-        assert_eq!(parse_stat("5 (sh) Z 1 5 5"), Some((1, 'Z')));
-        assert_eq!(parse_stat("garbage"), None);
     }
 }

@@ -1148,3 +1148,25 @@ fn the_ledgers_compact_form_is_spelled_in_one_module() {
     );
     assert!(!spelled("let n = u64::from_str_radix(s, 16);"));
 }
+
+#[test]
+fn the_rehearsal_imports_nothing_of_the_sidecar() {
+    // NB: what both need is a crate of its own (`crates/proc`): the rehearsal stands in for
+    // the cluster around the sidecar, never for the sidecar's own code.
+    let meta = metadata();
+    let root = root();
+    let mut wrong = Vec::new();
+    for package in meta["packages"].as_array().unwrap() {
+        let manifest = package["manifest_path"].as_str().unwrap();
+        let name = folder(manifest, &root);
+        if !name.starts_with("local/") {
+            continue;
+        }
+        for dep in package["dependencies"].as_array().unwrap() {
+            if dep["name"] == "sidecar" {
+                wrong.push(name.clone());
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "these depend on the sidecar: {wrong:?}");
+}

@@ -38,7 +38,7 @@ impl Rehearsal for Crash {
 /// the sidecar that wraps it) on the lowest port.
 fn own_carla() -> Option<(u32, u16)> {
     let me = nix::unistd::Pid::from_raw(i32::try_from(std::process::id()).ok()?);
-    sidecar::supervise::descendants(me)
+    lb_proc::descendants(me)
         .into_iter()
         .filter_map(|pid| {
             let argv = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
