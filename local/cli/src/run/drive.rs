@@ -1,0 +1,182 @@
+//! Driving a local run: its executions started at their arrivals, watched, and followed
+//! through their continuations to their ends.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use local_stack::Stack;
+
+use crate::scenario::Rehearsal;
+use local_stepfunctions::{EventType, Execution, ExecutionResult, Executor, HistoryEvent};
+
+use super::*;
+
+/// What the run watches of its executions: Monitor rounds, and those that found the cluster's
+/// API out of reach (their verdict skipped).
+#[derive(Default)]
+pub(super) struct Watch {
+    pub(super) rounds: Arc<AtomicU64>,
+    pub(super) unreachable_rounds: Arc<AtomicU64>,
+}
+
+impl Watch {
+    /// Live progress, the outage from the first round, and the scenario's hooks at each round.
+    pub(super) fn on_event(
+        &self,
+        args: &LocalRun,
+        stack: &Stack,
+        scenario: &Arc<dyn Rehearsal>,
+        acted: &Arc<AtomicBool>,
+        started: Instant,
+    ) -> local_stepfunctions::EventCallback {
+        let (rounds, unreachable) = (self.rounds.clone(), self.unreachable_rounds.clone());
+        let (scenario, acted) = (scenario.clone(), acted.clone());
+        let outage = stack
+            .kube
+            .as_ref()
+            .map(|k| k.outage())
+            .filter(|_| args.kube_outage_minutes > 0.0);
+        let outage_for = Duration::from_secs_f64(args.kube_outage_minutes * 60.0 * args.time_scale);
+        let outage_minutes = args.kube_outage_minutes;
+        Arc::new(move |event: &HistoryEvent| {
+            let name = event.state_name().unwrap_or_default();
+            if event.event_type == EventType::TaskStateEntered && name != "Monitor" {
+                say(started, format!("stage {name}"));
+            } else if event.event_type == EventType::TaskStateEntered {
+                let n = rounds.fetch_add(1, Ordering::SeqCst) + 1;
+                if let (1, Some(outage)) = (n, &outage) {
+                    outage.fail_for(outage_for);
+                    say(
+                        started,
+                        format!(
+                            "the cluster's API answers 500 for {outage_minutes} minutes (scaled)"
+                        ),
+                    );
+                }
+                if !acted.load(Ordering::SeqCst) && scenario.round_begins(n) {
+                    acted.store(true, Ordering::SeqCst);
+                }
+            } else if event.event_type == EventType::TaskStateExited && name == "Monitor" {
+                let output = &event.details["output"]["run"]["monitor"];
+                let skipped = if output["unreachable_since"].is_null() {
+                    ""
+                } else {
+                    unreachable.fetch_add(1, Ordering::SeqCst);
+                    " (cluster unreachable: verdict skipped)"
+                };
+                scenario.round_ended(output);
+                say(
+                    started,
+                    format!(
+                        "monitor round {}: {} routes {}/{}{skipped}",
+                        output["rounds"],
+                        output["state"],
+                        output["progress"][0],
+                        output["progress"][1]
+                    ),
+                );
+            }
+        })
+    }
+}
+
+/// Starts an execution per arrival, all at once, as EvalAI's messages come: each one's place
+/// in the queue is when EvalAI received it (`submitted_at`), the order of `arrivals`.
+pub(super) async fn start(
+    stack: &Stack,
+    executor: &Executor,
+    (challenge, phase, image): (u64, u64, &str),
+    (arrivals, teams): (&[(u64, u64)], usize),
+    started: Instant,
+) -> anyhow::Result<Vec<(u64, u64, Execution)>> {
+    let machine = machine()?;
+    let mut executions = Vec::new();
+    for (id, team) in arrivals {
+        let input = sqs_round_trip(stack, challenge, phase, *id, image).await?;
+        if arrivals.len() == 1 {
+            say(
+                started,
+                format!("message for submission {id} received from SQS; Pipe output {input}"),
+            );
+        }
+        let execution = executor
+            .start(&machine, &format!("local-{id}"), input)
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        executions.push((*id, *team, execution));
+    }
+    if arrivals.len() > 1 {
+        let count = arrivals.len();
+        say(
+            started,
+            format!("{count} submissions from {teams} teams arrived"),
+        );
+    }
+    Ok(executions)
+}
+
+/// Every execution's result, followed through its continuations, in arrival order; and each
+/// one's history lengths.
+pub(super) async fn wait_all(
+    executor: &Executor,
+    executions: Vec<(u64, u64, Execution)>,
+    many: bool,
+    started: Instant,
+) -> (Vec<ExecutionResult>, Vec<Vec<usize>>) {
+    let mut results = Vec::new();
+    let mut chains = Vec::new();
+    for (id, team, execution) in executions {
+        let (result, lengths) = follow(executor, execution.wait().await).await;
+        chains.push(lengths);
+        if many {
+            let status = result.status.as_str();
+            say(
+                started,
+                format!("submission {id} (team {team}): execution {status}"),
+            );
+        }
+        results.push(result);
+    }
+    (results, chains)
+}
+
+/// How many executions ended without Finalize (the reaper answers for those).
+pub(super) fn ended_without_finalize(results: &[ExecutionResult]) -> usize {
+    results
+        .iter()
+        .filter(|r| {
+            let status = local_stack::events::execution_status(Some(r.status));
+            lb_domain::run::reaper::REAPED_STATUSES.contains(&status)
+        })
+        .count()
+}
+
+/// The most executions one run is followed through (72 hours at the least round interval
+/// take fewer than 100).
+pub(super) const MAX_CHAIN: usize = 200;
+
+/// An execution's result followed through the executions its run continued as: how the last
+/// one ended, with every history in order (for the stages); and each history's length.
+pub(super) async fn follow(
+    executor: &Executor,
+    mut result: local_stepfunctions::ExecutionResult,
+) -> (local_stepfunctions::ExecutionResult, Vec<usize>) {
+    let mut lengths = vec![result.history.len()];
+    while lengths.len() < MAX_CHAIN {
+        let next = (result.status == local_stepfunctions::Status::Succeeded)
+            .then_some(result.output.as_ref())
+            .flatten()
+            .and_then(lb_domain::run::history::continued_as)
+            .map(str::to_owned);
+        let Some(next) = next else { break };
+        let Some(mut continued) = executor.wait_for(&next).await else {
+            break;
+        };
+        lengths.push(continued.history.len());
+        let mut history = std::mem::take(&mut result.history);
+        history.append(&mut continued.history);
+        continued.history = history;
+        result = continued;
+    }
+    (result, lengths)
+}
