@@ -677,7 +677,34 @@ fn leaderboard_of(args: &[String], env: &Env) -> Result<Leaderboard, ArgsError> 
 
 /// Parses the evaluator's command line (without the program name) and the environment.
 pub fn parse_evaluator(args: &[String], env: &Env) -> Result<Parsed<EvaluatorConfig>, ArgsError> {
-    // A `python3` shim execs us as `fake-evaluator -u /path/leaderboard_evaluator.py ...`.
+    let (script, args) = python_script(args);
+    let leaderboard = leaderboard_of(args, env)?;
+    let Some((given, unrecognized)) = walk_evaluator(args, leaderboard)? else {
+        return Ok(Parsed::Help(evaluator_help(leaderboard)));
+    };
+    let values = Values::resolve(leaderboard, given, env)?;
+    if !unrecognized.is_empty() {
+        return Err(ArgsError::Unrecognized {
+            args: unrecognized.join(" "),
+        });
+    }
+    let args = evaluator_args(&values, leaderboard, script)?;
+    let route_seconds = env_value(env, "FAKE_EVALUATOR_ROUTE_SECONDS", seconds)?.unwrap_or(0.2);
+    let connect_seconds = env_value(env, "FAKE_EVALUATOR_CONNECT_SECONDS", seconds)?;
+    let records = env.non_empty("FAKE_EVALUATOR_RECORDS").map(PathBuf::from);
+    Ok(Parsed::Run(EvaluatorConfig {
+        args,
+        route_seconds,
+        connect_seconds,
+        records,
+        faults: EvaluatorFaults::from_env(env)?,
+        imports: crate::imports::Imports::from_env(env),
+    }))
+}
+
+/// The script a `python3` shim names (`fake-evaluator -u /path/leaderboard_evaluator.py ...`),
+/// past the interpreter's own flags, and the script's arguments.
+fn python_script(args: &[String]) -> (Option<String>, &[String]) {
     let mut i = 0;
     while let Some(a) = args.get(i) {
         if PYTHON_FLAGS.contains(&a.as_str()) {
@@ -697,10 +724,15 @@ pub fn parse_evaluator(args: &[String], env: &Env) -> Result<Parsed<EvaluatorCon
         }
         _ => None,
     };
-    let args = args.get(i..).unwrap_or_default();
-    let leaderboard = leaderboard_of(args, env)?;
+    (script, args.get(i..).unwrap_or_default())
+}
 
-    // Walk the options as argparse does: last occurrence wins, unknown ones are collected.
+/// The options given, by long name, and the tokens argparse would not recognize.
+type Walked = (BTreeMap<&'static str, String>, Vec<String>);
+
+/// The evaluator's options walked as argparse does (the last occurrence wins, unknown ones
+/// collected), or `None` for `--help`.
+fn walk_evaluator(args: &[String], leaderboard: Leaderboard) -> Result<Option<Walked>, ArgsError> {
     let mut given: BTreeMap<&'static str, String> = BTreeMap::new();
     let mut unrecognized: Vec<String> = Vec::new();
     let mut i = 0;
@@ -708,7 +740,7 @@ pub fn parse_evaluator(args: &[String], env: &Env) -> Result<Parsed<EvaluatorCon
         let token = &args[i];
         i += 1;
         if token == "-h" || token == "--help" {
-            return Ok(Parsed::Help(evaluator_help(leaderboard)));
+            return Ok(None);
         }
         if token == "--" {
             unrecognized.extend(args[i..].iter().cloned());
@@ -754,44 +786,57 @@ pub fn parse_evaluator(args: &[String], env: &Env) -> Result<Parsed<EvaluatorCon
         };
         given.insert(opt.long, value);
     }
+    Ok(Some((given, unrecognized)))
+}
 
-    // Fall back on the environment for what the command line left out.
-    let mut values: BTreeMap<&'static str, (String, String)> = BTreeMap::new();
-    for o in options_for(leaderboard) {
-        if let Some(v) = given.get(o.long) {
-            values.insert(o.long, (v.clone(), quoted(&display_opt(o))));
-        } else if let Some((var, v)) = o.env.and_then(|var| Some((var, env.non_empty(var)?))) {
-            values.insert(
-                o.long,
-                (
-                    v.to_owned(),
-                    format!("{} (from `{var}`)", quoted(&display_opt(o))),
-                ),
-            );
+/// The evaluator's option values, each with how an error names where it came from.
+struct Values(BTreeMap<&'static str, (String, String)>);
+
+impl Values {
+    /// The options given, the environment for what the command line left out; every required
+    /// one present.
+    fn resolve(
+        leaderboard: Leaderboard,
+        given: BTreeMap<&'static str, String>,
+        env: &Env,
+    ) -> Result<Values, ArgsError> {
+        let mut values: BTreeMap<&'static str, (String, String)> = BTreeMap::new();
+        for o in options_for(leaderboard) {
+            if let Some(v) = given.get(o.long) {
+                values.insert(o.long, (v.clone(), quoted(&display_opt(o))));
+            } else if let Some((var, v)) = o.env.and_then(|var| Some((var, env.non_empty(var)?))) {
+                let source = format!("{} (from `{var}`)", quoted(&display_opt(o)));
+                values.insert(o.long, (v.to_owned(), source));
+            }
         }
-    }
-    let missing: Vec<String> = required(leaderboard)
-        .iter()
-        .filter(|r| !values.contains_key(*r))
-        .map(|r| match *r {
-            "--agent" => "-a/--agent".to_owned(),
-            other => other.to_owned(),
-        })
-        .collect();
-    if !missing.is_empty() {
-        return Err(ArgsError::Required {
-            args: missing.join(", "),
-        });
-    }
-    if !unrecognized.is_empty() {
-        return Err(ArgsError::Unrecognized {
-            args: unrecognized.join(" "),
-        });
+        let missing: Vec<String> = required(leaderboard)
+            .iter()
+            .filter(|r| !values.contains_key(*r))
+            .map(|r| match *r {
+                "--agent" => "-a/--agent".to_owned(),
+                other => other.to_owned(),
+            })
+            .collect();
+        if !missing.is_empty() {
+            return Err(ArgsError::Required {
+                args: missing.join(", "),
+            });
+        }
+        Ok(Values(values))
     }
 
-    let get = |long: &str| values.get(long).map(|(v, src)| (v.as_str(), src.as_str()));
-    let int = |long: &str, default: i64| -> Result<i64, ArgsError> {
-        match get(long) {
+    fn get(&self, long: &str) -> Option<(&str, &str)> {
+        self.0.get(long).map(|(v, src)| (v.as_str(), src.as_str()))
+    }
+
+    /// Where an option's value came from, as an error names it.
+    fn source(&self, long: &str) -> String {
+        self.get(long)
+            .map_or_else(|| quoted(long), |(_, s)| s.to_owned())
+    }
+
+    fn int(&self, long: &str, default: i64) -> Result<i64, ArgsError> {
+        match self.get(long) {
             None => Ok(default),
             Some((v, src)) => v
                 .trim()
@@ -802,42 +847,102 @@ pub fn parse_evaluator(args: &[String], env: &Env) -> Result<Parsed<EvaluatorCon
                     value: v.to_owned(),
                 }),
         }
-    };
-    let port = |long: &str, default: i64| -> Result<u16, ArgsError> {
-        let p = int(long, default)?;
+    }
+
+    fn port(&self, long: &str, default: i64) -> Result<u16, ArgsError> {
+        let p = self.int(long, default)?;
         u16::try_from(p)
             .ok()
             .filter(|p| *p != 0)
             .ok_or_else(|| ArgsError::Invalid {
-                arg: get(long).map_or_else(|| quoted(long), |(_, s)| s.to_owned()),
+                arg: self.source(long),
                 problem: format!("`{p}` is not a TCP port (1-65535)"),
             })
-    };
-    let text = |long: &str, default: &str| get(long).map_or(default, |(v, _)| v).to_owned();
+    }
 
-    let (tm_port, tm_seed) = match leaderboard {
-        Leaderboard::V1 => ("--trafficManagerPort", "--trafficManagerSeed"),
-        Leaderboard::V2 => ("--traffic-manager-port", "--traffic-manager-seed"),
-    };
-    let timeout = match get("--timeout") {
-        None => match leaderboard {
-            Leaderboard::V1 => 60.0,
-            Leaderboard::V2 => 300.0,
-        },
-        Some((v, src)) => seconds(v).map_err(|problem| ArgsError::Invalid {
+    fn text(&self, long: &str, default: &str) -> String {
+        self.get(long).map_or(default, |(v, _)| v).to_owned()
+    }
+
+    /// A value `parse` reads, named in its error.
+    fn parsed<T>(
+        &self,
+        long: &str,
+        parse: impl FnOnce(&str) -> Result<T, String>,
+    ) -> Result<Option<T>, ArgsError> {
+        let Some((v, src)) = self.get(long) else {
+            return Ok(None);
+        };
+        parse(v).map(Some).map_err(|problem| ArgsError::Invalid {
             arg: src.to_owned(),
             problem,
-        })?,
+        })
+    }
+}
+
+/// The evaluator's arguments from its option values.
+fn evaluator_args(
+    values: &Values,
+    leaderboard: Leaderboard,
+    script: Option<String>,
+) -> Result<EvaluatorArgs, ArgsError> {
+    let (tm_port, tm_seed, timeout) = match leaderboard {
+        Leaderboard::V1 => ("--trafficManagerPort", "--trafficManagerSeed", 60.0),
+        Leaderboard::V2 => ("--traffic-manager-port", "--traffic-manager-seed", 300.0),
     };
-    let repetitions = int("--repetitions", 1)?;
+    let (routes_subset, repetitions) = subset_and_repetitions(values)?;
+    let checkpoint = values.text("--checkpoint", "./simulation_results.json");
+    if checkpoint.is_empty() {
+        return Err(ArgsError::Invalid {
+            arg: values.source("--checkpoint"),
+            problem: "is empty".into(),
+        });
+    }
+    let debug_checkpoint = match leaderboard {
+        Leaderboard::V1 => None,
+        Leaderboard::V2 => Some(values.text("--debug-checkpoint", "./live_results.txt"))
+            .filter(|p| !p.is_empty())
+            .map(PathBuf::from),
+    };
+    Ok(EvaluatorArgs {
+        leaderboard,
+        script,
+        host: values.text("--host", "localhost"),
+        port: values.port("--port", 2000)?,
+        traffic_manager_port: values.port(tm_port, 8000)?,
+        traffic_manager_seed: values.int(tm_seed, 0)?,
+        debug: values.int("--debug", 0)?,
+        record: values.text("--record", ""),
+        timeout: values.parsed("--timeout", seconds)?.unwrap_or(timeout),
+        routes: values.text("--routes", ""),
+        scenarios: values.get("--scenarios").map(|(v, _)| v.to_owned()),
+        routes_subset,
+        repetitions,
+        agent: values.text("--agent", ""),
+        agent_config: values.text("--agent-config", ""),
+        track: values
+            .parsed("--track", str::parse)?
+            .unwrap_or(Track::Sensors),
+        // NB: argparse's `type=bool` is Python's bool(str): only the empty string is false.
+        resume: values.get("--resume").is_some_and(|(v, _)| !v.is_empty()),
+        checkpoint: PathBuf::from(checkpoint),
+        debug_checkpoint,
+    })
+}
+
+/// `--routes-subset` and `--repetitions`, within the records a checkpoint may hold.
+fn subset_and_repetitions(values: &Values) -> Result<(RoutesSubset, u64), ArgsError> {
+    let repetitions = values.int("--repetitions", 1)?;
     if repetitions < 1 {
         return Err(ArgsError::Invalid {
-            arg: get("--repetitions").map_or_else(|| quoted("--repetitions"), |(_, s)| s.into()),
+            arg: values.source("--repetitions"),
             problem: format!("`{repetitions}` is not a positive number of repetitions"),
         });
     }
     let repetitions = repetitions as u64;
-    let (subset_value, subset_src) = get("--routes-subset").unwrap_or(("", "`--routes-subset`"));
+    let (subset_value, subset_src) = values
+        .get("--routes-subset")
+        .unwrap_or(("", "`--routes-subset`"));
     let routes_subset: RoutesSubset =
         subset_value.parse().map_err(|problem| ArgsError::Invalid {
             arg: subset_src.to_owned(),
@@ -852,60 +957,7 @@ pub fn parse_evaluator(args: &[String], env: &Env) -> Result<Parsed<EvaluatorCon
             ),
         });
     }
-    let track = match get("--track") {
-        None => Track::Sensors,
-        Some((v, src)) => v.parse().map_err(|problem| ArgsError::Invalid {
-            arg: src.to_owned(),
-            problem,
-        })?,
-    };
-    let checkpoint = text("--checkpoint", "./simulation_results.json");
-    if checkpoint.is_empty() {
-        return Err(ArgsError::Invalid {
-            arg: get("--checkpoint").map_or_else(|| quoted("--checkpoint"), |(_, s)| s.into()),
-            problem: "is empty".into(),
-        });
-    }
-    let debug_checkpoint = match leaderboard {
-        Leaderboard::V1 => None,
-        Leaderboard::V2 => Some(text("--debug-checkpoint", "./live_results.txt"))
-            .filter(|p| !p.is_empty())
-            .map(PathBuf::from),
-    };
-
-    let args = EvaluatorArgs {
-        leaderboard,
-        script,
-        host: text("--host", "localhost"),
-        port: port("--port", 2000)?,
-        traffic_manager_port: port(tm_port, 8000)?,
-        traffic_manager_seed: int(tm_seed, 0)?,
-        debug: int("--debug", 0)?,
-        record: text("--record", ""),
-        timeout,
-        routes: text("--routes", ""),
-        scenarios: get("--scenarios").map(|(v, _)| v.to_owned()),
-        routes_subset,
-        repetitions,
-        agent: text("--agent", ""),
-        agent_config: text("--agent-config", ""),
-        track,
-        // NB: argparse's `type=bool` is Python's bool(str): only the empty string is false.
-        resume: get("--resume").is_some_and(|(v, _)| !v.is_empty()),
-        checkpoint: PathBuf::from(checkpoint),
-        debug_checkpoint,
-    };
-    let route_seconds = env_value(env, "FAKE_EVALUATOR_ROUTE_SECONDS", seconds)?.unwrap_or(0.2);
-    let connect_seconds = env_value(env, "FAKE_EVALUATOR_CONNECT_SECONDS", seconds)?;
-    let records = env.non_empty("FAKE_EVALUATOR_RECORDS").map(PathBuf::from);
-    Ok(Parsed::Run(EvaluatorConfig {
-        args,
-        route_seconds,
-        connect_seconds,
-        records,
-        faults: EvaluatorFaults::from_env(env)?,
-        imports: crate::imports::Imports::from_env(env),
-    }))
+    Ok((routes_subset, repetitions))
 }
 
 /// argparse takes `-5` as a value but `-x` as the next option.

@@ -439,7 +439,6 @@ const LONG_IN_THE_REHEARSAL: &[(&str, &str, usize)] = &[
     ("local/stepfunctions/src/executor.rs", "attempt_task", 165),
     ("local/stepfunctions/src/executor.rs", "attempt_map", 130),
     ("local/workloads/src/args.rs", "parse_carla", 126),
-    ("local/workloads/src/args.rs", "parse_evaluator", 231),
     ("local/workloads/src/carla.rs", "run", 88),
     ("local/workloads/src/evaluator.rs", "run", 108),
     ("local/workloads/src/evaluator.rs", "route", 104),
