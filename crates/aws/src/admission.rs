@@ -97,7 +97,7 @@ fn entry_of(item: &HashMap<String, AttributeValue>) -> Result<Entry> {
     let state = item
         .get("state")
         .and_then(|v| v.as_s().ok())
-        .and_then(|v| EntryState::parse(v))
+        .and_then(|v| v.parse::<EntryState>().ok())
         .ok_or_else(|| malformed("`state` is not waiting, admitted or running".into()))?;
     Ok(Entry {
         submission_id: number("submission_id")?,

@@ -5,9 +5,6 @@
 //! `submitted_image_uri` can be absent. Everything is checked here, once, before anything
 //! is launched.
 
-use std::fmt;
-use std::str::FromStr;
-
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
@@ -141,62 +138,34 @@ fn json_type(value: &Value) -> &'static str {
     }
 }
 
-/// A submission status as EvalAI stores it (always lowercase on the wire).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum SubmissionStatus {
-    /// Just submitted: start an evaluation.
-    Submitted,
-    /// Being uploaded by the participant.
-    Submitting,
-    /// A host backend accepted it.
-    Queued,
-    /// Being evaluated.
-    Running,
-    /// A failed submission the host or participant asked to resume: start again.
-    Resuming,
-    /// Some results were posted.
-    PartiallyEvaluated,
-    /// Final scores posted.
-    Finished,
-    /// The evaluation failed.
-    Failed,
-    /// The participant (or a re-run) cancelled it.
-    Cancelled,
-    /// Archived by the host.
-    Archived,
+crate::status::words! {
+    /// A submission status as EvalAI stores it (always lowercase on the wire), in EvalAI's
+    /// order.
+    SubmissionStatus, "submission status" {
+        /// Just submitted: start an evaluation.
+        Submitted => "submitted",
+        /// Being uploaded by the participant.
+        Submitting => "submitting",
+        /// A host backend accepted it.
+        Queued => "queued",
+        /// Being evaluated.
+        Running => "running",
+        /// A failed submission the host or participant asked to resume: start again.
+        Resuming => "resuming",
+        /// Some results were posted.
+        PartiallyEvaluated => "partially_evaluated",
+        /// Final scores posted.
+        Finished => "finished",
+        /// The evaluation failed.
+        Failed => "failed",
+        /// The participant (or a re-run) cancelled it.
+        Cancelled => "cancelled",
+        /// Archived by the host.
+        Archived => "archived",
+    }
 }
 
 impl SubmissionStatus {
-    /// Every status, in EvalAI's order.
-    pub const ALL: [SubmissionStatus; 10] = [
-        Self::Submitted,
-        Self::Submitting,
-        Self::Queued,
-        Self::Running,
-        Self::Resuming,
-        Self::PartiallyEvaluated,
-        Self::Finished,
-        Self::Failed,
-        Self::Cancelled,
-        Self::Archived,
-    ];
-
-    /// The wire form.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Submitted => "submitted",
-            Self::Submitting => "submitting",
-            Self::Queued => "queued",
-            Self::Running => "running",
-            Self::Resuming => "resuming",
-            Self::PartiallyEvaluated => "partially_evaluated",
-            Self::Finished => "finished",
-            Self::Failed => "failed",
-            Self::Cancelled => "cancelled",
-            Self::Archived => "archived",
-        }
-    }
-
     /// Only these start an evaluation; anything else is a duplicate or stale message.
     pub fn starts_evaluation(self) -> bool {
         matches!(self, Self::Submitted | Self::Resuming)
@@ -209,22 +178,6 @@ impl SubmissionStatus {
             self,
             Self::Finished | Self::Failed | Self::Cancelled | Self::Archived
         )
-    }
-}
-
-impl fmt::Display for SubmissionStatus {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl FromStr for SubmissionStatus {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Self::ALL
-            .into_iter()
-            .find(|status| status.as_str() == s)
-            .ok_or_else(|| format!("unknown submission status `{}`", s.escape_debug()))
     }
 }
 
@@ -362,15 +315,14 @@ mod tests {
 
     #[test]
     fn only_submitted_and_resuming_start_an_evaluation() {
-        let starting: Vec<_> = SubmissionStatus::ALL
-            .into_iter()
+        let starting: Vec<_> = (SubmissionStatus::ALL.iter().copied())
             .filter(|s| s.starts_evaluation())
             .collect();
         assert_eq!(
             starting,
             [SubmissionStatus::Submitted, SubmissionStatus::Resuming]
         );
-        for status in SubmissionStatus::ALL {
+        for &status in SubmissionStatus::ALL {
             assert_eq!(status.as_str().parse::<SubmissionStatus>(), Ok(status));
         }
         assert!("RUNNING".parse::<SubmissionStatus>().is_err());

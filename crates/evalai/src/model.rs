@@ -50,7 +50,7 @@ impl Submission {
             .and_then(Value::as_str)
             .ok_or_else(|| bad("status", "is not a string"))?
             .parse::<SubmissionStatus>()
-            .map_err(|e| bad("status", &e))?;
+            .map_err(|e| bad("status", &e.to_string()))?;
         let team_name = value
             .get("participant_team_name")
             .and_then(Value::as_str)

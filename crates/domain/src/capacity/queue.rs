@@ -7,35 +7,16 @@
 //! enforced by a conditional write (`lb_aws::admission`); this module decides the order and
 //! counts the places.
 
-/// Where an entry of the queue stands.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub enum EntryState {
-    /// Held by its team's cap: no Jobs yet.
-    Waiting,
-    /// Jobs created; its pods wait for a GPU.
-    Admitted,
-    /// Its first pair started.
-    Running,
-}
-
-impl EntryState {
-    /// The stored name.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            EntryState::Waiting => "waiting",
-            EntryState::Admitted => "admitted",
-            EntryState::Running => "running",
-        }
-    }
-
-    /// The stored name read back; `None` for anything else (an entry someone edited).
-    pub fn parse(text: &str) -> Option<Self> {
-        match text {
-            "waiting" => Some(EntryState::Waiting),
-            "admitted" => Some(EntryState::Admitted),
-            "running" => Some(EntryState::Running),
-            _ => None,
-        }
+crate::status::words! {
+    /// Where an entry of the queue stands, as the admission table stores it.
+    #[derive(PartialOrd, Ord)]
+    EntryState, "queue entry state" {
+        /// Held by its team's cap: no Jobs yet.
+        Waiting => "waiting",
+        /// Jobs created; its pods wait for a GPU.
+        Admitted => "admitted",
+        /// Its first pair started.
+        Running => "running",
     }
 }
 
@@ -460,8 +441,8 @@ mod tests {
             EntryState::Admitted,
             EntryState::Running,
         ] {
-            assert_eq!(EntryState::parse(state.as_str()), Some(state));
+            assert_eq!(state.as_str().parse::<EntryState>().ok(), Some(state));
         }
-        assert_eq!(EntryState::parse("Running"), None);
+        assert!("Running".parse::<EntryState>().is_err());
     }
 }

@@ -6,10 +6,6 @@
 use super::model::{Cause, ResultsFile, RouteKind, RouteRecord};
 use super::{Leaderboard, MetricSource, ResultsError};
 use crate::results::py::{self, DumpOptions, JsonWriter, Num};
-use crate::status::UnknownStatus;
-use serde::{Deserialize, Deserializer, Serialize, Serializer};
-use std::fmt;
-use std::str::FromStr;
 
 /// Digits of `round()` for scores (Leaderboard 2.0).
 const ROUND_DIGITS_SCORE: usize = 6;
