@@ -7,7 +7,7 @@ use aws_config::SdkConfig;
 use aws_sdk_dynamodb::types::AttributeValue;
 use clap::Args;
 use lb_aws::dynamo::SubmissionsTable;
-use lb_aws::record::StoredRecord;
+use lb_aws::record::{RecordUsage, StoredRecord};
 use lb_domain::settings::{LeaderboardSettings, Settings};
 use serde_json::{json, Map, Value};
 
@@ -232,14 +232,7 @@ impl Deployment {
 impl Record {
     /// The GPUs the run used so far (the Monitor writes them each round, Finalize at the end).
     pub fn usage(&self) -> Option<Usage> {
-        self.stored.usage.map(|u| Usage {
-            gpu_seconds: u.gpu_seconds,
-            spot: u.spot,
-            run_again: u.run_again,
-            lost: u.lost,
-            dollars: u.dollars,
-            orchestration: u.orchestration,
-        })
+        self.stored.usage.map(Usage)
     }
 
     /// The record as JSON, with where it was found.
@@ -261,27 +254,21 @@ impl Record {
     }
 }
 
-/// A record's GPU usage and its estimated price.
+/// A record's GPU usage and its estimated price, as `lbctl` shows it.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct Usage {
-    /// GPU-seconds held by its pods.
-    pub gpu_seconds: u64,
-    /// Of which on Spot capacity.
-    pub spot: u64,
-    /// Of which spent again on routes a reclaim interrupted.
-    pub run_again: u64,
-    /// Seconds reclaims cost the evaluation (not counted against its time limit).
-    pub lost: u64,
-    /// Dollars, when every second had a price.
-    pub dollars: Option<f64>,
-    /// The orchestration's dollars (state transitions, Lambda, DynamoDB), once counted.
-    pub orchestration: Option<f64>,
+pub struct Usage(pub RecordUsage);
+
+impl std::ops::Deref for Usage {
+    type Target = RecordUsage;
+    fn deref(&self) -> &RecordUsage {
+        &self.0
+    }
 }
 
 impl Usage {
     /// Adds another record's usage (a team's total); the price is known only if both are.
     pub fn add(self, other: Usage) -> Usage {
-        Usage {
+        Usage(RecordUsage {
             gpu_seconds: self.gpu_seconds + other.gpu_seconds,
             spot: self.spot + other.spot,
             run_again: self.run_again + other.run_again,
@@ -291,7 +278,7 @@ impl Usage {
                 (Some(a), Some(b)) => Some(a + b),
                 (a, b) => a.or(b),
             },
-        }
+        })
     }
 
     /// GPU-hours.

@@ -819,22 +819,10 @@ mod tests {
 
     fn pod(phase: &str, containers: Vec<ContainerView>) -> PodView {
         PodView {
-            name: "pod".into(),
-            job: Some("job-0".into()),
-            phase: phase.parse().unwrap(),
-            reason: None,
-            message: None,
-            node: None,
             start_time: Some(at(9, 0)),
-            terminating: false,
             uid: Some("uid".into()),
-            node_selector: None,
-            disruption: None,
-            disruption_message: None,
-            gpus: 1,
-            unschedulable: None,
-            autoscaler: None,
             containers,
+            ..crate::testutil::pod("pod", "job-0", phase.parse().unwrap())
         }
     }
 
