@@ -269,47 +269,39 @@ impl<'a, C: Callbacks> Shell<'a, C> {
     /// head that cannot be read is left out, and its route fails the audit.
     async fn heads(&self, keys: Vec<String>) -> HashMap<String, Vec<u8>> {
         let store = &self.store;
-        futures_util::stream::iter(keys)
-            .map(|key| async move {
-                match store.get_head(&key, audit::HEAD_BYTES).await {
-                    Ok(head) => head.map(|head| (key, head)),
-                    Err(e) => {
-                        warn!(%key, error = %e, "a recording's head could not be read");
-                        None
-                    }
+        read_each(keys, |key| async move {
+            match store.get_head(&key, audit::HEAD_BYTES).await {
+                Ok(head) => head.map(|head| (key, head)),
+                Err(e) => {
+                    warn!(%key, error = %e, "a recording's head could not be read");
+                    None
                 }
-            })
-            .buffer_unordered(HEAD_READS)
-            .filter_map(std::future::ready)
-            .collect()
-            .await
+            }
+        })
+        .await
     }
 
     /// The Jobs' upload reports, read at once (a report that cannot be read, or is not one,
     /// is left out, and said).
     async fn reports(&self, keys: Vec<String>) -> Vec<UploadReport> {
         let store = &self.store;
-        futures_util::stream::iter(keys)
-            .map(|key| async move {
-                match store.get_tail(&key, uploads::MAX_REPORT_BYTES as u64).await {
-                    Ok(Some(bytes)) => {
-                        let report = UploadReport::parse(&bytes);
-                        if report.is_none() {
-                            warn!(%key, "the upload report is not one");
-                        }
-                        report
+        read_each(keys, |key| async move {
+            match store.get_tail(&key, uploads::MAX_REPORT_BYTES as u64).await {
+                Ok(Some(bytes)) => {
+                    let report = UploadReport::parse(&bytes);
+                    if report.is_none() {
+                        warn!(%key, "the upload report is not one");
                     }
-                    Ok(None) => None,
-                    Err(e) => {
-                        warn!(%key, error = %e, "the upload report could not be read");
-                        None
-                    }
+                    report
                 }
-            })
-            .buffer_unordered(HEAD_READS)
-            .filter_map(std::future::ready)
-            .collect()
-            .await
+                Ok(None) => None,
+                Err(e) => {
+                    warn!(%key, error = %e, "the upload report could not be read");
+                    None
+                }
+            }
+        })
+        .await
     }
 
     /// A finished evaluation's duration joins its track's pace (the queue note's estimate).
@@ -321,6 +313,20 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         }
         Answer::Done
     }
+}
+
+/// `read` of each key, [`HEAD_READS`] at a time; a key it gives nothing for is left out.
+async fn read_each<T, C, F>(keys: Vec<String>, read: impl FnMut(String) -> F) -> C
+where
+    F: std::future::Future<Output = Option<T>>,
+    C: Default + Extend<T>,
+{
+    futures_util::stream::iter(keys)
+        .map(read)
+        .buffer_unordered(HEAD_READS)
+        .filter_map(std::future::ready)
+        .collect()
+        .await
 }
 
 /// The final EvalAI update, (status, stdout, stderr): scores for a finished run; for a
