@@ -14,9 +14,10 @@ use lb_domain::cluster::disruption::NodeFacts;
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info, instrument, warn};
 
+use crate::autoscaler::{self, ScaleUpWord};
 use crate::error::{ClusterError, Result};
 use crate::labels;
-use crate::observe::{self, JobState, Observation, VerdictPolicy};
+use crate::observe::{self, JobState, Observation};
 
 /// Bounds on talking to the API server.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -72,7 +73,6 @@ pub struct Cluster {
     client: kube::Client,
     namespace: String,
     timeouts: Timeouts,
-    policy: VerdictPolicy,
 }
 
 impl std::fmt::Debug for Cluster {
@@ -81,7 +81,6 @@ impl std::fmt::Debug for Cluster {
         f.debug_struct("Cluster")
             .field("namespace", &self.namespace)
             .field("timeouts", &self.timeouts)
-            .field("policy", &self.policy)
             .finish_non_exhaustive()
     }
 }
@@ -93,7 +92,6 @@ impl Cluster {
             client,
             namespace: namespace.into(),
             timeouts: Timeouts::default(),
-            policy: VerdictPolicy::default(),
         }
     }
 
@@ -162,18 +160,6 @@ impl Cluster {
     pub fn with_timeouts(mut self, timeouts: Timeouts) -> Self {
         self.timeouts = timeouts;
         self
-    }
-
-    /// Uses `policy` for verdicts.
-    pub fn with_policy(mut self, policy: VerdictPolicy) -> Self {
-        self.policy = policy;
-        self
-    }
-
-    /// The patience its observations are judged with (and after which the autoscaler's word
-    /// on an unschedulable pod is read).
-    pub fn policy(&self) -> &VerdictPolicy {
-        &self.policy
     }
 
     /// The namespace of every call.
@@ -420,34 +406,30 @@ impl Cluster {
         Ok((name, submission_id))
     }
 
-    /// Lists the submission's Jobs and Pods and maps them to an [`Observation`] now.
+    /// Lists the submission's Jobs and Pods and maps them to an [`Observation`] now, as seen:
+    /// no autoscaler word yet ([`Cluster::autoscaler_word`] reads it when asked).
     #[instrument(skip(self))]
     pub async fn observe(&self, submission_id: &str) -> Result<Observation> {
         let (jobs, pods) = self.list(submission_id).await?;
-        let now = Timestamp::now();
-        let events = match observe::needs_autoscaler_word(&pods, now, &self.policy) {
-            Some(uid) => self.pod_events(&uid).await,
-            None => Vec::new(),
-        };
-        let obs = observe::observe(submission_id, &jobs, &pods, &events, now);
+        let obs = observe::observe(submission_id, &jobs, &pods, Timestamp::now());
         debug!(jobs = obs.jobs.len(), restarts = obs.restarts(), "observed");
         Ok(obs)
     }
 
-    /// The events about pod `uid` (the Cluster Autoscaler's among them). Advisory: a refusal
-    /// (a Role without `list` on events) or a timeout leaves the pod to the scheduler's own
-    /// limits, logged, and never fails the round.
-    async fn pod_events(&self, uid: &str) -> Vec<Event> {
+    /// The Cluster Autoscaler's latest word on pod `uid`, from the events about it. Advisory:
+    /// a refusal (a Role without `list` on events) or a timeout leaves the pod to the
+    /// scheduler's own limits, logged, and never fails the round.
+    pub async fn autoscaler_word(&self, uid: &str) -> Option<ScaleUpWord> {
         let params = ListParams::default().fields(&format!("involvedObject.uid={uid}"));
         match self.call("list events", self.events().list(&params)).await {
-            Ok(Ok(list)) => list.items,
+            Ok(Ok(list)) => autoscaler::latest_word(&list.items, uid),
             Ok(Err(e)) => {
                 warn!(pod_uid = uid, error = %e, "cannot list the pod's events; the autoscaler's word is not read");
-                Vec::new()
+                None
             }
             Err(e) => {
                 warn!(pod_uid = uid, error = %e, "listing the pod's events timed out");
-                Vec::new()
+                None
             }
         }
     }

@@ -4,63 +4,24 @@
 use std::collections::BTreeMap;
 
 use k8s_openapi::api::batch::v1::Job;
-use k8s_openapi::api::core::v1::{Container, ContainerStatus, Event, Pod, PodStatus};
+use k8s_openapi::api::core::v1::{Container, ContainerStatus, Pod, PodStatus};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{ObjectMeta, Time};
 use k8s_openapi::jiff::Timestamp;
 
 use lb_domain::status::PodPhase;
 
-use crate::autoscaler;
 use crate::labels;
 pub use lb_domain::cluster::view::{
     started, verdict, waited_at_least, ContainerState, ContainerView, Exit, FailureKind, JobState,
     JobView, Observation, PodView, Unschedulable, Verdict, VerdictPolicy,
 };
 
-/// The uid of a pod worth asking the Cluster Autoscaler about: one unschedulable for at
-/// least `never_fits_grace`. The pairs of a submission request alike, so one pod speaks for
-/// all, and a submission that schedules costs no extra call.
-pub fn needs_autoscaler_word(
-    pods: &[Pod],
-    now: Timestamp,
-    policy: &VerdictPolicy,
-) -> Option<String> {
-    pods.iter()
-        .filter(|p| p.metadata.deletion_timestamp.is_none())
-        .filter(|p| {
-            let status = p.status.as_ref();
-            PodPhase::reported(status.and_then(|s| s.phase.as_deref())) == PodPhase::Pending
-                && status
-                    .and_then(unschedulable_of)
-                    .and_then(|u| u.since)
-                    .is_some_and(|since| waited_at_least(now, since, policy.never_fits_grace))
-        })
-        .find_map(|p| p.metadata.uid.clone())
-}
-
-/// Maps the listed Jobs and Pods of `submission_id`, and the events listed about its pods
-/// (none, or those of [`needs_autoscaler_word`]'s pod), to an observation at `now`.
-pub fn observe(
-    submission_id: &str,
-    jobs: &[Job],
-    pods: &[Pod],
-    events: &[Event],
-    now: Timestamp,
-) -> Observation {
+/// Maps the listed Jobs and Pods of `submission_id` to an observation at `now`.
+pub fn observe(submission_id: &str, jobs: &[Job], pods: &[Pod], now: Timestamp) -> Observation {
     let mut views: Vec<JobView> = jobs.iter().map(job_view).collect();
     views.sort_by(|a, b| (a.index, &a.name).cmp(&(b.index, &b.name)));
     let mut stray_pods = Vec::new();
-    let mut pod_views: Vec<PodView> = pods
-        .iter()
-        .map(|p| {
-            let mut view = pod_view(p);
-            view.autoscaler = view
-                .uid
-                .as_deref()
-                .and_then(|uid| autoscaler::latest_word(events, uid));
-            view
-        })
-        .collect();
+    let mut pod_views: Vec<PodView> = pods.iter().map(pod_view).collect();
     pod_views.sort_by(|a, b| a.name.cmp(&b.name));
     for pod in pod_views {
         match views
@@ -347,6 +308,8 @@ fn digest(image_id: &str) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::autoscaler;
+    use k8s_openapi::api::core::v1::Event;
 
     /// An observation with the verdict `policy` reaches on it, as the Monitor's round judges.
     #[derive(Debug, Clone)]
@@ -371,7 +334,8 @@ mod tests {
         }
     }
 
-    /// [`super::observe`], judged with `policy`.
+    /// [`super::observe`] with each pod told the autoscaler's word among `events` (as the
+    /// Monitor's round does once it asks), judged with `policy`.
     fn observe(
         submission_id: &str,
         jobs: &[Job],
@@ -380,7 +344,12 @@ mod tests {
         now: Timestamp,
         policy: &VerdictPolicy,
     ) -> Judged {
-        let obs = super::observe(submission_id, jobs, pods, events, now);
+        let mut obs = super::observe(submission_id, jobs, pods, now);
+        for uid in pods.iter().filter_map(|p| p.metadata.uid.as_deref()) {
+            if let Some(word) = autoscaler::latest_word(events, uid) {
+                obs.hear_autoscaler(uid, word);
+            }
+        }
         Judged {
             verdict: obs.verdict(policy),
             obs,
@@ -773,9 +742,10 @@ mod tests {
         let (jobs, pods) = load(UNSCHEDULABLE);
         let policy = VerdictPolicy::default();
         // Unschedulable since 09:01; the autoscaler's word is believed from 09:06.
-        assert_eq!(needs_autoscaler_word(&pods, at(9, 5), &policy), None);
+        let seen = |now| super::observe("4242", &jobs, &pods, now);
+        assert_eq!(seen(at(9, 5)).needs_autoscaler_word(&policy), None);
         assert_eq!(
-            needs_autoscaler_word(&pods, at(9, 6), &policy).as_deref(),
+            seen(at(9, 6)).needs_autoscaler_word(&policy),
             Some("8e61dbe7-90cf-4dec-4891-83cfd21a9a89")
         );
         let selector = autoscaler_events(

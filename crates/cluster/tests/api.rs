@@ -473,14 +473,25 @@ async fn a_pod_waiting_past_the_grace_is_looked_up_in_the_autoscalers_events() {
     let (jobs, pods) = fixture(include_str!("fixtures/unschedulable.yaml"));
     let events: Value =
         serde_yaml::from_str(include_str!("fixtures/autoscaler-events.yaml")).unwrap();
-    let obs = with_server(cluster.observe("4242"), async move {
+    // The listing alone reads no events: the Monitor's round asks when it needs the word.
+    let mut obs = with_server(cluster.observe("4242"), async move {
         server.list(JOBS, job_list(jobs)).await;
         server.list(PODS, pod_list(pods)).await;
-        server.pod_events(PENDING_POD_UID, 200, events).await;
+        server.assert_silent().await;
     })
     .await
     .unwrap();
-    match &obs.verdict(&VerdictPolicy::default()) {
+    let policy = VerdictPolicy::default();
+    assert_eq!(obs.needs_autoscaler_word(&policy), Some(PENDING_POD_UID));
+    let (cluster, mut server) = mock();
+    let word = with_server(cluster.autoscaler_word(PENDING_POD_UID), async move {
+        server.pod_events(PENDING_POD_UID, 200, events).await;
+    })
+    .await
+    .expect("the autoscaler's word");
+    obs.hear_autoscaler(PENDING_POD_UID, word);
+    assert_eq!(obs.needs_autoscaler_word(&policy), None);
+    match &obs.verdict(&policy) {
         Verdict::Failed { kind, message, .. } => {
             assert_eq!(*kind, FailureKind::NoNodeFits);
             assert!(
@@ -495,10 +506,7 @@ async fn a_pod_waiting_past_the_grace_is_looked_up_in_the_autoscalers_events() {
 #[tokio::test]
 async fn events_the_role_may_not_list_leave_the_pod_to_the_schedulers_limits() {
     let (cluster, mut server) = mock();
-    let (jobs, pods) = fixture(include_str!("fixtures/unschedulable.yaml"));
-    let obs = with_server(cluster.observe("4242"), async move {
-        server.list(JOBS, job_list(jobs)).await;
-        server.list(PODS, pod_list(pods)).await;
+    let word = with_server(cluster.autoscaler_word(PENDING_POD_UID), async move {
         let forbidden = status(
             403,
             "Forbidden",
@@ -506,6 +514,14 @@ async fn events_the_role_may_not_list_leave_the_pod_to_the_schedulers_limits() {
             json!({"kind": "events"}),
         );
         server.pod_events(PENDING_POD_UID, 403, forbidden).await;
+    })
+    .await;
+    assert_eq!(word, None);
+    let (cluster, mut server) = mock();
+    let (jobs, pods) = fixture(include_str!("fixtures/unschedulable.yaml"));
+    let obs = with_server(cluster.observe("4242"), async move {
+        server.list(JOBS, job_list(jobs)).await;
+        server.list(PODS, pod_list(pods)).await;
     })
     .await
     .unwrap();

@@ -70,14 +70,25 @@ fn pod_spec(job: &mut Job) -> &mut k8s_openapi::api::core::v1::PodSpec {
     job.spec.as_mut().unwrap().template.spec.as_mut().unwrap()
 }
 
-/// Observes every 50 ms until `done` accepts an observation or `WAIT` passes.
-async fn observe_until<F>(cluster: &Cluster, sub: &str, what: &str, mut done: F) -> Observation
+/// Observes as the Monitor's round does with `policy` (the autoscaler's word read once a pod
+/// has waited the grace) every 50 ms until `done` accepts an observation or `WAIT` passes.
+async fn observe_until<F>(
+    (cluster, policy): (&Cluster, &VerdictPolicy),
+    sub: &str,
+    what: &str,
+    mut done: F,
+) -> Observation
 where
     F: FnMut(&Observation) -> bool,
 {
     let deadline = Instant::now() + WAIT;
     loop {
-        let obs = cluster.observe(sub).await.expect("observe");
+        let mut obs = cluster.observe(sub).await.expect("observe");
+        if let Some(uid) = obs.needs_autoscaler_word(policy).map(str::to_string) {
+            if let Some(word) = cluster.autoscaler_word(&uid).await {
+                obs.hear_autoscaler(&uid, word);
+            }
+        }
         if done(&obs) {
             return obs;
         }
@@ -96,6 +107,7 @@ async fn bounded<T>(f: impl Future<Output = T>) -> T {
 #[tokio::test]
 async fn a_job_of_shell_containers_is_observed_running_then_finished() {
     let (_lk, cluster, _dir) = start(Config::default()).await;
+    let policy = VerdictPolicy::default();
     let j = job(
         "5001",
         0,
@@ -113,7 +125,7 @@ async fn a_job_of_shell_containers_is_observed_running_then_finished() {
     assert!(again.adopted);
     assert_eq!(again.uid, launched.uid);
 
-    let running = observe_until(&cluster, "5001", "a running agent", |o| {
+    let running = observe_until((&cluster, &policy), "5001", "a running agent", |o| {
         o.jobs.first().is_some_and(|j| {
             j.pods
                 .iter()
@@ -122,17 +134,17 @@ async fn a_job_of_shell_containers_is_observed_running_then_finished() {
         })
     })
     .await;
-    assert_eq!(running.verdict(cluster.policy()), Verdict::Running);
+    assert_eq!(running.verdict(&policy), Verdict::Running);
     assert_eq!(running.jobs.len(), 1);
     assert_eq!(running.jobs[0].index, Some(0));
 
-    let finished = observe_until(&cluster, "5001", "Finished", |o| {
-        o.verdict(cluster.policy()) == Verdict::Finished
+    let finished = observe_until((&cluster, &policy), "5001", "Finished", |o| {
+        o.verdict(&policy) == Verdict::Finished
     })
     .await;
     assert_eq!(finished.jobs[0].state, JobState::Complete);
     assert_eq!(
-        finished.judge(1, &Default::default(), cluster.policy()),
+        finished.judge(1, &Default::default(), &policy),
         Verdict::Finished
     );
     let agent = finished.jobs[0].pods[0]
@@ -146,6 +158,7 @@ async fn a_job_of_shell_containers_is_observed_running_then_finished() {
 #[tokio::test]
 async fn a_crashing_job_is_observed_failed_with_backoff_limit_exceeded() {
     let (_lk, cluster, _dir) = start(Config::default()).await;
+    let policy = VerdictPolicy::default();
     let j = job(
         "5002",
         0,
@@ -154,11 +167,11 @@ async fn a_crashing_job_is_observed_failed_with_backoff_limit_exceeded() {
         &[("agent-1", "team/agent:v1", "echo crash; exit 3")],
     );
     bounded(cluster.create_or_adopt(&j)).await.unwrap();
-    let obs = observe_until(&cluster, "5002", "Failed", |o| {
-        o.verdict(cluster.policy()).is_terminal()
+    let obs = observe_until((&cluster, &policy), "5002", "Failed", |o| {
+        o.verdict(&policy).is_terminal()
     })
     .await;
-    match &obs.verdict(cluster.policy()) {
+    match &obs.verdict(&policy) {
         Verdict::Failed {
             kind, job, message, ..
         } => {
@@ -180,6 +193,7 @@ async fn an_unpullable_participant_image_is_observed_failed_naming_the_image() {
         ..Config::default()
     })
     .await;
+    let policy = VerdictPolicy::default();
     let j = job(
         "5003",
         0,
@@ -191,11 +205,11 @@ async fn an_unpullable_participant_image_is_observed_failed_naming_the_image() {
         ],
     );
     bounded(cluster.create_or_adopt(&j)).await.unwrap();
-    let obs = observe_until(&cluster, "5003", "an image failure", |o| {
-        o.verdict(cluster.policy()).is_terminal()
+    let obs = observe_until((&cluster, &policy), "5003", "an image failure", |o| {
+        o.verdict(&policy).is_terminal()
     })
     .await;
-    match &obs.verdict(cluster.policy()) {
+    match &obs.verdict(&policy) {
         Verdict::Failed {
             kind,
             container,
@@ -219,6 +233,7 @@ async fn an_unpullable_participant_image_is_observed_failed_naming_the_image() {
 #[tokio::test]
 async fn delete_all_leaves_nothing_and_is_idempotent() {
     let (_lk, cluster, _dir) = start(Config::default()).await;
+    let policy = VerdictPolicy::default();
     for index in 0..2 {
         let j = job(
             "5004",
@@ -238,7 +253,7 @@ async fn delete_all_leaves_nothing_and_is_idempotent() {
         &[("simulator-1", "busybox", "sleep 60")],
     );
     bounded(cluster.create_or_adopt(&other)).await.unwrap();
-    observe_until(&cluster, "5004", "two running Jobs", |o| {
+    observe_until((&cluster, &policy), "5004", "two running Jobs", |o| {
         o.jobs.len() == 2 && o.jobs.iter().all(|j| j.state == JobState::Running)
     })
     .await;
@@ -268,6 +283,7 @@ async fn delete_all_leaves_nothing_and_is_idempotent() {
 #[tokio::test]
 async fn a_job_s_deadline_is_extended_in_place_and_a_gone_job_says_so() {
     let (_lk, cluster, _dir) = start(Config::default()).await;
+    let policy = VerdictPolicy::default();
     let mut j = job(
         "5006",
         0,
@@ -280,7 +296,7 @@ async fn a_job_s_deadline_is_extended_in_place_and_a_gone_job_says_so() {
     let name = "lb-5006-team-77-0";
     let extended = bounded(cluster.set_deadline(name, 345_600 + 900)).await;
     assert!(extended.unwrap());
-    let seen = observe_until(&cluster, "5006", "the new deadline", |o| {
+    let seen = observe_until((&cluster, &policy), "5006", "the new deadline", |o| {
         o.jobs.iter().any(|j| j.deadline == Some(345_600 + 900))
     })
     .await;
@@ -364,12 +380,12 @@ async fn the_real_server_refusals_map_to_invalid_and_forbidden() {
 async fn zero_hopeless_limits_do_not_fail_a_healthy_job() {
     // Local pods are scheduled and created at once; zero limits must not invent a failure.
     let (_lk, cluster, _dir) = start(Config::default()).await;
-    let cluster = cluster.with_policy(VerdictPolicy {
+    let policy = VerdictPolicy {
         unschedulable_limit: Duration::ZERO,
         queue_limit: Duration::ZERO,
         config_error_limit: Duration::ZERO,
         never_fits_grace: Duration::ZERO,
-    });
+    };
     let j = job(
         "5009",
         0,
@@ -378,11 +394,11 @@ async fn zero_hopeless_limits_do_not_fail_a_healthy_job() {
         &[("simulator-1", "busybox", "sleep 1")],
     );
     bounded(cluster.create_or_adopt(&j)).await.unwrap();
-    let obs = observe_until(&cluster, "5009", "Finished", |o| {
-        o.verdict(cluster.policy()).is_terminal()
+    let obs = observe_until((&cluster, &policy), "5009", "Finished", |o| {
+        o.verdict(&policy).is_terminal()
     })
     .await;
-    assert_eq!(obs.verdict(cluster.policy()), Verdict::Finished);
+    assert_eq!(obs.verdict(&policy), Verdict::Finished);
 }
 
 /// `job` labelled as launched by `execution`, Job and Pods alike.
@@ -411,6 +427,7 @@ fn job_of(execution: &str, sub: &str, index: u32) -> Job {
 #[tokio::test]
 async fn an_execution_deletes_and_waits_for_its_own_jobs_only() {
     let (_lk, cluster, _dir) = start(Config::default()).await;
+    let policy = VerdictPolicy::default();
     bounded(cluster.create_or_adopt(&job_of("exec-new", "5007", 0)))
         .await
         .unwrap();
@@ -418,7 +435,10 @@ async fn an_execution_deletes_and_waits_for_its_own_jobs_only() {
     bounded(cluster.create_or_adopt(&job_of("exec-old", "5007", 1)))
         .await
         .unwrap();
-    observe_until(&cluster, "5007", "two Jobs", |o| o.jobs.len() == 2).await;
+    observe_until((&cluster, &policy), "5007", "two Jobs", |o| {
+        o.jobs.len() == 2
+    })
+    .await;
 
     let deleted = bounded(cluster.delete_all("5007", Some("exec-new")))
         .await
@@ -511,10 +531,10 @@ async fn a_pod_no_node_could_ever_hold_fails_and_a_pod_waiting_for_room_waits() 
         ..Config::default()
     })
     .await;
-    let cluster = cluster.with_policy(VerdictPolicy {
+    let policy = VerdictPolicy {
         never_fits_grace: Duration::ZERO,
         ..VerdictPolicy::default()
-    });
+    };
     for (sub, gpus, instance_type, script) in [
         ("5101", 1, "g5.12xlarge", "sleep 30"),
         ("5102", 1, "g5.12xlarge", "true"),
@@ -524,17 +544,17 @@ async fn a_pod_no_node_could_ever_hold_fails_and_a_pod_waiting_for_room_waits() 
         let j = gpu_job(sub, gpus, instance_type, script);
         bounded(cluster.create_or_adopt(&j)).await.unwrap();
     }
-    observe_until(&cluster, "5101", "running", |o| {
+    observe_until((&cluster, &policy), "5101", "running", |o| {
         o.jobs[0].state == JobState::Running
     })
     .await;
 
     // Waits for the GPU 5101 holds: a queue, never a failure.
-    let queued = observe_until(&cluster, "5102", "the autoscaler's word", |o| {
+    let queued = observe_until((&cluster, &policy), "5102", "the autoscaler's word", |o| {
         o.jobs[0].pods.iter().any(|p| p.autoscaler.is_some())
     })
     .await;
-    assert_eq!(queued.verdict(cluster.policy()), Verdict::Running);
+    assert_eq!(queued.verdict(&policy), Verdict::Running);
     let word = queued.jobs[0].pods[0].autoscaler.as_ref().unwrap();
     assert_eq!(
         word.message,
@@ -551,8 +571,8 @@ async fn a_pod_no_node_could_ever_hold_fails_and_a_pod_waiting_for_room_waits() 
             "its pods request more nvidia.com/gpu than a node of any node group",
         ),
     ] {
-        let obs = observe_until(&cluster, sub, "a verdict", |o| o.verdict(cluster.policy()).is_terminal()).await;
-        match &obs.verdict(cluster.policy()) {
+        let obs = observe_until((&cluster, &policy), sub, "a verdict", |o| o.verdict(&policy).is_terminal()).await;
+        match &obs.verdict(&policy) {
             Verdict::Failed { kind, message, .. } => {
                 assert_eq!(*kind, FailureKind::NoNodeFits, "{message}");
                 assert!(message.contains(expect), "{sub}: {message}");

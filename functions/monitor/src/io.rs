@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 
 use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
+use lb_cluster::autoscaler::ScaleUpWord;
 use lb_cluster::Cluster;
 use lb_domain::capacity::cost::Totals;
 use lb_domain::capacity::queue::Hold;
@@ -77,6 +78,7 @@ impl<'a> Shell<'a> {
             Step::ComposeNote(place, hold) => Answer::Note(self.compose(place, hold).await),
             Step::ShowPlace(note) => Answer::Shown(self.show_place(note).await?),
             Step::Observe => self.observe().await?,
+            Step::ReadAutoscaler(uid) => Answer::Autoscaler(self.autoscaler_word(&uid).await),
             Step::ReadNodes(nodes) => Answer::Nodes(self.read_nodes(nodes).await),
             Step::ResultsWritten => Answer::ResultsWritten(results::written(&self.store).await),
             Step::SetDeadlines(jobs) => self.set_deadlines(jobs).await,
@@ -184,7 +186,6 @@ impl<'a> Shell<'a> {
         let seen = async {
             let clusters = &self.deps.clients.clusters;
             let cluster = clusters.connect(self.target.deployment).await?;
-            let cluster = cluster.with_policy(self.deps.policy);
             let observation = cluster.observe(&self.id().to_string()).await?;
             Ok::<_, FnError>((cluster, observation))
         };
@@ -199,6 +200,11 @@ impl<'a> Shell<'a> {
             }
             Err(e) => Err(e),
         }
+    }
+
+    /// The Cluster Autoscaler's latest word on pod `uid` (`None`: none, or not read).
+    async fn autoscaler_word(&self, uid: &str) -> Option<ScaleUpWord> {
+        self.cluster.as_ref()?.autoscaler_word(uid).await
     }
 
     /// The nodes asked for, each read once (`None`: one could not be read).

@@ -170,7 +170,8 @@ pub struct PodView {
     pub gpus: u32,
     /// Set while the scheduler cannot place it.
     pub unschedulable: Option<Unschedulable>,
-    /// The Cluster Autoscaler's latest word on it, when asked (see [`needs_autoscaler_word`]).
+    /// The Cluster Autoscaler's latest word on it, when asked
+    /// ([`Observation::needs_autoscaler_word`]).
     #[serde(default)]
     pub autoscaler: Option<ScaleUpWord>,
     /// Init containers, then containers, in spec order.
@@ -329,6 +330,32 @@ impl Observation {
     /// When the first Job started, if any has.
     pub fn started_at(&self) -> Option<Timestamp> {
         self.jobs.iter().filter_map(|j| j.start_time).min()
+    }
+
+    /// The uid of a pod worth asking the Cluster Autoscaler about: one unschedulable for at
+    /// least `never_fits_grace` and not yet heard of. The pairs of a submission request alike,
+    /// so one pod speaks for all, and a submission that schedules costs no extra call.
+    pub fn needs_autoscaler_word(&self, policy: &VerdictPolicy) -> Option<&str> {
+        let pods = self.jobs.iter().flat_map(|j| &j.pods);
+        pods.chain(&self.stray_pods)
+            .filter(|p| p.phase == PodPhase::Pending && !p.terminating && p.autoscaler.is_none())
+            .filter(|p| {
+                (p.unschedulable.as_ref().and_then(|u| u.since)).is_some_and(|since| {
+                    waited_at_least(self.observed_at, since, policy.never_fits_grace)
+                })
+            })
+            .find_map(|p| p.uid.as_deref())
+    }
+
+    /// Gives the pod with uid `uid` the Cluster Autoscaler's latest `word` on it.
+    pub fn hear_autoscaler(&mut self, uid: &str, word: ScaleUpWord) {
+        let pods = self.jobs.iter_mut().flat_map(|j| &mut j.pods);
+        if let Some(pod) = pods
+            .chain(&mut self.stray_pods)
+            .find(|p| p.uid.as_deref() == Some(uid))
+        {
+            pod.autoscaler = Some(word);
+        }
     }
 
     /// The verdict on these Jobs as they stand, with `policy`'s patience ([`verdict`]).

@@ -16,6 +16,7 @@ use std::time::Duration;
 
 use crate::capacity::cost::{self, InstancePrice, NodeKind, PodSeen, Totals};
 use crate::capacity::queue::{self, Hold, Standing};
+use crate::cluster::autoscaler::ScaleUpWord;
 use crate::cluster::disruption::{self, Disruption, NodeFacts};
 use crate::cluster::view::{self as cluster, Observation, Verdict, VerdictPolicy};
 use crate::job::protocol::Marker;
@@ -83,6 +84,9 @@ pub enum Step {
     /// Look at the submission's Jobs and pods ([`Answer::Observed`] or
     /// [`Answer::Unreachable`]).
     Observe,
+    /// Read the Cluster Autoscaler's latest word on the pod with this uid, one the scheduler
+    /// has not placed for the grace ([`Answer::Autoscaler`]).
+    ReadAutoscaler(String),
     /// Read these nodes: the kinds of those new pods run on, and whether the node of a pod
     /// the kubelet evicted is leaving ([`Answer::Nodes`]).
     ReadNodes(Vec<String>),
@@ -197,6 +201,8 @@ pub enum Answer {
     Shown(Write),
     /// The cluster as seen.
     Observed(Box<Observation>),
+    /// The Cluster Autoscaler's latest word on the pod asked about (`None`: none, or not read).
+    Autoscaler(Option<ScaleUpWord>),
     /// The files EvalAI gets are in S3 (`false`: not this round, so nothing is sent).
     Stored(bool),
     /// The nodes asked for (`None`: one could not be read, and the count waits).
@@ -451,6 +457,7 @@ impl Round {
             }
             (Stage::Turn | Stage::Note, Answer::Shown(write)) => self.shown(write),
             (Stage::Observe, Answer::Observed(seen)) => self.observed(*seen),
+            (Stage::Observe, Answer::Autoscaler(word)) => self.heard(word),
             (Stage::Observe, Answer::Nodes(nodes)) => self.nodes_read(nodes),
             (Stage::Observe, Answer::ResultsWritten(at)) => self.charge(&at),
             (Stage::Observe, Answer::Unreachable(error)) => self.unreachable(error),
@@ -626,6 +633,33 @@ impl Round {
     /// (the kinds of those new pods run on, and whether an evicting kubelet's node is leaving).
     fn observed(&mut self, observation: Observation) {
         self.run.monitor.unreachable_since = None;
+        let asking = observation.needs_autoscaler_word(&self.cx.policy);
+        if let Some(uid) = asking.map(str::to_string) {
+            self.pending = Some(Step::ReadAutoscaler(uid));
+            self.sighting = Some(Sighting {
+                observation,
+                counted: None,
+            });
+            return;
+        }
+        self.count_pods(observation);
+    }
+
+    /// The autoscaler's word on the pod asked about, for the verdict; then the count.
+    fn heard(&mut self, word: Option<ScaleUpWord>) {
+        let Some(mut seen) = self.sighting.take() else {
+            return self.charge(&BTreeMap::new());
+        };
+        // The pod asked about is the one the same observation still names.
+        let asked = seen.observation.needs_autoscaler_word(&self.cx.policy);
+        if let (Some(uid), Some(word)) = (asked.map(str::to_string), word) {
+            seen.observation.hear_autoscaler(&uid, word);
+        }
+        self.count_pods(seen.observation);
+    }
+
+    /// The pods the GPU count takes, and the nodes it must read first.
+    fn count_pods(&mut self, observation: Observation) {
         let pods = cost::pods_seen(&observation.jobs, observation.observed_at);
         let usage = &self.run.monitor.usage;
         let mut nodes = usage.unknown_nodes(&pods);
@@ -954,6 +988,7 @@ mod tests {
                 Step::ComposeNote(..) => "compose",
                 Step::ShowPlace(_) => "show",
                 Step::Observe => "observe",
+                Step::ReadAutoscaler(_) => "autoscaler",
                 Step::ReadNodes(_) => "nodes",
                 Step::ResultsWritten => "written",
                 Step::SetDeadlines(_) => "deadlines",
@@ -1154,6 +1189,67 @@ mod tests {
         assert_eq!(run.monitor.state, RunPhase::Failed);
         let reason = run.monitor.reason.unwrap();
         assert!(reason.contains("(KubeUnavailable)"), "{reason}");
+    }
+
+    /// The cluster with one pod the scheduler has not placed since `since` (epoch seconds).
+    fn unplaced(since: u64) -> Answer {
+        let mut job = crate::testutil::job("lb-7-0", JobState::Pending, None);
+        let mut pod = crate::testutil::pod("lb-7-0-a", "lb-7-0", PodPhase::Pending);
+        pod.uid = Some("uid-a".into());
+        pod.node_selector = Some("node.kubernetes.io/instance-type=g6.xlarge".into());
+        pod.unschedulable = Some(crate::cluster::view::Unschedulable {
+            since: Some(jiff::Timestamp::from_second(since as i64).unwrap()),
+            message: "0/3 nodes are available".into(),
+        });
+        job.pods.push(pod);
+        observed(vec![job])
+    }
+
+    #[test]
+    fn the_autoscaler_is_asked_only_after_the_grace_and_its_no_ends_the_wait() {
+        let grace = cx().policy.never_fits_grace.as_secs();
+        let never = |step: &Step| match step {
+            Step::ReadAutoscaler(uid) => {
+                assert_eq!(uid, "uid-a");
+                Answer::Autoscaler(Some(ScaleUpWord {
+                    reason: crate::cluster::autoscaler::NOT_TRIGGERED.into(),
+                    message: "pod didn't trigger scale-up: 1 node(s) didn't match Pod's node affinity/selector".into(),
+                    at: Some(jiff::Timestamp::from_second(NOW as i64 - 5).unwrap()),
+                }))
+            }
+            Step::ReadAhead => Answer::Ahead(None),
+            other => quiet(JobState::Pending)(other),
+        };
+        let waiting = || {
+            let mut admitted = run(true);
+            admitted.monitor.fingerprint = Some("etag-1".into());
+            admitted
+        };
+        // Not yet waited the grace: no question, and the pod waits.
+        let (steps, left) = drive(waiting(), cx(), |step| match step {
+            Step::Observe => unplaced(NOW - grace + 1),
+            other => never(other),
+        });
+        assert!(!kinds(&steps).contains(&"autoscaler"), "{steps:?}");
+        assert_eq!(left.monitor.state, RunPhase::Running);
+
+        // Past it: one question, and a "no group could hold it" fails the run, unstarted.
+        let (steps, left) = drive(waiting(), cx(), |step| match step {
+            Step::Observe => unplaced(NOW - grace),
+            other => never(other),
+        });
+        assert_eq!(kinds(&steps)[..3], ["wake", "observe", "autoscaler"]);
+        assert_eq!(left.monitor.state, RunPhase::Failed);
+        let reason = left.monitor.reason.unwrap();
+        assert!(reason.contains("g6.xlarge"), "{reason}");
+
+        // No word (none said, or the events not readable): the pod waits.
+        let (_, left) = drive(waiting(), cx(), |step| match step {
+            Step::Observe => unplaced(NOW - grace),
+            Step::ReadAutoscaler(_) => Answer::Autoscaler(None),
+            other => never(other),
+        });
+        assert_eq!(left.monitor.state, RunPhase::Running);
     }
 
     #[test]
