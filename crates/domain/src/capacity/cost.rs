@@ -323,9 +323,11 @@ impl Ledger {
     }
 
     /// A pod that ended by the last round was counted then (a Job's ended pods stay listed
-    /// until the Job goes).
+    /// until the Job goes), unless that round counted it running: its status lagged behind
+    /// its containers (a crash marker can wake a round in between), and its end, a crash to
+    /// charge among them, is counted now.
     fn counted_before(&self, pod: &PodSeen) -> bool {
-        pod.ended_at.is_some_and(|end| end <= self.last)
+        pod.ended_at.is_some_and(|end| end <= self.last) && self.continues(pod).is_none()
     }
 
     /// Nodes whose kind this round needs: those of pods that started since the last round.
@@ -984,6 +986,58 @@ mod tests {
         );
         let judged: Vec<_> = pods.iter().map(|p| p.disruption).collect();
         assert_eq!(judged, [Some(Disruption::Reclaim), Some(Disruption::Own)]);
+    }
+
+    #[test]
+    fn an_own_disruption_is_charged_once_even_when_its_pod_s_status_lags() {
+        let kinds = kinds();
+        let results = BTreeMap::from([(0, 700)]);
+        let none_failed = BTreeMap::from([(0, 0)]);
+        let own = |end: Option<u64>| PodSeen {
+            disruption: Some(Disruption::Own),
+            ..pod(0, 100, end, "od-a", false)
+        };
+        // The rounds' sightings of one pod the kubelet evicted for its own disk use, its
+        // containers done at 900: the charge to its pair once they are all seen.
+        let charged = |sightings: &[(u64, PodSeen)]| {
+            let mut ledger = Ledger::default();
+            ledger.account(
+                &[pod(0, 100, None, "od-a", false)],
+                &kinds,
+                (&results, &none_failed),
+                500,
+            );
+            for (now, seen) in sightings {
+                ledger.account(
+                    std::slice::from_ref(seen),
+                    &kinds,
+                    (&results, &none_failed),
+                    *now,
+                );
+            }
+            (ledger.charged_to(0), ledger.totals().gpu_seconds)
+        };
+        // Its status said Failed by the next round.
+        assert_eq!(charged(&[(1000, own(Some(900)))]), (1, 800));
+        // Its status still said Running at the round a crash marker woke (after its end),
+        // Failed only at the next: charged all the same, once, its time
+        // charged up to that round (what it could see), not twice.
+        assert_eq!(
+            charged(&[
+                (1000, own(None)),
+                (1100, own(Some(900))),
+                (1200, own(Some(900)))
+            ]),
+            (1, 900)
+        );
+        // Without the condition at the lagging round, the same.
+        assert_eq!(
+            charged(&[
+                (1000, pod(0, 100, None, "od-a", false)),
+                (1100, own(Some(900)))
+            ]),
+            (1, 900)
+        );
     }
 
     #[test]
