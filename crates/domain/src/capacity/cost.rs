@@ -117,7 +117,7 @@ pub fn pods_seen(jobs: &[JobView], observed_at: jiff::Timestamp) -> Vec<PodSeen>
 }
 
 /// The kubelet's disruptions judged by their nodes: `leaving` says, by node name, whether the
-/// node is gone or going ([`disruption::leaving`]). A node not in it is taken as staying.
+/// node is going ([`disruption::leaving`]). A node not in it is taken as staying.
 pub fn judge(pods: &mut [PodSeen], leaving: &BTreeMap<String, bool>) {
     for pod in pods {
         if let Some(d @ Disruption::ByKubelet) = pod.disruption {
@@ -967,7 +967,7 @@ mod tests {
         };
         assert_eq!(gone(0), (0, 260, 1));
         assert_eq!(gone(3), (1, 0, 3));
-        // Judging by the node: gone or leaving makes the kubelet's eviction free.
+        // Judging by the node: leaving makes the kubelet's eviction free.
         let mut pods = [
             PodSeen {
                 node: Some("cordoned".into()),

@@ -91,11 +91,15 @@ pub struct NodeFacts {
     pub ready: bool,
 }
 
-/// Whether a node (`None`: gone) is leaving: deleted, cordoned, tainted for removal, or not
-/// ready. A node under disk, inode or PID pressure stays `Ready` and untainted for removal:
-/// it is not leaving, and a pressure eviction on it is a pod's doing.
+/// Whether a node is leaving: cordoned, tainted for removal, or not ready. A node under disk,
+/// inode or PID pressure stays `Ready` and untainted for removal: it is not leaving, and a
+/// pressure eviction on it is a pod's doing. A node already gone (`None`) says nothing of why
+/// the kubelet evicted: the Cluster Autoscaler removes a node a pressure eviction emptied, so
+/// it is taken as staying, and a node that went with its pods gives them a reason of the
+/// control plane's own (`DeletionByPodGC`, `DeletionByTaintManager`) or the kubelet's
+/// shutdown message, each a reclaim without asking the node.
 pub fn leaving(node: Option<&NodeFacts>) -> bool {
-    node.is_none_or(|n| {
+    node.is_some_and(|n| {
         n.unschedulable
             || !n.ready
             || n.taints
@@ -156,8 +160,9 @@ mod tests {
             // The participant filled the node's disk, or its inodes or PIDs.
             (BY_KUBELET, pressure, Some(&healthy), Disruption::Own),
             (BY_KUBELET, pressure, Some(&pressured), Disruption::Own),
+            // Its node gone before a round judged it: the emptied node scaled down.
+            (BY_KUBELET, pressure, None, Disruption::Own),
             // The node is going anyway.
-            (BY_KUBELET, pressure, None, Disruption::Reclaim),
             (BY_KUBELET, pressure, Some(&cordoned), Disruption::Reclaim),
             (
                 BY_KUBELET,

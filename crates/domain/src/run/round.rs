@@ -1507,7 +1507,7 @@ mod tests {
     }
 
     #[test]
-    fn a_kubelet_eviction_is_a_reclaim_on_a_leaving_node_and_the_pods_own_on_a_staying_one() {
+    fn a_kubelet_eviction_is_a_reclaim_on_a_leaving_node_and_the_pods_own_on_a_staying_or_gone_one() {
         for (leaving, reclaim) in [(true, true), (false, false)] {
             let (steps, _) = drive(started(run(true)), cx(), |step| match step {
                 Step::Observe => on_node("n2", true),
@@ -1528,14 +1528,16 @@ mod tests {
                 "leaving {leaving}: {steps:?}"
             );
         }
-        // A node gone is judged leaving.
-        let (steps, _) = drive(started(run(true)), cx(), |step| match step {
+        // A node gone before it was judged is taken as staying: the autoscaler removes the
+        // node a pressure eviction emptied, and that is no reclaim.
+        let (steps, after) = drive(started(run(true)), cx(), |step| match step {
             Step::Observe => on_node("n3", true),
             Step::ReadNodes(_) => Answer::Nodes(Some(BTreeMap::from([("n3".into(), None)]))),
             Step::ResultsWritten => Answer::ResultsWritten(BTreeMap::new()),
             other => quiet(JobState::Running)(other),
         });
-        assert!(kinds(&steps).contains(&"written"), "{steps:?}");
+        assert!(!kinds(&steps).contains(&"written"), "{steps:?}");
+        assert_eq!(after.monitor.usage.jobs[0].reclaims, 0);
     }
 
     #[test]
