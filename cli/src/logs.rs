@@ -181,11 +181,13 @@ async fn print_new(
         if size <= from && offsets.contains_key(&key) {
             continue;
         }
+        // The participant names its files: shown escaped like everything it writes.
+        let shown = crate::deployment::clean(&key);
         if is_recording(&key) {
             if !offsets.contains_key(&key) {
                 let _ = writeln!(
                     out,
-                    "==> {key} <== ({size} bytes, a recording: not printed)"
+                    "==> {shown} <== ({size} bytes, a recording: not printed)"
                 );
             }
             offsets.insert(key, size);
@@ -194,12 +196,12 @@ async fn print_new(
         let bytes = store
             .get_from(&key, from)
             .await
-            .map_err(|e| CliError::aws(format!("reading `{key}`"), e))?
+            .map_err(|e| CliError::aws(format!("reading `{shown}`"), e))?
             .unwrap_or_default();
         if from == 0 {
-            let _ = writeln!(out, "==> {key} <==");
+            let _ = writeln!(out, "==> {shown} <==");
         } else if !bytes.is_empty() {
-            let _ = writeln!(out, "==> {key} (continued) <==");
+            let _ = writeln!(out, "==> {shown} (continued) <==");
         }
         // Written by the participant's code too: no escape reaches the operator's terminal.
         let text = printable(&String::from_utf8_lossy(&bytes));

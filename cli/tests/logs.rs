@@ -52,6 +52,8 @@ async fn logs_prints_each_workers_logs_and_follows_them_until_the_end() {
     put_log(sdk, "logs/logcopy/logcopy-0.log", "uploaded 3 files\n").await;
     put_log(sdk, "recorder/pair1/RouteScenario_0_rep0.log", "BINARY").await;
     put_log(sdk, "agent/partial_agent_results1.json", "{}").await;
+    // A name an older logcopy let through: it reads as `agent1/cod.log` backwards.
+    put_log(sdk, "logs/agent/agent1/gol.\u{202e}exe\u{200b}", "named\n").await;
 
     let out = lbctl(&["logs", "1"], &env, None);
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
@@ -70,6 +72,11 @@ async fn logs_prints_each_workers_logs_and_follows_them_until_the_end() {
         "no terminal escape reaches the operator"
     );
     assert!(!text.contains("partial_agent_results"), "{text}");
+    assert!(
+        text.contains("==> logs/agent/agent1/gol.\\u{202e}exe\\u{200b} <==\nnamed\n"),
+        "{text}"
+    );
+    assert!(!text.contains(['\u{202e}', '\u{200b}']), "{text}");
 
     let out = lbctl(&["logs", "1", "--worker", "2"], &env, None);
     let text = stdout(&out);

@@ -219,13 +219,17 @@ fn superseded(mut found: Vec<Entry>) -> Vec<Entry> {
     found
 }
 
-/// A name that is safe as part of an S3 key and a local path: printable, not `.`/`..`.
+/// A name that is safe as part of an S3 key and a local path: printable, not `.`/`..`. No
+/// invisible format character either (bidirectional controls, zero-width ones): a key that
+/// reads as another in the console or `lbctl logs` would hide what the participant wrote.
 pub fn key_ok(name: &str) -> bool {
     !name.is_empty()
         && name != "."
         && name != ".."
         && !name.contains('/')
-        && !name.chars().any(char::is_control)
+        && !name
+            .chars()
+            .any(|c| c.is_control() || lb_domain::job::logtail::is_invisible_format(c))
 }
 
 /// A key suffix that is safe to turn into a local path (init's downloads).
@@ -404,6 +408,27 @@ mod tests {
         assert_eq!(names(superseded(tied)), ["recorder/pair1/R_0.log"]);
         assert!(superseded(vec![entry("R_0.log", 10)]).is_empty());
         assert!(superseded(Vec::new()).is_empty());
+    }
+
+    #[test]
+    fn a_key_refuses_controls_and_invisible_format_characters() {
+        for name in ["agent.log", "données.txt", "日本.log", "R_0.log"] {
+            assert!(key_ok(name), "{name}");
+        }
+        for name in [
+            "",
+            ".",
+            "..",
+            "a/b",
+            "a\nb",
+            "a\u{1b}[2Jb",
+            "gol.exe\u{202e}txt",
+            "a\u{200b}b",
+            "a\u{2066}b",
+            "a\u{feff}b",
+        ] {
+            assert!(!key_ok(name), "{name:?}");
+        }
     }
 
     #[test]

@@ -1507,7 +1507,8 @@ mod tests {
     }
 
     #[test]
-    fn a_kubelet_eviction_is_a_reclaim_on_a_leaving_node_and_the_pods_own_on_a_staying_or_gone_one() {
+    fn a_kubelet_eviction_is_a_reclaim_on_a_leaving_node_and_the_pods_own_on_a_staying_or_gone_one()
+    {
         for (leaving, reclaim) in [(true, true), (false, false)] {
             let (steps, _) = drive(started(run(true)), cx(), |step| match step {
                 Step::Observe => on_node("n2", true),
