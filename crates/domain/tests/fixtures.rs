@@ -200,6 +200,33 @@ fn merged_files_are_byte_identical_to_python_json_dump() {
 }
 
 #[test]
+fn a_partial_update_is_due_on_progress_statuses_and_scores_only() {
+    let case = case("a_");
+    let view = |files: Vec<ResultsFile>| {
+        let opts = options(&case, None);
+        merge(files, opts).unwrap().merged.progress_view()
+    };
+    let files = load(&case);
+    let before = view(files.clone());
+    // A duration toggled, an infraction reworded: nothing to send for.
+    let mut toggled = files.clone();
+    let record = &mut toggled[0].records[0];
+    record.meta.duration_system =
+        lb_domain::results::py::Num::Float(record.meta.duration_system.as_f64() + 0.5);
+    if let Some((_, messages)) = record.infractions.iter_mut().find(|(_, m)| !m.is_empty()) {
+        messages[0].push_str(" (again)");
+    }
+    assert_eq!(view(toggled), before);
+    // A score changed, or a route fewer: due.
+    let mut rescored = files.clone();
+    rescored[0].records[0].scores.score_route = lb_domain::results::py::Num::Float(1.5);
+    assert_ne!(view(rescored), before);
+    let mut fewer = files;
+    fewer[0].records.pop();
+    assert_ne!(view(fewer), before);
+}
+
+#[test]
 fn invalid_fixture_reports_the_validation_message() {
     let case = case("l_");
     let opts = options(&case, None);

@@ -19,8 +19,9 @@ use crate::FnError;
 pub struct Snapshot {
     /// What was read (see [`fingerprint`]).
     pub fingerprint: String,
-    /// The digest of what the merged records say (`agent_results.json`): the same records in
-    /// other bytes give the same digest.
+    /// The digest of what a partial update is sent for ([`Merged::progress_view`]): routes
+    /// done, each record's status and scores. The same in other bytes, or with another
+    /// duration, gives the same digest.
     pub content: String,
     /// The EvalAI files.
     pub files: EvalAiFiles,
@@ -157,7 +158,8 @@ pub async fn collect_listed(
         .as_ref()
         .map_or_else(Vec::new, |m| audited_routes(m, &pairs));
     let metrics = metrics(&files, leaderboard);
-    let content = digest(merged_json.as_deref().unwrap_or_default().as_bytes());
+    let view = merged.as_ref().map(Merged::progress_view);
+    let content = digest(view.unwrap_or_default().as_bytes());
     Ok(Snapshot {
         fingerprint,
         content,

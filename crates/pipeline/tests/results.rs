@@ -108,6 +108,29 @@ async fn two_of_four_workers_reported_is_partial_and_a_changed_file_changes_the_
         .await
         .unwrap();
     assert_ne!(fingerprint(&store).await.unwrap(), first.fingerprint);
+    let third = collect(&store, Leaderboard::V2, &plan, 1).await.unwrap();
+    assert_ne!(
+        third.content, first.content,
+        "routes done: an update is due"
+    );
+
+    // The same records with a duration toggled and other bytes: read again, nothing to send.
+    let text = std::fs::read_to_string(case.join("input/worker3.json")).unwrap();
+    let mut file: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let meta = &mut file["_checkpoint"]["records"][0]["meta"]["duration_system"];
+    *meta = serde_json::json!(meta.as_f64().unwrap() + 0.5);
+    let toggled = serde_json::to_vec(&file).unwrap();
+    store
+        .put(
+            "agent/partial_agent_results3.json",
+            toggled,
+            "application/json",
+        )
+        .await
+        .unwrap();
+    let fourth = collect(&store, Leaderboard::V2, &plan, 1).await.unwrap();
+    assert_ne!(fourth.fingerprint, third.fingerprint);
+    assert_eq!(fourth.content, third.content);
 }
 
 #[tokio::test]

@@ -445,9 +445,10 @@ fn a_wake_flood_costs_rounds_at_the_least_interval_and_continues_under_its_budge
 #[test]
 #[ignore = "needs moto"]
 fn results_rewritten_with_the_same_records_send_nothing_new() {
-    // Agents that rewrite their results four times a second with the same records (a trailing
-    // newline toggled), on routes longer than the least interval between partial updates:
-    // only new records are sent, at most one update per route and the first.
+    // Agents that rewrite their results four times a second with the same records (their
+    // `duration_system` toggled by half a second, a trailing newline too), on routes longer
+    // than the least interval between partial updates: only progress is sent, at most one
+    // update per route and the first.
     let routes = 4;
     let (report, _) = local_run(
         &[

@@ -312,8 +312,8 @@ pub struct EvaluatorFaults {
     pub record_log: Option<PathBuf>,
     /// `FAKE_EVALUATOR_FLOOD_HZ` (1 to 50): this many times a second for the whole run,
     /// rewrite a file of its own in the status directory (`LB_STATUS_DIR`, default
-    /// `/tmp/status`) and its results file with the same records (a trailing newline on and
-    /// off), as a participant's code can.
+    /// `/tmp/status`) and its results file with the same records (their durations and a
+    /// trailing newline toggled), as a participant's code can.
     pub flood_hz: Option<u32>,
     /// The status directory the flood writes to.
     pub status_dir: PathBuf,
@@ -406,8 +406,9 @@ const FILL_BYTES: u64 = 200 << 20;
 /// Rewrites `status_dir/flood.txt` and the results file `checkpoint` `hz` times a second,
 /// forever (the flood fault), and writes a new marker name each time (an attempt beyond any a
 /// pod reaches, `simulator-<pair>.start<16 + n>`); first, a 200 MiB file on the logs volume
-/// (sparse: it takes no disk, its size is what matters). The results keep their records:
-/// only a trailing newline comes and goes, so every rewrite is new content for logcopy. Each
+/// (sparse: it takes no disk, its size is what matters). The results keep their records,
+/// with only their durations and a trailing newline toggled ([`toggled`]), so every rewrite
+/// is new content for logcopy and for the merge, and none is progress. Each
 /// rewrite is a read and an atomic replace with no await between them, so on the evaluator's
 /// single thread it never loses one of the evaluator's own writes.
 pub async fn flood(status_dir: PathBuf, checkpoint: PathBuf, (hz, pair): (u32, Option<u32>)) {
@@ -430,16 +431,34 @@ pub async fn flood(status_dir: PathBuf, checkpoint: PathBuf, (hz, pair): (u32, O
             }
         }
         if let Ok(text) = std::fs::read_to_string(&checkpoint) {
-            let body = text.trim_end_matches('\n');
-            let next = if text.ends_with('\n') {
-                body.to_owned()
-            } else {
-                format!("{body}\n")
-            };
+            let next = toggled(&text, count);
             if let Err(error) = crate::records::write_atomic(&checkpoint, next.as_bytes()) {
                 tracing::debug!(%error, "flood: cannot rewrite the results file");
             }
         }
+    }
+}
+
+/// The results file `text` with the same records in other words: each record's
+/// `meta.duration_system` half a second up on odd rewrites and down on even ones (never below
+/// zero: the file stays valid), and a trailing newline that comes and goes.
+fn toggled(text: &str, count: u64) -> String {
+    let Ok(mut file) = serde_json::from_str::<serde_json::Value>(text) else {
+        return text.to_owned();
+    };
+    let step = if count % 2 == 1 { 0.5 } else { -0.5 };
+    let records = file["_checkpoint"]["records"].as_array_mut();
+    for record in records.into_iter().flatten() {
+        let meta = &mut record["meta"]["duration_system"];
+        if let Some(seconds) = meta.as_f64() {
+            *meta = serde_json::json!((seconds + step).max(0.0));
+        }
+    }
+    let body = serde_json::to_string_pretty(&file).unwrap_or_else(|_| text.to_owned());
+    if text.ends_with('\n') {
+        body
+    } else {
+        format!("{body}\n")
     }
 }
 
@@ -496,6 +515,26 @@ pub async fn run_child(args: &[String]) -> i32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_flood_toggles_durations_within_range_and_keeps_the_records() {
+        let text = r#"{"_checkpoint": {"progress": [1, 2], "records": [
+            {"route_id": "RouteScenario_0", "meta": {"duration_system": 0.2}}]}}"#;
+        let up: serde_json::Value = serde_json::from_str(&toggled(text, 1)).unwrap();
+        let down: serde_json::Value = serde_json::from_str(&toggled(text, 2)).unwrap();
+        let seconds = |v: &serde_json::Value| {
+            v["_checkpoint"]["records"][0]["meta"]["duration_system"].as_f64()
+        };
+        assert_eq!((seconds(&up), seconds(&down)), (Some(0.7), Some(0.0)));
+        assert_eq!(
+            up["_checkpoint"]["records"][0]["route_id"],
+            "RouteScenario_0"
+        );
+        assert_eq!(up["_checkpoint"]["progress"], serde_json::json!([1, 2]));
+        assert!(toggled(text, 1).ends_with('\n'));
+        assert!(!toggled(&toggled(text, 1), 2).ends_with('\n'));
+        assert_eq!(toggled("{not json", 1), "{not json");
+    }
 
     #[test]
     fn once_markers_disarm_a_fault_after_it_fired() {

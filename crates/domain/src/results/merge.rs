@@ -606,6 +606,26 @@ fn std_devs_v1(records: &[RouteRecord], means: [f64; 3], total_routes: u64) -> [
 }
 
 impl Merged {
+    /// What a partial update is sent for, as text: the routes done, each record's route,
+    /// status and scores, and the entry's status. A change of any other field (a duration, an
+    /// infraction's wording) goes along with the next such change, not on its own: each
+    /// update is an EvalAI request, and the participant's code can rewrite its files at will.
+    pub fn progress_view(&self) -> String {
+        let mut view = format!(
+            "{:?} {} {:?}\n",
+            self.progress, self.entry_status, self.eligible
+        );
+        for r in &self.records {
+            view.push_str(&format!(
+                "{:?} {} {:?}\n",
+                r.route_id.key(),
+                r.status,
+                r.scores
+            ));
+        }
+        view
+    }
+
     /// How the evaluator of this leaderboard writes JSON files.
     pub fn dump_options(&self) -> DumpOptions {
         DumpOptions {
