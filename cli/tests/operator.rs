@@ -153,6 +153,7 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
             ("orchestration_usd", AttributeValue::N("0.0312".into())),
             ("state_transitions", AttributeValue::N("1180".into())),
             ("log_bytes_stored", AttributeValue::N("3221225472".into())),
+            ("log_objects_stored", AttributeValue::N("14".into())),
             ("uploads_refused", AttributeValue::N("2".into())),
             (
                 "image_digest",
@@ -227,7 +228,7 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
         show(&out)
     );
     assert!(
-        stdout(&out).contains("logs         3.00 GiB kept in S3; 2 file(s) refused"),
+        stdout(&out).contains("logs         3.00 GiB kept in S3 in 14 object(s); 2 file(s) refused"),
         "{}",
         show(&out)
     );

@@ -350,6 +350,8 @@ pub struct LogcopyConfig {
     pub pairs: Vec<PairId>,
     /// `LB_PERIOD_SECONDS`.
     pub period: Duration,
+    /// `LB_MAX_LOG_OBJECTS`: log objects each pair may store over the evaluation.
+    pub max_log_objects: u32,
 }
 
 impl LogcopyConfig {
@@ -361,6 +363,12 @@ impl LogcopyConfig {
             logs_root: e.path(env::LOGS_ROOT, Some("/logs"))?,
             pairs: e.pairs()?,
             period: e.seconds(env::PERIOD_SECONDS, 10.0, false)?,
+            max_log_objects: e.integer(
+                env::MAX_LOG_OBJECTS,
+                Some(lb_domain::job::uploads::LOG_OBJECTS_PER_PAIR),
+                1,
+                1_000_000,
+            )?,
         })
     }
 }

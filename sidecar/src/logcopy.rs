@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use lb_domain::job::protocol::STATUS_DIR;
 use lb_domain::job::protocol::{self, job_end, JobEnd, LogKind, Marker, CANCEL_MARKER};
-use lb_domain::job::uploads::{self, UploadBudget, UploadReport};
+use lb_domain::job::uploads::{self, Refusal, UploadBudget, UploadReport};
 use sha2::{Digest, Sha256};
 use tracing::{debug, info, warn};
 
@@ -153,7 +153,7 @@ impl<'a> Logcopy<'a> {
             status,
             dev,
             tracker: Tracker::default(),
-            budget: UploadBudget::new(&cfg.pairs, cfg.common.job_index),
+            budget: UploadBudget::new(&cfg.pairs, cfg.common.job_index, cfg.max_log_objects),
             reported: None,
         })
     }
@@ -169,6 +169,9 @@ impl<'a> Logcopy<'a> {
             .admit(&entry.rel, size, last.map(|u| u.meta.size))
         {
             Ok(()) => true,
+            // The marker it sent, looked at again (its metadata too fresh to trust): not a
+            // refusal of anything new.
+            Err(Refusal::Said) if last.is_some() => false,
             Err(why) => {
                 if self.budget.refuse(&entry.rel, size) {
                     info!(rel = %entry.rel, bytes = size, ?why, "not uploaded");
@@ -457,6 +460,7 @@ impl<'a> Logcopy<'a> {
             let len = bytes.len() as u64;
             self.s3.put(&key, bytes, self.tag(&entry.rel)).await?;
             self.tracker.record(&entry.rel, meta, hash);
+            self.budget.stored(&entry.rel);
             debug!(%key, bytes = len, "uploaded");
             return Ok(Some(len));
         }
@@ -473,6 +477,7 @@ impl<'a> Logcopy<'a> {
             .put_multipart(&key, &mut file, meta.size, (&path, self.tag(&entry.rel)))
             .await?;
         self.tracker.record(&entry.rel, meta, hash);
+        self.budget.stored(&entry.rel);
         debug!(%key, bytes = meta.size, "uploaded in parts");
         Ok(Some(meta.size))
     }

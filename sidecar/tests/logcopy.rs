@@ -253,6 +253,55 @@ fn another_pairs_results_and_markers_and_unnamed_files_never_leave_the_pod() {
 
 #[test]
 #[ignore = "needs moto"]
+fn re_created_markers_are_sent_once_and_empty_files_stop_at_the_pair_s_count() {
+    let moto = Moto::start();
+    let vols = Volumes::new();
+    let extra = [
+        ("RUST_LOG", "info,sidecar::logcopy=debug"),
+        ("LB_MAX_LOG_OBJECTS", "30"),
+    ];
+    let mut lc = logcopy(&vols, &moto, None, &extra);
+    lc.wait_event("logcopy pass", LIMIT, |_| true);
+    // Its 14 in-bound marker names, deleted and written again every 300 ms for 6 s: each
+    // upload would wake the Monitor.
+    let status = vols.status();
+    let names: Vec<String> = (0..14).map(|n| format!("simulator-1.start{n}")).collect();
+    let until = Instant::now() + Duration::from_secs(6);
+    while Instant::now() < until {
+        for name in &names {
+            let _ = std::fs::remove_file(status.join(name));
+            write(status.as_path(), name, b"");
+        }
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    // Waves of 40 empty log files, each wave deleted and written anew.
+    for wave in 0..3 {
+        for n in 0..40 {
+            write(vols.root(), &format!("logs/agent/agent1/w{wave}-{n}"), b"");
+        }
+        let (seen, _) = uploads(&lc, 0);
+        wait_passes(&lc, seen + 2);
+        std::fs::remove_dir_all(vols.root().join("logs/agent/agent1")).unwrap();
+    }
+    lc.signal(Signal::SIGTERM);
+    assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
+    let marker_puts = (lc.events("uploaded").iter())
+        .filter(|e| (e["fields"]["key"].as_str()).is_some_and(|k| k.contains("simulator-1.start")))
+        .count();
+    assert_eq!(marker_puts, 14, "{}", lc.log());
+    let objects = moto.keys(&key("logs/agent/agent1/"));
+    assert_eq!(objects.len(), 30, "{objects:?}");
+    let report = moto.get(&key("logs/logcopy/job0.json")).unwrap();
+    let report: serde_json::Value = serde_json::from_slice(&report).unwrap();
+    assert_eq!(report["log_objects"], 30, "{report}");
+    // The 90 files past the count, each name once (and the markers written again that a
+    // pass found gone first, as the timing falls).
+    let refused = report["refused_files"].as_u64().unwrap();
+    assert!((90..=90 + 14).contains(&refused), "{report}");
+}
+
+#[test]
+#[ignore = "needs moto"]
 fn sigterm_makes_a_final_upload_and_exits_cleanly_without_the_done_marker() {
     let moto = Moto::start();
     let vols = Volumes::new();

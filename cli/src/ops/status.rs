@@ -182,8 +182,11 @@ fn print_record(record: &Record) {
     if let Some(bytes) = record.log_bytes_stored {
         let refused = record.uploads_refused.unwrap_or(0);
         let gib = bytes as f64 / f64::from(1u32 << 30);
+        let objects = (record.log_objects_stored)
+            .map(|n| format!(" in {n} object(s)"))
+            .unwrap_or_default();
         outln!(
-            "  {:<12} {gib:.2} GiB kept in S3; {refused} file(s) refused (not the protocol's, too large, or over the logs' budget)",
+            "  {:<12} {gib:.2} GiB kept in S3{objects}; {refused} file(s) refused (not the protocol's, too large, over the logs' bytes or objects, or a marker said again)",
             "logs"
         );
     }

@@ -472,8 +472,12 @@ fn usage_update(usage: &Totals) -> (Vec<String>, HashMap<String, AttributeValue>
         values.insert(":cost".into(), n(format!("{dollars:.2}")));
     }
     if let Some(stored) = usage.stored {
-        set.push("log_bytes_stored = :stored, uploads_refused = :refused".into());
+        set.push(
+            "log_bytes_stored = :stored, log_objects_stored = :objects, uploads_refused = :refused"
+                .into(),
+        );
         values.insert(":stored".into(), n(stored.log_bytes));
+        values.insert(":objects".into(), n(stored.log_objects));
         values.insert(":refused".into(), n(stored.refused_files));
     }
     if let Some(orchestration) = usage.orchestration {

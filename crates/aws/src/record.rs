@@ -66,6 +66,8 @@ pub mod attr {
     pub const STATE_TRANSITIONS: &str = "state_transitions";
     /// Bytes of logs kept in S3.
     pub const LOG_BYTES_STORED: &str = "log_bytes_stored";
+    /// Log objects kept in S3 (the protocol's own files aside).
+    pub const LOG_OBJECTS_STORED: &str = "log_objects_stored";
     /// Files logcopy refused.
     pub const UPLOADS_REFUSED: &str = "uploads_refused";
     /// The image digest the pods ran.
@@ -101,6 +103,7 @@ pub mod attr {
         ORCHESTRATION_USD,
         STATE_TRANSITIONS,
         LOG_BYTES_STORED,
+        LOG_OBJECTS_STORED,
         IMAGE_DIGEST,
         UPLOADS_REFUSED,
     ];
@@ -171,6 +174,8 @@ pub struct StoredRecord {
     pub state_transitions: Option<u64>,
     /// Bytes of logs kept in S3.
     pub log_bytes_stored: Option<u64>,
+    /// Log objects kept in S3.
+    pub log_objects_stored: Option<u64>,
     /// Files logcopy refused.
     pub uploads_refused: Option<u64>,
     /// The item as stored.
@@ -232,6 +237,7 @@ impl StoredRecord {
             usage,
             state_transitions: number(attr::STATE_TRANSITIONS),
             log_bytes_stored: number(attr::LOG_BYTES_STORED),
+            log_objects_stored: number(attr::LOG_OBJECTS_STORED),
             uploads_refused: number(attr::UPLOADS_REFUSED),
             item,
         }

@@ -199,6 +199,8 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
             dollars: None,
             stored: Some(lb_domain::job::uploads::UploadReport {
                 log_bytes: 3 << 30,
+                log_objects: 12,
+                log_puts: 40,
                 refused_files: 2,
                 refused_bytes: 200 << 20,
             }),

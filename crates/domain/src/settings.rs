@@ -130,6 +130,10 @@ pub struct LeaderboardSettings {
     /// (changes meanwhile are sent together at its end).
     #[serde(default = "default_partial_update_seconds")]
     pub partial_update_seconds: u64,
+    /// Log objects each pair may store over an evaluation besides the protocol's own files;
+    /// the rest are refused and counted in the record (`crate::job::uploads`).
+    #[serde(default = "default_log_objects")]
+    pub max_log_objects_per_pair: u32,
 }
 
 /// Which EC2 capacity a leaderboard's pairs run on.
@@ -240,6 +244,10 @@ fn default_team_limit() -> u32 {
 /// (`lb_evalai::budget`), which skips a routine update rather than exceed the host token's
 /// limit.
 pub const PARTIAL_UPDATE_INTERVAL: std::time::Duration = std::time::Duration::from_secs(20);
+
+fn default_log_objects() -> u32 {
+    crate::job::uploads::LOG_OBJECTS_PER_PAIR
+}
 
 fn default_partial_update_seconds() -> u64 {
     PARTIAL_UPDATE_INTERVAL.as_secs()
@@ -403,6 +411,12 @@ impl LeaderboardSettings {
                 u64::from(self.gpus_per_node),
                 1..=16,
                 "must be between 1 and 16",
+            ),
+            (
+                "max_log_objects_per_pair",
+                u64::from(self.max_log_objects_per_pair),
+                1..=100_000,
+                "must be between 1 and 100000",
             ),
         ] {
             if !range.contains(&value) {

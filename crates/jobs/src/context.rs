@@ -167,6 +167,8 @@ pub struct JobSettings {
     pub timers: Timers,
     /// CPU, memory and `/dev/shm` of each pair (requests equal limits).
     pub resources: PairAllotment,
+    /// `LB_MAX_LOG_OBJECTS`: log objects each pair's logcopy may store over the evaluation.
+    pub max_log_objects_per_pair: u32,
 }
 
 impl JobSettings {
@@ -226,8 +228,16 @@ impl JobSettings {
             },
             timers: Timers::default(),
             resources,
+            max_log_objects_per_pair: deployment.max_log_objects_per_pair,
         })
     }
+}
+
+/// What logcopy may store, besides its bytes per pair.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct UploadsContext {
+    /// `LB_MAX_LOG_OBJECTS`.
+    pub max_log_objects_per_pair: u32,
 }
 
 /// The team, as the Job may show it.
@@ -440,6 +450,8 @@ pub struct JobContext {
     pub resources: ResourcesContext,
     /// Sidecar timers.
     pub timers: Timers,
+    /// What logcopy may store.
+    pub uploads: UploadsContext,
     /// Official code in the private-contents image.
     pub sources: Sources,
     /// This Job.
@@ -624,6 +636,13 @@ fn check_bounds(s: &JobSettings) -> Result<(), ContextError> {
             1,
             3600,
         ),
+        // The sidecar's own bound on the variable.
+        (
+            "max_log_objects_per_pair",
+            s.max_log_objects_per_pair.into(),
+            1,
+            1_000_000,
+        ),
     ] {
         check_range(field, value, low, high)?;
     }
@@ -800,6 +819,9 @@ impl JobContext {
                 volumes: VolumesContext::of(VolumeSizes::JOB, job.pairs.len() as u32),
             },
             timers: settings.timers.clone(),
+            uploads: UploadsContext {
+                max_log_objects_per_pair: settings.max_log_objects_per_pair,
+            },
             sources: settings.sources.clone(),
             job: JobInfo {
                 index: job.index,
@@ -847,6 +869,7 @@ impl JobContext {
             team_limit: 2,
             pair_resources: None,
             partial_update_seconds: 30,
+            max_log_objects_per_pair: lb_domain::job::uploads::LOG_OBJECTS_PER_PAIR,
         };
         let settings = JobSettings::from_deployment(
             leaderboard,

@@ -90,6 +90,9 @@ pub mod env {
     pub const S3_BUCKET: &str = "LB_S3_BUCKET";
     /// Upload period, seconds (default 10); logcopy.
     pub const PERIOD_SECONDS: &str = "LB_PERIOD_SECONDS";
+    /// Log objects each pair may store over the evaluation (default
+    /// `uploads::LOG_OBJECTS_PER_PAIR`); logcopy.
+    pub const MAX_LOG_OBJECTS: &str = "LB_MAX_LOG_OBJECTS";
     /// `1` when EvalAI said `resuming`: init removes the cancel marker.
     pub const PARTICIPANT_RESUME: &str = "LB_PARTICIPANT_RESUME";
     /// Official Leaderboard sources in the private-contents image; init.

@@ -1,5 +1,6 @@
-//! What logcopy may put in S3 for a pod, decided per file: its size by kind, the logs' bytes per
-//! pair, and a count of what it refused (each name once), which it reports with what it stored.
+//! What logcopy may put in S3 for a pod, decided per file: its size by kind, the logs' bytes and
+//! objects per pair, each marker once, and a count of what it refused (each name once), which it
+//! reports with what it stored.
 //!
 //! The logs volume is written by the participant's code, and every byte kept is the
 //! leaderboard's to pay for, for as long as the bucket keeps it. The protocol's own files are
@@ -11,7 +12,7 @@ use std::collections::HashSet;
 
 use serde::{Deserialize, Serialize};
 
-use crate::job::protocol::{kept_as, PairId, AGENT_DIR, LOGS_DIR, STATUS_DIR};
+use crate::job::protocol::{kept_as, LogKind, PairId, AGENT_DIR, LOGS_DIR, STATUS_DIR};
 
 /// The largest results file uploaded: what the Monitor reads at most.
 pub const MAX_RESULTS_BYTES: u64 = crate::results::MAX_FILE_BYTES as u64;
@@ -28,6 +29,19 @@ pub const MAX_LOG_BYTES: u64 = 1 << 30;
 /// pod, cannot upload more than the volume could ever hold at once.
 pub const LOG_BYTES_PER_PAIR: u64 = 8 << 30;
 
+/// Log objects one pair may store over the whole evaluation, besides the protocol's own files
+/// (results, markers, recordings), unless the leaderboard says otherwise
+/// (`LeaderboardSettings::max_log_objects_per_pair`). An honest pair writes a handful
+/// (CARLA's output, the evaluator's, a debug file per route); each object is a PUT and kept
+/// until the logs' retention, whatever its size.
+pub const LOG_OBJECTS_PER_PAIR: u32 = 1000;
+
+/// Uploads of logs one pair may make over the whole evaluation (new objects and rewrites
+/// alike), recordings aside: about $0.50 of PUTs. Logcopy sends a changed log at most once a
+/// period (10 s), so an honest pair's two or three growing logs make under 80,000 in a whole
+/// 72-hour run; a pod that rewrites its files every period runs out long before.
+pub const LOG_PUTS_PER_PAIR: u64 = 100_000;
+
 /// Names remembered to count each refused file once; beyond them refusals are counted per pass.
 const MAX_REMEMBERED: usize = 4096;
 
@@ -40,6 +54,11 @@ pub enum Refusal {
     TooLarge,
     /// The pair's logs already hold their bytes.
     OverBudget,
+    /// The pair's logs already hold their count of objects, or of uploads.
+    TooMany,
+    /// A marker this pod uploaded already: a marker's name is its message, said once (each
+    /// upload wakes the Monitor).
+    Said,
 }
 
 /// What logcopy stored and refused for one pod: written next to the logs
@@ -49,6 +68,12 @@ pub struct UploadReport {
     /// Bytes of logs kept in S3 (growth of an object counts once; a file deleted after its
     /// upload still counts: the object stays).
     pub log_bytes: u64,
+    /// Log objects written (each new name once per pod; protocol files aside).
+    #[serde(default)]
+    pub log_objects: u64,
+    /// Uploads of logs (new objects and rewrites; recordings aside).
+    #[serde(default)]
+    pub log_puts: u64,
     /// Files not uploaded, each name counted once per pod.
     pub refused_files: u64,
     /// Their bytes, at the size they were first refused at.
@@ -60,6 +85,8 @@ impl UploadReport {
     pub fn plus(self, other: UploadReport) -> UploadReport {
         UploadReport {
             log_bytes: self.log_bytes.saturating_add(other.log_bytes),
+            log_objects: self.log_objects.saturating_add(other.log_objects),
+            log_puts: self.log_puts.saturating_add(other.log_puts),
             refused_files: self.refused_files.saturating_add(other.refused_files),
             refused_bytes: self.refused_bytes.saturating_add(other.refused_bytes),
         }
@@ -83,19 +110,28 @@ pub struct UploadBudget {
     pairs: Vec<PairId>,
     job: u32,
     log_limit: u64,
+    object_limit: u64,
+    put_limit: u64,
     report: UploadReport,
     refused: HashSet<String>,
+    /// The markers uploaded (only the protocol's names pass, so a few per pair).
+    said: HashSet<String>,
 }
 
 impl UploadBudget {
-    /// The budget of Job `job`'s pod running `pairs`.
-    pub fn new(pairs: &[PairId], job: u32) -> UploadBudget {
+    /// The budget of Job `job`'s pod running `pairs`, each pair's logs at most
+    /// `objects_per_pair` objects.
+    pub fn new(pairs: &[PairId], job: u32, objects_per_pair: u32) -> UploadBudget {
+        let pair_count = pairs.len() as u64;
         UploadBudget {
             pairs: pairs.to_vec(),
             job,
-            log_limit: LOG_BYTES_PER_PAIR.saturating_mul(pairs.len() as u64),
+            log_limit: LOG_BYTES_PER_PAIR.saturating_mul(pair_count),
+            object_limit: u64::from(objects_per_pair).saturating_mul(pair_count),
+            put_limit: LOG_PUTS_PER_PAIR.saturating_mul(pair_count),
             report: UploadReport::default(),
             refused: HashSet::new(),
+            said: HashSet::new(),
         }
     }
 
@@ -107,11 +143,15 @@ impl UploadBudget {
     }
 
     /// Whether the file at `rel` (relative to the logs volume), now `size` bytes, last
-    /// uploaded at `last` bytes (`None`: never), goes to S3. An upload it admits is counted
-    /// as stored; call [`UploadBudget::refuse`] with a refusal.
+    /// uploaded at `last` bytes (`None`: never, or not since it was last seen gone), goes to
+    /// S3. An upload it admits is counted as stored; call [`UploadBudget::refuse`] with a
+    /// refusal, and [`UploadBudget::stored`] once the file is sent.
     pub fn admit(&mut self, rel: &str, size: u64, last: Option<u64>) -> Result<(), Refusal> {
         if !crate::job::protocol::uploads(rel, &self.pairs, self.job) {
             return Err(Refusal::NotOurs);
+        }
+        if self.said.contains(rel) {
+            return Err(Refusal::Said);
         }
         let (dir, _) = rel.split_once('/').unwrap_or(("", rel));
         let max = match dir {
@@ -122,15 +162,37 @@ impl UploadBudget {
         if size > max {
             return Err(Refusal::TooLarge);
         }
-        if kept_as(rel, &self.pairs).is_some() {
+        if let Some(kind) = kept_as(rel, &self.pairs) {
             let grown = size.saturating_sub(last.unwrap_or(0));
             let stored = self.report.log_bytes.saturating_add(grown);
             if stored > self.log_limit {
                 return Err(Refusal::OverBudget);
             }
+            // A new object (or one written again after it was deleted: another PUT, and
+            // another object when the name is new), recordings aside: routes bound those.
+            let log = kind == LogKind::Log;
+            let new_object = last.is_none() && log;
+            if (new_object && self.report.log_objects >= self.object_limit)
+                || (log && self.report.log_puts >= self.put_limit)
+            {
+                return Err(Refusal::TooMany);
+            }
             self.report.log_bytes = stored;
+            self.report.log_objects += u64::from(new_object);
         }
         Ok(())
+    }
+
+    /// The file at `rel` was uploaded (admitted, then sent: a same content found on reading
+    /// sends nothing). A marker is not uploaded again by this pod, whatever becomes of the
+    /// file (deleted and written again, changed); a log's upload is counted.
+    pub fn stored(&mut self, rel: &str) {
+        let (dir, _) = rel.split_once('/').unwrap_or(("", rel));
+        if dir == STATUS_DIR {
+            self.said.insert(rel.to_owned());
+        } else if kept_as(rel, &self.pairs) == Some(LogKind::Log) {
+            self.report.log_puts = self.report.log_puts.saturating_add(1);
+        }
     }
 
     /// Counts a refused file, once per name (while the names fit in memory).
@@ -171,7 +233,7 @@ mod tests {
 
     #[test]
     fn each_kind_of_file_has_its_size_and_the_logs_their_bytes_per_pair() {
-        let mut budget = UploadBudget::new(&[3], 2);
+        let mut budget = UploadBudget::new(&[3], 2, LOG_OBJECTS_PER_PAIR);
         let cases: [Case; 10] = [
             ("agent/partial_agent_results3.json", 1 << 20, None, Ok(())),
             (
@@ -225,5 +287,69 @@ mod tests {
             (budget.report().refused_files, budget.report().refused_bytes),
             (1, 200 << 20)
         );
+    }
+
+    #[test]
+    fn a_marker_is_said_once_and_log_objects_are_counted_per_pair() {
+        let mut budget = UploadBudget::new(&[3], 2, 5);
+        let marker = "containers-status/simulator-3.start0";
+        assert_eq!(budget.admit(marker, 0, None), Ok(()));
+        // Not stored (S3 failed): admitted again.
+        assert_eq!(budget.admit(marker, 0, None), Ok(()));
+        budget.stored(marker);
+        // Deleted and written again, or changed: never again from this pod.
+        assert_eq!(budget.admit(marker, 0, None), Err(Refusal::Said));
+        assert_eq!(budget.admit(marker, 1, Some(0)), Err(Refusal::Said));
+        let other = "containers-status/simulator-3.start1";
+        assert_eq!(budget.admit(other, 0, None), Ok(()));
+        // Results files are rewritten as the run goes.
+        let results = "agent/partial_agent_results3.json";
+        budget.stored(results);
+        assert_eq!(budget.admit(results, 10, Some(5)), Ok(()));
+
+        // Empty files cost a PUT each: five new log objects, then none.
+        for n in 0..5 {
+            let rel = format!("logs/agent/agent3/empty{n}");
+            assert_eq!(budget.admit(&rel, 0, None), Ok(()), "{rel}");
+            budget.stored(&rel);
+        }
+        assert_eq!(
+            budget.admit("logs/agent/agent3/empty5", 0, None),
+            Err(Refusal::TooMany)
+        );
+        // A log that grows is the same object; recordings are the routes'.
+        assert_eq!(
+            budget.admit("logs/agent/agent3/empty0", 100, Some(0)),
+            Ok(())
+        );
+        budget.stored("logs/agent/agent3/empty0");
+        assert_eq!(
+            budget.admit("recorder/pair3/RouteScenario_0_rep0.log", 100, None),
+            Ok(())
+        );
+        assert_eq!(budget.report().log_objects, 5);
+        assert_eq!(budget.report().log_puts, 6);
+        // Rewrites cost a PUT each too: a pair's uploads run out as well.
+        let mut rewrites = UploadBudget::new(&[3], 2, 5);
+        rewrites.resume(&UploadReport {
+            log_puts: LOG_PUTS_PER_PAIR - 1,
+            ..UploadReport::default()
+        });
+        let log = "logs/agent/agent3/agent.log";
+        assert_eq!(rewrites.admit(log, 10, Some(10)), Ok(()));
+        // Read and found the same: nothing sent, nothing counted.
+        assert_eq!(rewrites.admit(log, 10, Some(10)), Ok(()));
+        rewrites.stored(log);
+        assert_eq!(rewrites.admit(log, 10, Some(10)), Err(Refusal::TooMany));
+        // The count is the pair's over the evaluation: a new pod resumes it.
+        let mut next = UploadBudget::new(&[3], 2, 5);
+        next.resume(budget.report());
+        assert_eq!(
+            next.admit("logs/agent/agent3/new", 0, None),
+            Err(Refusal::TooMany)
+        );
+        // Reports written before the count read as none.
+        let old = UploadReport::parse(br#"{"log_bytes":1,"refused_files":2,"refused_bytes":3}"#);
+        assert_eq!(old.map(|r| r.log_objects), Some(0));
     }
 }
