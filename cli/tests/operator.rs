@@ -228,7 +228,8 @@ async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
         show(&out)
     );
     assert!(
-        stdout(&out).contains("logs         3.00 GiB kept in S3 in 14 object(s); 2 file(s) refused"),
+        stdout(&out)
+            .contains("logs         3.00 GiB kept in S3 in 14 object(s); 2 file(s) refused"),
         "{}",
         show(&out)
     );

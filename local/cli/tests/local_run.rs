@@ -800,3 +800,77 @@ fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
         "{report}"
     );
 }
+
+#[test]
+#[ignore = "needs moto and the real control plane (make real-kube)"]
+fn sigterm_to_a_real_control_plane_run_leaves_no_process_of_it() {
+    use std::io::{BufRead, BufReader};
+    use std::time::{Duration, Instant};
+    // Long routes: the pods still run when the signal comes, as when `timeout` or CI ends it.
+    let mut child = Command::new(lbctl())
+        .args(["local", "run", "--kube", "real", "--route-seconds", "60"])
+        .args(["--timeout", "240"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let root = nix::unistd::Pid::from_raw(child.id() as i32);
+    let lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    // Drained on a thread: a full pipe must not stall the run.
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in lines.map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let comm = |pid: &nix::unistd::Pid| {
+        std::fs::read_to_string(format!("/proc/{pid}/comm")).unwrap_or_default()
+    };
+    let deadline = Instant::now() + Duration::from_secs(180);
+    let started = loop {
+        let seen = lb_proc::descendants(root);
+        // The control plane is up and a pod's agent runs.
+        if seen.iter().any(|p| comm(p).starts_with("kube-apiserver"))
+            && seen.iter().any(|p| comm(p).starts_with("fake-evaluator"))
+        {
+            break seen;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the run never got its pods running"
+        );
+        assert!(child.try_wait().unwrap().is_none(), "the run ended early");
+        std::thread::sleep(Duration::from_millis(500));
+    };
+    nix::sys::signal::kill(root, nix::sys::signal::Signal::SIGTERM).unwrap();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "the run did not stop on SIGTERM");
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    let said: Vec<String> = rx.try_iter().collect();
+    assert_eq!(status.code(), Some(143), "{said:?}");
+    assert!(
+        said.iter().any(|l| l.contains("stopped by SIGTERM")),
+        "{said:?}"
+    );
+    // Everything it started is gone (a zombie is gone already: only its parent's reaping waits).
+    let alive = |pid: &nix::unistd::Pid| {
+        std::fs::read_to_string(format!("/proc/{pid}/stat"))
+            .ok()
+            .and_then(|stat| {
+                stat.rsplit_once(')')
+                    .map(|(_, rest)| rest.trim().to_owned())
+            })
+            .is_some_and(|rest| !rest.starts_with('Z'))
+    };
+    std::thread::sleep(Duration::from_secs(1));
+    let left: Vec<String> = (started.iter())
+        .filter(|p| alive(p))
+        .map(|p| format!("{p} {}", comm(p).trim()))
+        .collect();
+    assert!(left.is_empty(), "left running: {left:?}");
+}

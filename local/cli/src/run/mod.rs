@@ -135,7 +135,26 @@ fn say(started: Instant, text: impl AsRef<str>) {
 }
 
 /// Runs one local submission; the exit code is 0 only when it ended as the scenario expects.
+/// SIGTERM (what `timeout`, make and CI send) or SIGINT ends it early: the run is dropped, and
+/// with it everything it started (moto, the fake EvalAI, the Kubernetes API or the real
+/// control plane, the node agent and the pods' process groups), before it exits 143 or 130.
 pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut term = signal(SignalKind::terminate())?;
+    let mut interrupt = signal(SignalKind::interrupt())?;
+    let stopped_by = tokio::select! {
+        code = run_to_end(args) => return code,
+        _ = term.recv() => ("SIGTERM", 143),
+        _ = interrupt.recv() => ("SIGINT", 130),
+    };
+    outln!(
+        "stopped by {}: everything the run started is stopped",
+        stopped_by.0
+    );
+    Ok(stopped_by.1)
+}
+
+async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
     check(&args)?;
     let teams = team_sizes(&args)?;
     let started = Instant::now();

@@ -206,7 +206,8 @@ pub(super) async fn finish(
             "\nthe stack stays up (kubeconfig {}); Ctrl-C to stop",
             kubeconfig.display()
         );
-        let _ = tokio::signal::ctrl_c().await;
+        // `run` stops it on the signal.
+        std::future::pending::<()>().await;
     }
     let expected = report.expected;
     if report.ok {

@@ -191,6 +191,41 @@ pub fn signal_group(pgid: i32, sig: Signal) -> bool {
     killpg(Pid::from_raw(pgid), sig).is_ok()
 }
 
+/// A process a container started, named by its pid and its start (the pid alone may be
+/// another's by the time it is signalled).
+pub type Escaped = (Pid, u64);
+
+/// The processes below the container whose first process leads group `pgid` (its pid is the
+/// group's id), wherever their group: a container's PID namespace ends them all with it, while
+/// here one in a group of its own (a simulator's CARLA) would outlive a signal to the group.
+/// Read before that signal: once the first process is gone, its children are init's.
+pub fn escapees(pgid: i32) -> Vec<Escaped> {
+    if pgid <= 1 {
+        return Vec::new();
+    }
+    (lb_proc::descendants(Pid::from_raw(pgid)).into_iter())
+        .filter_map(|pid| Some((pid, started_at(pid)?)))
+        .collect()
+}
+
+/// SIGKILLs each of `escaped` that is still the process it was.
+pub fn kill_escaped(escaped: Vec<Escaped>) {
+    for (pid, started) in escaped {
+        if started_at(pid) == Some(started) {
+            let _ = nix::sys::signal::kill(pid, Signal::SIGKILL);
+        }
+    }
+}
+
+/// When `pid` started (clock ticks after boot, `/proc/<pid>/stat` field 22): with the pid, it
+/// names one process; `None` when it is gone.
+fn started_at(pid: Pid) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // NB: the command name may hold spaces and parentheses; fields follow the last `)`.
+    let rest = &stat[stat.rfind(')')? + 1..];
+    rest.split_whitespace().nth(19)?.parse().ok()
+}
+
 /// Whether any live (non-zombie) process belongs to the group.
 pub fn group_alive(pgid: i32) -> bool {
     let Ok(entries) = std::fs::read_dir("/proc") else {
@@ -306,7 +341,9 @@ impl Processes {
     }
 
     /// Refuses new processes, SIGTERMs every group, waits up to `grace`, SIGKILLs the rest and
-    /// waits (bounded) until they are gone. Blocking; safe from `Drop`.
+    /// waits (bounded) until they are gone; then, as a container's cgroup would, SIGKILLs
+    /// what its processes started in groups of their own (a simulator's CARLA), found as their
+    /// descendants before the first signal. Blocking; safe from `Drop`.
     pub fn kill_all(&self, grace: Duration) {
         let groups: Vec<i32> = {
             let mut inner = self.inner.lock().unwrap_or_else(|e| e.into_inner());
@@ -316,6 +353,7 @@ impl Processes {
         if groups.is_empty() {
             return;
         }
+        let escaped: Vec<Escaped> = groups.iter().flat_map(|&g| escapees(g)).collect();
         for g in &groups {
             signal_group(*g, Signal::SIGTERM);
         }
@@ -328,6 +366,7 @@ impl Processes {
         for g in &groups {
             signal_group(*g, Signal::SIGKILL);
         }
+        kill_escaped(escaped);
         wait_until(Instant::now() + Duration::from_secs(2));
     }
 }
@@ -335,6 +374,15 @@ impl Processes {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_process_start_names_it_and_a_gone_one_has_none() {
+        let me = nix::unistd::getpid();
+        let start = started_at(me).expect("our own start");
+        assert_eq!(started_at(me), Some(start));
+        assert!(started_at(nix::unistd::getppid()).is_some_and(|parent| parent <= start));
+        assert_eq!(started_at(Pid::from_raw(i32::MAX)), None);
+    }
 
     #[test]
     fn signal_group_refuses_init_everything_and_ourselves() {
