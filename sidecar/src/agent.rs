@@ -420,6 +420,16 @@ impl<'a> Agent<'a> {
                 )?;
                 PairOutcome::Done
             }
+            // Asked to stop (the pod deleted: a drain, a reclaim, the run's end), the attempt
+            // did not crash, and its log says so: the next pod resumes it.
+            Verdict::Incomplete(why) if run.terminated => {
+                warn!(pair = id, attempt, reason = %why, "results incomplete: stopped");
+                child.note(&format!(
+                    "stopped: the pod was asked to stop before its routes were done ({why})"
+                ));
+                write_marker(&self.status, self.crash)?;
+                PairOutcome::Crashed
+            }
             Verdict::Incomplete(why) => {
                 warn!(pair = id, attempt, reason = %why, "results incomplete: crash");
                 child.note(&format!("crash: {why}"));

@@ -173,6 +173,10 @@ fn sigterm_stops_the_evaluator_and_every_child_and_writes_a_crash_marker() {
     );
     assert!(!alive(pid), "the stubborn child survived");
     assert!(vols.marker("agent-6.crash0") && vols.marker("simulator-6.crash0"));
+    // The agent's log says the attempt was stopped, not that the participant's code crashed.
+    let log = vols.agent_log(6);
+    assert!(log.contains("stopped: the pod was asked to stop"), "{log}");
+    assert!(!log.contains("crash:"), "{log}");
 }
 
 #[test]

@@ -154,6 +154,7 @@ fn worst_usage() -> Ledger {
         failed: Some(COUNT_CAP),
         reclaims: COUNT_CAP,
         charged: COUNT_CAP,
+        excess: COUNT_CAP,
         start: Some(u64::MAX),
     };
     Ledger {

@@ -192,6 +192,9 @@ pub struct JobEntry {
     /// crashes its Job did not count, which count against its `backoffLimit` all the same
     /// ([`Ledger::charged_to`]).
     pub charged: u32,
+    /// Of those, the platform's reclaims beyond the free ones (the rest were the pods' own):
+    /// what the participant is told, and what ends a pair as the platform's failure.
+    pub excess: u32,
     /// Its pod counted running at the last round: its start as that round saw it. A pod seen
     /// now with another start is that one's replacement, however soon after the round it
     /// started: the one before went between the two rounds.
@@ -490,7 +493,10 @@ impl Ledger {
         }
         let crashed = pod.ended_at.is_some() && !pod.succeeded;
         if crashed && pod.disruption.is_some() && !running.disrupted {
-            self.charge_crash(pod.job);
+            match pod.reclaimed() {
+                true => self.charge_excess(pod.job),
+                false => self.charge_crash(pod.job),
+            }
         }
     }
 
@@ -568,6 +574,13 @@ impl Ledger {
         entry.charged = (entry.charged + 1).min(COUNT_CAP);
     }
 
+    /// One more reclaim beyond the free ones: charged as a crash, known as the platform's.
+    fn charge_excess(&mut self, job: u32) {
+        self.charge_crash(job);
+        let entry = self.entry_mut(job);
+        entry.excess = (entry.excess + 1).min(entry.charged);
+    }
+
     /// A pod of `job` went by `end` without its Job counting a failure, no round having seen
     /// why (a deletion: only the control plane deletes our pods): a reclaim, its time lost,
     /// while the Job has free ones (`true`); beyond them, a crash its Job did not count.
@@ -579,12 +592,17 @@ impl Ledger {
         end: u64,
     ) -> bool {
         if !self.free(job) {
-            self.charge_crash(job);
+            self.charge_excess(job);
             return false;
         }
         self.count_reclaim(job);
         self.lose(line, job, results_at, end);
         true
+    }
+
+    /// Of [`Ledger::charged_to`], the platform's reclaims beyond the free ones.
+    pub fn excess_of(&self, job: u32) -> u32 {
+        self.entry(job).excess
     }
 
     /// The Job's pods that ended by a disruption of their own (or a reclaim beyond the free
@@ -937,21 +955,21 @@ mod tests {
                 1000,
             );
             (
-                ledger.charged_to(0),
+                (ledger.charged_to(0), ledger.excess_of(0)),
                 ledger.totals().run_again,
                 ledger.lost_at(1000),
             )
         };
         // A reclaim: free, run again from the results at 700, lost until a next pod starts.
-        assert_eq!(after(Disruption::Reclaim, 0), (0, 200, 300));
+        assert_eq!(after(Disruption::Reclaim, 0), ((0, 0), 200, 300));
         // The kubelet's pressure eviction on a healthy node (judged `Own`): a crash, charged
         // to the pair's retries, nothing given back.
-        assert_eq!(after(Disruption::Own, 0), (1, 0, 0));
+        assert_eq!(after(Disruption::Own, 0), ((1, 0), 0, 0));
         // A kubelet's eviction whose node was never judged is not taken as free either.
-        assert_eq!(after(Disruption::ByKubelet, 0), (1, 0, 0));
-        // Beyond the free reclaims a reclaim is a crash too.
-        assert_eq!(after(Disruption::Reclaim, 2), (0, 200, 300));
-        assert_eq!(after(Disruption::Reclaim, 3), (1, 0, 0));
+        assert_eq!(after(Disruption::ByKubelet, 0), ((1, 0), 0, 0));
+        // Beyond the free reclaims a reclaim is a crash too, known as the platform's.
+        assert_eq!(after(Disruption::Reclaim, 2), ((0, 0), 200, 300));
+        assert_eq!(after(Disruption::Reclaim, 3), ((1, 1), 0, 0));
         // A pod gone between two rounds unseen (only the control plane deletes): free while
         // the pair has free reclaims, then charged.
         let gone = |reclaims: u32| {
@@ -960,13 +978,13 @@ mod tests {
             let next = [pod(0, 960, None, "od-a", false)];
             ledger.account(&next, &kinds, (&results, &none_failed), 1000);
             (
-                ledger.charged_to(0),
+                (ledger.charged_to(0), ledger.excess_of(0)),
                 ledger.lost_at(1000),
                 ledger.jobs[0].reclaims,
             )
         };
-        assert_eq!(gone(0), (0, 260, 1));
-        assert_eq!(gone(3), (1, 0, 3));
+        assert_eq!(gone(0), ((0, 0), 260, 1));
+        assert_eq!(gone(3), ((1, 1), 0, 3));
         // Judging by the node: leaving makes the kubelet's eviction free.
         let mut pods = [
             PodSeen {

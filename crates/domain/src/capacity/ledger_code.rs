@@ -5,8 +5,8 @@
 //! - `jobs`: `.` no pod running at the last round, `a` + n its pod ran on the kind of usage
 //!   line n, `A` + n the same disrupted (its lost time counted), `-` its disrupted pod went and
 //!   no next pod started yet; trailing `.` left out;
-//! - `failed`, `reclaims`, `charged`: one base-36 digit per Job (`failed` only for the Jobs a
-//!   round saw, the others trailing `0` left out);
+//! - `failed`, `reclaims`, `charged`, `excess`: one base-36 digit per Job (`failed` only for
+//!   the Jobs a round saw, the others trailing `0` left out; `excess` no more than `charged`);
 //! - `starts`: base-36 epoch seconds separated by commas, an empty field for none, trailing
 //!   ones left out.
 //!
@@ -44,6 +44,8 @@ struct Stored {
     #[serde(default, skip_serializing_if = "String::is_empty")]
     charged: String,
     #[serde(default, skip_serializing_if = "String::is_empty")]
+    excess: String,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
     starts: String,
 }
 
@@ -67,6 +69,7 @@ impl Serialize for Ledger {
             failed: counted.map(|e| digit_char(e.failed.unwrap_or(0))).collect(),
             reclaims: digits(jobs.iter().map(|e| e.reclaims)),
             charged: digits(jobs.iter().map(|e| e.charged)),
+            excess: digits(jobs.iter().map(|e| e.excess)),
             starts: starts(jobs.iter().map(|e| e.start)),
         };
         stored.serialize(serializer)
@@ -93,6 +96,7 @@ fn read(stored: Stored) -> Result<Ledger, String> {
         &stored.failed,
         &stored.reclaims,
         &stored.charged,
+        &stored.excess,
     ];
     let count = fields.iter().map(|f| f.chars().count()).max().unwrap_or(0);
     let count =
@@ -114,6 +118,15 @@ fn read(stored: Stored) -> Result<Ledger, String> {
     }
     for (entry, c) in jobs.iter_mut().zip(stored.charged.chars()) {
         entry.charged = count_digit("charged", c)?;
+    }
+    for (entry, c) in jobs.iter_mut().zip(stored.excess.chars()) {
+        entry.excess = count_digit("excess", c)?;
+        if entry.excess > entry.charged {
+            return Err(format!(
+                "the ledger's `excess` counts {} reclaims of a Job it charged {}",
+                entry.excess, entry.charged
+            ));
+        }
     }
     if !stored.starts.is_empty() {
         for (entry, field) in jobs.iter_mut().zip(stored.starts.split(',')) {
@@ -287,6 +300,15 @@ mod tests {
         assert!(refused(serde_json::json!({"jobs": "a"})).contains("usage line 0"));
         assert!(refused(serde_json::json!({"jobs": "*"})).contains("no mark"));
         assert!(refused(serde_json::json!({"charged": "!"})).contains("`charged`"));
+        let excess = refused(serde_json::json!({"charged": "1", "excess": "2"}));
+        assert!(
+            excess.contains("`excess` counts 2 reclaims of a Job it charged 1"),
+            "{excess}"
+        );
+        let ok: Ledger =
+            serde_json::from_value(serde_json::json!({"charged": "13", "excess": "02"})).unwrap();
+        assert_eq!((ok.jobs[1].charged, ok.jobs[1].excess), (3, 2));
+        assert_eq!(serde_json::to_value(&ok).unwrap()["excess"], "02");
         assert!(refused(serde_json::json!({"starts": "1,x!"})).contains("`starts`"));
         let many = "0".repeat(MAX_WORKERS as usize + 1);
         assert!(refused(serde_json::json!({ "failed": many })).contains("Jobs"));

@@ -81,25 +81,54 @@ pub fn deadlines_to_set<'a>(
 
 /// The pairs out of retries, by Job name, with why: a Job whose failed pods and the pods the
 /// ledger charged to it (disruptions of their own, reclaims beyond the free ones) are more
-/// than its `backoffLimit`. Without a charged pod the Job controller decides alone.
+/// than its `backoffLimit`. Without a charged pod the Job controller decides alone. The why
+/// names whose each charge was: a pair the platform alone took away is not the participant's
+/// failure, and is told so.
 pub fn spent_pairs(jobs: &[JobView], usage: &Ledger) -> BTreeMap<String, String> {
     jobs.iter()
         .filter_map(|j| {
-            let charged = usage.charged_to(j.index?);
+            let index = j.index?;
+            let charged = usage.charged_to(index);
             let failed = u32::try_from(j.failed).unwrap_or(0);
             let limit = j.backoff_limit?;
             (charged > 0 && failed.saturating_add(charged) > limit).then(|| {
-                let why = format!(
-                    "{charged} of its pods were stopped by a disruption of their own (evicted by \
-                     the kubelet from a healthy node, for disk, inodes or processes beyond the \
-                     pod's share) or by more reclaims than the {FREE_RECLAIMS_PER_PAIR} a pair \
-                     gets free; with {failed} failed pod(s) that is more than the \
-                     {limit} retries allowed"
-                );
-                (j.name.clone(), why)
+                (
+                    j.name.clone(),
+                    spent_why(charged, usage.excess_of(index), failed, limit),
+                )
             })
         })
         .collect()
+}
+
+/// Why a pair is out of retries: `charged` pods charged to it, `excess` of them the
+/// platform's reclaims beyond the free ones, `failed` failed pods, `limit` retries.
+fn spent_why(charged: u32, excess: u32, failed: u32, limit: u32) -> String {
+    let own = charged.saturating_sub(excess);
+    let mut causes = Vec::new();
+    if own > 0 {
+        causes.push(format!(
+            "{own} of its pods were stopped by a disruption of their own (evicted by the kubelet \
+             from a healthy node, for disk, inodes or processes beyond the pod's share)"
+        ));
+    }
+    if excess > 0 {
+        causes.push(format!(
+            "{excess} of its pods were taken away by the platform (nodes reclaimed or drained) \
+             after the {FREE_RECLAIMS_PER_PAIR} reclaims a pair gets free"
+        ));
+    }
+    let mut why = format!(
+        "{}; with {failed} failed pod(s) that is more than the {limit} retries allowed",
+        causes.join(", and ")
+    );
+    if own == 0 && failed == 0 {
+        why.push_str(
+            ": this is the evaluation platform's doing, not your agent's, and the routes it \
+             completed are kept for a resume",
+        );
+    }
+    why
 }
 
 /// Holds every pod's participant image (its `agent-*` containers') to the first digest seen:
@@ -164,6 +193,30 @@ pub fn partial_update_due(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_spent_pair_is_told_whose_each_charge_was() {
+        let own = spent_why(5, 0, 0, 4);
+        assert!(
+            own.starts_with("5 of its pods were stopped by a disruption of their own"),
+            "{own}"
+        );
+        assert!(!own.contains("platform"), "{own}");
+        let platform = spent_why(5, 5, 0, 4);
+        assert!(
+            platform.starts_with("5 of its pods were taken away by the platform")
+                && platform.contains("not your agent's"),
+            "{platform}"
+        );
+        let both = spent_why(3, 1, 2, 4);
+        assert!(
+            both.contains("2 of its pods were stopped by a disruption of their own")
+                && both.contains(", and 1 of its pods were taken away by the platform")
+                && both.contains("with 2 failed pod(s)")
+                && !both.contains("not your agent's"),
+            "{both}"
+        );
+    }
 
     const HOUR: u64 = 3600;
 
