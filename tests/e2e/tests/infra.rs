@@ -1226,6 +1226,24 @@ fn expander_priority(priorities: &BTreeMap<i64, Vec<String>>, group: &str) -> Op
 }
 
 #[test]
+fn the_autoscaler_is_the_release_of_the_clusters_minor() {
+    // The Cluster Autoscaler supports only the Kubernetes minor of its own release.
+    let minor = CLUSTER
+        .eval(&CLUSTER.root()["Parameters"]["KubernetesVersion"]["Default"])
+        .unwrap();
+    let docs = k8s_docs("cluster-autoscaler.yaml");
+    let deployment = docs.iter().find(|d| d["kind"] == "Deployment").unwrap();
+    let image = deployment["spec"]["template"]["spec"]["containers"][0]["image"]
+        .as_str()
+        .unwrap();
+    let tag = image
+        .rsplit_once(":v")
+        .map(|(_, tag)| tag)
+        .unwrap_or_default();
+    assert!(tag.starts_with(&format!("{minor}.")), "{image} on {minor}");
+}
+
+#[test]
 fn the_autoscaler_grows_the_spot_gpu_group_first_and_both_groups_carry_the_gpu_model() {
     let default = |p: &str| {
         CLUSTER

@@ -677,8 +677,10 @@ pub fn waits_for_capacity(message: &str) -> bool {
     let Some((_, reasons)) = message.split_once("nodes are available:") else {
         return false;
     };
-    // The part before the preemption summary: "1 Insufficient nvidia.com/gpu, 2 node(s) ...".
+    // The first sentence: "1 Insufficient nvidia.com/gpu, 2 node(s) ...". What follows is
+    // the preemption summary, after a word on resource claims from 1.34 on.
     let reasons = reasons.split(" preemption:").next().unwrap_or(reasons);
+    let reasons = reasons.split(". ").next().unwrap_or(reasons);
     reasons
         .trim()
         .trim_end_matches('.')
@@ -1123,6 +1125,13 @@ mod tests {
         ));
         assert!(!waits_for_capacity(NO_MATCH));
         assert!(!waits_for_capacity(""));
+        // As kube-scheduler 1.35 words them (local/realkube/contract/scheduler.json).
+        assert!(waits_for_capacity(
+            "0/1 nodes are available: 1 Insufficient nvidia.com/gpu. no new claims to deallocate, preemption: 0/1 nodes are available: 1 Preemption is not helpful for scheduling."
+        ));
+        assert!(!waits_for_capacity(
+            "0/2 nodes are available: 1 Insufficient nvidia.com/gpu, 1 node(s) didn't match Pod's node affinity/selector. no new claims to deallocate, preemption: 0/2 nodes are available: 2 Preemption is not helpful for scheduling."
+        ));
     }
 
     #[test]

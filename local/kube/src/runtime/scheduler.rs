@@ -16,13 +16,14 @@ use crate::store::time_now;
 pub const GPU: &str = "nvidia.com/gpu";
 
 /// What the real scheduler writes on a pod no node has GPUs for (kube-scheduler's
-/// `NodeResourcesFit` plugin, one node, and the preemption it then tries: no pod of lower
-/// priority holds one), as `tests/e2e/tests/real_kube.rs` checks against the real one.
-pub const INSUFFICIENT_GPU: &str = "0/1 nodes are available: 1 Insufficient nvidia.com/gpu. preemption: 0/1 nodes are available: 1 No preemption victims found for incoming pod.";
+/// `NodeResourcesFit` plugin, one node; then the dynamic resource allocation's word, no claim
+/// to free, and the preemption it tries: none helps, no lower-priority pod holding one), as
+/// `tests/e2e/tests/real_kube.rs` checks against the real one of the pinned release.
+pub const INSUFFICIENT_GPU: &str = "0/1 nodes are available: 1 Insufficient nvidia.com/gpu. no new claims to deallocate, preemption: 0/1 nodes are available: 1 Preemption is not helpful for scheduling.";
 
 /// What the real scheduler writes on a pod whose `nodeSelector` the node's labels do not
 /// satisfy (kube-scheduler's `NodeAffinity` filter, one node; preemption cannot help).
-pub const SELECTOR_MISMATCH: &str = "0/1 nodes are available: 1 node(s) didn't match Pod's node affinity/selector. preemption: 0/1 nodes are available: 1 Preemption is not helpful for scheduling.";
+pub const SELECTOR_MISMATCH: &str = "0/1 nodes are available: 1 node(s) didn't match Pod's node affinity/selector. no new claims to deallocate, preemption: 0/1 nodes are available: 1 Preemption is not helpful for scheduling.";
 
 /// The component the Cluster Autoscaler's events name.
 pub const AUTOSCALER: &str = "cluster-autoscaler";
