@@ -17,9 +17,7 @@ use tracing::{debug, info, warn};
 
 use super::env::{argv, environment, EnvBase, LOCAL_IP};
 use super::mounts::{plan, Mount};
-use super::process::{
-    command, escapees, exit_code, kill_escaped, signal_group, terminate, wait_group_gone, Launch,
-};
+use super::process::{command, exit_code, signal_group, terminate, wait_group_gone, Launch};
 use super::{scheduler, Runtime};
 use crate::imagemap::Pull;
 use crate::objects::names::random_u64;
@@ -609,9 +607,7 @@ impl PodWorker {
                             (status.map(|s| exit_code(&s)).unwrap_or(-1), false)
                         }
                         grace = stop_requested(&mut stop) => {
-                            let escaped = escapees(pgid);
                             let status = terminate(&mut child, pgid, grace).await;
-                            kill_escaped(escaped);
                             (status.map(|s| exit_code(&s)).unwrap_or(137), true)
                         }
                     };

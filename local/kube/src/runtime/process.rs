@@ -284,8 +284,17 @@ pub fn exit_code(status: &ExitStatus) -> i32 {
 /// SIGTERM the container's main process, wait up to `grace` for it, then SIGKILL the group;
 /// returns the main process's exit status. As a container runtime does, only the main process
 /// is told: the processes it started are its to stop (a pair's sidecar keeps CARLA up until
-/// the evaluator has stopped), and whatever is left goes with it, as a PID namespace does.
+/// the evaluator has stopped), and whatever is left goes with it, as a PID namespace does:
+/// its group, and the processes it started in groups of their own ([`escapees`]).
 pub async fn terminate(child: &mut Child, pgid: i32, grace: Duration) -> Option<ExitStatus> {
+    let escaped = escapees(pgid);
+    let status = stop_main(child, pgid, grace).await;
+    kill_escaped(escaped);
+    status
+}
+
+/// [`terminate`]'s signals to the main process and its group.
+async fn stop_main(child: &mut Child, pgid: i32, grace: Duration) -> Option<ExitStatus> {
     if !grace.is_zero() {
         match child.id().and_then(|pid| i32::try_from(pid).ok()) {
             Some(pid) if pid > 1 => {
