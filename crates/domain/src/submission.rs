@@ -222,6 +222,13 @@ pub struct SubmissionInfo {
     pub submitted_at: u64,
 }
 
+impl SubmissionInfo {
+    /// Everything a run needs is known: the image to run and at least one pair.
+    pub fn is_complete(&self) -> bool {
+        !self.image.is_empty() && self.workers >= 1
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

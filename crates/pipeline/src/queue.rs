@@ -9,7 +9,7 @@ use lb_aws::tasks::{Callbacks, Reported};
 use lb_aws::wake::WakeTable;
 pub use lb_domain::capacity::queue::Standing;
 pub use lb_domain::capacity::queue::TeamQueue;
-use lb_domain::capacity::queue::{self, Entry, EntryState, Hold};
+use lb_domain::capacity::queue::{self, Entry, EntryState, Hold, Place};
 
 use crate::payload::SubmissionInfo;
 use crate::Result;
@@ -96,15 +96,10 @@ impl Admission {
     }
 
     /// [`note`]; without a queue, the place alone (no pace to estimate from).
-    pub async fn note(
-        &self,
-        submission: &SubmissionInfo,
-        place: (u32, u32, u32),
-        hold: Hold,
-    ) -> String {
+    pub async fn note(&self, submission: &SubmissionInfo, place: Place, hold: Hold) -> String {
         match self {
             Admission::Queue(table) => note(table, submission, place, hold).await,
-            Admission::Unlimited => queue::describe(place.0, hold),
+            Admission::Unlimited => queue::describe(place.ahead, hold),
         }
     }
 
@@ -224,9 +219,14 @@ pub async fn ahead_of(
 pub async fn note(
     table: &AdmissionTable,
     submission: &SubmissionInfo,
-    (ahead, team_ahead, running): (u32, u32, u32),
+    place: Place,
     hold: Hold,
 ) -> String {
+    let Place {
+        ahead,
+        team_ahead,
+        running,
+    } = place;
     let place = queue::describe(ahead, hold);
     let pace = match table
         .pace(submission.leaderboard.as_str(), &submission.track)

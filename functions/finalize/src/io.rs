@@ -102,8 +102,12 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 stdout,
                 stderr,
             } => {
-                let texts = (status, stdout, stderr);
-                Answer::Posted(post_final(self.deps, sub, self.merged(), texts).await?)
+                let word = FinalWord {
+                    status,
+                    stdout,
+                    stderr,
+                };
+                Answer::Posted(post_final(self.deps, sub, self.merged(), word).await?)
             }
             Step::ListRecordings => Answer::Listed(match self.store.recordings().await {
                 Ok(listed) => Some(listed),
@@ -329,14 +333,27 @@ where
         .await
 }
 
-/// The final EvalAI update, (status, stdout, stderr): scores for a finished run; for a
-/// failed one, the partial summary as stdout and the reason as stderr.
+/// What the final EvalAI update says besides the files: the status, and the texts shown as
+/// the submission's stdout and stderr.
+pub struct FinalWord {
+    pub status: SubmissionStatus,
+    pub stdout: String,
+    pub stderr: String,
+}
+
+/// The final EvalAI update: scores for a finished run; for a failed one, the partial summary
+/// as stdout and the reason as stderr.
 pub async fn post_final<C>(
     deps: &Deps<C>,
     submission: &SubmissionInfo,
     snapshot: Option<&Snapshot>,
-    (status, stdout, stderr): (SubmissionStatus, String, String),
+    word: FinalWord,
 ) -> Result<Posted> {
+    let FinalWord {
+        status,
+        stdout,
+        stderr,
+    } = word;
     let update = FinalUpdate {
         status,
         result: snapshot.map_or_else(|| "[]".to_string(), |s| s.files.results_json()),

@@ -23,7 +23,7 @@ use lb_domain::status::Settled;
 use lb_domain::submission::SubmissionStatus;
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::Clusters;
-use lb_pipeline::payload::{Action, ExecutionState, IntakeOutput, RunState, SubmissionInfo};
+use lb_pipeline::payload::{Decision, ExecutionState, RunState, SubmissionInfo};
 use lb_pipeline::serve::{Function, Invocation};
 use lb_pipeline::{FunctionConfig, Result};
 use serde::{Deserialize, Serialize};
@@ -84,7 +84,7 @@ impl<C> Deps<C> {
 }
 
 /// Finalize's input: the whole execution state (`{"state.$": "$"}`).
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FinalizeInput {
     /// The state as the failed or finished path left it.
@@ -111,7 +111,7 @@ pub struct FinalizeOutput {
 impl FinalizeInput {
     /// The state's submission, once Intake knew it.
     fn submission(&self) -> Option<&SubmissionInfo> {
-        self.state.intake.as_ref()?.submission.as_ref()
+        self.state.intake.as_ref()?.submission()
     }
 }
 
@@ -200,13 +200,25 @@ impl<C: Callbacks + Executions> Function for Deps<C> {
 pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Result<FinalizeOutput> {
     let state = input.state;
     let error = state.caught_error();
-    let (action, submission) = match state.intake {
-        Some(IntakeOutput {
-            action,
-            submission: Some(submission),
-            reason,
-        }) => ((action, reason), submission),
-        _ => {
+    let (reason, submission) = match state.intake {
+        Some(Decision::Run(submission)) => {
+            return finish_run(deps, &submission, state.run, error).await
+        }
+        Some(Decision::Skip {
+            submission: Some(_),
+            ..
+        }) => {
+            return Ok(FinalizeOutput {
+                status: Settled::Unclaimed,
+                pipeline_error: error.is_some(),
+                reason: error,
+            })
+        }
+        Some(Decision::Reject { reason, submission }) => (reason, submission),
+        Some(Decision::Skip {
+            submission: None, ..
+        })
+        | None => {
             // NB: not ours. Telling EvalAI or deleting Jobs here could end another
             // execution's evaluation of the same submission.
             warn!(
@@ -220,26 +232,17 @@ pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Resul
             });
         }
     };
-    if action.0 == Action::Reject {
-        let reason = action
-            .1
-            .unwrap_or_else(|| "the submission was refused".into());
-        let failed = (SubmissionStatus::Failed, String::new(), reason.clone());
-        io::post_final(deps, &submission, None, failed).await?;
-        return Ok(FinalizeOutput {
-            status: Settled::Ended(RecordStatus::Failed),
-            pipeline_error: false,
-            reason: Some(reason),
-        });
-    }
-    if action.0 != Action::Run {
-        return Ok(FinalizeOutput {
-            status: Settled::Unclaimed,
-            pipeline_error: error.is_some(),
-            reason: error,
-        });
-    }
-    finish_run(deps, &submission, state.run, error).await
+    let failed = io::FinalWord {
+        status: SubmissionStatus::Failed,
+        stdout: String::new(),
+        stderr: reason.clone(),
+    };
+    io::post_final(deps, &submission, None, failed).await?;
+    Ok(FinalizeOutput {
+        status: Settled::Ended(RecordStatus::Failed),
+        pipeline_error: false,
+        reason: Some(reason),
+    })
 }
 
 /// Ends a claimed run: `lb_domain::run::closing` decides each step and its order, the shell

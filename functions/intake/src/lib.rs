@@ -11,7 +11,7 @@ use lb_domain::run::intake;
 use lb_domain::settings::{Settings, Target};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
 use lb_evalai::{EvalAiClient, Submission};
-use lb_pipeline::payload::{Action, IntakeInput, IntakeOutput, SubmissionInfo};
+use lb_pipeline::payload::{Decision, IntakeInput, SubmissionInfo};
 use lb_pipeline::serve::Function;
 use lb_pipeline::{clients, FnError, FunctionConfig, Result};
 use std::future::Future;
@@ -54,22 +54,22 @@ impl Deps {
 impl Function for Deps {
     const NAME: &'static str = "intake";
     type Input = IntakeInput;
-    type Output = IntakeOutput;
-    fn handle(&self, input: IntakeInput) -> impl Future<Output = Result<IntakeOutput>> {
+    type Output = Decision;
+    fn handle(&self, input: IntakeInput) -> impl Future<Output = Result<Decision>> {
         handle(input, self)
     }
 }
 
-/// The decision, with the submission as far as it is known.
-fn decided(action: Action, reason: Option<String>, submission: SubmissionInfo) -> IntakeOutput {
-    let id = submission.submission_id;
-    match action {
-        Action::Run => info!(submission_id = id, workers = submission.workers, "claimed"),
-        Action::Reject => warn!(submission_id = id, reason = reason.as_deref(), "rejected"),
-        Action::Skip => info!(submission_id = id, reason = reason.as_deref(), "skipped"),
-    }
-    IntakeOutput {
-        action,
+/// A refusal, said in the log.
+fn rejected(reason: String, submission: SubmissionInfo) -> Decision {
+    warn!(submission_id = submission.submission_id, reason = %reason, "rejected");
+    Decision::Reject { reason, submission }
+}
+
+/// A skip, said in the log.
+fn skipped(reason: String, submission: SubmissionInfo) -> Decision {
+    info!(submission_id = submission.submission_id, reason = %reason, "skipped");
+    Decision::Skip {
         reason,
         submission: Some(submission),
     }
@@ -77,13 +77,13 @@ fn decided(action: Action, reason: Option<String>, submission: SubmissionInfo) -
 
 /// Decides what to do with one submission message: each fact is read only when the rules
 /// before it let the submission through (`lb_domain::run::intake` has the rules).
-pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
+pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<Decision> {
     let message = SubmissionMessage::from_pipe(&input.message)?;
     let target = deps.settings.target(message.phase_id)?;
     let submission = deps.evalai.submission(message.submission_id).await?;
     let mut info = described(&message, &target, &submission, input.execution)?;
     if let Some(reason) = intake::skip_reason(submission.status) {
-        return Ok(decided(Action::Skip, Some(reason), info));
+        return Ok(skipped(reason, info));
     }
     let image = match message.image {
         Some(image) => image,
@@ -91,7 +91,7 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
             Ok(image) => image,
             Err(e) => {
                 let reason = intake::no_image(&e.to_string());
-                return Ok(decided(Action::Reject, Some(reason), info));
+                return Ok(rejected(reason, info));
             }
         },
     };
@@ -101,7 +101,7 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
         Ok(reference) => reference,
         Err(problem) => {
             let reason = intake::invalid_image(&image, &problem);
-            return Ok(decided(Action::Reject, Some(reason), info));
+            return Ok(rejected(reason, info));
         }
     };
     // The Jobs run the digest the tag names now: every pair and every replacement pod runs
@@ -111,7 +111,7 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
         Pinned::AsGiven => image.clone(),
         Pinned::NotFound => {
             let reason = intake::image_not_found(&image);
-            return Ok(decided(Action::Reject, Some(reason), info));
+            return Ok(rejected(reason, info));
         }
     };
     if let Some(qualifier) = target.required_qualifier() {
@@ -119,7 +119,7 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
         // The item `(team, track)` admits: a pass recorded by the original system counts.
         if !table.admitted(info.team_id, &info.track).await? {
             let reason = intake::not_qualified(&info.team_name, qualifier, &info.track);
-            return Ok(decided(Action::Reject, Some(reason), info));
+            return Ok(rejected(reason, info));
         }
     }
     let table = SubmissionsTable::new(deps.dynamo.clone(), &target.deployment.submissions_table);
@@ -128,10 +128,17 @@ pub async fn handle(input: IntakeInput, deps: &Deps) -> Result<IntakeOutput> {
         .await?;
     info.workers = intake::worker_count(overridden, target.track_settings.workers, info.routes);
     Ok(match table.claim(&new_record(&info, &image)).await? {
-        Claim::Claimed => decided(Action::Run, None, info),
+        Claim::Claimed => {
+            info!(
+                submission_id = info.submission_id,
+                workers = info.workers,
+                "claimed"
+            );
+            Decision::Run(info)
+        }
         Claim::Duplicate { status, claimed_by } => {
             let reason = intake::duplicate(claimed_by.as_deref(), status);
-            decided(Action::Skip, Some(reason), info)
+            skipped(reason, info)
         }
     })
 }

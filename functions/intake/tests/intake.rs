@@ -54,9 +54,9 @@ async fn an_ecr_tag_is_pinned_to_its_digest_and_a_tag_never_pushed_is_refused_at
     let out = handle(input(message(1, tag), "exec-1"), &deps)
         .await
         .unwrap();
-    assert_eq!(out.action, Action::Run, "{out:?}");
+    assert_eq!(out.action(), Action::Run, "{out:?}");
     // The Jobs run the digest; the record keeps what the participant submitted.
-    let info = out.submission.unwrap();
+    let info = out.submission().cloned().unwrap();
     assert_eq!(
         info.image,
         format!("123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one@{digest}")
@@ -80,8 +80,8 @@ async fn an_ecr_tag_is_pinned_to_its_digest_and_a_tag_never_pushed_is_refused_at
     let out = handle(input(message(second, never), "exec-2"), &deps)
         .await
         .unwrap();
-    assert_eq!(out.action, Action::Reject, "{out:?}");
-    let reason = out.reason.unwrap();
+    assert_eq!(out.action(), Action::Reject, "{out:?}");
+    let reason = out.reason().unwrap();
     assert!(
         reason.contains(never) && reason.contains("not in its registry"),
         "{reason}"
@@ -100,8 +100,8 @@ async fn a_new_submission_is_claimed_once_and_a_duplicate_delivery_skipped() {
     let out = handle(input(message.clone(), "exec-1"), &deps)
         .await
         .unwrap();
-    assert_eq!(out.action, Action::Run, "{out:?}");
-    let info = out.submission.unwrap();
+    assert_eq!(out.action(), Action::Run, "{out:?}");
+    let info = out.submission().cloned().unwrap();
     assert_eq!((info.team_id, info.team_name.as_str()), (1, "Team One"));
     assert_eq!(
         (info.leaderboard.as_str(), info.track.as_str()),
@@ -117,8 +117,8 @@ async fn a_new_submission_is_claimed_once_and_a_duplicate_delivery_skipped() {
     assert_eq!(item["claimed_by"], AttributeValue::S("exec-1".into()));
 
     let again = handle(input(message, "exec-2"), &deps).await.unwrap();
-    assert_eq!(again.action, Action::Skip);
-    assert!(again.reason.unwrap().contains("duplicate"));
+    assert_eq!(again.action(), Action::Skip);
+    assert!(again.reason().unwrap().contains("duplicate"));
     assert_eq!(
         record(&stack, 1, 1).await.unwrap()["claimed_by"],
         AttributeValue::S("exec-1".into())
@@ -155,11 +155,11 @@ async fn a_message_without_image_uses_the_input_file_and_the_override_sets_worke
         .unwrap();
     let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1});
     let out = handle(input(message, "exec-1"), &deps).await.unwrap();
-    let info = out.submission.unwrap();
+    let info = out.submission().cloned().unwrap();
     let repository = pushed.rsplit_once(':').unwrap().0;
     assert_eq!(info.image, format!("{repository}@{digest}"));
     assert_eq!(
-        out.action,
+        out.action(),
         Action::Skip,
         "a record exists and EvalAI says submitted, not resuming"
     );
@@ -219,9 +219,9 @@ async fn an_ineligible_status_is_skipped_and_an_unqualified_team_rejected() {
     let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1, "submitted_image_uri": "img:1"});
 
     let out = handle(input(message.clone(), "exec"), &deps).await.unwrap();
-    assert_eq!(out.action, Action::Reject);
+    assert_eq!(out.action(), Action::Reject);
     assert!(out
-        .reason
+        .reason()
         .unwrap()
         .contains("qualifier track `SENSORS_QUALIFIER`"));
     assert!(record(&stack, 1, 1).await.is_none());
@@ -240,14 +240,14 @@ async fn an_ineligible_status_is_skipped_and_an_unqualified_team_rejected() {
         handle(input(message.clone(), "exec"), &deps)
             .await
             .unwrap()
-            .action,
+            .action(),
         Action::Run
     );
 
     stack.fake().cancel(1).unwrap();
     let out = handle(input(message, "exec-later"), &deps).await.unwrap();
-    assert_eq!(out.action, Action::Skip);
-    assert!(out.reason.unwrap().contains("`cancelled`"));
+    assert_eq!(out.action(), Action::Skip);
+    assert!(out.reason().unwrap().contains("`cancelled`"));
 }
 
 #[tokio::test]
@@ -284,8 +284,8 @@ async fn an_invalid_or_oversized_image_is_rejected_before_anything_is_claimed() 
         let message = json!({"challenge_pk": 1, "phase_pk": 1, "submission_pk": 1,
                              "submitted_image_uri": image});
         let out = handle(input(message, "exec"), &deps).await.unwrap();
-        assert_eq!(out.action, Action::Reject, "{:.300}", format!("{out:?}"));
-        let reason = out.reason.clone().unwrap();
+        assert_eq!(out.action(), Action::Reject, "{:.300}", format!("{out:?}"));
+        let reason = out.reason().unwrap().to_string();
         assert!(
             reason.contains("is not a valid image reference"),
             "{reason:.300}"
@@ -295,7 +295,7 @@ async fn an_invalid_or_oversized_image_is_rejected_before_anything_is_claimed() 
             "the reason is bounded: {} bytes",
             reason.len()
         );
-        assert!(out.submission.as_ref().unwrap().image.is_empty());
+        assert!(out.submission().unwrap().image.is_empty());
         assert!(serde_json::to_string(&out).unwrap().len() < 8 * 1024);
         assert!(record(&stack, 1, 1).await.is_none(), "nothing was claimed");
     }

@@ -23,7 +23,7 @@ use lb_pipeline::{clients, queue, FunctionConfig, Result};
 use std::future::Future;
 use std::time::Duration;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use tracing::{info, warn};
 
 /// What Launch needs: the settings, the clusters, EvalAI (to say it is queued).
@@ -78,26 +78,26 @@ impl Deps {
 }
 
 /// Launch's input.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LaunchInput {
     /// As Intake established it.
     pub submission: SubmissionInfo,
     /// Its place in the queue, when it waited for its turn (`LaunchAdmitted`); none the first
     /// time.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub queue: Option<QueueState>,
     /// This execution's history so far, as the Monitor counted it (`LaunchAdmitted`): the
     /// count goes on from there (`lb_domain::run::history`).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub events: Option<u64>,
     /// `$$.Execution.Name`: whose history `events` counts (a continued run's execution is not
     /// the one that claimed the submission).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub execution: Option<String>,
     /// What the orchestration did for the run while it waited for its turn
     /// (`LaunchAdmitted`).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub orchestration: Option<Orchestration>,
 }
 

@@ -9,7 +9,7 @@ use lb_aws::s3::SubmissionStore;
 use lb_cluster::autoscaler::ScaleUpWord;
 use lb_cluster::Cluster;
 use lb_domain::capacity::cost::Totals;
-use lb_domain::capacity::queue::Hold;
+use lb_domain::capacity::queue::{Hold, Place};
 use lb_domain::run::monitor::StatusRead;
 use lb_domain::run::round::{Answer, Collected, NodeRead, Step, Write};
 use lb_domain::settings::Target;
@@ -162,7 +162,7 @@ impl<'a> Shell<'a> {
         }
     }
 
-    async fn compose(&self, place: (u32, u32, u32), hold: Hold) -> String {
+    async fn compose(&self, place: Place, hold: Hold) -> String {
         self.deps
             .clients
             .admission

@@ -26,7 +26,7 @@ use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
 use lb_pipeline::queue::QUEUE_NOTE_INTERVAL;
 use lb_pipeline::serve::{Function, Invocation};
 use lb_pipeline::{FunctionConfig, Result};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use tracing::info;
 
 /// What the Monitor needs: settings, clusters, EvalAI, S3, the submissions table.
@@ -68,7 +68,7 @@ impl Deps {
 }
 
 /// The Monitor's input.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MonitorInput {
     /// As Intake established it.
@@ -76,7 +76,7 @@ pub struct MonitorInput {
     /// As Launch or the previous round left it.
     pub run: RunState,
     /// `$$.Execution.Name`: the execution this round runs in (its history is counted).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub execution: Option<String>,
     /// `$$.State.RetryCount`: attempts of this round that failed before this one.
     #[serde(default)]

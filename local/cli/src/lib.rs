@@ -9,6 +9,7 @@ mod relay;
 mod report;
 mod run;
 pub mod scenario;
+mod states;
 pub mod wiring;
 
 use clap::{Parser, Subcommand};

@@ -20,7 +20,7 @@ fn lbctl() -> PathBuf {
 
 /// `lbctl local run <args>` with `env`, which must succeed: its `--report` and its stdout (the
 /// progress lines; the report holds the outcome).
-fn local_run(args: &[&str], env: &[(&str, &str)]) -> (Value, String) {
+pub(crate) fn local_run(args: &[&str], env: &[(&str, &str)]) -> (Value, String) {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("report.json");
     let out = Command::new(lbctl())

@@ -2,3 +2,4 @@
 //! not one per file).
 
 mod local_run;
+mod states;

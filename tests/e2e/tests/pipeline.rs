@@ -97,8 +97,8 @@ impl Harness {
         )
         .await
         .unwrap();
-        assert_eq!(out.action, Action::Run, "{out:?}");
-        out.submission.unwrap()
+        assert_eq!(out.action(), Action::Run, "{out:?}");
+        out.submission().cloned().unwrap()
     }
 
     async fn launch(&self, submission: &SubmissionInfo) -> RunState {

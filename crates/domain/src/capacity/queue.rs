@@ -244,6 +244,18 @@ pub fn describe_estimate(estimate: StartEstimate) -> String {
     format!("it should start {span} from now (an estimate from this track's recent evaluations)")
 }
 
+/// A waiting submission's place, as its note tells it: those ahead of it, its own team's among
+/// them, and (admitted, waiting for a GPU) the evaluations running.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Place {
+    /// Submissions ahead of it.
+    pub ahead: u32,
+    /// Its team's submissions ahead of it.
+    pub team_ahead: u32,
+    /// Evaluations running now (0 when it waits on its team's limit).
+    pub running: u32,
+}
+
 /// Where a submission stands after asking for its turn.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Standing {

@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use crate::capacity::cost::{self, InstancePrice, NodeKind, PodSeen, Totals};
-use crate::capacity::queue::{self, Hold, Standing};
+use crate::capacity::queue::{self, Hold, Place, Standing};
 use crate::cluster::autoscaler::ScaleUpWord;
 use crate::cluster::disruption::{self, Disruption, NodeFacts};
 use crate::cluster::view::{self as cluster, Observation, Verdict, VerdictPolicy};
@@ -78,7 +78,7 @@ pub enum Step {
     /// Count who is ahead of an admitted submission whose pods wait ([`Answer::Ahead`]).
     ReadAhead,
     /// Word the queue note for this place ([`Answer::Note`]): (ahead, of its team, running).
-    ComposeNote((u32, u32, u32), Hold),
+    ComposeNote(Place, Hold),
     /// Show the participant its place, or remove the note once it runs ([`Answer::Shown`]).
     ShowPlace(Option<(u32, String)>),
     /// Look at the submission's Jobs and pods ([`Answer::Observed`] or
@@ -591,7 +591,11 @@ impl Round {
             return;
         }
         self.showing = Some(ahead);
-        let place = (ahead, standing.team_ahead, 0);
+        let place = Place {
+            ahead,
+            team_ahead: standing.team_ahead,
+            running: 0,
+        };
         self.pending = Some(Step::ComposeNote(place, standing.hold));
     }
 
@@ -605,7 +609,12 @@ impl Round {
             return self.advance(Stage::Results);
         }
         self.showing = Some(ahead);
-        self.pending = Some(Step::ComposeNote((ahead, 0, running), Hold::Capacity));
+        let place = Place {
+            ahead,
+            team_ahead: 0,
+            running,
+        };
+        self.pending = Some(Step::ComposeNote(place, Hold::Capacity));
     }
 
     /// What EvalAI did with the queue note. Held, a refusal for a cancel ends the wait; once
@@ -1055,7 +1064,8 @@ mod tests {
             Step::Observe => seen(false, JobState::Pending),
             Step::ReadAhead => Answer::Ahead(Some((3, 1))),
             Step::ComposeNote(place, hold) => {
-                assert_eq!((*place, *hold), ((3, 0, 1), Hold::Capacity));
+                let place = (place.ahead, place.team_ahead, place.running);
+                assert_eq!((place, *hold), ((3, 0, 1), Hold::Capacity));
                 Answer::Note("3 ahead".into())
             }
             Step::ShowPlace(note) => {
@@ -1306,7 +1316,7 @@ mod tests {
         let (steps, run) = drive(self::run(false), cx(), |step| match step {
             Step::TakeTurn { .. } => Answer::Turn(standing(false)),
             Step::ComposeNote(place, _) => {
-                assert_eq!(*place, (4, 1, 0));
+                assert_eq!((place.ahead, place.team_ahead, place.running), (4, 1, 0));
                 Answer::Note("4 ahead".into())
             }
             Step::ShowPlace(_) => Answer::Shown(Write::Written),

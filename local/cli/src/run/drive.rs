@@ -86,10 +86,16 @@ impl Watch {
 pub(super) async fn start(
     stack: &Stack,
     executor: &Executor,
-    (challenge, phase, image): (u64, u64, &str),
-    (arrivals, teams): (&[(u64, u64)], usize),
+    sent: &Arrivals,
     started: Instant,
 ) -> anyhow::Result<Vec<(u64, u64, Execution)>> {
+    let Arrivals {
+        challenge,
+        phase,
+        image,
+        each: ref arrivals,
+        teams,
+    } = *sent;
     let machine = machine()?;
     let mut executions = Vec::new();
     for (id, team) in arrivals {
@@ -117,12 +123,14 @@ pub(super) async fn start(
 
 /// Every execution's result, followed through its continuations, in arrival order; and each
 /// one's history lengths.
+/// With `record`, what they handed on is written there (`crate::states`).
 pub(super) async fn wait_all(
     executor: &Executor,
     executions: Vec<(u64, u64, Execution)>,
-    many: bool,
+    record: Option<&std::path::Path>,
     started: Instant,
-) -> (Vec<ExecutionResult>, Vec<Vec<usize>>) {
+) -> anyhow::Result<(Vec<ExecutionResult>, Vec<Vec<usize>>)> {
+    let many = executions.len() > 1;
     let mut results = Vec::new();
     let mut chains = Vec::new();
     for (id, team, execution) in executions {
@@ -137,7 +145,10 @@ pub(super) async fn wait_all(
         }
         results.push(result);
     }
-    (results, chains)
+    if let Some(dir) = record {
+        crate::states::record(dir, results.iter().map(|r| r.history.as_slice()))?;
+    }
+    Ok((results, chains))
 }
 
 /// How many executions ended without Finalize (the reaper answers for those).

@@ -112,6 +112,11 @@ pub struct LocalRun {
     /// net, holds and the sweep, as in a deployment whose buckets send no events.
     #[arg(long)]
     pub no_wake: bool,
+    /// Write what the run's executions handed on (each function's first input of a kind, a
+    /// continued execution's input) into this folder, one JSON file each: the state fixtures
+    /// of `statemachine/states/`.
+    #[arg(long, value_name = "DIR")]
+    pub record_states: Option<std::path::PathBuf>,
     /// Keep the stack running after the summary (until Ctrl-C) to look at S3, EvalAI, logs.
     #[arg(long)]
     pub keep: bool,
@@ -160,10 +165,9 @@ async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
     let started = Instant::now();
     let scenario: Arc<dyn Rehearsal> = Arc::from(args.scenario.rehearsal());
     let (stack, settings, kubeconfig) = set_up(&args, &*scenario, teams.len(), started).await?;
-    let record_log = stack.workdir.path().join("record-writes.log");
-    let (challenge, phase, arrivals) = submissions(&args, &stack, &teams, scenario.image())?;
+    let arrivals = submissions(&args, &stack, &teams, scenario.image())?;
     // The first is the one the summary describes in detail (and the scenarios act on).
-    let submission = arrivals[0].0;
+    let submission = arrivals.each[0].0;
     let handlers = Handlers::load(&stack.sdk, kubeconfig.clone(), &pace(&args)).await?;
     // The summary reads the outcome from EvalAI with the functions' own client.
     let evalai = handlers.intake.evalai.clone();
@@ -178,9 +182,11 @@ async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
         &stack,
         &settings,
         kubeconfig.clone(),
-        (submission, &acted, &reaper_failures),
+        submission,
+        &acted,
+        &reaper_failures,
     ));
-    let many = arrivals.len() > 1;
+    let many = arrivals.each.len() > 1;
     let watch = Watch::default();
     // Many executions: the per-round lines of each would drown the summary.
     let on_event = (!many).then(|| watch.on_event(&args, &stack, &scenario, &acted, started));
@@ -201,11 +207,11 @@ async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
         !args.no_wake,
     )
     .await?;
-    let at = (challenge, phase, scenario.image());
-    let executions = start(&stack, &executor, at, (&arrivals, teams.len()), started).await?;
+    let executions = start(&stack, &executor, &arrivals, started).await?;
     reaper.schedule(scaled, executions[0].2.arn())?;
     scenario.started(&executor, executions[0].2.arn(), &watch.rounds, &acted);
-    let (mut results, chains) = wait_all(&executor, executions, many, started).await;
+    let record = args.record_states.as_deref();
+    let (mut results, chains) = wait_all(&executor, executions, record, started).await?;
     let reaped = reaper.collect(ended_without_finalize(&results)).await;
     let ended = Instant::now();
     let bucket = settings_bucket(&settings, args.leaderboard);
@@ -217,7 +223,7 @@ async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
         stack: &stack,
         settings: &settings,
         kubeconfig: &kubeconfig,
-        arrivals: &arrivals,
+        arrivals: &arrivals.each,
         result: results.remove(0),
         chains: &chains,
         reaped,
@@ -227,12 +233,11 @@ async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
         acted: acted.load(Ordering::SeqCst),
         wakes,
         times: (started, ended),
-        record_log: &record_log,
         expected: scenario.expected(),
         audit_passes: scenario.audit_passes(),
     };
     let (report, latency) = ran.report(&evalai).await;
-    finish(&args, &stack, (report, latency, many), &kubeconfig).await
+    finish(&args, &stack, &report, latency.as_ref(), many, &kubeconfig).await
 }
 
 /// The options no parser checks alone.

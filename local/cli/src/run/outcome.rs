@@ -37,7 +37,6 @@ pub(super) struct Ran<'a> {
     pub(super) wakes: (u64, u64),
     /// When the run started and when its executions ended.
     pub(super) times: (Instant, Instant),
-    pub(super) record_log: &'a Path,
     pub(super) expected: &'static str,
     /// Whether a finished run's recordings must pass the audit.
     pub(super) audit_passes: bool,
@@ -80,7 +79,8 @@ impl Ran<'_> {
                 .map(|s| (s.status.clone(), s.files.stderr.clone()))
         });
         let latency = self.args.latency.then(|| {
-            let log = std::fs::read_to_string(self.record_log).unwrap_or_default();
+            let log =
+                std::fs::read_to_string(super::setup::record_log(self.stack)).unwrap_or_default();
             crate::latency::measure(&log, &requests, self.arrivals[0].0)
         });
         (Some(queue), latency)
@@ -193,12 +193,14 @@ pub(super) fn audit_as_expected(
 pub(super) async fn finish(
     args: &LocalRun,
     stack: &Stack,
-    (report, latency, many): (RunReport, Option<Latency>, bool),
+    report: &RunReport,
+    latency: Option<&Latency>,
+    many: bool,
     kubeconfig: &Path,
 ) -> anyhow::Result<u8> {
-    report.print(args, &stack.moto.endpoint(), latency.as_ref(), many);
+    report.print(args, &stack.moto.endpoint(), latency, many);
     if let Some(path) = &args.report {
-        std::fs::write(path, serde_json::to_string_pretty(&report)?)
+        std::fs::write(path, serde_json::to_string_pretty(report)?)
             .with_context(|| format!("writing {}", path.display()))?;
     }
     if args.keep {

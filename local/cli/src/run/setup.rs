@@ -30,7 +30,7 @@ pub(super) async fn set_up(
     started: Instant,
 ) -> anyhow::Result<(Stack, lb_domain::settings::Settings, PathBuf)> {
     let (mut stack, settings) = start_stack(args, teams, started).await?;
-    let record_log = stack.workdir.path().join("record-writes.log");
+    let record_log = record_log(&stack);
     let kubeconfig = start_workloads(args, scenario, &mut stack, &settings, &record_log).await?;
     say(
         started,
@@ -59,7 +59,9 @@ pub(super) fn begin(
     stack: &Stack,
     settings: &lb_domain::settings::Settings,
     kubeconfig: PathBuf,
-    (submission, acted, reaper_failures): (u64, &Arc<AtomicBool>, &Arc<AtomicU64>),
+    submission: u64,
+    acted: &Arc<AtomicBool>,
+    reaper_failures: &Arc<AtomicU64>,
 ) -> Begin {
     Begin {
         kubeconfig: stack
@@ -221,17 +223,28 @@ pub(super) async fn start_workloads(
     stack.kubeconfig.clone().context("no kubeconfig")
 }
 
-/// Each submission with its team, in order of arrival.
-pub(super) type Arrivals = Vec<(u64, u64)>;
+/// Where the fake workloads log each record they write (for the latency measure).
+pub(super) fn record_log(stack: &Stack) -> PathBuf {
+    stack.workdir.path().join("record-writes.log")
+}
 
-/// The submissions on EvalAI (each team's, in order, on the fake; the one named on another):
-/// the challenge, the phase, and each submission with its team.
+/// The submissions EvalAI receives, in order: each (submission, team) of `teams` teams, to one
+/// challenge phase, all with one image.
+pub(super) struct Arrivals {
+    pub challenge: u64,
+    pub phase: u64,
+    pub image: &'static str,
+    pub each: Vec<(u64, u64)>,
+    pub teams: usize,
+}
+
+/// The submissions on EvalAI (each team's, in order, on the fake; the one named on another).
 pub(super) fn submissions(
     args: &LocalRun,
     stack: &Stack,
     teams: &[u32],
-    image: &str,
-) -> anyhow::Result<(u64, u64, Arrivals)> {
+    image: &'static str,
+) -> anyhow::Result<Arrivals> {
     let phase = local_phase(args.leaderboard);
     match (
         &stack.fake_evalai,
@@ -261,6 +274,13 @@ pub(super) fn submissions(
         (None, Some(c), Some(p), Some(s)) => Ok((c, p, vec![(s, 0)])),
         _ => bail!("an external EvalAI needs --challenge, --phase and --submission"),
     }
+    .map(|(challenge, phase, each)| Arrivals {
+        challenge,
+        phase,
+        image,
+        each,
+        teams: teams.len(),
+    })
 }
 
 /// The rehearsal's pace: shorter sidecar timers, the autoscaler believed at once.

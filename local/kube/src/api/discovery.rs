@@ -199,9 +199,16 @@ pub async fn openapi_v3_index() -> Response {
     )
 }
 
-fn operation(gvk: (&str, &str, &str), action: &str) -> Value {
+/// A resource's group, version and kind, as OpenAPI names them.
+struct Gvk {
+    group: &'static str,
+    version: &'static str,
+    kind: &'static str,
+}
+
+fn operation(gvk: &Gvk, action: &str) -> Value {
     json!({
-        "operationId": format!("{action}{}", gvk.2),
+        "operationId": format!("{action}{}", gvk.kind),
         "parameters": [
             {"name": "dryRun", "in": "query", "schema": {"type": "string", "uniqueItems": true}},
             {"name": "fieldManager", "in": "query", "schema": {"type": "string", "uniqueItems": true}},
@@ -209,7 +216,7 @@ fn operation(gvk: (&str, &str, &str), action: &str) -> Value {
         ],
         "responses": {"200": {"description": "OK"}},
         "x-kubernetes-action": action,
-        "x-kubernetes-group-version-kind": {"group": gvk.0, "version": gvk.1, "kind": gvk.2},
+        "x-kubernetes-group-version-kind": {"group": gvk.group, "version": gvk.version, "kind": gvk.kind},
     })
 }
 
@@ -220,18 +227,29 @@ pub async fn openapi_v3_doc(Path(path): Path<String>) -> Response {
         "apis/batch/v1" => (
             "/apis/batch/v1/namespaces/{namespace}/jobs",
             "/apis/batch/v1/namespaces/{namespace}/jobs/{name}",
-            ("batch", "v1", "Job"),
+            Gvk {
+                group: "batch",
+                version: "v1",
+                kind: "Job",
+            },
         ),
         "api/v1" => (
             "/api/v1/namespaces/{namespace}/pods",
             "/api/v1/namespaces/{namespace}/pods/{name}",
-            ("", "v1", "Pod"),
+            Gvk {
+                group: "",
+                version: "v1",
+                kind: "Pod",
+            },
         ),
         _ => return ApiError::no_route().into_response(),
     };
     let mut paths = serde_json::Map::new();
-    paths.insert(collection.into(), json!({ "post": operation(gvk, "post") }));
-    paths.insert(item.into(), json!({ "patch": operation(gvk, "patch") }));
+    paths.insert(
+        collection.into(),
+        json!({ "post": operation(&gvk, "post") }),
+    );
+    paths.insert(item.into(), json!({ "patch": operation(&gvk, "patch") }));
     json(
         StatusCode::OK,
         &json!({
