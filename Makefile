@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv lint-venv real-kube test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function cluster cluster-manifests
+.PHONY: help venv lint-venv real-kube kubernetes-support test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -175,6 +175,9 @@ cluster-manifests: $(DEPLOY_TOOLS) ## Apply infra/k8s/ to LEADERBOARD's cluster 
 	for f in namespace rbac network-policy nvidia-device-plugin cluster-autoscaler; do \
 		sed -e "s|\$${CLUSTER_NAME}|leaderboard-$(LEADERBOARD)|g" -e "s|\$${AUTOSCALER_ROLE_ARN}|$$role|g" \
 			infra/k8s/$$f.yaml | kubectl apply -f -; done
+
+kubernetes-support: own-cache ## Where the clusters' Kubernetes minor stands in EKS's standard support (exit 1 within 60 days of its end)
+	$(CARGO) run --quiet -p cli --bin lbctl -- kubernetes-support
 
 local: venv kubectl own-cache ## One whole submission on this machine (ARGS="--scenario crash" etc.)
 	$(CARGO) build --quiet --workspace --bins

@@ -13,6 +13,7 @@ mod logs;
 mod ops;
 mod plugin;
 mod rescore;
+mod support;
 mod watch;
 
 use clap::{Parser, Subcommand};
@@ -134,6 +135,9 @@ pub enum Command {
     /// Follow one submission until it ends: stage and queue position, pods and restarts,
     /// routes per worker, the last partial scores, EvalAI's status; then a summary.
     Watch(Watch),
+    /// Say where the clusters' Kubernetes minor stands in EKS's standard support (exit 1
+    /// within 60 days of its end, past it, or when no date is known).
+    KubernetesSupport(support::KubernetesSupport),
 }
 
 /// Runs a parsed command line; returns the process exit code. Errors of the operator commands
@@ -155,6 +159,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Rescore(args) => rescore::rescore(args).await?,
         Command::Logs(args) => logs::logs(args).await?,
         Command::Watch(args) => watch::watch(args).await?,
+        Command::KubernetesSupport(args) => support::run(args)?,
     };
     Ok(code)
 }

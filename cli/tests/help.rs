@@ -6,7 +6,17 @@ use crate::common;
 use common::{lbctl, show, stderr, stdout};
 
 const SUBCOMMANDS: &[&str] = &[
-    "local", "invoke", "status", "list", "watch", "logs", "rescore", "cancel", "submit", "resume",
+    "local",
+    "invoke",
+    "status",
+    "list",
+    "watch",
+    "logs",
+    "rescore",
+    "cancel",
+    "submit",
+    "resume",
+    "kubernetes-support",
 ];
 
 #[test]
@@ -282,4 +292,33 @@ fn list_refuses_a_status_no_record_can_have() {
     let out = lbctl(&["list", "--status", "failed"], &[], None);
     assert_eq!(out.status.code(), Some(1), "{}", show(&out));
     assert!(stderr(&out).contains("no AWS region"), "{}", show(&out));
+}
+
+#[test]
+fn kubernetes_support_says_the_template_s_minor_and_asks_to_act_on_an_ending_one() {
+    let out = lbctl(&["kubernetes-support"], &[], None);
+    let text = stdout(&out);
+    let minor = lb_infra::template::CLUSTER
+        .eval(&lb_infra::template::CLUSTER.root()["Parameters"]["KubernetesVersion"]["Default"])
+        .unwrap();
+    assert!(
+        text.starts_with(&format!("Kubernetes {minor}: EKS standard support")),
+        "{}",
+        show(&out)
+    );
+    assert!(!text.contains("no EKS support date known"), "{text}");
+
+    // 1.33's standard support ended on 2026-07-29, before this test was written.
+    let out = lbctl(&["kubernetes-support", "--minor", "1.33"], &[], None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(stdout(&out).contains("ended 2026-07-29"), "{}", show(&out));
+    assert!(
+        stdout(&out).contains("Upgrading Kubernetes"),
+        "{}",
+        show(&out)
+    );
+
+    let out = lbctl(&["kubernetes-support", "--minor", "1.99"], &[], None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(stdout(&out).contains("support.rs"), "{}", show(&out));
 }

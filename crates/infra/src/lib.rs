@@ -1,7 +1,9 @@
 //! The deployment's templates read as data: `infra/app.yaml` and `infra/cluster.yaml`
-//! evaluated, and the Pipe's input transformation that `lbctl submit` and local mode apply.
+//! evaluated, the Pipe's input transformation that `lbctl submit` and local mode apply, and how
+//! long EKS supports the clusters' Kubernetes minor.
 
 pub mod pipe;
+pub mod support;
 pub mod template;
 
 pub use template::{Statement, Template, TemplateError};
