@@ -28,6 +28,15 @@ pub fn format(t: OffsetDateTime) -> String {
     out
 }
 
+/// Microseconds from a fraction's digits (`5` is 500,000; digits past the sixth are cut).
+fn micros(digits: &str) -> Option<u32> {
+    if digits.is_empty() {
+        return None;
+    }
+    let six: String = digits.chars().chain("000000".chars()).take(6).collect();
+    six.parse().ok()
+}
+
 /// Django's `parse_datetime`: `YYYY-MM-DD[T ]HH:MM[:SS[.ffffff]][Z|±HH[:MM]]`.
 /// A naive value is taken as UTC (EvalAI's `TIME_ZONE`).
 pub fn parse(s: &str) -> Option<OffsetDateTime> {
@@ -69,12 +78,7 @@ pub fn parse(s: &str) -> Option<OffsetDateTime> {
             while i < b.len() && b[i].is_ascii_digit() && i - start < 12 {
                 i += 1;
             }
-            let digits = &s[start..i];
-            if digits.is_empty() {
-                return None;
-            }
-            let six: String = digits.chars().chain("000000".chars()).take(6).collect();
-            micro = six.parse().ok()?;
+            micro = micros(&s[start..i])?;
         }
     }
     let offset = if i == b.len() {

@@ -141,11 +141,18 @@ impl ControlPlane {
             ]),
         )?;
         plane.wait("kube-apiserver", &["get", "--raw", "/readyz"])?;
-        let kubeconfig = plane
-            .kubeconfig(Identity::Controllers)
-            .display()
-            .to_string();
-        plane.launch(
+        plane.launch_controllers(bin)?;
+        let default_sa = ["-n", "default", "get", "serviceaccount", "default"];
+        plane.wait("kube-controller-manager", &default_sa)?;
+        Ok(plane)
+    }
+
+    /// Starts the controller-manager and the scheduler, once the API server is ready.
+    fn launch_controllers(&mut self, bin: &Path) -> Result<(), Error> {
+        let root = self.dir.path().to_path_buf();
+        let at = |name: &str| root.join(name).display().to_string();
+        let kubeconfig = self.kubeconfig(Identity::Controllers).display().to_string();
+        self.launch(
             "kube-controller-manager",
             Command::new(bin.join("kube-controller-manager")).args([
                 &format!("--kubeconfig={kubeconfig}"),
@@ -161,7 +168,7 @@ impl ControlPlane {
                 "--profiling=false",
             ]),
         )?;
-        plane.launch(
+        self.launch(
             "kube-scheduler",
             Command::new(bin.join("kube-scheduler")).args([
                 &format!("--kubeconfig={kubeconfig}"),
@@ -172,9 +179,7 @@ impl ControlPlane {
                 "--profiling=false",
             ]),
         )?;
-        let default_sa = ["-n", "default", "get", "serviceaccount", "default"];
-        plane.wait("kube-controller-manager", &default_sa)?;
-        Ok(plane)
+        Ok(())
     }
 
     /// A kubeconfig that authenticates as `who`.

@@ -158,7 +158,8 @@ pub(crate) fn compile_top(value: &Value, location: &str) -> Result<(Rule, String
     Ok((compile(map, location, true)?, next))
 }
 
-fn compile(map: &Map<String, Value>, location: &str, top: bool) -> Result<Rule, LoadError> {
+/// The rule's fields are choice rule fields (`Next` only at the top), its comment a string.
+fn check_fields(map: &Map<String, Value>, location: &str, top: bool) -> Result<(), LoadError> {
     let at = |key: &str| format!("{location}.{key}");
     for key in map.keys() {
         let known = matches!(key.as_str(), "Variable" | "Comment" | "And" | "Or" | "Not")
@@ -184,6 +185,12 @@ fn compile(map: &Map<String, Value>, location: &str, top: bool) -> Result<Rule, 
             return Err(LoadError::invalid(at("Comment"), "must be a string"));
         }
     }
+    Ok(())
+}
+
+fn compile(map: &Map<String, Value>, location: &str, top: bool) -> Result<Rule, LoadError> {
+    let at = |key: &str| format!("{location}.{key}");
+    check_fields(map, location, top)?;
     let boolean: Vec<&str> = ["And", "Or", "Not"]
         .into_iter()
         .filter(|k| map.contains_key(*k))

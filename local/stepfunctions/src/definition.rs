@@ -832,32 +832,7 @@ impl Loader {
                     &["StartAt", "States", "Comment", "ProcessorConfig"],
                     "an item processor",
                 )?;
-                if let Some(config) = p.object("ProcessorConfig")? {
-                    let c = Obj::new(config, &p.loc("ProcessorConfig"));
-                    for key in config.keys() {
-                        if key != "Mode" {
-                            return Err(LoadError::unsupported(
-                                c.loc(key),
-                                format!("`{key}` is for distributed Map, which is not supported"),
-                            ));
-                        }
-                    }
-                    match c.string("Mode")? {
-                        None | Some("INLINE") => {}
-                        Some("DISTRIBUTED") => {
-                            return Err(LoadError::unsupported(
-                                c.loc("Mode"),
-                                "distributed Map is not supported; use `INLINE`",
-                            ))
-                        }
-                        Some(other) => {
-                            return Err(LoadError::invalid(
-                                c.loc("Mode"),
-                                format!("`{other}` is not a Map mode (INLINE, DISTRIBUTED)"),
-                            ))
-                        }
-                    }
-                }
+                inline_only(&p)?;
                 self.scope(processor, &here)?
             }
         };
@@ -900,6 +875,37 @@ impl Loader {
             catch: catchers(obj)?,
         })
     }
+}
+
+/// An item processor's `ProcessorConfig`: only the inline mode is supported.
+fn inline_only(p: &Obj<'_>) -> Result<(), LoadError> {
+    if let Some(config) = p.object("ProcessorConfig")? {
+        let c = Obj::new(config, &p.loc("ProcessorConfig"));
+        for key in config.keys() {
+            if key != "Mode" {
+                return Err(LoadError::unsupported(
+                    c.loc(key),
+                    format!("`{key}` is for distributed Map, which is not supported"),
+                ));
+            }
+        }
+        match c.string("Mode")? {
+            None | Some("INLINE") => {}
+            Some("DISTRIBUTED") => {
+                return Err(LoadError::unsupported(
+                    c.loc("Mode"),
+                    "distributed Map is not supported; use `INLINE`",
+                ))
+            }
+            Some(other) => {
+                return Err(LoadError::invalid(
+                    c.loc("Mode"),
+                    format!("`{other}` is not a Map mode (INLINE, DISTRIBUTED)"),
+                ))
+            }
+        }
+    }
+    Ok(())
 }
 
 fn at_or_root(at: &str) -> &str {

@@ -9,7 +9,7 @@ use tokio::io::{AsyncBufReadExt as _, AsyncReadExt as _, AsyncWriteExt as _, Buf
 use tokio::net::{TcpListener, TcpStream};
 
 use crate::args::CarlaConfig;
-use crate::faults::{crash, CrashSignal, OnceDir};
+use crate::faults::{crash, CarlaFaults, CrashSignal, OnceDir};
 use crate::recorder::{Recorder, MAX_LINE, RECORDER_DONE};
 use crate::signals::Signals;
 
@@ -112,6 +112,11 @@ pub async fn run(cfg: CarlaConfig) -> u8 {
     ));
     say(&ready_line(ports));
 
+    until_stopped(faults, &once, &mut signals).await
+}
+
+/// Runs until a signal stops it (exit 0), or dies as the crash faults say.
+async fn until_stopped(faults: &CarlaFaults, once: &OnceDir, signals: &mut Signals) -> u8 {
     let crash_after = faults
         .crash_after
         .filter(|_| once.armed("crash-after"))
@@ -134,10 +139,10 @@ pub async fn run(cfg: CarlaConfig) -> u8 {
                 say(&format!("fake-carla: {} received, shutting down", stop.name()));
                 return 0;
             }
-            () = &mut timer => die(&once, "crash-after", faults.crash_signal),
+            () = &mut timer => die(once, "crash-after", faults.crash_signal),
             _ = poll.tick(), if crash_file.is_some() => {
                 if crash_file.as_ref().is_some_and(|f| f.exists()) {
-                    die(&once, "crash-file", faults.crash_signal);
+                    die(once, "crash-file", faults.crash_signal);
                 }
             }
         }

@@ -269,6 +269,35 @@ fn record_body(headers: &HeaderMap, body: &[u8]) -> (Option<serde_json::Value>, 
     }
 }
 
+/// The proxy's refusal of a body over `limit` bytes: still a request a test may look for.
+fn too_large(
+    shared: &Shared,
+    parts: &axum::http::request::Parts,
+    time: String,
+    limit: usize,
+) -> Response {
+    shared.lock().log.push(RequestRecord {
+        seq: 0,
+        time,
+        method: parts.method.to_string(),
+        path: parts.uri.path().to_owned(),
+        query: parts.uri.query().map(str::to_owned),
+        status: StatusCode::PAYLOAD_TOO_LARGE.as_u16(),
+        user_id: None,
+        admin: false,
+        body: None,
+        raw_body: None,
+        fault: None,
+        error: Some(format!("body over the proxy's {limit} bytes")),
+    });
+    (
+        StatusCode::PAYLOAD_TOO_LARGE,
+        [(header::CONTENT_TYPE, "text/html")],
+        TOO_LARGE_PAGE,
+    )
+        .into_response()
+}
+
 /// The fallback handler: every non-admin request.
 pub(crate) async fn entry(State(shared): State<Arc<Shared>>, req: Request) -> Response {
     let time = timefmt::format(timefmt::now());
@@ -276,29 +305,7 @@ pub(crate) async fn entry(State(shared): State<Arc<Shared>>, req: Request) -> Re
     let limit = shared.lock().max_request_bytes;
     let bytes: Bytes = match axum::body::to_bytes(body, limit).await {
         Ok(b) => b,
-        Err(_) => {
-            // The proxy's refusal is still a request a test may look for.
-            shared.lock().log.push(RequestRecord {
-                seq: 0,
-                time,
-                method: parts.method.to_string(),
-                path: parts.uri.path().to_owned(),
-                query: parts.uri.query().map(str::to_owned),
-                status: StatusCode::PAYLOAD_TOO_LARGE.as_u16(),
-                user_id: None,
-                admin: false,
-                body: None,
-                raw_body: None,
-                fault: None,
-                error: Some(format!("body over the proxy's {limit} bytes")),
-            });
-            return (
-                StatusCode::PAYLOAD_TOO_LARGE,
-                [(header::CONTENT_TYPE, "text/html")],
-                TOO_LARGE_PAGE,
-            )
-                .into_response();
-        }
+        Err(_) => return too_large(&shared, &parts, time, limit),
     };
     let path = parts.uri.path().to_owned();
     let query = parts.uri.query().map(str::to_owned);

@@ -466,34 +466,14 @@ impl PodWorker {
             Ok(a) => a,
             Err(e) => return self.wait_stuck(slot, "ErrImagePull", e.0, stop).await,
         };
-        let mut mounts = Vec::new();
-        for m in c.volume_mounts.iter().flatten() {
-            let Some(src) = volumes.get(&m.name) else {
-                let msg = format!("volume {:?} is not defined", m.name);
+        let mut mounts = match volume_mounts(&c, volumes) {
+            Ok(mounts) => mounts,
+            Err(msg) => {
                 return self
                     .wait_stuck(slot, "CreateContainerConfigError", msg, stop)
-                    .await;
-            };
-            let mut src = src.clone();
-            if let Some(sub) = m.sub_path.as_deref().filter(|s| !s.is_empty()) {
-                src = src.join(sub);
-                // NB: the kubelet creates a missing subPath as a directory.
-                if !src.exists() {
-                    if let Err(e) = std::fs::create_dir_all(&src) {
-                        let msg =
-                            format!("cannot create subPath {sub:?} of volume {:?}: {e}", m.name);
-                        return self
-                            .wait_stuck(slot, "CreateContainerConfigError", msg, stop)
-                            .await;
-                    }
-                }
+                    .await
             }
-            mounts.push(Mount {
-                src,
-                dst: PathBuf::from(&m.mount_path),
-                read_only: m.read_only == Some(true),
-            });
-        }
+        };
         for (host, inside) in entry.map(|e| e.files.clone()).unwrap_or_default() {
             mounts.push(Mount {
                 src: host,
@@ -700,6 +680,33 @@ fn go_duration(d: Duration) -> String {
             format!("{s}s")
         }
     }
+}
+
+/// The container's volume mounts on the host: each volume's folder, a `subPath` in it made
+/// when missing (as the kubelet does); or why the container cannot be created.
+fn volume_mounts(c: &Container, volumes: &HashMap<String, PathBuf>) -> Result<Vec<Mount>, String> {
+    let mut mounts = Vec::new();
+    for m in c.volume_mounts.iter().flatten() {
+        let Some(src) = volumes.get(&m.name) else {
+            return Err(format!("volume {:?} is not defined", m.name));
+        };
+        let mut src = src.clone();
+        if let Some(sub) = m.sub_path.as_deref().filter(|s| !s.is_empty()) {
+            src = src.join(sub);
+            // NB: the kubelet creates a missing subPath as a directory.
+            if !src.exists() {
+                std::fs::create_dir_all(&src).map_err(|e| {
+                    format!("cannot create subPath {sub:?} of volume {:?}: {e}", m.name)
+                })?;
+            }
+        }
+        mounts.push(Mount {
+            src,
+            dst: PathBuf::from(&m.mount_path),
+            read_only: m.read_only == Some(true),
+        });
+    }
+    Ok(mounts)
 }
 
 #[cfg(test)]

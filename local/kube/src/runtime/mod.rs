@@ -451,6 +451,25 @@ impl Runtime {
         pods.iter().map(|p| ObjKey::of(&p.metadata)).collect()
     }
 
+    /// Leaves the pods of the Job `uid` without that owner (orphan propagation).
+    fn orphan(&self, pods: Vec<ObjKey>, uid: &str) {
+        for p in pods {
+            self.store.update::<Pod>(&p, |pod| {
+                if let Some(refs) = pod.metadata.owner_references.as_mut() {
+                    refs.retain(|r| r.uid != uid);
+                }
+                if pod
+                    .metadata
+                    .owner_references
+                    .as_ref()
+                    .is_some_and(Vec::is_empty)
+                {
+                    pod.metadata.owner_references = None;
+                }
+            });
+        }
+    }
+
     /// Deletes a Job with the given propagation; `uid` is a precondition when set.
     pub async fn delete_job(
         self: &Arc<Self>,
@@ -490,21 +509,7 @@ impl Runtime {
             }
             Propagation::Orphan => {
                 self.store.remove::<Job>(key);
-                for p in pods {
-                    self.store.update::<Pod>(&p, |pod| {
-                        if let Some(refs) = pod.metadata.owner_references.as_mut() {
-                            refs.retain(|r| r.uid != uid);
-                        }
-                        if pod
-                            .metadata
-                            .owner_references
-                            .as_ref()
-                            .is_some_and(Vec::is_empty)
-                        {
-                            pod.metadata.owner_references = None;
-                        }
-                    });
-                }
+                self.orphan(pods, &uid);
                 Ok(Deleted::Gone(success_status(&JOBS, &key.name, &uid)))
             }
             Propagation::Foreground => {
