@@ -43,9 +43,11 @@ SHARED_SKIP := $(if $(wildcard ../shared/fixtures),,--skip _when_it_is_beside_th
 real-kube: kubectl ## Build the pinned real Kubernetes control plane the tests hold local-kube to (cached outside the clone)
 	bash local/realkube/build.sh
 
+# Test binaries run side by side: most of their time is spent waiting on the processes they start.
+TEST_JOBS ?= 3
 test: venv lint-venv kubectl real-kube own-cache ## The whole suite, emulator tests included, two test binaries at a time (README's and CI's command)
 	@$(if $(SHARED_SKIP),echo "no shared set beside the repository: the kept copies are not compared",:)
-	CARGO=$(CARGO) $(PYTHON) tests/suite.py -- --include-ignored $(SHARED_SKIP)
+	CARGO=$(CARGO) $(PYTHON) tests/suite.py --jobs $(TEST_JOBS) -- --include-ignored $(SHARED_SKIP)
 	$(CARGO) test --workspace --doc
 
 test-unit: own-cache ## Tests that need nothing but cargo (what plain `cargo test` runs)
