@@ -45,7 +45,7 @@ real-kube: kubectl ## Build the pinned real Kubernetes control plane the tests h
 
 # Test binaries run side by side: most of their time is spent waiting on the processes they start.
 TEST_JOBS ?= 3
-test: venv lint-venv kubectl real-kube own-cache ## The whole suite, emulator tests included, two test binaries at a time (README's and CI's command)
+test: venv lint-venv kubectl real-kube own-cache ## The whole suite, emulator tests included, TEST_JOBS (3) test binaries at a time (README's and CI's command)
 	@$(if $(SHARED_SKIP),echo "no shared set beside the repository: the kept copies are not compared",:)
 	CARGO=$(CARGO) $(PYTHON) tests/suite.py --jobs $(TEST_JOBS) -- --include-ignored $(SHARED_SKIP)
 	$(CARGO) test --workspace --doc
