@@ -17,14 +17,9 @@ pub struct KubernetesSupport {
 pub fn run(args: KubernetesSupport) -> anyhow::Result<u8> {
     let minor = match args.minor {
         Some(minor) => minor,
-        None => {
-            let template = &*lb_infra::template::CLUSTER;
-            template
-                .eval(&template.root()["Parameters"]["KubernetesVersion"]["Default"])
-                .ok_or_else(|| {
-                    anyhow::anyhow!("infra/cluster.yaml has no KubernetesVersion default")
-                })?
-        }
+        None => support::template_minor().ok_or_else(|| {
+            anyhow::anyhow!("infra/cluster.yaml has no KubernetesVersion default")
+        })?,
     };
     let today = time::OffsetDateTime::now_utc().date();
     let standing = support::standing(&minor, today);

@@ -298,9 +298,7 @@ fn list_refuses_a_status_no_record_can_have() {
 fn kubernetes_support_says_the_template_s_minor_and_asks_to_act_on_an_ending_one() {
     let out = lbctl(&["kubernetes-support"], &[], None);
     let text = stdout(&out);
-    let minor = lb_infra::template::CLUSTER
-        .eval(&lb_infra::template::CLUSTER.root()["Parameters"]["KubernetesVersion"]["Default"])
-        .unwrap();
+    let minor = lb_infra::support::template_minor().unwrap();
     assert!(
         text.starts_with(&format!("Kubernetes {minor}: EKS standard support")),
         "{}",

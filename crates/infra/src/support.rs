@@ -15,6 +15,12 @@ pub const STANDARD_SUPPORT_ENDS: &[(&str, (i32, Month, u8))] = &[
 /// scheduled between deadline rushes and carried out across a cluster's two node groups.
 pub const WARN_DAYS: i64 = 60;
 
+/// The minor `infra/cluster.yaml` creates clusters with (its `KubernetesVersion` default).
+pub fn template_minor() -> Option<String> {
+    let template = &*crate::template::CLUSTER;
+    template.eval(&template.root()["Parameters"]["KubernetesVersion"]["Default"])
+}
+
 /// Where a minor stands on a day.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Standing {

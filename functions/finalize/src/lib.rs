@@ -196,25 +196,22 @@ impl<C: Callbacks + Executions> Function for Deps<C> {
     }
 }
 
-/// Ends one execution.
+/// Ends one execution, as Intake decided: a claimed run is closed, a refusal told to EvalAI, a
+/// skip left alone.
 pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Result<FinalizeOutput> {
     let state = input.state;
     let error = state.caught_error();
-    let (reason, submission) = match state.intake {
-        Some(Decision::Run(submission)) => {
-            return finish_run(deps, &submission, state.run, error).await
-        }
+    match state.intake {
+        Some(Decision::Run(submission)) => finish_run(deps, &submission, state.run, error).await,
+        Some(Decision::Reject { reason, submission }) => refuse(deps, &submission, reason).await,
         Some(Decision::Skip {
             submission: Some(_),
             ..
-        }) => {
-            return Ok(FinalizeOutput {
-                status: Settled::Unclaimed,
-                pipeline_error: error.is_some(),
-                reason: error,
-            })
-        }
-        Some(Decision::Reject { reason, submission }) => (reason, submission),
+        }) => Ok(FinalizeOutput {
+            status: Settled::Unclaimed,
+            pipeline_error: error.is_some(),
+            reason: error,
+        }),
         Some(Decision::Skip {
             submission: None, ..
         })
@@ -225,19 +222,27 @@ pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Resul
                 error = error.as_deref().unwrap_or_default(),
                 "failed before claiming a submission"
             );
-            return Ok(FinalizeOutput {
+            Ok(FinalizeOutput {
                 status: Settled::Unclaimed,
                 pipeline_error: true,
                 reason: error,
-            });
+            })
         }
-    };
+    }
+}
+
+/// Tells EvalAI that Intake refused the submission, and why.
+async fn refuse<C>(
+    deps: &Deps<C>,
+    submission: &SubmissionInfo,
+    reason: String,
+) -> Result<FinalizeOutput> {
     let failed = io::FinalWord {
         status: SubmissionStatus::Failed,
         stdout: String::new(),
         stderr: reason.clone(),
     };
-    io::post_final(deps, &submission, None, failed).await?;
+    io::post_final(deps, submission, None, failed).await?;
     Ok(FinalizeOutput {
         status: Settled::Ended(RecordStatus::Failed),
         pipeline_error: false,
