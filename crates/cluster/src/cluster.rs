@@ -495,14 +495,14 @@ impl Cluster {
     /// The submission's Jobs and Pods, as the server lists them.
     pub async fn list(&self, submission_id: &str) -> Result<(Vec<Job>, Vec<Pod>)> {
         let params = ListParams::default().labels(&labels::submission_selector(submission_id)?);
-        let jobs = self
-            .call("list jobs", self.jobs().list(&params))
-            .await?
-            .map_err(|e| ClusterError::from_kube("list jobs", "", e))?;
-        let pods = self
-            .call("list pods", self.pods().list(&params))
-            .await?
-            .map_err(|e| ClusterError::from_kube("list pods", "", e))?;
+        let job_api = self.jobs();
+        let pod_api = self.pods();
+        let (jobs, pods) = tokio::join!(
+            self.call("list jobs", job_api.list(&params)),
+            self.call("list pods", pod_api.list(&params)),
+        );
+        let jobs = jobs?.map_err(|e| ClusterError::from_kube("list jobs", "", e))?;
+        let pods = pods?.map_err(|e| ClusterError::from_kube("list pods", "", e))?;
         Ok((jobs.items, pods.items))
     }
 
@@ -518,32 +518,11 @@ impl Cluster {
         submission_id: &str,
         execution: Option<&str>,
     ) -> Result<Deleted> {
-        let params = ListParams::default().labels(&labels::submission_selector(submission_id)?);
         let execution = execution.map(labels::execution_value);
         let ours = |labels| labels::belongs_to(execution.as_deref(), labels);
-        let jobs = self
-            .call("list jobs", self.jobs().list(&params))
-            .await?
-            .map_err(|e| ClusterError::from_kube("list jobs", "", e))?;
-        let mut deleted = Deleted::default();
-        for job in jobs
-            .items
-            .iter()
-            .filter(|j| ours(j.metadata.labels.as_ref()))
-        {
-            let Some(name) = job.metadata.name.clone() else {
-                continue;
-            };
-            if self.delete_job(&name).await? {
-                deleted.jobs.push(name);
-            } else {
-                deleted.already_gone.push(name);
-            }
-        }
-        let pods = self
-            .call("list pods", self.pods().list(&params))
-            .await?
-            .map_err(|e| ClusterError::from_kube("list pods", "", e))?;
+        // Pods are told from Jobs by their owner, not by when they were listed: both lists at
+        // once, then every deletion at once (a Finalize waits on each round trip).
+        let (jobs, pods) = self.list(submission_id).await?;
         let owned = |p: &Pod| {
             p.metadata
                 .owner_references
@@ -551,18 +530,29 @@ impl Cluster {
                 .flatten()
                 .any(|o| o.kind == "Job")
         };
-        for pod in pods
-            .items
-            .iter()
+        let jobs: Vec<String> = (jobs.iter())
+            .filter(|j| ours(j.metadata.labels.as_ref()))
+            .filter_map(|j| j.metadata.name.clone())
+            .collect();
+        let orphans: Vec<String> = (pods.iter())
             .filter(|p| !owned(p) && ours(p.metadata.labels.as_ref()))
-        {
-            let Some(name) = pod.metadata.name.clone() else {
-                continue;
-            };
-            if self.delete_pod(&name).await? {
-                deleted.orphan_pods.push(name);
-            } else {
-                deleted.already_gone.push(name);
+            .filter_map(|p| p.metadata.name.clone())
+            .collect();
+        let (jobs, orphans) = tokio::join!(
+            at_once(&jobs, |name| self.delete_job(name)),
+            at_once(&orphans, |name| self.delete_pod(name)),
+        );
+        let mut deleted = Deleted::default();
+        for (name, gone_now) in jobs? {
+            match gone_now {
+                true => deleted.jobs.push(name),
+                false => deleted.already_gone.push(name),
+            }
+        }
+        for (name, gone_now) in orphans? {
+            match gone_now {
+                true => deleted.orphan_pods.push(name),
+                false => deleted.already_gone.push(name),
             }
         }
         info!(
@@ -612,6 +602,31 @@ impl Cluster {
             tokio::time::sleep(wait.min(deadline - now)).await;
         }
     }
+}
+
+/// Deletions asked at most this many at a time (a submission has a Job per worker).
+const DELETES_AT_ONCE: usize = 16;
+
+/// `delete` of each name, [`DELETES_AT_ONCE`] at a time, each name with its answer in the
+/// order given; the first error wins.
+async fn at_once<'a, F>(
+    names: &'a [String],
+    delete: impl Fn(&'a str) -> F,
+) -> Result<Vec<(String, bool)>>
+where
+    F: std::future::Future<Output = Result<bool>> + 'a,
+{
+    let mut answers = Vec::with_capacity(names.len());
+    for chunk in names.chunks(DELETES_AT_ONCE) {
+        let asked = chunk.iter().map(|name| delete(name));
+        for (name, answer) in chunk
+            .iter()
+            .zip(futures_util::future::join_all(asked).await)
+        {
+            answers.push((name.clone(), answer?));
+        }
+    }
+    Ok(answers)
 }
 
 /// The wait before the next look when the last waited `previous` (zero before the first):

@@ -579,7 +579,11 @@ async fn delete_all_deletes_every_job_in_the_foreground() {
             .iter()
             .map(|j| j["metadata"]["name"].as_str().unwrap().to_string())
             .collect();
+        // Both lists side by side, then every deletion side by side (each arrives in the
+        // order it was asked: Jobs first).
         server.list(JOBS, job_list(jobs.clone())).await;
+        // Their pods are owned by the Jobs: left to the garbage collector.
+        server.list(PODS, pod_list(pods)).await;
         for (name, job) in names.iter().zip(&jobs) {
             let mut dying = job.clone();
             dying["metadata"]["deletionTimestamp"] = json!("2025-03-14T10:00:00Z");
@@ -587,8 +591,6 @@ async fn delete_all_deletes_every_job_in_the_foreground() {
             let body = server.delete(&format!("{JOBS}/{name}"), 200, dying).await;
             assert_eq!(body["propagationPolicy"], "Foreground", "{body}");
         }
-        // Their pods are owned by the Jobs: left to the garbage collector.
-        server.list(PODS, pod_list(pods)).await;
         server.assert_silent().await;
     })
     .await
@@ -603,6 +605,7 @@ async fn delete_all_takes_not_found_as_gone_and_removes_orphan_pods() {
     let (jobs, pods) = fixture(include_str!("fixtures/stray-pod.yaml"));
     let deleted = with_server(cluster.delete_all("4242", None), async move {
         server.list(JOBS, job_list(jobs)).await;
+        server.list(PODS, pod_list(pods.clone())).await;
         let gone = status(
             404,
             "NotFound",
@@ -613,7 +616,6 @@ async fn delete_all_takes_not_found_as_gone_and_removes_orphan_pods() {
             .delete(&format!("{JOBS}/lb-4242-team-77-0"), 404, gone)
             .await;
         assert_eq!(body["propagationPolicy"], "Foreground");
-        server.list(PODS, pod_list(pods.clone())).await;
         let orphan = pods
             .iter()
             .find(|p| p["metadata"].get("ownerReferences").is_none())

@@ -1,7 +1,8 @@
-//! Finalize's I/O: each step `lb_domain::run::closing` asks for, performed and answered in its
-//! terms. A failed required step fails the attempt (the state machine retries Finalize, whose
-//! every step is idempotent); the best-effort ones (the agent's log, the logs' listing, the
-//! pace, the team's wake-up) are logged and answered as unread.
+//! Finalize's I/O: each batch of steps `lb_domain::run::closing` asks for, performed side by
+//! side and answered in its terms. A failed required step fails the attempt once its batch is
+//! done (the state machine retries Finalize, whose every step is idempotent); the best-effort
+//! ones (the agent's log, the logs' listing, the pace, the team's wake-up) are logged and
+//! answered as unread.
 
 use std::collections::HashMap;
 use std::time::Duration;
@@ -70,23 +71,53 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         self.submission.submission_id
     }
 
-    /// Performs `step` and answers with what it found.
-    pub async fn perform(&mut self, step: Step) -> Result<Answer> {
+    /// Performs the `steps` of a batch side by side and answers each, in their order. Every
+    /// step runs to its end; the first failure is then the batch's.
+    pub async fn perform(&mut self, steps: Vec<Step>) -> Result<Vec<Answer>> {
+        let alone = |s: &Step| matches!(s, Step::ReadLeft { .. } | Step::TryAgain);
+        if steps.iter().any(alone) {
+            let mut answers = Vec::with_capacity(steps.len());
+            for step in steps {
+                answers.push(self.perform_alone(step).await?);
+            }
+            return Ok(answers);
+        }
+        let this = &*self;
+        let asked = steps.into_iter().map(|step| this.perform_beside(step));
+        futures_util::future::join_all(asked)
+            .await
+            .into_iter()
+            .collect()
+    }
+
+    /// The steps that change the shell: the results read (kept for the post and the record)
+    /// and the attempt given up with the read's error.
+    async fn perform_alone(&mut self, step: Step) -> Result<Answer> {
+        match step {
+            Step::ReadLeft { results } => Ok(Answer::Left(self.read_left(results).await?)),
+            Step::TryAgain => match self.snapshot.take() {
+                Some(Err(e)) => Err(e),
+                _ => Ok(Answer::Done),
+            },
+            step => self.perform_beside(step).await,
+        }
+    }
+
+    /// A step that only reads the shell, so others may run beside it.
+    async fn perform_beside(&self, step: Step) -> Result<Answer> {
         let sub = self.submission;
         Ok(match step {
             Step::ReadStanding => Answer::Standing(self.standing().await?),
             Step::StopJobs => self.stop_jobs().await.map(|()| Answer::Done)?,
-            Step::ReadLeft { results } => Answer::Left(self.read_left(results).await?),
+            // Never batched with others (`perform_alone`); answered as a misfit if it were,
+            // which ends Finalize unsettled and said.
+            Step::ReadLeft { .. } | Step::TryAgain => Answer::Done,
             Step::StoreFiles => {
                 if let Some(snapshot) = self.merged() {
                     results::store(&self.store, snapshot).await?;
                 }
                 Answer::Done
             }
-            Step::TryAgain => match self.snapshot.take() {
-                Some(Err(e)) => return Err(e),
-                _ => Answer::Done,
-            },
             Step::ReadAgentTail { key, bytes } => Answer::Tail(self.agent_tail(&key, bytes).await),
             Step::ReadReports(keys) => Answer::Reports(self.reports(keys).await),
             Step::Admit(tracks) => {
@@ -128,7 +159,6 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             }
             Step::RecordPace { seconds } => self.record_pace(seconds).await,
             Step::LeaveQueue => leave_queue(self.deps, sub).await.map(|()| Answer::Done)?,
-            Step::Done => Answer::Done,
         })
     }
 

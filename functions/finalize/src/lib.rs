@@ -1,7 +1,7 @@
 //! Finalize (stage 5 and the failure path): end a claimed run in the order
 //! `lb_domain::run::closing` decides: stop the Jobs, read what the run left and decide the final
-//! status, post the final update to EvalAI (confirmed by a GET), write the final DynamoDB record
-//! and give the team's place back.
+//! status, post the final update to EvalAI (confirmed by a GET), then write the final DynamoDB
+//! record and give the team's place back.
 //!
 //! It only ever acts on a submission this execution claimed (or rejected): an execution that
 //! failed before its claim must not touch a submission another execution is evaluating.
@@ -18,7 +18,7 @@ use lb_aws::dynamo::RecordStatus;
 use lb_aws::executions::Executions;
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
-use lb_domain::run::closing::{Closing, Context, Step};
+use lb_domain::run::closing::{Closing, Context};
 use lb_domain::status::Settled;
 use lb_domain::submission::SubmissionStatus;
 use lb_pipeline::clients::{self, RunClients};
@@ -274,10 +274,11 @@ async fn finish_run<C: Callbacks>(
     });
     let mut shell = io::Shell::new(deps, &target, submission, &meter);
     loop {
-        match closing.poll() {
-            Step::Done => break,
-            step => closing.answer(Box::pin(shell.perform(step)).await?),
+        let batch = closing.poll();
+        if batch.is_empty() {
+            break;
         }
+        closing.answer(Box::pin(shell.perform(batch)).await?);
     }
     let id = submission.submission_id;
     let Some((status, reason)) = closing.finish() else {

@@ -6,6 +6,11 @@
 //! arrives and the peak resident set (VmHWM) is read from /proc before the process is stopped.
 //! `make bench-functions` builds the bootstraps with `cargo lambda build --release` first;
 //! without `--bench` (as `cargo test` runs benches) it uses the debug binaries once.
+//!
+//! Every request a function makes (AWS, EvalAI, Kubernetes) passes a recording proxy, so each
+//! line also says how many it made and how many of them ran one after another: the chain a
+//! function's latency is made of, counted from the event's arrival (its cold start's reads
+//! aside).
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -17,6 +22,7 @@ use std::time::{Duration, Instant};
 use local_stack::stack::{SETTINGS_SECRET, TOKEN_SECRET};
 use local_stack::workloads::{Behaviour, Binaries};
 use serde_json::{json, Value};
+use test_support::wire::{self, Exchange, Wiretap};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
@@ -25,7 +31,8 @@ use tokio::sync::oneshot;
 struct Invocation {
     event: Value,
     answer: Mutex<Option<oneshot::Sender<(String, Value)>>>,
-    served: Mutex<bool>,
+    /// When the event was handed out.
+    served: Mutex<Option<Instant>>,
 }
 
 /// A minimal Lambda Runtime API: `next` hands out the event once (later calls hang, as the
@@ -75,8 +82,8 @@ async fn runtime_api(invocation: Arc<Invocation>) -> SocketAddr {
                     .unwrap_or_default()
                     .to_string();
                 if path.ends_with("/invocation/next") {
-                    let first = !std::mem::replace(&mut *invocation.served.lock().unwrap(), true);
-                    if !first {
+                    let first = invocation.served.lock().unwrap().replace(Instant::now());
+                    if first.is_some() {
                         std::future::pending::<()>().await;
                     }
                     let payload = invocation.event.to_string();
@@ -129,6 +136,23 @@ struct Measured {
     peak_kib: u64,
     outcome: String,
     output: Value,
+    /// Every request it made, and when its event arrived.
+    requests: Vec<Exchange>,
+    event_at: Option<Instant>,
+}
+
+impl Measured {
+    /// The requests made once the event had arrived.
+    fn after_the_event(&self) -> Vec<Exchange> {
+        let Some(at) = self.event_at else {
+            return Vec::new();
+        };
+        self.requests
+            .iter()
+            .filter(|r| r.started >= at)
+            .cloned()
+            .collect()
+    }
 }
 
 async fn invoke(
@@ -136,14 +160,16 @@ async fn invoke(
     binary: &Path,
     env: &HashMap<String, String>,
     event: Value,
+    tap: &Wiretap,
 ) -> Measured {
     let (tx, rx) = oneshot::channel();
     let invocation = Arc::new(Invocation {
         event,
         answer: Mutex::new(Some(tx)),
-        served: Mutex::new(false),
+        served: Mutex::new(None),
     });
-    let api = runtime_api(invocation).await;
+    tap.take();
+    let api = runtime_api(invocation.clone()).await;
     let started = Instant::now();
     let mut child: Child = Command::new(binary)
         .env_clear()
@@ -170,12 +196,15 @@ async fn invoke(
         Ok(Ok(answer)) => answer,
         _ => ("timeout".into(), Value::Null),
     };
+    let event_at = *invocation.served.lock().unwrap();
     Measured {
         function,
         elapsed,
         peak_kib,
         outcome,
         output,
+        requests: tap.take(),
+        event_at,
     }
 }
 
@@ -221,6 +250,41 @@ async fn run_ended(kubeconfig: &Path, submission: &str) {
     }
 }
 
+/// Puts the recording proxy between the functions and every service: AWS (the endpoint to
+/// give them), EvalAI (the settings secret names it) and Kubernetes (the kubeconfig to give
+/// them).
+async fn tapped(stack: &local_stack::stack::Stack, tap: &Wiretap) -> (String, PathBuf) {
+    let aws = tap.proxy("aws", &stack.moto.endpoint()).await.unwrap();
+    let evalai = tap.proxy("evalai", &stack.evalai_url).await.unwrap();
+    let secrets = aws_sdk_secretsmanager::Client::new(&stack.sdk);
+    let settings = secrets
+        .get_secret_value()
+        .secret_id(SETTINGS_SECRET)
+        .send()
+        .await
+        .unwrap();
+    let mut settings: Value = serde_json::from_str(settings.secret_string().unwrap()).unwrap();
+    settings["evalai"]["api_server"] = Value::String(evalai);
+    let settings = settings.to_string();
+    let put = secrets
+        .put_secret_value()
+        .secret_id(SETTINGS_SECRET)
+        .secret_string(settings);
+    put.send().await.unwrap();
+    let original = stack.kubeconfig.as_ref().unwrap();
+    let mut config: serde_yaml::Value =
+        serde_yaml::from_str(&std::fs::read_to_string(original).unwrap()).unwrap();
+    let server = &mut config["clusters"][0]["cluster"]["server"];
+    let kube = tap
+        .proxy("kubernetes", server.as_str().unwrap())
+        .await
+        .unwrap();
+    *server = serde_yaml::Value::String(kube);
+    let kubeconfig = stack.workdir.path().join("kubeconfig-tapped");
+    std::fs::write(&kubeconfig, serde_yaml::to_string(&config).unwrap()).unwrap();
+    (aws, kubeconfig)
+}
+
 fn main() {
     let release = std::env::args().any(|a| a == "--bench");
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
@@ -246,18 +310,20 @@ fn main() {
         // The participant's image in the registry: Intake resolves its tag (one ECR call).
         let image = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:v1";
         local_stack::registry::push(&stack.sdk, image).await.unwrap();
+        let tap = Wiretap::default();
+        let (aws, kubeconfig) = tapped(&stack, &tap).await;
         let env: HashMap<String, String> = stack
             .moto
             .sdk_env()
             .into_iter()
-            .map(|(k, v)| (k.to_string(), v))
+            .map(|(k, v)| (k.to_string(), if k == "AWS_ENDPOINT_URL" { aws.clone() } else { v }))
             .chain([
                 ("LB_SETTINGS_SECRET".to_string(), SETTINGS_SECRET.to_string()),
                 ("LB_EVALAI_TOKEN_SECRET".to_string(), TOKEN_SECRET.to_string()),
                 ("LB_WAKE_TABLE".to_string(), "leaderboard-wakes".to_string()),
                 ("LB_BUDGET_TABLE".to_string(), local_stack::stack::BUDGET_TABLE.to_string()),
                 ("LB_ADMISSION_TABLE".to_string(), local_stack::stack::ADMISSION_TABLE.to_string()),
-                ("LB_KUBECONFIG".to_string(), stack.kubeconfig.as_ref().unwrap().display().to_string()),
+                ("LB_KUBECONFIG".to_string(), kubeconfig.display().to_string()),
             ])
             .collect();
 
@@ -290,7 +356,7 @@ fn main() {
                 // The schedule's event: the sweep reads EvalAI's cancels of every challenge.
                 _ => json!({}),
             };
-            let measured = invoke(function, binary, &env, event).await;
+            let measured = invoke(function, binary, &env, event, &tap).await;
             assert_eq!(measured.outcome, "response", "{function}: {}", measured.output);
             if *function == "finalize" {
                 assert_eq!(measured.output["status"], "FINISHED", "the whole path was measured");
@@ -309,8 +375,25 @@ fn main() {
             "cold start + one invocation as a process, {} binaries, against moto + fake EvalAI + local Kubernetes API:",
             if release { "release (cargo lambda)" } else { "debug" }
         );
+        println!("  (requests: all the process made / those after its event; in sequence: the longest chain of them one after another)");
         for m in &results {
-            println!("  {:<9} {:>8.1} ms  peak RSS {:>6.1} MiB  ({})", m.function, m.elapsed.as_secs_f64() * 1000.0, m.peak_kib as f64 / 1024.0, m.outcome);
+            let after = m.after_the_event();
+            println!(
+                "  {:<9} {:>8.1} ms  peak RSS {:>6.1} MiB  requests {:>2} / {:>2}  in sequence {:>2} / {:>2}  ({})",
+                m.function, m.elapsed.as_secs_f64() * 1000.0, m.peak_kib as f64 / 1024.0,
+                m.requests.len(), after.len(), wire::in_sequence(&m.requests).len(), wire::in_sequence(&after).len(),
+                m.outcome
+            );
+        }
+        // The closing's chain, request by request: where Finalize's time goes.
+        for m in results.iter().filter(|m| m.function == "finalize") {
+            let after = m.after_the_event();
+            let Some(start) = m.event_at else { continue };
+            println!("  finalize's requests in sequence after its event:");
+            for r in wire::in_sequence(&after) {
+                let (from, to) = (r.started - start, r.ended - start);
+                println!("    {:>7.1} .. {:>7.1} ms  {:<10} {}", from.as_secs_f64() * 1000.0, to.as_secs_f64() * 1000.0, r.service, r.what);
+            }
         }
     });
 }

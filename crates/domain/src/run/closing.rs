@@ -1,6 +1,6 @@
-//! Finalize's end of a run without I/O: the shell performs each [`Step`] and gives back what
-//! it found as an [`Answer`]; [`Closing`] decides, in this one place, what happens and in
-//! which order.
+//! Finalize's end of a run without I/O: the shell performs each batch of [`Step`]s (side by
+//! side: a batch holds only steps independent of each other) and gives back what it found as
+//! [`Answer`]s; [`Closing`] decides, in this one place, what happens and in which order.
 //!
 //! Only the execution that holds the claim ends the run, once: a superseded one touches
 //! nothing, and a repeated one reports what stands and gives the place back. Otherwise the
@@ -9,8 +9,11 @@
 //! ([`crate::run::finalize::outcome`]); results that cannot be read for now fail the attempt (the
 //! state machine retries it) unless the outcome does not need them. A failed run's
 //! participant reads the end of its most crashed agent's log; a passed qualifier admits its
-//! team. EvalAI gets the final word before the record, and the place is given back last, so
-//! the team never shows more evaluations in progress than its cap.
+//! team. EvalAI gets the final word before the record, and the place is given back only after
+//! it, so the team never shows more evaluations in progress than its cap. What needs only the
+//! decision (keeping the files, the log's end, the admission, the recordings' listing, the
+//! upload reports) is asked at once; the recordings' heads are read beside the post, and the
+//! record, the pace and the place go together at the end: a Finalize waits on six batches.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -113,8 +116,6 @@ pub enum Step {
     },
     /// Give the team its place back and wake its next submission ([`Answer::Done`]).
     LeaveQueue,
-    /// Finalize is over: [`Closing::finish`] says what stands.
-    Done,
 }
 
 /// The record as the shell read it.
@@ -193,17 +194,14 @@ enum Stage {
     Standing,
     Stop,
     Read,
-    /// Keeping the merged results, then on to [`Closing::after_store`].
-    Store,
     TryAgain,
-    /// Reading this pair's agent log.
-    Tail(u32),
-    Admit,
+    /// What needs only the decision, side by side.
+    Gather,
+    /// The final word, and the recordings' heads beside it.
     Post,
-    Listing,
-    Heads,
-    Record,
-    Pace,
+    /// The record, the pace and the place.
+    End,
+    /// A repeated Finalize: only the place.
     Leave,
     Done,
 }
@@ -213,12 +211,12 @@ enum Stage {
 pub struct Closing<'a> {
     cx: Context<'a>,
     stage: Stage,
-    /// Where the closing goes once the merge is kept.
-    after_store: Stage,
     /// What stands once decided, and why.
     settled: Option<(Settled, Option<String>)>,
     outcome: Option<Outcome>,
     merged: Option<Merged>,
+    /// The most crashed agent's pair, whose log's end the participant reads.
+    crashed: Option<u32>,
     /// The most crashed agent's pair and the end of its log, once read.
     tail: Option<(u32, String)>,
     /// The qualifier's verdict and the tracks a pass admits to.
@@ -237,10 +235,10 @@ impl<'a> Closing<'a> {
         Closing {
             cx,
             stage: Stage::Standing,
-            after_store: Stage::Done,
             settled: None,
             outcome: None,
             merged: None,
+            crashed: None,
             tail: None,
             verdict: None,
             recordings: None,
@@ -249,90 +247,74 @@ impl<'a> Closing<'a> {
         }
     }
 
-    /// What the shell does next; [`Step::Done`] once Finalize is over.
-    pub fn poll(&self) -> Step {
+    /// What the shell does next, side by side: the steps of one batch, independent of each
+    /// other; none once Finalize is over.
+    pub fn poll(&self) -> Vec<Step> {
         match self.stage {
-            Stage::Standing => Step::ReadStanding,
-            Stage::Stop => Step::StopJobs,
-            Stage::Read => Step::ReadLeft {
+            Stage::Standing => vec![Step::ReadStanding],
+            Stage::Stop => vec![Step::StopJobs],
+            Stage::Read => vec![Step::ReadLeft {
                 results: (self.cx.run).map(|run| (run.pairs.clone(), run.repetitions)),
-            },
-            Stage::Store => Step::StoreFiles,
-            Stage::TryAgain => Step::TryAgain,
-            Stage::Tail(pair) => Step::ReadAgentTail {
-                key: format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair)),
-                bytes: TAIL_BYTES,
-            },
-            Stage::Admit => Step::Admit(
-                self.verdict
-                    .as_ref()
-                    .map(|v| v.1.clone())
-                    .unwrap_or_default(),
-            ),
-            Stage::Post => self.post(),
-            Stage::Listing => Step::ListRecordings,
-            Stage::Heads => Step::ReadHeads(self.heads_to_read()),
-            Stage::Record => match (self.cx.run, &self.reports) {
-                (Some(run), None) => {
-                    Step::ReadReports((0..run.jobs).map(uploads::report_key).collect())
-                }
-                _ => self.record(),
-            },
-            Stage::Pace => {
-                let started = self.cx.run.and_then(|r| r.monitor.started_at);
-                let seconds = started.map_or(0, |at| self.cx.now.saturating_sub(at));
-                Step::RecordPace { seconds }
+            }],
+            Stage::TryAgain => vec![Step::TryAgain],
+            Stage::Gather => self.gather(),
+            Stage::Post => {
+                let heads = self
+                    .listed
+                    .is_some()
+                    .then(|| Step::ReadHeads(self.heads_to_read()));
+                self.post().into_iter().chain(heads).collect()
             }
-            Stage::Leave => Step::LeaveQueue,
-            Stage::Done => Step::Done,
+            Stage::End => {
+                let pace = self.pace().map(|seconds| Step::RecordPace { seconds });
+                let record = self.record();
+                record
+                    .into_iter()
+                    .chain(pace)
+                    .chain([Step::LeaveQueue])
+                    .collect()
+            }
+            Stage::Leave => vec![Step::LeaveQueue],
+            Stage::Done => Vec::new(),
         }
     }
 
-    /// Takes what the shell found doing the step [`Closing::poll`] gave last. An answer that
-    /// fits no outstanding step is a bug in the shell: Finalize ends there unsettled.
-    pub fn answer(&mut self, answer: Answer) {
-        self.stage = match (self.stage, answer) {
-            (Stage::Standing, Answer::Standing(record)) => self.stood(record.unwrap_or_default()),
-            (Stage::Stop, Answer::Done) => Stage::Read,
-            (Stage::Read, Answer::Left(left)) => {
-                let merged = matches!(left.results, Some(Read::Merged(_)));
-                match self.decide(left) {
-                    Stage::TryAgain => Stage::TryAgain,
-                    next if merged => {
-                        self.after_store = next;
-                        Stage::Store
-                    }
-                    next => next,
-                }
-            }
-            (Stage::Store, Answer::Done) => self.after_store,
-            (Stage::Tail(pair), Answer::Tail(bytes)) => {
-                let tail = bytes.map(|bytes| participant_tail(&bytes, MAX_TAIL_CHARS));
-                self.tail = tail.filter(|t| !t.is_empty()).map(|tail| (pair, tail));
+    /// Takes what the shell found doing the batch [`Closing::poll`] gave last, an answer per
+    /// step in its order. Answers that do not fit that batch are a bug in the shell: Finalize
+    /// ends there unsettled.
+    pub fn answer(&mut self, answers: Vec<Answer>) {
+        let asked = self.poll();
+        let fits = answers.len() == asked.len()
+            && asked
+                .iter()
+                .zip(&answers)
+                .all(|(step, answer)| answers_to(step, answer));
+        if !fits {
+            self.stage = Stage::Done;
+            return;
+        }
+        let mut answers = answers.into_iter();
+        let mut only = || answers.next().unwrap_or(Answer::Done);
+        self.stage = match self.stage {
+            Stage::Standing => match only() {
+                Answer::Standing(record) => self.stood(record.unwrap_or_default()),
+                _ => Stage::Done,
+            },
+            Stage::Stop => Stage::Read,
+            Stage::Read => match only() {
+                Answer::Left(left) => self.decide(left),
+                _ => Stage::Done,
+            },
+            Stage::Gather => {
+                answers.for_each(|answer| self.gathered(answer));
                 Stage::Post
             }
-            (Stage::Record, Answer::Reports(reports)) => {
-                let total = reports.into_iter().reduce(UploadReport::plus);
-                self.reports = Some(total);
-                Stage::Record
+            Stage::Post => self.posted(answers),
+            Stage::End => {
+                self.recorded();
+                Stage::Done
             }
-            (Stage::Admit, Answer::Done) => Stage::Post,
-            (Stage::Post, Answer::Posted(posted)) => self.posted(posted),
-            (Stage::Listing, Answer::Listed(listed)) => {
-                self.listed = listed;
-                match self.listed.is_some() {
-                    true => Stage::Heads,
-                    false => Stage::Record,
-                }
-            }
-            (Stage::Heads, Answer::Heads(heads)) => {
-                self.recordings = self.audit(&heads);
-                Stage::Record
-            }
-            (Stage::Record, Answer::Recorded(_)) => self.recorded(),
-            (Stage::Pace, Answer::Done) => Stage::Leave,
-            (Stage::Leave, Answer::Done) => Stage::Done,
-            (_, _) => Stage::Done,
+            Stage::TryAgain | Stage::Leave | Stage::Done => Stage::Done,
         };
     }
 
@@ -394,24 +376,31 @@ impl<'a> Closing<'a> {
             Some(Read::Merged(merged)) => Some(merged),
             _ => None,
         };
-        let next = match outcome.status {
+        match outcome.status {
             SubmissionStatus::Failed => {
-                finalize::most_crashed_agent(left.markers.iter().map(String::as_str))
-                    .map(Stage::Tail)
+                self.crashed =
+                    finalize::most_crashed_agent(left.markers.iter().map(String::as_str));
             }
             SubmissionStatus::Finished => self.qualify(),
-            _ => None,
-        };
+            _ => {}
+        }
         self.outcome = Some(outcome);
-        next.unwrap_or(Stage::Post)
+        match self.gather().is_empty() {
+            true => Stage::Post,
+            false => Stage::Gather,
+        }
     }
 
     /// A finished qualifier run: as the original, the verdict heads the participant's stdout
     /// either way, and a pass admits the team to the qualifier's target tracks.
-    fn qualify(&mut self) -> Option<Stage> {
-        let qualifier = self.cx.qualifier?;
+    fn qualify(&mut self) {
+        let Some(qualifier) = self.cx.qualifier else {
+            return;
+        };
         let targets = qualifier.targets_of(self.cx.track);
-        let first = targets.first()?;
+        let Some(first) = targets.first() else {
+            return;
+        };
         let metrics = self
             .merged
             .as_ref()
@@ -422,43 +411,82 @@ impl<'a> Closing<'a> {
         } else {
             Vec::new()
         };
-        let admit = !admitted.is_empty();
         self.verdict = Some((verdict, admitted));
-        admit.then_some(Stage::Admit)
     }
 
-    fn post(&self) -> Step {
-        let Some(outcome) = &self.outcome else {
-            return Step::Done;
-        };
+    /// What needs only the decision: the merge kept, the crashed agent's log, the team
+    /// admitted, a finished result's recordings listed, the Jobs' upload reports.
+    fn gather(&self) -> Vec<Step> {
+        let store = self.merged.is_some().then_some(Step::StoreFiles);
+        let tail = self.crashed.map(|pair| Step::ReadAgentTail {
+            key: format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair)),
+            bytes: TAIL_BYTES,
+        });
+        let admit = (self.verdict.as_ref())
+            .filter(|(_, tracks)| !tracks.is_empty())
+            .map(|(_, tracks)| Step::Admit(tracks.clone()));
+        let finished = self.outcome.as_ref().map(|o| o.status) == Some(SubmissionStatus::Finished);
+        let recorded = self.cx.run.is_some_and(|run| run.recorder);
+        let listing =
+            (finished && recorded && self.merged.is_some()).then_some(Step::ListRecordings);
+        let reports = (self.cx.run)
+            .map(|run| Step::ReadReports((0..run.jobs).map(uploads::report_key).collect()));
+        [store, tail, admit, listing, reports]
+            .into_iter()
+            .flatten()
+            .collect()
+    }
+
+    fn gathered(&mut self, answer: Answer) {
+        match answer {
+            Answer::Tail(bytes) => {
+                let tail = bytes.map(|bytes| participant_tail(&bytes, MAX_TAIL_CHARS));
+                let tail = tail.filter(|t| !t.is_empty());
+                self.tail = self.crashed.zip(tail);
+            }
+            Answer::Listed(listed) => self.listed = listed,
+            Answer::Reports(reports) => {
+                self.reports = Some(reports.into_iter().reduce(UploadReport::plus));
+            }
+            _ => {}
+        }
+    }
+
+    fn post(&self) -> Option<Step> {
+        let outcome = self.outcome.as_ref()?;
         let summary = self.merged.as_ref().map_or("", |m| m.summary.as_str());
         let verdict = self.verdict.as_ref().map(|(v, _)| v.as_str());
         let tail = self
             .tail
             .as_ref()
             .map(|(pair, tail)| (*pair, tail.as_str()));
-        Step::Post {
+        Some(Step::Post {
             status: outcome.status,
             stdout: finalize::stdout(outcome.pairs_note.as_deref(), verdict, summary),
             stderr: finalize::stderr(outcome, tail),
-        }
+        })
     }
 
     /// EvalAI's final word wins over ours ([`finalize::settle`]); a FINISHED result has its
-    /// recordings counted.
-    fn posted(&mut self, posted: Posted) -> Stage {
-        let Some(outcome) = self.outcome.take() else {
-            return Stage::Done;
-        };
-        let outcome = finalize::settle(outcome, posted);
-        let finished = outcome.status == SubmissionStatus::Finished;
-        self.outcome = Some(outcome);
-        let recorded = self.cx.run.is_some_and(|run| run.recorder);
-        if finished && recorded && self.merged.is_some() {
-            Stage::Listing
-        } else {
-            Stage::Record
+    /// recordings audited (their heads were read beside the post).
+    fn posted(&mut self, answers: impl Iterator<Item = Answer>) -> Stage {
+        let mut heads = None;
+        for answer in answers {
+            match answer {
+                Answer::Posted(posted) => {
+                    if let Some(outcome) = self.outcome.take() {
+                        self.outcome = Some(finalize::settle(outcome, posted));
+                    }
+                }
+                Answer::Heads(read) => heads = Some(read),
+                _ => {}
+            }
         }
+        let finished = self.outcome.as_ref().map(|o| o.status) == Some(SubmissionStatus::Finished);
+        if let Some(heads) = heads.filter(|_| finished) {
+            self.recordings = self.audit(&heads);
+        }
+        Stage::End
     }
 
     fn expected(&self) -> Vec<audit::Expected> {
@@ -482,11 +510,9 @@ impl<'a> Closing<'a> {
         Some(audit::audit(&self.expected(), listed, heads, window))
     }
 
-    fn record(&self) -> Step {
-        let Some(outcome) = &self.outcome else {
-            return Step::Done;
-        };
-        Step::WriteRecord {
+    fn record(&self) -> Option<Step> {
+        let outcome = self.outcome.as_ref()?;
+        Some(Step::WriteRecord {
             status: record_status(outcome.status),
             error: self
                 .cx
@@ -495,7 +521,16 @@ impl<'a> Closing<'a> {
                 .or_else(|| outcome.reason.clone()),
             recordings: self.recordings.clone(),
             usage: self.usage(),
-        }
+        })
+    }
+
+    /// A finished evaluation's seconds from its first pair's start to now, for its track's
+    /// pace (`None`: another outcome, or it never started).
+    fn pace(&self) -> Option<u64> {
+        let outcome = self.outcome.as_ref()?;
+        let started = self.cx.run.and_then(|r| r.monitor.started_at)?;
+        let finished = record_status(outcome.status) == RecordStatus::Finished;
+        finished.then(|| self.cx.now.saturating_sub(started))
     }
 
     /// What the run's GPUs came to: the Monitor's count, with the pods still running at its
@@ -513,21 +548,37 @@ impl<'a> Closing<'a> {
     }
 
     /// The status stands whether or not the record was ours to write (a resume that claimed
-    /// it anew owns it; EvalAI had our final word before that). A finished run's duration
-    /// joins its track's pace.
-    fn recorded(&mut self) -> Stage {
-        let Some(outcome) = &self.outcome else {
-            return Stage::Done;
-        };
-        let status = record_status(outcome.status);
-        self.settled = Some((Settled::Ended(status), outcome.reason.clone()));
-        let started = self.cx.run.is_some_and(|r| r.monitor.started_at.is_some());
-        if status == RecordStatus::Finished && started {
-            Stage::Pace
-        } else {
-            Stage::Leave
+    /// it anew owns it; EvalAI had our final word before that).
+    fn recorded(&mut self) {
+        if let Some(outcome) = &self.outcome {
+            let status = record_status(outcome.status);
+            self.settled = Some((Settled::Ended(status), outcome.reason.clone()));
         }
     }
+}
+
+/// Whether `answer` is what `step` is answered with.
+fn answers_to(step: &Step, answer: &Answer) -> bool {
+    matches!(
+        (step, answer),
+        (Step::ReadStanding, Answer::Standing(_))
+            | (Step::ReadLeft { .. }, Answer::Left(_))
+            | (Step::ReadAgentTail { .. }, Answer::Tail(_))
+            | (Step::ReadReports(_), Answer::Reports(_))
+            | (Step::Post { .. }, Answer::Posted(_))
+            | (Step::ListRecordings, Answer::Listed(_))
+            | (Step::ReadHeads(_), Answer::Heads(_))
+            | (Step::WriteRecord { .. }, Answer::Recorded(_))
+            | (
+                Step::StopJobs
+                    | Step::StoreFiles
+                    | Step::TryAgain
+                    | Step::Admit(_)
+                    | Step::RecordPace { .. }
+                    | Step::LeaveQueue,
+                Answer::Done
+            )
+    )
 }
 
 /// The record's word for EvalAI's final status.
@@ -650,69 +701,77 @@ mod tests {
         }
     }
 
-    /// Runs a Finalize, answering each step with `world`; the steps taken and what stands.
-    fn drive(
-        cx: Context<'_>,
-        mut world: impl FnMut(&Step) -> Answer,
-    ) -> (Vec<Step>, Option<(Settled, Option<String>)>) {
+    /// What stands at the end, and why.
+    type Stands = Option<(Settled, Option<String>)>;
+
+    /// Runs a Finalize, answering each step with `world`; the batches asked and what stands.
+    fn drive(cx: Context<'_>, mut world: impl FnMut(&Step) -> Answer) -> (Vec<Vec<Step>>, Stands) {
         let mut closing = Closing::begin(cx);
-        let mut steps = Vec::new();
+        let mut batches = Vec::new();
         loop {
-            let step = closing.poll();
-            if step == Step::Done {
-                return (steps, closing.finish());
+            let batch = closing.poll();
+            if batch.is_empty() {
+                return (batches, closing.finish());
             }
-            assert!(steps.len() < 20, "Finalize does not end: {steps:?}");
-            let answer = world(&step);
-            steps.push(step);
-            closing.answer(answer);
+            assert!(batches.len() < 20, "Finalize does not end: {batches:?}");
+            let answers = batch.iter().map(&mut world).collect();
+            batches.push(batch);
+            closing.answer(answers);
         }
     }
 
-    fn kinds(steps: &[Step]) -> Vec<&'static str> {
-        steps
-            .iter()
-            .map(|s| match s {
-                Step::ReadStanding => "standing",
-                Step::StopJobs => "stop",
-                Step::ReadLeft { .. } => "read",
-                Step::TryAgain => "again",
-                Step::StoreFiles => "store",
-                Step::ReadAgentTail { .. } => "tail",
-                Step::ReadReports(_) => "reports",
-                Step::Admit(_) => "admit",
-                Step::Post { .. } => "post",
-                Step::ListRecordings => "recordings",
-                Step::ReadHeads(_) => "heads",
-                Step::WriteRecord { .. } => "record",
-                Step::RecordPace { .. } => "pace",
-                Step::LeaveQueue => "leave",
-                Step::Done => "done",
-            })
-            .collect()
+    /// Each batch's steps by kind.
+    fn kinds(batches: &[Vec<Step>]) -> Vec<Vec<&'static str>> {
+        batches.iter().map(|batch| kinds_of(batch)).collect()
     }
 
-    fn find<'s>(steps: &'s [Step], kind: &str) -> &'s Step {
-        let at = kinds(steps).iter().position(|k| *k == kind);
-        &steps[at.unwrap_or_else(|| panic!("no {kind} in {steps:?}"))]
+    /// Every step asked, batch after batch.
+    fn flat(batches: &[Vec<Step>]) -> Vec<&'static str> {
+        kinds(batches).concat()
+    }
+
+    fn kinds_of(steps: &[Step]) -> Vec<&'static str> {
+        steps.iter().map(kind).collect()
+    }
+
+    fn kind(step: &Step) -> &'static str {
+        match step {
+            Step::ReadStanding => "standing",
+            Step::StopJobs => "stop",
+            Step::ReadLeft { .. } => "read",
+            Step::TryAgain => "again",
+            Step::StoreFiles => "store",
+            Step::ReadAgentTail { .. } => "tail",
+            Step::ReadReports(_) => "reports",
+            Step::Admit(_) => "admit",
+            Step::Post { .. } => "post",
+            Step::ListRecordings => "recordings",
+            Step::ReadHeads(_) => "heads",
+            Step::WriteRecord { .. } => "record",
+            Step::RecordPace { .. } => "pace",
+            Step::LeaveQueue => "leave",
+        }
+    }
+
+    fn find<'s>(batches: &'s [Vec<Step>], wanted: &str) -> &'s Step {
+        let mut steps = batches.iter().flatten();
+        let found = steps.find(|step| kind(step) == wanted);
+        found.unwrap_or_else(|| panic!("no {wanted} in {batches:?}"))
     }
 
     #[test]
     fn a_finished_run_stops_its_jobs_first_posts_before_the_record_and_leaves_the_queue_last() {
         let run = run(RunPhase::Finished, true);
         let (steps, stands) = drive(cx(Some(&run), None), world(Some(merged(true, 90.0)), &[]));
-        let order = [
-            "standing",
-            "stop",
-            "read",
-            "store",
-            "post",
-            "recordings",
-            "heads",
-            "reports",
-            "record",
-            "pace",
-            "leave",
+        // Six batches: what needs only the decision side by side, the heads beside the post,
+        // the record, the pace and the place together once EvalAI has the final word.
+        let order: [&[&str]; 6] = [
+            &["standing"],
+            &["stop"],
+            &["read"],
+            &["store", "recordings", "reports"],
+            &["post", "heads"],
+            &["record", "pace", "leave"],
         ];
         assert_eq!(kinds(&steps), order);
         let Step::Post { status, stdout, .. } = find(&steps, "post") else {
@@ -746,7 +805,7 @@ mod tests {
             })),
             _ => Answer::Done,
         });
-        assert_eq!(kinds(&steps), ["standing"]);
+        assert_eq!(flat(&steps), ["standing"]);
         let (settled, why) = stands.unwrap();
         assert_eq!(settled, Settled::Superseded);
         assert!(why.unwrap().contains("exec-2"));
@@ -763,7 +822,7 @@ mod tests {
             })),
             _ => Answer::Done,
         });
-        assert_eq!(kinds(&steps), ["standing", "leave"]);
+        assert_eq!(flat(&steps), ["standing", "leave"]);
         let failed = Settled::Ended(RecordStatus::Failed);
         assert_eq!(stands, Some((failed, Some("the agent crashed".into()))));
     }
@@ -773,12 +832,12 @@ mod tests {
         let run = run(RunPhase::Finished, true);
         let not_now = || Some(Read::NotNow("S3 throttled".into()));
         let (steps, _) = drive(cx(Some(&run), None), world(not_now(), &[]));
-        assert_eq!(kinds(&steps), ["standing", "stop", "read", "again"]);
+        assert_eq!(flat(&steps), ["standing", "stop", "read", "again"]);
         // The participant's cancel does not need them, nor does a caught error.
         let (steps, stands) = drive(cx(Some(&run), None), world(not_now(), &[CANCEL_MARKER]));
         assert_eq!(
-            kinds(&steps),
-            ["standing", "stop", "read", "post", "reports", "record", "leave"]
+            flat(&steps),
+            ["standing", "stop", "read", "reports", "post", "record", "leave"]
         );
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Cancelled));
         let caught = "States.Timeout: the task timed out";
@@ -806,15 +865,19 @@ mod tests {
             world(Some(merged(false, 0.0)), &markers),
         );
         assert_eq!(
-            kinds(&steps),
-            ["standing", "stop", "read", "store", "tail", "post", "reports", "record", "leave"]
+            kinds(&steps)[3..],
+            [
+                &["store", "tail", "reports"][..],
+                &["post"],
+                &["record", "leave"]
+            ]
         );
         let key = "logs/agent/agent2/agent.log".to_string();
         let tail = Step::ReadAgentTail {
             key,
             bytes: TAIL_BYTES,
         };
-        assert_eq!(steps[4], tail);
+        assert_eq!(find(&steps, "tail"), &tail);
         let Step::Post {
             status,
             stderr,
@@ -849,13 +912,18 @@ mod tests {
             ..cx(Some(&run), None)
         };
         let (steps, _) = drive(cx, world(Some(merged(true, 90.0)), &[]));
-        assert_eq!(steps[4], Step::Admit(vec!["sensors".into()]));
+        // Admitted in the batch before the post's.
+        assert!(
+            steps[3].contains(&Step::Admit(vec!["sensors".into()])),
+            "{steps:?}"
+        );
+        assert_eq!(kinds_of(&steps[4])[0], "post");
         let Step::Post { stdout, .. } = find(&steps, "post") else {
             unreachable!()
         };
         assert!(stdout.starts_with("CONGRATULATIONS!"), "{stdout}");
         let (steps, _) = drive(cx, world(Some(merged(true, 40.0)), &[]));
-        assert!(!kinds(&steps).contains(&"admit"), "{steps:?}");
+        assert!(!flat(&steps).contains(&"admit"), "{steps:?}");
         let Step::Post { stdout, .. } = find(&steps, "post") else {
             unreachable!()
         };
@@ -915,15 +983,15 @@ mod tests {
             Step::Post { .. } => Answer::Posted(Posted::Cancelled),
             step => world(step),
         });
-        // A cancel on EvalAI: no recordings to audit, no pace to record.
-        assert_eq!(
-            kinds(&steps),
-            ["standing", "stop", "read", "store", "post", "reports", "record", "leave"]
-        );
-        let Step::WriteRecord { status, .. } = find(&steps, "record") else {
+        // A cancel on EvalAI: the heads read beside the post are not audited, no pace.
+        assert_eq!(kinds(&steps)[5], ["record", "leave"]);
+        let Step::WriteRecord {
+            status, recordings, ..
+        } = find(&steps, "record")
+        else {
             unreachable!()
         };
-        assert_eq!(*status, RecordStatus::Cancelled);
+        assert_eq!((*status, recordings), (RecordStatus::Cancelled, &None));
         assert_eq!(
             stands,
             Some((Settled::Ended(RecordStatus::Cancelled), None))
@@ -953,7 +1021,7 @@ mod tests {
             ["RouteScenario_1_rep0: 1 bytes for 1.0 s of simulated time (at least 630 expected)"]
         );
         // Not started: no pace to record.
-        assert!(!kinds(&steps).contains(&"pace"), "{steps:?}");
+        assert!(!flat(&steps).contains(&"pace"), "{steps:?}");
         let (steps, _) = drive(cx(Some(&run), None), |step| match step {
             Step::ListRecordings => Answer::Listed(None),
             step => world(step),
@@ -969,7 +1037,7 @@ mod tests {
         let mut run = run(RunPhase::Finished, true);
         run.recorder = false;
         let (steps, _) = drive(cx(Some(&run), None), world(Some(merged(true, 90.0)), &[]));
-        assert!(!kinds(&steps).contains(&"recordings"), "{steps:?}");
+        assert!(!flat(&steps).contains(&"recordings"), "{steps:?}");
         let Step::WriteRecord {
             status, recordings, ..
         } = find(&steps, "record")
@@ -988,7 +1056,7 @@ mod tests {
     fn without_a_run_it_did_not_start_and_an_answer_out_of_turn_settles_nothing() {
         let (steps, stands) = drive(cx(None, None), world(None, &[]));
         assert_eq!(
-            kinds(&steps),
+            flat(&steps),
             ["standing", "stop", "read", "post", "record", "leave"]
         );
         let Step::Post { stderr, .. } = find(&steps, "post") else {
@@ -997,7 +1065,20 @@ mod tests {
         assert_eq!(stderr, "the evaluation did not start");
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Failed));
         let (steps, stands) = drive(cx(None, None), |_| Answer::Recorded(true));
-        assert_eq!(kinds(&steps), ["standing"]);
+        assert_eq!(flat(&steps), ["standing"]);
         assert_eq!(stands, None);
+        // A batch answered short, or out of its order, settles nothing either.
+        let run = run(RunPhase::Finished, true);
+        let mut closing = Closing::begin(cx(Some(&run), None));
+        let mut world = world(Some(merged(true, 90.0)), &[]);
+        while closing.poll().len() < 2 {
+            let answers = closing.poll().iter().map(&mut world).collect();
+            closing.answer(answers);
+        }
+        let mut answers: Vec<Answer> = closing.poll().iter().map(&mut world).collect();
+        answers.reverse();
+        closing.answer(answers);
+        assert!(closing.poll().is_empty());
+        assert_eq!(closing.finish(), None);
     }
 }
