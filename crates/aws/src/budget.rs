@@ -43,7 +43,7 @@ impl BudgetTable {
     /// Takes one request in the window of `at_ms` (epoch milliseconds); an urgent request
     /// finding it full books the first later window with room.
     pub async fn take_at(&self, priority: Priority, headroom: u32, at_ms: u64) -> Admission {
-        self.take_by(priority, headroom, &|| at_ms).await
+        self.take_by(priority, 1, headroom, &|| at_ms).await
     }
 
     /// [`Self::take_at`] on `clock`, read again after the writes: a grant counts in its window
@@ -53,9 +53,11 @@ impl BudgetTable {
     pub async fn take_by(
         &self,
         priority: Priority,
+        places: u32,
         headroom: u32,
         clock: &(dyn Fn() -> u64 + Send + Sync),
     ) -> Admission {
+        let (places, headroom) = (places.max(1), headroom.max(places));
         let mut late = Duration::ZERO;
         for _ in 0..=RETAKES {
             let at_ms = clock();
@@ -64,7 +66,7 @@ impl BudgetTable {
                 // The call needs more than a window ever grants this priority.
                 return Admission::Full { retry_in };
             };
-            match self.increment(index, most).await {
+            match self.increment(index, most, places).await {
                 Ok(true) if clock() < self.policy.window_start(index + 1) => {
                     return Admission::Granted
                 }
@@ -76,7 +78,7 @@ impl BudgetTable {
                 Ok(false) => {}
                 Err(why) => return Admission::Unavailable(why),
             }
-            match self.book(index, at_ms, clock).await {
+            match self.book(index, at_ms, clock, places).await {
                 Ok(Some(admission)) => return admission,
                 Ok(None) => {
                     return Admission::Full {
@@ -97,10 +99,12 @@ impl BudgetTable {
         index: u64,
         at_ms: u64,
         clock: &(dyn Fn() -> u64 + Send + Sync),
+        places: u32,
     ) -> Result<Option<Admission>, Option<String>> {
+        let most = self.policy.per_window.saturating_sub(places);
         for ahead in 1..=BudgetPolicy::BOOK_AHEAD {
             let booked = index + ahead;
-            match self.increment(booked, self.policy.per_window - 1).await {
+            match self.increment(booked, most, places).await {
                 Ok(true) => {
                     let now = clock();
                     if now >= self.policy.window_start(booked + 1) {
@@ -122,8 +126,8 @@ impl BudgetTable {
         Ok(None)
     }
 
-    /// Adds one to window `index`'s count if it is at most `most`: whether it did.
-    async fn increment(&self, index: u64, most: u32) -> Result<bool, String> {
+    /// Adds `places` to window `index`'s count if it is at most `most`: whether it did.
+    async fn increment(&self, index: u64, most: u32, places: u32) -> Result<bool, String> {
         let start = self.policy.window_start(index);
         let end = self.policy.window_start(index + 1);
         let result = self
@@ -134,11 +138,11 @@ impl BudgetTable {
                 "window_start".to_string(),
                 AttributeValue::N(start.to_string()),
             )])))
-            .update_expression("ADD #requests :one SET #expires = :expires")
+            .update_expression("ADD #requests :places SET #expires = :expires")
             .condition_expression("attribute_not_exists(#requests) OR #requests <= :most")
             .expression_attribute_names("#requests", "requests")
             .expression_attribute_names("#expires", "expires_at")
-            .expression_attribute_values(":one", AttributeValue::N("1".into()))
+            .expression_attribute_values(":places", AttributeValue::N(places.to_string()))
             .expression_attribute_values(":most", AttributeValue::N(most.to_string()))
             .expression_attribute_values(
                 ":expires",
@@ -180,7 +184,7 @@ fn now_ms() -> u64 {
 }
 
 impl Budget for BudgetTable {
-    fn take(&self, priority: Priority, headroom: u32) -> AdmissionFuture<'_> {
-        Box::pin(self.take_by(priority, headroom, &now_ms))
+    fn take(&self, priority: Priority, places: u32, headroom: u32) -> AdmissionFuture<'_> {
+        Box::pin(self.take_by(priority, places, headroom, &now_ms))
     }
 }

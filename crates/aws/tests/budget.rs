@@ -48,6 +48,46 @@ async fn budget_table(moto: &MotoServer, policy: BudgetPolicy) -> BudgetTable {
 
 #[tokio::test]
 #[ignore = "needs moto"]
+async fn a_call_takes_its_requests_places_at_once_and_only_while_all_fit() {
+    let moto = MotoServer::start().unwrap();
+    let policy = BudgetPolicy::evalai(60).unwrap();
+    let budget = budget_table(&moto, policy).await;
+    let window_start = 1_800_000_000_000;
+    let at = || window_start + 1_000;
+    // A final post's read, write and read back: three places in one round trip.
+    assert_eq!(
+        budget.take_by(Priority::Urgent, 3, 3, &at).await,
+        Admission::Granted
+    );
+    assert_eq!(budget.granted(window_start).await.unwrap(), 3);
+    // Routine calls of two: the 7 routine places hold 3 + 2 + 2, and then no call of two.
+    for _ in 0..2 {
+        assert_eq!(
+            budget.take_by(Priority::Routine, 2, 2, &at).await,
+            Admission::Granted
+        );
+    }
+    assert!(matches!(
+        budget.take_by(Priority::Routine, 2, 2, &at).await,
+        Admission::Full { .. }
+    ));
+    assert_eq!(budget.granted(window_start).await.unwrap(), 7);
+    // The urgent reserve of 2 fits one urgent call of two; an urgent call of three then
+    // books the next window, its three places there.
+    assert_eq!(
+        budget.take_by(Priority::Urgent, 2, 2, &at).await,
+        Admission::Granted
+    );
+    assert!(matches!(
+        budget.take_by(Priority::Urgent, 3, 3, &at).await,
+        Admission::Booked { .. }
+    ));
+    assert_eq!(budget.granted(window_start).await.unwrap(), 9);
+    assert_eq!(budget.granted(window_start + 12_000).await.unwrap(), 3);
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
 async fn a_window_grants_its_routine_share_then_its_reserve_to_urgent_requests_only() {
     let moto = MotoServer::start().unwrap();
     let policy = BudgetPolicy::evalai(60).unwrap();
@@ -251,7 +291,7 @@ async fn a_grant_that_returns_after_its_window_closed_is_asked_for_again() {
     let clock = || ticks.fetch_add(200, std::sync::atomic::Ordering::SeqCst);
     // The grant came back in the next window: asked again there, granted there.
     assert_eq!(
-        budget.take_by(Priority::Urgent, 1, &clock).await,
+        budget.take_by(Priority::Urgent, 1, 1, &clock).await,
         Admission::Granted
     );
     assert_eq!(
@@ -264,7 +304,7 @@ async fn a_grant_that_returns_after_its_window_closed_is_asked_for_again() {
     let ticks = std::sync::atomic::AtomicU64::new(window_start + 24_000);
     let clock = || ticks.fetch_add(12_000, std::sync::atomic::Ordering::SeqCst);
     assert!(matches!(
-        budget.take_by(Priority::Urgent, 1, &clock).await,
+        budget.take_by(Priority::Urgent, 1, 1, &clock).await,
         Admission::Full { .. }
     ));
 }

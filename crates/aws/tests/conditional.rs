@@ -232,14 +232,14 @@ async fn a_full_window_refuses_a_routine_request_and_a_budget_error_is_not_a_ref
             .as_millis() as u64
     };
     assert_eq!(
-        budget.take_by(Priority::Routine, 1, &now_ms).await,
+        budget.take_by(Priority::Routine, 1, 1, &now_ms).await,
         Admission::Granted
     );
 
     let full = refused_update();
     let budget = BudgetTable::new(client(&[&full]), "budget", policy);
     assert!(matches!(
-        budget.take_by(Priority::Routine, 0, &now_ms).await,
+        budget.take_by(Priority::Routine, 1, 0, &now_ms).await,
         Admission::Full { retry_in } if retry_in <= Duration::from_secs(12)
     ));
 
@@ -253,7 +253,7 @@ async fn a_full_window_refuses_a_routine_request_and_a_budget_error_is_not_a_ref
     });
     let budget = BudgetTable::new(client(&[&broken]), "budget", policy);
     assert!(matches!(
-        budget.take_by(Priority::Routine, 0, &now_ms).await,
+        budget.take_by(Priority::Routine, 1, 0, &now_ms).await,
         Admission::Unavailable(_)
     ));
 }

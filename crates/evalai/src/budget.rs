@@ -52,10 +52,11 @@ pub type AdmissionFuture<'a> = Pin<Box<dyn Future<Output = Admission> + Send + '
 
 /// A shared request budget (DynamoDB in the deployment: `lb_aws::budget`).
 pub trait Budget: Send + Sync + std::fmt::Debug {
-    /// Takes one request at `priority`, granted only if the window still has room for
-    /// `headroom` requests (this one and those the same call will need right after it), so a
-    /// read is not spent on a write that could not follow.
-    fn take(&self, priority: Priority, headroom: u32) -> AdmissionFuture<'_>;
+    /// Takes `places` requests at `priority` (a call's requests taken at once: one round trip
+    /// to the budget instead of one before each), granted only if the window still has room
+    /// for `headroom` requests (these and those the same call will need right after them, at
+    /// least `places`), so a read is not spent on a write that could not follow.
+    fn take(&self, priority: Priority, places: u32, headroom: u32) -> AdmissionFuture<'_>;
 }
 
 /// The window arithmetic, from EvalAI's limit.

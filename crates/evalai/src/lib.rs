@@ -227,11 +227,42 @@ struct Ask {
     priority: Priority,
     /// This request and those its call needs right after it.
     headroom: u32,
+    /// The places it takes: one, its whole call's (taken at once), or none (taken with the
+    /// call's first request).
+    places: u32,
 }
 
 impl Ask {
+    /// One request, granted if the window has room for `headroom`.
     fn new(priority: Priority, headroom: u32) -> Self {
-        Ask { priority, headroom }
+        Ask {
+            priority,
+            headroom,
+            places: 1,
+        }
+    }
+
+    /// The first of a call's `requests`, taking the places of all of them at once.
+    fn whole(priority: Priority, requests: u32) -> Self {
+        Ask {
+            priority,
+            headroom: requests,
+            places: requests,
+        }
+    }
+
+    /// A request whose place its call's first request took.
+    fn paid(priority: Priority) -> Self {
+        Ask {
+            priority,
+            headroom: 0,
+            places: 0,
+        }
+    }
+
+    /// The same request sent again: a retry takes its own place.
+    fn again(self) -> Self {
+        Ask::new(self.priority, 1)
     }
 }
 
@@ -443,7 +474,8 @@ impl EvalAiClient {
             self.base, at.challenge, at.submission
         );
         let body = json!({ "submission_metadata": metadata });
-        self.write(Method::PATCH, &url, body, at, current.status, ask.priority)
+        let ask = Ask::new(ask.priority, 1);
+        self.write(Method::PATCH, &url, body, at, current.status, ask)
             .await
     }
 
@@ -453,7 +485,7 @@ impl EvalAiClient {
         status: SubmissionStatus,
         job_name: &str,
     ) -> Result<WriteOutcome> {
-        let ask = Ask::new(Priority::Urgent, 2);
+        let ask = Ask::whole(Priority::Urgent, 2);
         let current = self.read_submission(at.submission, ask).await?;
         if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
@@ -471,7 +503,8 @@ impl EvalAiClient {
         if !current.job_names.contains(&lowered) {
             body["job_name"] = json!(job_name);
         }
-        self.write(Method::PATCH, &url, body, at, status, ask.priority)
+        let paid = Ask::paid(ask.priority);
+        self.write(Method::PATCH, &url, body, at, status, paid)
             .await
     }
 
@@ -482,8 +515,8 @@ impl EvalAiClient {
         update: &PartialUpdate,
     ) -> Result<WriteOutcome> {
         validate_result(&update.result).map_err(EvalAiError::InvalidResult)?;
-        // The read only if the write can follow it in the same window.
-        let ask = Ask::new(Priority::Routine, 2);
+        // The read and the write at once, in the same window.
+        let ask = Ask::whole(Priority::Routine, 2);
         let current = self.read_submission(at.submission, ask).await?;
         if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
@@ -507,7 +540,7 @@ impl EvalAiClient {
             body,
             at,
             SubmissionStatus::PartiallyEvaluated,
-            ask.priority,
+            Ask::paid(ask.priority),
         )
         .await
     }
@@ -520,8 +553,8 @@ impl EvalAiClient {
         update: &FinalUpdate,
     ) -> Result<WriteOutcome> {
         check_final(update)?;
-        // Read, write, read back.
-        let ask = Ask::new(Priority::Urgent, 3);
+        // Read, write, read back: their places taken at once.
+        let ask = Ask::whole(Priority::Urgent, 3);
         let current = self.read_submission(at.submission, ask).await?;
         if let Some(refused) = refuse_write(current.status) {
             return Ok(refused);
@@ -529,7 +562,7 @@ impl EvalAiClient {
         let outcome = self.put_final(at, update).await?;
         if outcome == WriteOutcome::Written {
             let after = self
-                .read_submission(at.submission, Ask::new(Priority::Urgent, 1))
+                .read_submission(at.submission, Ask::paid(Priority::Urgent))
                 .await?;
             if after.status != update.status {
                 return Err(EvalAiError::NotConfirmed {
@@ -572,7 +605,7 @@ impl EvalAiClient {
         );
         let (status, urgent) = (update.status, Priority::Urgent);
         match self
-            .write(Method::PUT, &url, full, at, status, urgent)
+            .write(Method::PUT, &url, full, at, status, Ask::paid(urgent))
             .await
         {
             Err(EvalAiError::Rejected { status, message }) => {
@@ -587,7 +620,8 @@ impl EvalAiClient {
                     &bounded_text(&update.stderr, 4 * 1024),
                     "{}",
                 );
-                self.write(Method::PUT, &url, minimal, at, update.status, urgent)
+                let ask = Ask::new(urgent, 1);
+                self.write(Method::PUT, &url, minimal, at, update.status, ask)
                     .await
             }
             other => other,
@@ -603,10 +637,10 @@ impl EvalAiClient {
         body: Value,
         at: SubmissionRef,
         target: SubmissionStatus,
-        priority: Priority,
+        mut ask: Ask,
     ) -> Result<WriteOutcome> {
         let mut attempts = Attempts::new(&self.policy);
-        let ask = Ask::new(priority, 1);
+        let priority = ask.priority;
         loop {
             match self
                 .once(
@@ -626,6 +660,7 @@ impl EvalAiClient {
                 Err(Failure::Retry { reason, after }) => {
                     warn!(submission_id = at.submission, %reason, "evalai write failed, checking");
                     attempts.wait(reason, after).await?;
+                    ask = ask.again();
                     let check = Ask::new(priority, 2);
                     let current = self.read_submission(at.submission, check).await?;
                     if current.status == target && target.is_final() {
@@ -657,7 +692,7 @@ impl EvalAiClient {
         method: Method,
         url: &str,
         body: Option<&Value>,
-        (id, ask): (u64, Ask),
+        (id, mut ask): (u64, Ask),
         read: ReadAs,
     ) -> Result<Value> {
         let mut attempts = Attempts::new(&self.policy);
@@ -665,7 +700,10 @@ impl EvalAiClient {
             match self.once(method.clone(), url, body, (id, ask), read).await {
                 Ok(value) => return Ok(value),
                 Err(Failure::Final(e)) => return Err(e),
-                Err(Failure::Retry { reason, after }) => attempts.wait(reason, after).await?,
+                Err(Failure::Retry { reason, after }) => {
+                    attempts.wait(reason, after).await?;
+                    ask = ask.again();
+                }
             }
         }
     }
@@ -779,14 +817,15 @@ impl EvalAiClient {
     /// Takes one request from the budget: a routine one is refused when its window is spent,
     /// an urgent one waits for the next window while its call has time.
     async fn admit(&self, ask: Ask) -> Result<()> {
-        let Some(budget) = self.budget.as_deref() else {
+        let Some(budget) = self.budget.as_deref().filter(|_| ask.places > 0) else {
             return Ok(());
         };
         let started = Instant::now();
         let allowed =
             retry::remaining().map_or(self.policy.budget, |left| left.min(self.policy.budget));
         loop {
-            match budget.take(ask.priority, ask.headroom.max(1)).await {
+            let headroom = ask.headroom.max(ask.places);
+            match budget.take(ask.priority, ask.places, headroom).await {
                 Admission::Granted => return Ok(()),
                 Admission::Unavailable(why) => {
                     warn!(%why, "the EvalAI budget could not be asked: sending anyway");

@@ -515,3 +515,57 @@ async fn one_request_lists_a_challenges_submissions_in_a_status() {
         .unwrap_err();
     assert_eq!(err.name(), "EvalAiRejected", "{err}");
 }
+
+/// A budget that grants everything and keeps each take: (places, headroom).
+#[derive(Debug, Default)]
+struct Counting(std::sync::Mutex<Vec<(u32, u32)>>);
+
+impl lb_evalai::Budget for Counting {
+    fn take(
+        &self,
+        _: lb_evalai::Priority,
+        places: u32,
+        headroom: u32,
+    ) -> lb_evalai::AdmissionFuture<'_> {
+        self.0.lock().unwrap().push((places, headroom));
+        Box::pin(async { lb_evalai::Admission::Granted })
+    }
+}
+
+#[tokio::test]
+async fn a_call_takes_its_requests_places_at_once_and_a_retry_its_own() {
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let budget = std::sync::Arc::new(Counting::default());
+    let evalai = client(&server, "host-token").with_budget(budget.clone());
+    let sent = |server: &FakeEvalAi| server.requests().iter().filter(|r| !r.admin).count();
+    // running: its read and its write in one take.
+    evalai.mark_running(AT, "job").await.unwrap();
+    assert_eq!(*budget.0.lock().unwrap(), [(2, 2)]);
+    assert_eq!(sent(&server), 2);
+    // The final post's read, write and read back in one take.
+    budget.0.lock().unwrap().clear();
+    let done = FinalUpdate {
+        status: SubmissionStatus::Finished,
+        result: full_result(90.0),
+        stdout: String::new(),
+        stderr: String::new(),
+        metadata: "{}".into(),
+    };
+    evalai.post_final(AT, &done).await.unwrap();
+    assert_eq!(*budget.0.lock().unwrap(), [(3, 3)]);
+    assert_eq!(sent(&server), 5);
+    // A request sent again takes a place of its own: as many places as requests.
+    let server = FakeEvalAi::start(Fixture::default()).await.unwrap();
+    let faults = Faults {
+        error_500_rate: 0.5,
+        seed: 7,
+        ..Faults::default()
+    };
+    server.set_faults(faults).unwrap();
+    let budget = std::sync::Arc::new(Counting::default());
+    let evalai = client(&server, "host-token").with_budget(budget.clone());
+    evalai.mark_running(AT, "job").await.unwrap();
+    let places: u32 = budget.0.lock().unwrap().iter().map(|(p, _)| p).sum();
+    assert!(sent(&server) > 2, "seed 7 retries nothing");
+    assert_eq!(places as usize, sent(&server));
+}

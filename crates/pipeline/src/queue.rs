@@ -272,8 +272,12 @@ pub async fn wake_team_next<C: Callbacks>(
     team: TeamQueue<'_>,
     now: u64,
 ) -> Result<Vec<Woken>> {
-    let entries = table.entries(team.queue).await?;
-    let held = table.holders(team.queue, team.team).await?.len();
+    // The queue and the team's holders at once: the place was given back before either.
+    let (entries, held) = tokio::join!(
+        table.entries(team.queue),
+        table.holders(team.queue, team.team)
+    );
+    let (entries, held) = (entries?, held?.len());
     let mut woken = Vec::new();
     for next in queue::next_of_team(&entries, team.team, queue::free_places(team.limit, held)) {
         let id = next.submission_id;
