@@ -20,7 +20,7 @@
 
 use std::collections::HashMap;
 
-use aws_sdk_dynamodb::types::{AttributeValue, TransactWriteItem, Update};
+use aws_sdk_dynamodb::types::{AttributeValue, Delete, TransactWriteItem, Update};
 use aws_sdk_dynamodb::Client;
 use lb_domain::capacity::queue::{Entry, EntryState};
 
@@ -494,27 +494,31 @@ impl AdmissionTable {
         Ok(())
     }
 
-    /// Gives the submission's team its place back and takes the submission out of the queue;
-    /// repeating it changes nothing. (The place first: a release cut in between leaves an
-    /// entry its TTL removes, never a team short of a place.)
+    /// Gives the submission's team its place back and takes the submission out of the queue,
+    /// in one transaction (both or neither: never an entry gone with its place still held);
+    /// repeating it changes nothing.
     pub async fn release(&self, queue: &str, submission_id: u64, team_id: u64) -> Result<()> {
-        self.client
-            .update_item()
+        let me = AttributeValue::Ss(vec![submission_id.to_string()]);
+        let place = Update::builder()
             .table_name(&self.table)
             .set_key(Some(team_key(queue, team_id)))
             .update_expression("DELETE #holders :me")
             .expression_attribute_names("#holders", "holders")
-            .expression_attribute_values(":me", AttributeValue::Ss(vec![submission_id.to_string()]))
-            .send()
-            .await
-            .map_err(|e| AwsError::sdk("dynamodb", "UpdateItem", e))?;
-        self.client
-            .delete_item()
+            .expression_attribute_values(":me", me)
+            .build()
+            .map_err(|e| malformed(e.to_string()))?;
+        let entry = Delete::builder()
             .table_name(&self.table)
             .set_key(Some(entry_key(queue, submission_id)))
+            .build()
+            .map_err(|e| malformed(e.to_string()))?;
+        self.client
+            .transact_write_items()
+            .transact_items(TransactWriteItem::builder().update(place).build())
+            .transact_items(TransactWriteItem::builder().delete(entry).build())
             .send()
             .await
-            .map_err(|e| AwsError::sdk("dynamodb", "DeleteItem", e))?;
+            .map_err(|e| AwsError::sdk("dynamodb", "TransactWriteItems", e))?;
         Ok(())
     }
 }

@@ -112,9 +112,8 @@ pub fn has_type(symbols: &str, module: &str, type_name: &str) -> bool {
 /// DynamoDB's `TransactWriteItems` is no action of its own: each of its items is authorized as
 /// the operation it is (`PutItem`, `UpdateItem`, `DeleteItem`, `ConditionCheckItem`: "Using
 /// IAM with DynamoDB transactions", DynamoDB developer guide). Ours (`lb_aws::admission`) are
-/// `Update`s, and the same module calls `UpdateItem` directly too, so the action is counted;
-/// a `ConditionCheck` item has no operation of its own and is counted by [`needed_actions`]
-/// from its builder's code.
+/// `Update`s, `Delete`s and `ConditionCheck`s: the items' actions are counted by
+/// [`needed_actions`] from their builders' code.
 pub fn iam_action(service: &str, operation: &str) -> Option<String> {
     let pascal: String = operation
         .split('_')
@@ -145,10 +144,18 @@ pub fn needed_actions(symbols: &str) -> BTreeSet<String> {
         .iter()
         .filter_map(|(s, o)| iam_action(s, o))
         .collect();
-    // `aws_sdk_dynamodb::types::ConditionCheck::builder`, mangled: only code that builds a
-    // transaction's condition check links it.
-    if symbols.contains("16aws_sdk_dynamodb5types16_condition_check14ConditionCheck7builder") {
-        needed.insert("dynamodb:ConditionCheckItem".into());
+    // A transaction's items (`aws_sdk_dynamodb::types::ConditionCheck::builder` and its
+    // kin, mangled): only code that builds such an item links its builder.
+    let items = [
+        ("16_condition_check14ConditionCheck", "ConditionCheckItem"),
+        ("7_update6Update", "UpdateItem"),
+        ("7_delete6Delete", "DeleteItem"),
+    ];
+    for (item, action) in items {
+        let builder = format!("16aws_sdk_dynamodb5types{item}7builder");
+        if symbols.contains(&builder) {
+            needed.insert(format!("dynamodb:{action}"));
+        }
     }
     // An upload that tags its object (`set_tagging` on `PutObject` or
     // `CreateMultipartUpload`) needs `s3:PutObjectTagging` beside the upload's own action.
