@@ -11,9 +11,10 @@
 //! participant reads the end of its most crashed agent's log; a passed qualifier admits its
 //! team. EvalAI gets the final word before the record, and the place is given back only after
 //! it, so the team never shows more evaluations in progress than its cap. What needs only the
-//! decision (keeping the files, the log's end, the admission, the recordings' listing, the
-//! upload reports) is asked at once; the recordings' heads are read beside the post, and the
-//! record, the pace and the place go together at the end: a Finalize waits on six batches.
+//! decision (keeping the files, the log's end, the admission, the recordings' listing and
+//! heads, the upload reports) is asked at once, so a finished result's recordings are audited
+//! before the post and a failed audit is said on EvalAI; the record, the pace and the place go
+//! together at the end: a Finalize waits on six batches.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -22,7 +23,7 @@ use crate::job::logtail::{participant_tail, MAX_TAIL_CHARS};
 use crate::job::protocol::{self, CANCEL_MARKER, LOGS_DIR};
 use crate::job::uploads::{self, UploadReport};
 use crate::results::py::Num;
-use crate::run::audit::{self, Recordings, Window};
+use crate::run::audit::{self, Expected, Recordings, Window};
 use crate::run::finalize::{self, Outcome, Posted};
 use crate::run::state::{PairRoutes, RunPhase, RunState};
 use crate::settings::QualifierSettings;
@@ -94,7 +95,7 @@ pub enum Step {
     /// List the recordings folder (`recorder/`, [`Answer::Listed`]), to audit the recordings.
     ListRecordings,
     /// Read the first [`audit::HEAD_BYTES`] of each of these recordings (submission-relative
-    /// keys, [`Answer::Heads`]).
+    /// keys of every recording the result needs, [`Answer::Heads`]), beside the listing.
     ReadHeads(Vec<String>),
     /// Write the final record ([`Answer::Recorded`]).
     WriteRecord {
@@ -258,13 +259,7 @@ impl<'a> Closing<'a> {
             }],
             Stage::TryAgain => vec![Step::TryAgain],
             Stage::Gather => self.gather(),
-            Stage::Post => {
-                let heads = self
-                    .listed
-                    .is_some()
-                    .then(|| Step::ReadHeads(self.heads_to_read()));
-                self.post().into_iter().chain(heads).collect()
-            }
+            Stage::Post => self.post().into_iter().collect(),
             Stage::End => {
                 let pace = self.pace().map(|seconds| Step::RecordPace { seconds });
                 let record = self.record();
@@ -306,10 +301,20 @@ impl<'a> Closing<'a> {
                 _ => Stage::Done,
             },
             Stage::Gather => {
-                answers.for_each(|answer| self.gathered(answer));
+                let mut heads = None;
+                for answer in answers {
+                    match answer {
+                        Answer::Heads(read) => heads = Some(read),
+                        answer => self.gathered(answer),
+                    }
+                }
+                self.recordings = heads.and_then(|heads| self.audit(&heads));
                 Stage::Post
             }
-            Stage::Post => self.posted(answers),
+            Stage::Post => match only() {
+                Answer::Posted(posted) => self.posted(posted),
+                _ => Stage::Done,
+            },
             Stage::End => {
                 self.recorded();
                 Stage::Done
@@ -427,11 +432,13 @@ impl<'a> Closing<'a> {
             .map(|(_, tracks)| Step::Admit(tracks.clone()));
         let finished = self.outcome.as_ref().map(|o| o.status) == Some(SubmissionStatus::Finished);
         let recorded = self.cx.run.is_some_and(|run| run.recorder);
-        let listing =
-            (finished && recorded && self.merged.is_some()).then_some(Step::ListRecordings);
+        let audited = finished && recorded && self.merged.is_some();
+        let listing = audited.then_some(Step::ListRecordings);
+        let keys = || self.expected().iter().map(Expected::key).collect();
+        let heads = audited.then(|| Step::ReadHeads(keys()));
         let reports = (self.cx.run)
             .map(|run| Step::ReadReports((0..run.jobs).map(uploads::report_key).collect()));
-        [store, tail, admit, listing, reports]
+        [store, tail, admit, listing, heads, reports]
             .into_iter()
             .flatten()
             .collect()
@@ -463,28 +470,19 @@ impl<'a> Closing<'a> {
         Some(Step::Post {
             status: outcome.status,
             stdout: finalize::stdout(outcome.pairs_note.as_deref(), verdict, summary),
-            stderr: finalize::stderr(outcome, tail),
+            stderr: finalize::stderr(outcome, tail, self.recordings.as_ref()),
         })
     }
 
-    /// EvalAI's final word wins over ours ([`finalize::settle`]); a FINISHED result has its
-    /// recordings audited (their heads were read beside the post).
-    fn posted(&mut self, answers: impl Iterator<Item = Answer>) -> Stage {
-        let mut heads = None;
-        for answer in answers {
-            match answer {
-                Answer::Posted(posted) => {
-                    if let Some(outcome) = self.outcome.take() {
-                        self.outcome = Some(finalize::settle(outcome, posted));
-                    }
-                }
-                Answer::Heads(read) => heads = Some(read),
-                _ => {}
-            }
+    /// EvalAI's final word wins over ours ([`finalize::settle`]); only a FINISHED result keeps
+    /// its recordings' audit.
+    fn posted(&mut self, posted: Posted) -> Stage {
+        if let Some(outcome) = self.outcome.take() {
+            self.outcome = Some(finalize::settle(outcome, posted));
         }
         let finished = self.outcome.as_ref().map(|o| o.status) == Some(SubmissionStatus::Finished);
-        if let Some(heads) = heads.filter(|_| finished) {
-            self.recordings = self.audit(&heads);
+        if !finished {
+            self.recordings = None;
         }
         Stage::End
     }
@@ -493,11 +491,6 @@ impl<'a> Closing<'a> {
         self.merged
             .as_ref()
             .map_or_else(Vec::new, |m| audit::expected(&m.routes))
-    }
-
-    fn heads_to_read(&self) -> Vec<String> {
-        let listed = self.listed.as_deref().unwrap_or_default();
-        audit::heads_to_read(&self.expected(), listed)
     }
 
     /// The recordings judged (`None` without a run to date them by).
@@ -763,23 +756,30 @@ mod tests {
     fn a_finished_run_stops_its_jobs_first_posts_before_the_record_and_leaves_the_queue_last() {
         let run = run(RunPhase::Finished, true);
         let (steps, stands) = drive(cx(Some(&run), None), world(Some(merged(true, 90.0)), &[]));
-        // Six batches: what needs only the decision side by side, the heads beside the post,
-        // the record, the pace and the place together once EvalAI has the final word.
+        // Six batches: what needs only the decision side by side (the recordings' listing and
+        // heads too, so the audit comes before the post), the record, the pace and the place
+        // together once EvalAI has the final word.
         let order: [&[&str]; 6] = [
             &["standing"],
             &["stop"],
             &["read"],
-            &["store", "recordings", "reports"],
-            &["post", "heads"],
+            &["store", "recordings", "heads", "reports"],
+            &["post"],
             &["record", "pace", "leave"],
         ];
         assert_eq!(kinds(&steps), order);
-        let Step::Post { status, stdout, .. } = find(&steps, "post") else {
+        let Step::Post {
+            status,
+            stdout,
+            stderr,
+        } = find(&steps, "post")
+        else {
             unreachable!()
         };
+        // Recordings that pass the audit leave nothing to say.
         assert_eq!(
-            (*status, stdout.as_str()),
-            (SubmissionStatus::Finished, "summary")
+            (*status, stdout.as_str(), stderr.as_str()),
+            (SubmissionStatus::Finished, "summary", "")
         );
         let Step::WriteRecord {
             status,
@@ -983,7 +983,7 @@ mod tests {
             Step::Post { .. } => Answer::Posted(Posted::Cancelled),
             step => world(step),
         });
-        // A cancel on EvalAI: the heads read beside the post are not audited, no pace.
+        // A cancel on EvalAI: the recordings audited before the post are not kept, no pace.
         assert_eq!(kinds(&steps)[5], ["record", "leave"]);
         let Step::WriteRecord {
             status, recordings, ..
@@ -1006,20 +1006,26 @@ mod tests {
             Step::ListRecordings => Answer::Listed(Some(vec![recording(0, 1000), recording(1, 1)])),
             step => world(step),
         });
-        // Only the whole one's head is read.
+        // Every needed recording's head is read, beside the listing.
         let Step::ReadHeads(keys) = find(&steps, "heads") else {
             unreachable!()
         };
-        assert_eq!(keys, &[recording(0, 0).0]);
+        assert_eq!(keys, &[recording(0, 0).0, recording(1, 0).0]);
         let Step::WriteRecord { recordings, .. } = find(&steps, "record") else {
             unreachable!()
         };
         let audited = recordings.clone().unwrap();
         assert_eq!((audited.passed, audited.expected), (1, 2));
-        assert_eq!(
-            audited.failures,
-            ["RouteScenario_1_rep0: 1 bytes for 1.0 s of simulated time (at least 630 expected)"]
-        );
+        let why =
+            "RouteScenario_1_rep0: 1 bytes for 1.0 s of simulated time (at least 630 expected)";
+        assert_eq!(audited.failures, [why]);
+        // The participant reads it with the scores: audited before the post.
+        let Step::Post { status, stderr, .. } = find(&steps, "post") else {
+            unreachable!()
+        };
+        assert_eq!(*status, SubmissionStatus::Finished);
+        assert!(stderr.contains("1 of the 2 scoring routes"), "{stderr}");
+        assert!(stderr.contains(why), "{stderr}");
         // Not started: no pace to record.
         assert!(!flat(&steps).contains(&"pace"), "{steps:?}");
         let (steps, _) = drive(cx(Some(&run), None), |step| match step {

@@ -5,6 +5,7 @@
 use serde_json::Value;
 
 use crate::job::protocol::{Marker, Role};
+use crate::run::audit::Recordings;
 use crate::status::RecordStatus;
 use crate::submission::SubmissionStatus;
 
@@ -246,12 +247,29 @@ pub fn stdout(pairs_note: Option<&str>, verdict: Option<&str>, summary: &str) ->
 
 /// The participant's stderr: the reason, then the end of the agent's output that crashed
 /// most (`(pair, tail)`), on a failure.
-pub fn stderr(outcome: &Outcome, agent_tail: Option<(u32, &str)>) -> String {
+pub fn stderr(
+    outcome: &Outcome,
+    agent_tail: Option<(u32, &str)>,
+    recordings: Option<&Recordings>,
+) -> String {
     let mut out = outcome.reason.clone().unwrap_or_default();
     if let (SubmissionStatus::Failed, Some((pair, tail))) = (outcome.status, agent_tail) {
         out.push_str(&format!(
             "\n\nThe last lines of agent {pair}'s output:\n{tail}\n"
         ));
+    }
+    let unaudited = recordings.filter(|r| !r.complete());
+    if let (SubmissionStatus::Finished, Some(audit)) = (outcome.status, unaudited) {
+        out.push_str(&format!(
+            "The CARLA recordings of {} of the {} scoring routes did not pass the audit, so these \
+             scores cannot be checked against what the simulator ran; the organisers may replay \
+             or disqualify them:\n",
+            audit.expected - audit.passed,
+            audit.expected
+        ));
+        for failure in &audit.failures {
+            out.push_str(&format!("- {failure}\n"));
+        }
     }
     out
 }
@@ -452,7 +470,7 @@ mod tests {
             pairs_note: None,
         };
         assert_eq!(
-            stderr(&failed, Some((2, "Traceback"))),
+            stderr(&failed, Some((2, "Traceback")), None),
             "why\n\nThe last lines of agent 2's output:\nTraceback\n"
         );
         let finished = Outcome {
@@ -460,7 +478,25 @@ mod tests {
             reason: None,
             pairs_note: None,
         };
-        assert_eq!(stderr(&finished, Some((2, "x"))), "");
+        assert_eq!(stderr(&finished, Some((2, "x")), None), "");
+        // A finished result whose recordings fail the audit tells the participant which.
+        let mut audit = Recordings {
+            passed: 3,
+            expected: 4,
+            failures: vec!["RouteScenario_1_rep0: 45 bytes for 0.0 s".into()],
+        };
+        let said = stderr(&finished, None, Some(&audit));
+        assert!(
+            said.starts_with("The CARLA recordings of 1 of the 4 scoring routes"),
+            "{said}"
+        );
+        assert!(
+            said.ends_with("\n- RouteScenario_1_rep0: 45 bytes for 0.0 s\n"),
+            "{said}"
+        );
+        audit.passed = 4;
+        assert_eq!(stderr(&finished, None, Some(&audit)), "");
+        assert!(!stderr(&failed, None, Some(&Recordings { passed: 0, ..audit })).contains("CARLA"));
     }
 
     #[test]
