@@ -274,6 +274,12 @@ pub struct TrackSettings {
     /// This track is a qualifier (its result gates the main track).
     #[serde(default)]
     pub qualifier: bool,
+    /// Each route's length in metres, by route number, from the organisers' routes file
+    /// (empty: none given). The recordings' audit asks each scoring route for at least the
+    /// time its completed part takes at a top speed, whatever time its record claims
+    /// (`lb_domain::run::audit`).
+    #[serde(default)]
+    pub route_lengths: Vec<u32>,
 }
 
 /// Qualifier gating: which qualifier track opens which track, and the pass marks.
@@ -429,18 +435,36 @@ impl LeaderboardSettings {
         if let Err((field, problem)) = self.check_gpu_model() {
             return invalid(field, &problem);
         }
-        if let Some((track, _)) = self
-            .tracks
-            .iter()
-            .find(|(_, t)| t.routes == 0 || t.workers == 0)
-        {
-            return invalid(
-                &format!("tracks.{track}"),
-                "routes and workers must be at least 1",
-            );
+        if let Err((field, problem)) = self.check_tracks() {
+            return invalid(&field, &problem);
         }
         self.check_qualifier()
             .map_err(|(field, problem)| (format!("leaderboards.{name}.{field}"), problem))
+    }
+
+    /// Each track has routes and workers, and the organisers' route lengths when given are
+    /// one per route.
+    fn check_tracks(&self) -> Result<(), (String, String)> {
+        let empty = |t: &TrackSettings| t.routes == 0 || t.workers == 0;
+        if let Some((track, _)) = self.tracks.iter().find(|(_, t)| empty(t)) {
+            let problem = "routes and workers must be at least 1";
+            return Err((format!("tracks.{track}"), problem.into()));
+        }
+        let lengths = |t: &TrackSettings| {
+            let given = t.route_lengths.len();
+            given != 0 && (given != t.routes as usize || t.route_lengths.contains(&0))
+        };
+        match self.tracks.iter().find(|(_, t)| lengths(t)) {
+            Some((track, t)) => Err((
+                format!("tracks.{track}.route_lengths"),
+                format!(
+                    "one length in metres above 0 per route: {} given for {} routes",
+                    t.route_lengths.len(),
+                    t.routes
+                ),
+            )),
+            None => Ok(()),
+        }
     }
 
     /// A GPU model the Jobs can select by: the operator's, a label value, or the instance
@@ -631,6 +655,31 @@ mod tests {
         assert_eq!(target.required_qualifier(), Some("SENSORS_QUALIFIER"));
         assert_eq!(settings.target(1235).unwrap().required_qualifier(), None);
         assert_eq!(settings.target(9).unwrap_err().name(), "UnknownPhase");
+    }
+
+    #[test]
+    fn route_lengths_are_optional_and_one_per_route_when_given() {
+        let settings = Settings::from_json(EXAMPLE).unwrap();
+        assert!(settings
+            .target(1235)
+            .unwrap()
+            .track_settings
+            .route_lengths
+            .is_empty());
+        let two = r#""routes": 2, "workers": 1, "#;
+        let given = EXAMPLE.replacen(two, &format!(r#"{two}"route_lengths": [1500, 820], "#), 1);
+        let settings = Settings::from_json(&given).unwrap();
+        let lengths = &settings.target(1235).unwrap().track_settings.route_lengths;
+        assert_eq!(lengths, &[1500, 820]);
+        for wrong in ["[1500]", "[1500, 0]", "[1, 2, 3]"] {
+            let json = EXAMPLE.replacen(two, &format!(r#"{two}"route_lengths": {wrong}, "#), 1);
+            let err = Settings::from_json(&json).unwrap_err().to_string();
+            assert!(
+                err.contains("tracks.SENSORS_QUALIFIER.route_lengths"),
+                "{wrong}: {err}"
+            );
+            assert!(err.contains("for 2 routes"), "{wrong}: {err}");
+        }
     }
 
     #[test]

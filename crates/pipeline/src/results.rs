@@ -202,7 +202,9 @@ fn audited_routes(merged: &Merged, pairs: &[(u32, RouteSubset)]) -> Vec<audit::R
             Some(audit::Route {
                 pair,
                 id: r.route_id.raw.clone(),
+                route: r.route_id.route,
                 game_seconds: r.meta.duration_game.as_f64(),
+                completion: r.scores.score_route.as_f64(),
                 scores: r.scores.score_route.as_f64() > 0.0
                     || r.scores.score_composed.as_f64() > 0.0,
             })

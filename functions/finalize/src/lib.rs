@@ -269,6 +269,7 @@ async fn finish_run<C: Callbacks>(
         run: run.as_ref(),
         track: &submission.track,
         qualifier: (target.track_settings.qualifier).then_some(&target.deployment.qualifier),
+        route_lengths: &target.track_settings.route_lengths,
         now: clients::now_epoch_seconds(),
         prices: &deps.clients.settings.prices,
     });

@@ -385,7 +385,7 @@ impl Run {
             Driven::Done => {
                 say(&bold("> Stopping the route"));
                 self.recorder(carla, "stop_recorder").await;
-                self.register(cfg, record, EntryStatus::Started)
+                self.register(cfg, self.as_claimed(record), EntryStatus::Started)
             }
             Driven::CarlaGone(fraction) => {
                 say("\n\x1b[91mError during the simulation:");
@@ -398,6 +398,19 @@ impl Run {
             }
             Driven::Stopped(stop) => Some(Exit::Stopped(stop)),
         }
+    }
+
+    /// The record as the participant's evaluator writes it: with
+    /// `FAKE_EVALUATOR_FORGE_RECORDINGS` it claims no simulated time, so a recording of
+    /// CARLA's header alone would fit the claim.
+    fn as_claimed(
+        &self,
+        mut record: lb_domain::results::RouteRecord,
+    ) -> lb_domain::results::RouteRecord {
+        if self.cfg.faults.forge_recordings {
+            record.meta.duration_game = lb_domain::results::py::Num::Float(0.0);
+        }
+        record
     }
 
     /// Spends the route's time, watching the simulator connection and the stop signals.
@@ -668,7 +681,7 @@ impl Run {
     /// `client.start_recorder("<--record>/<route>_rep<r>.log")`: CARLA, not the evaluator,
     /// writes the file, in its own container. With `FAKE_EVALUATOR_FORGE_RECORDINGS` the
     /// participant's code then stops the recorder and leaves 1-byte files of the route's name
-    /// where the recordings used to be.
+    /// where the recordings used to be (and its records claim no simulated time).
     async fn start_recorder(&self, cfg: &RouteConfig, carla: &mut TcpStream) {
         if self.cfg.args.record.is_empty() {
             return;

@@ -326,7 +326,8 @@ pub struct EvaluatorFaults {
     /// `FAKE_EVALUATOR_FORGE_RECORDINGS=1`: the participant's code tampers with the
     /// recordings as far as its container lets it: it stops CARLA's recorder as soon as the
     /// evaluator started it (a recording of nothing but its header), and writes a 1-byte file
-    /// of each route's name where the recordings used to be (its own logs' `recorder/`).
+    /// of each route's name where the recordings used to be (its own logs' `recorder/`); its
+    /// records claim 0 s of simulated time, which a header-only recording fits.
     pub forge_recordings: bool,
     /// `FAKE_EVALUATOR_PLANT_GPU=<UUID>[,<UUID>...]`: once (with a once directory), write the
     /// first of these that is not this container's own GPU into the pair's GPU handoff

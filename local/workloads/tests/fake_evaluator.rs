@@ -123,6 +123,7 @@ fn a_five_route_subset_writes_a_checkpoint_the_domain_reader_accepts_with_its_gl
             pair: 1,
             stem: record.route_id.raw.clone(),
             game_seconds: record.meta.duration_game.as_f64(),
+            floor_seconds: 0.0,
         };
         assert!(recording.starts_with(lb_domain::run::audit::MAGIC));
         assert!(

@@ -46,6 +46,11 @@ const MAX_MAP_NAME: usize = 200;
 /// The most failing routes named in the record.
 const NAMED: usize = 5;
 
+/// The fastest a route's completed part is taken to be driven, in metres per simulated
+/// second (144 km/h: above what the Leaderboard's vehicles reach in its towns), so the time
+/// it gives is a floor no honest record is below.
+pub const TOP_SPEED: f64 = 40.0;
+
 /// A merged record as the audit needs it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Route {
@@ -53,8 +58,12 @@ pub struct Route {
     pub pair: PairId,
     /// Its route id (`RouteScenario_3_rep0`, or `RouteScenario_3` in Leaderboard 1.0).
     pub id: String,
+    /// Its route number in the routes file.
+    pub route: u64,
     /// Its simulated seconds (`meta.duration_game`).
     pub game_seconds: f64,
+    /// Its route completion, percent (`scores.score_route`).
+    pub completion: f64,
     /// Whether it adds anything to the result (a route completion or driving score above 0):
     /// a route that scores nothing needs no proof.
     pub scores: bool,
@@ -67,8 +76,11 @@ pub struct Expected {
     pub pair: PairId,
     /// Its file stem: the route id with its repetition.
     pub stem: String,
-    /// Its route's simulated seconds.
+    /// Its route's simulated seconds, as its record claims them.
     pub game_seconds: f64,
+    /// The least simulated seconds its completed part takes at [`TOP_SPEED`], from the
+    /// organisers' length of its route (0 when none is given).
+    pub floor_seconds: f64,
 }
 
 impl Expected {
@@ -77,17 +89,24 @@ impl Expected {
         format!("{}/{}.log", recorder_dir(self.pair), self.stem)
     }
 
+    /// The simulated seconds its recording must cover: what its record claims, and never
+    /// less than its floor (a participant's record cannot shrink what is asked of CARLA).
+    pub fn seconds(&self) -> f64 {
+        self.game_seconds.max(self.floor_seconds).max(0.0)
+    }
+
     /// The least size consistent with its route's simulated time.
     pub fn min_bytes(&self) -> u64 {
-        let frames = self.game_seconds.max(0.0) * FRAMES_PER_SECOND * MIN_SHARE;
+        let frames = self.seconds() * FRAMES_PER_SECOND * MIN_SHARE;
         (frames * MIN_FRAME_BYTES) as u64 + MAGIC.len() as u64
     }
 }
 
 /// The recordings the scoring routes need: `RouteScenario_3_rep1` is recorded as
 /// `RouteScenario_3_rep1.log`; a route id without a repetition (Leaderboard 1.0) is recorded
-/// once per record, as repetitions `_rep0`, `_rep1`, ... in the records' order.
-pub fn expected(routes: &[Route]) -> Vec<Expected> {
+/// once per record, as repetitions `_rep0`, `_rep1`, ... in the records' order. `lengths`
+/// are the organisers' route lengths in metres by route number (empty: no floor).
+pub fn expected(routes: &[Route], lengths: &[u32]) -> Vec<Expected> {
     let mut seen: HashMap<&str, u32> = HashMap::new();
     routes
         .iter()
@@ -100,10 +119,14 @@ pub fn expected(routes: &[Route]) -> Vec<Expected> {
                 *n += 1;
                 name
             };
+            let at = usize::try_from(route.route).ok();
+            let length = at.and_then(|at| lengths.get(at)).copied().unwrap_or(0);
+            let done = (route.completion / 100.0).clamp(0.0, 1.0);
             route.scores.then_some(Expected {
                 pair: route.pair,
                 stem,
                 game_seconds: route.game_seconds,
+                floor_seconds: f64::from(length) * done / TOP_SPEED,
             })
         })
         .collect()
@@ -166,6 +189,15 @@ pub fn audit(
     for e in expected {
         let why = match stored.get(&(e.pair, e.stem.as_str())) {
             None => Some(missing(e, &stored)),
+            Some(&size) if size < e.min_bytes() && e.floor_seconds > e.game_seconds => {
+                Some(format!(
+                    "{size} bytes for the {:.1} s its route's completed part takes at least \
+                     (its record claims {:.1} s; at least {} expected)",
+                    e.floor_seconds,
+                    e.game_seconds.max(0.0),
+                    e.min_bytes()
+                ))
+            }
             Some(&size) if size < e.min_bytes() => Some(format!(
                 "{size} bytes for {:.1} s of simulated time (at least {} expected)",
                 e.game_seconds,
@@ -262,21 +294,28 @@ mod tests {
         bytes
     }
 
+    /// A record of `id` (`RouteScenario_<N>...`) that completed its route.
     fn route(pair: PairId, id: &str, game_seconds: f64) -> Route {
+        let number = id.trim_start_matches("RouteScenario_").split('_').next();
         Route {
             pair,
             id: id.into(),
+            route: number.and_then(|n| n.parse().ok()).unwrap(),
             game_seconds,
+            completion: 100.0,
             scores: true,
         }
     }
 
     #[test]
     fn each_scoring_record_needs_its_own_recording_in_its_pair_s_folder() {
-        let v2 = expected(&[
-            route(1, "RouteScenario_3_rep0", 10.0),
-            route(2, "RouteScenario_4_rep0", 10.0),
-        ]);
+        let v2 = expected(
+            &[
+                route(1, "RouteScenario_3_rep0", 10.0),
+                route(2, "RouteScenario_4_rep0", 10.0),
+            ],
+            &[],
+        );
         let keys: Vec<String> = v2.iter().map(Expected::key).collect();
         assert_eq!(
             keys,
@@ -289,11 +328,14 @@ mod tests {
         // nothing needs no recording, but still takes its repetition's number.
         let mut nothing = route(1, "RouteScenario_0", 0.0);
         nothing.scores = false;
-        let v1 = expected(&[
-            route(1, "RouteScenario_0", 10.0),
-            nothing,
-            route(1, "RouteScenario_0", 10.0),
-        ]);
+        let v1 = expected(
+            &[
+                route(1, "RouteScenario_0", 10.0),
+                nothing,
+                route(1, "RouteScenario_0", 10.0),
+            ],
+            &[],
+        );
         let stems: Vec<&str> = v1.iter().map(|e| e.stem.as_str()).collect();
         assert_eq!(stems, ["RouteScenario_0_rep0", "RouteScenario_0_rep2"]);
     }
@@ -309,7 +351,7 @@ mod tests {
             route(2, "RouteScenario_5_rep0", 100.0),
             route(2, "RouteScenario_6_rep0", 100.0),
         ];
-        let expected = expected(&routes);
+        let expected = expected(&routes, &[]);
         let min = expected[0].min_bytes();
         // 100 simulated seconds: 20 frames a second of at least 34 bytes, 90 % of them.
         assert_eq!(min, 61_200 + MAGIC.len() as u64);
@@ -364,6 +406,40 @@ mod tests {
     }
 
     #[test]
+    fn a_record_cannot_claim_less_time_than_its_route_s_completed_part_takes() {
+        // The organisers' routes: 0 is 4,000 m, 1 is 1,000 m.
+        let lengths = [4_000, 1_000];
+        let mut half = route(1, "RouteScenario_1_rep0", 600.0);
+        half.completion = 50.0;
+        let claims = [route(1, "RouteScenario_0_rep0", 0.0), half];
+        let expected = expected(&claims, &lengths);
+        // 4,000 m at 40 m/s: 100 s, whatever the record says; half of 1,000 m: 12.5 s, below
+        // the 600 s the record claims, which stand.
+        assert_eq!(expected[0].seconds(), 100.0);
+        assert_eq!(expected[0].min_bytes(), 61_200 + MAGIC.len() as u64);
+        assert_eq!(expected[1].seconds(), 600.0);
+        // A header-only recording fits a claim of 0 s, not the floor.
+        let listed: Vec<(String, u64)> = vec![(expected[0].key(), 45)];
+        let window = Window {
+            launched_at: LAUNCHED,
+        };
+        let heads = HashMap::from([(expected[0].key(), head(LAUNCHED as i64))]);
+        let audit = audit(&expected[..1], &listed, &heads, window);
+        assert_eq!(
+            audit.failures,
+            ["RouteScenario_0_rep0: 45 bytes for the 100.0 s its route's completed part takes at \
+              least (its record claims 0.0 s; at least 61218 expected)"]
+        );
+        // Without the organisers' lengths, the claim alone sizes it (and a header passes).
+        let claimed_only = super::expected(&claims, &[]);
+        assert_eq!(claimed_only[0].seconds(), 0.0);
+        assert_eq!(
+            super::audit(&claimed_only[..1], &listed, &heads, window).failures,
+            Vec::<String>::new()
+        );
+    }
+
+    #[test]
     fn a_header_names_its_date_and_map() {
         let window = Window {
             launched_at: LAUNCHED,
@@ -386,7 +462,7 @@ mod tests {
 
     #[test]
     fn a_complete_audit_is_every_expected_recording_passing() {
-        let expected = expected(&[route(3, "RouteScenario_9_rep0", 0.0)]);
+        let expected = expected(&[route(3, "RouteScenario_9_rep0", 0.0)], &[]);
         let listed = vec![(expected[0].key(), MAGIC.len() as u64 + 40)];
         let heads = [(expected[0].key(), head(LAUNCHED as i64))]
             .into_iter()

@@ -47,6 +47,9 @@ pub struct Context<'a> {
     pub track: &'a str,
     /// The qualifier's settings, when the track is a qualifier.
     pub qualifier: Option<&'a QualifierSettings>,
+    /// The track's route lengths in metres, by route number (empty: none given): the floor
+    /// of each recording's audit.
+    pub route_lengths: &'a [u32],
     /// Now, epoch seconds: the pods still running at the last round are charged until now.
     pub now: u64,
     /// The GPU prices the run's usage is priced at.
@@ -488,9 +491,9 @@ impl<'a> Closing<'a> {
     }
 
     fn expected(&self) -> Vec<audit::Expected> {
-        self.merged
-            .as_ref()
-            .map_or_else(Vec::new, |m| audit::expected(&m.routes))
+        self.merged.as_ref().map_or_else(Vec::new, |m| {
+            audit::expected(&m.routes, self.cx.route_lengths)
+        })
     }
 
     /// The recordings judged (`None` without a run to date them by).
@@ -622,6 +625,7 @@ mod tests {
             run,
             track: "qualifier",
             qualifier: None,
+            route_lengths: &[],
             now: 0,
             prices: &NO_PRICES,
         }
@@ -639,7 +643,9 @@ mod tests {
                 .map(|n| audit::Route {
                     pair: 1,
                     id: format!("RouteScenario_{n}_rep0"),
+                    route: n,
                     game_seconds: 1.0,
+                    completion: 100.0,
                     scores: true,
                 })
                 .collect(),

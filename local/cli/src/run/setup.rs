@@ -124,6 +124,16 @@ pub(super) fn settings_for(args: &LocalRun) -> anyhow::Result<Value> {
     let mut settings: Value = serde_json::from_str(LOCAL_SETTINGS)?;
     let track = &mut settings["leaderboards"][board]["tracks"]["SENSORS"];
     track["routes"] = json!(args.routes);
+    // The organisers' lengths of the fake evaluator's routes, one per route of this run (its
+    // records repeat the fixture's, so the lengths repeat with them).
+    if let Some(given) = track["route_lengths"]
+        .as_array()
+        .filter(|l| !l.is_empty())
+        .cloned()
+    {
+        let each = (0..args.routes as usize).map(|n| given[n % given.len()].clone());
+        track["route_lengths"] = Value::Array(each.collect());
+    }
     track["workers"] = json!(args.workers);
     // The Monitor's clock is real while the executor scales every wait: the least interval
     // between partial updates is scaled here, or a fast run would defer its updates and spin.
