@@ -364,8 +364,11 @@ pub struct ResourcesContext {
     pub simulator: ContainerResources,
     /// Each `agent-<ID>`, with the pair's GPU.
     pub agent: ContainerResources,
-    /// `private-contents` and `logcopy`.
+    /// `private-contents`.
     pub sidecar: ContainerResources,
+    /// `logcopy`: the sidecar's, with the disk-backed volumes' room requested
+    /// ([`Storage::logcopy`]).
+    pub logcopy: ContainerResources,
     /// `sizeLimit` of the Pod's `/dev/shm`: the per-pair size times the Job's pairs.
     pub shm: String,
     /// `sizeLimit`s of the disk-backed volumes.
@@ -815,6 +818,10 @@ impl JobContext {
                 simulator: ContainerResources::of(settings.resources.simulator, Storage::SIMULATOR),
                 agent: ContainerResources::of(settings.resources.agent, Storage::AGENT).with_gpu(),
                 sidecar: ContainerResources::of(Allotment::SIDECAR, Storage::SIDECAR),
+                logcopy: ContainerResources::of(
+                    Allotment::SIDECAR,
+                    Storage::logcopy(VolumeSizes::JOB, job.pairs.len() as u32),
+                ),
                 shm: format!("{}Mi", settings.resources.shm_mib * job.pairs.len() as u32),
                 volumes: VolumesContext::of(VolumeSizes::JOB, job.pairs.len() as u32),
             },

@@ -206,6 +206,8 @@ fn check_container(c: &Container, at: &str, context: &JobContext) -> Result<(), 
         &context.resources.simulator
     } else if c.name.starts_with("agent-") {
         &context.resources.agent
+    } else if c.name == "logcopy" {
+        &context.resources.logcopy
     } else {
         &context.resources.sidecar
     };

@@ -901,10 +901,13 @@ fn every_container_is_confined_and_sized_from_the_settings() {
                 assert_eq!(sc.run_as_non_root, (!agent).then_some(true), "{}", c.name);
                 assert_eq!(sc.run_as_user, (!agent).then_some(1000), "{}", c.name);
                 // Disk: a request for what it normally writes, a limit where the kubelet
-                // evicts it as a failure of its own.
+                // evicts it as a failure of its own; logcopy's also holds the room of every
+                // disk-backed volume, so a pod within its limits is within its request.
+                let logcopy = format!("{}Gi", 1 + disk_volumes_gib(&pod));
                 let (cpu, memory, disk, disk_limit) = match c.name.split('-').next().unwrap() {
                     "simulator" => ("4000m", "16384Mi", "1Gi", "4Gi"),
                     "agent" => ("6000m", "24576Mi", "4Gi", "16Gi"),
+                    "logcopy" => ("500m", "512Mi", logcopy.as_str(), logcopy.as_str()),
                     _ => ("500m", "512Mi", "1Gi", "1Gi"),
                 };
                 let mut expected: BTreeMap<String, String> = [
@@ -928,6 +931,26 @@ fn every_container_is_confined_and_sized_from_the_settings() {
             }
         }
     }
+}
+
+/// The `sizeLimit`s of the pod's disk-backed `emptyDir`s together, GiB rounded up.
+fn disk_volumes_gib(pod: &PodSpec) -> u64 {
+    let mib: u64 = pod
+        .volumes
+        .iter()
+        .flatten()
+        .filter_map(|v| v.empty_dir.as_ref())
+        .filter(|d| d.medium.as_deref() != Some("Memory"))
+        .map(|d| {
+            let q = &d.size_limit.as_ref().expect("every emptyDir is bounded").0;
+            match q.split_at(q.len() - 2) {
+                (n, "Gi") => n.parse::<u64>().unwrap() * 1024,
+                (n, "Mi") => n.parse::<u64>().unwrap(),
+                _ => panic!("unexpected quantity {q}"),
+            }
+        })
+        .sum();
+    mib.div_ceil(1024)
 }
 
 #[test]

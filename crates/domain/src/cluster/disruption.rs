@@ -32,6 +32,18 @@ pub const KUBELET_PLATFORM_MESSAGES: [&str; 2] = [
     "Pod was preempted by Kubelet to accommodate a critical pod.",
 ];
 
+/// How the kubelet begins a pressure eviction's message (`nodeLowMessageFmt`), and how it names
+/// each container of the evicted pod that used more of the starved resource than it requested
+/// (`containerMessageFmt`: "Container agent-1 was using 9Gi, request is 4Gi, has larger
+/// consumption of ephemeral-storage."), in `pkg/kubelet/eviction/helpers.go`.
+const PRESSURE_PREFIX: &str = "The node was low on resource: ";
+const OVER_REQUEST: &str = "has larger consumption of";
+
+/// The starved resources whose evictions the kubelet ranks by use above request and words per
+/// container. Inodes and PIDs have no request: their evictions rank by use alone and name no
+/// container, so the evicted pod is the top user, its own doing.
+const RANKED_BY_REQUEST: [&str; 2] = ["ephemeral-storage", "memory"];
+
 /// Node taints that mean the node is going away: cordoned (drain), chosen by the Cluster
 /// Autoscaler or Karpenter for removal, shut down, out of service, unreachable.
 const LEAVING_TAINTS: [&str; 7] = [
@@ -73,11 +85,25 @@ pub fn classify(reason: &str, message: Option<&str>) -> Disruption {
     match reason {
         r if CONTROL_PLANE_REASONS.contains(&r) => Disruption::Reclaim,
         BY_KUBELET if message.is_some_and(platform) => Disruption::Reclaim,
+        BY_KUBELET if message.is_some_and(crowded_out) => Disruption::Reclaim,
         BY_KUBELET => Disruption::ByKubelet,
         // A reason this code does not know is not taken as free: new free reasons are added
         // above once the control plane is seen writing them.
         _ => Disruption::Own,
     }
+}
+
+/// Whether a pressure eviction's message says the pod was within its share: disk or memory
+/// ran short on the node, yet none of the pod's containers used more than it requested. The
+/// kubelet evicts the pods above their requests first, and the Jobs request every volume's room
+/// (`lb_domain::cluster::resources::Storage::logcopy`), so such a pod made room for a
+/// co-tenant's use, a neighbour's or the node's own: free for it, as a reclaim.
+pub fn crowded_out(message: &str) -> bool {
+    let Some(rest) = message.trim_start().strip_prefix(PRESSURE_PREFIX) else {
+        return false;
+    };
+    let resource = rest.split(['.', ' ']).next().unwrap_or_default();
+    RANKED_BY_REQUEST.contains(&resource) && !message.contains(OVER_REQUEST)
 }
 
 /// What a node's object says.
@@ -141,8 +167,20 @@ mod tests {
         let cordoned = node(true, true, &["node.kubernetes.io/unschedulable"]);
         let scaling_down = node(false, true, &["ToBeDeletedByClusterAutoscaler"]);
         let not_ready = node(false, false, &[]);
-        let pressure = Some("The node was low on resource: ephemeral-storage. ");
-        let cases: [(&str, Option<&str>, Option<&NodeFacts>, Disruption); 13] = [
+        // The kubelet's words: the pod named over its request, or the top user of inodes.
+        let pressure = Some(
+            "The node was low on resource: ephemeral-storage. Threshold quantity: 30Gi, \
+             available: 29Gi. Container agent-1 was using 20Gi, request is 4Gi, has larger \
+             consumption of ephemeral-storage. ",
+        );
+        let inodes = Some("The node was low on resource: inodes. ");
+        // A co-tenant's victim: within its requests, evicted to make room.
+        let crowded = Some(
+            "The node was low on resource: ephemeral-storage. Threshold quantity: 30Gi, \
+             available: 29Gi. ",
+        );
+        let crowded_memory = Some("The node was low on resource: memory. ");
+        let cases: [(&str, Option<&str>, Option<&NodeFacts>, Disruption); 18] = [
             (
                 "EvictionByEvictionAPI",
                 None,
@@ -160,8 +198,25 @@ mod tests {
             // The participant filled the node's disk, or its inodes or PIDs.
             (BY_KUBELET, pressure, Some(&healthy), Disruption::Own),
             (BY_KUBELET, pressure, Some(&pressured), Disruption::Own),
+            (BY_KUBELET, inodes, Some(&pressured), Disruption::Own),
+            (
+                BY_KUBELET,
+                Some("The node was low on resource: pids."),
+                None,
+                Disruption::Own,
+            ),
             // Its node gone before a round judged it: the emptied node scaled down.
             (BY_KUBELET, pressure, None, Disruption::Own),
+            // Within its share: a neighbour's disk or memory use pushed it out, on a healthy
+            // node, a pressured one or one gone since.
+            (BY_KUBELET, crowded, Some(&pressured), Disruption::Reclaim),
+            (BY_KUBELET, crowded, None, Disruption::Reclaim),
+            (
+                BY_KUBELET,
+                crowded_memory,
+                Some(&healthy),
+                Disruption::Reclaim,
+            ),
             // The node is going anyway.
             (BY_KUBELET, pressure, Some(&cordoned), Disruption::Reclaim),
             (
@@ -188,6 +243,25 @@ mod tests {
         for (reason, message, node, expected) in cases {
             let judged = judge(classify(reason, message), leaving(node));
             assert_eq!(judged, expected, "{reason} {message:?} {node:?}");
+        }
+    }
+
+    #[test]
+    fn only_a_disk_or_memory_eviction_naming_none_of_the_pod_s_containers_crowded_it_out() {
+        for (message, crowded) in [
+            ("The node was low on resource: ephemeral-storage. ", true),
+            ("The node was low on resource: memory. Threshold quantity: 100Mi, available: 90Mi. ", true),
+            (
+                "The node was low on resource: memory. Container agent-1 was using 17Gi, request \
+                 is 16Gi, has larger consumption of memory. ",
+                false,
+            ),
+            ("The node was low on resource: inodes. ", false),
+            ("The node was low on resource: ephemeral-storagex. ", false),
+            ("Pod ephemeral local storage usage exceeds the total limit of containers 26Gi. ", false),
+            ("", false),
+        ] {
+            assert_eq!(crowded_out(message), crowded, "{message}");
         }
     }
 }

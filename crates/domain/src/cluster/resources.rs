@@ -111,7 +111,8 @@ impl Storage {
         request_gib: 4,
         limit_gib: 16,
     };
-    /// Init and logcopy: they write into the volumes, not their own layers.
+    /// Init and logcopy: they write into the volumes, not their own layers (logcopy also
+    /// requests the volumes' room: [`Storage::logcopy`]).
     pub const SIDECAR: Storage = Storage {
         request_gib: 1,
         limit_gib: 1,
@@ -137,6 +138,27 @@ impl VolumeSizes {
         bin_mib: 256,
         sources_mib: 2048,
     };
+
+    /// What the volumes of a Job of `pairs` may hold together, GiB, rounded up.
+    pub fn total_gib(self, pairs: u32) -> u32 {
+        let mib = self.bin_mib + 3 * self.sources_mib;
+        self.logs_per_pair_gib * pairs + mib.div_ceil(1024)
+    }
+}
+
+impl Storage {
+    /// logcopy's share: its own, plus room for every disk-backed volume at its `sizeLimit`.
+    /// The scheduler then keeps on the node all the disk the pod may fill without passing a
+    /// limit, and a pod the kubelet evicts for disk pressure without naming one of its
+    /// containers as over its request was within its share: a co-tenant's victim
+    /// (`lb_domain::cluster::disruption::crowded_out`), not the cause.
+    pub fn logcopy(volumes: VolumeSizes, pairs: u32) -> Storage {
+        let room = volumes.total_gib(pairs);
+        Storage {
+            request_gib: Storage::SIDECAR.request_gib + room,
+            limit_gib: Storage::SIDECAR.limit_gib + room,
+        }
+    }
 }
 
 /// CPU (millicores) and memory (MiB) of one container, requested and limited alike.
