@@ -903,7 +903,7 @@ fn every_container_is_confined_and_sized_from_the_settings() {
                 // Disk: a request for what it normally writes, a limit where the kubelet
                 // evicts it as a failure of its own; logcopy's also holds the room of every
                 // disk-backed volume, so a pod within its limits is within its request.
-                let logcopy = format!("{}Gi", 1 + disk_volumes_gib(&pod));
+                let logcopy = format!("{}Gi", 1 + disk_volumes_gib(pod));
                 let (cpu, memory, disk, disk_limit) = match c.name.split('-').next().unwrap() {
                     "simulator" => ("4000m", "16384Mi", "1Gi", "4Gi"),
                     "agent" => ("6000m", "24576Mi", "4Gi", "16Gi"),
