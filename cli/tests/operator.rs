@@ -119,6 +119,50 @@ fn list_ids(text: &str) -> Vec<u64> {
 
 #[tokio::test]
 #[ignore = "needs moto"]
+async fn a_failure_of_the_platform_s_own_is_shown_apart_from_the_participant_s() {
+    let (stack, env) = common::stack(Fixture::default()).await;
+    let sdk = &stack.sdk;
+    let error = (
+        "error",
+        AttributeValue::S("the platform took its pods away".into()),
+    );
+    let platform = [
+        error.clone(),
+        ("failed_by", AttributeValue::S("platform".into())),
+    ];
+    put_record(sdk, TABLE_20, 1, 201, "FAILED", &platform).await;
+    put_record(sdk, TABLE_20, 2, 202, "FAILED", &[error]).await;
+
+    let out = lbctl(&["status", "201"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    for line in [
+        "status       FAILED!",
+        "failed by    the platform",
+        "`lbctl resume 201` once EvalAI reports it resuming",
+    ] {
+        assert!(stdout(&out).contains(line), "{line}: {}", show(&out));
+    }
+    let out = lbctl(&["status", "202"], &env, None);
+    assert!(
+        stdout(&out).contains("status       FAILED\n"),
+        "{}",
+        show(&out)
+    );
+    assert!(!stdout(&out).contains("failed by"), "{}", show(&out));
+
+    let out = lbctl(&["list"], &env, None);
+    let text = stdout(&out);
+    let line = |id: &str| text.lines().find(|l| l.starts_with(id)).unwrap_or_default();
+    assert!(line("201").contains(" FAILED! "), "{text}");
+    assert!(line("202").contains(" FAILED "), "{text}");
+    assert!(
+        text.contains("! failed by the platform's own failure"),
+        "{text}"
+    );
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
 async fn status_and_list_show_the_records_and_markers_put_in_the_deployment() {
     let (stack, env) = common::stack(Fixture::default()).await;
     let sdk = &stack.sdk;

@@ -176,6 +176,9 @@ fn print_list(
     if shown.iter().any(|r| unaudited(r)) {
         outln!("* some routes have no CARLA recording that passed the audit: the scores cannot be audited (lbctl status <submission>)");
     }
+    if shown.iter().any(|r| status_mark(r) == "!") {
+        outln!("! failed by the platform's own failure, not the participant's: resumable, and not counted against the team's limits (lbctl status <submission>)");
+    }
 }
 
 /// Claimed submissions whose Jobs do not run yet, per leaderboard, oldest first: the queue.
@@ -292,11 +295,7 @@ fn list_line(
         "{:<10} {:<4} {:<9} {:>5} {:>9} {:>6} {:<28} {:<18} {:>7} {:>14}  {:<23} {}",
         number(record.submission_id),
         clean(&record.leaderboard),
-        format!(
-            "{}{}",
-            text(Some(&record.status_word)),
-            if unaudited(record) { "*" } else { "" }
-        ),
+        format!("{}{}", text(Some(&record.status_word)), status_mark(record)),
         queue.map_or_else(|| "-".to_string(), |q| q.to_string()),
         estimate.map_or_else(|| "-".to_string(), short_estimate),
         age.map_or_else(|| "-".to_string(), short_age),

@@ -237,3 +237,13 @@ fn recordings(record: &Record) -> Option<(u64, u64)> {
 fn unaudited(record: &Record) -> bool {
     record.is_unaudited()
 }
+
+/// What follows a record's status: `*` for a result that cannot be audited, `!` for a
+/// failure of the platform's own (footnoted where shown).
+fn status_mark(record: &Record) -> &'static str {
+    match (unaudited(record), record.failed_by_platform) {
+        (true, _) => "*",
+        (false, true) => "!",
+        (false, false) => "",
+    }
+}

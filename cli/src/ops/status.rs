@@ -129,11 +129,7 @@ fn record_rows(record: &Record) -> Vec<(&'static str, String)> {
     vec![
         (
             "status",
-            format!(
-                "{}{}",
-                text(Some(&record.status_word)),
-                if unaudited(record) { "*" } else { "" }
-            ),
+            format!("{}{}", text(Some(&record.status_word)), status_mark(record)),
         ),
         (
             "team",
@@ -192,6 +188,13 @@ fn print_record(record: &Record) {
     }
     if let Some(error) = record.error.as_deref() {
         outln!("  {:<12} {}", "error", clean(error));
+    }
+    if record.failed_by_platform {
+        outln!(
+            "  {:<12} the platform (its reclaims took a pair's pods away past the free ones), not the participant: EvalAI's `failed` does not count against the team's limits; `lbctl resume {}` once EvalAI reports it resuming",
+            "failed by",
+            record.submission_id.unwrap_or_default()
+        );
     }
     if let Some((passed, expected)) = recordings(record) {
         let note = if passed < expected {

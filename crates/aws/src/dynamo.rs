@@ -76,6 +76,8 @@ pub struct FinalRecord {
     pub progress: (u64, u64),
     /// Why it failed, readable.
     pub error: Option<String>,
+    /// The failure was the platform's own (`failed_by`), not the participant's.
+    pub failed_by_platform: bool,
     /// The audit of the result's CARLA recordings (FINISHED only): what an operator can check
     /// of its scores (`lb_domain::run::audit`).
     pub recordings: Option<Recordings>,
@@ -403,6 +405,7 @@ impl SubmissionsTable {
             claimed_by: text(attr::CLAIMED_BY),
             status,
             error: text(attr::ERROR),
+            failed_by_platform: text(attr::FAILED_BY).as_deref() == Some(attr::PLATFORM),
         }))
     }
 
@@ -497,6 +500,39 @@ type Update = (
     HashMap<String, AttributeValue>,
 );
 
+/// Clauses of an update: what it sets, with the names and values they use, and what it
+/// removes.
+#[derive(Default)]
+struct Clauses {
+    set: Vec<String>,
+    remove: Vec<&'static str>,
+    names: HashMap<String, String>,
+    values: HashMap<String, AttributeValue>,
+}
+
+/// The failure's reason and whose it was, set or removed: a resumed submission that now
+/// finishes (or fails otherwise) must not keep the old run's.
+fn failure_clauses(record: &FinalRecord) -> Clauses {
+    let mut c = Clauses::default();
+    c.names.insert("#error".into(), attr::ERROR.into());
+    match &record.error {
+        Some(error) => {
+            c.set.push("#error = :error".into());
+            c.values.insert(":error".into(), s(error));
+        }
+        None => c.remove.push("#error"),
+    }
+    c.names.insert("#failed_by".into(), attr::FAILED_BY.into());
+    match record.failed_by_platform {
+        true => {
+            c.set.push("#failed_by = :failed_by".into());
+            c.values.insert(":failed_by".into(), s(attr::PLATFORM));
+        }
+        false => c.remove.push("#failed_by"),
+    }
+    c
+}
+
 fn final_update(record: &FinalRecord) -> Update {
     let mut set = vec![
         "submission_status = :status".to_string(),
@@ -518,16 +554,11 @@ fn final_update(record: &FinalRecord) -> Update {
         names.insert(format!("#m{i}"), attribute.to_string());
         values.insert(format!(":m{i}"), s(value.as_deref().unwrap_or(UNKNOWN)));
     }
-    let mut remove = Vec::new();
-    names.insert("#error".into(), attr::ERROR.into());
-    match &record.error {
-        Some(error) => {
-            set.push("#error = :error".into());
-            values.insert(":error".into(), s(error));
-        }
-        // A resumed submission that now finishes must not keep the old run's error.
-        None => remove.push("#error"),
-    }
+    let failure = failure_clauses(record);
+    let mut remove = failure.remove;
+    set.extend(failure.set);
+    names.extend(failure.names);
+    values.extend(failure.values);
     names.insert("#found".into(), attr::RECORDINGS_FOUND.into());
     names.insert("#expected".into(), attr::RECORDINGS_EXPECTED.into());
     names.insert("#failed".into(), attr::RECORDINGS_FAILED.into());
@@ -586,6 +617,8 @@ pub struct Standing {
     pub status: Option<RecordStatus>,
     /// The stored failure reason.
     pub error: Option<String>,
+    /// The failure was the platform's own.
+    pub failed_by_platform: bool,
 }
 
 /// The qualifier table: which team passed which qualifier track.

@@ -42,6 +42,10 @@ pub mod attr {
     pub const RESULTS: &str = "results";
     /// Why it failed.
     pub const ERROR: &str = "error";
+    /// Whose failure it was, when the platform's own ([`PLATFORM`]); absent otherwise.
+    pub const FAILED_BY: &str = "failed_by";
+    /// [`FAILED_BY`]'s one value.
+    pub const PLATFORM: &str = "platform";
     /// The execution that claimed it.
     pub const CLAIMED_BY: &str = "claimed_by";
     /// Routes whose recording passed the audit.
@@ -91,6 +95,7 @@ pub mod attr {
         ROUTES_TOTAL,
         RESULTS,
         ERROR,
+        FAILED_BY,
         CLAIMED_BY,
         RECORDINGS_FOUND,
         RECORDINGS_EXPECTED,
@@ -162,6 +167,8 @@ pub struct StoredRecord {
     pub results: Option<String>,
     /// Why it failed.
     pub error: Option<String>,
+    /// It failed for the platform's own failure, not the participant's.
+    pub failed_by_platform: bool,
     /// The execution that claimed it.
     pub claimed_by: Option<String>,
     /// Routes whose recording passed the audit, and the routes that need one (FINISHED only).
@@ -231,6 +238,7 @@ impl StoredRecord {
             end_time: text(attr::END_TIME),
             results: text(attr::RESULTS),
             error: text(attr::ERROR),
+            failed_by_platform: text(attr::FAILED_BY).as_deref() == Some(attr::PLATFORM),
             claimed_by: text(attr::CLAIMED_BY),
             recordings: number(attr::RECORDINGS_FOUND).zip(number(attr::RECORDINGS_EXPECTED)),
             recordings_failed,

@@ -190,6 +190,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
         metrics: vec![("driving_score", None)],
         progress: (5, 20),
         error: Some("CARLA crashed too often".into()),
+        failed_by_platform: true,
         recordings: Some(lb_domain::run::audit::Recordings {
             passed: 4,
             expected: 5,
@@ -219,6 +220,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(standing.claimed_by.as_deref(), Some("exec-1"));
     assert_eq!(standing.status, Some(RecordStatus::Failed));
     assert_eq!(standing.error.as_deref(), Some("CARLA crashed too often"));
+    assert!(standing.failed_by_platform);
     let item = table.record(7, 42).await.unwrap().unwrap().item;
     assert_eq!(
         item["driving_score"],
@@ -276,6 +278,7 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
                 metrics: metrics.clone(),
                 progress: (20, 20),
                 error: None,
+                failed_by_platform: false,
                 recordings: None,
                 usage: None,
             },
@@ -293,6 +296,10 @@ async fn the_claim_admits_one_evaluation_per_delivery_and_a_resume_after_it_ende
     assert_eq!(item["end_time"], text("2026-11-21 08:00:00 UTC"));
     assert_eq!(item["team_name"], text("Team 🚗 One"));
     assert!(!item.contains_key("error"));
+    assert!(
+        !item.contains_key("failed_by"),
+        "nor whose the old failure was"
+    );
     // Nor the old run's count of recordings, when this one has none.
     for attribute in [
         "recordings_found",

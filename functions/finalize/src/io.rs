@@ -151,11 +151,17 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             Step::WriteRecord {
                 status,
                 error,
+                failed_by_platform,
                 recordings,
                 usage,
             } => {
                 let usage = usage.map(|totals| self.with_this_invocation(totals));
-                Answer::Recorded(self.write_record(status, error, recordings, usage).await?)
+                let failure = Failure {
+                    status,
+                    error,
+                    by_platform: failed_by_platform,
+                };
+                Answer::Recorded(self.write_record(failure, recordings, usage).await?)
             }
             Step::RecordPace { seconds } => self.record_pace(seconds).await,
             Step::LeaveQueue => leave_queue(self.deps, sub).await.map(|()| Answer::Done)?,
@@ -171,6 +177,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             claimed_by: s.claimed_by,
             status: s.status,
             error: s.error,
+            failed_by_platform: s.failed_by_platform,
         }))
     }
 
@@ -244,8 +251,11 @@ impl<'a, C: Callbacks> Shell<'a, C> {
     /// and what the run cost. `false` when the claim moved on while this ran.
     async fn write_record(
         &self,
-        status: RecordStatus,
-        error: Option<String>,
+        Failure {
+            status,
+            error,
+            by_platform,
+        }: Failure,
         recordings: Option<Recordings>,
         usage: Option<Totals>,
     ) -> Result<bool> {
@@ -271,6 +281,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 .collect(),
             progress: snapshot.map_or((0, 0), |s| s.progress),
             error,
+            failed_by_platform: by_platform,
             recordings,
             usage,
         };
@@ -361,6 +372,13 @@ where
         .filter_map(std::future::ready)
         .collect()
         .await
+}
+
+/// The record's final status, and why when it failed (whose failure too).
+struct Failure {
+    status: RecordStatus,
+    error: Option<String>,
+    by_platform: bool,
 }
 
 /// What the final EvalAI update says besides the files: the status, and the texts shown as

@@ -18,7 +18,7 @@ use lb_aws::dynamo::RecordStatus;
 use lb_aws::executions::Executions;
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
-use lb_domain::run::closing::{Closing, Context};
+use lb_domain::run::closing::{Closing, Context, Settlement};
 use lb_domain::status::Settled;
 use lb_domain::submission::SubmissionStatus;
 use lb_pipeline::clients::{self, RunClients};
@@ -99,6 +99,10 @@ pub struct FinalizeOutput {
     pub status: Settled,
     /// A stage failed: the execution ends as failed so operators see it.
     pub pipeline_error: bool,
+    /// The submission failed for the platform's own failure (its reclaims past a pair's free
+    /// ones), not the participant's: the execution ends as failed too, apart.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub platform_failure: bool,
     /// Why, for failed submissions.
     #[serde(
         default,
@@ -210,6 +214,7 @@ pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Resul
         }) => Ok(FinalizeOutput {
             status: Settled::Unclaimed,
             pipeline_error: error.is_some(),
+            platform_failure: false,
             reason: error,
         }),
         Some(Decision::Skip {
@@ -225,6 +230,7 @@ pub async fn handle<C: Callbacks>(input: FinalizeInput, deps: &Deps<C>) -> Resul
             Ok(FinalizeOutput {
                 status: Settled::Unclaimed,
                 pipeline_error: true,
+                platform_failure: false,
                 reason: error,
             })
         }
@@ -246,6 +252,7 @@ async fn refuse<C>(
     Ok(FinalizeOutput {
         status: Settled::Ended(RecordStatus::Failed),
         pipeline_error: false,
+        platform_failure: false,
         reason: Some(reason),
     })
 }
@@ -282,13 +289,19 @@ async fn finish_run<C: Callbacks>(
         closing.answer(Box::pin(shell.perform(batch)).await?);
     }
     let id = submission.submission_id;
-    let Some((status, reason)) = closing.finish() else {
+    let Some(Settlement {
+        status,
+        reason,
+        by_platform,
+    }) = closing.finish()
+    else {
         // Only a shell that answered out of turn gets here: operators must see it.
         let why = "Finalize ended before it decided the final status";
         warn!(submission_id = id, why, "a bug in Finalize's shell");
         return Ok(FinalizeOutput {
             status: Settled::Unclaimed,
             pipeline_error: true,
+            platform_failure: false,
             reason: Some(why.into()),
         });
     };
@@ -298,6 +311,7 @@ async fn finish_run<C: Callbacks>(
     Ok(FinalizeOutput {
         status,
         pipeline_error: error.is_some(),
+        platform_failure: by_platform,
         reason,
     })
 }

@@ -83,6 +83,8 @@ pub struct LeftBehind {
     pub places_held: Option<usize>,
     /// Its record's status.
     pub record_status: Option<String>,
+    /// Its record says the failure was the platform's own (`failed_by`).
+    pub failed_by_platform: bool,
     /// The digest the participant's tag names in the registry (the Jobs run it).
     pub registry_digest: Option<String>,
     /// Its record's routes whose CARLA recording passed the audit, and the routes that need

@@ -86,7 +86,7 @@ fn a_run_stopped_while_evalai_is_down_is_ended_by_the_reaper_s_pass_once_it_is_b
 #[test]
 #[ignore = "needs moto"]
 fn an_unpullable_image_a_crash_loop_and_no_node_fail_with_their_reasons() {
-    for name in ["unpullable", "crash-loop", "no-node"] {
+    for name in ["unpullable", "crash-loop", "no-node", "drain-loop"] {
         scenario(name, "FAILED", &Value::Null);
     }
 }
@@ -151,6 +151,35 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
                 stderr.contains("BackoffLimitExceeded") || stdout.contains("BackoffLimitExceeded"),
                 "{report}\n{stdout}"
             );
+            // The participant's own failure: the execution ends well, the record is theirs.
+            assert_eq!(report["error"], Value::Null, "{report}");
+            assert_eq!(
+                report["left_behind"]["failed_by_platform"], false,
+                "{report}"
+            );
+        }
+        "drain-loop" => {
+            // Pair 1 drained past its free reclaims, none of it the participant's doing: the
+            // platform's own failure, told as such, and marked for operators.
+            assert!(stderr.contains("PlatformReclaims"), "{report}");
+            assert!(
+                stderr.contains("5 of its pods were taken away by the platform")
+                    && stderr.contains("not your agent's")
+                    && !stderr.contains("disruption of their own"),
+                "{report}"
+            );
+            assert!(!stderr.contains("The last lines of agent"), "{report}");
+            let note = "routes 0-4 (pair 1) were not evaluated";
+            assert!(stderr.contains(note), "{report}");
+            assert!(
+                text(&report, "error").starts_with("PlatformFailed"),
+                "{report}"
+            );
+            assert_eq!(
+                report["left_behind"]["failed_by_platform"], true,
+                "{report}"
+            );
+            assert_eq!(report["left_behind"]["record_status"], "FAILED", "{report}");
         }
         "no-node" => {
             // The autoscaler's word, with what to fix, before any time was used.

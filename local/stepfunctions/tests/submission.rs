@@ -57,6 +57,8 @@ struct Script {
     running_rounds: usize,
     /// Finalize always fails with this error.
     finalize_error: Option<&'static str>,
+    /// Finalize says the platform's own failure ended the submission.
+    platform_failure: bool,
 }
 
 impl Default for Script {
@@ -66,6 +68,7 @@ impl Default for Script {
             launch_errors: vec![],
             running_rounds: 2,
             finalize_error: None,
+            platform_failure: false,
         }
     }
 }
@@ -136,6 +139,7 @@ fn tasks(script: Script) -> (TaskMap, Stages) {
         })
         .with("FinalizeFunctionArn", {
             let failing = script.finalize_error;
+            let platform = script.platform_failure;
             move |input: Value| {
                 finalize.record(&input);
                 async move {
@@ -144,7 +148,11 @@ fn tasks(script: Script) -> (TaskMap, Stages) {
                     }
                     let failed = input["state"].get("error").is_some()
                         || input["state"]["intake"]["action"] == "reject";
-                    Ok(json!({"status": if failed { "FAILED" } else { "FINISHED" }, "pipeline_error": failed}))
+                    let mut out = json!({"status": if failed { "FAILED" } else { "FINISHED" }, "pipeline_error": failed});
+                    if platform {
+                        out = json!({"status": "FAILED", "pipeline_error": false, "platform_failure": true});
+                    }
+                    Ok(out)
                 }
             }
         });
@@ -198,7 +206,7 @@ fn the_definition_loads_with_its_five_substitutions() {
         ))
     );
     assert_eq!(sm.start_at(), "OneSubmission?");
-    assert_eq!(sm.state_names().len(), 21);
+    assert_eq!(sm.state_names().len(), 22);
     let (all, _) = tasks(Script::default());
     let executor = Executor::new(all, options(1.0)).unwrap();
     assert!(executor.missing_tasks(&sm).is_empty());
@@ -291,6 +299,23 @@ async fn a_submission_runs_intake_launch_three_monitor_rounds_finalize_done() {
     // of 13 + Next? 2 + Finalize 5 + Failed? 2 + Done 2 + 1 end (crates/pipeline's
     // statemachine test does the 72-hour arithmetic from these counts).
     assert_eq!(r.history.len(), 68);
+}
+
+#[tokio::test]
+async fn the_platform_s_own_failure_ends_the_execution_failed_apart() {
+    let script = Script {
+        platform_failure: true,
+        ..Script::default()
+    };
+    let (r, stages) = submit(script, 0.001).await;
+    assert_eq!(r.status, Status::Failed);
+    assert_eq!(r.error.as_deref(), Some("PlatformFailed"));
+    let entered = r.states_entered();
+    assert_eq!(
+        entered[entered.len() - 3..],
+        ["Finalize", "Failed?", "PlatformFailed"]
+    );
+    assert_eq!(stages.finalize.count(), 1);
 }
 
 #[tokio::test]

@@ -114,6 +114,10 @@ fn run(phase: RunPhase) -> RunState {
             image: Some(format!("sha256:{}", "f".repeat(64))),
             progress: (u64::MAX, u64::MAX),
             reason: Some(worst(MAX_REASON_BYTES * 4)),
+            // The longest kind's name.
+            failure: Some(lb_domain::cluster::view::FailureKind::InfrastructureImagePull),
+            // Every pair ended so.
+            ended_by_platform: (0..MAX_WORKERS).collect(),
             unreachable_since: Some(u64::MAX),
             started_at: Some(u64::MAX),
             events: u64::MAX,
@@ -236,6 +240,7 @@ fn tasks(failing: Failing) -> TaskMap {
             Ok(serde_json::to_value(finalize::FinalizeOutput {
                 status: "FAILED".parse().unwrap(),
                 pipeline_error: true,
+                platform_failure: true,
                 reason: Some(worst(MAX_REASON_BYTES * 4)),
             })
             .unwrap())

@@ -29,6 +29,20 @@ const THROTTLED_PULL: [&str; 3] = ["toomanyrequests", "429 too many requests", "
 /// The Job condition reason of a Job whose pods failed more often than its `backoffLimit`.
 const OUT_OF_RETRIES: &str = "BackoffLimitExceeded";
 
+/// The reason the verdict gives a Job out of retries by the platform's reclaims alone (no
+/// failed pod, no disruption of its own): not a word Kubernetes writes.
+const PLATFORM_RECLAIMS: &str = "PlatformReclaims";
+
+/// A pair the Monitor found out of retries, whatever Kubernetes says of its Job.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Spent {
+    /// Why, for the participant: whose each charge was.
+    pub why: String,
+    /// Every charge was the platform's (reclaims past the free ones): not the participant's
+    /// failure.
+    pub by_platform: bool,
+}
+
 /// Longest piece of a Kubernetes message copied into a participant message.
 const MAX_QUOTED: usize = 600;
 
@@ -296,6 +310,9 @@ pub enum FailureKind {
     JobFailed,
     /// A Job of the submission does not exist.
     JobsMissing,
+    /// Every pair that gave up was taken away by the platform more often than the free
+    /// reclaims allow, none of its pods failing or disrupted by its own doing.
+    PlatformReclaims,
 }
 
 impl FailureKind {
@@ -312,7 +329,13 @@ impl FailureKind {
             FailureKind::NotRetriable => "NotRetriable",
             FailureKind::JobFailed => "JobFailed",
             FailureKind::JobsMissing => "JobsMissing",
+            FailureKind::PlatformReclaims => "PlatformReclaims",
         }
+    }
+
+    /// Whether the failure is the platform's own, not the participant's.
+    pub fn by_platform(self) -> bool {
+        self == FailureKind::PlatformReclaims
     }
 }
 
@@ -373,7 +396,7 @@ impl Observation {
     pub fn judge(
         &self,
         expected: u32,
-        spent: &BTreeMap<String, String>,
+        spent: &BTreeMap<String, Spent>,
         policy: &VerdictPolicy,
     ) -> Verdict {
         let seen = self.verdict(policy);
@@ -403,11 +426,17 @@ impl Observation {
             return seen;
         }
         let mut jobs = self.jobs.clone();
-        for job in jobs.iter_mut().filter(|j| spent.contains_key(&j.name)) {
-            job.state = JobState::Failed {
-                reason: OUT_OF_RETRIES.into(),
-                message: spent[&job.name].clone(),
-            };
+        for job in jobs.iter_mut() {
+            if let Some(spent) = spent.get(&job.name) {
+                let reason = match spent.by_platform {
+                    true => PLATFORM_RECLAIMS,
+                    false => OUT_OF_RETRIES,
+                };
+                job.state = JobState::Failed {
+                    reason: reason.into(),
+                    message: spent.why.clone(),
+                };
+            }
         }
         verdict(&jobs, self.observed_at, policy)
     }
@@ -434,7 +463,7 @@ pub fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verd
     // giving up, and its neighbours go on; the submission ends when they have (below).
     if let Some(job) = jobs
         .iter()
-        .find(|j| matches!(&j.state, JobState::Failed { reason, .. } if reason != OUT_OF_RETRIES))
+        .find(|j| matches!(&j.state, JobState::Failed { reason, .. } if !gave_up(reason)))
     {
         return job_failed(job);
     }
@@ -454,6 +483,12 @@ pub fn verdict(jobs: &[JobView], now: Timestamp, policy: &VerdictPolicy) -> Verd
     } else {
         Verdict::Running
     }
+}
+
+/// Whether a failed Job's reason is its pair giving up (out of retries, or out of free
+/// reclaims), which ends the submission only once its neighbours have ended too.
+fn gave_up(reason: &str) -> bool {
+    reason == OUT_OF_RETRIES || reason == PLATFORM_RECLAIMS
 }
 
 /// The pods that can still make progress, with their Jobs: a finished or dying Job's pods say
@@ -654,7 +689,15 @@ fn pairs_gave_up(jobs: &[JobView]) -> Verdict {
         .filter(|j| matches!(j.state, JobState::Failed { .. }))
     {
         if let Verdict::Failed { kind, message, .. } = job_failed(job) {
-            first.get_or_insert((kind, job.name.clone()));
+            // The participant's failure names the submission's: the platform's only when
+            // every pair that gave up was the platform's.
+            let platform = |k: &FailureKind| k.by_platform();
+            if first
+                .as_ref()
+                .is_none_or(|(k, _)| platform(k) && !platform(&kind))
+            {
+                first = Some((kind, job.name.clone()));
+            }
             messages.push(message);
         }
     }
@@ -725,6 +768,10 @@ fn job_failed(job: &JobView) -> Verdict {
         "BackoffLimitExceeded" => (
             FailureKind::BackoffLimitExceeded,
             "its pods failed more often than the retry limit allows",
+        ),
+        PLATFORM_RECLAIMS => (
+            FailureKind::PlatformReclaims,
+            "the platform took its pods away more often than the free reclaims allow",
         ),
         "DeadlineExceeded" => (
             FailureKind::DeadlineExceeded,

@@ -106,6 +106,8 @@ pub enum Step {
         status: RecordStatus,
         /// The error operators read: the whole caught chain, or the outcome's reason.
         error: Option<String>,
+        /// The failure was the platform's own.
+        failed_by_platform: bool,
         /// What can be audited of a FINISHED result (`None`: another outcome, or the logs
         /// could not be listed).
         recordings: Option<Recordings>,
@@ -131,6 +133,19 @@ pub struct Record {
     pub status: Option<RecordStatus>,
     /// Its stored failure reason.
     pub error: Option<String>,
+    /// Its failure was the platform's own.
+    pub failed_by_platform: bool,
+}
+
+/// What stands once Finalize decided.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Settlement {
+    /// The final status, or why nothing of the submission was touched.
+    pub status: Settled,
+    /// Why, for a failure (or a superseded execution).
+    pub reason: Option<String>,
+    /// The failure was the platform's own, not the participant's: operators look.
+    pub by_platform: bool,
 }
 
 /// The merged results as Finalize needs them.
@@ -216,7 +231,7 @@ pub struct Closing<'a> {
     cx: Context<'a>,
     stage: Stage,
     /// What stands once decided, and why.
-    settled: Option<(Settled, Option<String>)>,
+    settled: Option<Settlement>,
     outcome: Option<Outcome>,
     merged: Option<Merged>,
     /// The most crashed agent's pair, whose log's end the participant reads.
@@ -328,20 +343,29 @@ impl<'a> Closing<'a> {
 
     /// What stands, and why: `Settled::Ended` with the final status, or `Superseded`
     /// (`None`: it ended before deciding, which only a shell's misfit answer does).
-    pub fn finish(self) -> Option<(Settled, Option<String>)> {
+    pub fn finish(self) -> Option<Settlement> {
         self.settled
+    }
+
+    fn settle(&mut self, status: Settled, reason: Option<String>, by_platform: bool) {
+        self.settled = Some(Settlement {
+            status,
+            reason,
+            by_platform,
+        });
     }
 
     /// A superseded execution does nothing; a repeated Finalize reports what stands and only
     /// gives the place back (an earlier attempt may have ended before it did).
     fn stood(&mut self, record: Record) -> Stage {
         if let Some(why) = finalize::superseded(record.claimed_by.as_deref(), self.cx.execution) {
-            self.settled = Some((Settled::Superseded, Some(why)));
+            self.settle(Settled::Superseded, Some(why), false);
             return Stage::Done;
         }
         match record.status.filter(|status| !status.is_in_flight()) {
             Some(status) => {
-                self.settled = Some((Settled::Ended(status), record.error));
+                let by_platform = record.failed_by_platform && status == RecordStatus::Failed;
+                self.settle(Settled::Ended(status), record.error, by_platform);
                 Stage::Leave
             }
             None => Stage::Stop,
@@ -363,6 +387,7 @@ impl<'a> Closing<'a> {
             (Some(run), Some(read)) => Some(finalize::Run {
                 finished: run.monitor.state == RunPhase::Finished,
                 reason: run.monitor.reason.as_deref(),
+                by_platform: run.monitor.failure.is_some_and(|k| k.by_platform()),
                 pairs: &pairs,
                 results: match read {
                     Read::Merged(m) => Ok(finalize::Results {
@@ -515,6 +540,7 @@ impl<'a> Closing<'a> {
                 .caught
                 .map(str::to_owned)
                 .or_else(|| outcome.reason.clone()),
+            failed_by_platform: outcome.by_platform,
             recordings: self.recordings.clone(),
             usage: self.usage(),
         })
@@ -547,8 +573,9 @@ impl<'a> Closing<'a> {
     /// it anew owns it; EvalAI had our final word before that).
     fn recorded(&mut self) {
         if let Some(outcome) = &self.outcome {
-            let status = record_status(outcome.status);
-            self.settled = Some((Settled::Ended(status), outcome.reason.clone()));
+            let status = Settled::Ended(record_status(outcome.status));
+            let (reason, by_platform) = (outcome.reason.clone(), outcome.by_platform);
+            self.settle(status, reason, by_platform);
         }
     }
 }
@@ -589,6 +616,7 @@ fn record_status(status: SubmissionStatus) -> RecordStatus {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cluster::view::FailureKind;
     use crate::run::state::{MonitorState, PairRoutes, QueueState};
     use std::collections::BTreeMap;
 
@@ -676,6 +704,7 @@ mod tests {
                 claimed_by: Some(EXECUTION.into()),
                 status: Some(RecordStatus::Running),
                 error: None,
+                failed_by_platform: false,
             })),
             Step::ReadLeft { .. } => Answer::Left(Left {
                 markers: markers.clone(),
@@ -704,7 +733,16 @@ mod tests {
     type Stands = Option<(Settled, Option<String>)>;
 
     /// Runs a Finalize, answering each step with `world`; the batches asked and what stands.
-    fn drive(cx: Context<'_>, mut world: impl FnMut(&Step) -> Answer) -> (Vec<Vec<Step>>, Stands) {
+    fn drive(cx: Context<'_>, world: impl FnMut(&Step) -> Answer) -> (Vec<Vec<Step>>, Stands) {
+        let (batches, settled) = settle(cx, world);
+        (batches, settled.map(|s| (s.status, s.reason)))
+    }
+
+    /// [`drive`], with the whole settlement.
+    fn settle(
+        cx: Context<'_>,
+        mut world: impl FnMut(&Step) -> Answer,
+    ) -> (Vec<Vec<Step>>, Option<Settlement>) {
         let mut closing = Closing::begin(cx);
         let mut batches = Vec::new();
         loop {
@@ -825,6 +863,7 @@ mod tests {
                 claimed_by: Some(EXECUTION.into()),
                 status: Some(RecordStatus::Failed),
                 error: Some("the agent crashed".into()),
+                failed_by_platform: false,
             })),
             _ => Answer::Done,
         });
@@ -903,6 +942,42 @@ mod tests {
             "{stdout}"
         );
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Failed));
+    }
+
+    #[test]
+    fn a_run_the_platform_s_reclaims_ended_is_recorded_and_settled_as_the_platform_s() {
+        let mut run = run(RunPhase::Failed, true);
+        run.monitor.failure = Some(FailureKind::PlatformReclaims);
+        run.monitor.reason = Some("the platform took its pods away".into());
+        let (steps, settled) = settle(cx(Some(&run), None), world(Some(merged(false, 0.0)), &[]));
+        let Step::Post { status, .. } = find(&steps, "post") else {
+            unreachable!()
+        };
+        // EvalAI's `failed`: it does not count against the team's limits, and resumes.
+        assert_eq!(*status, SubmissionStatus::Failed);
+        let Step::WriteRecord {
+            failed_by_platform, ..
+        } = find(&steps, "record")
+        else {
+            unreachable!()
+        };
+        assert!(*failed_by_platform);
+        assert!(settled.unwrap().by_platform);
+        // The participant's own failure is not.
+        run.monitor.failure = Some(FailureKind::BackoffLimitExceeded);
+        let (_, settled) = settle(cx(Some(&run), None), world(Some(merged(false, 0.0)), &[]));
+        assert!(!settled.unwrap().by_platform);
+        // A repeated Finalize reads it from the record.
+        let (_, settled) = settle(cx(Some(&run), None), |step| match step {
+            Step::ReadStanding => Answer::Standing(Some(Record {
+                claimed_by: Some(EXECUTION.into()),
+                status: Some(RecordStatus::Failed),
+                error: Some("the platform took its pods away".into()),
+                failed_by_platform: true,
+            })),
+            _ => Answer::Done,
+        });
+        assert!(settled.unwrap().by_platform);
     }
 
     #[test]

@@ -27,6 +27,9 @@ pub struct Run<'a> {
     pub finished: bool,
     /// The Monitor's reason when it ended the run otherwise.
     pub reason: Option<&'a str>,
+    /// The Monitor ended it for a failure of the platform's own (its reclaims past the free
+    /// ones), not the participant's.
+    pub by_platform: bool,
     /// Each pair's id and routes.
     pub pairs: &'a [(u32, &'a str)],
     /// The merged results, or why they cannot be used (a problem of the results themselves).
@@ -54,12 +57,17 @@ pub struct Outcome {
     /// Which routes were evaluated and kept, when some pairs finished and some did not: it
     /// heads the participant's stdout too.
     pub pairs_note: Option<String>,
+    /// A failure of the platform's own: EvalAI is told `failed` all the same (it does not
+    /// count against the team's limits, and a resume keeps the routes done), and operators
+    /// are shown it apart.
+    pub by_platform: bool,
 }
 
 /// The final status from what the run left: a cancel wins, then a caught error, then results
 /// that cannot be used, then how the Monitor ended the run.
 pub fn outcome(facts: &Facts<'_>) -> Outcome {
     let failed = |reason: String| (SubmissionStatus::Failed, Some(reason));
+    let mut by_platform = false;
     let (status, reason) = match (facts.cancelled, facts.caught, &facts.run) {
         (true, _, _) => (SubmissionStatus::Cancelled, None),
         (false, Some(caught), _) => failed(participant_reason(caught)),
@@ -71,7 +79,10 @@ pub fn outcome(facts: &Facts<'_>) -> Outcome {
                 "the evaluation ended with {} of {} routes evaluated",
                 results.progress.0, results.progress.1
             )),
-            (Ok(_), false) => failed(run.reason.unwrap_or("the evaluation failed").into()),
+            (Ok(_), false) => {
+                by_platform = run.by_platform;
+                failed(run.reason.unwrap_or("the evaluation failed").into())
+            }
         },
     };
     // A pair that gave up leaves its routes missing; its neighbours' are complete and kept.
@@ -94,6 +105,7 @@ pub fn outcome(facts: &Facts<'_>) -> Outcome {
         status,
         reason,
         pairs_note,
+        by_platform,
     }
 }
 
@@ -293,6 +305,7 @@ pub fn settle(outcome: Outcome, posted: Posted) -> Outcome {
         Posted::Cancelled => Outcome {
             status: SubmissionStatus::Cancelled,
             reason: None,
+            by_platform: false,
             ..outcome
         },
         Posted::AlreadyFinal(stands) if stands == outcome.status => outcome,
@@ -301,6 +314,7 @@ pub fn settle(outcome: Outcome, posted: Posted) -> Outcome {
             reason: outcome
                 .reason
                 .filter(|_| stands != SubmissionStatus::Finished),
+            by_platform: outcome.by_platform && stands == SubmissionStatus::Failed,
             ..outcome
         },
     }
@@ -317,9 +331,49 @@ mod tests {
         Run {
             finished,
             reason: Some("pair 1 gave up"),
+            by_platform: false,
             pairs: &PAIRS,
             results,
         }
+    }
+
+    #[test]
+    fn only_a_run_the_monitor_ended_for_the_platform_s_failure_is_the_platform_s() {
+        let finished = [1, 2, 3];
+        let platform = |facts: Facts<'_>| outcome(&facts).by_platform;
+        let taken = Run {
+            by_platform: true,
+            ..run(false, Ok(results(false, &finished)))
+        };
+        let facts = |cancelled, caught, run| Facts {
+            cancelled,
+            caught,
+            run: Some(run),
+        };
+        let ended = outcome(&facts(false, None, taken));
+        assert_eq!(ended.status, SubmissionStatus::Failed);
+        assert!(ended.by_platform);
+        // The kept routes are still named.
+        assert!(ended.reason.unwrap().contains("pair 1 gave up. "));
+        // A cancel, a caught error or results that cannot be used are not the platform's
+        // reclaims, whatever the Monitor said.
+        assert!(!platform(facts(true, None, taken)));
+        assert!(!platform(facts(false, Some("Boom: x"), taken)));
+        let unusable = Run {
+            results: Err("not JSON"),
+            ..taken
+        };
+        assert!(!platform(facts(false, None, unusable)));
+        assert!(!platform(facts(
+            false,
+            None,
+            run(false, Ok(results(false, &finished)))
+        )));
+        // EvalAI's own final word stands over ours.
+        let failed = outcome(&facts(false, None, taken));
+        let cancelled = settle(failed.clone(), Posted::Cancelled);
+        assert!(!cancelled.by_platform);
+        assert!(settle(failed, Posted::AlreadyFinal(SubmissionStatus::Failed)).by_platform);
     }
 
     fn results(complete: bool, finished_pairs: &[u32]) -> Results<'_> {
@@ -435,6 +489,7 @@ mod tests {
             status: SubmissionStatus::Failed,
             reason: Some("why".into()),
             pairs_note: None,
+            by_platform: false,
         };
         assert_eq!(settle(failed.clone(), Posted::Written), failed);
         let cancelled = settle(failed.clone(), Posted::Cancelled);
@@ -468,6 +523,7 @@ mod tests {
             status: SubmissionStatus::Failed,
             reason: Some("why".into()),
             pairs_note: None,
+            by_platform: false,
         };
         assert_eq!(
             stderr(&failed, Some((2, "Traceback")), None),
@@ -477,6 +533,7 @@ mod tests {
             status: SubmissionStatus::Finished,
             reason: None,
             pairs_note: None,
+            by_platform: false,
         };
         assert_eq!(stderr(&finished, Some((2, "x")), None), "");
         // A finished result whose recordings fail the audit tells the participant which.

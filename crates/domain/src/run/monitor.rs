@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use crate::capacity::cost::Ledger;
 use crate::cluster::disruption::FREE_RECLAIMS_PER_PAIR;
-use crate::cluster::view::{JobState, JobView};
+use crate::cluster::view::{JobState, JobView, Spent};
 use crate::run::schedule::{JOB_DEADLINE, MAX_EVALUATION, STATUS_FALLBACK};
 
 /// Why the run ends after the cluster's API was out of reach since `since` (epoch seconds):
@@ -64,7 +64,7 @@ pub const END_NOW: u64 = 1;
 pub fn deadlines_to_set<'a>(
     jobs: &'a [JobView],
     lost: u64,
-    spent: &BTreeMap<String, String>,
+    spent: &BTreeMap<String, Spent>,
 ) -> Vec<(&'a str, u64)> {
     let wanted = JOB_DEADLINE.as_secs().saturating_add(lost);
     jobs.iter()
@@ -83,19 +83,29 @@ pub fn deadlines_to_set<'a>(
 /// ledger charged to it (disruptions of their own, reclaims beyond the free ones) are more
 /// than its `backoffLimit`. Without a charged pod the Job controller decides alone. The why
 /// names whose each charge was: a pair the platform alone took away is not the participant's
-/// failure, and is told so.
-pub fn spent_pairs(jobs: &[JobView], usage: &Ledger) -> BTreeMap<String, String> {
+/// failure, and is told so. `ended_by_platform` holds the Jobs an earlier round found so: the
+/// pod our deadline then stopped counts as failed for the Job, not for the participant.
+pub fn spent_pairs(
+    jobs: &[JobView],
+    usage: &Ledger,
+    ended_by_platform: &[u32],
+) -> BTreeMap<String, Spent> {
     jobs.iter()
         .filter_map(|j| {
             let index = j.index?;
             let charged = usage.charged_to(index);
-            let failed = u32::try_from(j.failed).unwrap_or(0);
+            let failed = match ended_by_platform.contains(&index) {
+                true => 0,
+                false => u32::try_from(j.failed).unwrap_or(0),
+            };
             let limit = j.backoff_limit?;
+            let excess = usage.excess_of(index);
             (charged > 0 && failed.saturating_add(charged) > limit).then(|| {
-                (
-                    j.name.clone(),
-                    spent_why(charged, usage.excess_of(index), failed, limit),
-                )
+                let spent = Spent {
+                    why: spent_why(charged, excess, failed, limit),
+                    by_platform: excess == charged && failed == 0,
+                };
+                (j.name.clone(), spent)
             })
         })
         .collect()
@@ -124,8 +134,9 @@ fn spent_why(charged: u32, excess: u32, failed: u32, limit: u32) -> String {
     );
     if own == 0 && failed == 0 {
         why.push_str(
-            ": this is the evaluation platform's doing, not your agent's, and the routes it \
-             completed are kept for a resume",
+            ": this is the evaluation platform's doing, not your agent's. The submission \
+             does not count against your team's limits, and a resume keeps the routes it \
+             completed",
         );
     }
     why

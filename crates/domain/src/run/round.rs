@@ -406,18 +406,30 @@ impl Round {
     /// retries), and the cluster's verdict once those pairs are known.
     fn deadlines(&mut self) -> Option<Step> {
         let (expected, policy) = (self.run.jobs, &self.cx.policy);
+        let monitor = &mut self.run.monitor;
         let judged = self.sighting.as_ref().map(|seen| {
-            let usage = &self.run.monitor.usage;
+            let usage = &monitor.usage;
             let jobs = &seen.observation.jobs;
-            let spent = monitor::spent_pairs(jobs, usage);
+            let spent = monitor::spent_pairs(jobs, usage, &monitor.ended_by_platform);
             let set: Vec<(String, u64)> =
                 monitor::deadlines_to_set(jobs, usage.deadline_extension(), &spent)
                     .into_iter()
                     .map(|(job, seconds)| (job.to_owned(), seconds))
                     .collect();
-            (set, seen.observation.judge(expected, &spent, policy))
+            let by_platform: Vec<u32> = jobs
+                .iter()
+                .filter(|j| spent.get(&j.name).is_some_and(|s| s.by_platform))
+                .filter_map(|j| j.index)
+                .collect();
+            let verdict = seen.observation.judge(expected, &spent, policy);
+            (set, verdict, by_platform)
         });
-        let set = judged.map_or_else(Vec::new, |(set, verdict)| {
+        let set = judged.map_or_else(Vec::new, |(set, verdict, by_platform)| {
+            for index in by_platform {
+                if !monitor.ended_by_platform.contains(&index) {
+                    monitor.ended_by_platform.push(index);
+                }
+            }
             self.verdict = Some(verdict);
             set
         });
@@ -870,7 +882,8 @@ impl Round {
                 }
             }
             Verdict::Finished => self.end(RunPhase::Finished, None),
-            Verdict::Failed { message, .. } => {
+            Verdict::Failed { kind, message, .. } => {
+                self.run.monitor.failure = Some(*kind);
                 let message = message.clone();
                 self.end(RunPhase::Failed, Some(message))
             }
@@ -881,7 +894,7 @@ impl Round {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cluster::view::{JobState, JobView};
+    use crate::cluster::view::{FailureKind, JobState, JobView};
     use crate::run::schedule::{MAX_EVALUATION, STATUS_FALLBACK};
     use crate::run::state::{MonitorState, QueueState};
     use crate::status::PodPhase;
@@ -1700,5 +1713,74 @@ mod tests {
             reason.contains("3 of its pods were stopped by a disruption of their own"),
             "{reason}"
         );
+        assert_eq!(
+            after.monitor.failure,
+            Some(FailureKind::BackoffLimitExceeded)
+        );
+    }
+
+    #[test]
+    fn a_pair_the_platform_alone_took_away_fails_as_the_platform_s_failure() {
+        use crate::capacity::cost::JobEntry;
+        let job = |name: &str, index: u32, state: JobState| JobView {
+            index: Some(index),
+            deadline: Some(crate::run::schedule::JOB_DEADLINE.as_secs()),
+            ..crate::testutil::job(name, state, None)
+        };
+        let deadline = JobState::Failed {
+            reason: "DeadlineExceeded".into(),
+            message: "Job was active longer than specified deadline".into(),
+        };
+        // 8 drains of pair 1: 3 free reclaims, then 5 charged as the platform's (> 4).
+        let ended = |entry: JobEntry, failed: i32, ended_by_platform: Vec<u32>| {
+            let mut run = started(run(true));
+            run.jobs = 2;
+            run.monitor.usage.jobs = vec![entry];
+            run.monitor.ended_by_platform = ended_by_platform;
+            let deadline = deadline.clone();
+            let (_, after) = drive(run, cx(), move |step| match step {
+                Step::Observe => {
+                    let mut first = job("lb-7-0", 0, deadline.clone());
+                    first.failed = failed;
+                    observed(vec![first, job("lb-7-1", 1, JobState::Complete)])
+                }
+                other => quiet(JobState::Running)(other),
+            });
+            after.monitor
+        };
+        let drained = JobEntry {
+            reclaims: 3,
+            charged: 5,
+            excess: 5,
+            ..Default::default()
+        };
+        let platform = ended(drained, 0, vec![]);
+        assert_eq!(platform.state, RunPhase::Failed);
+        assert_eq!(platform.failure, Some(FailureKind::PlatformReclaims));
+        assert_eq!(platform.ended_by_platform, [0]);
+        // The pod our deadline stopped then counts as failed for the Job, not the participant.
+        let stopped = ended(drained, 1, vec![0]);
+        assert_eq!(stopped.failure, Some(FailureKind::PlatformReclaims));
+        assert!(stopped.reason.unwrap().contains("with 0 failed pod(s)"));
+        let reason = platform.reason.unwrap();
+        assert!(
+            reason.contains("the platform took its pods away"),
+            "{reason}"
+        );
+        assert!(reason.contains("not your agent's"), "{reason}");
+        assert!(!reason.contains("disruption of their own"), "{reason}");
+        // One crash of its own among them, or one of the charges its own: the participant's.
+        let crashed = ended(drained, 1, vec![]);
+        assert_eq!(crashed.failure, Some(FailureKind::BackoffLimitExceeded));
+        let own = JobEntry {
+            excess: 4,
+            ..drained
+        };
+        let mixed = ended(own, 0, vec![]);
+        assert_eq!(mixed.failure, Some(FailureKind::BackoffLimitExceeded));
+        assert!(mixed
+            .reason
+            .unwrap()
+            .contains("1 of its pods were stopped by a disruption of their own"));
     }
 }

@@ -166,6 +166,14 @@ pub struct MonitorState {
         serialize_with = "bounded_reason"
     )]
     pub reason: Option<String>,
+    /// The cluster's verdict when it failed the run: Finalize tells the platform's own
+    /// failures from the participant's by it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub failure: Option<crate::cluster::view::FailureKind>,
+    /// The Jobs whose pair the platform's reclaims alone ended (by index): so they stay once
+    /// the deadline that ended them has failed their last pod.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ended_by_platform: Vec<u32>,
     /// Since when (epoch seconds) the cluster's API could not be reached; a round that
     /// reaches it clears this.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -247,6 +255,8 @@ impl MonitorState {
             image: None,
             progress: (0, total),
             reason: None,
+            failure: None,
+            ended_by_platform: Vec::new(),
             unreachable_since: None,
             started_at: None,
             events,
@@ -288,6 +298,8 @@ mod tests {
         let mut monitor = MonitorState {
             state: RunPhase::Failed,
             reason: Some("é".repeat(100_000)),
+            failure: None,
+            ended_by_platform: Vec::new(),
             ..MonitorState::starting(0, 0, 1, "exec-1", 0)
         };
         let text = serde_json::to_value(&monitor).unwrap()["reason"]

@@ -203,6 +203,7 @@ pub(super) async fn left_behind(
         let records = lb_aws::dynamo::SubmissionsTable::new(dynamo, table);
         if let Ok(Some(record)) = records.record(team, submission).await {
             left.record_status = Some(record.status_word.clone()).filter(|s| !s.is_empty());
+            left.failed_by_platform = record.failed_by_platform;
             left.recordings = record.recordings;
             left.recordings_failed = record.recordings_failed.clone();
             left.usage = record.usage.map(|usage| {

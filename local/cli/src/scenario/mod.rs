@@ -6,6 +6,7 @@ mod cancel;
 mod cancel_flood;
 mod crash;
 mod crash_loop;
+mod drain_loop;
 mod evalai_down;
 mod evict_between_rounds;
 mod forge;
@@ -90,6 +91,12 @@ pub enum Scenario {
     /// EventBridge would) deletes the Jobs, gives the team's place back, tells EvalAI
     /// `failed` with the reason and writes the final record.
     Stop,
+    /// The first pair's pod is drained (Eviction API) at every round after one saw it
+    /// running, 8 times: 3 free reclaims, then 5 charged as the platform's, past its Job's
+    /// `backoffLimit`. FAILED as the platform's own failure: the participant is told it was
+    /// not their agent's doing, the record says `failed_by: platform`, and the execution ends
+    /// `PlatformFailed` (routes of at least 8 s).
+    DrainLoop,
     /// EvalAI fails from the moment the run is finished: Finalize cannot post, an operator
     /// stops the execution, every attempt of the reaper's event fails and it is dropped; once
     /// EvalAI is back the reaper's scheduled pass deletes the Jobs, gives the place back and
@@ -119,6 +126,7 @@ impl Scenario {
             }
             Scenario::Stop => Box::new(stop::Stop),
             Scenario::EvalaiDown => Box::new(evalai_down::EvalAiDown::default()),
+            Scenario::DrainLoop => Box::new(drain_loop::DrainLoop::default()),
         }
     }
 }
