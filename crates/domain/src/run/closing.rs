@@ -410,6 +410,8 @@ impl<'a> Closing<'a> {
             _ => None,
         };
         match outcome.status {
+            // The platform's own failure is not the agent's: its log has nothing to explain.
+            SubmissionStatus::Failed if outcome.by_platform => {}
             SubmissionStatus::Failed => {
                 self.crashed =
                     finalize::most_crashed_agent(left.markers.iter().map(String::as_str));
@@ -949,12 +951,20 @@ mod tests {
         let mut run = run(RunPhase::Failed, true);
         run.monitor.failure = Some(FailureKind::PlatformReclaims);
         run.monitor.reason = Some("the platform took its pods away".into());
-        let (steps, settled) = settle(cx(Some(&run), None), world(Some(merged(false, 0.0)), &[]));
-        let Step::Post { status, .. } = find(&steps, "post") else {
+        // Each drained pod's agent wrote its crash marker on SIGTERM.
+        let markers = ["agent-1.crash0", "agent-1.crash1"];
+        let (steps, settled) = settle(
+            cx(Some(&run), None),
+            world(Some(merged(false, 0.0)), &markers),
+        );
+        let Step::Post { status, stderr, .. } = find(&steps, "post") else {
             unreachable!()
         };
-        // EvalAI's `failed`: it does not count against the team's limits, and resumes.
+        // EvalAI's `failed`: it does not count against the team's limits, and resumes. The
+        // agent's log is not shown: nothing of it explains the platform's failure.
         assert_eq!(*status, SubmissionStatus::Failed);
+        assert!(!flat(&steps).contains(&"tail"), "{steps:?}");
+        assert!(!stderr.contains("output:"), "{stderr}");
         let Step::WriteRecord {
             failed_by_platform, ..
         } = find(&steps, "record")
