@@ -1189,4 +1189,57 @@ mod tests {
         assert!(cut.ends_with("..."));
         assert_eq!(quote("  short  "), "short");
     }
+
+    #[test]
+    fn the_submission_fails_as_the_platform_s_only_when_every_pair_that_gave_up_was() {
+        let deadline = JobState::Failed {
+            reason: "DeadlineExceeded".into(),
+            message: "Job was active longer than specified deadline".into(),
+        };
+        let observation = |states: [JobState; 3]| Observation {
+            submission_id: "7".into(),
+            observed_at: at(10, 0),
+            jobs: states
+                .into_iter()
+                .enumerate()
+                .map(|(i, state)| job(&format!("job-{i}"), state, vec![]))
+                .collect(),
+            stray_pods: vec![],
+        };
+        let spent = |by_platform: bool| Spent {
+            why: format!("spent, by the platform: {by_platform}"),
+            by_platform,
+        };
+        let kind = |states, spent_jobs: &[(&str, Spent)]| {
+            let spent: BTreeMap<String, Spent> = spent_jobs
+                .iter()
+                .map(|(name, s)| (name.to_string(), s.clone()))
+                .collect();
+            match observation(states).judge(3, &spent, &VerdictPolicy::default()) {
+                Verdict::Failed { kind, .. } => Some(kind),
+                _ => None,
+            }
+        };
+        let (d, c) = (|| deadline.clone(), || JobState::Complete);
+        // One pair the platform took away, its neighbours done: the platform's.
+        let platform = kind([d(), c(), c()], &[("job-0", spent(true))]);
+        assert_eq!(platform, Some(FailureKind::PlatformReclaims));
+        // Another pair spent by its own disruptions, before or after it: the participant's.
+        let both = [("job-0", spent(true)), ("job-1", spent(false))];
+        assert_eq!(
+            kind([d(), d(), c()], &both),
+            Some(FailureKind::BackoffLimitExceeded)
+        );
+        let reversed = [("job-0", spent(false)), ("job-1", spent(true))];
+        assert_eq!(
+            kind([d(), d(), c()], &reversed),
+            Some(FailureKind::BackoffLimitExceeded)
+        );
+        // A pair out of retries by the Job controller's own count is the participant's too.
+        let own = kind([d(), out_of_retries(), c()], &[("job-0", spent(true))]);
+        assert_eq!(own, Some(FailureKind::BackoffLimitExceeded));
+        // While a neighbour runs, the submission goes on.
+        let running = kind([d(), JobState::Running, c()], &[("job-0", spent(true))]);
+        assert_eq!(running, None);
+    }
 }
