@@ -208,7 +208,8 @@ fn another_pairs_results_and_markers_and_unnamed_files_never_leave_the_pod() {
         );
         std::thread::sleep(Duration::from_millis(50));
     }
-    lc.signal(Signal::SIGTERM);
+    // The cancel it saw ends its Job: it makes its final upload and leaves by itself (a
+    // SIGTERM here would race the done marker's upload on a busy machine).
     assert_eq!(lc.wait(LIMIT).code(), Some(0), "{}", lc.log());
     assert!(moto
         .get(&key("agent/partial_agent_results1.json"))
