@@ -101,6 +101,7 @@ fn on_the_real_control_plane_the_scenarios_end_as_on_local_kube() {
         ("crash-loop", "FAILED"),
         ("cancel", "CANCELLED"),
         ("no-node", "FAILED"),
+        ("disk-hog", "FAILED"),
     ] {
         scenario_on("real", name, expected, &Value::Null);
     }
@@ -180,6 +181,23 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
                 "{report}"
             );
             assert_eq!(report["left_behind"]["record_status"], "FAILED", "{report}");
+        }
+        "disk-hog" => {
+            // Evicted for its own disk use at each of the 5 attempts past the 4 retries, each
+            // charged once though its status came late: the participant's failure, told so.
+            assert!(
+                stderr.contains("5 of its pods were stopped by a disruption of their own"),
+                "{report}"
+            );
+            assert!(
+                stderr.contains("routes 0-4 (pair 1) were not evaluated"),
+                "{report}"
+            );
+            assert_eq!(report["error"], Value::Null, "{report}");
+            assert_eq!(
+                report["left_behind"]["failed_by_platform"], false,
+                "{report}"
+            );
         }
         "no-node" => {
             // The autoscaler's word, with what to fix, before any time was used.
@@ -665,6 +683,13 @@ fn bad_arguments_are_named() {
     let out = lbctl_local(&["run", "--time-scale", "0"]);
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--time-scale"));
+    let out = lbctl_local(&["run", "--scenario", "disk-hog"]);
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("--scenario disk-hog needs --kube real"),
+        "{stderr}"
+    );
 }
 
 #[test]

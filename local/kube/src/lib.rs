@@ -18,6 +18,7 @@ pub use config::{Config, Isolation, Timing};
 pub use error::{Error, Result};
 pub use imagemap::{ImageEntry, ImageMap, ImageMapError, Pull};
 pub use kubeconfig::kubeconfig_yaml;
+pub use runtime::disk::{PodDisk, LAYER_MOUNT};
 pub use runtime::scheduler::{
     autoscaler_word, gpu_request, gpu_uuid, selects, AUTOSCALER, INSUFFICIENT_GPU, NOT_TRIGGERED,
     SELECTOR_MISMATCH, UNMODELLED_GPUS,

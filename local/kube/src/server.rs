@@ -332,6 +332,11 @@ impl PodRunner {
         self.0.store.list::<Pod>(None, |_| true).0
     }
 
+    /// What `pod` (one held here) holds on the node's disk.
+    pub fn disk_usage(&self, pod: &Pod) -> crate::PodDisk {
+        crate::runtime::disk::usage(pod, &self.0.pod_dir(pod))
+    }
+
     /// Stops a pod's containers within `grace` (capped) and waits for them, bounded; the pod
     /// and its logs stay, with the status of its terminated containers.
     pub async fn stop_pod(&self, uid: &str, grace: Option<Duration>) {

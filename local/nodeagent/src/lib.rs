@@ -1,10 +1,12 @@
 //! local-kube's process runner as the kubelet of GPU nodes of a real Kubernetes control plane:
 //! it registers the nodes, runs the pods the real scheduler binds to them as local processes,
 //! reports their phases and exit codes through the `status` subresource, ends deleted pods
-//! as a kubelet does, serves their logs to the API server, and (standing in for the Cluster
+//! as a kubelet does, evicts pods when a node's disk runs short as the kubelet's eviction
+//! manager does, serves their logs to the API server, and (standing in for the Cluster
 //! Autoscaler) says of a pod no node group could hold that it did not trigger a scale-up.
 
 mod autoscaler;
+pub mod eviction;
 mod logs;
 mod nodes;
 mod sync;
@@ -18,6 +20,7 @@ use local_kube::LocalKube;
 use tokio::sync::watch;
 use tracing::{info, warn};
 
+pub use eviction::Disk;
 pub use nodes::{cordon, GPU_TAINT};
 
 /// Why the agent could not start.
@@ -45,6 +48,8 @@ pub struct NodeSpec {
     pub labels: BTreeMap<String, String>,
     /// Its taints (the node group's).
     pub taints: Vec<Taint>,
+    /// Its disk (`ephemeral-storage`).
+    pub disk: Disk,
 }
 
 /// What the agent serves and how.
@@ -61,6 +66,10 @@ pub struct Config {
     pub tls: (PathBuf, PathBuf),
     /// Also stand in for the Cluster Autoscaler, whose node groups make nodes like these.
     pub autoscaler: bool,
+    /// How long an evicted pod's terminal status follows its `DisruptionTarget` condition: a
+    /// kubelet's status manager can be that late, and what reads the pods must not depend
+    /// on seeing both at once.
+    pub evictions_reported_late: Duration,
 }
 
 /// How often the agent looks at the API server's pods (a kubelet is told within about as long
@@ -150,7 +159,12 @@ async fn serve(
     let _ = ready.send(Ok(()));
     info!(nodes = config.nodes.len(), "node agent serving");
     let mut runner = runner;
-    let mut kubelet = sync::Kubelet::new(client.clone(), runner.runner(), &config.nodes);
+    let mut kubelet = sync::Kubelet::new(
+        client.clone(),
+        runner.runner(),
+        &config.nodes,
+        config.evictions_reported_late,
+    );
     let mut scaler = config
         .autoscaler
         .then(|| autoscaler::StandIn::new(client.clone(), &config.nodes));

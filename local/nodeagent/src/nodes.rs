@@ -18,13 +18,9 @@ const NOT_READY: &str = "node.kubernetes.io/not-ready";
 /// lifecycle controller mirrors it as this taint).
 const UNSCHEDULABLE: &str = "node.kubernetes.io/unschedulable";
 
-/// Resources beyond the GPUs: more than any pair asks, so GPUs are what the scheduler counts.
-const ROOMY: [(&str, &str); 4] = [
-    ("cpu", "192"),
-    ("memory", "768Gi"),
-    ("pods", "110"),
-    ("ephemeral-storage", "1Ti"),
-];
+/// Resources beyond the GPUs and the disk: more than any pair asks, so GPUs are what the
+/// scheduler counts.
+const ROOMY: [(&str, &str); 3] = [("cpu", "192"), ("memory", "768Gi"), ("pods", "110")];
 
 /// Registers `node` (or takes over a Node of that name), Ready, with its capacity and the log
 /// endpoint on `port`, carrying only its node group's taints.
@@ -50,8 +46,17 @@ pub async fn register(client: &kube::Client, node: &NodeSpec, port: u16) -> Resu
         .map(|(k, v)| ((*k).to_owned(), json!(v)))
         .collect();
     resources.insert("nvidia.com/gpu".into(), json!(node.gpus.to_string()));
+    let (mut capacity, mut allocatable) = (resources.clone(), resources);
+    capacity.insert(
+        "ephemeral-storage".into(),
+        json!(node.disk.capacity.to_string()),
+    );
+    allocatable.insert(
+        "ephemeral-storage".into(),
+        json!(node.disk.allocatable().to_string()),
+    );
     let status = json!({"status": {
-        "capacity": resources, "allocatable": resources,
+        "capacity": capacity, "allocatable": allocatable,
         "conditions": [{"type": "Ready", "status": "True", "reason": "KubeletReady",
                         "message": "kubelet is posting ready status"}],
         "addresses": [{"type": "InternalIP", "address": "127.0.0.1"},

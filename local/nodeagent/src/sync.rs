@@ -1,11 +1,12 @@
 //! The kubelet's loop: each look at the API server's pods decides, per pod bound to one of
 //! the agent's nodes, whether to start it here, report its status, or end it (a deletion:
 //! stop its containers within the grace, report the terminal phase, then remove the object as
-//! a kubelet does, with grace 0 and the pod's uid as precondition).
+//! a kubelet does, with grace 0 and the pod's uid as precondition); and, once a second, its
+//! eviction manager's pass over each node's disk (`crate::eviction`).
 
 use std::collections::{BTreeSet, HashMap, HashSet};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use k8s_openapi::api::core::v1::{Pod, PodStatus};
 use kube::api::{Api, DeleteParams, ListParams, Patch, PatchParams, Preconditions};
@@ -13,7 +14,11 @@ use local_kube::PodRunner;
 use serde_json::{json, Value};
 use tracing::{debug, info, warn};
 
+use crate::eviction::{self, Disk, PodUse};
 use crate::NodeSpec;
+
+/// How often the eviction manager looks at the nodes' disks (the kubelet's is 10 s).
+const PRESSURE_EVERY: Duration = Duration::from_secs(1);
 
 /// The conditions a kubelet owns; the others (`PodScheduled`, `DisruptionTarget`) are the
 /// scheduler's and the control plane's, and a strategic merge by type leaves them be.
@@ -37,8 +42,9 @@ pub enum Action {
     Nothing,
 }
 
-/// The decision for a pod as the API server has it (`real`) and as it runs here (`local`).
-pub fn decide(real: &Pod, local: Option<&Pod>, ending: bool) -> Action {
+/// The decision for a pod as the API server has it (`real`) and as it runs here (`local`);
+/// `ending`: its deletion is under way here; `evicted`: the eviction manager reports it.
+pub fn decide(real: &Pod, local: Option<&Pod>, (ending, evicted): (bool, bool)) -> Action {
     if ending {
         return Action::Nothing;
     }
@@ -49,11 +55,18 @@ pub fn decide(real: &Pod, local: Option<&Pod>, ending: bool) -> Action {
             .map(|s| Duration::from_secs(s.max(0) as u64));
         return Action::End(grace);
     }
+    if evicted {
+        return Action::Nothing;
+    }
     match local {
         Some(_) => Action::Report,
         None if terminal(real.status.as_ref()) => Action::Nothing,
         None => Action::Start,
     }
+}
+
+fn is_running(pod: &Pod) -> bool {
+    pod.status.as_ref().and_then(|s| s.phase.as_deref()) == Some("Running")
 }
 
 fn terminal(status: Option<&PodStatus>) -> bool {
@@ -99,17 +112,35 @@ pub struct Kubelet {
     reported: HashMap<String, Value>,
     /// Pods being ended (or ended) by their own task, by uid.
     ending: Arc<Mutex<HashSet<String>>>,
+    /// Each node's disk, by name.
+    disks: HashMap<String, Disk>,
+    /// Pods the eviction manager evicted, by uid: it reports them.
+    evicted: Arc<Mutex<HashSet<String>>>,
+    /// How long an evicted pod's terminal status waits after its condition.
+    late: Duration,
+    /// When the eviction manager last looked.
+    pressure_looked: Option<Instant>,
 }
 
 impl Kubelet {
-    /// The kubelet of `nodes`, running pods with `runner`.
-    pub fn new(client: kube::Client, runner: PodRunner, nodes: &[NodeSpec]) -> Kubelet {
+    /// The kubelet of `nodes`, running pods with `runner`; an evicted pod's terminal status
+    /// follows its `DisruptionTarget` condition by `late`.
+    pub fn new(
+        client: kube::Client,
+        runner: PodRunner,
+        nodes: &[NodeSpec],
+        late: Duration,
+    ) -> Kubelet {
         Kubelet {
             client,
             runner,
             nodes: nodes.iter().map(|n| n.name.clone()).collect(),
             reported: HashMap::new(),
             ending: Arc::default(),
+            disks: nodes.iter().map(|n| (n.name.clone(), n.disk)).collect(),
+            evicted: Arc::default(),
+            late,
+            pressure_looked: None,
         }
     }
 
@@ -126,6 +157,7 @@ impl Kubelet {
             .collect();
         let mut seen = HashSet::new();
         let mut unbound = Vec::new();
+        let mut running: HashMap<String, Vec<Pod>> = HashMap::new();
         for real in pods {
             let node = real.spec.as_ref().and_then(|s| s.node_name.as_deref());
             let Some(uid) = real.metadata.uid.clone() else {
@@ -136,8 +168,12 @@ impl Kubelet {
                 Some(n) if self.nodes.contains(n) => {
                     seen.insert(uid.clone());
                     let ending = lock(&self.ending).contains(&uid);
+                    let evicted = lock(&self.evicted).contains(&uid);
                     let here = local.get(&uid);
-                    match decide(&real, here, ending) {
+                    if let Some(pod) = here.filter(|p| !ending && !evicted && is_running(p)) {
+                        running.entry(n.to_owned()).or_default().push(pod.clone());
+                    }
+                    match decide(&real, here, (ending, evicted)) {
                         Action::Start => self.start(real),
                         Action::Report => {
                             if let Some(status) = here.and_then(|p| p.status.as_ref()) {
@@ -158,8 +194,77 @@ impl Kubelet {
             self.runner.delete_pod(&ns, &name).await;
             self.reported.remove(&uid);
             lock(&self.ending).remove(&uid);
+            lock(&self.evicted).remove(&uid);
+        }
+        if self
+            .pressure_looked
+            .is_none_or(|t| t.elapsed() >= PRESSURE_EVERY)
+        {
+            self.pressure_looked = Some(Instant::now());
+            self.relieve(&running);
         }
         Ok(unbound)
+    }
+
+    /// The eviction manager's pass: on each node whose disk is below its threshold, evicts
+    /// the pod the kubelet would (one per pass, as the kubelet waits to see what that freed).
+    fn relieve(&self, running: &HashMap<String, Vec<Pod>>) {
+        for (node, pods) in running {
+            let Some(disk) = self.disks.get(node) else {
+                continue;
+            };
+            let uses: Vec<PodUse> = pods
+                .iter()
+                .map(|p| PodUse::of(p, &self.runner.disk_usage(p)))
+                .collect();
+            let Some(eviction) = eviction::choose(disk, &uses) else {
+                continue;
+            };
+            if let Some(pod) = pods
+                .iter()
+                .find(|p| p.metadata.uid.as_deref() == Some(eviction.uid.as_str()))
+            {
+                self.evict(pod.clone(), eviction);
+            }
+        }
+    }
+
+    /// Evicts a pod as the kubelet does for a hard threshold: its containers stopped at once,
+    /// the `DisruptionTarget` condition written, and then (late by `self.late`, as a busy
+    /// kubelet's status manager can be) the terminal phase with reason `Evicted`.
+    fn evict(&self, pod: Pod, eviction: eviction::Eviction) {
+        let uid = eviction.uid.clone();
+        lock(&self.evicted).insert(uid.clone());
+        let name = pod.metadata.name.clone().unwrap_or_default();
+        warn!(pod = %name, message = %eviction.message, "evicting for disk pressure");
+        let (client, runner, late) = (self.client.clone(), self.runner.clone(), self.late);
+        tokio::spawn(async move {
+            runner.stop_pod(&uid, Some(Duration::ZERO)).await;
+            let condition = json!({
+                "type": "DisruptionTarget", "status": "True", "reason": "TerminationByKubelet",
+                "message": eviction.message,
+                "lastTransitionTime": k8s_openapi::apimachinery::pkg::apis::meta::v1::Time(
+                    k8s_openapi::jiff::Timestamp::now()),
+            });
+            put_status(
+                &client,
+                &pod,
+                &json!({"status": {"conditions": [condition]}}),
+            )
+            .await;
+            tokio::time::sleep(late).await;
+            let local = runner
+                .pods()
+                .into_iter()
+                .find(|p| p.metadata.uid.as_deref() == Some(uid.as_str()));
+            let status = local.and_then(|p| p.status).or_else(|| pod.status.clone());
+            if let Some(status) = status {
+                let mut patch = report(&status, true);
+                patch["status"]["reason"] = json!("Evicted");
+                patch["status"]["message"] = json!(eviction.message);
+                put_status(&client, &pod, &patch).await;
+            }
+        });
     }
 
     fn start(&mut self, real: Pod) {
@@ -253,8 +358,8 @@ mod tests {
     fn a_bound_pod_starts_once_and_is_then_reported() {
         let real =
             pod(json!({"metadata": {"name": "p", "uid": "u"}, "status": {"phase": "Pending"}}));
-        assert_eq!(decide(&real, None, false), Action::Start);
-        assert_eq!(decide(&real, Some(&real), false), Action::Report);
+        assert_eq!(decide(&real, None, (false, false)), Action::Start);
+        assert_eq!(decide(&real, Some(&real), (false, false)), Action::Report);
     }
 
     #[test]
@@ -262,17 +367,29 @@ mod tests {
         let real = pod(json!({"metadata": {"name": "p", "uid": "u",
             "deletionTimestamp": "2026-11-28T10:00:00Z", "deletionGracePeriodSeconds": 30}}));
         assert_eq!(
-            decide(&real, None, false),
+            decide(&real, None, (false, false)),
             Action::End(Some(Duration::from_secs(30)))
         );
-        assert_eq!(decide(&real, Some(&real), true), Action::Nothing);
+        assert_eq!(decide(&real, Some(&real), (true, false)), Action::Nothing);
+    }
+
+    #[test]
+    fn an_evicted_pod_is_left_to_the_eviction_manager_until_it_is_deleted() {
+        let real = pod(json!({"metadata": {"name": "p", "uid": "u"}}));
+        assert_eq!(decide(&real, Some(&real), (false, true)), Action::Nothing);
+        let deleted = pod(json!({"metadata": {"name": "p", "uid": "u",
+            "deletionTimestamp": "2026-11-28T10:00:00Z", "deletionGracePeriodSeconds": 0}}));
+        assert_eq!(
+            decide(&deleted, Some(&deleted), (false, true)),
+            Action::End(Some(Duration::ZERO))
+        );
     }
 
     #[test]
     fn a_pod_that_ended_before_the_agent_saw_it_is_not_run_again() {
         let real =
             pod(json!({"metadata": {"name": "p", "uid": "u"}, "status": {"phase": "Failed"}}));
-        assert_eq!(decide(&real, None, false), Action::Nothing);
+        assert_eq!(decide(&real, None, (false, false)), Action::Nothing);
     }
 
     #[test]

@@ -23,6 +23,11 @@ const POOL_LABEL: &str = "leaderboard.carla.org/pool";
 /// GPUs of a node when neither the run nor the settings say.
 const DEFAULT_GPUS: u32 = 4;
 
+/// How long the node agent holds an evicted pod's `Failed` after its `DisruptionTarget`
+/// condition: longer than the Monitor's rounds are apart in a local run, so a round sees the
+/// pod stopped with the condition while its phase still says `Running`, as it can on EKS.
+const EVICTIONS_REPORTED_LATE: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// The node a run's pods are placed on: its instance type and its node group's labels.
 pub struct NodeOf {
     /// `node.kubernetes.io/instance-type`, when one is modelled.
@@ -118,6 +123,7 @@ impl RealCluster {
                 gpus,
                 labels: labels.clone(),
                 taints: vec![taint.clone()],
+                disk: behaviour.node_disk,
             })
             .collect();
         let agent = NodeAgent::spawn(node_agent::Config {
@@ -130,6 +136,7 @@ impl RealCluster {
             },
             tls: plane.kubelet_tls(),
             autoscaler: true,
+            evictions_reported_late: EVICTIONS_REPORTED_LATE,
         })
         .map_err(|e| StackError::Kube(format!("node agent: {e}")))?;
         Ok(RealCluster { agent, plane })

@@ -350,27 +350,11 @@ impl Run {
 
         say(&bold("> Running the route"));
         self.start_recorder(cfg, carla).await;
-        let faults = &self.cfg.faults;
-        if let Some(sel) = faults.crash_at.filter(|s| s.matches(cfg.route, cfg.rep)) {
-            let fault = format!("crash-at-route-{}", sel.label());
-            if self.once.armed(&fault) {
-                self.once.mark(&fault);
-                tracing::warn!(route = %cfg.route_id, "injected evaluator crash");
-                self.traceback(
-                    &[
-                        ("main", "crashed = leaderboard_evaluator.run(arguments)"),
-                        ("run", "crashed = self._load_and_run_scenario(args, config)"),
-                        ("_load_and_run_scenario", "self._cleanup()"),
-                    ],
-                    &format!(
-                        "RuntimeError: fake-evaluator: injected crash at {} \
-                         (FAKE_EVALUATOR_CRASH_AT_ROUTE)",
-                        cfg.route_id
-                    ),
-                );
-                return Some(Exit::Traceback);
-            }
+        self.fill_disk(cfg);
+        if let Some(exit) = self.crash(cfg) {
+            return Some(exit);
         }
+        let faults = &self.cfg.faults;
         if let Some(sel) = faults.hang_at.filter(|s| s.matches(cfg.route, cfg.rep)) {
             let fault = format!("hang-at-route-{}", sel.label());
             if self.once.armed(&fault) {
@@ -397,6 +381,47 @@ impl Run {
                 Some(self.simulation_crashed(cfg, fraction))
             }
             Driven::Stopped(stop) => Some(Exit::Stopped(stop)),
+        }
+    }
+
+    /// The crash fault (`FAKE_EVALUATOR_CRASH_AT_ROUTE`): a traceback, and the exit it makes.
+    fn crash(&mut self, cfg: &RouteConfig) -> Option<Exit> {
+        let faults = &self.cfg.faults;
+        if let Some(sel) = faults.crash_at.filter(|s| s.matches(cfg.route, cfg.rep)) {
+            let fault = format!("crash-at-route-{}", sel.label());
+            if self.once.armed(&fault) {
+                self.once.mark(&fault);
+                tracing::warn!(route = %cfg.route_id, "injected evaluator crash");
+                self.traceback(
+                    &[
+                        ("main", "crashed = leaderboard_evaluator.run(arguments)"),
+                        ("run", "crashed = self._load_and_run_scenario(args, config)"),
+                        ("_load_and_run_scenario", "self._cleanup()"),
+                    ],
+                    &format!(
+                        "RuntimeError: fake-evaluator: injected crash at {} \
+                         (FAKE_EVALUATOR_CRASH_AT_ROUTE)",
+                        cfg.route_id
+                    ),
+                );
+                return Some(Exit::Traceback);
+            }
+        }
+        None
+    }
+
+    /// The disk hog (`FAKE_EVALUATOR_FILL_AT_ROUTE`): a large file in the writable layer.
+    fn fill_disk(&mut self, cfg: &RouteConfig) {
+        let faults = &self.cfg.faults;
+        if let Some(sel) = faults.fill_at.filter(|s| s.matches(cfg.route, cfg.rep)) {
+            let fault = format!("fill-at-route-{}", sel.label());
+            if self.once.armed(&fault) {
+                self.once.mark(&fault);
+                let file = std::path::Path::new(crate::faults::FILL_LAYER_FILE);
+                let filled = std::fs::File::create(file)
+                    .and_then(|f| f.set_len(crate::faults::FILL_LAYER_BYTES));
+                tracing::warn!(route = %cfg.route_id, ?filled, "injected disk hog");
+            }
         }
     }
 

@@ -292,6 +292,10 @@ pub struct EvaluatorFaults {
     pub crash_at: Option<RouteSelector>,
     /// `FAKE_EVALUATOR_HANG_AT_ROUTE`: stop printing and sleep until killed.
     pub hang_at: Option<RouteSelector>,
+    /// `FAKE_EVALUATOR_FILL_AT_ROUTE`: when it starts, write [`FILL_LAYER_BYTES`] outside
+    /// the volumes (the container's writable layer, `/var/tmp`), then go on: above the
+    /// agent's `ephemeral-storage` request, within its limit.
+    pub fill_at: Option<RouteSelector>,
     /// `FAKE_EVALUATOR_GARBAGE`: write an invalid checkpoint at the end (and exit 0).
     pub garbage: Option<GarbageKind>,
     /// `FAKE_EVALUATOR_SETUP_FAILURE`: the agent cannot be set up on any route.
@@ -353,6 +357,7 @@ impl EvaluatorFaults {
         Ok(EvaluatorFaults {
             crash_at: env_value(env, "FAKE_EVALUATOR_CRASH_AT_ROUTE", |v| v.parse())?,
             hang_at: env_value(env, "FAKE_EVALUATOR_HANG_AT_ROUTE", |v| v.parse())?,
+            fill_at: env_value(env, "FAKE_EVALUATOR_FILL_AT_ROUTE", |v| v.parse())?,
             garbage,
             setup_failure: env_value(env, "FAKE_EVALUATOR_SETUP_FAILURE", switch)?.unwrap_or(false),
             spawn_child,
@@ -396,6 +401,13 @@ impl EvaluatorFaults {
         })
     }
 }
+
+/// Where the disk hog writes: the container's writable layer.
+pub const FILL_LAYER_FILE: &str = "/var/tmp/fill.bin";
+
+/// How much it writes: 12 GiB, above the agent's 4 GiB `ephemeral-storage` request and within
+/// its 16 GiB limit (sparse: the size is what the node's kubelet counts here).
+pub const FILL_LAYER_BYTES: u64 = 12 << 30;
 
 /// Where the flood's large file goes: the top of the shared logs volume, as a participant's
 /// code at `/tmp/logs/fill.bin` can.

@@ -417,6 +417,7 @@ async fn the_real_job_controller_answers_as_recorded_and_local_kube_as_it() {
                 gpus: 1,
                 labels: BTreeMap::new(),
                 taints: Vec::new(),
+                disk: node_agent::Disk::default(),
             })
             .to_vec(),
         runtime: local_kube::Config {
@@ -425,6 +426,7 @@ async fn the_real_job_controller_answers_as_recorded_and_local_kube_as_it() {
         },
         tls: plane.kubelet_tls(),
         autoscaler: false,
+        evictions_reported_late: std::time::Duration::ZERO,
     })
     .expect("the node agent starts");
     let client = node_agent::client(&plane.kubeconfig(Identity::Admin))

@@ -316,12 +316,15 @@ impl Ledger {
 
     /// Whether `pod` is the one its Job ran at the last round: the start that round saw, or
     /// (that start clamped to the round's clock, or not remembered by an older state) a start
-    /// within [`CLOCK_SLACK`] of it.
+    /// within [`CLOCK_SLACK`] of it. A pod that started before the start that round saw is an
+    /// earlier one, whatever the clocks: its Job's ended pods stay listed beside the new one.
     fn same_pod(&self, pod: &PodSeen) -> bool {
         let slack = || pod.started_at <= self.last.saturating_add(CLOCK_SLACK);
         match self.entry(pod.job).start {
             None => slack(),
-            Some(seen) => pod.started_at == seen || (seen >= self.last && slack()),
+            Some(seen) => {
+                pod.started_at == seen || (seen >= self.last && pod.started_at > seen && slack())
+            }
         }
     }
 
@@ -1056,6 +1059,33 @@ mod tests {
             ]),
             (1, 900)
         );
+    }
+
+    #[test]
+    fn an_own_disruption_is_charged_once_when_its_replacement_started_in_the_round_s_second() {
+        let kinds = kinds();
+        let results = BTreeMap::from([(0, 700)]);
+        let none_failed = BTreeMap::from([(0, 0)]);
+        let own = |end: Option<u64>| PodSeen {
+            disruption: Some(Disruption::Own),
+            ..pod(0, 100, end, "od-a", false)
+        };
+        let mut ledger = Ledger::default();
+        let mut round = |pods: &[PodSeen], now: u64| {
+            ledger.account(pods, &kinds, (&results, &none_failed), now);
+            ledger.charged_to(0)
+        };
+        assert_eq!(round(&[pod(0, 100, None, "od-a", false)], 500), 0);
+        // Stopped, its status still Running with the condition.
+        assert_eq!(round(&[own(None)], 1000), 0);
+        // Failed, and its replacement started in the very second of this round (the kubelet's
+        // clock a little ahead of the Monitor's).
+        let next = pod(0, 1100, None, "od-a", false);
+        assert_eq!(round(&[own(Some(900)), next.clone()], 1100), 1);
+        // The failed pod stays listed beside its replacement: not charged again, round after
+        // round, though its replacement's start is not before the last round.
+        assert_eq!(round(&[own(Some(900)), next.clone()], 1100), 1);
+        assert_eq!(round(&[own(Some(900)), next], 1200), 1);
     }
 
     #[test]

@@ -254,6 +254,16 @@ fn check(args: &LocalRun) -> anyhow::Result<()> {
             args.kube_outage_minutes
         );
     }
+    use clap::ValueEnum as _;
+    if args.kube != KubeKind::Real && args.scenario.rehearsal().needs_real_kube() {
+        bail!(
+            "--scenario {} needs --kube real: only the real control plane's nodes have a disk \
+             their kubelet evicts from",
+            args.scenario
+                .to_possible_value()
+                .map_or_else(String::new, |v| v.get_name().to_owned())
+        );
+    }
     if args.teams.len() > 1 && args.evalai_url.is_some() {
         bail!("--teams needs the fake EvalAI (an external one has its own teams)");
     }

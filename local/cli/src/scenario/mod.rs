@@ -6,6 +6,7 @@ mod cancel;
 mod cancel_flood;
 mod crash;
 mod crash_loop;
+mod disk_hog;
 mod drain_loop;
 mod evalai_down;
 mod evict_between_rounds;
@@ -97,6 +98,13 @@ pub enum Scenario {
     /// not their agent's doing, the record says `failed_by: platform`, and the execution ends
     /// `PlatformFailed` (routes of at least 8 s).
     DrainLoop,
+    /// The first pair's agent writes 12 GiB outside its volumes at every attempt, on a node
+    /// whose images leave little room: the kubelet evicts the pod for disk pressure naming
+    /// the agent, and reports it failed seconds after the condition. Each eviction is charged
+    /// once as the pod's own: FAILED past its Job's `backoffLimit`, the participant told that
+    /// its pods were stopped by a disruption of their own (`--kube real` only: local-kube's
+    /// node has no disk).
+    DiskHog,
     /// EvalAI fails from the moment the run is finished: Finalize cannot post, an operator
     /// stops the execution, every attempt of the reaper's event fails and it is dropped; once
     /// EvalAI is back the reaper's scheduled pass deletes the Jobs, gives the place back and
@@ -127,6 +135,7 @@ impl Scenario {
             Scenario::Stop => Box::new(stop::Stop),
             Scenario::EvalaiDown => Box::new(evalai_down::EvalAiDown::default()),
             Scenario::DrainLoop => Box::new(drain_loop::DrainLoop::default()),
+            Scenario::DiskHog => Box::new(disk_hog::DiskHog),
         }
     }
 }
@@ -208,6 +217,12 @@ pub trait Rehearsal: Send + Sync {
     /// Whether a finished run's CARLA recordings pass the audit.
     fn audit_passes(&self) -> bool {
         true
+    }
+
+    /// Whether it needs the real control plane (`--kube real`): its nodes' kubelet has a disk
+    /// to run short of.
+    fn needs_real_kube(&self) -> bool {
+        false
     }
 
     /// The participant's image.

@@ -15,11 +15,12 @@ use tokio::sync::watch;
 use tokio::task::JoinSet;
 use tracing::{debug, info, warn};
 
+use super::disk::LAYER_MOUNT;
 use super::env::{argv, environment, EnvBase, LOCAL_IP};
 use super::mounts::{plan, Mount};
 use super::process::{command, exit_code, signal_group, terminate, wait_group_gone, Launch};
 use super::{scheduler, Runtime};
-use crate::imagemap::Pull;
+use crate::imagemap::{ImageEntry, Pull};
 use crate::objects::names::random_u64;
 use crate::objects::pod::{refresh_status, waiting};
 use crate::store::{time_now, ObjKey};
@@ -466,7 +467,7 @@ impl PodWorker {
             Ok(a) => a,
             Err(e) => return self.wait_stuck(slot, "ErrImagePull", e.0, stop).await,
         };
-        let mut mounts = match volume_mounts(&c, volumes) {
+        let mounts = match self.mounts(&c, entry, volumes) {
             Ok(mounts) => mounts,
             Err(msg) => {
                 return self
@@ -474,13 +475,6 @@ impl PodWorker {
                     .await
             }
         };
-        for (host, inside) in entry.map(|e| e.files.clone()).unwrap_or_default() {
-            mounts.push(Mount {
-                src: host,
-                dst: PathBuf::from(inside),
-                read_only: true,
-            });
-        }
         let workdir = c
             .working_dir
             .clone()
@@ -511,6 +505,39 @@ impl PodWorker {
         }
         self.attempts(slot, &c, &image, &argv, &env, &workdir, &plan.mounts, stop)
             .await
+    }
+
+    /// A container's mounts: its volumes, its image's files (read-only) and, when it runs in a
+    /// mount namespace, its writable layer at [`LAYER_MOUNT`] (unless a volume is mounted
+    /// there): what it writes outside its volumes is then its own, counted against its
+    /// `ephemeral-storage` as a runtime's overlay is. Without a namespace it writes the host's
+    /// directories, and has no layer to count.
+    fn mounts(
+        &self,
+        c: &Container,
+        entry: Option<&ImageEntry>,
+        volumes: &HashMap<String, PathBuf>,
+    ) -> Result<Vec<Mount>, String> {
+        let mut mounts = volume_mounts(c, volumes)?;
+        for (host, inside) in entry.map(|e| e.files.clone()).unwrap_or_default() {
+            mounts.push(Mount {
+                src: host,
+                dst: PathBuf::from(inside),
+                read_only: true,
+            });
+        }
+        if mounts.is_empty() || mounts.iter().any(|m| m.dst == Path::new(LAYER_MOUNT)) {
+            return Ok(mounts);
+        }
+        let layer = self.dir.join("layers").join(&c.name);
+        std::fs::create_dir_all(&layer)
+            .map_err(|e| format!("cannot create the writable layer of {:?}: {e}", c.name))?;
+        mounts.push(Mount {
+            src: layer,
+            dst: PathBuf::from(LAYER_MOUNT),
+            read_only: false,
+        });
+        Ok(mounts)
     }
 
     #[allow(clippy::too_many_arguments)]

@@ -1,6 +1,7 @@
 //! The process runtime behind the API: the job controller, the kubelet and what they share.
 
 pub mod controller;
+pub mod disk;
 pub mod env;
 pub mod events;
 pub mod expand;
