@@ -200,14 +200,26 @@ async fn drain(
     evicted
 }
 
-/// Evicts one running pod of the submission (of the Job with index `job`, when given) through
-/// the Eviction API and waits, bounded, until the API no longer has it: the pod and its
-/// `DisruptionTarget` reason as read right after the eviction.
+/// Whether `pod` started more than a second before `time` (a start is read to the second).
+fn started_well_before(
+    pod: &lb_domain::cluster::view::PodView,
+    time: std::time::SystemTime,
+) -> bool {
+    let time = time
+        .duration_since(std::time::SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_secs()).unwrap_or(i64::MAX));
+    pod.start_time.is_some_and(|t| t.as_second() + 1 < time)
+}
+
+/// Evicts one running pod of the submission (of the Job with index `job`, when given; one that
+/// started more than a second before `started_before`, when given) through the Eviction API
+/// and waits, bounded, until the API no longer has it: the pod and its `DisruptionTarget`
+/// reason as read right after the eviction. `None` when no pod is such, or on an error.
 pub async fn evict_one_until_gone(
     kubeconfig: &std::path::Path,
     namespace: &str,
     submission: u64,
-    job: Option<u32>,
+    (job, started_before): (Option<u32>, Option<std::time::SystemTime>),
 ) -> Option<(String, Option<String>)> {
     let cluster = lb_cluster::Cluster::from_kubeconfig(kubeconfig, None)
         .await
@@ -221,7 +233,11 @@ pub async fn evict_one_until_gone(
         .iter()
         .filter(|j| job.is_none_or(|index| j.index == Some(index)))
         .flat_map(|j| &j.pods)
-        .find(|p| p.phase == PodPhase::Running && !p.terminating)?
+        .find(|p| {
+            p.phase == PodPhase::Running
+                && !p.terminating
+                && started_before.is_none_or(|before| started_well_before(p, before))
+        })?
         .name
         .clone();
     if let Err(e) = api.evict(&pod, &EvictParams::default()).await {

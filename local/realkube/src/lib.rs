@@ -222,19 +222,6 @@ impl ControlPlane {
     /// identity and a kubeconfig for each.
     fn credentials(&self) -> Result<(), Error> {
         let at = |name: &str| self.dir.path().join(name);
-        let openssl = |args: &[&str]| -> Result<(), Error> {
-            let ok = Command::new("openssl")
-                .args(args)
-                .stderr(Stdio::null())
-                .status()?;
-            match ok.success() {
-                true => Ok(()),
-                false => Err(Error::Start {
-                    what: "openssl",
-                    why: args.join(" "),
-                }),
-            }
-        };
         // A CA and a serving certificate it signs: rustls (kube-rs) refuses a self-signed CA
         // presented as the server's own certificate.
         let path = |name: &str| at(name).to_str().unwrap_or_default().to_string();
@@ -308,6 +295,11 @@ impl ControlPlane {
             "-out",
             sa_pub.to_str().unwrap_or_default(),
         ])?;
+        self.tokens(&ca)
+    }
+
+    /// A token per identity (the API server's token file) and each one's kubeconfig.
+    fn tokens(&self, ca: &str) -> Result<(), Error> {
         let mut tokens = String::new();
         for who in Identity::ALL {
             let token = random_token()?;
@@ -319,10 +311,10 @@ impl ControlPlane {
             ));
             fs::write(
                 self.kubeconfig(who),
-                kubeconfig(&self.server, &ca, &token, who.user()),
+                kubeconfig(&self.server, ca, &token, who.user()),
             )?;
         }
-        fs::write(at("tokens.csv"), tokens)?;
+        fs::write(self.dir.path().join("tokens.csv"), tokens)?;
         Ok(())
     }
 
@@ -378,6 +370,21 @@ impl Drop for ControlPlane {
             let _ = child.kill();
             let _ = child.wait();
         }
+    }
+}
+
+/// `openssl <args>`, its stderr dropped; an error naming the arguments when it fails.
+fn openssl(args: &[&str]) -> Result<(), Error> {
+    let ok = Command::new("openssl")
+        .args(args)
+        .stderr(Stdio::null())
+        .status()?;
+    match ok.success() {
+        true => Ok(()),
+        false => Err(Error::Start {
+            what: "openssl",
+            why: args.join(" "),
+        }),
     }
 }
 

@@ -90,14 +90,12 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
         Some(path) => Template::from_file(path, lb),
         None => Template::builtin(lb),
     };
-    let template = match template {
-        Ok(t) => t,
-        Err(error) => {
-            say_err(&format!(
-                "fake-evaluator: error: FAKE_EVALUATOR_RECORDS: {error}\n"
-            ));
-            return Exit::Usage;
-        }
+    let Ok(template) = template.map_err(|error| {
+        say_err(&format!(
+            "fake-evaluator: error: FAKE_EVALUATOR_RECORDS: {error}\n"
+        ));
+    }) else {
+        return Exit::Usage;
     };
     let plan = records::plan(&cfg.args.routes_subset.routes, cfg.args.repetitions, lb);
     tracing::info!(
@@ -134,29 +132,9 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
     }
 
     // `LeaderboardEvaluator.__init__`: no simulator, no checkpoint.
-    let deadline = run.cfg.connect_seconds.unwrap_or(run.cfg.args.timeout);
-    let mut carla = tokio::select! {
-        conn = connect(&run.cfg.args.host, run.cfg.args.port, deadline) => match conn {
-            Some(c) => c,
-            None => {
-                run.traceback(
-                    &[
-                        ("main", "leaderboard_evaluator = LeaderboardEvaluator(arguments, statistics_manager)"),
-                        ("__init__", "self.client, self.client_timeout, self.traffic_manager = self._setup_simulation(args)"),
-                        ("_setup_simulation", "client.get_world().apply_settings(settings)"),
-                    ],
-                    &format!(
-                        "RuntimeError: time-out of {}ms while waiting for the simulator, make sure \
-                         the simulator is ready and connected to {}:{}",
-                        (deadline * 1000.0).round() as u64,
-                        run.cfg.args.host,
-                        run.cfg.args.port
-                    ),
-                );
-                return Exit::Traceback;
-            }
-        },
-        stop = signals.recv() => return Exit::Stopped(stop),
+    let mut carla = match run.connect(&mut signals).await {
+        Ok(carla) => carla,
+        Err(exit) => return exit,
     };
 
     let start = match run.start(&plan) {
@@ -166,18 +144,7 @@ pub async fn run(cfg: EvaluatorConfig) -> Exit {
     if let Some(exit) = run.tamper() {
         return exit;
     }
-    if let Some(hz) = run.cfg.faults.flood_hz {
-        tracing::warn!(
-            hz,
-            "injected flood: rewriting a status file and the results file"
-        );
-        let faults = &run.cfg.faults;
-        tokio::spawn(crate::faults::flood(
-            faults.status_dir.clone(),
-            run.cfg.args.checkpoint.clone(),
-            (hz, faults.pair_id),
-        ));
-    }
+    run.start_flood();
     for cfg in plan.iter().skip(start) {
         if let Some(exit) = run.route(cfg, &mut carla, &mut signals).await {
             return exit;
@@ -326,18 +293,7 @@ impl Run {
 
         say(&bold("> Setting up the agent"));
         if self.setup_failure {
-            self.once.mark("setup-failure");
-            say("\n\x1b[91mCould not set up the required agent:");
-            say(&format!(
-                "\nTraceback (most recent call last):\n  File \"{}\", line 331, in \
-                 _load_and_run_scenario\n    self.agent_instance.setup(args.agent_config)\n\
-                 RuntimeError: fake-evaluator: the agent cannot be set up \
-                 (FAKE_EVALUATOR_SETUP_FAILURE)\n\x1b[0m",
-                self.script()
-            ));
-            let record =
-                records::setup_failure(self.template.record(cfg, self.cfg.args.repetitions));
-            return self.register(cfg, record, EntryStatus::Started);
+            return self.agent_setup_failed(cfg);
         }
         if !self.sensors_initialized {
             self.sensors_initialized = true;
@@ -354,14 +310,8 @@ impl Run {
         if let Some(exit) = self.crash(cfg) {
             return Some(exit);
         }
-        let faults = &self.cfg.faults;
-        if let Some(sel) = faults.hang_at.filter(|s| s.matches(cfg.route, cfg.rep)) {
-            let fault = format!("hang-at-route-{}", sel.label());
-            if self.once.armed(&fault) {
-                self.once.mark(&fault);
-                tracing::warn!(route = %cfg.route_id, "injected hang: silent until killed");
-                return Some(Exit::Stopped(signals.recv().await));
-            }
+        if let Some(exit) = self.hang(cfg, signals).await {
+            return Some(exit);
         }
 
         let record = self.template.record(cfg, self.cfg.args.repetitions);
@@ -382,6 +332,81 @@ impl Run {
             }
             Driven::Stopped(stop) => Some(Exit::Stopped(stop)),
         }
+    }
+
+    /// `LeaderboardEvaluator.__init__`'s connection to CARLA, within the client's timeout:
+    /// the evaluator's traceback when it times out, or the signal that ended the wait.
+    async fn connect(&self, signals: &mut Signals) -> Result<TcpStream, Exit> {
+        let deadline = self.cfg.connect_seconds.unwrap_or(self.cfg.args.timeout);
+        tokio::select! {
+            conn = connect(&self.cfg.args.host, self.cfg.args.port, deadline) => conn.ok_or_else(|| {
+                self.traceback(
+                    &[
+                        ("main", "leaderboard_evaluator = LeaderboardEvaluator(arguments, statistics_manager)"),
+                        ("__init__", "self.client, self.client_timeout, self.traffic_manager = self._setup_simulation(args)"),
+                        ("_setup_simulation", "client.get_world().apply_settings(settings)"),
+                    ],
+                    &format!(
+                        "RuntimeError: time-out of {}ms while waiting for the simulator, make sure \
+                         the simulator is ready and connected to {}:{}",
+                        (deadline * 1000.0).round() as u64,
+                        self.cfg.args.host,
+                        self.cfg.args.port
+                    ),
+                );
+                Exit::Traceback
+            }),
+            stop = signals.recv() => Err(Exit::Stopped(stop)),
+        }
+    }
+
+    /// The flood fault (`FAKE_EVALUATOR_FLOOD_HZ`), for the rest of the run.
+    fn start_flood(&self) {
+        let Some(hz) = self.cfg.faults.flood_hz else {
+            return;
+        };
+        tracing::warn!(
+            hz,
+            "injected flood: rewriting a status file and the results file"
+        );
+        let faults = &self.cfg.faults;
+        tokio::spawn(crate::faults::flood(
+            faults.status_dir.clone(),
+            self.cfg.args.checkpoint.clone(),
+            (hz, faults.pair_id),
+        ));
+    }
+
+    /// The agent cannot be set up (`FAKE_EVALUATOR_SETUP_FAILURE`): the evaluator's traceback,
+    /// and the route's record says so.
+    fn agent_setup_failed(&mut self, cfg: &RouteConfig) -> Option<Exit> {
+        self.once.mark("setup-failure");
+        say("\n\x1b[91mCould not set up the required agent:");
+        say(&format!(
+            "\nTraceback (most recent call last):\n  File \"{}\", line 331, in \
+             _load_and_run_scenario\n    self.agent_instance.setup(args.agent_config)\n\
+             RuntimeError: fake-evaluator: the agent cannot be set up \
+             (FAKE_EVALUATOR_SETUP_FAILURE)\n\x1b[0m",
+            self.script()
+        ));
+        let record = records::setup_failure(self.template.record(cfg, self.cfg.args.repetitions));
+        self.register(cfg, record, EntryStatus::Started)
+    }
+
+    /// The hang fault (`FAKE_EVALUATOR_HANG_AT_ROUTE`): silent until a signal ends it.
+    async fn hang(&mut self, cfg: &RouteConfig, signals: &mut Signals) -> Option<Exit> {
+        let sel = self
+            .cfg
+            .faults
+            .hang_at
+            .filter(|s| s.matches(cfg.route, cfg.rep))?;
+        let fault = format!("hang-at-route-{}", sel.label());
+        if !self.once.armed(&fault) {
+            return None;
+        }
+        self.once.mark(&fault);
+        tracing::warn!(route = %cfg.route_id, "injected hang: silent until killed");
+        Some(Exit::Stopped(signals.recv().await))
     }
 
     /// The crash fault (`FAKE_EVALUATOR_CRASH_AT_ROUTE`): a traceback, and the exit it makes.

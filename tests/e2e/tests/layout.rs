@@ -423,7 +423,6 @@ const LONG_IN_THE_REHEARSAL: &[(&str, &str, usize)] = &[
         108,
     ),
     ("local/kube/src/runtime/kubelet.rs", "attempts", 152),
-    ("local/realkube/src/lib.rs", "credentials", 105),
     ("local/stack/src/workloads.rs", "image_map", 140),
     ("local/stepfunctions/src/definition.rs", "state", 120),
     ("local/stepfunctions/src/definition.rs", "task", 141),
@@ -432,8 +431,6 @@ const LONG_IN_THE_REHEARSAL: &[(&str, &str, usize)] = &[
     ("local/stepfunctions/src/executor.rs", "attempt_task", 165),
     ("local/stepfunctions/src/executor.rs", "attempt_map", 130),
     ("local/workloads/src/args.rs", "parse_carla", 126),
-    ("local/workloads/src/evaluator.rs", "run", 108),
-    ("local/workloads/src/evaluator.rs", "route", 104),
 ];
 
 #[test]

@@ -14,6 +14,10 @@ use super::Rehearsal;
 /// A GiB.
 const GI: u64 = 1 << 30;
 
+/// Routes long enough that the kubelet's pass (once a second) finds the agent still on the
+/// route it filled its disk on, and the route is never done: each attempt runs it again.
+const ROUTE_SECONDS: f64 = 4.0;
+
 /// An agent that writes 12 GiB outside its volumes on route 1, at every attempt.
 pub struct DiskHog;
 
@@ -27,6 +31,7 @@ impl Rehearsal for DiskHog {
     }
 
     fn set_up(&self, behaviour: &mut Behaviour, _once: &Path) {
+        behaviour.route_seconds = behaviour.route_seconds.max(ROUTE_SECONDS);
         behaviour
             .evaluator_env
             .insert("FAKE_EVALUATOR_FILL_AT_ROUTE".into(), "1".into());

@@ -99,10 +99,8 @@ impl Drainer {
             let Some(seen) = *held(&self.last_round) else {
                 continue;
             };
-            if !running_since_before(kubeconfig, namespace, *submission, seen).await {
-                continue;
-            }
-            if evict_one_until_gone(kubeconfig, namespace, *submission, Some(0))
+            let only = (Some(0), Some(seen));
+            if evict_one_until_gone(kubeconfig, namespace, *submission, only)
                 .await
                 .is_some()
             {
@@ -111,33 +109,4 @@ impl Drainer {
             }
         }
     }
-}
-
-/// Whether Job 0's pod runs and started before `seen` (a round saw it running).
-async fn running_since_before(
-    kubeconfig: &Path,
-    namespace: &str,
-    submission: u64,
-    seen: SystemTime,
-) -> bool {
-    let Ok(cluster) = lb_cluster::Cluster::from_kubeconfig(kubeconfig, None).await else {
-        return false;
-    };
-    let cluster = cluster.with_namespace(namespace.to_owned());
-    let Ok(observed) = cluster.observe(&submission.to_string()).await else {
-        return false;
-    };
-    let seen = seen
-        .duration_since(SystemTime::UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_secs()).unwrap_or(i64::MAX));
-    observed
-        .jobs
-        .iter()
-        .filter(|j| j.index == Some(0))
-        .flat_map(|j| &j.pods)
-        .any(|p| {
-            p.phase == lb_domain::status::PodPhase::Running
-                && !p.terminating
-                && p.start_time.is_some_and(|t| t.as_second() + 1 < seen)
-        })
 }

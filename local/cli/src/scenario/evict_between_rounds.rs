@@ -87,7 +87,7 @@ impl Rehearsal for EvictBetweenRounds {
                     Some(store) => into_a_route(store).await,
                     None => None,
                 };
-                evict_one_until_gone(kubeconfig, namespace, *submission, job).await
+                evict_one_until_gone(kubeconfig, namespace, *submission, (job, None)).await
             })
         });
         let done = evicted.is_some();

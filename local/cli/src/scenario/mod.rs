@@ -103,7 +103,7 @@ pub enum Scenario {
     /// the agent, and reports it failed seconds after the condition. Each eviction is charged
     /// once as the pod's own: FAILED past its Job's `backoffLimit`, the participant told that
     /// its pods were stopped by a disruption of their own (`--kube real` only: local-kube's
-    /// node has no disk).
+    /// node has no disk; routes of at least 4 s, so that the eviction lands mid-route).
     DiskHog,
     /// EvalAI fails from the moment the run is finished: Finalize cannot post, an operator
     /// stops the execution, every attempt of the reaper's event fails and it is dropped; once
