@@ -1089,6 +1089,34 @@ mod tests {
     }
 
     #[test]
+    fn reclaimed_pods_listed_beside_their_replacements_are_counted_once() {
+        let kinds = kinds();
+        let results = BTreeMap::from([(0, 0)]);
+        let none_failed = BTreeMap::from([(0, 0)]);
+        let mut ledger = Ledger::default();
+        let mut listed: Vec<PodSeen> = Vec::new();
+        let mut now = 100;
+        ledger.account(
+            &[pod(0, 100, None, "od-a", false)],
+            &kinds,
+            (&results, &none_failed),
+            now,
+        );
+        // Four reclaims in a row, each replacement started in the very second of the round
+        // that sees its predecessor ended; every ended pod stays listed.
+        for n in 0..4u64 {
+            let start = 100 + n * 100;
+            now = start + 100;
+            listed.push(pod(0, start, Some(now - 10), "od-a", true));
+            let mut seen = listed.clone();
+            seen.push(pod(0, now, None, "od-a", false));
+            ledger.account(&seen, &kinds, (&results, &none_failed), now);
+            ledger.account(&seen, &kinds, (&results, &none_failed), now + 50);
+        }
+        assert_eq!((ledger.charged_to(0), ledger.excess_of(0)), (1, 1));
+    }
+
+    #[test]
     fn the_time_reclaims_take_off_the_limit_is_capped() {
         let ledger = Ledger {
             lost: 3 * MAX_TIME_OFF,
