@@ -328,19 +328,33 @@ impl Fixture {
 
     /// Checks cross-references, uniqueness and value ranges.
     pub fn validate(&self) -> Result<(), FixtureError> {
-        let invalid = |msg: String| Err(FixtureError::Invalid(msg));
         if self.throttle_per_minute == 0 {
             return invalid("`throttle_per_minute` must be at least 1".to_owned());
         }
         if self.throttle_window_secs == 0 {
             return invalid("`throttle_window_secs` must be at least 1".to_owned());
         }
+        let users = self.valid_users()?;
+        self.valid_tokens(&users)?;
+        let (challenges, phases) = self.valid_challenges()?;
+        self.valid_host_teams(&users, &challenges)?;
+        let teams = self.valid_participant_teams(&users, &challenges)?;
+        self.valid_submissions(&phases, &teams)
+    }
+
+    /// The users' ids, each once.
+    fn valid_users(&self) -> Result<BTreeSet<u64>, FixtureError> {
         let mut users = BTreeSet::new();
         for u in &self.users {
             if !users.insert(u.id) {
                 return invalid(format!("user id `{}` appears twice", u.id));
             }
         }
+        Ok(users)
+    }
+
+    /// Each token once, well formed, of a known user; only JWTs blacklisted.
+    fn valid_tokens(&self, users: &BTreeSet<u64>) -> Result<(), FixtureError> {
         let mut token_values = BTreeSet::new();
         for t in &self.tokens {
             if t.value.is_empty() || t.value.chars().any(|c| c.is_whitespace() || c.is_control()) {
@@ -365,6 +379,11 @@ impl Fixture {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// The challenges' ids and each phase's challenge, each once, with well-formed splits.
+    fn valid_challenges(&self) -> Result<(BTreeSet<u64>, BTreeMap<u64, u64>), FixtureError> {
         let mut challenges = BTreeSet::new();
         let mut phases: BTreeMap<u64, u64> = BTreeMap::new();
         for c in &self.challenges {
@@ -407,6 +426,15 @@ impl Fixture {
                 }
             }
         }
+        Ok((challenges, phases))
+    }
+
+    /// Each host team once, of known users, and each challenge hosted by exactly one.
+    fn valid_host_teams(
+        &self,
+        users: &BTreeSet<u64>,
+        challenges: &BTreeSet<u64>,
+    ) -> Result<(), FixtureError> {
         let mut host_team_ids = BTreeSet::new();
         let mut hosted: BTreeMap<u64, u64> = BTreeMap::new();
         for t in &self.host_teams {
@@ -433,11 +461,20 @@ impl Fixture {
                 }
             }
         }
-        for c in &challenges {
+        for c in challenges {
             if !hosted.contains_key(c) {
                 return invalid(format!("challenge `{c}` has no host team"));
             }
         }
+        Ok(())
+    }
+
+    /// The participant teams by id, each once, of known users and challenges.
+    fn valid_participant_teams(
+        &self,
+        users: &BTreeSet<u64>,
+        challenges: &BTreeSet<u64>,
+    ) -> Result<BTreeMap<u64, &ParticipantTeamFixture>, FixtureError> {
         let mut teams: BTreeMap<u64, &ParticipantTeamFixture> = BTreeMap::new();
         for t in &self.participant_teams {
             if teams.insert(t.id, t).is_some() {
@@ -460,6 +497,16 @@ impl Fixture {
                 }
             }
         }
+        Ok(teams)
+    }
+
+    /// Each submission once, of a known phase and team, by a member, with a known status and
+    /// ISO-8601 times.
+    fn valid_submissions(
+        &self,
+        phases: &BTreeMap<u64, u64>,
+        teams: &BTreeMap<u64, &ParticipantTeamFixture>,
+    ) -> Result<(), FixtureError> {
         let mut submissions = BTreeSet::new();
         for s in &self.submissions {
             if s.id == 0 {
@@ -512,6 +559,11 @@ impl Fixture {
         }
         Ok(())
     }
+}
+
+/// A fixture error naming what is wrong.
+fn invalid<T>(msg: String) -> Result<T, FixtureError> {
+    Err(FixtureError::Invalid(msg))
 }
 
 #[cfg(test)]

@@ -253,12 +253,7 @@ impl Kubelet {
             )
             .await;
             tokio::time::sleep(late).await;
-            let local = runner
-                .pods()
-                .into_iter()
-                .find(|p| p.metadata.uid.as_deref() == Some(uid.as_str()));
-            let status = local.and_then(|p| p.status).or_else(|| pod.status.clone());
-            if let Some(status) = status {
+            if let Some(status) = last_status(&runner, &pod) {
                 let mut patch = report(&status, true);
                 patch["status"]["reason"] = json!("Evicted");
                 patch["status"]["message"] = json!(eviction.message);
@@ -293,12 +288,7 @@ impl Kubelet {
         let ending = self.ending.clone();
         tokio::spawn(async move {
             runner.stop_pod(&uid, grace).await;
-            let local = runner
-                .pods()
-                .into_iter()
-                .find(|p| p.metadata.uid.as_deref() == Some(uid.as_str()));
-            let status = local.and_then(|p| p.status).or_else(|| real.status.clone());
-            if let Some(status) = status {
+            if let Some(status) = last_status(&runner, &real) {
                 put_status(&client, &real, &report(&status, true)).await;
             }
             let ns = real.metadata.namespace.clone().unwrap_or_default();
@@ -323,6 +313,17 @@ impl Kubelet {
             }
         });
     }
+}
+
+/// The status of a pod whose containers were stopped: as its kubelet here last wrote it, or
+/// as the API server had it.
+fn last_status(runner: &PodRunner, real: &Pod) -> Option<PodStatus> {
+    let uid = real.metadata.uid.as_deref();
+    let local = runner
+        .pods()
+        .into_iter()
+        .find(|p| p.metadata.uid.as_deref() == uid);
+    local.and_then(|p| p.status).or_else(|| real.status.clone())
 }
 
 /// Writes a pod's status; whether the API server took it.

@@ -891,6 +891,14 @@ mod tests {
         }
     }
 
+    /// Job 0's pod started at 100 that the kubelet evicted for its own disk use, ended at `end`.
+    fn own(end: Option<u64>) -> PodSeen {
+        PodSeen {
+            disruption: Some(Disruption::Own),
+            ..pod(0, 100, end, "od-a", false)
+        }
+    }
+
     fn kinds() -> BTreeMap<String, NodeKind> {
         let kind = |capacity| NodeKind {
             instance_type: "g5.12xlarge".into(),
@@ -1014,10 +1022,6 @@ mod tests {
         let kinds = kinds();
         let results = BTreeMap::from([(0, 700)]);
         let none_failed = BTreeMap::from([(0, 0)]);
-        let own = |end: Option<u64>| PodSeen {
-            disruption: Some(Disruption::Own),
-            ..pod(0, 100, end, "od-a", false)
-        };
         // The rounds' sightings of one pod the kubelet evicted for its own disk use, its
         // containers done at 900: the charge to its pair once they are all seen.
         let charged = |sightings: &[(u64, PodSeen)]| {
@@ -1066,10 +1070,6 @@ mod tests {
         let kinds = kinds();
         let results = BTreeMap::from([(0, 700)]);
         let none_failed = BTreeMap::from([(0, 0)]);
-        let own = |end: Option<u64>| PodSeen {
-            disruption: Some(Disruption::Own),
-            ..pod(0, 100, end, "od-a", false)
-        };
         let mut ledger = Ledger::default();
         let mut round = |pods: &[PodSeen], now: u64| {
             ledger.account(pods, &kinds, (&results, &none_failed), now);
