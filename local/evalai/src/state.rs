@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use time::OffsetDateTime;
 
 use crate::faults::FaultState;
-use crate::fixture::{Fixture, TokenKind};
+use crate::fixture::{Fixture, SubmissionFixture, TokenKind};
 use crate::pyjson::PyValue;
 use crate::reqlog::RequestLog;
 use crate::statuses;
@@ -305,33 +305,7 @@ impl World {
                 challenges: t.challenges.clone(),
             })
             .collect();
-        let mut next_split = 1;
-        let mut phases = BTreeMap::new();
-        for c in &fixture.challenges {
-            for p in &c.phases {
-                let splits = p
-                    .splits
-                    .iter()
-                    .map(|s| {
-                        let id = next_split;
-                        next_split += 1;
-                        Split {
-                            id,
-                            codename: s.codename.clone(),
-                            labels: s.labels.clone(),
-                        }
-                    })
-                    .collect();
-                phases.insert(
-                    p.id,
-                    Phase {
-                        challenge: c.id,
-                        partial_evaluation_enabled: p.partial_evaluation_enabled,
-                        splits,
-                    },
-                );
-            }
-        }
+        let phases = phases_of(fixture);
         let mut teams: BTreeMap<u64, Team> = fixture
             .participant_teams
             .iter()
@@ -354,34 +328,7 @@ impl World {
                     team.challenges.push(challenge);
                 }
             }
-            submissions.insert(
-                s.id,
-                Submission {
-                    id: s.id,
-                    phase: s.challenge_phase,
-                    team: s.participant_team,
-                    created_by: s.created_by,
-                    status: s.status.clone(),
-                    submitted_image_uri: s.submitted_image_uri.clone(),
-                    submitted_at: ts(&s.submitted_at).unwrap_or(started),
-                    started_at: ts(&s.started_at),
-                    completed_at: ts(&s.completed_at),
-                    rerun_resumed_at: ts(&s.rerun_resumed_at),
-                    when_made_public: None,
-                    method_name: s.method_name.clone(),
-                    method_description: String::new(),
-                    project_url: String::new(),
-                    publication_url: String::new(),
-                    is_public: s.is_public,
-                    is_flagged: false,
-                    ignore_submission: false,
-                    is_baseline: false,
-                    is_verified_by_host: false,
-                    job_name: Some(s.job_name.clone().unwrap_or_default()),
-                    submission_metadata: None,
-                    files: SubmissionFiles::default(),
-                },
-            );
+            submissions.insert(s.id, submission_of(s, started));
         }
         World {
             users,
@@ -729,5 +676,67 @@ impl World {
             },
         );
         Ok(self.snapshot_of(&self.submissions[&id]))
+    }
+}
+
+/// Each phase of the fixture's challenges, by id, its splits numbered from 1 across them all.
+fn phases_of(fixture: &Fixture) -> BTreeMap<u64, Phase> {
+    let mut next_split = 1;
+    let mut phases = BTreeMap::new();
+    for c in &fixture.challenges {
+        for p in &c.phases {
+            let splits = p
+                .splits
+                .iter()
+                .map(|s| {
+                    let id = next_split;
+                    next_split += 1;
+                    Split {
+                        id,
+                        codename: s.codename.clone(),
+                        labels: s.labels.clone(),
+                    }
+                })
+                .collect();
+            phases.insert(
+                p.id,
+                Phase {
+                    challenge: c.id,
+                    partial_evaluation_enabled: p.partial_evaluation_enabled,
+                    splits,
+                },
+            );
+        }
+    }
+    phases
+}
+
+/// A fixture's submission as the world holds it (`started`: its submission time if it has
+/// none).
+fn submission_of(s: &SubmissionFixture, started: OffsetDateTime) -> Submission {
+    Submission {
+        id: s.id,
+        phase: s.challenge_phase,
+        team: s.participant_team,
+        created_by: s.created_by,
+        status: s.status.clone(),
+        submitted_image_uri: s.submitted_image_uri.clone(),
+        submitted_at: ts(&s.submitted_at).unwrap_or(started),
+        started_at: ts(&s.started_at),
+        completed_at: ts(&s.completed_at),
+        rerun_resumed_at: ts(&s.rerun_resumed_at),
+        when_made_public: None,
+        method_name: s.method_name.clone(),
+        method_description: String::new(),
+        project_url: String::new(),
+        publication_url: String::new(),
+        is_public: s.is_public,
+        is_flagged: false,
+        ignore_submission: false,
+        is_baseline: false,
+        is_verified_by_host: false,
+        job_name: Some(s.job_name.clone().unwrap_or_default()),
+        submission_metadata: None,
+        files: SubmissionFiles::default(),
     }
 }

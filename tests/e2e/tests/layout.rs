@@ -412,7 +412,6 @@ fn shipped_source(rel: &str) -> bool {
 const LONG_IN_THE_REHEARSAL: &[(&str, &str, usize)] = &[
     ("local/evalai/src/routes/meta.rs", "apply", 118),
     ("local/evalai/src/routes/views.rs", "plan_results", 132),
-    ("local/evalai/src/state.rs", "from_fixture", 132),
     ("local/kube/src/api/pods.rs", "log_inner", 112),
     ("local/kube/src/api/watch.rs", "watch", 117),
     ("local/kube/src/objects/validation.rs", "validate_job", 143),
