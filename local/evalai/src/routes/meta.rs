@@ -153,16 +153,7 @@ fn metadata(v: &PyValue, form: bool) -> Result<Change, PyValue> {
 /// else answers 400 with DRF's `{field: [messages]}`.
 pub(crate) fn apply(sub: &mut Submission, data: &Data, known: &Related) -> ViewResult<()> {
     if !matches!(data.value, PyValue::Dict(_)) {
-        return Err(Reply::json(
-            StatusCode::BAD_REQUEST,
-            PyValue::dict(vec![(
-                "non_field_errors",
-                errors(&format!(
-                    "Invalid data. Expected a dictionary, but got {}.",
-                    data.value.type_name()
-                )),
-            )]),
-        ));
+        return Err(not_a_dictionary(&data.value));
     }
     let mut changes = Vec::new();
     let mut errs: Vec<(String, PyValue)> = Vec::new();
@@ -180,13 +171,7 @@ pub(crate) fn apply(sub: &mut Submission, data: &Data, known: &Related) -> ViewR
         }
     }
     if let Some(v) = data.value.get("status") {
-        let key = v.py_str();
-        let r = match v {
-            PyValue::None => Err(errors(NOT_NULL)),
-            _ if STATUSES.contains(&key.as_str()) => Ok(Change::Status(key)),
-            _ => Err(errors(&format!("\"{key}\" is not a valid choice."))),
-        };
-        check("status", r);
+        check("status", status(v));
     }
     for field in [
         "started_at",
@@ -237,7 +222,39 @@ pub(crate) fn apply(sub: &mut Submission, data: &Data, known: &Related) -> ViewR
         return Err(Reply::json(StatusCode::BAD_REQUEST, PyValue::Dict(errs)));
     }
     for change in changes {
-        match change {
+        change.make(sub);
+    }
+    Ok(())
+}
+
+/// The `status` field: one of EvalAI's choices, not null.
+fn status(v: &PyValue) -> Result<Change, PyValue> {
+    let key = v.py_str();
+    match v {
+        PyValue::None => Err(errors(NOT_NULL)),
+        _ if STATUSES.contains(&key.as_str()) => Ok(Change::Status(key)),
+        _ => Err(errors(&format!("\"{key}\" is not a valid choice."))),
+    }
+}
+
+/// DRF's answer to a body that is not a JSON object.
+fn not_a_dictionary(value: &PyValue) -> Reply {
+    Reply::json(
+        StatusCode::BAD_REQUEST,
+        PyValue::dict(vec![(
+            "non_field_errors",
+            errors(&format!(
+                "Invalid data. Expected a dictionary, but got {}.",
+                value.type_name()
+            )),
+        )]),
+    )
+}
+
+impl Change {
+    /// Makes this validated change to `sub`.
+    fn make(self, sub: &mut Submission) {
+        match self {
             Change::Related(field, id) => match field {
                 "participant_team" => sub.team = id,
                 "challenge_phase" => sub.phase = id,
@@ -267,5 +284,4 @@ pub(crate) fn apply(sub: &mut Submission, data: &Data, known: &Related) -> ViewR
             Change::Metadata(m) => sub.submission_metadata = m,
         }
     }
-    Ok(())
 }
