@@ -10,7 +10,7 @@ use crate::routes::pyops::{
     json_loads_field, lower, shown,
 };
 use crate::routes::reply::{Reply, ReplyBody, ViewResult};
-use crate::state::{Row, World};
+use crate::state::{Phase, Row, Split, World};
 use crate::statuses;
 use crate::timefmt;
 
@@ -150,25 +150,7 @@ fn plan_results(
         let show = element
             .get("show_to_participant")
             .is_some_and(PyValue::truthy);
-        let phase_id = match phase_value {
-            None => None,
-            Some(v) => int_lookup(v)?,
-        };
-        let codename = char_lookup(split_value);
-        let found = match (phase_id.and_then(|p| u64::try_from(p).ok()), codename) {
-            (Some(p), Some(c)) => world.split(p, &c).map(|(ph, sp)| (p, ph, sp)),
-            _ => None,
-        };
-        let Some((phase_id, phase, split)) = found else {
-            return Err(Reply::error(
-                StatusCode::BAD_REQUEST,
-                format!(
-                    "Challenge Phase Split does not exist with phase_id: {} andsplit codename: {}",
-                    shown(phase_value),
-                    shown(split_value)
-                ),
-            ));
-        };
+        let (phase_id, phase, split) = split_of(world, phase_value, split_value)?;
         let rows: Vec<usize> = world
             .rows
             .iter()
@@ -198,70 +180,129 @@ fn plan_results(
             Some(other) => return Err(attribute_error(other, "items")),
             None => return Err(attribute_error(&PyValue::None, "items")),
         };
-        let mut missing = Vec::new();
-        let mut malformed = Vec::new();
-        for (metric, value) in &pairs {
-            if !split.labels.contains(metric) {
-                missing.push(PyValue::Str(metric.clone()));
-            }
-            if !value.is_number() {
-                malformed.push(format!(
-                    "({}, <class '{}'>)",
-                    PyValue::Str(metric.clone()).repr(),
-                    value.type_name()
-                ));
-            }
-            if let Some((_, m)) = merged.as_mut() {
-                PyValue::dict_set(m, metric.clone(), value.clone());
-            }
-        }
         let partial_endpoint = endpoint != Endpoint::Final;
         let unknown_keys_allowed = partial_endpoint && phase.partial_evaluation_enabled;
-        if !missing.is_empty() && !unknown_keys_allowed {
-            let mut text = format!(
-                "Following metrics are missing in theleaderboard data: {}",
-                PyValue::List(missing).repr()
-            );
-            if partial_endpoint {
-                text.push_str(&format!(" of challenge phase: {}", shown(phase_value)));
-            }
-            return Err(Reply::error(StatusCode::BAD_REQUEST, text));
-        }
-        if !malformed.is_empty() {
-            return Err(Reply::error(
-                StatusCode::BAD_REQUEST,
-                format!(
-                    "Values for following metrics are not offloat/int: [{}]",
-                    malformed.join(", ")
-                ),
-            ));
-        }
-        let write = match merged {
-            Some((row, result)) => Write {
-                target: Target::Existing(row),
-                result,
-            },
-            None => match rows.as_slice() {
-                [] => Write {
-                    target: Target::New {
-                        phase: phase_id,
-                        split: split.id,
-                    },
-                    result: pairs.clone(),
-                },
-                [one] => Write {
-                    target: Target::Existing(*one),
-                    result: pairs.clone(),
-                },
-                many => return Err(multiple_rows(many.len())),
-            },
-        };
+        check_metrics(
+            &pairs,
+            &split.labels,
+            merged.as_mut().map(|(_, m)| m),
+            (partial_endpoint, unknown_keys_allowed),
+            phase_value,
+        )?;
+        let write = write_of(merged, &rows, (phase_id, split.id), &pairs)?;
         writes.push(write);
         if show {
             public.push(PyValue::Dict(pairs));
         }
     }
     Ok((writes, public))
+}
+
+/// The phase and split an element names (the phase by the URL's id, the split by its
+/// codename), in the server's words when there is none.
+fn split_of<'w>(
+    world: &'w World,
+    phase_value: Option<&PyValue>,
+    split_value: Option<&PyValue>,
+) -> ViewResult<(u64, &'w Phase, &'w Split)> {
+    let phase_id = match phase_value {
+        None => None,
+        Some(v) => int_lookup(v)?,
+    };
+    let codename = char_lookup(split_value);
+    let found = match (phase_id.and_then(|p| u64::try_from(p).ok()), codename) {
+        (Some(p), Some(c)) => world.split(p, &c).map(|(ph, sp)| (p, ph, sp)),
+        _ => None,
+    };
+    found.ok_or_else(|| {
+        Reply::error(
+            StatusCode::BAD_REQUEST,
+            format!(
+                "Challenge Phase Split does not exist with phase_id: {} andsplit codename: {}",
+                shown(phase_value),
+                shown(split_value)
+            ),
+        )
+    })
+}
+
+/// The accuracies' metrics against the split's `labels`: each a known label (unless
+/// `unknown_keys_allowed`) with a number for its value, in the server's words for the first
+/// that is not; folded into `merged` (the patched row's result) as they go.
+fn check_metrics(
+    pairs: &[(String, PyValue)],
+    labels: &[String],
+    mut merged: Option<&mut Vec<(String, PyValue)>>,
+    (partial_endpoint, unknown_keys_allowed): (bool, bool),
+    phase_value: Option<&PyValue>,
+) -> ViewResult<()> {
+    let mut missing = Vec::new();
+    let mut malformed = Vec::new();
+    for (metric, value) in pairs {
+        if !labels.contains(metric) {
+            missing.push(PyValue::Str(metric.clone()));
+        }
+        if !value.is_number() {
+            malformed.push(format!(
+                "({}, <class '{}'>)",
+                PyValue::Str(metric.clone()).repr(),
+                value.type_name()
+            ));
+        }
+        if let Some(m) = merged.as_deref_mut() {
+            PyValue::dict_set(m, metric.clone(), value.clone());
+        }
+    }
+    if !missing.is_empty() && !unknown_keys_allowed {
+        let mut text = format!(
+            "Following metrics are missing in theleaderboard data: {}",
+            PyValue::List(missing).repr()
+        );
+        if partial_endpoint {
+            text.push_str(&format!(" of challenge phase: {}", shown(phase_value)));
+        }
+        return Err(Reply::error(StatusCode::BAD_REQUEST, text));
+    }
+    if !malformed.is_empty() {
+        return Err(Reply::error(
+            StatusCode::BAD_REQUEST,
+            format!(
+                "Values for following metrics are not offloat/int: [{}]",
+                malformed.join(", ")
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The row write of one split's accuracies: the patched row (`merged`), else the split's one
+/// row of this submission, else a new row for (phase, split) `ids`.
+fn write_of(
+    merged: Option<(usize, Vec<(String, PyValue)>)>,
+    rows: &[usize],
+    ids: (u64, u64),
+    pairs: &[(String, PyValue)],
+) -> ViewResult<Write> {
+    Ok(match merged {
+        Some((row, result)) => Write {
+            target: Target::Existing(row),
+            result,
+        },
+        None => match rows {
+            [] => Write {
+                target: Target::New {
+                    phase: ids.0,
+                    split: ids.1,
+                },
+                result: pairs.to_vec(),
+            },
+            [one] => Write {
+                target: Target::Existing(*one),
+                result: pairs.to_vec(),
+            },
+            many => return Err(multiple_rows(many.len())),
+        },
+    })
 }
 
 /// Writes the rows in one transaction. A NaN or infinity is refused before anything is
