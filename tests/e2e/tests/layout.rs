@@ -412,12 +412,6 @@ fn shipped_source(rel: &str) -> bool {
 const LONG_IN_THE_REHEARSAL: &[(&str, &str, usize)] = &[
     ("local/kube/src/api/pods.rs", "log_inner", 112),
     ("local/kube/src/api/watch.rs", "watch", 117),
-    ("local/kube/src/objects/validation.rs", "validate_job", 143),
-    (
-        "local/kube/src/objects/validation.rs",
-        "validate_container",
-        108,
-    ),
     ("local/kube/src/runtime/kubelet.rs", "attempts", 152),
     ("local/stack/src/workloads.rs", "image_map", 140),
     ("local/stepfunctions/src/definition.rs", "state", 120),

@@ -146,88 +146,21 @@ pub fn validate_job(job: &Job, uid: &str) -> Vec<FieldError> {
         .and_then(|m| m.labels.as_ref());
     let manual = spec.manual_selector == Some(true);
     if !manual && template_labels.is_some() {
-        // The generated selector must have put the job's own labels on the template.
-        for (key, want) in [
-            (LEGACY_CONTROLLER_UID_LABEL, uid),
-            (LEGACY_JOB_NAME_LABEL, name.as_str()),
-            (CONTROLLER_UID_LABEL, uid),
-            (JOB_NAME_LABEL, name.as_str()),
-        ] {
-            let path = format!("spec.template.metadata.labels[{key}]");
-            match template_labels.and_then(|l| l.get(key)) {
-                None => errs.push(FieldError::required(path, format!("must be '{want}'"))),
-                Some(v) if v != want => errs.push(FieldError::invalid_raw(
-                    path,
-                    go_map(template_labels),
-                    format!("must be '{want}'"),
-                )),
-                Some(_) => {}
-            }
-        }
-        if let Some(sel) = &spec.selector {
-            let expected: BTreeMap<String, String> =
-                [(CONTROLLER_UID_LABEL.to_owned(), uid.to_owned())].into();
-            if let Ok(parsed) = LabelSelector::from_spec(sel) {
-                if !parsed.matches(Some(&expected)) {
-                    errs.push(FieldError::invalid_raw(
-                        "spec.selector",
-                        go_selector(sel),
-                        "`selector` not auto-generated",
-                    ));
-                }
-            }
-        }
+        generated_labels(spec, (uid, &name), template_labels, &mut errs);
     }
-    nonnegative(
-        spec.parallelism.map(i64::from),
-        "spec.parallelism",
-        &mut errs,
-    );
-    nonnegative(
-        spec.completions.map(i64::from),
-        "spec.completions",
-        &mut errs,
-    );
-    nonnegative(
-        spec.backoff_limit.map(i64::from),
-        "spec.backoffLimit",
-        &mut errs,
-    );
-    nonnegative(
-        spec.active_deadline_seconds,
-        "spec.activeDeadlineSeconds",
-        &mut errs,
-    );
-    nonnegative(
-        spec.ttl_seconds_after_finished.map(i64::from),
-        "spec.ttlSecondsAfterFinished",
-        &mut errs,
-    );
-    match &spec.selector {
-        None => errs.push(FieldError::required("spec.selector", "")),
-        Some(sel) => match LabelSelector::from_spec(sel) {
-            Err(e) => errs.push(FieldError::invalid_raw(
-                "spec.selector",
-                go_selector(sel),
-                e,
-            )),
-            Ok(parsed) => {
-                if parsed.is_empty() {
-                    errs.push(FieldError::invalid_raw(
-                        "spec.selector",
-                        go_selector(sel),
-                        "empty selector is invalid for deployment",
-                    ));
-                } else if !parsed.matches(template_labels) {
-                    errs.push(FieldError::invalid_raw(
-                        "spec.template.metadata.labels",
-                        go_map(template_labels),
-                        "`selector` does not match template `labels`",
-                    ));
-                }
-            }
-        },
+    for (value, path) in [
+        (spec.parallelism.map(i64::from), "spec.parallelism"),
+        (spec.completions.map(i64::from), "spec.completions"),
+        (spec.backoff_limit.map(i64::from), "spec.backoffLimit"),
+        (spec.active_deadline_seconds, "spec.activeDeadlineSeconds"),
+        (
+            spec.ttl_seconds_after_finished.map(i64::from),
+            "spec.ttlSecondsAfterFinished",
+        ),
+    ] {
+        nonnegative(value, path, &mut errs);
     }
+    selector_matches(spec, template_labels, &mut errs);
     if spec
         .completion_mode
         .as_deref()
@@ -258,6 +191,80 @@ pub fn validate_job(job: &Job, uid: &str) -> Vec<FieldError> {
         Some(pod) => validate_pod_spec(pod, "spec.template.spec", &mut errs),
     }
     errs
+}
+
+/// The labels and selector a generated selector puts on the Job's template: the Job's uid and
+/// name under the current and the legacy keys.
+fn generated_labels(
+    spec: &JobSpec,
+    (uid, name): (&str, &str),
+    template_labels: Option<&BTreeMap<String, String>>,
+    errs: &mut Vec<FieldError>,
+) {
+    // The generated selector must have put the job's own labels on the template.
+    for (key, want) in [
+        (LEGACY_CONTROLLER_UID_LABEL, uid),
+        (LEGACY_JOB_NAME_LABEL, name),
+        (CONTROLLER_UID_LABEL, uid),
+        (JOB_NAME_LABEL, name),
+    ] {
+        let path = format!("spec.template.metadata.labels[{key}]");
+        match template_labels.and_then(|l| l.get(key)) {
+            None => errs.push(FieldError::required(path, format!("must be '{want}'"))),
+            Some(v) if v != want => errs.push(FieldError::invalid_raw(
+                path,
+                go_map(template_labels),
+                format!("must be '{want}'"),
+            )),
+            Some(_) => {}
+        }
+    }
+    if let Some(sel) = &spec.selector {
+        let expected: BTreeMap<String, String> =
+            [(CONTROLLER_UID_LABEL.to_owned(), uid.to_owned())].into();
+        if let Ok(parsed) = LabelSelector::from_spec(sel) {
+            if !parsed.matches(Some(&expected)) {
+                errs.push(FieldError::invalid_raw(
+                    "spec.selector",
+                    go_selector(sel),
+                    "`selector` not auto-generated",
+                ));
+            }
+        }
+    }
+}
+
+/// The Job's selector: present, valid, not empty, and matching the template's labels.
+fn selector_matches(
+    spec: &JobSpec,
+    template_labels: Option<&BTreeMap<String, String>>,
+    errs: &mut Vec<FieldError>,
+) {
+    match &spec.selector {
+        None => errs.push(FieldError::required("spec.selector", "")),
+        Some(sel) => match LabelSelector::from_spec(sel) {
+            Err(e) => errs.push(FieldError::invalid_raw(
+                "spec.selector",
+                go_selector(sel),
+                e,
+            )),
+            Ok(parsed) => {
+                if parsed.is_empty() {
+                    errs.push(FieldError::invalid_raw(
+                        "spec.selector",
+                        go_selector(sel),
+                        "empty selector is invalid for deployment",
+                    ));
+                } else if !parsed.matches(template_labels) {
+                    errs.push(FieldError::invalid_raw(
+                        "spec.template.metadata.labels",
+                        go_map(template_labels),
+                        "`selector` does not match template `labels`",
+                    ));
+                }
+            }
+        },
+    }
 }
 
 /// `validatePodFailurePolicy` and the rules tying it to the restart and replacement policies
@@ -476,6 +483,17 @@ fn validate_container(
     if c.image.as_deref().unwrap_or_default().trim().is_empty() {
         errs.push(FieldError::required(format!("{cpath}.image"), ""));
     }
+    validate_mounts(c, cpath, volumes, errs);
+    validate_env(c, cpath, errs);
+}
+
+/// A container's volume mounts: of known volumes, at distinct paths, with relative subpaths.
+fn validate_mounts(
+    c: &Container,
+    cpath: &str,
+    volumes: &BTreeSet<String>,
+    errs: &mut Vec<FieldError>,
+) {
     let mut mount_paths = BTreeSet::new();
     for (j, m) in c.volume_mounts.iter().flatten().enumerate() {
         let mpath = format!("{cpath}.volumeMounts[{j}]");
@@ -513,6 +531,11 @@ fn validate_container(
             local_kube_refuses(&format!("{mpath}.subPathExpr"), "subPathExpr", errs);
         }
     }
+}
+
+/// A container's environment: printable names without `=`, each `valueFrom` one supported
+/// source.
+fn validate_env(c: &Container, cpath: &str, errs: &mut Vec<FieldError>) {
     for (k, e) in c.env.iter().flatten().enumerate() {
         let epath = format!("{cpath}.env[{k}]");
         if e.name.is_empty() {
