@@ -161,41 +161,7 @@ pub fn image_map(
     behaviour: &Behaviour,
     unpullable: &[&str],
 ) -> std::io::Result<ImageMap> {
-    let bin = scratch.join("bin");
-    let shims = scratch.join("shims");
-    let sources = scratch.join("sources");
-    for dir in [&bin, &shims] {
-        std::fs::create_dir_all(dir)?;
-    }
-    // init runs `lb-sidecar` from the image's PATH and copies itself into the Job's volume.
-    let sidecar = bin.join("lb-sidecar");
-    let _ = std::fs::remove_file(&sidecar);
-    std::fs::copy(&bins.sidecar, &sidecar)?;
-    // The agent runs `python3 -u .../leaderboard_evaluator.py ...`: python3 is the fake.
-    let python = shims.join("python3");
-    std::fs::write(
-        &python,
-        format!(
-            "#!/bin/sh\nexec '{}' \"$@\"\n",
-            bins.fake_evaluator.display()
-        ),
-    )?;
-    std::fs::set_permissions(&python, std::fs::Permissions::from_mode(0o755))?;
-    // The official code the private-contents image carries.
-    for (dir, file) in [
-        ("leaderboard/leaderboard", "leaderboard_evaluator.py"),
-        ("leaderboard/data", "routes_testing.xml"),
-        ("scenario_runner", "README"),
-        ("CARLA/PythonAPI", "README"),
-        // Named as the original images rename it; the agent finds it by pattern.
-        ("CARLA/PythonAPI/carla/dist", "carla-leaderboard-py3x.egg"),
-    ] {
-        std::fs::create_dir_all(sources.join(dir))?;
-        std::fs::write(
-            sources.join(dir).join(file),
-            "# stand-in: the fake evaluator runs instead\n",
-        )?;
-    }
+    let (bin, shims, sources) = stage(bins, scratch)?;
 
     let aws_env = BTreeMap::from([
         ("AWS_ENDPOINT_URL".to_string(), moto.to_string()),
@@ -240,6 +206,77 @@ pub fn image_map(
             },
         )?;
     }
+    let participant_env = participant_env(scratch, behaviour)?;
+    for image in unpullable {
+        insert(
+            &mut map,
+            image,
+            ImageEntry {
+                pull: Pull::Fail,
+                ..ImageEntry::default()
+            },
+        )?;
+    }
+    insert(
+        &mut map,
+        participant_glob,
+        ImageEntry {
+            path: vec![shims],
+            env: participant_env,
+            ..ImageEntry::default()
+        },
+    )?;
+    Ok(map)
+}
+
+/// The files the images' stand-ins use, in `scratch`: the sidecar under `bin/` (the
+/// private-contents image's PATH), the `python3` shim that runs the fake evaluator under
+/// `shims/`, and the official code's stand-ins under `sources/`.
+fn stage(bins: &Binaries, scratch: &Path) -> std::io::Result<(PathBuf, PathBuf, PathBuf)> {
+    let bin = scratch.join("bin");
+    let shims = scratch.join("shims");
+    let sources = scratch.join("sources");
+    for dir in [&bin, &shims] {
+        std::fs::create_dir_all(dir)?;
+    }
+    // init runs `lb-sidecar` from the image's PATH and copies itself into the Job's volume.
+    let sidecar = bin.join("lb-sidecar");
+    let _ = std::fs::remove_file(&sidecar);
+    std::fs::copy(&bins.sidecar, &sidecar)?;
+    // The agent runs `python3 -u .../leaderboard_evaluator.py ...`: python3 is the fake.
+    let python = shims.join("python3");
+    std::fs::write(
+        &python,
+        format!(
+            "#!/bin/sh\nexec '{}' \"$@\"\n",
+            bins.fake_evaluator.display()
+        ),
+    )?;
+    std::fs::set_permissions(&python, std::fs::Permissions::from_mode(0o755))?;
+    // The official code the private-contents image carries.
+    for (dir, file) in [
+        ("leaderboard/leaderboard", "leaderboard_evaluator.py"),
+        ("leaderboard/data", "routes_testing.xml"),
+        ("scenario_runner", "README"),
+        ("CARLA/PythonAPI", "README"),
+        // Named as the original images rename it; the agent finds it by pattern.
+        ("CARLA/PythonAPI/carla/dist", "carla-leaderboard-py3x.egg"),
+    ] {
+        std::fs::create_dir_all(sources.join(dir))?;
+        std::fs::write(
+            sources.join(dir).join(file),
+            "# stand-in: the fake evaluator runs instead\n",
+        )?;
+    }
+    Ok((bin, shims, sources))
+}
+
+/// The participant image's environment: its own home, its agent and code root, the route
+/// length, and the scenario's switches.
+fn participant_env(
+    scratch: &Path,
+    behaviour: &Behaviour,
+) -> std::io::Result<BTreeMap<String, String>> {
     // The participant image's own home: the agent sources its `.bashrc`, which must not be
     // the host's (a host `.bashrc` may put another python3 first on PATH).
     let home = scratch.join("participant-home");
@@ -248,7 +285,7 @@ pub fn image_map(
         home.join(".bashrc"),
         "# the participant image's ~/.bashrc, sourced before agent_sources.sh\nexport TEAM_BASHRC=sourced\n",
     )?;
-    let mut participant_env = BTreeMap::from([
+    let mut env = BTreeMap::from([
         ("HOME".to_string(), home.display().to_string()),
         (
             "FAKE_EVALUATOR_ROUTE_SECONDS".to_string(),
@@ -270,25 +307,6 @@ pub fn image_map(
             PARTICIPANT_CODE_ROOT.to_string(),
         ),
     ]);
-    participant_env.extend(behaviour.evaluator_env.clone());
-    for image in unpullable {
-        insert(
-            &mut map,
-            image,
-            ImageEntry {
-                pull: Pull::Fail,
-                ..ImageEntry::default()
-            },
-        )?;
-    }
-    insert(
-        &mut map,
-        participant_glob,
-        ImageEntry {
-            path: vec![shims],
-            env: participant_env,
-            ..ImageEntry::default()
-        },
-    )?;
-    Ok(map)
+    env.extend(behaviour.evaluator_env.clone());
+    Ok(env)
 }

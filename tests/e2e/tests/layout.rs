@@ -413,7 +413,6 @@ const LONG_IN_THE_REHEARSAL: &[(&str, &str, usize)] = &[
     ("local/kube/src/api/pods.rs", "log_inner", 112),
     ("local/kube/src/api/watch.rs", "watch", 117),
     ("local/kube/src/runtime/kubelet.rs", "attempts", 152),
-    ("local/stack/src/workloads.rs", "image_map", 140),
     ("local/stepfunctions/src/definition.rs", "state", 120),
     ("local/stepfunctions/src/definition.rs", "task", 141),
     ("local/stepfunctions/src/executor.rs", "start", 116),
