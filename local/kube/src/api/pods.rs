@@ -173,36 +173,7 @@ fn log_inner(state: &AppState, ns: &str, name: &str, p: &Params) -> Result<Respo
         .store
         .get::<Pod>(&key)
         .ok_or_else(|| ApiError::not_found(&PODS, name))?;
-    let spec = pod.spec.clone().unwrap_or_default();
-    let app: Vec<String> = spec.containers.iter().map(|c| c.name.clone()).collect();
-    let init: Vec<String> = spec
-        .init_containers
-        .iter()
-        .flatten()
-        .map(|c| c.name.clone())
-        .collect();
-    let container = match p.container.clone().filter(|c| !c.is_empty()) {
-        Some(c) => c,
-        None if app.len() == 1 => app[0].clone(),
-        None => {
-            let mut msg = format!(
-                "a container name must be specified for pod {name}, choose one of: [{}]",
-                app.join(" ")
-            );
-            if !init.is_empty() {
-                msg.push_str(&format!(
-                    " or one of the init containers: [{}]",
-                    init.join(" ")
-                ));
-            }
-            return Err(ApiError::bad_request(msg));
-        }
-    };
-    if !app.contains(&container) && !init.contains(&container) {
-        return Err(ApiError::bad_request(format!(
-            "container {container} is not valid for pod {name}"
-        )));
-    }
+    let container = container_of(&pod, name, p)?;
     let status = status_of(&pod, &container).cloned().unwrap_or_default();
     let previous = truthy(&p.previous);
     let attempt = if previous {
@@ -235,47 +206,114 @@ fn log_inner(state: &AppState, ns: &str, name: &str, p: &Params) -> Result<Respo
     if !truthy(&p.follow) || previous {
         return Ok(text(out));
     }
-    let (tx, rx) = mpsc::channel::<Bytes>(16);
-    let rt = state.rt.clone();
-    let mut shutdown = rt.shutdown_signal();
-    let start = data.len() as u64;
-    tokio::spawn(async move {
-        if !out.is_empty() && tx.send(Bytes::from(out)).await.is_err() {
-            return;
-        }
-        let mut offset = start;
-        let still_running = || {
-            rt.store.get::<Pod>(&key).is_some_and(|p| {
-                status_of(&p, &container).is_some_and(|s| {
-                    s.restart_count == attempt
-                        && s.state.as_ref().is_some_and(|st| st.running.is_some())
-                })
-            })
-        };
-        loop {
-            let running = still_running();
-            let chunk = read_from(&path, offset);
-            if !chunk.is_empty() {
-                offset += chunk.len() as u64;
-                if tx.send(Bytes::from(chunk)).await.is_err() {
-                    return;
-                }
+    let follow = Follow {
+        key,
+        container,
+        attempt,
+        path,
+    };
+    Ok(follow.stream(state.rt.clone(), out, data.len() as u64))
+}
+
+/// The container a log request names (the pod's only app container when it names none), one
+/// of the pod's.
+fn container_of(pod: &Pod, name: &str, p: &Params) -> Result<String, ApiError> {
+    let spec = pod.spec.clone().unwrap_or_default();
+    let app: Vec<String> = spec.containers.iter().map(|c| c.name.clone()).collect();
+    let init: Vec<String> = spec
+        .init_containers
+        .iter()
+        .flatten()
+        .map(|c| c.name.clone())
+        .collect();
+    let container = match p.container.clone().filter(|c| !c.is_empty()) {
+        Some(c) => c,
+        None if app.len() == 1 => app[0].clone(),
+        None => {
+            let mut msg = format!(
+                "a container name must be specified for pod {name}, choose one of: [{}]",
+                app.join(" ")
+            );
+            if !init.is_empty() {
+                msg.push_str(&format!(
+                    " or one of the init containers: [{}]",
+                    init.join(" ")
+                ));
             }
-            if !running {
+            return Err(ApiError::bad_request(msg));
+        }
+    };
+    if !app.contains(&container) && !init.contains(&container) {
+        return Err(ApiError::bad_request(format!(
+            "container {container} is not valid for pod {name}"
+        )));
+    }
+    Ok(container)
+}
+
+/// What a followed log streams: one attempt of one container of a pod.
+struct Follow {
+    key: ObjKey,
+    container: String,
+    attempt: i32,
+    path: std::path::PathBuf,
+}
+
+impl Follow {
+    /// `first` (the log so far, tailed and limited), then what the attempt writes from byte
+    /// `start` on, until it stops running or the server shuts down.
+    fn stream(
+        self,
+        rt: std::sync::Arc<crate::runtime::Runtime>,
+        first: Vec<u8>,
+        start: u64,
+    ) -> Response {
+        let (tx, rx) = mpsc::channel::<Bytes>(16);
+        let mut shutdown = rt.shutdown_signal();
+        let Follow {
+            key,
+            container,
+            attempt,
+            path,
+        } = self;
+        tokio::spawn(async move {
+            if !first.is_empty() && tx.send(Bytes::from(first)).await.is_err() {
                 return;
             }
-            tokio::select! {
-                _ = tokio::time::sleep(Duration::from_millis(100)) => {}
-                _ = crate::runtime::Runtime::until_shutdown(&mut shutdown) => return,
+            let mut offset = start;
+            let still_running = || {
+                rt.store.get::<Pod>(&key).is_some_and(|p| {
+                    status_of(&p, &container).is_some_and(|s| {
+                        s.restart_count == attempt
+                            && s.state.as_ref().is_some_and(|st| st.running.is_some())
+                    })
+                })
+            };
+            loop {
+                let running = still_running();
+                let chunk = read_from(&path, offset);
+                if !chunk.is_empty() {
+                    offset += chunk.len() as u64;
+                    if tx.send(Bytes::from(chunk)).await.is_err() {
+                        return;
+                    }
+                }
+                if !running {
+                    return;
+                }
+                tokio::select! {
+                    _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+                    _ = crate::runtime::Runtime::until_shutdown(&mut shutdown) => return,
+                }
             }
-        }
-    });
-    let mut resp = stream_response(rx);
-    resp.headers_mut().insert(
-        axum::http::header::CONTENT_TYPE,
-        axum::http::HeaderValue::from_static("text/plain"),
-    );
-    Ok(resp)
+        });
+        let mut resp = stream_response(rx);
+        resp.headers_mut().insert(
+            axum::http::header::CONTENT_TYPE,
+            axum::http::HeaderValue::from_static("text/plain"),
+        );
+        resp
+    }
 }
 
 fn read_from(path: &std::path::Path, offset: u64) -> Vec<u8> {
