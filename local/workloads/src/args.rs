@@ -271,70 +271,9 @@ pub fn parse_carla(args: &[String], env: &Env) -> Result<Parsed<CarlaConfig>, Ar
                 // CARLA reads 0 as "RPC port + 1".
                 cfg.streaming_port = (port != 0).then_some(port);
             }
-            "fake-crash-after" => {
-                let v = carla_value(&flag, inline, args, &mut i)?;
-                cfg.faults.crash_after =
-                    Some(seconds(&v).map_err(|problem| ArgsError::Invalid {
-                        arg: quoted(&flag),
-                        problem,
-                    })?);
-            }
-            "fake-crash-file" => {
-                let v = carla_value(&flag, inline, args, &mut i)?;
-                cfg.faults.crash_file = Some(non_empty_path(&flag, &v)?);
-            }
-            "fake-once-dir" => {
-                let v = carla_value(&flag, inline, args, &mut i)?;
-                cfg.faults.once_dir = Some(non_empty_path(&flag, &v)?);
-            }
-            "fake-start-delay" => {
-                let v = carla_value(&flag, inline, args, &mut i)?;
-                cfg.faults.start_delay = seconds(&v).map_err(|problem| ArgsError::Invalid {
-                    arg: quoted(&flag),
-                    problem,
-                })?;
-            }
-            "fake-crash-signal" => {
-                let v = carla_value(&flag, inline, args, &mut i)?;
-                cfg.faults.crash_signal = v.parse().map_err(|problem| ArgsError::Invalid {
-                    arg: quoted(&flag),
-                    problem,
-                })?;
-            }
-            "fake-fail-start" => {
-                cfg.faults.fail_start = match inline {
-                    None => true,
-                    Some(v) => switch(v).map_err(|problem| ArgsError::Invalid {
-                        arg: quoted(&flag),
-                        problem,
-                    })?,
-                };
-            }
             "help" | "h" => return Ok(Parsed::Help(CARLA_HELP.to_owned())),
-            // Unreal/CARLA flags with an `=value` that change nothing for a fake.
-            "carla-secondary-port"
-            | "carla-primary-port"
-            | "carla-primary-host"
-            | "quality-level"
-            | "fps"
-            | "resx"
-            | "resy"
-            | "graphicsadapter"
-            | "carla-settings"
-            | "carla-server-timeout"
-            | "ros2"
-            | "log"
-            | "abslog"
-            | "execcmds"
-                if inline.is_some() || lower == "ros2" || lower == "log" =>
-            {
-                cfg.accepted.push(token.clone())
-            }
-            "vulkan" | "opengl" | "opengl3" | "opengl4" | "renderoffscreen" | "nosound"
-            | "nullrhi" | "carla-server" | "windowed" | "fullscreen" | "prefernvidia"
-            | "benchmark" | "unattended" | "nosplash" | "carla-no-hud" | "norhithread" => {
-                cfg.accepted.push(token.clone())
-            }
+            _ if fault(&mut cfg.faults, &lower, (&flag, inline), (args, &mut i))? => {}
+            _ if harmless(&lower, inline) => cfg.accepted.push(token.clone()),
             _ => cfg.ignored.push(token.clone()),
         }
     }
@@ -348,6 +287,99 @@ pub fn parse_carla(args: &[String], env: &Env) -> Result<Parsed<CarlaConfig>, Ar
         });
     }
     Ok(Parsed::Run(cfg))
+}
+
+/// A fake CARLA's own fault flag (`-fake-*`), read into `faults`: whether `lower` is one.
+fn fault(
+    faults: &mut CarlaFaults,
+    lower: &str,
+    (flag, inline): (&str, Option<&str>),
+    (args, i): (&[String], &mut usize),
+) -> Result<bool, ArgsError> {
+    match lower {
+        "fake-crash-after" => {
+            let v = carla_value(flag, inline, args, i)?;
+            faults.crash_after = Some(seconds(&v).map_err(|problem| ArgsError::Invalid {
+                arg: quoted(flag),
+                problem,
+            })?);
+        }
+        "fake-crash-file" => {
+            let v = carla_value(flag, inline, args, i)?;
+            faults.crash_file = Some(non_empty_path(flag, &v)?);
+        }
+        "fake-once-dir" => {
+            let v = carla_value(flag, inline, args, i)?;
+            faults.once_dir = Some(non_empty_path(flag, &v)?);
+        }
+        "fake-start-delay" => {
+            let v = carla_value(flag, inline, args, i)?;
+            faults.start_delay = seconds(&v).map_err(|problem| ArgsError::Invalid {
+                arg: quoted(flag),
+                problem,
+            })?;
+        }
+        "fake-crash-signal" => {
+            let v = carla_value(flag, inline, args, i)?;
+            faults.crash_signal = v.parse().map_err(|problem| ArgsError::Invalid {
+                arg: quoted(flag),
+                problem,
+            })?;
+        }
+        "fake-fail-start" => {
+            faults.fail_start = match inline {
+                None => true,
+                Some(v) => switch(v).map_err(|problem| ArgsError::Invalid {
+                    arg: quoted(flag),
+                    problem,
+                })?,
+            };
+        }
+        _ => return Ok(false),
+    }
+    Ok(true)
+}
+
+/// Unreal's and CARLA's flags that change nothing for a fake: those that take an `=value`
+/// (with it), and the switches.
+fn harmless(lower: &str, inline: Option<&str>) -> bool {
+    let with_value = matches!(
+        lower,
+        "carla-secondary-port"
+            | "carla-primary-port"
+            | "carla-primary-host"
+            | "quality-level"
+            | "fps"
+            | "resx"
+            | "resy"
+            | "graphicsadapter"
+            | "carla-settings"
+            | "carla-server-timeout"
+            | "ros2"
+            | "log"
+            | "abslog"
+            | "execcmds"
+    );
+    let switch = matches!(
+        lower,
+        "vulkan"
+            | "opengl"
+            | "opengl3"
+            | "opengl4"
+            | "renderoffscreen"
+            | "nosound"
+            | "nullrhi"
+            | "carla-server"
+            | "windowed"
+            | "fullscreen"
+            | "prefernvidia"
+            | "benchmark"
+            | "unattended"
+            | "nosplash"
+            | "carla-no-hud"
+            | "norhithread"
+    );
+    (with_value && (inline.is_some() || lower == "ros2" || lower == "log")) || switch
 }
 
 /// The value of a CARLA flag: after `=`, or (the `--flag N` style) the next argument.

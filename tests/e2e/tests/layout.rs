@@ -418,7 +418,6 @@ const LONG_IN_THE_REHEARSAL: &[(&str, &str, usize)] = &[
     ("local/stepfunctions/src/executor.rs", "run_state", 106),
     ("local/stepfunctions/src/executor.rs", "attempt_task", 165),
     ("local/stepfunctions/src/executor.rs", "attempt_map", 130),
-    ("local/workloads/src/args.rs", "parse_carla", 126),
 ];
 
 #[test]
