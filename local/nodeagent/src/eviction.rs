@@ -55,8 +55,6 @@ pub struct ContainerUse {
 /// One running pod on the node.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PodUse {
-    /// Its uid.
-    pub uid: String,
     /// Its containers.
     pub containers: Vec<ContainerUse>,
     /// Its disk-backed volumes together.
@@ -84,7 +82,6 @@ impl PodUse {
             })
             .collect();
         PodUse {
-            uid: pod.metadata.uid.clone().unwrap_or_default(),
             containers,
             volumes: disk.volumes,
         }
@@ -110,8 +107,8 @@ fn request(c: &Container) -> Option<String> {
 /// The kubelet's choice: the pod to evict and the eviction's message.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Eviction {
-    /// The pod's uid.
-    pub uid: String,
+    /// The pod's place among the pods it was chosen from.
+    pub pod: usize,
     /// The `DisruptionTarget` condition's message and the pod's status message.
     pub message: String,
 }
@@ -126,9 +123,10 @@ pub fn choose(disk: &Disk, pods: &[PodUse]) -> Option<Eviction> {
     if available >= disk.threshold() {
         return None;
     }
-    let pod = pods
+    let (index, pod) = pods
         .iter()
-        .max_by_key(|p| (p.used() > p.requested(), p.used()))?;
+        .enumerate()
+        .max_by_key(|(_, p)| (p.used() > p.requested(), p.used()))?;
     let mut message = format!(
         "The node was low on resource: {RESOURCE}. Threshold quantity: {}, available: {}. ",
         quantity(disk.threshold()),
@@ -145,7 +143,7 @@ pub fn choose(disk: &Disk, pods: &[PodUse]) -> Option<Eviction> {
         }
     }
     Some(Eviction {
-        uid: pod.uid.clone(),
+        pod: index,
         message,
     })
 }
@@ -208,9 +206,8 @@ mod tests {
         }
     }
 
-    fn pod(uid: &str, containers: Vec<ContainerUse>, volumes: u64) -> PodUse {
+    fn pod(containers: Vec<ContainerUse>, volumes: u64) -> PodUse {
         PodUse {
-            uid: uid.into(),
             containers,
             volumes,
         }
@@ -224,7 +221,7 @@ mod tests {
 
     #[test]
     fn nothing_is_evicted_while_the_node_is_above_its_threshold() {
-        let pods = [pod("a", vec![container("agent", 3 * GI, "4Gi")], GI)];
+        let pods = [pod(vec![container("agent", 3 * GI, "4Gi")], GI)];
         assert_eq!(choose(&NEARLY_FULL, &pods), None);
         assert_eq!(choose(&Disk::default(), &pods), None);
     }
@@ -232,7 +229,6 @@ mod tests {
     #[test]
     fn a_pod_over_its_request_goes_first_and_its_container_is_named() {
         let hog = pod(
-            "hog",
             vec![
                 container("agent", 12 * GI, "4Gi"),
                 container("simulator", 0, "1Gi"),
@@ -240,9 +236,9 @@ mod tests {
             0,
         );
         // The neighbour uses more in all, within its request.
-        let big = pod("big", vec![container("logcopy", 14 * GI, "15Gi")], 0);
+        let big = pod(vec![container("logcopy", 14 * GI, "15Gi")], 0);
         let eviction = choose(&NEARLY_FULL, &[big, hog]).unwrap();
-        assert_eq!(eviction.uid, "hog");
+        assert_eq!(eviction.pod, 1, "the hog, not the larger neighbour");
         assert_eq!(
             eviction.message,
             "The node was low on resource: ephemeral-storage. Threshold quantity: 20Gi, \
@@ -263,11 +259,11 @@ mod tests {
             ..NEARLY_FULL
         };
         let pods = [
-            pod("small", vec![container("agent", GI, "4Gi")], 0),
-            pod("large", vec![container("agent", 3 * GI, "4Gi")], GI),
+            pod(vec![container("agent", GI, "4Gi")], 0),
+            pod(vec![container("agent", 3 * GI, "4Gi")], GI),
         ];
         let eviction = choose(&disk, &pods).unwrap();
-        assert_eq!(eviction.uid, "large");
+        assert_eq!(eviction.pod, 1, "the larger user");
         assert!(
             !eviction.message.contains("Container"),
             "{}",

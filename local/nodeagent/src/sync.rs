@@ -157,6 +157,10 @@ impl Kubelet {
             .collect();
         let mut seen = HashSet::new();
         let mut unbound = Vec::new();
+        // The eviction manager runs less often than the looks: only its looks gather for it.
+        let pressure_due = self
+            .pressure_looked
+            .is_none_or(|t| t.elapsed() >= PRESSURE_EVERY);
         let mut running: HashMap<String, Vec<Pod>> = HashMap::new();
         for real in pods {
             let node = real.spec.as_ref().and_then(|s| s.node_name.as_deref());
@@ -170,7 +174,8 @@ impl Kubelet {
                     let ending = lock(&self.ending).contains(&uid);
                     let evicted = lock(&self.evicted).contains(&uid);
                     let here = local.get(&uid);
-                    if let Some(pod) = here.filter(|p| !ending && !evicted && is_running(p)) {
+                    let watched = pressure_due && !ending && !evicted;
+                    if let Some(pod) = here.filter(|p| watched && is_running(p)) {
                         running.entry(n.to_owned()).or_default().push(pod.clone());
                     }
                     match decide(&real, here, (ending, evicted)) {
@@ -196,10 +201,7 @@ impl Kubelet {
             lock(&self.ending).remove(&uid);
             lock(&self.evicted).remove(&uid);
         }
-        if self
-            .pressure_looked
-            .is_none_or(|t| t.elapsed() >= PRESSURE_EVERY)
-        {
+        if pressure_due {
             self.pressure_looked = Some(Instant::now());
             self.relieve(&running);
         }
@@ -217,14 +219,8 @@ impl Kubelet {
                 .iter()
                 .map(|p| PodUse::of(p, &self.runner.disk_usage(p)))
                 .collect();
-            let Some(eviction) = eviction::choose(disk, &uses) else {
-                continue;
-            };
-            if let Some(pod) = pods
-                .iter()
-                .find(|p| p.metadata.uid.as_deref() == Some(eviction.uid.as_str()))
-            {
-                self.evict(pod.clone(), eviction);
+            if let Some(eviction) = eviction::choose(disk, &uses) {
+                self.evict(pods[eviction.pod].clone(), eviction.message);
             }
         }
     }
@@ -232,17 +228,17 @@ impl Kubelet {
     /// Evicts a pod as the kubelet does for a hard threshold: its containers stopped at once,
     /// the `DisruptionTarget` condition written, and then (late by `self.late`, as a busy
     /// kubelet's status manager can be) the terminal phase with reason `Evicted`.
-    fn evict(&self, pod: Pod, eviction: eviction::Eviction) {
-        let uid = eviction.uid.clone();
+    fn evict(&self, pod: Pod, message: String) {
+        let uid = pod.metadata.uid.clone().unwrap_or_default();
         lock(&self.evicted).insert(uid.clone());
         let name = pod.metadata.name.clone().unwrap_or_default();
-        warn!(pod = %name, message = %eviction.message, "evicting for disk pressure");
+        warn!(pod = %name, message = %message, "evicting for disk pressure");
         let (client, runner, late) = (self.client.clone(), self.runner.clone(), self.late);
         tokio::spawn(async move {
             runner.stop_pod(&uid, Some(Duration::ZERO)).await;
             let condition = json!({
                 "type": "DisruptionTarget", "status": "True", "reason": "TerminationByKubelet",
-                "message": eviction.message,
+                "message": message,
                 "lastTransitionTime": k8s_openapi::apimachinery::pkg::apis::meta::v1::Time(
                     k8s_openapi::jiff::Timestamp::now()),
             });
@@ -256,7 +252,7 @@ impl Kubelet {
             if let Some(status) = last_status(&runner, &pod) {
                 let mut patch = report(&status, true);
                 patch["status"]["reason"] = json!("Evicted");
-                patch["status"]["message"] = json!(eviction.message);
+                patch["status"]["message"] = json!(message);
                 put_status(&client, &pod, &patch).await;
             }
         });

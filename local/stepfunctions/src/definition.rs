@@ -492,13 +492,27 @@ impl Loader {
         let obj = Obj::new(map, at);
         let state_type = obj.required_string("Type")?;
         obj.string("Comment")?;
-        let (kind, flow) = match state_type {
+        let (kind, flow) = self.kind(state_type, &obj)?;
+        let next = transition(&obj, &kind)?;
+        Ok(State {
+            name: name.to_owned(),
+            flow,
+            next,
+            kind,
+        })
+    }
+
+    /// The state's kind from its `Type`, with its data flow, each field checked against
+    /// what that type allows.
+    fn kind(&mut self, state_type: &str, obj: &Obj<'_>) -> Result<(Kind, DataFlow), LoadError> {
+        let (map, at) = (obj.map, obj.at.as_str());
+        let kind = match state_type {
             "Task" => {
                 obj.only(
                     &fields(&[COMMON, IO, TRANSITION, RESULT, ERRORS, &["Resource", "TimeoutSeconds", "TimeoutSecondsPath", "HeartbeatSeconds"]]),
                     "a Task state",
                 )?;
-                let task = self.task(&obj)?;
+                let task = self.task(obj)?;
                 (Kind::Task(task), data_flow(map, at)?)
             }
             "Pass" => {
@@ -523,11 +537,11 @@ impl Loader {
                     ]),
                     "a Wait state",
                 )?;
-                (Kind::Wait(wait(&obj)?), data_flow(map, at)?)
+                (Kind::Wait(wait(obj)?), data_flow(map, at)?)
             }
             "Choice" => {
                 obj.only(&fields(&[COMMON, IO, &["Choices", "Default"]]), "a Choice state")?;
-                (Kind::Choice(choice_state(&obj)?), data_flow(map, at)?)
+                (Kind::Choice(choice_state(obj)?), data_flow(map, at)?)
             }
             "Succeed" => {
                 obj.only(&fields(&[COMMON, IO]), "a Succeed state")?;
@@ -538,36 +552,14 @@ impl Loader {
                     &fields(&[COMMON, &["Error", "Cause", "ErrorPath", "CausePath"]]),
                     "a Fail state",
                 )?;
-                (Kind::Fail(fail(&obj)?), DataFlow::default())
+                (Kind::Fail(fail(obj)?), DataFlow::default())
             }
             "Parallel" => {
                 obj.only(
                     &fields(&[COMMON, IO, TRANSITION, RESULT, ERRORS, &["Branches"]]),
                     "a Parallel state",
                 )?;
-                let branches = obj
-                    .array("Branches")?
-                    .filter(|b| !b.is_empty())
-                    .ok_or_else(|| {
-                        LoadError::invalid(at, "`Branches` must be a non-empty array of branches")
-                    })?;
-                let branches = branches
-                    .iter()
-                    .enumerate()
-                    .map(|(i, branch)| {
-                        let here = obj.loc(&format!("Branches[{i}]"));
-                        let map = branch
-                            .as_object()
-                            .ok_or_else(|| LoadError::invalid(&here, "a branch must be an object"))?;
-                        Obj::new(map, &here).only(&["StartAt", "States", "Comment"], "a branch")?;
-                        self.scope(map, &here)
-                    })
-                    .collect::<Result<Vec<_>, _>>()?;
-                let parallel = Parallel {
-                    branches,
-                    retry: retriers(&obj)?,
-                    catch: catchers(&obj)?,
-                };
+                let parallel = self.parallel(obj)?;
                 (Kind::Parallel(parallel), data_flow(map, at)?)
             }
             "Map" => {
@@ -582,7 +574,7 @@ impl Loader {
                     ]),
                     "a Map state",
                 )?;
-                let map_state = self.map_state(&obj)?;
+                let map_state = self.map_state(obj)?;
                 // NB: a Map's `Parameters` is its per-item selector, not its effective input.
                 let mut without_parameters = map.clone();
                 without_parameters.remove("Parameters");
@@ -597,12 +589,33 @@ impl Loader {
                 ))
             }
         };
-        let next = transition(&obj, &kind)?;
-        Ok(State {
-            name: name.to_owned(),
-            flow,
-            next,
-            kind,
+        Ok(kind)
+    }
+
+    /// A Parallel state's branches, each a scope of its own, with its retriers and catchers.
+    fn parallel(&mut self, obj: &Obj<'_>) -> Result<Parallel, LoadError> {
+        let branches = obj
+            .array("Branches")?
+            .filter(|b| !b.is_empty())
+            .ok_or_else(|| {
+                LoadError::invalid(&obj.at, "`Branches` must be a non-empty array of branches")
+            })?;
+        let branches = branches
+            .iter()
+            .enumerate()
+            .map(|(i, branch)| {
+                let here = obj.loc(&format!("Branches[{i}]"));
+                let map = branch
+                    .as_object()
+                    .ok_or_else(|| LoadError::invalid(&here, "a branch must be an object"))?;
+                Obj::new(map, &here).only(&["StartAt", "States", "Comment"], "a branch")?;
+                self.scope(map, &here)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Parallel {
+            branches,
+            retry: retriers(obj)?,
+            catch: catchers(obj)?,
         })
     }
 
@@ -625,103 +638,10 @@ impl Loader {
                 ));
             }
             if rest != "lambda:invoke" {
-                // NB: `aws-sdk:<service>:<action>` is the SDK integration; its history shows
-                // `aws-sdk:<service>` as the resource type.
-                let (sdk, plain) = match rest.strip_prefix("aws-sdk:") {
-                    Some(plain) => (true, plain),
-                    None => (false, rest),
-                };
-                let (service, action) = plain
-                    .split_once(':')
-                    .filter(|(s, a)| {
-                        !s.is_empty()
-                            && !a.is_empty()
-                            && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-')
-                            && a.bytes().all(|b| b.is_ascii_alphanumeric())
-                    })
-                    .ok_or_else(|| {
-                        LoadError::invalid(
-                            &resource_at,
-                            format!("`{resource}` is not a service integration (`arn:aws:states:::<service>:<action>`)"),
-                        )
-                    })?;
-                if callback && !sdk && NO_CALLBACK.contains(&service) {
-                    return Err(LoadError::invalid(
-                        resource_at,
-                        format!(
-                            "the optimized `{service}` integration does not support `.waitForTaskToken` (developer guide, \"Service integration patterns\"); the AWS SDK integration `arn:aws:states:::aws-sdk:{service}:<action>.waitForTaskToken` does"
-                        ),
-                    ));
-                }
-                let function = FunctionRef {
-                    function: format!("arn:aws:states:::{rest}"),
-                    name: rest.to_owned(),
-                    substitution: None,
-                };
-                let integration = Integration::Service {
-                    service: if sdk {
-                        format!("aws-sdk:{service}")
-                    } else {
-                        service.to_owned()
-                    },
-                    action: action.to_owned(),
-                };
+                let (integration, function) = service(rest, resource, &resource_at, callback)?;
                 return self.finish_task(obj, integration, function, callback);
             }
-            let params_at = obj.loc("Parameters");
-            let params = obj.object("Parameters")?.ok_or_else(|| {
-                LoadError::invalid(
-                    &obj.at,
-                    "`arn:aws:states:::lambda:invoke` needs `Parameters` with `FunctionName`",
-                )
-            })?;
-            for key in params.keys() {
-                match key.as_str() {
-                    "FunctionName" | "Payload" | "Payload.$" => {}
-                    "FunctionName.$" => {
-                        return Err(LoadError::unsupported(
-                            format!("{params_at}.{key}"),
-                            "a dynamic `FunctionName.$` is not supported; name the function statically",
-                        ))
-                    }
-                    "InvocationType" | "Qualifier" | "ClientContext" | "LogType" => {
-                        return Err(LoadError::unsupported(
-                            format!("{params_at}.{key}"),
-                            format!("`{key}` is not supported by the embedded executor (it invokes synchronously)"),
-                        ))
-                    }
-                    _ => {
-                        return Err(LoadError::invalid(
-                            format!("{params_at}.{key}"),
-                            format!("`{key}` is not a parameter of lambda:invoke"),
-                        ))
-                    }
-                }
-            }
-            if params.contains_key("Payload") && params.contains_key("Payload.$") {
-                return Err(LoadError::invalid(
-                    &params_at,
-                    "`Payload` and `Payload.$` are exclusive",
-                ));
-            }
-            let name_at = format!("{params_at}.FunctionName");
-            let text = match params.get("FunctionName") {
-                Some(Value::String(s)) => s.as_str(),
-                Some(_) => return Err(LoadError::invalid(name_at, "must be a string")),
-                None => {
-                    return Err(LoadError::invalid(
-                        params_at,
-                        "`FunctionName` is required for lambda:invoke",
-                    ))
-                }
-            };
-            let name =
-                function_name(text).map_err(|reason| LoadError::invalid(&name_at, reason))?;
-            let function = FunctionRef {
-                function: text.to_owned(),
-                name,
-                substitution: self.exact.get(&name_at).cloned(),
-            };
+            let function = self.lambda_invoke(obj)?;
             (Integration::LambdaInvoke, function)
         } else if resource.starts_with("arn:") && resource.split(':').nth(2) == Some("lambda") {
             let name = function_name(resource)
@@ -746,6 +666,64 @@ impl Loader {
             ));
         };
         self.finish_task(obj, integration, function, callback)
+    }
+
+    /// `lambda:invoke`'s parameters: a static `FunctionName`, and a `Payload` or `Payload.$`.
+    fn lambda_invoke(&self, obj: &Obj<'_>) -> Result<FunctionRef, LoadError> {
+        let params_at = obj.loc("Parameters");
+        let params = obj.object("Parameters")?.ok_or_else(|| {
+            LoadError::invalid(
+                &obj.at,
+                "`arn:aws:states:::lambda:invoke` needs `Parameters` with `FunctionName`",
+            )
+        })?;
+        for key in params.keys() {
+            match key.as_str() {
+                "FunctionName" | "Payload" | "Payload.$" => {}
+                "FunctionName.$" => {
+                    return Err(LoadError::unsupported(
+                        format!("{params_at}.{key}"),
+                        "a dynamic `FunctionName.$` is not supported; name the function statically",
+                    ))
+                }
+                "InvocationType" | "Qualifier" | "ClientContext" | "LogType" => {
+                    return Err(LoadError::unsupported(
+                        format!("{params_at}.{key}"),
+                        format!("`{key}` is not supported by the embedded executor (it invokes synchronously)"),
+                    ))
+                }
+                _ => {
+                    return Err(LoadError::invalid(
+                        format!("{params_at}.{key}"),
+                        format!("`{key}` is not a parameter of lambda:invoke"),
+                    ))
+                }
+            }
+        }
+        if params.contains_key("Payload") && params.contains_key("Payload.$") {
+            return Err(LoadError::invalid(
+                &params_at,
+                "`Payload` and `Payload.$` are exclusive",
+            ));
+        }
+        let name_at = format!("{params_at}.FunctionName");
+        let text = match params.get("FunctionName") {
+            Some(Value::String(s)) => s.as_str(),
+            Some(_) => return Err(LoadError::invalid(name_at, "must be a string")),
+            None => {
+                return Err(LoadError::invalid(
+                    params_at,
+                    "`FunctionName` is required for lambda:invoke",
+                ))
+            }
+        };
+        let name = function_name(text).map_err(|reason| LoadError::invalid(&name_at, reason))?;
+        let function = FunctionRef {
+            function: text.to_owned(),
+            name,
+            substitution: self.exact.get(&name_at).cloned(),
+        };
+        Ok(function)
     }
 
     fn finish_task(
@@ -914,6 +892,57 @@ fn at_or_root(at: &str) -> &str {
     } else {
         at
     }
+}
+/// A service integration's resource (`rest` after `arn:aws:states:::`, without
+/// `.waitForTaskToken`): the optimized integrations and the SDK's, with what the history names.
+fn service(
+    rest: &str,
+    resource: &str,
+    resource_at: &str,
+    callback: bool,
+) -> Result<(Integration, FunctionRef), LoadError> {
+    // NB: `aws-sdk:<service>:<action>` is the SDK integration; its history shows
+    // `aws-sdk:<service>` as the resource type.
+    let (sdk, plain) = match rest.strip_prefix("aws-sdk:") {
+        Some(plain) => (true, plain),
+        None => (false, rest),
+    };
+    let (service, action) = plain
+        .split_once(':')
+        .filter(|(s, a)| {
+            !s.is_empty()
+                && !a.is_empty()
+                && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-')
+                && a.bytes().all(|b| b.is_ascii_alphanumeric())
+        })
+        .ok_or_else(|| {
+            LoadError::invalid(
+                resource_at,
+                format!("`{resource}` is not a service integration (`arn:aws:states:::<service>:<action>`)"),
+            )
+        })?;
+    if callback && !sdk && NO_CALLBACK.contains(&service) {
+        return Err(LoadError::invalid(
+            resource_at,
+            format!(
+                "the optimized `{service}` integration does not support `.waitForTaskToken` (developer guide, \"Service integration patterns\"); the AWS SDK integration `arn:aws:states:::aws-sdk:{service}:<action>.waitForTaskToken` does"
+            ),
+        ));
+    }
+    let function = FunctionRef {
+        function: format!("arn:aws:states:::{rest}"),
+        name: rest.to_owned(),
+        substitution: None,
+    };
+    let integration = Integration::Service {
+        service: if sdk {
+            format!("aws-sdk:{service}")
+        } else {
+            service.to_owned()
+        },
+        action: action.to_owned(),
+    };
+    Ok((integration, function))
 }
 
 /// `arn:<partition>:states:::<rest>` gives `rest`.

@@ -16,8 +16,8 @@ use tokio::task::{JoinHandle, JoinSet};
 
 use crate::callback::{CallbackError, Callbacks, Outcome, Pending};
 use crate::definition::{
-    Catcher, Integration, Jitter, Kind, MapState, Parallel, Retrier, Scope, State, StateMachine,
-    Task, Text, Wait,
+    Catcher, Choice, Integration, Jitter, Kind, MapState, Parallel, Retrier, Scope, State,
+    StateMachine, Task, Text, Wait,
 };
 use crate::error::{OptionsError, StartError};
 use crate::history::{EventCallback, EventStream, EventType, FinishGuard, HistoryEvent, Recorder};
@@ -204,6 +204,24 @@ pub struct Described {
 }
 
 impl Known {
+    /// Keeps an execution that starts, and the state machine it is of.
+    fn remember(
+        &self,
+        machine_arn: &str,
+        machine: &StateMachine,
+        execution_arn: &str,
+        started: Started,
+    ) {
+        self.machines
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(machine_arn.to_owned(), machine.clone());
+        self.executions
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(execution_arn.to_owned(), started);
+    }
+
     fn with<T>(&self, arn: &str, f: impl FnOnce(&Started) -> T) -> Option<T> {
         let executions = self
             .executions
@@ -373,6 +391,42 @@ impl Executor {
             .collect()
     }
 
+    /// The ARN of a Step Functions resource of this executor's region and account.
+    fn arn(&self, kind: &str, rest: &str) -> String {
+        let options = &self.options;
+        format!(
+            "arn:aws:states:{}:{}:{kind}:{rest}",
+            options.region, options.account_id
+        )
+    }
+
+    /// The role executions run as: the configured one, or Step Functions' default name.
+    fn role_arn(&self) -> String {
+        self.options.role_arn.clone().unwrap_or_else(|| {
+            format!(
+                "arn:aws:iam::{}:role/StepFunctionsExecutionRole",
+                self.options.account_id
+            )
+        })
+    }
+
+    /// What an execution shares across its states: its context object's `Execution` and
+    /// `StateMachine`, with this executor's tasks, options and callbacks.
+    fn run_of(&self, recorder: Arc<Recorder>, execution: Value, state_machine: Value) -> Arc<Run> {
+        Arc::new(Run {
+            tasks: self.tasks.clone(),
+            options: self.options.clone(),
+            callbacks: self.callbacks.clone(),
+            recorder,
+            random: match self.options.random_seed {
+                Some(seed) => RandomSource::seeded(seed),
+                None => RandomSource::from_entropy(),
+            },
+            execution,
+            state_machine,
+        })
+    }
+
     /// Starts an execution named `name` with `input` on the current Tokio runtime.
     pub fn start(
         &self,
@@ -389,53 +443,27 @@ impl Executor {
             });
         }
         let runtime = tokio::runtime::Handle::try_current().map_err(|_| StartError::NoRuntime)?;
-        let options = &self.options;
-        let state_machine_arn = format!(
-            "arn:aws:states:{}:{}:stateMachine:{}",
-            options.region,
-            options.account_id,
-            state_machine.name()
-        );
-        let execution_arn = format!(
-            "arn:aws:states:{}:{}:execution:{}:{name}",
-            options.region,
-            options.account_id,
-            state_machine.name()
-        );
-        let role_arn = options.role_arn.clone().unwrap_or_else(|| {
-            format!(
-                "arn:aws:iam::{}:role/StepFunctionsExecutionRole",
-                options.account_id
-            )
-        });
+        let state_machine_arn = self.arn("stateMachine", state_machine.name());
+        let execution_arn = self.arn("execution", &format!("{}:{name}", state_machine.name()));
+        let role_arn = self.role_arn();
         let start_date = OffsetDateTime::now_utc();
         let recorder = Arc::new(Recorder::new(
-            options.max_history_events,
-            options.on_event.clone(),
+            self.options.max_history_events,
+            self.options.on_event.clone(),
         ));
-        let random = match options.random_seed {
-            Some(seed) => RandomSource::seeded(seed),
-            None => RandomSource::from_entropy(),
-        };
-        let run = Arc::new(Run {
-            tasks: self.tasks.clone(),
-            options: self.options.clone(),
-            callbacks: self.callbacks.clone(),
-            recorder: recorder.clone(),
-            random,
-            execution: json!({
-                "Id": execution_arn,
-                "Input": input,
-                "Name": name,
-                "RoleArn": role_arn,
-                "StartTime": timestamp::format(start_date),
-                "RedriveCount": 0,
-            }),
-            state_machine: json!({"Id": state_machine_arn, "Name": state_machine.name()}),
+        let execution = json!({
+            "Id": execution_arn,
+            "Input": input,
+            "Name": name,
+            "RoleArn": role_arn,
+            "StartTime": timestamp::format(start_date),
+            "RedriveCount": 0,
         });
+        let machine = json!({"Id": state_machine_arn, "Name": state_machine.name()});
+        let run = self.run_of(recorder.clone(), execution, machine);
         let (cancel, cancelled) = watch::channel(false);
         let deadline = [
-            options.deadline,
+            self.options.deadline,
             state_machine
                 .timeout_seconds()
                 .map(|s| run.scaled(s as f64)),
@@ -445,26 +473,16 @@ impl Executor {
         .min();
         let root = state_machine.definition.root.clone();
         tracing::info!(execution = %name, state_machine = %state_machine.name(), "execution started");
-        self.known
-            .machines
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert(state_machine_arn.clone(), state_machine.clone());
         let (ended_tx, ended) = watch::channel(None);
+        let started = Started {
+            recorder: recorder.clone(),
+            cancel: cancel.clone(),
+            input: input.clone(),
+            start_date,
+            ended,
+        };
         self.known
-            .executions
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert(
-                execution_arn.clone(),
-                Started {
-                    recorder: recorder.clone(),
-                    cancel: cancel.clone(),
-                    input: input.clone(),
-                    start_date,
-                    ended,
-                },
-            );
+            .remember(&state_machine_arn, state_machine, &execution_arn, started);
         let known = self.known.clone();
         let execution = execute(
             run,
@@ -512,12 +530,7 @@ impl Executor {
             .ok_or_else(|| StartError::StateMachineDoesNotExist {
                 arn: state_machine_arn.to_owned(),
             })?;
-        let arn = format!(
-            "arn:aws:states:{}:{}:execution:{}:{name}",
-            self.options.region,
-            self.options.account_id,
-            machine.name()
-        );
+        let arn = self.arn("execution", &format!("{}:{name}", machine.name()));
         let response = |start: OffsetDateTime| {
             json!({
                 "ExecutionArn": arn,
@@ -706,6 +719,51 @@ enum Invocation {
 enum CallbackEnd {
     Reported(Outcome),
     TimedOut(&'static str),
+}
+
+/// How a task's history events name what it runs.
+struct Resource<'a> {
+    /// A Lambda function named by its ARN: its events are the `LambdaFunction*` ones.
+    lambda: bool,
+    /// `resourceType`: `lambda` or the service.
+    kind: &'a str,
+    /// `resource`: the action, with `.waitForTaskToken` for a callback task.
+    name: String,
+}
+
+impl Resource<'_> {
+    fn of(task: &Task) -> Resource<'_> {
+        let (kind, action) = match &task.integration {
+            Integration::Service { service, action } => (service.as_str(), action.as_str()),
+            _ => ("lambda", "invoke"),
+        };
+        Resource {
+            lambda: task.integration == Integration::LambdaArn,
+            kind,
+            name: match task.callback {
+                true => format!("{action}.waitForTaskToken"),
+                false => action.to_owned(),
+            },
+        }
+    }
+
+    /// A task event's details: the resource's names, then `extra`'s fields.
+    fn details(&self, extra: Value) -> Value {
+        let mut details = json!({"resourceType": self.kind, "resource": self.name});
+        if let (Value::Object(d), Value::Object(e)) = (&mut details, extra) {
+            d.extend(e);
+        }
+        details
+    }
+
+    /// Of a pair of events (a Lambda function's, a task's), the one this resource records,
+    /// with its details.
+    fn event(&self, (lambda, task): (EventType, EventType), extra: Value) -> (EventType, Value) {
+        match self.lambda {
+            true => (lambda, extra),
+            false => (task, self.details(extra)),
+        }
+    }
 }
 
 /// Closes a task token however its attempt ends (a result, a timeout, an abort).
@@ -929,63 +987,18 @@ impl Run {
             }
             Kind::Wait(wait) => {
                 let ctx = self.context(&state.name, &entered, 0);
-                let effective = state
-                    .flow
-                    .input_path
-                    .apply(input)
-                    .map_err(Failure::from_asl)?;
+                let effective = path_in(state, input)?;
                 let seconds = wait_seconds(wait, &effective, &ctx)?;
                 tokio::time::sleep(self.scaled(seconds)).await;
-                let output = state
-                    .flow
-                    .output_path
-                    .apply(effective)
-                    .map_err(Failure::from_asl)?;
-                (state.next.clone(), output)
+                (state.next.clone(), path_out(state, effective)?)
             }
             Kind::Choice(choice) => {
                 let ctx = self.context(&state.name, &entered, 0);
-                let effective = state
-                    .flow
-                    .input_path
-                    .apply(input)
-                    .map_err(Failure::from_asl)?;
-                let mut next = None;
-                for (rule, target) in &choice.rules {
-                    if rule.evaluate(&effective, &ctx)? {
-                        next = Some(target.clone());
-                        break;
-                    }
-                }
-                let next = next.or_else(|| choice.default.clone()).ok_or_else(|| {
-                    Failure::new(
-                        "States.NoChoiceMatched",
-                        Some(format!(
-                            "No Choice matched in the Choice state '{}' and it has no Default.",
-                            state.name
-                        )),
-                    )
-                })?;
-                let output = state
-                    .flow
-                    .output_path
-                    .apply(effective)
-                    .map_err(Failure::from_asl)?;
-                (Some(next), output)
+                let effective = path_in(state, input)?;
+                let next = chosen(&state.name, choice, &effective, &ctx)?;
+                (Some(next), path_out(state, effective)?)
             }
-            Kind::Succeed => {
-                let effective = state
-                    .flow
-                    .input_path
-                    .apply(input)
-                    .map_err(Failure::from_asl)?;
-                let output = state
-                    .flow
-                    .output_path
-                    .apply(effective)
-                    .map_err(Failure::from_asl)?;
-                (None, output)
-            }
+            Kind::Succeed => (None, path_out(state, path_in(state, input)?)?),
             Kind::Fail(fail) => {
                 let ctx = self.context(&state.name, &entered, 0);
                 let env = Env::with_context(&ctx).random(&self.random);
@@ -1136,145 +1149,113 @@ impl Run {
             .effective_input(input, &env)
             .map_err(Failure::from_asl)?;
         self.check_size(&effective, "input", &state.name)?;
-        let (resource_type, action) = match &task.integration {
-            Integration::Service { service, action } => (service.as_str(), action.as_str()),
-            _ => ("lambda", "invoke"),
-        };
-        let resource_name = if task.callback {
-            format!("{action}.waitForTaskToken")
-        } else {
-            action.to_owned()
-        };
-        let resource = |extra: Value| {
-            let mut details = json!({"resourceType": resource_type, "resource": resource_name});
-            if let (Value::Object(d), Value::Object(e)) = (&mut details, extra) {
-                d.extend(e);
+        let resource = Resource::of(task);
+        let timeout = timeout_of(task, input, &ctx)?;
+        let payload = self.schedule(task, &resource, effective, timeout, thread)?;
+        let started = tokio::time::Instant::now();
+        let result = match self.invoke(task, payload, timeout).await {
+            Ok(raw) if task.integration == Integration::LambdaInvoke => json!({
+                "ExecutedVersion": "$LATEST",
+                "Payload": raw,
+                "SdkHttpMetadata": {"HttpStatusCode": 200},
+                "SdkResponseMetadata": {"RequestId": self.random.uuid_v4()},
+                "StatusCode": 200,
+            }),
+            Ok(raw) => raw,
+            Err(invocation) => {
+                let (failure, events) = match invocation {
+                    Invocation::Failed(failure) => (
+                        failure,
+                        (EventType::LambdaFunctionFailed, EventType::TaskFailed),
+                    ),
+                    Invocation::TimedOut => (
+                        Failure::new(STATES_TIMEOUT, None),
+                        (EventType::LambdaFunctionTimedOut, EventType::TaskTimedOut),
+                    ),
+                };
+                let (event, details) = resource.event(events, failure_details(&failure));
+                self.record(thread, event, details)?;
+                return Err(failure);
             }
-            details
         };
-        let timeout = match &task.timeout_path {
-            None => task.timeout_seconds,
-            Some(path) => Some(seconds_at(
-                path,
-                input,
-                &ctx,
-                ("TimeoutSecondsPath", "Task"),
-                1,
-            )?),
+        let result = match wait {
+            None => result,
+            Some(wait) => {
+                let submitted = resource.details(json!({ "output": result }));
+                self.record(thread, EventType::TaskSubmitted, submitted)?;
+                let end = self.await_callback(task, wait, started, timeout).await;
+                self.reported(end, &resource, thread)?
+            }
         };
+        let events = (EventType::LambdaFunctionSucceeded, EventType::TaskSucceeded);
+        let (event, details) = resource.event(events, json!({ "output": result }));
+        self.record(thread, event, details)?;
+        self.check_size(&result, "result", &state.name)?;
+        let output = state
+            .flow
+            .output(input.clone(), result, &env)
+            .map_err(Failure::from_asl)?;
+        self.check_size(&output, "output", &state.name)?;
+        Ok(output)
+    }
+
+    /// Records a task's scheduling and start as its integration's history shows them, and
+    /// gives what its handler is invoked with.
+    fn schedule(
+        &self,
+        task: &Task,
+        resource: &Resource<'_>,
+        effective: Value,
+        timeout: Option<u64>,
+        thread: &mut Thread,
+    ) -> Result<Value, Failure> {
+        if resource.lambda {
+            let mut details = json!({"resource": task.function.function, "input": effective});
+            if let Some(t) = timeout {
+                details["timeoutInSeconds"] = t.into();
+            }
+            self.record(thread, EventType::LambdaFunctionScheduled, details)?;
+            self.record(thread, EventType::LambdaFunctionStarted, Value::Null)?;
+            return Ok(effective);
+        }
         let mut scheduled =
-            resource(json!({"region": self.options.region, "parameters": effective}));
+            resource.details(json!({"region": self.options.region, "parameters": effective}));
         if let Some(t) = timeout {
             scheduled["timeoutInSeconds"] = t.into();
         }
         if let Some(h) = task.heartbeat_seconds {
             scheduled["heartbeatInSeconds"] = h.into();
         }
-        let payload = match task.integration {
-            Integration::LambdaArn => {
-                let mut details = json!({"resource": task.function.function, "input": effective});
-                if let Some(t) = timeout {
-                    details["timeoutInSeconds"] = t.into();
-                }
-                self.record(thread, EventType::LambdaFunctionScheduled, details)?;
-                self.record(thread, EventType::LambdaFunctionStarted, Value::Null)?;
-                effective
+        self.record(thread, EventType::TaskScheduled, scheduled)?;
+        self.record(thread, EventType::TaskStarted, resource.details(json!({})))?;
+        Ok(match task.integration {
+            // NB: Lambda hands an empty payload to the function as `{}`.
+            Integration::LambdaInvoke => effective
+                .get("Payload")
+                .cloned()
+                .unwrap_or_else(|| json!({})),
+            _ => effective,
+        })
+    }
+
+    /// What a callback task's worker reported, recorded: its output, or the failure or
+    /// timeout it ends the attempt with.
+    fn reported(
+        &self,
+        end: CallbackEnd,
+        resource: &Resource<'_>,
+        thread: &mut Thread,
+    ) -> Result<Value, Failure> {
+        let (failure, event) = match end {
+            CallbackEnd::Reported(Outcome::Success(output)) => return Ok(output),
+            CallbackEnd::Reported(Outcome::Failure { error, cause }) => {
+                (Failure::new(error, Some(cause)), EventType::TaskFailed)
             }
-            Integration::LambdaInvoke => {
-                self.record(thread, EventType::TaskScheduled, scheduled)?;
-                self.record(thread, EventType::TaskStarted, resource(json!({})))?;
-                // NB: Lambda hands an empty payload to the function as `{}`.
-                effective
-                    .get("Payload")
-                    .cloned()
-                    .unwrap_or_else(|| json!({}))
-            }
-            Integration::Service { .. } => {
-                self.record(thread, EventType::TaskScheduled, scheduled)?;
-                self.record(thread, EventType::TaskStarted, resource(json!({})))?;
-                effective
-            }
+            CallbackEnd::TimedOut(error) => (Failure::new(error, None), EventType::TaskTimedOut),
         };
-        let started = tokio::time::Instant::now();
-        let lambda = task.integration == Integration::LambdaArn;
-        match self.invoke(task, payload, timeout).await {
-            Ok(raw) => {
-                let result = match task.integration {
-                    Integration::LambdaInvoke => json!({
-                        "ExecutedVersion": "$LATEST",
-                        "Payload": raw,
-                        "SdkHttpMetadata": {"HttpStatusCode": 200},
-                        "SdkResponseMetadata": {"RequestId": self.random.uuid_v4()},
-                        "StatusCode": 200,
-                    }),
-                    _ => raw,
-                };
-                let result = match wait {
-                    None => result,
-                    Some(wait) => {
-                        self.record(
-                            thread,
-                            EventType::TaskSubmitted,
-                            resource(json!({ "output": result })),
-                        )?;
-                        match self.await_callback(task, wait, started, timeout).await {
-                            CallbackEnd::Reported(Outcome::Success(output)) => output,
-                            CallbackEnd::Reported(Outcome::Failure { error, cause }) => {
-                                let failure = Failure::new(error, Some(cause));
-                                let details = failure_details(&failure);
-                                self.record(thread, EventType::TaskFailed, resource(details))?;
-                                return Err(failure);
-                            }
-                            CallbackEnd::TimedOut(error) => {
-                                let failure = Failure::new(error, None);
-                                let details = failure_details(&failure);
-                                self.record(thread, EventType::TaskTimedOut, resource(details))?;
-                                return Err(failure);
-                            }
-                        }
-                    }
-                };
-                if lambda {
-                    self.record(
-                        thread,
-                        EventType::LambdaFunctionSucceeded,
-                        json!({ "output": result }),
-                    )?;
-                } else {
-                    self.record(
-                        thread,
-                        EventType::TaskSucceeded,
-                        resource(json!({ "output": result })),
-                    )?;
-                }
-                self.check_size(&result, "result", &state.name)?;
-                let output = state
-                    .flow
-                    .output(input.clone(), result, &env)
-                    .map_err(Failure::from_asl)?;
-                self.check_size(&output, "output", &state.name)?;
-                Ok(output)
-            }
-            Err(Invocation::Failed(failure)) => {
-                let details = failure_details(&failure);
-                if lambda {
-                    self.record(thread, EventType::LambdaFunctionFailed, details)?;
-                } else {
-                    self.record(thread, EventType::TaskFailed, resource(details))?;
-                }
-                Err(failure)
-            }
-            Err(Invocation::TimedOut) => {
-                let failure = Failure::new(STATES_TIMEOUT, None);
-                let details = failure_details(&failure);
-                if lambda {
-                    self.record(thread, EventType::LambdaFunctionTimedOut, details)?;
-                } else {
-                    self.record(thread, EventType::TaskTimedOut, resource(details))?;
-                }
-                Err(failure)
-            }
-        }
+        let details = resource.details(failure_details(&failure));
+        self.record(thread, event, details)?;
+        Err(failure)
     }
 
     /// Waits for the token's report: `TimeoutSeconds` counts from the task's start,
@@ -1439,34 +1420,49 @@ impl Run {
         thread: &mut Thread,
     ) -> Result<Value, Failure> {
         let env = Env::with_context(ctx).random(&self.random);
-        let effective = state
-            .flow
-            .input_path
-            .apply(input.clone())
-            .map_err(Failure::from_asl)?;
-        let items = match &map.items_path {
-            None => effective.clone(),
-            Some(path) => path.get(&effective, ctx).cloned().ok_or_else(|| {
-                Failure::runtime(format!(
-                    "Invalid path '{}': the ItemsPath of Map state '{}' selects nothing",
-                    path.text(),
-                    state.name
-                ))
-            })?,
-        };
-        let Value::Array(items) = items else {
-            return Err(Failure::runtime(format!(
-                "The ItemsPath of Map state '{}' must select a JSON array, not {}",
-                state.name,
-                kind_of(&items)
-            )));
-        };
+        let effective = path_in(state, input.clone())?;
+        let items = map_items(&state.name, map, &effective, ctx)?;
         let started = self.record(
             thread,
             EventType::MapStateStarted,
             json!({"length": items.len()}),
         )?;
-        let limit = match map.max_concurrency {
+        let iterations = Iterations {
+            state: &state.name,
+            map,
+            effective: &effective,
+            ctx,
+        };
+        match self.iterate(iterations, &items, started).await? {
+            Err((failure, at)) => {
+                thread.last = at;
+                self.record(thread, EventType::MapStateFailed, failure_details(&failure))?;
+                Err(failure)
+            }
+            Ok((outputs, last)) => {
+                thread.last = last;
+                self.record(thread, EventType::MapStateSucceeded, Value::Null)?;
+                let output = state
+                    .flow
+                    .output(input.clone(), Value::Array(outputs), &env)
+                    .map_err(Failure::from_asl)?;
+                self.check_size(&output, "output", &state.name)?;
+                Ok(output)
+            }
+        }
+    }
+
+    /// Runs a Map state's iterations, in item order and up to its `MaxConcurrency` at a
+    /// time: their outputs and the last event, or the first failure and the event it
+    /// follows (the iterations still running recorded as aborted). The outer error is the
+    /// history's own (it is full).
+    async fn iterate(
+        self: &Arc<Self>,
+        each: Iterations<'_>,
+        items: &[Value],
+        started: u64,
+    ) -> Result<Result<(Vec<Value>, u64), (Failure, u64)>, Failure> {
+        let limit = match each.map.max_concurrency {
             0 => usize::MAX,
             n => usize::try_from(n).unwrap_or(usize::MAX),
         };
@@ -1475,69 +1471,46 @@ impl Run {
         let mut outputs = vec![Value::Null; items.len()];
         let mut next_index = 0;
         let mut last = started;
-        let iteration = |index: usize| json!({"name": state.name, "index": index});
-        let outcome: Result<(), (Failure, u64)> = loop {
-            // Start iterations in item order, up to MaxConcurrency at a time.
-            let mut start_failed = None;
+        let iteration = |index: usize| json!({"name": each.state, "index": index});
+        let outcome = 'iterations: loop {
             while running.len() < limit && next_index < items.len() {
                 let index = next_index;
                 next_index += 1;
-                let item_input = match &map.item_selector {
-                    None => Ok(items[index].clone()),
-                    Some(selector) => {
-                        let mut item_ctx = ctx.clone();
-                        item_ctx["Map"] = json!({"Item": {"Index": index, "Value": items[index]}});
-                        let item_env = Env::with_context(&item_ctx).random(&self.random);
-                        selector
-                            .render(&effective, &item_env)
-                            .map_err(Failure::from_asl)
-                    }
-                };
-                let item_input = match item_input {
+                let item_input = match self.item_input(&each, &items[index], index) {
                     Ok(v) => v,
-                    Err(f) => {
-                        start_failed = Some(f);
-                        break;
-                    }
+                    Err(failure) => break 'iterations Err((failure, last)),
                 };
-                let id = self.recorder.push(
-                    started,
-                    EventType::MapIterationStarted,
-                    iteration(index),
-                )?;
-                let body =
-                    self.clone()
-                        .run_scope(map.processor.clone(), item_input, Thread { last: id });
+                let event = EventType::MapIterationStarted;
+                let id = self.recorder.push(started, event, iteration(index))?;
+                let body = self.clone().run_scope(
+                    each.map.processor.clone(),
+                    item_input,
+                    Thread { last: id },
+                );
                 set.spawn(async move { (index, body.await) });
                 running.insert(index);
-            }
-            if let Some(failure) = start_failed {
-                break Err((failure, last));
             }
             let Some(joined) = set.join_next().await else {
                 break Ok(());
             };
-            match joined {
-                Ok((index, (Ok(output), body))) => {
-                    running.remove(&index);
-                    outputs[index] = output;
-                    last = self.recorder.push(
-                        body.last,
-                        EventType::MapIterationSucceeded,
-                        iteration(index),
-                    )?;
-                }
-                Ok((index, (Err(failure), body))) => {
-                    running.remove(&index);
-                    let id = self.recorder.push(
-                        body.last,
-                        EventType::MapIterationFailed,
-                        iteration(index),
-                    )?;
-                    break Err((failure, id));
-                }
+            let (index, (result, body)) = match joined {
+                Ok(ended) => ended,
                 Err(e) => {
-                    break Err((Failure::runtime(format!("an iteration stopped: {e}")), last))
+                    let failure = Failure::runtime(format!("an iteration stopped: {e}"));
+                    break Err((failure, last));
+                }
+            };
+            running.remove(&index);
+            match result {
+                Ok(output) => {
+                    outputs[index] = output;
+                    let event = EventType::MapIterationSucceeded;
+                    last = self.recorder.push(body.last, event, iteration(index))?;
+                }
+                Err(failure) => {
+                    let event = EventType::MapIterationFailed;
+                    let id = self.recorder.push(body.last, event, iteration(index))?;
+                    break Err((failure, id));
                 }
             }
         };
@@ -1547,19 +1520,109 @@ impl Run {
                 self.recorder
                     .push(at, EventType::MapIterationAborted, iteration(index))?;
             }
-            thread.last = at;
-            self.record(thread, EventType::MapStateFailed, failure_details(&failure))?;
-            return Err(failure);
+            return Ok(Err((failure, at)));
         }
-        thread.last = last;
-        self.record(thread, EventType::MapStateSucceeded, Value::Null)?;
-        let output = state
-            .flow
-            .output(input.clone(), Value::Array(outputs), &env)
-            .map_err(Failure::from_asl)?;
-        self.check_size(&output, "output", &state.name)?;
-        Ok(output)
+        Ok(Ok((outputs, last)))
     }
+
+    /// One iteration's input: its item, or what the Map's `ItemSelector` makes of it with
+    /// `$$.Map.Item` set.
+    fn item_input(
+        &self,
+        each: &Iterations<'_>,
+        item: &Value,
+        index: usize,
+    ) -> Result<Value, Failure> {
+        let Some(selector) = &each.map.item_selector else {
+            return Ok(item.clone());
+        };
+        let mut item_ctx = each.ctx.clone();
+        item_ctx["Map"] = json!({"Item": {"Index": index, "Value": item}});
+        let item_env = Env::with_context(&item_ctx).random(&self.random);
+        selector
+            .render(each.effective, &item_env)
+            .map_err(Failure::from_asl)
+    }
+}
+
+/// What every iteration of one Map state shares.
+struct Iterations<'a> {
+    /// The Map state's name.
+    state: &'a str,
+    map: &'a MapState,
+    /// The Map state's effective input.
+    effective: &'a Value,
+    /// The Map state's context object.
+    ctx: &'a Value,
+}
+
+/// The items a Map state iterates over: its effective input, or what its `ItemsPath`
+/// selects in it, which must be an array.
+fn map_items(
+    state: &str,
+    map: &MapState,
+    effective: &Value,
+    ctx: &Value,
+) -> Result<Vec<Value>, Failure> {
+    let items = match &map.items_path {
+        None => effective.clone(),
+        Some(path) => path.get(effective, ctx).cloned().ok_or_else(|| {
+            Failure::runtime(format!(
+                "Invalid path '{}': the ItemsPath of Map state '{state}' selects nothing",
+                path.text(),
+            ))
+        })?,
+    };
+    match items {
+        Value::Array(items) => Ok(items),
+        other => Err(Failure::runtime(format!(
+            "The ItemsPath of Map state '{state}' must select a JSON array, not {}",
+            kind_of(&other)
+        ))),
+    }
+}
+
+/// A task's timeout: its `TimeoutSeconds`, or the seconds its `TimeoutSecondsPath` reads.
+fn timeout_of(task: &Task, input: &Value, ctx: &Value) -> Result<Option<u64>, Failure> {
+    match &task.timeout_path {
+        None => Ok(task.timeout_seconds),
+        Some(path) => seconds_at(path, input, ctx, ("TimeoutSecondsPath", "Task"), 1).map(Some),
+    }
+}
+
+/// A state's input through its `InputPath`: its effective input.
+fn path_in(state: &State, input: Value) -> Result<Value, Failure> {
+    state
+        .flow
+        .input_path
+        .apply(input)
+        .map_err(Failure::from_asl)
+}
+
+/// What leaves a state that makes no result: its effective input through its `OutputPath`.
+fn path_out(state: &State, effective: Value) -> Result<Value, Failure> {
+    state
+        .flow
+        .output_path
+        .apply(effective)
+        .map_err(Failure::from_asl)
+}
+
+/// A Choice state's next state: that of its first rule that matches, or its default.
+fn chosen(state: &str, choice: &Choice, effective: &Value, ctx: &Value) -> Result<String, Failure> {
+    for (rule, target) in &choice.rules {
+        if rule.evaluate(effective, ctx)? {
+            return Ok(target.clone());
+        }
+    }
+    choice.default.clone().ok_or_else(|| {
+        Failure::new(
+            "States.NoChoiceMatched",
+            Some(format!(
+                "No Choice matched in the Choice state '{state}' and it has no Default."
+            )),
+        )
+    })
 }
 
 fn kind_of(value: &Value) -> &'static str {
