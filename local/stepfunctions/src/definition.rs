@@ -562,24 +562,7 @@ impl Loader {
                 let parallel = self.parallel(obj)?;
                 (Kind::Parallel(parallel), data_flow(map, at)?)
             }
-            "Map" => {
-                obj.only(
-                    &fields(&[
-                        COMMON,
-                        IO,
-                        TRANSITION,
-                        RESULT,
-                        ERRORS,
-                        &["ItemsPath", "ItemSelector", "MaxConcurrency", "Iterator", "ItemProcessor"],
-                    ]),
-                    "a Map state",
-                )?;
-                let map_state = self.map_state(obj)?;
-                // NB: a Map's `Parameters` is its per-item selector, not its effective input.
-                let mut without_parameters = map.clone();
-                without_parameters.remove("Parameters");
-                (Kind::Map(map_state), data_flow(&without_parameters, at)?)
-            }
+            "Map" => self.map_kind(obj)?,
             other => {
                 return Err(LoadError::invalid(
                     obj.loc("Type"),
@@ -590,6 +573,35 @@ impl Loader {
             }
         };
         Ok(kind)
+    }
+
+    /// A Map state, with its data flow: its `Parameters` is its per-item selector, not its
+    /// effective input.
+    fn map_kind(&mut self, obj: &Obj<'_>) -> Result<(Kind, DataFlow), LoadError> {
+        obj.only(
+            &fields(&[
+                COMMON,
+                IO,
+                TRANSITION,
+                RESULT,
+                ERRORS,
+                &[
+                    "ItemsPath",
+                    "ItemSelector",
+                    "MaxConcurrency",
+                    "Iterator",
+                    "ItemProcessor",
+                ],
+            ]),
+            "a Map state",
+        )?;
+        let map_state = self.map_state(obj)?;
+        let mut without_parameters = obj.map.clone();
+        without_parameters.remove("Parameters");
+        Ok((
+            Kind::Map(map_state),
+            data_flow(&without_parameters, &obj.at)?,
+        ))
     }
 
     /// A Parallel state's branches, each a scope of its own, with its retriers and catchers.

@@ -10,6 +10,7 @@ use k8s_openapi::api::core::v1::{
     Container, ContainerState, ContainerStateRunning, ContainerStateTerminated, ContainerStatus,
     HostIP, Pod, PodIP, PodStatus, Volume,
 };
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use sha2::{Digest, Sha256};
 use tokio::sync::watch;
 use tokio::task::JoinSet;
@@ -503,8 +504,15 @@ impl PodWorker {
         for path in plan.created.iter().filter(|p| !p.starts_with(&self.dir)) {
             info!(container = %c.name, path = %path.display(), "created a missing mount point on the host");
         }
-        self.attempts(slot, &c, &image, &argv, &env, &workdir, &plan.mounts, stop)
-            .await
+        let prepared = Prepared {
+            c: &c,
+            image: &image,
+            argv: &argv,
+            env: &env,
+            workdir: &workdir,
+            mounts: &plan.mounts,
+        };
+        self.attempts(slot, &prepared, stop).await
     }
 
     /// A container's mounts: its volumes, its image's files (read-only) and, when it runs in a
@@ -540,20 +548,11 @@ impl PodWorker {
         Ok(mounts)
     }
 
-    #[allow(clippy::too_many_arguments)]
-    async fn attempts(
-        &self,
-        slot: Slot,
-        c: &Container,
-        image: &str,
-        argv: &[String],
-        env: &BTreeMap<String, String>,
-        workdir: &Path,
-        mounts: &[Mount],
-        mut stop: StopRx,
-    ) -> Outcome {
-        let is_init = matches!(slot, Slot::Init(_));
-        let log_dir = self.dir.join("logs").join(&c.name);
+    /// Runs a container's attempts: again after a failure under `OnFailure`, each time after
+    /// a longer back-off (`CrashLoopBackOff`), until one succeeds, the pod stops it, or the
+    /// restart policy says it is over.
+    async fn attempts(&self, slot: Slot, run: &Prepared<'_>, mut stop: StopRx) -> Outcome {
+        let log_dir = self.dir.join("logs").join(&run.c.name);
         let _ = std::fs::create_dir_all(&log_dir);
         let mut attempt: i32 = 0;
         let mut last: Option<ContainerStateTerminated> = None;
@@ -561,136 +560,226 @@ impl PodWorker {
             if stop.borrow().is_some() || self.rt.is_shutting_down() {
                 return Outcome::Stopped;
             }
-            let log = log_dir.join(format!("{attempt}.log"));
-            let id = container_id();
-            let started_at = time_now();
-            let launch = Launch {
-                argv,
-                env,
-                workdir,
-                mounts,
-                log: &log,
-            };
-            let spawned =
-                command(&launch, &self.rt.ns).and_then(|mut cmd| self.rt.procs.spawn(&mut cmd));
             let last_state = last.clone().map(|t| ContainerState {
                 terminated: Some(t),
                 ..Default::default()
             });
-            let (code, message, stopped) = match spawned {
-                Err(e) => {
-                    if self.rt.is_shutting_down() {
-                        return Outcome::Stopped;
-                    }
-                    let _ = std::fs::write(
-                        &log,
-                        format!("local-kube: cannot start {:?}: {e}\n", argv[0]),
-                    );
-                    (128, Some(format!("exec: {:?}: {e}", argv[0])), false)
-                }
-                Ok((mut child, pgid)) => {
-                    info!(pod = %self.key.name, container = %c.name, attempt, pgid, "container started");
-                    let running = ContainerState {
-                        running: Some(ContainerStateRunning {
-                            started_at: Some(started_at.clone()),
-                        }),
+            let log = log_dir.join(format!("{attempt}.log"));
+            let this = Attempt {
+                number: attempt,
+                last_state: &last_state,
+                log: &log,
+            };
+            let Some((ended, terminated)) = self.attempt(slot, run, &this, &mut stop).await else {
+                return Outcome::Stopped;
+            };
+            if ended.stopped || ended.code == 0 || self.restart_policy != "OnFailure" {
+                let is_init = matches!(slot, Slot::Init(_));
+                self.set(slot, |s| {
+                    s.state = Some(ContainerState {
+                        terminated: Some(terminated.clone()),
                         ..Default::default()
-                    };
-                    let (img, iid, cid) = (image.to_owned(), image_id(image), id.clone());
-                    self.set(slot, |s| {
-                        s.state = Some(running);
-                        s.last_state = last_state.clone();
-                        s.restart_count = attempt;
-                        s.ready = !is_init;
-                        s.started = Some(true);
-                        s.image = img;
-                        s.image_id = iid;
-                        s.container_id = Some(cid);
                     });
-                    let result = tokio::select! {
-                        status = child.wait() => {
-                            // NB: like a container's PID namespace, nothing outlives the main process.
-                            signal_group(pgid, nix::sys::signal::Signal::SIGKILL);
-                            (status.map(|s| exit_code(&s)).unwrap_or(-1), false)
-                        }
-                        grace = stop_requested(&mut stop) => {
-                            let status = terminate(&mut child, pgid, grace).await;
-                            (status.map(|s| exit_code(&s)).unwrap_or(137), true)
-                        }
-                    };
-                    // NB: the pod only goes away once its processes have, as with a real runtime.
-                    if !wait_group_gone(pgid, Duration::from_secs(2)).await {
-                        warn!(pod = %self.key.name, container = %c.name, pgid, "processes outlived SIGKILL");
-                    }
-                    self.rt.procs.forget(pgid);
-                    info!(pod = %self.key.name, container = %c.name, attempt, exit_code = result.0, "container exited");
-                    (result.0, None, result.1)
-                }
-            };
-            let reason = match (code, &message) {
-                (_, Some(_)) => "StartError",
-                (0, None) => "Completed",
-                _ => "Error",
-            };
-            let terminated = ContainerStateTerminated {
-                container_id: Some(id),
-                exit_code: code,
-                finished_at: Some(time_now()),
-                message,
-                reason: Some(reason.into()),
-                signal: None,
-                started_at: Some(started_at),
-            };
-            let final_state = |s: &mut ContainerStatus, t: &ContainerStateTerminated| {
-                s.state = Some(ContainerState {
-                    terminated: Some(t.clone()),
-                    ..Default::default()
+                    s.last_state = last_state.clone();
+                    s.restart_count = attempt;
+                    s.ready = is_init && terminated.exit_code == 0;
+                    s.started = Some(false);
                 });
-                s.last_state = last_state.clone();
-                s.restart_count = attempt;
-                s.ready = is_init && t.exit_code == 0;
-                s.started = Some(false);
-            };
-            if stopped || code == 0 || self.restart_policy != "OnFailure" {
-                self.set(slot, |s| final_state(s, &terminated));
-                return match (stopped, code) {
+                return match (ended.stopped, ended.code) {
                     (true, _) => Outcome::Stopped,
                     (false, 0) => Outcome::Succeeded,
                     _ => Outcome::Failed,
                 };
             }
-            let timing = &self.rt.timing;
-            let factor = 1u32 << attempt.clamp(0, 16);
-            let backoff = timing
-                .restart_backoff
-                .saturating_mul(factor)
-                .min(timing.max_backoff);
-            let pod = &self.pod.metadata;
-            let msg = format!(
-                "back-off {} restarting failed container={} pod={}_{}({})",
-                go_duration(backoff),
-                c.name,
-                pod.name.as_deref().unwrap_or_default(),
-                pod.namespace.as_deref().unwrap_or_default(),
-                pod.uid.as_deref().unwrap_or_default()
-            );
-            let as_last = ContainerState {
-                terminated: Some(terminated.clone()),
-                ..Default::default()
-            };
-            self.set(slot, |s| {
-                s.state = Some(waiting("CrashLoopBackOff", Some(msg)));
-                s.last_state = Some(as_last);
-                s.restart_count = attempt;
-                s.ready = false;
-                s.started = Some(false);
-            });
+            let backoff = self.crash_loop(slot, run.c, attempt, &terminated);
             tokio::select! {
                 _ = stop_requested(&mut stop) => return Outcome::Stopped,
                 _ = tokio::time::sleep(backoff) => {}
             }
             last = Some(terminated);
             attempt += 1;
+        }
+    }
+
+    /// One attempt of a container: started, shown running, waited for (or stopped), its
+    /// processes gone; how it ended and its terminated state. `None` when the node shuts
+    /// down under it.
+    async fn attempt(
+        &self,
+        slot: Slot,
+        run: &Prepared<'_>,
+        this: &Attempt<'_>,
+        stop: &mut StopRx,
+    ) -> Option<(Ended, ContainerStateTerminated)> {
+        let c = run.c;
+        let id = container_id();
+        let started_at = time_now();
+        let launch = Launch {
+            argv: run.argv,
+            env: run.env,
+            workdir: run.workdir,
+            mounts: run.mounts,
+            log: this.log,
+        };
+        let spawned =
+            command(&launch, &self.rt.ns).and_then(|mut cmd| self.rt.procs.spawn(&mut cmd));
+        let ended = match spawned {
+            Err(e) => {
+                if self.rt.is_shutting_down() {
+                    return None;
+                }
+                let argv0 = &run.argv[0];
+                let _ = std::fs::write(
+                    this.log,
+                    format!("local-kube: cannot start {argv0:?}: {e}\n"),
+                );
+                Ended {
+                    code: 128,
+                    message: Some(format!("exec: {argv0:?}: {e}")),
+                    stopped: false,
+                }
+            }
+            Ok((mut child, pgid)) => {
+                let attempt = this.number;
+                info!(pod = %self.key.name, container = %c.name, attempt, pgid, "container started");
+                self.show_running(slot, run.image, this, started_at.clone(), id.clone());
+                let (code, stopped) = tokio::select! {
+                    status = child.wait() => {
+                        // NB: like a container's PID namespace, nothing outlives the main process.
+                        signal_group(pgid, nix::sys::signal::Signal::SIGKILL);
+                        (status.map(|s| exit_code(&s)).unwrap_or(-1), false)
+                    }
+                    grace = stop_requested(stop) => {
+                        let status = terminate(&mut child, pgid, grace).await;
+                        (status.map(|s| exit_code(&s)).unwrap_or(137), true)
+                    }
+                };
+                // NB: the pod only goes away once its processes have, as with a real runtime.
+                if !wait_group_gone(pgid, Duration::from_secs(2)).await {
+                    warn!(pod = %self.key.name, container = %c.name, pgid, "processes outlived SIGKILL");
+                }
+                self.rt.procs.forget(pgid);
+                info!(pod = %self.key.name, container = %c.name, attempt, exit_code = code, "container exited");
+                Ended {
+                    code,
+                    message: None,
+                    stopped,
+                }
+            }
+        };
+        let terminated = ended.terminated(id, started_at);
+        Some((ended, terminated))
+    }
+
+    /// Shows an attempt running: its start, the attempt before it, and its image and id.
+    fn show_running(
+        &self,
+        slot: Slot,
+        image: &str,
+        this: &Attempt<'_>,
+        started_at: Time,
+        id: String,
+    ) {
+        let running = ContainerState {
+            running: Some(ContainerStateRunning {
+                started_at: Some(started_at),
+            }),
+            ..Default::default()
+        };
+        let (img, iid) = (image.to_owned(), image_id(image));
+        self.set(slot, |s| {
+            s.state = Some(running);
+            s.last_state = this.last_state.clone();
+            s.restart_count = this.number;
+            s.ready = !matches!(slot, Slot::Init(_));
+            s.started = Some(true);
+            s.image = img;
+            s.image_id = iid;
+            s.container_id = Some(id);
+        });
+    }
+
+    /// Shows a failed container waiting in `CrashLoopBackOff`, as the kubelet words it, and
+    /// gives how long it waits: the back-off doubles at each attempt, up to its most.
+    fn crash_loop(
+        &self,
+        slot: Slot,
+        c: &Container,
+        attempt: i32,
+        terminated: &ContainerStateTerminated,
+    ) -> Duration {
+        let timing = &self.rt.timing;
+        let factor = 1u32 << attempt.clamp(0, 16);
+        let backoff = timing
+            .restart_backoff
+            .saturating_mul(factor)
+            .min(timing.max_backoff);
+        let pod = &self.pod.metadata;
+        let msg = format!(
+            "back-off {} restarting failed container={} pod={}_{}({})",
+            go_duration(backoff),
+            c.name,
+            pod.name.as_deref().unwrap_or_default(),
+            pod.namespace.as_deref().unwrap_or_default(),
+            pod.uid.as_deref().unwrap_or_default()
+        );
+        let as_last = ContainerState {
+            terminated: Some(terminated.clone()),
+            ..Default::default()
+        };
+        self.set(slot, |s| {
+            s.state = Some(waiting("CrashLoopBackOff", Some(msg)));
+            s.last_state = Some(as_last);
+            s.restart_count = attempt;
+            s.ready = false;
+            s.started = Some(false);
+        });
+        backoff
+    }
+}
+
+/// What a container runs, worked out once for all its attempts.
+struct Prepared<'a> {
+    c: &'a Container,
+    image: &'a str,
+    argv: &'a [String],
+    env: &'a BTreeMap<String, String>,
+    workdir: &'a Path,
+    mounts: &'a [Mount],
+}
+
+/// One attempt of a container: its number (the restart count), the state the one before
+/// it ended in, and its log file.
+struct Attempt<'a> {
+    number: i32,
+    last_state: &'a Option<ContainerState>,
+    log: &'a Path,
+}
+
+/// How an attempt ended: its exit code, the runtime's message when it could not start, and
+/// whether the pod stopped it.
+struct Ended {
+    code: i32,
+    message: Option<String>,
+    stopped: bool,
+}
+
+impl Ended {
+    /// The container's terminated state for this end, with the runtime's reason.
+    fn terminated(&self, id: String, started_at: Time) -> ContainerStateTerminated {
+        let reason = match (self.code, &self.message) {
+            (_, Some(_)) => "StartError",
+            (0, None) => "Completed",
+            _ => "Error",
+        };
+        ContainerStateTerminated {
+            container_id: Some(id),
+            exit_code: self.code,
+            finished_at: Some(time_now()),
+            message: self.message.clone(),
+            reason: Some(reason.into()),
+            signal: None,
+            started_at: Some(started_at),
         }
     }
 }
