@@ -1392,20 +1392,42 @@ impl Run {
         }
         // The other branches stop with the first failure.
         set.abort_all();
-        if let Some((failure, at)) = failed {
-            thread.last = at;
-            self.record(
-                thread,
-                EventType::ParallelStateFailed,
-                failure_details(&failure),
-            )?;
-            return Err(failure);
-        }
+        let outcome = match failed {
+            Some(failed) => Err(failed),
+            None => Ok((outputs, last)),
+        };
+        let events = (
+            EventType::ParallelStateFailed,
+            EventType::ParallelStateSucceeded,
+        );
+        self.branches_ended(state, input, &env, outcome, events, thread)
+    }
+
+    /// Ends a Parallel or Map state once its branches did: the first failure recorded (as
+    /// the first of `events`) after the event it follows, or the branches' outputs in order
+    /// recorded (as the second) after the last branch's event, and made its result.
+    fn branches_ended(
+        &self,
+        state: &State,
+        input: &Value,
+        env: &Env<'_>,
+        outcome: Result<(Vec<Value>, u64), (Failure, u64)>,
+        (failed, succeeded): (EventType, EventType),
+        thread: &mut Thread,
+    ) -> Result<Value, Failure> {
+        let (outputs, last) = match outcome {
+            Ok(ended) => ended,
+            Err((failure, at)) => {
+                thread.last = at;
+                self.record(thread, failed, failure_details(&failure))?;
+                return Err(failure);
+            }
+        };
         thread.last = last;
-        self.record(thread, EventType::ParallelStateSucceeded, Value::Null)?;
+        self.record(thread, succeeded, Value::Null)?;
         let output = state
             .flow
-            .output(input.clone(), Value::Array(outputs), &env)
+            .output(input.clone(), Value::Array(outputs), env)
             .map_err(Failure::from_asl)?;
         self.check_size(&output, "output", &state.name)?;
         Ok(output)
@@ -1433,23 +1455,9 @@ impl Run {
             effective: &effective,
             ctx,
         };
-        match self.iterate(iterations, &items, started).await? {
-            Err((failure, at)) => {
-                thread.last = at;
-                self.record(thread, EventType::MapStateFailed, failure_details(&failure))?;
-                Err(failure)
-            }
-            Ok((outputs, last)) => {
-                thread.last = last;
-                self.record(thread, EventType::MapStateSucceeded, Value::Null)?;
-                let output = state
-                    .flow
-                    .output(input.clone(), Value::Array(outputs), &env)
-                    .map_err(Failure::from_asl)?;
-                self.check_size(&output, "output", &state.name)?;
-                Ok(output)
-            }
-        }
+        let outcome = self.iterate(iterations, &items, started).await?;
+        let events = (EventType::MapStateFailed, EventType::MapStateSucceeded);
+        self.branches_ended(state, input, &env, outcome, events, thread)
     }
 
     /// Runs a Map state's iterations, in item order and up to its `MaxConcurrency` at a
