@@ -45,9 +45,9 @@ real-kube: kubectl ## Build the pinned real Kubernetes control plane the tests h
 
 # Test binaries run side by side: most of their time is spent waiting on the processes they start.
 TEST_JOBS ?= 3
-test: venv lint-venv kubectl real-kube own-cache ## The whole suite, emulator tests included, TEST_JOBS (3) test binaries at a time (README's and CI's command)
+test: venv lint-venv kubectl own-cache ## The whole suite, emulator tests included, TEST_JOBS (3) test binaries at a time (README's and CI's command)
 	@$(if $(SHARED_SKIP),echo "no shared set beside the repository: the kept copies are not compared",:)
-	CARGO=$(CARGO) $(PYTHON) tests/suite.py --jobs $(TEST_JOBS) -- --include-ignored $(SHARED_SKIP)
+	CARGO=$(CARGO) $(PYTHON) tests/suite.py --jobs $(TEST_JOBS) --beside 'bash local/realkube/build.sh >/dev/null' -- --include-ignored $(SHARED_SKIP)
 	$(CARGO) test --workspace --doc
 
 test-unit: own-cache ## Tests that need nothing but cargo (what plain `cargo test` runs)

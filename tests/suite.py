@@ -7,7 +7,11 @@ infrastructure checks) spend most of their minutes waiting on other processes. T
 folder, with cargo's variables), prints each one's output whole as it ends, and exits
 non-zero when any failed, naming them.
 
-    tests/suite.py [--jobs N] [--timeout SECONDS] [-- ARGS FOR EVERY TEST BINARY]
+    tests/suite.py [--jobs N] [--timeout SECONDS] [--beside COMMAND] [-- ARGS FOR EVERY TEST BINARY]
+
+`--beside` runs a command (another build the tests need) while cargo builds, and runs no test
+until it succeeded: on a new machine the two builds overlap where each waits on downloads or
+a linker.
 """
 
 import argparse
@@ -78,10 +82,21 @@ def main():
     parser.add_argument("--jobs", type=int, default=2, help="test binaries at a time (default 2)")
     parser.add_argument("--timeout", type=int, default=2400,
                         help="seconds one test binary may take before it is killed (default 2400)")
+    parser.add_argument("--beside", help="a shell command run while cargo builds; it must succeed")
     parser.add_argument("args", nargs="*", help="passed to every test binary (after --)")
     opts = parser.parse_args()
     cargo = os.environ.get("CARGO", "cargo")
-    binaries = build(cargo)
+    beside = subprocess.Popen(opts.beside, shell=True) if opts.beside else None
+    try:
+        binaries = build(cargo)
+    except BaseException:
+        if beside:
+            beside.terminate()
+            beside.wait()
+        raise
+    code = beside.wait() if beside else 0
+    if code:
+        sys.exit(f"suite: `{opts.beside}` failed (exit {code})")
     rank = {name: i for i, name in enumerate(LONG_FIRST)}
     binaries.sort(key=lambda b: rank.get(b[0], len(LONG_FIRST)))
     root = os.getcwd()

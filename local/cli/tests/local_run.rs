@@ -91,20 +91,44 @@ fn an_unpullable_image_a_crash_loop_and_no_node_fail_with_their_reasons() {
     }
 }
 
+// The scenarios on the real control plane, one test each, so that they share the test
+// threads with the others rather than run one after another at the end.
+
 #[test]
 #[ignore = "needs moto and the real control plane (make real-kube)"]
-fn on_the_real_control_plane_the_scenarios_end_as_on_local_kube() {
+fn on_the_real_control_plane_a_spot_reclaim_scores_as_the_happy_run() {
     let happy = scenario_on("real", "happy", "FINISHED", &Value::Null);
     scenario_on("real", "spot", "FINISHED", &happy["scores"]);
-    for (name, expected) in [
-        ("crash", "FINISHED"),
-        ("crash-loop", "FAILED"),
-        ("cancel", "CANCELLED"),
-        ("no-node", "FAILED"),
-        ("disk-hog", "FAILED"),
-    ] {
-        scenario_on("real", name, expected, &Value::Null);
-    }
+}
+
+#[test]
+#[ignore = "needs moto and the real control plane (make real-kube)"]
+fn on_the_real_control_plane_a_crash_finishes() {
+    scenario_on("real", "crash", "FINISHED", &Value::Null);
+}
+
+#[test]
+#[ignore = "needs moto and the real control plane (make real-kube)"]
+fn on_the_real_control_plane_a_crash_loop_fails_with_its_reason() {
+    scenario_on("real", "crash-loop", "FAILED", &Value::Null);
+}
+
+#[test]
+#[ignore = "needs moto and the real control plane (make real-kube)"]
+fn on_the_real_control_plane_a_cancel_ends_cancelled() {
+    scenario_on("real", "cancel", "CANCELLED", &Value::Null);
+}
+
+#[test]
+#[ignore = "needs moto and the real control plane (make real-kube)"]
+fn on_the_real_control_plane_no_node_fails_with_its_reason() {
+    scenario_on("real", "no-node", "FAILED", &Value::Null);
+}
+
+#[test]
+#[ignore = "needs moto and the real control plane (make real-kube)"]
+fn on_the_real_control_plane_a_disk_hog_is_evicted_past_its_retries() {
+    scenario_on("real", "disk-hog", "FAILED", &Value::Null);
 }
 
 /// `lbctl local run --scenario <scenario>`, which must end `expected` with what the scenario
