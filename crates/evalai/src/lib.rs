@@ -18,7 +18,8 @@ pub use retry::{within, RetryPolicy};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use lb_domain::submission::SubmissionStatus;
+use lb_domain::run::finalize::{self, Posted};
+use lb_domain::submission::{SubmissionInfo, SubmissionStatus};
 use reqwest::{Method, StatusCode};
 use serde_json::{json, Value};
 use tracing::{info, warn};
@@ -219,6 +220,16 @@ pub struct SubmissionRef {
     pub phase: u64,
     /// Submission id (body).
     pub submission: u64,
+}
+
+impl From<&SubmissionInfo> for SubmissionRef {
+    fn from(submission: &SubmissionInfo) -> Self {
+        SubmissionRef {
+            challenge: submission.challenge_id,
+            phase: submission.phase_id,
+            submission: submission.submission_id,
+        }
+    }
 }
 
 /// What one request asks of the budget.
@@ -553,12 +564,31 @@ impl EvalAiClient {
         update: &FinalUpdate,
     ) -> Result<WriteOutcome> {
         check_final(update)?;
-        // Read, write, read back: their places taken at once.
-        let ask = Ask::whole(Priority::Urgent, 3);
-        let current = self.read_submission(at.submission, ask).await?;
-        if let Some(refused) = refuse_write(current.status) {
-            return Ok(refused);
+        let current = self.before_final(at.submission).await?;
+        match refuse_write(current) {
+            Some(refused) => Ok(refused),
+            None => self.write_final(at, update).await,
         }
+    }
+
+    /// The submission's status before its final update, with the places of the update's
+    /// write and read back taken beside the read's (one budget take for the three): a caller
+    /// that reads this apart from the write ([`Client::write_final`]) can do it beside other
+    /// work.
+    pub async fn before_final(&self, submission: u64) -> Result<SubmissionStatus> {
+        let ask = Ask::whole(Priority::Urgent, 3);
+        Ok(self.read_submission(submission, ask).await?.status)
+    }
+
+    /// The final update's PUT and the GET that confirms it, their places taken by
+    /// [`Client::before_final`], whose status must not have refused the write
+    /// ([`finalize::unwritable`]).
+    pub async fn write_final(
+        &self,
+        at: SubmissionRef,
+        update: &FinalUpdate,
+    ) -> Result<WriteOutcome> {
+        check_final(update)?;
         let outcome = self.put_final(at, update).await?;
         if outcome == WriteOutcome::Written {
             let after = self
@@ -990,13 +1020,13 @@ fn queue_metadata(current: &Value, note: Option<(u32, &str)>) -> Option<Value> {
     })
 }
 
+/// A write EvalAI's `current` status refuses ([`finalize::unwritable`]).
 fn refuse_write(current: SubmissionStatus) -> Option<WriteOutcome> {
-    if current == SubmissionStatus::Cancelled {
-        return Some(WriteOutcome::Cancelled);
-    }
-    current
-        .is_final()
-        .then_some(WriteOutcome::AlreadyFinal(current))
+    finalize::unwritable(current).map(|posted| match posted {
+        Posted::Written => WriteOutcome::Written,
+        Posted::Cancelled => WriteOutcome::Cancelled,
+        Posted::AlreadyFinal(status) => WriteOutcome::AlreadyFinal(status),
+    })
 }
 
 /// The submissions of a listing, element by element: participants write much of each element

@@ -47,26 +47,38 @@ impl Admission {
         }
     }
 
-    /// Gives `submission_id`'s place in `team`'s queue back and takes its entry out.
-    pub async fn give_back(&self, team: TeamQueue<'_>, submission_id: u64) -> Result<()> {
-        if let Admission::Queue(table) = self {
-            table.release(team.queue, submission_id, team.team).await?;
-        }
-        Ok(())
-    }
-
-    /// [`wake_team_next`]; without a queue nobody waits.
-    pub async fn wake_team_next<C: Callbacks>(
+    /// Gives `submission_id`'s place in `team`'s queue back, takes its entry out, and wakes
+    /// the team's next waiting submissions, one per open place. The queue is read beside the
+    /// release, with this submission's place counted as given back, and the wakes go once
+    /// both are done, so a woken submission finds the place open. The release's failure is
+    /// the call's; the wake-up is best effort (said, and the polls come). `false`: no queue.
+    pub async fn leave<C: Callbacks>(
         &self,
-        wakes: &WakeTable,
-        callbacks: &C,
         team: TeamQueue<'_>,
-        now: u64,
-    ) -> Result<Vec<Woken>> {
-        match self {
-            Admission::Queue(table) => wake_team_next(table, wakes, callbacks, team, now).await,
-            Admission::Unlimited => Ok(Vec::new()),
+        submission_id: u64,
+        waker: Waker<'_, C>,
+    ) -> Result<bool> {
+        let Admission::Queue(table) = self else {
+            return Ok(false);
+        };
+        let (released, next) = tokio::join!(
+            table.release(team.queue, submission_id, team.team),
+            team_next(table, team, Some(submission_id)),
+        );
+        released?;
+        let woken = match next {
+            Ok(next) => wake_each(&next, waker).await,
+            Err(e) => Err(e),
+        };
+        match woken {
+            Ok(woken) => tracing::info!(submission_id, ?woken, "the team's next submissions"),
+            Err(e) => tracing::warn!(
+                submission_id,
+                error = %e,
+                "cannot wake the team's next; its poll comes"
+            ),
         }
+        Ok(true)
     }
 
     /// [`take_turn`]; without a queue, admitted with nobody ahead.
@@ -119,17 +131,6 @@ impl Admission {
             table.mark_running(leaderboard, id).await?;
         }
         Ok(())
-    }
-
-    /// Gives the team its place back and takes the entry out; whether there was a queue to
-    /// leave.
-    pub async fn release(&self, submission: &SubmissionInfo) -> Result<bool> {
-        let Admission::Queue(table) = self else {
-            return Ok(false);
-        };
-        let (leaderboard, id) = (submission.leaderboard.as_str(), submission.submission_id);
-        table.release(leaderboard, id, submission.team_id).await?;
-        Ok(true)
     }
 
     /// A finished evaluation's duration joins its track's pace.
@@ -260,6 +261,26 @@ pub enum Woken {
     Stale(u64),
 }
 
+/// Who wakes a waiting submission and how: the wake table, where its token is reported, and
+/// the time of the wake.
+#[derive(Debug)]
+pub struct Waker<'a, C> {
+    /// The wake table.
+    pub wakes: &'a WakeTable,
+    /// Where a waiting execution's token is reported.
+    pub callbacks: &'a C,
+    /// Epoch seconds.
+    pub now: u64,
+}
+
+impl<C> Clone for Waker<'_, C> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<C> Copy for Waker<'_, C> {}
+
 /// Wakes the executions of `team`'s oldest waiting submissions in its queue, one per place
 /// open under its limit (none when nobody waits or no place is open), so their
 /// Monitor rounds ask now instead of at their next poll (five minutes into a queue, half an
@@ -267,25 +288,45 @@ pub enum Woken {
 /// failed report stops there with the error: the rest ask at their polls.
 pub async fn wake_team_next<C: Callbacks>(
     table: &AdmissionTable,
-    wakes: &WakeTable,
-    callbacks: &C,
     team: TeamQueue<'_>,
-    now: u64,
+    waker: Waker<'_, C>,
 ) -> Result<Vec<Woken>> {
-    // The queue and the team's holders at once: the place was given back before either.
+    let next = team_next(table, team, None).await?;
+    wake_each(&next, waker).await
+}
+
+/// The submissions of `team` to wake, oldest first, one per open place: the queue and the
+/// team's holders read at once, `leaving`'s place counted as given back (its release runs
+/// beside the reads).
+async fn team_next(
+    table: &AdmissionTable,
+    team: TeamQueue<'_>,
+    leaving: Option<u64>,
+) -> Result<Vec<u64>> {
     let (entries, held) = tokio::join!(
         table.entries(team.queue),
         table.holders(team.queue, team.team)
     );
-    let (entries, held) = (entries?, held?.len());
+    let (entries, mut held) = (entries?, held?);
+    if let Some(leaving) = leaving {
+        held.retain(|holder| *holder != leaving.to_string());
+    }
+    let free = queue::free_places(team.limit, held.len());
+    let next = queue::next_of_team(&entries, team.team, free);
+    Ok(next.iter().map(|entry| entry.submission_id).collect())
+}
+
+/// Reports each of `next`'s wakes, in order; the first failure stops there.
+async fn wake_each<C: Callbacks>(next: &[u64], waker: Waker<'_, C>) -> Result<Vec<Woken>> {
     let mut woken = Vec::new();
-    for next in queue::next_of_team(&entries, team.team, queue::free_places(team.limit, held)) {
-        let id = next.submission_id;
-        woken.push(match wakes.wake(id, now, callbacks).await? {
-            None => Woken::NotWaiting(id),
-            Some(Reported::Delivered) => Woken::Delivered(id),
-            Some(Reported::Stale) => Woken::Stale(id),
-        });
+    for &id in next {
+        woken.push(
+            match waker.wakes.wake(id, waker.now, waker.callbacks).await? {
+                None => Woken::NotWaiting(id),
+                Some(Reported::Delivered) => Woken::Delivered(id),
+                Some(Reported::Stale) => Woken::Stale(id),
+            },
+        );
     }
     Ok(woken)
 }

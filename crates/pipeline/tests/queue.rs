@@ -7,9 +7,18 @@ use lb_aws::admission::AdmissionTable;
 use lb_aws::wake::WakeTable;
 use lb_domain::capacity::queue::{Entry, EntryState};
 use lb_pipeline::payload::SubmissionInfo;
-use lb_pipeline::queue::{take_turn, wake_team_next, TeamQueue, Woken};
+use lb_pipeline::queue::{take_turn, wake_team_next, Admission, TeamQueue, Waker, Woken};
 use local_stack::integrations::{update_item, wait_for_change};
 use local_stack::stack::{ADMISSION_TABLE, WAKE_TABLE};
+
+/// Wakes at a fixed time.
+fn waker<'a, C>(wakes: &'a WakeTable, callbacks: &'a C) -> Waker<'a, C> {
+    Waker {
+        wakes,
+        callbacks,
+        now: 1_000,
+    }
+}
 
 fn info(submission_id: u64, team_id: u64) -> SubmissionInfo {
     SubmissionInfo {
@@ -46,17 +55,12 @@ async fn a_place_given_back_wakes_the_teams_oldest_waiting_submission() {
             .unwrap();
     }
     let wake = |team| {
-        wake_team_next(
-            &table,
-            &wakes,
-            &callbacks,
-            TeamQueue {
-                queue: "2.0",
-                team,
-                limit: 1,
-            },
-            1_000,
-        )
+        let team = TeamQueue {
+            queue: "2.0",
+            team,
+            limit: 1,
+        };
+        wake_team_next(&table, team, waker(&wakes, &callbacks))
     };
     // Nobody of team 6 waits; team 5 has no place open.
     assert_eq!(wake(6).await.unwrap(), []);
@@ -126,19 +130,14 @@ async fn every_place_given_back_is_offered_at_once() {
     // Both end (a cluster lost, say): both places are offered, to the two oldest.
     table.release("2.0", 1, 8).await.unwrap();
     table.release("2.0", 2, 8).await.unwrap();
-    let woken = wake_team_next(
-        &table,
-        &wakes,
-        &callbacks,
-        TeamQueue {
-            queue: "2.0",
-            team: 8,
-            limit: 2,
-        },
-        1_000,
-    )
-    .await
-    .unwrap();
+    let team = TeamQueue {
+        queue: "2.0",
+        team: 8,
+        limit: 2,
+    };
+    let woken = wake_team_next(&table, team, waker(&wakes, &callbacks))
+        .await
+        .unwrap();
     assert_eq!(woken, [Woken::Delivered(3), Woken::Delivered(4)]);
     // Whichever round comes first, both take their places; 5 still waits its turn.
     for id in [4, 3] {
@@ -152,4 +151,58 @@ async fn every_place_given_back_is_offered_at_once() {
             .admitted
     );
     assert_eq!(table.holders("2.0", 8).await.unwrap(), ["3", "4"]);
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn leaving_wakes_the_next_for_the_place_it_gives_back_read_beside_the_release() {
+    let (stack, _) = test_support::stack::provisioned().await;
+    let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    let table = AdmissionTable::new(client.clone(), ADMISSION_TABLE);
+    let wakes = WakeTable::new(client.clone(), WAKE_TABLE);
+    let callbacks = RecordingCallbacks::default();
+    // Team 9 holds its one place with 1; 2 and 3 wait, parked.
+    for (id, arrived) in [(1, 100), (2, 200), (3, 300)] {
+        take_turn(&table, &info(id, 9), arrived, 1).await.unwrap();
+    }
+    for id in [2, 3] {
+        let seen = wakes.state(id).await.unwrap().changes;
+        let wait = wait_for_change(&format!("token-{id}"), id, 7, seen);
+        update_item(&client, wait).await.expect("the wait's write");
+    }
+    let admission = Admission::Queue(table.clone());
+    let team = TeamQueue {
+        queue: "2.0",
+        team: 9,
+        limit: 1,
+    };
+    // The queue is read while 1 still holds its place: that place counts as given back, so
+    // 2 (the oldest) is woken, and only once the place is free.
+    assert!(admission
+        .leave(team, 1, waker(&wakes, &callbacks))
+        .await
+        .unwrap());
+    assert_eq!(callbacks.delivered(), ["token-2"]);
+    assert!(table.holders("2.0", 9).await.unwrap().is_empty());
+    assert!(
+        take_turn(&table, &info(2, 9), 200, 1)
+            .await
+            .unwrap()
+            .admitted
+    );
+    // A wake that cannot be reported leaves the place given back all the same.
+    callbacks.answer_next(Answer::Unreachable);
+    assert!(admission
+        .leave(team, 2, waker(&wakes, &callbacks))
+        .await
+        .unwrap());
+    assert!(table.holders("2.0", 9).await.unwrap().is_empty());
+    assert_eq!(
+        callbacks.delivered(),
+        ["token-2"],
+        "3's wake was not delivered"
+    );
+    // Without a queue there is nothing to leave.
+    let none = Admission::Unlimited.leave(team, 3, waker(&wakes, &callbacks));
+    assert!(!none.await.unwrap());
 }

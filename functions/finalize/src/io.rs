@@ -20,10 +20,10 @@ use lb_domain::run::finalize::Posted;
 use lb_domain::settings::Target;
 use lb_domain::status::RecordStatus;
 use lb_domain::submission::SubmissionStatus;
-use lb_evalai::{FinalUpdate, SubmissionRef, WriteOutcome};
+use lb_evalai::{FinalUpdate, WriteOutcome};
 use lb_pipeline::clients::{self, Meter};
 use lb_pipeline::payload::{PairRoutes, SubmissionInfo};
-use lb_pipeline::queue::TeamQueue;
+use lb_pipeline::queue::{TeamQueue, Waker};
 use lb_pipeline::results::{self, Snapshot};
 use lb_pipeline::Result;
 use tracing::{info, warn};
@@ -31,8 +31,9 @@ use tracing::{info, warn};
 use crate::Deps;
 
 /// Recordings' heads (or upload reports) read at once: a result has a recording per route, up
-/// to hundreds.
-const HEAD_READS: usize = 16;
+/// to hundreds. Each read holds 256 bytes and a connection, so a typical result (tens of
+/// routes) is read in one wave, on the closing's chain of requests one after another.
+const HEAD_READS: usize = 64;
 
 /// What the shell keeps between steps: its clients, and the results it read (posted and
 /// recorded whole; the closing only sees what it decides on).
@@ -128,6 +129,10 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 }
                 Answer::Done
             }
+            Step::ReadEvalAi => {
+                let evalai = &self.deps.clients.evalai;
+                Answer::OnEvalAi(evalai.before_final(sub.submission_id).await?)
+            }
             Step::Post {
                 status,
                 stdout,
@@ -138,7 +143,9 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                     stdout,
                     stderr,
                 };
-                Answer::Posted(post_final(self.deps, sub, self.merged(), word).await?)
+                let update = final_update(self.merged(), word);
+                let evalai = &self.deps.clients.evalai;
+                Answer::Posted(posted(evalai.write_final(sub.into(), &update).await?))
             }
             Step::ListRecordings => Answer::Listed(match self.store.recordings().await {
                 Ok(listed) => Some(listed),
@@ -164,7 +171,10 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 Answer::Recorded(self.write_record(failure, recordings, usage).await?)
             }
             Step::RecordPace { seconds } => self.record_pace(seconds).await,
-            Step::LeaveQueue => leave_queue(self.deps, sub).await.map(|()| Answer::Done)?,
+            Step::LeaveQueue => {
+                leave_queue(self.deps, sub, self.target).await?;
+                Answer::Done
+            }
         })
     }
 
@@ -391,73 +401,63 @@ pub struct FinalWord {
 
 /// The final EvalAI update: scores for a finished run; for a failed one, the partial summary
 /// as stdout and the reason as stderr.
-pub async fn post_final<C>(
-    deps: &Deps<C>,
-    submission: &SubmissionInfo,
-    snapshot: Option<&Snapshot>,
-    word: FinalWord,
-) -> Result<Posted> {
-    let FinalWord {
-        status,
-        stdout,
-        stderr,
-    } = word;
-    let update = FinalUpdate {
-        status,
+fn final_update(snapshot: Option<&Snapshot>, word: FinalWord) -> FinalUpdate {
+    FinalUpdate {
+        status: word.status,
         result: snapshot.map_or_else(|| "[]".to_string(), |s| s.files.results_json()),
-        stdout,
-        stderr,
+        stdout: word.stdout,
+        stderr: word.stderr,
         metadata: snapshot
             .and_then(|s| s.files.metadata.clone())
             .unwrap_or_else(|| "{}".into()),
-    };
-    let at = SubmissionRef {
-        challenge: submission.challenge_id,
-        phase: submission.phase_id,
-        submission: submission.submission_id,
-    };
-    Ok(match deps.clients.evalai.post_final(at, &update).await? {
+    }
+}
+
+/// The final update with its read before and after, at once (a refusal, which has no run).
+pub async fn post_final<C>(
+    deps: &Deps<C>,
+    submission: &SubmissionInfo,
+    word: FinalWord,
+) -> Result<Posted> {
+    let update = final_update(None, word);
+    Ok(posted(
+        deps.clients
+            .evalai
+            .post_final(submission.into(), &update)
+            .await?,
+    ))
+}
+
+fn posted(outcome: WriteOutcome) -> Posted {
+    match outcome {
         WriteOutcome::Written => Posted::Written,
         WriteOutcome::Cancelled => Posted::Cancelled,
         WriteOutcome::AlreadyFinal(stands) => Posted::AlreadyFinal(stands),
-    })
+    }
 }
 
 /// Gives the team its place back and takes the submission out of its leaderboard's queue,
 /// last: EvalAI has its final status before the team's next submission is admitted, so the
 /// team never shows more than its `team_limit` evaluations in progress. Repeating it is
-/// harmless.
-pub async fn leave_queue<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) -> Result<()> {
-    if deps.clients.admission.release(submission).await? {
-        info!(submission_id = submission.submission_id, "left the queue");
-        wake_next(deps, submission).await;
+/// harmless; the team's next waiting submissions are woken (best effort: their polls come).
+async fn leave_queue<C: Callbacks>(
+    deps: &Deps<C>,
+    submission: &SubmissionInfo,
+    target: &Target<'_>,
+) -> Result<()> {
+    let team = TeamQueue {
+        queue: submission.leaderboard.as_str(),
+        team: submission.team_id,
+        limit: target.deployment.team_limit,
+    };
+    let waker = Waker {
+        wakes: &deps.wakes,
+        callbacks: &deps.callbacks,
+        now: clients::now_epoch_seconds(),
+    };
+    let id = submission.submission_id;
+    if deps.clients.admission.leave(team, id, waker).await? {
+        info!(submission_id = id, "left the queue");
     }
     Ok(())
-}
-
-/// Wakes the team's next waiting submissions, one per open place (see
-/// [`lb_pipeline::queue::wake_team_next`]). Best effort: a failure is logged, and its poll still comes.
-async fn wake_next<C: Callbacks>(deps: &Deps<C>, submission: &SubmissionInfo) {
-    let id = submission.submission_id;
-    let woken = match deps.clients.settings.target(submission.phase_id) {
-        Ok(target) => {
-            let team = TeamQueue {
-                queue: submission.leaderboard.as_str(),
-                team: submission.team_id,
-                limit: target.deployment.team_limit,
-            };
-            let now = clients::now_epoch_seconds();
-            let admission = &deps.clients.admission;
-            admission
-                .wake_team_next(&deps.wakes, &deps.callbacks, team, now)
-                .await
-        }
-        Err(e) => Err(e.into()),
-    };
-    match woken {
-        Ok(woken) => info!(submission_id = id, ?woken, "the team's next submissions"),
-        Err(e) => {
-            warn!(submission_id = id, error = %e, "cannot wake the team's next; its poll comes")
-        }
-    }
 }

@@ -248,7 +248,7 @@ async fn refuse<C>(
         stdout: String::new(),
         stderr: reason.clone(),
     };
-    io::post_final(deps, submission, None, failed).await?;
+    io::post_final(deps, submission, failed).await?;
     Ok(FinalizeOutput {
         status: Settled::Ended(RecordStatus::Failed),
         pipeline_error: false,

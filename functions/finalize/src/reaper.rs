@@ -10,7 +10,7 @@ use lb_aws::executions::{self, execution_arn, Executions};
 use lb_aws::tasks::Callbacks;
 use lb_domain::run::reaper::{self, Verdict, REAPED_STATUSES};
 use lb_domain::status::{ExecutionStatus, Reaping};
-use lb_pipeline::queue::TeamQueue;
+use lb_pipeline::queue::{TeamQueue, Waker};
 use lb_pipeline::{FnError, Result};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -226,17 +226,11 @@ async fn check<C: Callbacks + Executions>(
 /// Gives `id`'s place back and wakes the team's next waiting submissions (best effort: their
 /// polls come anyway).
 async fn give_back<C: Callbacks>(deps: &Deps<C>, team: TeamQueue<'_>, id: u64) -> Result<()> {
-    let admission = &deps.clients.admission;
-    admission.give_back(team, id).await?;
-    let now = lb_pipeline::clients::now_epoch_seconds();
-    match admission
-        .wake_team_next(&deps.wakes, &deps.callbacks, team, now)
-        .await
-    {
-        Ok(woken) => info!(submission_id = id, ?woken, "the team's next submissions"),
-        Err(e) => {
-            warn!(submission_id = id, error = %e, "cannot wake the team's next; its poll comes")
-        }
-    }
+    let waker = Waker {
+        wakes: &deps.wakes,
+        callbacks: &deps.callbacks,
+        now: lb_pipeline::clients::now_epoch_seconds(),
+    };
+    deps.clients.admission.leave(team, id, waker).await?;
     Ok(())
 }

@@ -160,11 +160,7 @@ async fn launch(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         .execution
         .unwrap_or_else(|| submission.execution.clone());
     let history = (execution.as_str(), events);
-    let at = SubmissionRef {
-        challenge: submission.challenge_id,
-        phase: submission.phase_id,
-        submission: submission.submission_id,
-    };
+    let at = SubmissionRef::from(&submission);
     let limit = target.deployment.team_limit;
     let standing = deps
         .admission

@@ -55,11 +55,7 @@ impl<'a> Shell<'a> {
     }
 
     fn at(&self) -> SubmissionRef {
-        SubmissionRef {
-            challenge: self.submission.challenge_id,
-            phase: self.submission.phase_id,
-            submission: self.submission.submission_id,
-        }
+        self.submission.into()
     }
 
     /// Performs `step`.

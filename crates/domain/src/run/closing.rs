@@ -86,7 +86,11 @@ pub enum Step {
     ReadReports(Vec<String>),
     /// Admit the team to these main tracks: it passed their qualifier ([`Answer::Done`]).
     Admit(Vec<String>),
-    /// Post the final update to EvalAI ([`Answer::Posted`]).
+    /// Read the submission's status on EvalAI, taking the places of the final update's write
+    /// and read back beside it ([`Answer::OnEvalAi`]): a cancel or a final status there is not
+    /// written over.
+    ReadEvalAi,
+    /// Post the final update to EvalAI and confirm it ([`Answer::Posted`]).
     Post {
         /// The final status.
         status: SubmissionStatus,
@@ -198,6 +202,8 @@ pub enum Answer {
     Tail(Option<Vec<u8>>),
     /// The upload reports that could be read and are reports.
     Reports(Vec<UploadReport>),
+    /// The submission's status on EvalAI before the final update.
+    OnEvalAi(SubmissionStatus),
     /// What EvalAI did with the final update.
     Posted(Posted),
     /// The recordings folder: (submission-relative key, size) (`None`: not listed).
@@ -246,6 +252,8 @@ pub struct Closing<'a> {
     reports: Option<Option<UploadReport>>,
     /// The recordings listed, until their heads are read.
     listed: Option<Vec<(String, u64)>>,
+    /// The submission's status on EvalAI before the final update.
+    on_evalai: Option<SubmissionStatus>,
 }
 
 impl<'a> Closing<'a> {
@@ -263,6 +271,7 @@ impl<'a> Closing<'a> {
             recordings: None,
             reports: None,
             listed: None,
+            on_evalai: None,
         }
     }
 
@@ -327,7 +336,10 @@ impl<'a> Closing<'a> {
                     }
                 }
                 self.recordings = heads.and_then(|heads| self.audit(&heads));
-                Stage::Post
+                match self.on_evalai.and_then(finalize::unwritable) {
+                    Some(stands) => self.posted(stands),
+                    None => Stage::Post,
+                }
             }
             Stage::Post => match only() {
                 Answer::Posted(posted) => self.posted(posted),
@@ -420,10 +432,7 @@ impl<'a> Closing<'a> {
             _ => {}
         }
         self.outcome = Some(outcome);
-        match self.gather().is_empty() {
-            true => Stage::Post,
-            false => Stage::Gather,
-        }
+        Stage::Gather
     }
 
     /// A finished qualifier run: as the original, the verdict heads the participant's stdout
@@ -449,9 +458,10 @@ impl<'a> Closing<'a> {
         self.verdict = Some((verdict, admitted));
     }
 
-    /// What needs only the decision: the merge kept, the crashed agent's log, the team
-    /// admitted, a finished result's recordings listed, the Jobs' upload reports.
+    /// What needs only the decision: EvalAI's status read, the merge kept, the crashed agent's
+    /// log, the team admitted, a finished result's recordings listed, the Jobs' upload reports.
     fn gather(&self) -> Vec<Step> {
+        let evalai = self.outcome.is_some().then_some(Step::ReadEvalAi);
         let store = self.merged.is_some().then_some(Step::StoreFiles);
         let tail = self.crashed.map(|pair| Step::ReadAgentTail {
             key: format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair)),
@@ -468,7 +478,7 @@ impl<'a> Closing<'a> {
         let heads = audited.then(|| Step::ReadHeads(keys()));
         let reports = (self.cx.run)
             .map(|run| Step::ReadReports((0..run.jobs).map(uploads::report_key).collect()));
-        [store, tail, admit, listing, heads, reports]
+        [evalai, store, tail, admit, listing, heads, reports]
             .into_iter()
             .flatten()
             .collect()
@@ -482,6 +492,7 @@ impl<'a> Closing<'a> {
                 self.tail = self.crashed.zip(tail);
             }
             Answer::Listed(listed) => self.listed = listed,
+            Answer::OnEvalAi(status) => self.on_evalai = Some(status),
             Answer::Reports(reports) => {
                 self.reports = Some(reports.into_iter().reduce(UploadReport::plus));
             }
@@ -590,6 +601,7 @@ fn answers_to(step: &Step, answer: &Answer) -> bool {
             | (Step::ReadLeft { .. }, Answer::Left(_))
             | (Step::ReadAgentTail { .. }, Answer::Tail(_))
             | (Step::ReadReports(_), Answer::Reports(_))
+            | (Step::ReadEvalAi, Answer::OnEvalAi(_))
             | (Step::Post { .. }, Answer::Posted(_))
             | (Step::ListRecordings, Answer::Listed(_))
             | (Step::ReadHeads(_), Answer::Heads(_))
@@ -721,6 +733,7 @@ mod tests {
                     })
                     .collect(),
             ),
+            Step::ReadEvalAi => Answer::OnEvalAi(SubmissionStatus::Running),
             Step::Post { .. } => Answer::Posted(Posted::Written),
             Step::ListRecordings => {
                 Answer::Listed(Some(vec![recording(0, 1000), recording(1, 1000)]))
@@ -783,6 +796,7 @@ mod tests {
             Step::ReadAgentTail { .. } => "tail",
             Step::ReadReports(_) => "reports",
             Step::Admit(_) => "admit",
+            Step::ReadEvalAi => "evalai",
             Step::Post { .. } => "post",
             Step::ListRecordings => "recordings",
             Step::ReadHeads(_) => "heads",
@@ -809,7 +823,7 @@ mod tests {
             &["standing"],
             &["stop"],
             &["read"],
-            &["store", "recordings", "heads", "reports"],
+            &["evalai", "store", "recordings", "heads", "reports"],
             &["post"],
             &["record", "pace", "leave"],
         ];
@@ -884,7 +898,7 @@ mod tests {
         let (steps, stands) = drive(cx(Some(&run), None), world(not_now(), &[CANCEL_MARKER]));
         assert_eq!(
             flat(&steps),
-            ["standing", "stop", "read", "reports", "post", "record", "leave"]
+            ["standing", "stop", "read", "evalai", "reports", "post", "record", "leave"]
         );
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Cancelled));
         let caught = "States.Timeout: the task timed out";
@@ -914,7 +928,7 @@ mod tests {
         assert_eq!(
             kinds(&steps)[3..],
             [
-                &["store", "tail", "reports"][..],
+                &["evalai", "store", "tail", "reports"][..],
                 &["post"],
                 &["record", "leave"]
             ]
@@ -1069,13 +1083,15 @@ mod tests {
     #[test]
     fn evalai_s_final_word_is_what_the_record_and_the_answer_say() {
         let run = run(RunPhase::Finished, true);
-        let mut world = world(Some(merged(true, 90.0)), &[]);
+        // A cancel on EvalAI, seen before the post: nothing is written over it, the
+        // recordings audited are not kept, no pace.
+        let mut world = world_of_finished();
         let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
-            Step::Post { .. } => Answer::Posted(Posted::Cancelled),
+            Step::ReadEvalAi => Answer::OnEvalAi(SubmissionStatus::Cancelled),
             step => world(step),
         });
-        // A cancel on EvalAI: the recordings audited before the post are not kept, no pace.
-        assert_eq!(kinds(&steps)[5], ["record", "leave"]);
+        assert_eq!(kinds(&steps)[4], ["record", "leave"]);
+        assert!(!flat(&steps).contains(&"post"), "{:?}", flat(&steps));
         let Step::WriteRecord {
             status, recordings, ..
         } = find(&steps, "record")
@@ -1083,10 +1099,29 @@ mod tests {
             unreachable!()
         };
         assert_eq!((*status, recordings), (RecordStatus::Cancelled, &None));
-        assert_eq!(
-            stands,
-            Some((Settled::Ended(RecordStatus::Cancelled), None))
-        );
+        let cancelled = Settled::Ended(RecordStatus::Cancelled);
+        assert_eq!(stands, Some((cancelled, None)));
+        // A cancel between the read and the write is EvalAI's answer to the post.
+        let mut world = world_of_finished();
+        let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
+            Step::Post { .. } => Answer::Posted(Posted::Cancelled),
+            step => world(step),
+        });
+        assert_eq!(kinds(&steps)[5], ["record", "leave"]);
+        assert_eq!(stands, Some((cancelled, None)));
+        // An earlier attempt's final word stands, and is not posted again.
+        let mut world = world_of_finished();
+        let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
+            Step::ReadEvalAi => Answer::OnEvalAi(SubmissionStatus::Failed),
+            step => world(step),
+        });
+        assert!(!flat(&steps).contains(&"post"), "{:?}", flat(&steps));
+        assert_eq!(stands, Some((Settled::Ended(RecordStatus::Failed), None)));
+    }
+
+    /// A world whose run finished with every route scored.
+    fn world_of_finished() -> impl FnMut(&Step) -> Answer {
+        world(Some(merged(true, 90.0)), &[])
     }
 
     #[test]
@@ -1154,7 +1189,7 @@ mod tests {
         let (steps, stands) = drive(cx(None, None), world(None, &[]));
         assert_eq!(
             flat(&steps),
-            ["standing", "stop", "read", "post", "record", "leave"]
+            ["standing", "stop", "read", "evalai", "post", "record", "leave"]
         );
         let Step::Post { stderr, .. } = find(&steps, "post") else {
             unreachable!()

@@ -297,6 +297,16 @@ pub enum Posted {
     AlreadyFinal(SubmissionStatus),
 }
 
+/// What EvalAI's status before the final update leaves unwritten: a participant's cancel (their
+/// word is final) or a final status already there (an earlier attempt posted it before
+/// failing); `None`: the final update is to be written.
+pub fn unwritable(current: SubmissionStatus) -> Option<Posted> {
+    if current == SubmissionStatus::Cancelled {
+        return Some(Posted::Cancelled);
+    }
+    current.is_final().then_some(Posted::AlreadyFinal(current))
+}
+
 /// What stands once EvalAI answered: its final word wins over ours, and a status that is
 /// `finished` after all has no failure reason.
 pub fn settle(outcome: Outcome, posted: Posted) -> Outcome {
