@@ -400,6 +400,11 @@ impl Executor {
         )
     }
 
+    /// The ARN of execution `name` of the state machine called `machine`.
+    fn execution_arn(&self, machine: &str, name: &str) -> String {
+        self.arn("execution", &format!("{machine}:{name}"))
+    }
+
     /// The role executions run as: the configured one, or Step Functions' default name.
     fn role_arn(&self) -> String {
         self.options.role_arn.clone().unwrap_or_else(|| {
@@ -444,7 +449,7 @@ impl Executor {
         }
         let runtime = tokio::runtime::Handle::try_current().map_err(|_| StartError::NoRuntime)?;
         let state_machine_arn = self.arn("stateMachine", state_machine.name());
-        let execution_arn = self.arn("execution", &format!("{}:{name}", state_machine.name()));
+        let execution_arn = self.execution_arn(state_machine.name(), name);
         let role_arn = self.role_arn();
         let start_date = OffsetDateTime::now_utc();
         let recorder = Arc::new(Recorder::new(
@@ -530,7 +535,7 @@ impl Executor {
             .ok_or_else(|| StartError::StateMachineDoesNotExist {
                 arn: state_machine_arn.to_owned(),
             })?;
-        let arn = self.arn("execution", &format!("{}:{name}", machine.name()));
+        let arn = self.execution_arn(machine.name(), name);
         let response = |start: OffsetDateTime| {
             json!({
                 "ExecutionArn": arn,

@@ -11,10 +11,11 @@
 //! participant reads the end of its most crashed agent's log; a passed qualifier admits its
 //! team. EvalAI gets the final word before the record, and the place is given back only after
 //! it, so the team never shows more evaluations in progress than its cap. What needs only the
-//! decision (keeping the files, the log's end, the admission, the recordings' listing and
-//! heads, the upload reports) is asked at once, so a finished result's recordings are audited
-//! before the post and a failed audit is said on EvalAI; the record, the pace and the place go
-//! together at the end: a Finalize waits on six batches.
+//! decision (EvalAI's status, keeping the files, the log's end, the admission, the recordings'
+//! listing and heads, the upload reports) is asked at once, so a finished result's recordings
+//! are audited before the post and a failed audit is said on EvalAI, and the post is only the
+//! write and its confirmation (none over a cancel or a final status seen there); the record, the
+//! pace and the place go together at the end: a Finalize waits on six batches.
 
 use std::collections::{BTreeMap, HashMap};
 
