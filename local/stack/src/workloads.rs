@@ -91,6 +91,9 @@ impl Binaries {
             // selection resolves the dependencies' features once, so no caller rebuilds them for
             // a selection of its own, and a test can run `lbctl local` from the same folder.
             .args(["build", "--quiet", "--workspace", "--bins"])
+            // ring's build script reads CARGO_MANIFEST_DIR, which cargo sets for a test: a build
+            // under another value rebuilds ring and relinks every binary while tests run them.
+            .env_remove("CARGO_MANIFEST_DIR")
             .status()?;
         if !status.success() {
             return Err(std::io::Error::other(format!(

@@ -30,6 +30,9 @@ pub fn fake(name: &str) -> PathBuf {
             // The workspace's selection (as `make local` and the suite build): another would
             // resolve the dependencies' features anew and rebuild them.
             .args(["build", "--quiet", "--workspace", "--bins"])
+            // ring's build script reads CARGO_MANIFEST_DIR, which cargo sets for a test: a build
+            // under another value rebuilds ring and relinks every binary while tests run them.
+            .env_remove("CARGO_MANIFEST_DIR")
             .env("CARGO_TARGET_DIR", target)
             .current_dir(env!("CARGO_MANIFEST_DIR"))
             .status()

@@ -505,6 +505,9 @@ fn deploy_function_ships_code_only_to_the_stacks_function() {
     run(Command::new(env!("CARGO"))
         // The workspace's selection, as the suite and `make local` build (no rebuild of its own).
         .args(["build", "-q", "--workspace", "--bins"])
+        // ring's build script reads CARGO_MANIFEST_DIR, which cargo sets for a test: a build
+        // under another value rebuilds ring and relinks every binary while tests run them.
+        .env_remove("CARGO_MANIFEST_DIR")
         .current_dir(root()));
     let binary = debug.join("intake");
     let bootstrap = format!("BOOTSTRAP={}", binary.display());
