@@ -83,28 +83,44 @@ impl Binaries {
 
     /// Builds them with cargo (debug profile) and returns where they are.
     pub fn build() -> std::io::Result<Binaries> {
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-        let status = Command::new(cargo)
-            .current_dir(&root)
-            // Every binary of the workspace, as `make local` and the test suite build them: one
-            // selection resolves the dependencies' features once, so no caller rebuilds them for
-            // a selection of its own, and a test can run `lbctl local` from the same folder.
-            .args(["build", "--quiet", "--workspace", "--bins"])
-            // ring's build script reads CARGO_MANIFEST_DIR, which cargo sets for a test: a build
-            // under another value rebuilds ring and relinks every binary while tests run them.
-            .env_remove("CARGO_MANIFEST_DIR")
-            .status()?;
-        if !status.success() {
-            return Err(std::io::Error::other(format!(
-                "cargo build of the workloads failed: {status}"
-            )));
-        }
+        build_workspace_bins()?;
         let target = std::env::var_os("CARGO_TARGET_DIR")
             .map(PathBuf::from)
             .unwrap_or_else(|| root.join("target"));
         Self::in_dir(&target.join("debug"))
     }
+}
+
+/// What cargo tells a test or build script about its package: ring's build script reruns when
+/// `CARGO_MANIFEST_DIR` or `CARGO_PKG_NAME` changes, so a build from a test that kept its own
+/// values would rebuild ring and relink every binary while other tests run them.
+const PACKAGE_VARIABLES: [&str; 3] = ["CARGO_MANIFEST_", "CARGO_PKG_", "CARGO_CRATE_"];
+
+/// `cargo build --quiet --workspace --bins` in the workspace, as `make local` and the test
+/// suite build: one selection resolves the dependencies' features once, so no caller rebuilds
+/// them for a selection of its own. Run from a test, it builds without the variables cargo set
+/// for that test ([`PACKAGE_VARIABLES`]): up to date, it changes nothing.
+pub fn build_workspace_bins() -> std::io::Result<()> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let mut build = Command::new(cargo);
+    build
+        .current_dir(&root)
+        .args(["build", "--quiet", "--workspace", "--bins"]);
+    for (name, _) in std::env::vars_os() {
+        let text = name.to_string_lossy();
+        if PACKAGE_VARIABLES.iter().any(|p| text.starts_with(p)) {
+            build.env_remove(&name);
+        }
+    }
+    let status = build.status()?;
+    if !status.success() {
+        return Err(std::io::Error::other(format!(
+            "cargo build of the workspace's binaries failed: {status}"
+        )));
+    }
+    Ok(())
 }
 
 /// Where the local participant image keeps its own code (on its `PYTHONPATH`).

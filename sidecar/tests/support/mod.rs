@@ -23,21 +23,7 @@ fn profile_dir() -> PathBuf {
 pub fn fake(name: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
-        let dir = profile_dir();
-        let target = dir.parent().unwrap();
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let status = Command::new(cargo)
-            // The workspace's selection (as `make local` and the suite build): another would
-            // resolve the dependencies' features anew and rebuild them.
-            .args(["build", "--quiet", "--workspace", "--bins"])
-            // ring's build script reads CARGO_MANIFEST_DIR, which cargo sets for a test: a build
-            // under another value rebuilds ring and relinks every binary while tests run them.
-            .env_remove("CARGO_MANIFEST_DIR")
-            .env("CARGO_TARGET_DIR", target)
-            .current_dir(env!("CARGO_MANIFEST_DIR"))
-            .status()
-            .expect("cargo build -p fake-workloads");
-        assert!(status.success(), "cannot build the fakes");
+        local_stack::workloads::build_workspace_bins().expect("cannot build the fakes");
     });
     let path = profile_dir().join(name);
     assert!(path.is_file(), "{} missing", path.display());

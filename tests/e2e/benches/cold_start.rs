@@ -292,17 +292,7 @@ fn main() {
         .map(PathBuf::from)
         .unwrap_or_else(|| root.join("target"));
     if !release {
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let status = Command::new(cargo)
-            .current_dir(&root)
-            // The workspace's selection, as the suite builds it (no feature set of its own).
-            .args(["build", "--quiet", "--workspace", "--bins"])
-            // ring's build script reads CARGO_MANIFEST_DIR, which cargo sets for a test: a build
-            // under another value rebuilds ring and relinks every binary while tests run them.
-            .env_remove("CARGO_MANIFEST_DIR")
-            .status()
-            .unwrap();
-        assert!(status.success());
+        local_stack::workloads::build_workspace_bins().expect("the workspace's binaries");
     }
     let functions = binaries(&target, release);
     let runtime = tokio::runtime::Runtime::new().unwrap();

@@ -502,13 +502,7 @@ fn deploy_function_ships_code_only_to_the_stacks_function() {
     // This test runs from `<target>/debug/deps/`; the function's binary lands in `<target>/debug/`.
     let exe = std::env::current_exe().unwrap();
     let debug = exe.parent().and_then(Path::parent).unwrap().to_owned();
-    run(Command::new(env!("CARGO"))
-        // The workspace's selection, as the suite and `make local` build (no rebuild of its own).
-        .args(["build", "-q", "--workspace", "--bins"])
-        // ring's build script reads CARGO_MANIFEST_DIR, which cargo sets for a test: a build
-        // under another value rebuilds ring and relinks every binary while tests run them.
-        .env_remove("CARGO_MANIFEST_DIR")
-        .current_dir(root()));
+    local_stack::workloads::build_workspace_bins().expect("the workspace's binaries");
     let binary = debug.join("intake");
     let bootstrap = format!("BOOTSTRAP={}", binary.display());
     let out = deploy_function(&moto, &["FN=intake", &bootstrap]);
