@@ -474,13 +474,13 @@ impl AdmissionTable {
         Ok(durations.into_iter().rev().collect())
     }
 
-    /// Adds an evaluation of `track` that ran `seconds` to its pace, keeping the latest
-    /// [`RECENT_DURATIONS`](lb_domain::capacity::queue::RECENT_DURATIONS). Two at once may keep one of
-    /// the two: the pace is an estimate's input, not a record.
-    pub async fn record_pace(&self, queue: &str, track: &str, seconds: u64) -> Result<()> {
-        let mut durations = self.pace(queue, track).await?;
-        durations.truncate(lb_domain::capacity::queue::RECENT_DURATIONS - 1);
-        durations.insert(0, seconds);
+    /// Keeps `durations` (most recent first, as [`lb_domain::capacity::queue::with_latest`]
+    /// makes them from a [`AdmissionTable::pace`] read) as `track`'s pace. Two at once may keep
+    /// one of the two: the pace is an estimate's input, not a record.
+    pub async fn keep_pace(&self, queue: &str, track: &str, durations: &[u64]) -> Result<()> {
+        let durations = &durations[..durations
+            .len()
+            .min(lb_domain::capacity::queue::RECENT_DURATIONS)];
         let list = durations.iter().rev().map(|&d| n(d)).collect();
         let mut item = pace_key(queue, track);
         item.insert("durations".into(), AttributeValue::L(list));

@@ -234,7 +234,9 @@ async fn arrival_survives_a_retry_and_starts_move_the_queue_forward() {
     assert!(table.pace(QUEUE, "SENSORS").await.unwrap().is_empty());
     let recent = lb_domain::capacity::queue::RECENT_DURATIONS as u64;
     for seconds in 1..=recent + 3 {
-        table.record_pace(QUEUE, "SENSORS", seconds).await.unwrap();
+        let read = table.pace(QUEUE, "SENSORS").await.unwrap();
+        let durations = lb_domain::capacity::queue::with_latest(&read, seconds);
+        table.keep_pace(QUEUE, "SENSORS", &durations).await.unwrap();
     }
     let pace = table.pace(QUEUE, "SENSORS").await.unwrap();
     assert_eq!(pace.len() as u64, recent);

@@ -16,7 +16,7 @@ use tracing::{debug, info, instrument, warn};
 
 use crate::autoscaler::{self, ScaleUpWord};
 use crate::error::{ClusterError, Result};
-use crate::labels;
+use crate::labels::{self, Whose};
 use crate::observe::{self, JobState, Observation};
 
 /// Bounds on talking to the API server.
@@ -65,6 +65,8 @@ pub struct Deleted {
     pub orphan_pods: Vec<String>,
     /// Objects that vanished between the list and the delete.
     pub already_gone: Vec<String>,
+    /// Objects from before the execution label, left by a [`Whose::Labelled`] deletion.
+    pub unlabelled_left: usize,
 }
 
 /// A namespace of a Kubernetes cluster holding submissions' Jobs.
@@ -509,20 +511,18 @@ impl Cluster {
     /// Deletes every Job of the submission with foreground propagation (their pods go first),
     /// then any pod of the submission no Job owns. Idempotent: what is already gone is fine.
     ///
-    /// With `execution` (the Step Functions execution's name), only that execution's objects
-    /// and those without an execution label go: a stale execution never deletes the Jobs of the
-    /// one holding the submission now.
+    /// `whose` says which: a stale execution never deletes the Jobs of the one holding the
+    /// submission now.
     #[instrument(skip(self))]
-    pub async fn delete_all(
-        &self,
-        submission_id: &str,
-        execution: Option<&str>,
-    ) -> Result<Deleted> {
-        let execution = execution.map(labels::execution_value);
-        let ours = |labels| labels::belongs_to(execution.as_deref(), labels);
+    pub async fn delete_all(&self, submission_id: &str, whose: Whose<'_>) -> Result<Deleted> {
         // Pods are told from Jobs by their owner, not by when they were listed: both lists at
         // once, then every deletion at once (a Finalize waits on each round trip).
         let (jobs, pods) = self.list(submission_id).await?;
+        let unlabelled_left = (jobs.iter().map(|j| &j.metadata))
+            .chain(pods.iter().map(|p| &p.metadata))
+            .filter(|meta| whose.leaves_unlabelled(meta.labels.as_ref()))
+            .count();
+        let ours = |labels| whose.takes(labels);
         let owned = |p: &Pod| {
             p.metadata
                 .owner_references
@@ -542,7 +542,10 @@ impl Cluster {
             at_once(&jobs, |name| self.delete_job(name)),
             at_once(&orphans, |name| self.delete_pod(name)),
         );
-        let mut deleted = Deleted::default();
+        let mut deleted = Deleted {
+            unlabelled_left,
+            ..Deleted::default()
+        };
         for (name, gone_now) in jobs? {
             match gone_now {
                 true => deleted.jobs.push(name),
@@ -565,7 +568,7 @@ impl Cluster {
     }
 
     /// Polls (at most until `timeout`) until the submission has no Job and no Pod left (of
-    /// `execution`, as [`Cluster::delete_all`] selects them). The first looks come soon and
+    /// `whose`, as [`Cluster::delete_all`] selects them). The first looks come soon and
     /// then every `poll` ([`next_look`]): a finished run's pods go within a fraction of a
     /// second, a running one's take their grace period. `Ok(true)` when gone, `Ok(false)` when
     /// time ran out first.
@@ -573,19 +576,17 @@ impl Cluster {
     pub async fn wait_gone(
         &self,
         submission_id: &str,
-        execution: Option<&str>,
+        whose: Whose<'_>,
         timeout: Duration,
         poll: Duration,
     ) -> Result<bool> {
         let deadline = tokio::time::Instant::now() + timeout;
         let poll = poll.max(Duration::from_millis(10));
         let mut wait = Duration::ZERO;
-        let execution = execution.map(labels::execution_value);
-        let execution = execution.as_deref();
         loop {
             let (mut jobs, mut pods) = self.list(submission_id).await?;
-            jobs.retain(|j| labels::belongs_to(execution, j.metadata.labels.as_ref()));
-            pods.retain(|p| labels::belongs_to(execution, p.metadata.labels.as_ref()));
+            jobs.retain(|j| whose.takes(j.metadata.labels.as_ref()));
+            pods.retain(|p| whose.takes(p.metadata.labels.as_ref()));
             if jobs.is_empty() && pods.is_empty() {
                 return Ok(true);
             }

@@ -47,15 +47,38 @@ pub fn execution_of(labels: Option<&std::collections::BTreeMap<String, String>>)
         .filter(|e| !e.is_empty())
 }
 
-/// Whether an object with `labels` is `execution`'s (its [`execution_value`]; any
-/// execution's when `None`): its label says so, or it has none.
-pub fn belongs_to(
-    execution: Option<&str>,
-    labels: Option<&std::collections::BTreeMap<String, String>>,
-) -> bool {
-    match (execution, execution_of(labels)) {
-        (Some(mine), Some(theirs)) => mine == theirs,
-        _ => true,
+/// Whose of a submission's objects a deletion (and the wait for it) takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Whose<'a> {
+    /// Every one of the submission's objects.
+    Any,
+    /// Those labelled with this execution (its name): all that an execution may stop before it
+    /// knows it holds the submission's claim.
+    Labelled(&'a str),
+    /// Those labelled with this execution and those from before the label, which belong to
+    /// whichever execution holds the claim: this one, as its caller checked.
+    Claimed(&'a str),
+}
+
+impl Whose<'_> {
+    /// Whether an object with `labels` is taken.
+    pub fn takes(&self, labels: Option<&std::collections::BTreeMap<String, String>>) -> bool {
+        match (self, execution_of(labels)) {
+            (Whose::Any, _) => true,
+            (Whose::Labelled(mine) | Whose::Claimed(mine), Some(theirs)) => {
+                execution_value(mine) == theirs
+            }
+            (Whose::Labelled(_), None) => false,
+            (Whose::Claimed(_), None) => true,
+        }
+    }
+
+    /// Whether an object with `labels` is left only because it has no execution label.
+    pub fn leaves_unlabelled(
+        &self,
+        labels: Option<&std::collections::BTreeMap<String, String>>,
+    ) -> bool {
+        matches!(self, Whose::Labelled(_)) && execution_of(labels).is_none()
     }
 }
 
@@ -70,6 +93,27 @@ pub fn submission_selector(id: &str) -> Result<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_execution_takes_its_own_and_those_from_before_the_label_only_with_the_claim() {
+        let labelled = |e: &str| {
+            Some(std::collections::BTreeMap::from([(
+                EXECUTION.into(),
+                e.into(),
+            )]))
+        };
+        let mine = labelled(&execution_value("arn:exec-1"));
+        let (theirs, none) = (labelled("exec-2"), None);
+        let labelled = Whose::Labelled("arn:exec-1");
+        let claimed = Whose::Claimed("arn:exec-1");
+        // Its own, under the label-safe form of its name.
+        assert!(labelled.takes(mine.as_ref()) && claimed.takes(mine.as_ref()));
+        assert!(!labelled.takes(theirs.as_ref()) && !claimed.takes(theirs.as_ref()));
+        assert!(!labelled.takes(none) && claimed.takes(none));
+        assert!(labelled.leaves_unlabelled(none) && !claimed.leaves_unlabelled(none));
+        assert!(!labelled.leaves_unlabelled(theirs.as_ref()));
+        assert!(Whose::Any.takes(theirs.as_ref()) && Whose::Any.takes(none));
+    }
 
     #[test]
     fn the_selector_names_the_submission_and_the_manager() {

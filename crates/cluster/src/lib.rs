@@ -12,6 +12,7 @@ pub mod observe;
 
 pub use cluster::{eks_config, Cluster, Deleted, Launched, Timeouts};
 pub use error::{ClusterError, Result};
+pub use labels::Whose;
 pub use observe::{
     ContainerState, ContainerView, Exit, FailureKind, JobState, JobView, Observation, PodView,
     Unschedulable, Verdict, VerdictPolicy,

@@ -6,7 +6,9 @@ use std::time::Duration;
 
 use http::{Method, Request, Response, StatusCode};
 use kube::client::Body;
-use lb_cluster::{Cluster, ClusterError, FailureKind, Job, Timeouts, Verdict, VerdictPolicy};
+use lb_cluster::{
+    Cluster, ClusterError, FailureKind, Job, Timeouts, Verdict, VerdictPolicy, Whose,
+};
 use serde_json::{json, Value};
 
 type Handle = tower_test::mock::Handle<Request<Body>, Response<Body>>;
@@ -574,7 +576,7 @@ async fn an_expired_token_is_unauthorized() {
 async fn delete_all_deletes_every_job_in_the_foreground() {
     let (cluster, mut server) = mock();
     let (jobs, pods) = fixture(include_str!("fixtures/finished-two-jobs.yaml"));
-    let deleted = with_server(cluster.delete_all("4242", None), async move {
+    let deleted = with_server(cluster.delete_all("4242", Whose::Any), async move {
         let names: Vec<String> = jobs
             .iter()
             .map(|j| j["metadata"]["name"].as_str().unwrap().to_string())
@@ -603,7 +605,7 @@ async fn delete_all_deletes_every_job_in_the_foreground() {
 async fn delete_all_takes_not_found_as_gone_and_removes_orphan_pods() {
     let (cluster, mut server) = mock();
     let (jobs, pods) = fixture(include_str!("fixtures/stray-pod.yaml"));
-    let deleted = with_server(cluster.delete_all("4242", None), async move {
+    let deleted = with_server(cluster.delete_all("4242", Whose::Any), async move {
         server.list(JOBS, job_list(jobs)).await;
         server.list(PODS, pod_list(pods.clone())).await;
         let gone = status(
@@ -635,7 +637,7 @@ async fn delete_all_takes_not_found_as_gone_and_removes_orphan_pods() {
 #[tokio::test]
 async fn delete_all_of_nothing_is_fine() {
     let (cluster, mut server) = mock();
-    let deleted = with_server(cluster.delete_all("4242", None), async move {
+    let deleted = with_server(cluster.delete_all("4242", Whose::Any), async move {
         server.list(JOBS, job_list(vec![])).await;
         server.list(PODS, pod_list(vec![])).await;
     })
@@ -651,7 +653,7 @@ async fn wait_gone_polls_until_nothing_is_left() {
     let gone = with_server(
         cluster.wait_gone(
             "4242",
-            None,
+            Whose::Any,
             Duration::from_millis(800),
             Duration::from_millis(10),
         ),
@@ -675,7 +677,7 @@ async fn wait_gone_gives_up_at_its_deadline() {
         cluster
             .wait_gone(
                 "4242",
-                None,
+                Whose::Any,
                 Duration::from_millis(150),
                 Duration::from_millis(20),
             )
@@ -742,7 +744,7 @@ async fn a_bad_submission_id_never_reaches_the_server() {
             "InvalidSubmissionId"
         );
         assert_eq!(
-            cluster.delete_all(id, None).await.unwrap_err().name(),
+            cluster.delete_all(id, Whose::Any).await.unwrap_err().name(),
             "InvalidSubmissionId"
         );
     }

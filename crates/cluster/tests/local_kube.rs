@@ -6,7 +6,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use lb_cluster::{
-    Cluster, ContainerState, FailureKind, Job, JobState, Observation, Verdict, VerdictPolicy,
+    Cluster, ContainerState, FailureKind, Job, JobState, Observation, Verdict, VerdictPolicy, Whose,
 };
 use local_kube::{Config, ImageMap, LocalKube};
 use serde_json::json;
@@ -226,7 +226,9 @@ async fn an_unpullable_participant_image_is_observed_failed_naming_the_image() {
         }
         other => panic!("{other:?}"),
     }
-    let deleted = bounded(cluster.delete_all("5003", None)).await.unwrap();
+    let deleted = bounded(cluster.delete_all("5003", Whose::Any))
+        .await
+        .unwrap();
     assert_eq!(deleted.jobs, ["lb-5003-team-77-0"]);
 }
 
@@ -258,12 +260,14 @@ async fn delete_all_leaves_nothing_and_is_idempotent() {
     })
     .await;
 
-    let deleted = bounded(cluster.delete_all("5004", None)).await.unwrap();
+    let deleted = bounded(cluster.delete_all("5004", Whose::Any))
+        .await
+        .unwrap();
     assert_eq!(deleted.jobs, ["lb-5004-team-77-0", "lb-5004-team-77-1"]);
     let gone = cluster
         .wait_gone(
             "5004",
-            None,
+            Whose::Any,
             Duration::from_secs(10),
             Duration::from_millis(100),
         )
@@ -272,12 +276,16 @@ async fn delete_all_leaves_nothing_and_is_idempotent() {
     assert!(gone, "the Jobs and their pods are gone");
     let (jobs, pods) = cluster.list("5004").await.unwrap();
     assert!(jobs.is_empty() && pods.is_empty());
-    let again = bounded(cluster.delete_all("5004", None)).await.unwrap();
+    let again = bounded(cluster.delete_all("5004", Whose::Any))
+        .await
+        .unwrap();
     assert_eq!(again, lb_cluster::Deleted::default());
 
     let (jobs, _) = cluster.list("5005").await.unwrap();
     assert_eq!(jobs.len(), 1, "the other submission is untouched");
-    bounded(cluster.delete_all("5005", None)).await.unwrap();
+    bounded(cluster.delete_all("5005", Whose::Any))
+        .await
+        .unwrap();
 }
 
 #[tokio::test]
@@ -304,7 +312,9 @@ async fn a_job_s_deadline_is_extended_in_place_and_a_gone_job_says_so() {
         matches!(seen.jobs[0].state, JobState::Pending | JobState::Running),
         "{seen:?}"
     );
-    bounded(cluster.delete_all("5006", None)).await.unwrap();
+    bounded(cluster.delete_all("5006", Whose::Any))
+        .await
+        .unwrap();
     let gone = bounded(cluster.set_deadline("lb-5006-team-77-9", 1)).await;
     assert!(!gone.unwrap(), "no such Job");
 }
@@ -332,7 +342,9 @@ async fn a_same_named_job_of_another_submission_is_refused() {
     let err = bounded(cluster.create_or_adopt(&theirs)).await.unwrap_err();
     assert_eq!(err.name(), "JobNameTaken", "{err}");
     assert!(err.to_string().contains("`5006`"), "{err}");
-    bounded(cluster.delete_all("5006", None)).await.unwrap();
+    bounded(cluster.delete_all("5006", Whose::Any))
+        .await
+        .unwrap();
 }
 
 #[tokio::test]
@@ -431,23 +443,38 @@ async fn an_execution_deletes_and_waits_for_its_own_jobs_only() {
     bounded(cluster.create_or_adopt(&job_of("exec-new", "5007", 0)))
         .await
         .unwrap();
-    // A Job of another execution of the same submission (left by a race).
+    // A Job of another execution of the same submission (left by a race), and one from
+    // before the execution label.
     bounded(cluster.create_or_adopt(&job_of("exec-old", "5007", 1)))
         .await
         .unwrap();
-    observe_until((&cluster, &policy), "5007", "two Jobs", |o| {
-        o.jobs.len() == 2
+    let unlabelled = job(
+        "5007",
+        2,
+        "OnFailure",
+        2,
+        &[("simulator-1", "busybox", "sleep 60")],
+    );
+    bounded(cluster.create_or_adopt(&unlabelled)).await.unwrap();
+    observe_until((&cluster, &policy), "5007", "three Jobs", |o| {
+        o.jobs.len() == 3
     })
     .await;
+    let names = |jobs: &[Job]| -> Vec<String> {
+        (jobs.iter().filter_map(|j| j.metadata.name.clone())).collect()
+    };
 
-    let deleted = bounded(cluster.delete_all("5007", Some("exec-new")))
+    // Before its claim is known, an execution stops only what bears its label, and says
+    // what it left for lack of one.
+    let deleted = bounded(cluster.delete_all("5007", Whose::Labelled("exec-new")))
         .await
         .unwrap();
     assert_eq!(deleted.jobs, ["lb-5007-team-77-0"]);
+    assert!(deleted.unlabelled_left >= 1, "{deleted:?}");
     let gone = cluster
         .wait_gone(
             "5007",
-            Some("exec-new"),
+            Whose::Labelled("exec-new"),
             Duration::from_secs(10),
             Duration::from_millis(100),
         )
@@ -455,16 +482,33 @@ async fn an_execution_deletes_and_waits_for_its_own_jobs_only() {
         .unwrap();
     assert!(gone, "exec-new's Job and pods are gone");
     let (jobs, _) = cluster.list("5007").await.unwrap();
-    let left: Vec<_> = jobs
-        .iter()
-        .filter_map(|j| j.metadata.name.clone())
-        .collect();
+    assert_eq!(names(&jobs), ["lb-5007-team-77-1", "lb-5007-team-77-2"]);
+
+    // Holding the claim, it stops those from before the label too, never another's.
+    let deleted = bounded(cluster.delete_all("5007", Whose::Claimed("exec-new")))
+        .await
+        .unwrap();
+    assert_eq!(deleted.jobs, ["lb-5007-team-77-2"]);
+    assert_eq!(deleted.unlabelled_left, 0);
+    let gone = cluster
+        .wait_gone(
+            "5007",
+            Whose::Claimed("exec-new"),
+            Duration::from_secs(10),
+            Duration::from_millis(100),
+        )
+        .await
+        .unwrap();
+    assert!(gone, "the unlabelled Job and its pods are gone");
+    let (jobs, _) = cluster.list("5007").await.unwrap();
     assert_eq!(
-        left,
+        names(&jobs),
         ["lb-5007-team-77-1"],
         "exec-old's Job is not exec-new's to delete"
     );
-    bounded(cluster.delete_all("5007", None)).await.unwrap();
+    bounded(cluster.delete_all("5007", Whose::Any))
+        .await
+        .unwrap();
 }
 
 #[tokio::test]
@@ -501,7 +545,9 @@ async fn a_resume_replaces_an_earlier_executions_job_instead_of_adopting_it() {
     let launched = launched.expect("the new execution's Job is created");
     assert!(!launched.adopted);
     assert_ne!(launched.uid, first.uid);
-    bounded(cluster.delete_all("5008", None)).await.unwrap();
+    bounded(cluster.delete_all("5008", Whose::Any))
+        .await
+        .unwrap();
 }
 
 /// `job` whose pod asks for `gpus` GPUs on instance type `instance_type`.
@@ -581,6 +627,6 @@ async fn a_pod_no_node_could_ever_hold_fails_and_a_pod_waiting_for_room_waits() 
         }
     }
     for sub in ["5101", "5102", "5103", "5104"] {
-        bounded(cluster.delete_all(sub, None)).await.unwrap();
+        bounded(cluster.delete_all(sub, Whose::Any)).await.unwrap();
     }
 }

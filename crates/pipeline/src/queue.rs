@@ -133,11 +133,24 @@ impl Admission {
         Ok(())
     }
 
-    /// A finished evaluation's duration joins its track's pace.
-    pub async fn record_pace(&self, submission: &SubmissionInfo, seconds: u64) -> Result<()> {
+    /// The latest durations of `submission`'s track, most recent first (none without a
+    /// queue).
+    pub async fn pace(&self, submission: &SubmissionInfo) -> Result<Vec<u64>> {
+        match self {
+            Admission::Queue(table) => {
+                let (leaderboard, track) = (submission.leaderboard.as_str(), &submission.track);
+                Ok(table.pace(leaderboard, track).await?)
+            }
+            Admission::Unlimited => Ok(Vec::new()),
+        }
+    }
+
+    /// Keeps `durations` as `submission`'s track's pace ([`Admission::pace`] with its duration
+    /// joined).
+    pub async fn keep_pace(&self, submission: &SubmissionInfo, durations: &[u64]) -> Result<()> {
         if let Admission::Queue(table) = self {
             let (leaderboard, track) = (submission.leaderboard.as_str(), &submission.track);
-            table.record_pace(leaderboard, track, seconds).await?;
+            table.keep_pace(leaderboard, track, durations).await?;
         }
         Ok(())
     }

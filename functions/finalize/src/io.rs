@@ -5,6 +5,7 @@
 //! answered as unread.
 
 use std::collections::HashMap;
+use std::sync::OnceLock;
 use std::time::Duration;
 
 use futures_util::StreamExt as _;
@@ -12,6 +13,7 @@ use futures_util::StreamExt as _;
 use lb_aws::dynamo::{FinalRecord, QualifierTable, SubmissionsTable};
 use lb_aws::s3::SubmissionStore;
 use lb_aws::tasks::Callbacks;
+use lb_cluster::Whose;
 use lb_domain::capacity::cost::{self, Totals};
 use lb_domain::job::uploads::{self, UploadReport};
 use lb_domain::run::audit::{self, Recordings};
@@ -44,7 +46,8 @@ pub struct Shell<'a, C> {
     meter: &'a Meter<'a>,
     store: SubmissionStore,
     table: SubmissionsTable,
-    snapshot: Option<Result<Snapshot>>,
+    /// The results as read once, beside the other reads of their batch.
+    snapshot: OnceLock<Result<Snapshot>>,
 }
 
 impl<'a, C: Callbacks> Shell<'a, C> {
@@ -64,7 +67,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             meter,
             store: SubmissionStore::new(s3, bucket, submission.submission_id),
             table: SubmissionsTable::new(dynamo, &target.deployment.submissions_table),
-            snapshot: None,
+            snapshot: OnceLock::new(),
         }
     }
 
@@ -75,13 +78,12 @@ impl<'a, C: Callbacks> Shell<'a, C> {
     /// Performs the `steps` of a batch side by side and answers each, in their order. Every
     /// step runs to its end; the first failure is then the batch's.
     pub async fn perform(&mut self, steps: Vec<Step>) -> Result<Vec<Answer>> {
-        let alone = |s: &Step| matches!(s, Step::ReadLeft { .. } | Step::TryAgain);
-        if steps.iter().any(alone) {
-            let mut answers = Vec::with_capacity(steps.len());
-            for step in steps {
-                answers.push(self.perform_alone(step).await?);
-            }
-            return Ok(answers);
+        if let [Step::TryAgain] = steps.as_slice() {
+            // The attempt ends with the results' read error, which only the shell holds.
+            return match self.snapshot.take() {
+                Some(Err(e)) => Err(e),
+                _ => Ok(vec![Answer::Done]),
+            };
         }
         let this = &*self;
         let asked = steps.into_iter().map(|step| this.perform_beside(step));
@@ -91,28 +93,18 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             .collect()
     }
 
-    /// The steps that change the shell: the results read (kept for the post and the record)
-    /// and the attempt given up with the read's error.
-    async fn perform_alone(&mut self, step: Step) -> Result<Answer> {
-        match step {
-            Step::ReadLeft { results } => Ok(Answer::Left(self.read_left(results).await?)),
-            Step::TryAgain => match self.snapshot.take() {
-                Some(Err(e)) => Err(e),
-                _ => Ok(Answer::Done),
-            },
-            step => self.perform_beside(step).await,
-        }
-    }
-
-    /// A step that only reads the shell, so others may run beside it.
+    /// One step, beside the others of its batch.
     async fn perform_beside(&self, step: Step) -> Result<Answer> {
         let sub = self.submission;
         Ok(match step {
             Step::ReadStanding => Answer::Standing(self.standing().await?),
-            Step::StopJobs => self.stop_jobs().await.map(|()| Answer::Done)?,
-            // Never batched with others (`perform_alone`); answered as a misfit if it were,
+            Step::StopJobs { unlabelled } => Answer::Stopped {
+                unlabelled_left: self.stop_jobs(unlabelled).await?,
+            },
+            Step::ReadLeft { results } => Answer::Left(self.read_left(results).await?),
+            // Only ever alone in its batch (`perform`); answered as a misfit if it were not,
             // which ends Finalize unsettled and said.
-            Step::ReadLeft { .. } | Step::TryAgain => Answer::Done,
+            Step::TryAgain => Answer::Done,
             Step::StoreFiles => {
                 if let Some(snapshot) = self.merged() {
                     results::store(&self.store, snapshot).await?;
@@ -170,7 +162,8 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 };
                 Answer::Recorded(self.write_record(failure, recordings, usage).await?)
             }
-            Step::RecordPace { seconds } => self.record_pace(seconds).await,
+            Step::ReadPace => Answer::Pace(self.pace().await),
+            Step::RecordPace { durations } => self.keep_pace(&durations).await,
             Step::LeaveQueue => {
                 leave_queue(self.deps, sub, self.target).await?;
                 Answer::Done
@@ -191,33 +184,34 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         }))
     }
 
-    /// Only this execution's Jobs (and unlabelled ones from before the label): a superseded
-    /// execution never gets here (the claim check), and this is the second guard.
-    async fn stop_jobs(&self) -> Result<()> {
-        let (id, execution) = (
-            self.id().to_string(),
-            Some(self.submission.execution.as_str()),
-        );
+    /// Only this execution's Jobs, and with `unlabelled` (the claim is this execution's) those
+    /// from before the execution label; `true` when some of those were seen and left.
+    async fn stop_jobs(&self, unlabelled: bool) -> Result<bool> {
+        let (id, execution) = (self.id().to_string(), self.submission.execution.as_str());
+        let whose = match unlabelled {
+            true => Whose::Claimed(execution),
+            false => Whose::Labelled(execution),
+        };
         let cluster = self
             .deps
             .clients
             .clusters
             .connect(self.target.deployment)
             .await?;
-        let deleted = cluster.delete_all(&id, execution).await?;
+        let deleted = cluster.delete_all(&id, whose).await?;
         info!(submission_id = self.id(), ?deleted, "jobs deleted");
         let (wait, poll) = (self.deps.delete_wait, Duration::from_secs(2));
-        if !cluster.wait_gone(&id, execution, wait, poll).await? {
+        if !cluster.wait_gone(&id, whose, wait, poll).await? {
             warn!(
                 submission_id = self.id(),
                 "jobs still terminating; results as they are now"
             );
         }
-        Ok(())
+        Ok(deleted.unlabelled_left > 0)
     }
 
     /// The markers and the results, read at once (the reads are independent).
-    async fn read_left(&mut self, of: Option<(Vec<PairRoutes>, u32)>) -> Result<Left> {
+    async fn read_left(&self, of: Option<(Vec<PairRoutes>, u32)>) -> Result<Left> {
         let results = async {
             let (pairs, repetitions) = of?;
             let leaderboard = self.target.leaderboard;
@@ -237,12 +231,16 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             Err(e) if e.is_transient() => Read::NotNow(e.chain()),
             Err(e) => Read::Unusable(e.chain()),
         });
-        self.snapshot = snapshot;
+        if let Some(snapshot) = snapshot {
+            // Asked once per Finalize: a second read would be a shell's bug, and the first
+            // stands.
+            let _ = self.snapshot.set(snapshot);
+        }
         Ok(Left { markers, results })
     }
 
     fn merged(&self) -> Option<&Snapshot> {
-        self.snapshot.as_ref()?.as_ref().ok()
+        self.snapshot.get()?.as_ref().ok()
     }
 
     /// The end of a crashed agent's output, as stored. Its container holds no secret (no AWS
@@ -359,11 +357,23 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         .await
     }
 
-    /// A finished evaluation's duration joins its track's pace (the queue note's estimate).
-    /// Best effort.
-    async fn record_pace(&self, seconds: u64) -> Answer {
+    /// The track's pace, for a finished evaluation's duration to join (the queue note's
+    /// estimate). Best effort: unread, it is not written.
+    async fn pace(&self) -> Option<Vec<u64>> {
         let admission = &self.deps.clients.admission;
-        if let Err(e) = admission.record_pace(self.submission, seconds).await {
+        match admission.pace(self.submission).await {
+            Ok(recent) => Some(recent),
+            Err(e) => {
+                warn!(submission_id = self.id(), error = %e, "pace not read: not recorded");
+                None
+            }
+        }
+    }
+
+    /// The track's pace with this evaluation's duration first. Best effort.
+    async fn keep_pace(&self, durations: &[u64]) -> Answer {
+        let admission = &self.deps.clients.admission;
+        if let Err(e) = admission.keep_pace(self.submission, durations).await {
             warn!(submission_id = self.id(), error = %e, "pace not recorded");
         }
         Answer::Done

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-use lb_cluster::{Cluster, Job};
+use lb_cluster::{Cluster, Job, Whose};
 use real_kube::{ControlPlane, Identity};
 
 /// The namespace `infra/k8s` makes (the settings' `namespace` in a deployment).
@@ -124,12 +124,12 @@ async fn the_real_control_plane_admits_our_manifests_and_only_the_pipeline_s_own
     assert!(cluster.set_deadline(first, 300_000).await.unwrap());
     assert_eq!(cluster.node("no-such-node").await.unwrap(), None);
     cluster
-        .delete_all("4242", None)
+        .delete_all("4242", Whose::Any)
         .await
         .expect("the pipeline deletes its Jobs");
     let gone = cluster.wait_gone(
         "4242",
-        None,
+        Whose::Any,
         Duration::from_secs(60),
         Duration::from_secs(1),
     );

@@ -166,6 +166,13 @@ pub fn describe(ahead: u32, hold: Hold) -> String {
 /// track's pace, few enough to follow it when it changes.
 pub const RECENT_DURATIONS: usize = 20;
 
+/// A track's pace once an evaluation that ran `seconds` joins it: that one first, then the
+/// most recent of `recent` (most recent first), [`RECENT_DURATIONS`] in all.
+pub fn with_latest(recent: &[u64], seconds: u64) -> Vec<u64> {
+    let kept = recent.iter().take(RECENT_DURATIONS - 1).copied();
+    std::iter::once(seconds).chain(kept).collect()
+}
+
 /// When a queued submission may start, seconds from now: a range, never a promise.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct StartEstimate {
@@ -456,5 +463,16 @@ mod tests {
             assert_eq!(state.as_str().parse::<EntryState>().ok(), Some(state));
         }
         assert!("Running".parse::<EntryState>().is_err());
+    }
+
+    #[test]
+    fn a_finished_evaluation_leads_its_track_s_pace_and_the_oldest_goes() {
+        assert_eq!(with_latest(&[], 7), [7]);
+        assert_eq!(with_latest(&[5, 4], 7), [7, 5, 4]);
+        let full: Vec<u64> = (0..RECENT_DURATIONS as u64 + 3).collect();
+        let paced = with_latest(&full, 99);
+        assert_eq!(paced.len(), RECENT_DURATIONS);
+        assert_eq!((paced[0], paced[1]), (99, 0));
+        assert_eq!(paced.last(), Some(&(RECENT_DURATIONS as u64 - 2)));
     }
 }

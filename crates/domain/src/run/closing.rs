@@ -3,23 +3,26 @@
 //! [`Answer`]s; [`Closing`] decides, in this one place, what happens and in which order.
 //!
 //! Only the execution that holds the claim ends the run, once: a superseded one touches
-//! nothing, and a repeated one reports what stands and gives the place back. Otherwise the
-//! Jobs stop first (GPUs cost money, and their logcopy makes its last upload on the way out),
-//! then what the run left is read and the final status decided
+//! nothing of the submission, and a repeated one reports what stands and gives the place back.
+//! The execution's own Jobs stop at once, beside the claim's read (GPUs cost money, and their
+//! logcopy makes its last upload on the way out; those from before the execution label wait
+//! for the claim, as they are its holder's), then what the run left is read, with EvalAI's
+//! status beside it, and the final status decided
 //! ([`crate::run::finalize::outcome`]); results that cannot be read for now fail the attempt (the
 //! state machine retries it) unless the outcome does not need them. A failed run's
 //! participant reads the end of its most crashed agent's log; a passed qualifier admits its
 //! team. EvalAI gets the final word before the record, and the place is given back only after
 //! it, so the team never shows more evaluations in progress than its cap. What needs only the
-//! decision (EvalAI's status, keeping the files, the log's end, the admission, the recordings'
-//! listing and heads, the upload reports) is asked at once, so a finished result's recordings
-//! are audited before the post and a failed audit is said on EvalAI, and the post is only the
-//! write and its confirmation (none over a cancel or a final status seen there); the record, the
-//! pace and the place go together at the end: a Finalize waits on six batches.
+//! decision (keeping the files, the log's end, the admission, the recordings' listing and
+//! heads, the upload reports, the track's pace) is asked at once, so a finished result's
+//! recordings are audited before the post and a failed audit is said on EvalAI, and the post is
+//! only the write and its confirmation (none over a cancel or a final status seen at the read);
+//! the record, the pace and the place go together at the end: a Finalize waits on five batches.
 
 use std::collections::{BTreeMap, HashMap};
 
 use crate::capacity::cost::{InstancePrice, Totals};
+use crate::capacity::queue;
 use crate::job::logtail::{participant_tail, MAX_TAIL_CHARS};
 use crate::job::protocol::{self, CANCEL_MARKER, LOGS_DIR};
 use crate::job::uploads::{self, UploadReport};
@@ -62,8 +65,12 @@ pub struct Context<'a> {
 pub enum Step {
     /// Read the submission's record ([`Answer::Standing`]).
     ReadStanding,
-    /// Delete this execution's Jobs and wait, bounded, for their pods ([`Answer::Done`]).
-    StopJobs,
+    /// Delete this execution's Jobs and wait, bounded, for their pods ([`Answer::Stopped`]).
+    StopJobs {
+        /// Those from before the execution label too: they are the claim holder's, so only
+        /// once the claim is known to be this execution's.
+        unlabelled: bool,
+    },
     /// Read the markers, and the merged results of these pairs when there was a run
     /// ([`Answer::Left`]).
     ReadLeft {
@@ -120,10 +127,13 @@ pub enum Step {
         /// its Jobs' logcopy stored; `None` without a run.
         usage: Option<Totals>,
     },
-    /// Add this run's duration to its track's pace, best effort ([`Answer::Done`]).
+    /// Read the track's pace, the durations of its latest evaluations ([`Answer::Pace`]), for
+    /// this run's to join once EvalAI has the final word.
+    ReadPace,
+    /// Keep the track's pace, this run's duration first, best effort ([`Answer::Done`]).
     RecordPace {
-        /// Seconds from its first pair's start to now.
-        seconds: u64,
+        /// Seconds, most recent first ([`queue::with_latest`]).
+        durations: Vec<u64>,
     },
     /// Give the team its place back and wake its next submission ([`Answer::Done`]).
     LeaveQueue,
@@ -195,6 +205,14 @@ pub struct Left {
 pub enum Answer {
     /// The step was done.
     Done,
+    /// The Jobs were stopped (`unlabelled_left`: some from before the execution label were
+    /// seen and left).
+    Stopped {
+        /// Objects without the execution label were left.
+        unlabelled_left: bool,
+    },
+    /// The track's latest durations, most recent first (`None`: unreadable).
+    Pace(Option<Vec<u64>>),
     /// The record (`None`: there is none).
     Standing(Option<Record>),
     /// What the run left.
@@ -217,8 +235,11 @@ pub enum Answer {
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Stage {
+    /// The claim, and the execution's own Jobs stopped beside it.
     Standing,
-    Stop,
+    /// The claim is ours: the Jobs from before the execution label stop too.
+    StopUnlabelled,
+    /// What the run left, and EvalAI's status beside it.
     Read,
     TryAgain,
     /// What needs only the decision, side by side.
@@ -255,6 +276,10 @@ pub struct Closing<'a> {
     listed: Option<Vec<(String, u64)>>,
     /// The submission's status on EvalAI before the final update.
     on_evalai: Option<SubmissionStatus>,
+    /// Objects from before the execution label were left by the first stop.
+    unlabelled_left: bool,
+    /// The track's pace as read before the post (`None`: not read, or unreadable).
+    pace_read: Option<Vec<u64>>,
 }
 
 impl<'a> Closing<'a> {
@@ -273,6 +298,8 @@ impl<'a> Closing<'a> {
             reports: None,
             listed: None,
             on_evalai: None,
+            unlabelled_left: false,
+            pace_read: None,
         }
     }
 
@@ -280,16 +307,22 @@ impl<'a> Closing<'a> {
     /// other; none once Finalize is over.
     pub fn poll(&self) -> Vec<Step> {
         match self.stage {
-            Stage::Standing => vec![Step::ReadStanding],
-            Stage::Stop => vec![Step::StopJobs],
-            Stage::Read => vec![Step::ReadLeft {
-                results: (self.cx.run).map(|run| (run.pairs.clone(), run.repetitions)),
-            }],
+            Stage::Standing => vec![Step::ReadStanding, Step::StopJobs { unlabelled: false }],
+            Stage::StopUnlabelled => vec![Step::StopJobs { unlabelled: true }],
+            Stage::Read => vec![
+                Step::ReadLeft {
+                    results: (self.cx.run).map(|run| (run.pairs.clone(), run.repetitions)),
+                },
+                Step::ReadEvalAi,
+            ],
             Stage::TryAgain => vec![Step::TryAgain],
             Stage::Gather => self.gather(),
             Stage::Post => self.post().into_iter().collect(),
             Stage::End => {
-                let pace = self.pace().map(|seconds| Step::RecordPace { seconds });
+                let recent = self.pace_read.as_deref();
+                let pace = (self.pace().zip(recent))
+                    .map(|(seconds, recent)| queue::with_latest(recent, seconds))
+                    .map(|durations| Step::RecordPace { durations });
                 let record = self.record();
                 record
                     .into_iter()
@@ -317,17 +350,33 @@ impl<'a> Closing<'a> {
             return;
         }
         let mut answers = answers.into_iter();
-        let mut only = || answers.next().unwrap_or(Answer::Done);
         self.stage = match self.stage {
-            Stage::Standing => match only() {
-                Answer::Standing(record) => self.stood(record.unwrap_or_default()),
-                _ => Stage::Done,
-            },
-            Stage::Stop => Stage::Read,
-            Stage::Read => match only() {
-                Answer::Left(left) => self.decide(left),
-                _ => Stage::Done,
-            },
+            Stage::Standing => {
+                let mut record = None;
+                for answer in answers {
+                    match answer {
+                        Answer::Standing(read) => record = read,
+                        answer => self.gathered(answer),
+                    }
+                }
+                self.stood(record.unwrap_or_default())
+            }
+            Stage::StopUnlabelled => Stage::Read,
+            Stage::Read => {
+                let mut left = None;
+                for answer in answers {
+                    match answer {
+                        Answer::Left(read) => left = Some(read),
+                        answer => self.gathered(answer),
+                    }
+                }
+                match left.map(|left| self.decide(left)) {
+                    // Nothing to gather (no run, no merge): straight to the post.
+                    Some(Stage::Gather) if self.gather().is_empty() => self.all_gathered(None),
+                    Some(stage) => stage,
+                    None => Stage::Done,
+                }
+            }
             Stage::Gather => {
                 let mut heads = None;
                 for answer in answers {
@@ -336,14 +385,10 @@ impl<'a> Closing<'a> {
                         answer => self.gathered(answer),
                     }
                 }
-                self.recordings = heads.and_then(|heads| self.audit(&heads));
-                match self.on_evalai.and_then(finalize::unwritable) {
-                    Some(stands) => self.posted(stands),
-                    None => Stage::Post,
-                }
+                self.all_gathered(heads)
             }
-            Stage::Post => match only() {
-                Answer::Posted(posted) => self.posted(posted),
+            Stage::Post => match answers.next() {
+                Some(Answer::Posted(posted)) => self.posted(posted),
                 _ => Stage::Done,
             },
             Stage::End => {
@@ -381,7 +426,8 @@ impl<'a> Closing<'a> {
                 self.settle(Settled::Ended(status), record.error, by_platform);
                 Stage::Leave
             }
-            None => Stage::Stop,
+            None if self.unlabelled_left => Stage::StopUnlabelled,
+            None => Stage::Read,
         }
     }
 
@@ -459,10 +505,9 @@ impl<'a> Closing<'a> {
         self.verdict = Some((verdict, admitted));
     }
 
-    /// What needs only the decision: EvalAI's status read, the merge kept, the crashed agent's
-    /// log, the team admitted, a finished result's recordings listed, the Jobs' upload reports.
+    /// What needs only the decision: the merge kept, the crashed agent's log, the team
+    /// admitted, a finished result's recordings listed, the Jobs' upload reports, the pace.
     fn gather(&self) -> Vec<Step> {
-        let evalai = self.outcome.is_some().then_some(Step::ReadEvalAi);
         let store = self.merged.is_some().then_some(Step::StoreFiles);
         let tail = self.crashed.map(|pair| Step::ReadAgentTail {
             key: format!("{LOGS_DIR}/{}/agent.log", protocol::agent_logs_dir(pair)),
@@ -479,7 +524,8 @@ impl<'a> Closing<'a> {
         let heads = audited.then(|| Step::ReadHeads(keys()));
         let reports = (self.cx.run)
             .map(|run| Step::ReadReports((0..run.jobs).map(uploads::report_key).collect()));
-        [evalai, store, tail, admit, listing, heads, reports]
+        let pace = self.pace().map(|_| Step::ReadPace);
+        [store, tail, admit, listing, heads, reports, pace]
             .into_iter()
             .flatten()
             .collect()
@@ -494,10 +540,22 @@ impl<'a> Closing<'a> {
             }
             Answer::Listed(listed) => self.listed = listed,
             Answer::OnEvalAi(status) => self.on_evalai = Some(status),
+            Answer::Stopped { unlabelled_left } => self.unlabelled_left = unlabelled_left,
+            Answer::Pace(recent) => self.pace_read = recent,
             Answer::Reports(reports) => {
                 self.reports = Some(reports.into_iter().reduce(UploadReport::plus));
             }
             _ => {}
+        }
+    }
+
+    /// Once all is gathered: the recordings judged, and the post, unless EvalAI's status
+    /// already stands (a cancel, a final status).
+    fn all_gathered(&mut self, heads: Option<HashMap<String, Vec<u8>>>) -> Stage {
+        self.recordings = heads.and_then(|heads| self.audit(&heads));
+        match self.on_evalai.and_then(finalize::unwritable) {
+            Some(stands) => self.posted(stands),
+            None => Stage::Post,
         }
     }
 
@@ -607,9 +665,10 @@ fn answers_to(step: &Step, answer: &Answer) -> bool {
             | (Step::ListRecordings, Answer::Listed(_))
             | (Step::ReadHeads(_), Answer::Heads(_))
             | (Step::WriteRecord { .. }, Answer::Recorded(_))
+            | (Step::StopJobs { .. }, Answer::Stopped { .. })
+            | (Step::ReadPace, Answer::Pace(_))
             | (
-                Step::StopJobs
-                    | Step::StoreFiles
+                Step::StoreFiles
                     | Step::TryAgain
                     | Step::Admit(_)
                     | Step::RecordPace { .. }
@@ -741,6 +800,17 @@ mod tests {
             }
             Step::ReadHeads(keys) => heads(keys),
             Step::WriteRecord { .. } => Answer::Recorded(true),
+            Step::ReadPace => Answer::Pace(Some(vec![600, 500])),
+            step => plain(step),
+        }
+    }
+
+    /// The answer that says nothing more than that the step was done.
+    fn plain(step: &Step) -> Answer {
+        match step {
+            Step::StopJobs { .. } => Answer::Stopped {
+                unlabelled_left: false,
+            },
             _ => Answer::Done,
         }
     }
@@ -790,7 +860,8 @@ mod tests {
     fn kind(step: &Step) -> &'static str {
         match step {
             Step::ReadStanding => "standing",
-            Step::StopJobs => "stop",
+            Step::StopJobs { unlabelled: false } => "stop",
+            Step::StopJobs { unlabelled: true } => "stop-unlabelled",
             Step::ReadLeft { .. } => "read",
             Step::TryAgain => "again",
             Step::StoreFiles => "store",
@@ -802,6 +873,7 @@ mod tests {
             Step::ListRecordings => "recordings",
             Step::ReadHeads(_) => "heads",
             Step::WriteRecord { .. } => "record",
+            Step::ReadPace => "read-pace",
             Step::RecordPace { .. } => "pace",
             Step::LeaveQueue => "leave",
         }
@@ -816,19 +888,28 @@ mod tests {
     #[test]
     fn a_finished_run_stops_its_jobs_first_posts_before_the_record_and_leaves_the_queue_last() {
         let run = run(RunPhase::Finished, true);
-        let (steps, stands) = drive(cx(Some(&run), None), world(Some(merged(true, 90.0)), &[]));
-        // Six batches: what needs only the decision side by side (the recordings' listing and
-        // heads too, so the audit comes before the post), the record, the pace and the place
-        // together once EvalAI has the final word.
-        let order: [&[&str]; 6] = [
-            &["standing"],
-            &["stop"],
-            &["read"],
-            &["evalai", "store", "recordings", "heads", "reports"],
+        let at_end = Context {
+            now: 2_100,
+            ..cx(Some(&run), None)
+        };
+        let (steps, stands) = drive(at_end, world(Some(merged(true, 90.0)), &[]));
+        // Five batches: the claim and the Jobs stopped side by side, what the run left with
+        // EvalAI's status, what needs only the decision (the recordings' listing and heads too,
+        // so the audit comes before the post), and the record, the pace and the place together
+        // once EvalAI has the final word.
+        let order: [&[&str]; 5] = [
+            &["standing", "stop"],
+            &["read", "evalai"],
+            &["store", "recordings", "heads", "reports", "read-pace"],
             &["post"],
             &["record", "pace", "leave"],
         ];
         assert_eq!(kinds(&steps), order);
+        // The track's pace as read before the post, with this run's duration first.
+        let Step::RecordPace { durations } = find(&steps, "pace") else {
+            unreachable!()
+        };
+        assert_eq!(durations, &[1_200, 600, 500]);
         let Step::Post {
             status,
             stdout,
@@ -857,19 +938,45 @@ mod tests {
     }
 
     #[test]
-    fn another_execution_s_claim_leaves_everything_untouched() {
+    fn another_execution_s_claim_leaves_the_submission_untouched_and_only_its_own_jobs_stop() {
         let run = run(RunPhase::Finished, true);
         let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
             Step::ReadStanding => Answer::Standing(Some(Record {
                 claimed_by: Some("exec-2".into()),
                 ..Record::default()
             })),
-            _ => Answer::Done,
+            // Jobs from before the execution label are seen: they are exec-2's.
+            Step::StopJobs { .. } => Answer::Stopped {
+                unlabelled_left: true,
+            },
+            step => plain(step),
         });
-        assert_eq!(flat(&steps), ["standing"]);
+        assert_eq!(flat(&steps), ["standing", "stop"]);
         let (settled, why) = stands.unwrap();
         assert_eq!(settled, Settled::Superseded);
         assert!(why.unwrap().contains("exec-2"));
+    }
+
+    #[test]
+    fn the_claim_holder_stops_the_jobs_from_before_the_label_before_it_reads_what_is_left() {
+        let run = run(RunPhase::Finished, true);
+        let mut world = world_of_finished();
+        let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
+            Step::StopJobs { unlabelled: false } => Answer::Stopped {
+                unlabelled_left: true,
+            },
+            step => world(step),
+        });
+        let batches = kinds(&steps);
+        assert_eq!(
+            batches[..3],
+            [
+                &["standing", "stop"][..],
+                &["stop-unlabelled"],
+                &["read", "evalai"]
+            ]
+        );
+        assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Finished));
     }
 
     #[test]
@@ -882,9 +989,9 @@ mod tests {
                 error: Some("the agent crashed".into()),
                 failed_by_platform: false,
             })),
-            _ => Answer::Done,
+            step => plain(step),
         });
-        assert_eq!(flat(&steps), ["standing", "leave"]);
+        assert_eq!(flat(&steps), ["standing", "stop", "leave"]);
         let failed = Settled::Ended(RecordStatus::Failed);
         assert_eq!(stands, Some((failed, Some("the agent crashed".into()))));
     }
@@ -894,7 +1001,10 @@ mod tests {
         let run = run(RunPhase::Finished, true);
         let not_now = || Some(Read::NotNow("S3 throttled".into()));
         let (steps, _) = drive(cx(Some(&run), None), world(not_now(), &[]));
-        assert_eq!(flat(&steps), ["standing", "stop", "read", "again"]);
+        assert_eq!(
+            flat(&steps),
+            ["standing", "stop", "read", "evalai", "again"]
+        );
         // The participant's cancel does not need them, nor does a caught error.
         let (steps, stands) = drive(cx(Some(&run), None), world(not_now(), &[CANCEL_MARKER]));
         assert_eq!(
@@ -927,9 +1037,9 @@ mod tests {
             world(Some(merged(false, 0.0)), &markers),
         );
         assert_eq!(
-            kinds(&steps)[3..],
+            kinds(&steps)[2..],
             [
-                &["evalai", "store", "tail", "reports"][..],
+                &["store", "tail", "reports"][..],
                 &["post"],
                 &["record", "leave"]
             ]
@@ -1000,7 +1110,7 @@ mod tests {
                 error: Some("the platform took its pods away".into()),
                 failed_by_platform: true,
             })),
-            _ => Answer::Done,
+            step => plain(step),
         });
         assert!(settled.unwrap().by_platform);
     }
@@ -1020,10 +1130,10 @@ mod tests {
         let (steps, _) = drive(cx, world(Some(merged(true, 90.0)), &[]));
         // Admitted in the batch before the post's.
         assert!(
-            steps[3].contains(&Step::Admit(vec!["sensors".into()])),
+            steps[2].contains(&Step::Admit(vec!["sensors".into()])),
             "{steps:?}"
         );
-        assert_eq!(kinds_of(&steps[4])[0], "post");
+        assert_eq!(kinds_of(&steps[3])[0], "post");
         let Step::Post { stdout, .. } = find(&steps, "post") else {
             unreachable!()
         };
@@ -1091,7 +1201,7 @@ mod tests {
             Step::ReadEvalAi => Answer::OnEvalAi(SubmissionStatus::Cancelled),
             step => world(step),
         });
-        assert_eq!(kinds(&steps)[4], ["record", "leave"]);
+        assert_eq!(kinds(&steps)[3], ["record", "leave"]);
         assert!(!flat(&steps).contains(&"post"), "{:?}", flat(&steps));
         let Step::WriteRecord {
             status, recordings, ..
@@ -1108,7 +1218,7 @@ mod tests {
             Step::Post { .. } => Answer::Posted(Posted::Cancelled),
             step => world(step),
         });
-        assert_eq!(kinds(&steps)[5], ["record", "leave"]);
+        assert_eq!(kinds(&steps)[4], ["record", "leave"]);
         assert_eq!(stands, Some((cancelled, None)));
         // An earlier attempt's final word stands, and is not posted again.
         let mut world = world_of_finished();
@@ -1198,7 +1308,7 @@ mod tests {
         assert_eq!(stderr, "the evaluation did not start");
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Failed));
         let (steps, stands) = drive(cx(None, None), |_| Answer::Recorded(true));
-        assert_eq!(flat(&steps), ["standing"]);
+        assert_eq!(flat(&steps), ["standing", "stop"]);
         assert_eq!(stands, None);
         // A batch answered short, or out of its order, settles nothing either.
         let run = run(RunPhase::Finished, true);
