@@ -88,7 +88,7 @@ impl std::fmt::Debug for Cluster {
 }
 
 impl Cluster {
-    /// Wraps an existing client (tests pass a `tower_test` mock).
+    /// Wraps an existing client (tests pass one whose transport they answer themselves).
     pub fn new(client: kube::Client, namespace: impl Into<String>) -> Self {
         Cluster {
             client,

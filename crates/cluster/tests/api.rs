@@ -1,7 +1,10 @@
-//! The client paths against a mock API server (`tower_test::mock::pair` and an
+//! The client paths against a mock API server (the client's transport is a channel to an
 //! `ApiServerVerifier` that asserts method, path, query and body of every request).
 
 use std::collections::BTreeMap;
+use std::future::Future;
+use std::pin::Pin;
+use std::task::{Context, Poll};
 use std::time::Duration;
 
 use http::{Method, Request, Response, StatusCode};
@@ -11,7 +14,51 @@ use lb_cluster::{
 };
 use serde_json::{json, Value};
 
-type Handle = tower_test::mock::Handle<Request<Body>, Response<Body>>;
+/// A request the client sent, with where its answer goes.
+type Exchange = (Request<Body>, tokio::sync::oneshot::Sender<Response<Body>>);
+
+/// The client's transport: each request goes to the test's [`Handle`], which answers it.
+#[derive(Clone)]
+struct Transport(tokio::sync::mpsc::UnboundedSender<Exchange>);
+
+impl tower::Service<Request<Body>> for Transport {
+    type Response = Response<Body>;
+    type Error = Box<dyn std::error::Error + Send + Sync>;
+    type Future = Pin<Box<dyn Future<Output = Result<Response<Body>, Self::Error>> + Send>>;
+
+    fn poll_ready(&mut self, _: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+        Poll::Ready(Ok(()))
+    }
+
+    fn call(&mut self, request: Request<Body>) -> Self::Future {
+        let (answer, answered) = tokio::sync::oneshot::channel();
+        let sent = self.0.send((request, answer));
+        Box::pin(async move {
+            sent.map_err(|_| "the test stopped listening")?;
+            Ok(answered.await.map_err(|_| "the test dropped the request")?)
+        })
+    }
+}
+
+/// The test's end of the transport.
+struct Handle(tokio::sync::mpsc::UnboundedReceiver<Exchange>);
+
+impl Handle {
+    async fn next_request(&mut self) -> Option<(Request<Body>, Responder)> {
+        let (request, answer) = self.0.recv().await?;
+        Some((request, Responder(answer)))
+    }
+}
+
+/// Where one request's answer goes.
+struct Responder(tokio::sync::oneshot::Sender<Response<Body>>);
+
+impl Responder {
+    fn send_response(self, response: Response<Body>) {
+        // The client may have given up waiting (a timeout under test): nothing to answer.
+        let _ = self.0.send(response);
+    }
+}
 
 const NS: &str = "leaderboard";
 const JOBS: &str = "/apis/batch/v1/namespaces/leaderboard/jobs";
@@ -58,9 +105,9 @@ fn status(code: u16, reason: &str, message: &str, details: Value) -> Value {
 }
 
 fn mock() -> (Cluster, ApiServerVerifier) {
-    let (svc, handle) = tower_test::mock::pair::<Request<Body>, Response<Body>>();
-    let cluster = Cluster::new(kube::Client::new(svc, NS), NS);
-    (cluster, ApiServerVerifier(handle))
+    let (requests, handle) = tokio::sync::mpsc::unbounded_channel();
+    let cluster = Cluster::new(kube::Client::new(Transport(requests), NS), NS);
+    (cluster, ApiServerVerifier(Handle(handle)))
 }
 
 fn decode(s: &str) -> String {

@@ -9,5 +9,5 @@ pub mod run;
 pub mod settings;
 pub mod status;
 pub mod submission;
-#[cfg(feature = "test-util")]
+#[doc(hidden)]
 pub mod testutil;

@@ -1,4 +1,6 @@
-//! Test support shared by the workspace's tests and benches (feature `test-util`).
+//! Test support shared by the workspace's tests and benches. Always compiled (the binaries
+//! drop it): behind a feature, the tests' build would differ from the binaries' and compile
+//! every crate above this one a second time.
 
 use std::path::{Path, PathBuf};
 

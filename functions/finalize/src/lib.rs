@@ -1,7 +1,7 @@
 //! Finalize (stage 5 and the failure path): end a claimed run in the order
-//! `lb_domain::run::closing` decides: stop the Jobs, read what the run left and decide the final
-//! status, post the final update to EvalAI (confirmed by a GET), then write the final DynamoDB
-//! record and give the team's place back.
+//! `lb_domain::run::closing` decides: read the claim while this execution's Jobs stop, read what
+//! the run left and decide the final status, post the final update to EvalAI (confirmed by a
+//! GET), then write the final DynamoDB record and give the team's place back.
 //!
 //! It only ever acts on a submission this execution claimed (or rejected): an execution that
 //! failed before its claim must not touch a submission another execution is evaluating.

@@ -7,6 +7,7 @@
 //! workloads, `lbctl local`) and `tests/` exist to run and check them on one machine and may
 //! appear in their `[dev-dependencies]` only.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -86,6 +87,80 @@ fn nothing_that_ships_depends_on_local_or_tests_outside_dev_dependencies() {
     }
     assert!(shipped >= 10, "found only {shipped} shipped packages");
     assert!(violations.is_empty(), "{}", violations.join("\n"));
+}
+
+/// Each package's features as `cargo tree` resolves them for the whole workspace, with the
+/// dev-dependencies (what `cargo test` builds) or without them (what `cargo build --bins`
+/// builds): `name version` -> features.
+fn resolved_features(with_dev: bool) -> BTreeMap<String, String> {
+    let mut args = vec!["tree", "--workspace", "--offline", "--prefix", "none"];
+    args.extend(["--format", "{p}|{f}"]);
+    if !with_dev {
+        args.extend(["--edges", "no-dev"]);
+    }
+    let out = Command::new(env!("CARGO"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .expect("cargo tree runs");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "cargo tree: {stderr}");
+    features_of(&String::from_utf8_lossy(&out.stdout))
+}
+
+/// `cargo tree`'s `{p}|{f}` lines as `name version` -> features (a package's path and the
+/// mark of one already shown dropped).
+fn features_of(tree: &str) -> BTreeMap<String, String> {
+    tree.lines()
+        .map(|line| line.trim_end().trim_end_matches("(*)"))
+        .filter_map(|line| line.split_once('|'))
+        .map(|(package, features)| {
+            let mut words = package.split_whitespace();
+            let name: Vec<&str> = words.by_ref().take(2).collect();
+            (name.join(" "), features.trim().to_string())
+        })
+        .collect()
+}
+
+/// The packages both builds hold whose features differ.
+fn differing(bins: &BTreeMap<String, String>, tests: &BTreeMap<String, String>) -> Vec<String> {
+    bins.iter()
+        .filter_map(|(package, built)| {
+            let tested = tests.get(package)?;
+            (tested != built).then(|| format!("{package}: [{built}] shipped, [{tested}] tested"))
+        })
+        .collect()
+}
+
+/// A dev-dependency that turns on a feature of a shared dependency (a mocking crate's
+/// `test-util`, serde_json's `preserve_order`) gives the tests a build of their own of it and
+/// of everything above it: a new machine compiles most of the tree twice (the binaries that
+/// `make local` and the tests run, then the tests), and the tests run code built otherwise than
+/// what ships.
+#[test]
+fn the_tests_build_every_dependency_as_the_binaries_do() {
+    let (bins, tests) = (resolved_features(false), resolved_features(true));
+    assert!(bins.len() > 100, "only {} packages resolved", bins.len());
+    let differ = differing(&bins, &tests);
+    assert!(
+        differ.is_empty(),
+        "a dev-dependency changes what the binaries are built from:\n{}",
+        differ.join("\n")
+    );
+}
+
+#[test]
+fn a_feature_only_the_tests_turn_on_is_found() {
+    let bins = features_of("tokio v1.54.1|macros,rt\nlb-aws v0.1.0 (/w/crates/aws)|\n");
+    let tests = features_of(
+        "tokio v1.54.1|macros,rt,test-util (*)\nlb-aws v0.1.0 (/w/crates/aws)| (*)\nlb-aws v0.1.0 (/w/crates/aws)|\nproptest v1.0.0|std\n",
+    );
+    assert_eq!(bins.get("lb-aws v0.1.0").map(String::as_str), Some(""));
+    assert_eq!(
+        differing(&bins, &tests),
+        ["tokio v1.54.1: [macros,rt] shipped, [macros,rt,test-util] tested"]
+    );
+    assert!(differing(&tests, &tests).is_empty());
 }
 
 #[test]
