@@ -307,7 +307,9 @@ impl<'a> Closing<'a> {
     /// other; none once Finalize is over.
     pub fn poll(&self) -> Vec<Step> {
         match self.stage {
-            Stage::Standing => vec![Step::ReadStanding, Step::StopJobs { unlabelled: false }],
+            // The stop first: connecting to the cluster takes the processor a while, and the
+            // claim's read is on its way meanwhile.
+            Stage::Standing => vec![Step::StopJobs { unlabelled: false }, Step::ReadStanding],
             Stage::StopUnlabelled => vec![Step::StopJobs { unlabelled: true }],
             Stage::Read => vec![
                 Step::ReadLeft {
@@ -898,7 +900,7 @@ mod tests {
         // so the audit comes before the post), and the record, the pace and the place together
         // once EvalAI has the final word.
         let order: [&[&str]; 5] = [
-            &["standing", "stop"],
+            &["stop", "standing"],
             &["read", "evalai"],
             &["store", "recordings", "heads", "reports", "read-pace"],
             &["post"],
@@ -951,7 +953,7 @@ mod tests {
             },
             step => plain(step),
         });
-        assert_eq!(flat(&steps), ["standing", "stop"]);
+        assert_eq!(flat(&steps), ["stop", "standing"]);
         let (settled, why) = stands.unwrap();
         assert_eq!(settled, Settled::Superseded);
         assert!(why.unwrap().contains("exec-2"));
@@ -971,7 +973,7 @@ mod tests {
         assert_eq!(
             batches[..3],
             [
-                &["standing", "stop"][..],
+                &["stop", "standing"][..],
                 &["stop-unlabelled"],
                 &["read", "evalai"]
             ]
@@ -991,7 +993,7 @@ mod tests {
             })),
             step => plain(step),
         });
-        assert_eq!(flat(&steps), ["standing", "stop", "leave"]);
+        assert_eq!(flat(&steps), ["stop", "standing", "leave"]);
         let failed = Settled::Ended(RecordStatus::Failed);
         assert_eq!(stands, Some((failed, Some("the agent crashed".into()))));
     }
@@ -1003,13 +1005,13 @@ mod tests {
         let (steps, _) = drive(cx(Some(&run), None), world(not_now(), &[]));
         assert_eq!(
             flat(&steps),
-            ["standing", "stop", "read", "evalai", "again"]
+            ["stop", "standing", "read", "evalai", "again"]
         );
         // The participant's cancel does not need them, nor does a caught error.
         let (steps, stands) = drive(cx(Some(&run), None), world(not_now(), &[CANCEL_MARKER]));
         assert_eq!(
             flat(&steps),
-            ["standing", "stop", "read", "evalai", "reports", "post", "record", "leave"]
+            ["stop", "standing", "read", "evalai", "reports", "post", "record", "leave"]
         );
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Cancelled));
         let caught = "States.Timeout: the task timed out";
@@ -1300,7 +1302,7 @@ mod tests {
         let (steps, stands) = drive(cx(None, None), world(None, &[]));
         assert_eq!(
             flat(&steps),
-            ["standing", "stop", "read", "evalai", "post", "record", "leave"]
+            ["stop", "standing", "read", "evalai", "post", "record", "leave"]
         );
         let Step::Post { stderr, .. } = find(&steps, "post") else {
             unreachable!()
@@ -1308,7 +1310,7 @@ mod tests {
         assert_eq!(stderr, "the evaluation did not start");
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Failed));
         let (steps, stands) = drive(cx(None, None), |_| Answer::Recorded(true));
-        assert_eq!(flat(&steps), ["standing", "stop"]);
+        assert_eq!(flat(&steps), ["stop", "standing"]);
         assert_eq!(stands, None);
         // A batch answered short, or out of its order, settles nothing either.
         let run = run(RunPhase::Finished, true);
