@@ -133,6 +133,27 @@ pub enum WriteOutcome {
     AlreadyFinal(SubmissionStatus),
 }
 
+/// The domain's word for what a final update did, and back: the same three answers.
+impl From<Posted> for WriteOutcome {
+    fn from(posted: Posted) -> Self {
+        match posted {
+            Posted::Written => WriteOutcome::Written,
+            Posted::Cancelled => WriteOutcome::Cancelled,
+            Posted::AlreadyFinal(status) => WriteOutcome::AlreadyFinal(status),
+        }
+    }
+}
+
+impl From<WriteOutcome> for Posted {
+    fn from(outcome: WriteOutcome) -> Self {
+        match outcome {
+            WriteOutcome::Written => Posted::Written,
+            WriteOutcome::Cancelled => Posted::Cancelled,
+            WriteOutcome::AlreadyFinal(status) => Posted::AlreadyFinal(status),
+        }
+    }
+}
+
 /// A final update (PUT `update_submission`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FinalUpdate {
@@ -1022,11 +1043,7 @@ fn queue_metadata(current: &Value, note: Option<(u32, &str)>) -> Option<Value> {
 
 /// A write EvalAI's `current` status refuses ([`finalize::unwritable`]).
 fn refuse_write(current: SubmissionStatus) -> Option<WriteOutcome> {
-    finalize::unwritable(current).map(|posted| match posted {
-        Posted::Written => WriteOutcome::Written,
-        Posted::Cancelled => WriteOutcome::Cancelled,
-        Posted::AlreadyFinal(status) => WriteOutcome::AlreadyFinal(status),
-    })
+    finalize::unwritable(current).map(WriteOutcome::from)
 }
 
 /// The submissions of a listing, element by element: participants write much of each element
@@ -1144,6 +1161,22 @@ mod tests {
         }
         for open in [Submitted, Queued, Running, Resuming, PartiallyEvaluated] {
             assert_eq!(refuse_write(open), None, "{open}");
+        }
+    }
+
+    #[test]
+    fn a_write_s_outcome_and_the_domain_s_word_for_it_map_each_to_its_own() {
+        let each = [
+            (WriteOutcome::Written, Posted::Written),
+            (WriteOutcome::Cancelled, Posted::Cancelled),
+            (
+                WriteOutcome::AlreadyFinal(SubmissionStatus::Failed),
+                Posted::AlreadyFinal(SubmissionStatus::Failed),
+            ),
+        ];
+        for (outcome, posted) in each {
+            assert_eq!(Posted::from(outcome), posted);
+            assert_eq!(WriteOutcome::from(posted), outcome);
         }
     }
 

@@ -22,7 +22,7 @@ use lb_domain::run::finalize::Posted;
 use lb_domain::settings::Target;
 use lb_domain::status::RecordStatus;
 use lb_domain::submission::SubmissionStatus;
-use lb_evalai::{FinalUpdate, WriteOutcome};
+use lb_evalai::FinalUpdate;
 use lb_pipeline::clients::{self, Meter};
 use lb_pipeline::payload::{PairRoutes, SubmissionInfo};
 use lb_pipeline::queue::{TeamQueue, Waker};
@@ -137,7 +137,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
                 };
                 let update = final_update(self.merged(), word);
                 let evalai = &self.deps.clients.evalai;
-                Answer::Posted(posted(evalai.write_final(sub.into(), &update).await?))
+                Answer::Posted(evalai.write_final(sub.into(), &update).await?.into())
             }
             Step::ListRecordings => Answer::Listed(match self.store.recordings().await {
                 Ok(listed) => Some(listed),
@@ -430,20 +430,8 @@ pub async fn post_final<C>(
     word: FinalWord,
 ) -> Result<Posted> {
     let update = final_update(None, word);
-    Ok(posted(
-        deps.clients
-            .evalai
-            .post_final(submission.into(), &update)
-            .await?,
-    ))
-}
-
-fn posted(outcome: WriteOutcome) -> Posted {
-    match outcome {
-        WriteOutcome::Written => Posted::Written,
-        WriteOutcome::Cancelled => Posted::Cancelled,
-        WriteOutcome::AlreadyFinal(stands) => Posted::AlreadyFinal(stands),
-    }
+    let evalai = &deps.clients.evalai;
+    Ok(evalai.post_final(submission.into(), &update).await?.into())
 }
 
 /// Gives the team its place back and takes the submission out of its leaderboard's queue,
