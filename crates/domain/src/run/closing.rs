@@ -354,24 +354,18 @@ impl<'a> Closing<'a> {
         let mut answers = answers.into_iter();
         self.stage = match self.stage {
             Stage::Standing => {
-                let mut record = None;
-                for answer in answers {
-                    match answer {
-                        Answer::Standing(read) => record = read,
-                        answer => self.gathered(answer),
-                    }
-                }
-                self.stood(record.unwrap_or_default())
+                let record = self.all_but(answers, |answer| match answer {
+                    Answer::Standing(record) => Pick::This(record),
+                    answer => Pick::Other(answer),
+                });
+                self.stood(record.flatten().unwrap_or_default())
             }
             Stage::StopUnlabelled => Stage::Read,
             Stage::Read => {
-                let mut left = None;
-                for answer in answers {
-                    match answer {
-                        Answer::Left(read) => left = Some(read),
-                        answer => self.gathered(answer),
-                    }
-                }
+                let left = self.all_but(answers, |answer| match answer {
+                    Answer::Left(left) => Pick::This(left),
+                    answer => Pick::Other(answer),
+                });
                 match left.map(|left| self.decide(left)) {
                     // Nothing to gather (no run, no merge): straight to the post.
                     Some(Stage::Gather) if self.gather().is_empty() => self.all_gathered(None),
@@ -380,13 +374,10 @@ impl<'a> Closing<'a> {
                 }
             }
             Stage::Gather => {
-                let mut heads = None;
-                for answer in answers {
-                    match answer {
-                        Answer::Heads(read) => heads = Some(read),
-                        answer => self.gathered(answer),
-                    }
-                }
+                let heads = self.all_but(answers, |answer| match answer {
+                    Answer::Heads(heads) => Pick::This(heads),
+                    answer => Pick::Other(answer),
+                });
                 self.all_gathered(heads)
             }
             Stage::Post => match answers.next() {
@@ -533,6 +524,23 @@ impl<'a> Closing<'a> {
             .collect()
     }
 
+    /// The answer `pick` takes out of a batch's; the others are kept as they come
+    /// ([`Closing::gathered`]).
+    fn all_but<T>(
+        &mut self,
+        answers: impl Iterator<Item = Answer>,
+        pick: impl Fn(Answer) -> Pick<T>,
+    ) -> Option<T> {
+        let mut picked = None;
+        for answer in answers {
+            match pick(answer) {
+                Pick::This(it) => picked = Some(it),
+                Pick::Other(answer) => self.gathered(answer),
+            }
+        }
+        picked
+    }
+
     fn gathered(&mut self, answer: Answer) {
         match answer {
             Answer::Tail(bytes) => {
@@ -652,6 +660,12 @@ impl<'a> Closing<'a> {
             self.settle(status, reason, by_platform);
         }
     }
+}
+
+/// An answer [`Closing::all_but`] takes, or one it keeps as it comes.
+enum Pick<T> {
+    This(T),
+    Other(Answer),
 }
 
 /// Whether `answer` is what `step` is answered with.
