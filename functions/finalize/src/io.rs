@@ -5,7 +5,7 @@
 //! answered as unread.
 
 use std::collections::HashMap;
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
 use futures_util::StreamExt as _;
@@ -27,7 +27,7 @@ use lb_pipeline::clients::{self, Meter};
 use lb_pipeline::payload::{PairRoutes, SubmissionInfo};
 use lb_pipeline::queue::{TeamQueue, Waker};
 use lb_pipeline::results::{self, Snapshot};
-use lb_pipeline::Result;
+use lb_pipeline::{FnError, Result};
 use tracing::{info, warn};
 
 use crate::Deps;
@@ -48,6 +48,8 @@ pub struct Shell<'a, C> {
     table: SubmissionsTable,
     /// The results as read once, beside the other reads of their batch.
     snapshot: OnceLock<Result<Snapshot>>,
+    /// Why the Jobs could not be stopped, for the attempt to fail with if the closing asks.
+    stop_failure: Mutex<Option<FnError>>,
 }
 
 impl<'a, C: Callbacks> Shell<'a, C> {
@@ -68,6 +70,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             store: SubmissionStore::new(s3, bucket, submission.submission_id),
             table: SubmissionsTable::new(dynamo, &target.deployment.submissions_table),
             snapshot: OnceLock::new(),
+            stop_failure: Mutex::new(None),
         }
     }
 
@@ -79,9 +82,11 @@ impl<'a, C: Callbacks> Shell<'a, C> {
     /// step runs to its end; the first failure is then the batch's.
     pub async fn perform(&mut self, steps: Vec<Step>) -> Result<Vec<Answer>> {
         if let [Step::TryAgain] = steps.as_slice() {
-            // The attempt ends with the results' read error, which only the shell holds.
-            return match self.snapshot.take() {
-                Some(Err(e)) => Err(e),
+            // The attempt ends with the stop's error or the results' read error, which only the
+            // shell holds.
+            let stop = self.stop_failure.get_mut().map(Option::take);
+            return match (stop, self.snapshot.take()) {
+                (Ok(Some(e)), _) | (_, Some(Err(e))) => Err(e),
                 _ => Ok(vec![Answer::Done]),
             };
         }
@@ -98,9 +103,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         let sub = self.submission;
         Ok(match step {
             Step::ReadStanding => Answer::Standing(self.standing().await?),
-            Step::StopJobs { unlabelled } => Answer::Stopped {
-                unlabelled_left: self.stop_jobs(unlabelled).await?,
-            },
+            Step::StopJobs { unlabelled } => self.stopped(unlabelled).await,
             Step::ReadLeft { results } => Answer::Left(self.read_left(results).await?),
             // Only ever alone in its batch (`perform`); answered as a misfit if it were not,
             // which ends Finalize unsettled and said.
@@ -182,6 +185,27 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             error: s.error,
             failed_by_platform: s.failed_by_platform,
         }))
+    }
+
+    /// [`Shell::stop_jobs`] answered: a failure is kept (the closing fails the attempt with it
+    /// only if it ends the run).
+    async fn stopped(&self, unlabelled: bool) -> Answer {
+        match self.stop_jobs(unlabelled).await {
+            Ok(unlabelled_left) => Answer::Stopped {
+                unlabelled_left,
+                failed: false,
+            },
+            Err(e) => {
+                warn!(submission_id = self.id(), error = %e, "the jobs could not be stopped");
+                if let Ok(mut kept) = self.stop_failure.lock() {
+                    *kept = Some(e);
+                }
+                Answer::Stopped {
+                    unlabelled_left: false,
+                    failed: true,
+                }
+            }
+        }
     }
 
     /// Only this execution's Jobs, and with `unlabelled` (the claim is this execution's) those

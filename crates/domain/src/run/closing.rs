@@ -80,8 +80,8 @@ pub enum Step {
     /// Keep the merge and the files EvalAI gets in S3, before the final update
     /// ([`Answer::Done`]).
     StoreFiles,
-    /// The results could not be read for now and the outcome needs them: fail with the
-    /// read's error, so the state machine tries Finalize again.
+    /// The Jobs could not be stopped, or the results could not be read for now and the
+    /// outcome needs them: fail with that error, so the state machine tries Finalize again.
     TryAgain,
     /// Read the end of the agent's log at this key, at most `bytes` ([`Answer::Tail`]).
     ReadAgentTail {
@@ -205,11 +205,12 @@ pub struct Left {
 pub enum Answer {
     /// The step was done.
     Done,
-    /// The Jobs were stopped (`unlabelled_left`: some from before the execution label were
-    /// seen and left).
+    /// The Jobs were stopped, or could not be (the shell keeps why, for [`Step::TryAgain`]).
     Stopped {
-        /// Objects without the execution label were left.
+        /// Objects without the execution label were seen and left.
         unlabelled_left: bool,
+        /// The stop failed: only a run this execution still ends needs it.
+        failed: bool,
     },
     /// The track's latest durations, most recent first (`None`: unreadable).
     Pace(Option<Vec<u64>>),
@@ -278,6 +279,8 @@ pub struct Closing<'a> {
     on_evalai: Option<SubmissionStatus>,
     /// Objects from before the execution label were left by the first stop.
     unlabelled_left: bool,
+    /// A stop of the Jobs failed.
+    stop_failed: bool,
     /// The track's pace as read before the post (`None`: not read, or unreadable).
     pace_read: Option<Vec<u64>>,
 }
@@ -299,6 +302,7 @@ impl<'a> Closing<'a> {
             listed: None,
             on_evalai: None,
             unlabelled_left: false,
+            stop_failed: false,
             pace_read: None,
         }
     }
@@ -360,7 +364,13 @@ impl<'a> Closing<'a> {
                 });
                 self.stood(record.flatten().unwrap_or_default())
             }
-            Stage::StopUnlabelled => Stage::Read,
+            Stage::StopUnlabelled => {
+                answers.for_each(|answer| self.gathered(answer));
+                match self.stop_failed {
+                    true => Stage::TryAgain,
+                    false => Stage::Read,
+                }
+            }
             Stage::Read => {
                 let left = self.all_but(answers, |answer| match answer {
                     Answer::Left(left) => Pick::This(left),
@@ -419,6 +429,10 @@ impl<'a> Closing<'a> {
                 self.settle(Settled::Ended(status), record.error, by_platform);
                 Stage::Leave
             }
+            // A superseded or repeated Finalize ends without its stop, as it ended before it
+            // stopped anything (a stale execution's Jobs left running end at their
+            // `activeDeadlineSeconds`); this run's end needs it.
+            None if self.stop_failed => Stage::TryAgain,
             None if self.unlabelled_left => Stage::StopUnlabelled,
             None => Stage::Read,
         }
@@ -550,7 +564,13 @@ impl<'a> Closing<'a> {
             }
             Answer::Listed(listed) => self.listed = listed,
             Answer::OnEvalAi(status) => self.on_evalai = Some(status),
-            Answer::Stopped { unlabelled_left } => self.unlabelled_left = unlabelled_left,
+            Answer::Stopped {
+                unlabelled_left,
+                failed,
+            } => {
+                self.unlabelled_left = unlabelled_left;
+                self.stop_failed = failed;
+            }
             Answer::Pace(recent) => self.pace_read = recent,
             Answer::Reports(reports) => {
                 self.reports = Some(reports.into_iter().reduce(UploadReport::plus));
@@ -826,6 +846,7 @@ mod tests {
         match step {
             Step::StopJobs { .. } => Answer::Stopped {
                 unlabelled_left: false,
+                failed: false,
             },
             _ => Answer::Done,
         }
@@ -964,6 +985,7 @@ mod tests {
             // Jobs from before the execution label are seen: they are exec-2's.
             Step::StopJobs { .. } => Answer::Stopped {
                 unlabelled_left: true,
+                failed: false,
             },
             step => plain(step),
         });
@@ -980,6 +1002,7 @@ mod tests {
         let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
             Step::StopJobs { unlabelled: false } => Answer::Stopped {
                 unlabelled_left: true,
+                failed: false,
             },
             step => world(step),
         });
@@ -993,6 +1016,39 @@ mod tests {
             ]
         );
         assert_eq!(stands.unwrap().0, Settled::Ended(RecordStatus::Finished));
+    }
+
+    #[test]
+    fn a_stop_that_fails_fails_only_the_attempt_that_ends_the_run() {
+        let run = run(RunPhase::Finished, true);
+        let failed = |step: &Step| match step {
+            Step::StopJobs { .. } => Some(Answer::Stopped {
+                unlabelled_left: false,
+                failed: true,
+            }),
+            _ => None,
+        };
+        // The run's end: the attempt fails with the stop's error, and the state machine tries
+        // again; nothing is read, posted or written.
+        let mut world = world_of_finished();
+        let (steps, stands) = drive(cx(Some(&run), None), |step| {
+            failed(step).unwrap_or_else(|| world(step))
+        });
+        assert_eq!(kinds(&steps), [&["stop", "standing"][..], &["again"]]);
+        assert_eq!(stands, None);
+        // A superseded execution still ends as it did.
+        let (steps, stands) = drive(cx(Some(&run), None), |step| match step {
+            Step::ReadStanding => Answer::Standing(Some(Record {
+                claimed_by: Some("exec-2".into()),
+                ..Record::default()
+            })),
+            step => failed(step).unwrap_or_else(|| plain(step)),
+        });
+        assert_eq!(flat(&steps), ["stop", "standing"]);
+        assert_eq!(
+            stands.map(|(settled, _)| settled),
+            Some(Settled::Superseded)
+        );
     }
 
     #[test]
