@@ -522,7 +522,7 @@ impl Cluster {
             .chain(pods.iter().map(|p| &p.metadata))
             .filter(|meta| whose.leaves_unlabelled(meta.labels.as_ref()))
             .count();
-        let ours = |labels| whose.takes(labels);
+        let ours = whose.taker();
         let owned = |p: &Pod| {
             p.metadata
                 .owner_references
@@ -583,10 +583,11 @@ impl Cluster {
         let deadline = tokio::time::Instant::now() + timeout;
         let poll = poll.max(Duration::from_millis(10));
         let mut wait = Duration::ZERO;
+        let takes = whose.taker();
         loop {
             let (mut jobs, mut pods) = self.list(submission_id).await?;
-            jobs.retain(|j| whose.takes(j.metadata.labels.as_ref()));
-            pods.retain(|p| whose.takes(p.metadata.labels.as_ref()));
+            jobs.retain(|j| takes(j.metadata.labels.as_ref()));
+            pods.retain(|p| takes(p.metadata.labels.as_ref()));
             if jobs.is_empty() && pods.is_empty() {
                 return Ok(true);
             }

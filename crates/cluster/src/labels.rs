@@ -63,13 +63,23 @@ pub enum Whose<'a> {
 impl Whose<'_> {
     /// Whether an object with `labels` is taken.
     pub fn takes(&self, labels: Option<&std::collections::BTreeMap<String, String>>) -> bool {
-        match (self, execution_of(labels)) {
-            (Whose::Any, _) => true,
-            (Whose::Labelled(mine) | Whose::Claimed(mine), Some(theirs)) => {
-                execution_value(mine) == theirs
+        self.taker()(labels)
+    }
+
+    /// [`Whose::takes`] made once for many objects: the execution's label value is worked out
+    /// here, not per object and per look.
+    pub fn taker(&self) -> impl Fn(Option<&std::collections::BTreeMap<String, String>>) -> bool {
+        let mine = match self {
+            Whose::Any => None,
+            Whose::Labelled(execution) | Whose::Claimed(execution) => {
+                Some(execution_value(execution))
             }
-            (Whose::Labelled(_), None) => false,
-            (Whose::Claimed(_), None) => true,
+        };
+        let unlabelled_too = !matches!(self, Whose::Labelled(_));
+        move |labels| match (&mine, execution_of(labels)) {
+            (None, _) => true,
+            (Some(mine), Some(theirs)) => mine == theirs,
+            (Some(_), None) => unlabelled_too,
         }
     }
 
