@@ -47,9 +47,10 @@ pub struct Shell<'a, C> {
     store: SubmissionStore,
     table: SubmissionsTable,
     /// The results as read once, beside the other reads of their batch.
-    snapshot: OnceLock<Result<Snapshot>>,
-    /// Why the Jobs could not be stopped, for the attempt to fail with if the closing asks.
-    stop_failure: Mutex<Option<FnError>>,
+    snapshot: OnceLock<Snapshot>,
+    /// Why the Jobs could not be stopped or the results read, for the attempt to fail with if
+    /// the closing asks ([`Step::TryAgain`]).
+    failure: Mutex<Option<FnError>>,
 }
 
 impl<'a, C: Callbacks> Shell<'a, C> {
@@ -70,7 +71,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             store: SubmissionStore::new(s3, bucket, submission.submission_id),
             table: SubmissionsTable::new(dynamo, &target.deployment.submissions_table),
             snapshot: OnceLock::new(),
-            stop_failure: Mutex::new(None),
+            failure: Mutex::new(None),
         }
     }
 
@@ -84,9 +85,8 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         if let [Step::TryAgain] = steps.as_slice() {
             // The attempt ends with the stop's error or the results' read error, which only the
             // shell holds.
-            let stop = self.stop_failure.get_mut().map(Option::take);
-            return match (stop, self.snapshot.take()) {
-                (Ok(Some(e)), _) | (_, Some(Err(e))) => Err(e),
+            return match self.failure.get_mut().map(Option::take) {
+                Ok(Some(e)) => Err(e),
                 _ => Ok(vec![Answer::Done]),
             };
         }
@@ -197,9 +197,7 @@ impl<'a, C: Callbacks> Shell<'a, C> {
             },
             Err(e) => {
                 warn!(submission_id = self.id(), error = %e, "the jobs could not be stopped");
-                if let Ok(mut kept) = self.stop_failure.lock() {
-                    *kept = Some(e);
-                }
+                self.keep_failure(e);
                 Answer::Stopped {
                     unlabelled_left: false,
                     failed: true,
@@ -243,28 +241,42 @@ impl<'a, C: Callbacks> Shell<'a, C> {
         };
         let (markers, snapshot) = tokio::join!(self.store.markers(), results);
         let markers = markers?;
-        let results = snapshot.as_ref().map(|read| match read {
-            Ok(s) => Read::Merged(Merged {
-                complete: s.complete,
-                progress: s.progress,
-                finished_pairs: s.finished_pairs.clone(),
-                metrics: s.metrics.clone(),
-                routes: s.routes.clone(),
-                summary: s.files.stdout.clone(),
-            }),
-            Err(e) if e.is_transient() => Read::NotNow(e.chain()),
-            Err(e) => Read::Unusable(e.chain()),
+        let results = snapshot.map(|read| match read {
+            Ok(s) => {
+                let merged = Read::Merged(Merged {
+                    complete: s.complete,
+                    progress: s.progress,
+                    finished_pairs: s.finished_pairs.clone(),
+                    metrics: s.metrics.clone(),
+                    routes: s.routes.clone(),
+                    summary: s.files.stdout.clone(),
+                });
+                // Asked once per Finalize: a second read would be a shell's bug, and the first
+                // stands.
+                let _ = self.snapshot.set(s);
+                merged
+            }
+            Err(e) => {
+                let read = match e.is_transient() {
+                    true => Read::NotNow(e.chain()),
+                    false => Read::Unusable(e.chain()),
+                };
+                self.keep_failure(e);
+                read
+            }
         });
-        if let Some(snapshot) = snapshot {
-            // Asked once per Finalize: a second read would be a shell's bug, and the first
-            // stands.
-            let _ = self.snapshot.set(snapshot);
-        }
         Ok(Left { markers, results })
     }
 
+    /// Keeps why this attempt may fail, for [`Step::TryAgain`].
+    fn keep_failure(&self, e: FnError) {
+        if let Ok(mut kept) = self.failure.lock() {
+            *kept = Some(e);
+        }
+    }
+
     fn merged(&self) -> Option<&Snapshot> {
-        self.snapshot.get()?.as_ref().ok()
+        self.snapshot.get()
     }
 
     /// The end of a crashed agent's output, as stored. Its container holds no secret (no AWS
