@@ -24,6 +24,7 @@ use crate::history::{EventCallback, EventStream, EventType, FinishGuard, History
 use crate::runtime::{matches, Failure, STATES_HEARTBEAT_TIMEOUT, STATES_TIMEOUT};
 use crate::tasks::{FunctionRef, Tasks};
 use crate::timestamp;
+use crate::versions::{Registry, Resolved};
 
 /// How an executor runs executions.
 #[derive(Clone)]
@@ -179,8 +180,9 @@ pub struct Executor {
 struct Known {
     executions: Mutex<HashMap<String, Started>>,
     listeners: Mutex<Vec<mpsc::UnboundedSender<Value>>>,
-    /// The state machines executions were started of, by ARN (for `StartExecution`).
-    machines: Mutex<HashMap<String, StateMachine>>,
+    /// The state machines executions were started of, with the versions and aliases
+    /// published of them (for `StartExecution`).
+    registry: Mutex<Registry>,
 }
 
 struct Started {
@@ -190,6 +192,9 @@ struct Started {
     start_date: OffsetDateTime,
     /// Its result once it ended.
     ended: watch::Receiver<Option<ExecutionResult>>,
+    /// The version and alias it was started through.
+    version_arn: Option<String>,
+    alias_arn: Option<String>,
 }
 
 /// An execution as `DescribeExecution` tells it.
@@ -201,10 +206,20 @@ pub struct Described {
     pub error: Option<String>,
     /// Its output, once it succeeded.
     pub output: Option<Value>,
+    /// The state machine version it runs (`stateMachineVersionArn`): `None` when it was
+    /// started through the unqualified ARN.
+    pub version_arn: Option<String>,
+    /// The alias it was started through (`stateMachineAliasArn`).
+    pub alias_arn: Option<String>,
 }
 
 impl Known {
-    /// Keeps an execution that starts, and the state machine it is of.
+    fn registry(&self) -> std::sync::MutexGuard<'_, Registry> {
+        self.registry.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Keeps an execution that starts; one started through the unqualified ARN makes its
+    /// state machine the latest revision.
     fn remember(
         &self,
         machine_arn: &str,
@@ -212,10 +227,9 @@ impl Known {
         execution_arn: &str,
         started: Started,
     ) {
-        self.machines
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert(machine_arn.to_owned(), machine.clone());
+        if started.version_arn.is_none() {
+            self.registry().revise(machine_arn, machine);
+        }
         self.executions
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
@@ -340,6 +354,8 @@ impl Executor {
                 output: end
                     .filter(|e| e.event_type == EventType::ExecutionSucceeded)
                     .and_then(|e| e.details.get("output").cloned()),
+                version_arn: started.version_arn.clone(),
+                alias_arn: started.alias_arn.clone(),
             }
         })
     }
@@ -432,13 +448,61 @@ impl Executor {
         })
     }
 
-    /// Starts an execution named `name` with `input` on the current Tokio runtime.
+    /// Starts an execution named `name` with `input` on the current Tokio runtime, through
+    /// the state machine's unqualified ARN: `state_machine` becomes its latest revision.
     pub fn start(
         &self,
         state_machine: &StateMachine,
         name: &str,
         input: Value,
     ) -> Result<Execution, StartError> {
+        self.launch(
+            Resolved {
+                machine: state_machine.clone(),
+                version_arn: None,
+                alias_arn: None,
+            },
+            name,
+            input,
+        )
+    }
+
+    /// `PublishStateMachineVersion`: `state_machine` becomes the latest revision of the state
+    /// machine of its name and a version of it. The version's ARN.
+    pub fn publish(&self, state_machine: &StateMachine) -> String {
+        let arn = self.arn("stateMachine", state_machine.name());
+        self.known.registry().publish(&arn, state_machine)
+    }
+
+    /// `CreateStateMachineAlias` or `UpdateStateMachineAlias`: `alias` names `version_arn`
+    /// from now on; executions started through it before keep their version. The alias's ARN.
+    pub fn point_alias(&self, alias: &str, version_arn: &str) -> Result<String, StartError> {
+        self.known.registry().point(alias, version_arn)
+    }
+
+    /// The version an alias names now.
+    pub fn alias_target(&self, alias_arn: &str) -> Option<String> {
+        self.known.registry().target(alias_arn)
+    }
+
+    /// Starts an execution through `arn`: a state machine's unqualified ARN (its latest
+    /// revision), a version's or an alias's (the version it names now).
+    pub fn start_arn(&self, arn: &str, name: &str, input: Value) -> Result<Execution, StartError> {
+        let resolved = self.known.registry().resolve(arn)?;
+        self.launch(resolved, name, input)
+    }
+
+    fn launch(
+        &self,
+        resolved: Resolved,
+        name: &str,
+        input: Value,
+    ) -> Result<Execution, StartError> {
+        let Resolved {
+            machine: ref state_machine,
+            version_arn,
+            alias_arn,
+        } = resolved;
         validate_name(name)?;
         let size = payload_size(&input);
         if size > self.options.max_payload_bytes {
@@ -479,12 +543,21 @@ impl Executor {
         let root = state_machine.definition.root.clone();
         tracing::info!(execution = %name, state_machine = %state_machine.name(), "execution started");
         let (ended_tx, ended) = watch::channel(None);
+        let mut started_details = json!({"input": input, "roleArn": role_arn});
+        if let Some(v) = &version_arn {
+            started_details["stateMachineVersionArn"] = json!(v);
+        }
+        if let Some(a) = &alias_arn {
+            started_details["stateMachineAliasArn"] = json!(a);
+        }
         let started = Started {
             recorder: recorder.clone(),
             cancel: cancel.clone(),
             input: input.clone(),
             start_date,
             ended,
+            version_arn,
+            alias_arn,
         };
         self.known
             .remember(&state_machine_arn, state_machine, &execution_arn, started);
@@ -493,7 +566,7 @@ impl Executor {
             run,
             root,
             input.clone(),
-            role_arn,
+            started_details,
             cancelled,
             deadline,
             execution_arn.clone(),
@@ -525,17 +598,8 @@ impl Executor {
         name: &str,
         input: Value,
     ) -> Result<Value, StartError> {
-        let machine = self
-            .known
-            .machines
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get(state_machine_arn)
-            .cloned()
-            .ok_or_else(|| StartError::StateMachineDoesNotExist {
-                arn: state_machine_arn.to_owned(),
-            })?;
-        let arn = self.execution_arn(machine.name(), name);
+        let resolved = self.known.registry().resolve(state_machine_arn)?;
+        let arn = self.execution_arn(resolved.machine.name(), name);
         let response = |start: OffsetDateTime| {
             json!({
                 "ExecutionArn": arn,
@@ -555,7 +619,7 @@ impl Executor {
             }
             None => {}
         }
-        let execution = self.start(&machine, name, input)?;
+        let execution = self.launch(resolved, name, input)?;
         let start = self
             .known
             .with(execution.arn(), |started| started.start_date)
@@ -785,7 +849,7 @@ async fn execute(
     run: Arc<Run>,
     root: Arc<Scope>,
     input: Value,
-    role_arn: String,
+    started: Value,
     mut cancelled: watch::Receiver<bool>,
     deadline: Option<Duration>,
     execution_arn: String,
@@ -793,7 +857,6 @@ async fn execute(
 ) -> ExecutionResult {
     let recorder = run.recorder.clone();
     let _finish = FinishGuard(recorder.clone());
-    let started = json!({"input": input, "roleArn": role_arn});
     let outcome = match recorder.push(0, EventType::ExecutionStarted, started) {
         Err(failure) => Err((failure, 0)),
         Ok(_) => {
@@ -1160,7 +1223,7 @@ impl Run {
         let started = tokio::time::Instant::now();
         let result = match self.invoke(task, payload, timeout).await {
             Ok(raw) if task.integration == Integration::LambdaInvoke => json!({
-                "ExecutedVersion": "$LATEST",
+                "ExecutedVersion": executed_version(&task.function.function),
                 "Payload": raw,
                 "SdkHttpMetadata": {"HttpStatusCode": 200},
                 "SdkResponseMetadata": {"RequestId": self.random.uuid_v4()},
@@ -1718,5 +1781,21 @@ fn fail_text(text: &Text, input: &Value, env: &Env<'_>) -> Result<Option<String>
         other => Err(Failure::runtime(format!(
             "The Fail state's ErrorPath/CausePath must select a string, got {other}"
         ))),
+    }
+}
+
+/// The version `lambda:invoke` reports having run: the function's qualifier, else `$LATEST`.
+fn executed_version(function: &str) -> &str {
+    let parts = function.split(':').count();
+    let qualified = if function.starts_with("arn:") {
+        parts == 8
+    } else if function.contains(":function:") {
+        parts == 4
+    } else {
+        parts == 2
+    };
+    match function.rsplit_once(':') {
+        Some((_, qualifier)) if qualified => qualifier,
+        _ => "$LATEST",
     }
 }

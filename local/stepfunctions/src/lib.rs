@@ -52,6 +52,7 @@ mod runtime;
 mod substitute;
 mod tasks;
 mod timestamp;
+mod versions;
 
 pub use callback::CallbackError;
 pub use definition::StateMachine;

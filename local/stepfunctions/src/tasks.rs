@@ -93,8 +93,9 @@ pub trait Tasks: Send + Sync + 'static {
     fn handler(&self, function: &FunctionRef) -> Option<Handler>;
 }
 
-/// Handlers by key. A Task's function is looked up by its substitution name
-/// (`IntakeFunctionArn`), then its function name (`intake`), then the full text as written.
+/// Handlers by key. A Task's function is looked up by the full text as written (a version's
+/// own handler: `arn:...:function:intake:2`), then its substitution name
+/// (`IntakeFunctionArn`), then its function name (`intake`).
 #[derive(Clone, Default)]
 pub struct TaskMap {
     handlers: HashMap<String, Handler>,
@@ -138,10 +139,9 @@ impl TaskMap {
 
 impl Tasks for TaskMap {
     fn handler(&self, function: &FunctionRef) -> Option<Handler> {
-        function
-            .substitution
-            .iter()
-            .chain([&function.name, &function.function])
+        std::iter::once(&function.function)
+            .chain(function.substitution.iter())
+            .chain([&function.name])
             .find_map(|key| self.handlers.get(key))
             .cloned()
     }
@@ -219,13 +219,14 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn a_function_is_found_by_substitution_then_name_then_text() {
+    async fn a_function_is_found_by_text_then_substitution_then_name() {
         let map = TaskMap::new()
             .with("IntakeFunctionArn", |_| async { Ok(Value::from(1)) })
             .with("monitor", |_| async { Ok(Value::from(2)) })
             .with("arn:aws:lambda:r:1:function:other", |_| async {
                 Ok(Value::from(3))
-            });
+            })
+            .with("arn:x:function:intake:2", |_| async { Ok(Value::from(4)) });
         let call = |f: FunctionRef| {
             let h = map.handler(&f);
             async move {
@@ -261,6 +262,16 @@ mod tests {
         assert_eq!(
             call(f("arn:aws:lambda:r:1:function:other", "other", None)).await,
             Some(Value::from(3))
+        );
+        assert_eq!(
+            call(f(
+                "arn:x:function:intake:2",
+                "intake",
+                Some("IntakeFunctionArn")
+            ))
+            .await,
+            Some(Value::from(4)),
+            "a version's own handler comes first"
         );
         assert_eq!(call(f("x", "x", None)).await, None);
     }

@@ -8,3 +8,4 @@ mod load;
 mod states;
 mod submission;
 mod tasks;
+mod versions;
