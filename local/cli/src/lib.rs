@@ -6,6 +6,7 @@ mod queue_report;
 mod reaper;
 mod reclaim;
 mod relay;
+mod release;
 mod report;
 mod run;
 pub mod scenario;

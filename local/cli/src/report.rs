@@ -72,6 +72,8 @@ pub struct RunReport {
     pub reaped: Vec<Value>,
     /// What the (first) run left once everything ended.
     pub left_behind: LeftBehind,
+    /// The versions the executions ran, when the alias moved during the run.
+    pub release: Option<crate::release::ReleaseReport>,
 }
 
 /// What a run left behind it.
@@ -192,6 +194,19 @@ impl RunReport {
         }
         for answer in &self.reaped {
             outln!("reaper         {answer}");
+        }
+        if let Some(release) = &self.release {
+            let ran: Vec<String> = release
+                .ran
+                .iter()
+                .map(|v| v.map_or("mixed".into(), |v| format!("version {v}")))
+                .collect();
+            outln!(
+                "release        {}; the submissions ran {} (expected {:?})",
+                release.change,
+                ran.join(", "),
+                release.expected
+            );
         }
         if let Some(queue) = &self.queue {
             // Every request took from the shared budget first: EvalAI never had to throttle.

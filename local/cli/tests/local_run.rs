@@ -91,6 +91,62 @@ fn an_unpullable_image_a_crash_loop_and_no_node_fail_with_their_reasons() {
     }
 }
 
+/// A deploy and a rollback while a run is in flight, each run continuing as a new execution
+/// after the move: the first submission finishes on the version it started on, across its
+/// continuation; the one that arrives after the move on the version the alias names; nothing
+/// is charged to any pair.
+#[test]
+#[ignore = "needs moto"]
+fn a_run_in_flight_finishes_on_its_version_across_a_deploy_and_a_rollback() {
+    let budget = lb_domain::run::history::MIN_BUDGET.to_string();
+    for (name, expected) in [("deploy", [1, 2]), ("rollback", [2, 1])] {
+        let args = [
+            "--scenario",
+            name,
+            "--route-seconds",
+            "1",
+            "--history-budget",
+            &budget,
+            "--timeout",
+            "300",
+        ];
+        let (report, _) = local_run(&args, &[]);
+        assert_eq!(report["ok"], true, "{name}: {report}");
+        assert_eq!(report["release"]["moved"], true, "{name}: {report}");
+        assert_eq!(
+            report["release"]["ran"],
+            json!(expected),
+            "{name}: {report}"
+        );
+        assert!(
+            report["executions"].as_u64() > Some(1),
+            "{name}: the first run continued: {report}"
+        );
+        assert_eq!(
+            report["queue"]["submissions"].as_array().map(Vec::len),
+            Some(2),
+            "{name}: {report}"
+        );
+        for submission in report["queue"]["submissions"].as_array().unwrap() {
+            assert_eq!(submission["status"], "finished", "{name}: {report}");
+        }
+        // Nothing lost, nothing run again, nothing left.
+        let merged = &report["merged"];
+        assert_eq!(
+            (merged["records"].as_u64(), merged["routes"].as_u64()),
+            (Some(20), Some(20)),
+            "{name}: {report}"
+        );
+        let left = &report["left_behind"];
+        assert_eq!(left["usage"]["run_again"], 0, "{name}: {report}");
+        assert_eq!(
+            (left["jobs"].as_u64(), left["places_held"].as_u64()),
+            (Some(0), Some(0)),
+            "{name}: {report}"
+        );
+    }
+}
+
 // The scenarios on the real control plane, one test each, so that they share the test
 // threads with the others rather than run one after another at the end.
 

@@ -24,6 +24,9 @@ pub const DYNAMODB_UPDATE_ITEM: &str = "aws-sdk:dynamodb:updateItem";
 /// The handler key of `ContinueAsNew` (the optimized Step Functions integration).
 pub const STATES_START_EXECUTION: &str = "states:startExecution";
 
+/// The handler key of `WhichVersion` (the AWS SDK integration's `DescribeExecution`).
+pub const SFN_DESCRIBE_EXECUTION: &str = "aws-sdk:sfn:describeExecution";
+
 /// The `WaitForChange` state's Parameters of the deployed definition as Step Functions
 /// resolves them for a submission's wait (token, execution `submission-<id>-a`), with the
 /// table named [`crate::stack::WAKE_TABLE`]: what tests write to stand for a waiting execution.
@@ -71,10 +74,47 @@ pub fn with_services(tasks: TaskMap, sdk: &SdkConfig, executor: LateCallbacks) -
             let client = client.clone();
             async move { update_item(&client, params).await }
         })
-        .with(STATES_START_EXECUTION, move |params: Value| {
+        .with(STATES_START_EXECUTION, {
             let executor = executor.clone();
-            async move { start_execution(&executor, params) }
+            move |params: Value| {
+                let executor = executor.clone();
+                async move { start_execution(&executor, params) }
+            }
         })
+        .with(SFN_DESCRIBE_EXECUTION, move |params: Value| {
+            let executor = executor.clone();
+            async move { describe_execution(&executor, &params) }
+        })
+}
+
+/// `DescribeExecution` through the AWS SDK integration: the execution's ARN, status and the
+/// version and alias it was started through (`StateMachineVersionArn`,
+/// `StateMachineAliasArn`, absent for an unqualified start, as the API leaves them out). The
+/// API's other fields (input, dates) are not played: nothing in the definition reads them.
+pub fn describe_execution(executor: &LateCallbacks, params: &Value) -> Result<Value, TaskError> {
+    let arn = params["ExecutionArn"].as_str().ok_or_else(|| {
+        TaskError::new("Sfn.InvalidArnException", "`ExecutionArn` must be a string")
+    })?;
+    let described = executor
+        .executor()
+        .and_then(|e| e.describe(arn))
+        .ok_or_else(|| {
+            TaskError::new(
+                "Sfn.ExecutionDoesNotExistException",
+                format!("Execution Does Not Exist: '{arn}'"),
+            )
+        })?;
+    let mut out = json!({
+        "ExecutionArn": arn,
+        "Status": crate::events::execution_status(described.status).as_str(),
+    });
+    if let Some(version) = described.version_arn {
+        out["StateMachineVersionArn"] = json!(version);
+    }
+    if let Some(alias) = described.alias_arn {
+        out["StateMachineAliasArn"] = json!(alias);
+    }
+    Ok(out)
 }
 
 /// `StartExecution` with the Task's parameters (`StateMachineArn`, `Name`, `Input` as JSON or

@@ -97,7 +97,10 @@ fn tasks(script: Script) -> (TaskMap, Stages) {
     let map = TaskMap::new()
         // The wake table's write: nothing wakes the wait, its timeout ends it.
         .with("aws-sdk:dynamodb:updateItem", |_| async { Ok(json!({})) })
-        // No run of these scripts continues (the continuation's own test has its handler).
+        // No run of these scripts continues (the continuation's own test has its handlers).
+        .with("aws-sdk:sfn:describeExecution", |_| async {
+            Err(TaskError::new("Sfn.SfnException", "not here"))
+        })
         .with("states:startExecution", |_| async {
             Err(TaskError::new("StepFunctions.AWSStepFunctionsException", "not here"))
         })
@@ -198,6 +201,8 @@ fn the_definition_loads_with_its_five_substitutions() {
     assert_eq!(wait, ("aws-sdk:dynamodb:updateItem".to_owned(), None));
     let start = functions.pop().unwrap();
     assert_eq!(start, ("states:startExecution".to_owned(), None));
+    let describe = functions.remove(0);
+    assert_eq!(describe, ("aws-sdk:sfn:describeExecution".to_owned(), None));
     assert_eq!(
         functions,
         ["finalize", "intake", "launch", "monitor"].map(|s| (
@@ -206,7 +211,7 @@ fn the_definition_loads_with_its_five_substitutions() {
         ))
     );
     assert_eq!(sm.start_at(), "OneSubmission?");
-    assert_eq!(sm.state_names().len(), 22);
+    assert_eq!(sm.state_names().len(), 25);
     let (all, _) = tasks(Script::default());
     let executor = Executor::new(all, options(1.0)).unwrap();
     assert!(executor.missing_tasks(&sm).is_empty());
@@ -215,7 +220,7 @@ fn the_definition_loads_with_its_five_substitutions() {
         options(1.0),
     )
     .unwrap();
-    assert_eq!(executor.missing_tasks(&sm).len(), 5);
+    assert_eq!(executor.missing_tasks(&sm).len(), 6);
     // Without the substitutions it cannot load.
     let definition: Value = serde_json::from_str(DEFINITION).unwrap();
     let err = StateMachine::load(&definition, &HashMap::new()).unwrap_err();
@@ -551,6 +556,25 @@ fn continuing_tasks(
         }
         async move { Ok(run) }
     })
+    .with("aws-sdk:sfn:describeExecution", {
+        let executor = executor.clone();
+        move |params: Value| {
+            // DescribeExecution as the SDK integration answers: the version only when the
+            // execution was started through one.
+            let described = executor
+                .get()
+                .and_then(|e| e.describe(params["ExecutionArn"].as_str().unwrap_or_default()));
+            async move {
+                let described = described.ok_or_else(|| {
+                    TaskError::new("Sfn.ExecutionDoesNotExistException", "no such execution")
+                })?;
+                Ok(match described.version_arn {
+                    Some(v) => json!({"StateMachineVersionArn": v}),
+                    None => json!({}),
+                })
+            }
+        }
+    })
     .with("states:startExecution", move |params: Value| {
         let executor = executor.clone();
         async move {
@@ -574,7 +598,12 @@ async fn a_long_run_continues_as_new_executions_of_the_same_state_machine() {
     let bound = Arc::new(std::sync::OnceLock::new());
     let executor = Executor::new(continuing_tasks(3, 8, bound.clone()), options(0.001)).unwrap();
     bound.set(executor.clone()).unwrap();
-    let first = executor.start(&machine(), "sub-99", pipe_batch()).unwrap();
+    // Started through an alias, as the Pipe starts it; a deploy moves the alias on at once.
+    let v1 = executor.publish(&machine());
+    let live = executor.point_alias("live", &v1).unwrap();
+    let first = executor.start_arn(&live, "sub-99", pipe_batch()).unwrap();
+    let v2 = executor.publish(&machine());
+    executor.point_alias("live", &v2).unwrap();
     let mut result = first.wait().await;
     let mut chain = vec![result.clone()];
     while let Some(next) = result
@@ -602,6 +631,11 @@ async fn a_long_run_continues_as_new_executions_of_the_same_state_machine() {
         );
     }
     assert!(chain[2].execution_arn.ends_with(":submission:sub-99-c2"));
+    // Every continuation ran the version the run started on, not the one deployed since.
+    for r in &chain {
+        let described = executor.describe(&r.execution_arn).unwrap();
+        assert_eq!(described.version_arn.as_deref(), Some(v1.as_str()));
+    }
     // Each earlier one ends in `Continued` with StartExecution's answer as its output.
     for r in &chain[..2] {
         assert_eq!(r.states_entered().last(), Some(&"Continued"));

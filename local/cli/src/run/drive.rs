@@ -81,22 +81,25 @@ impl Watch {
     }
 }
 
-/// Starts an execution per arrival, all at once, as EvalAI's messages come: each one's place
-/// in the queue is when EvalAI received it (`submitted_at`), the order of `arrivals`.
+/// Starts an execution per arrival of `which`, all at once, as EvalAI's messages come,
+/// through `through` (the alias, as the Pipe starts them): each one's place in the queue is
+/// when EvalAI received it (`submitted_at`), the order of `arrivals`.
 pub(super) async fn start(
     stack: &Stack,
     executor: &Executor,
     sent: &Arrivals,
+    which: std::ops::Range<usize>,
+    through: &str,
     started: Instant,
 ) -> anyhow::Result<Vec<(u64, u64, Execution)>> {
     let Arrivals {
         challenge,
         phase,
         image,
-        each: ref arrivals,
+        ref each,
         teams,
     } = *sent;
-    let machine = machine()?;
+    let arrivals = &each[which];
     let mut executions = Vec::new();
     for (id, team) in arrivals {
         let input = sqs_round_trip(stack, challenge, phase, *id, image).await?;
@@ -107,11 +110,11 @@ pub(super) async fn start(
             );
         }
         let execution = executor
-            .start(&machine, &format!("local-{id}"), input)
+            .start_arn(through, &format!("local-{id}"), input)
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         executions.push((*id, *team, execution));
     }
-    if arrivals.len() > 1 {
+    if each.len() > 1 && !arrivals.is_empty() {
         let count = arrivals.len();
         say(
             started,

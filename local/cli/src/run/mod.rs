@@ -4,13 +4,14 @@
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::bail;
 use clap::Args;
 use lb_domain::results::Leaderboard;
 use local_stack::events::LateCallbacks;
 
+use crate::release::{Release, ALIAS};
 use crate::scenario::{Rehearsal, Scenario};
 use crate::wiring::Handlers;
 use cli::outln;
@@ -24,6 +25,8 @@ use drive::*;
 use inspect::*;
 use outcome::*;
 use setup::*;
+
+pub(crate) use setup::machine;
 
 /// The deployed definition, embedded so `lbctl` runs from anywhere.
 const DEFINITION: &str = include_str!("../../../../statemachine/submission.asl.json");
@@ -159,11 +162,15 @@ pub async fn run(args: LocalRun) -> anyhow::Result<u8> {
     Ok(stopped_by.1)
 }
 
-async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
+async fn run_to_end(mut args: LocalRun) -> anyhow::Result<u8> {
+    let scenario: Arc<dyn Rehearsal> = Arc::from(args.scenario.rehearsal());
+    // A release needs a submission on each side of the move.
+    if scenario.release().is_some() && args.teams.is_empty() {
+        args.submissions = args.submissions.max(2);
+    }
     check(&args)?;
     let teams = team_sizes(&args)?;
     let started = Instant::now();
-    let scenario: Arc<dyn Rehearsal> = Arc::from(args.scenario.rehearsal());
     let (stack, settings, kubeconfig) = set_up(&args, &*scenario, teams.len(), started).await?;
     let arrivals = submissions(&args, &stack, &teams, scenario.image())?;
     // The first is the one the summary describes in detail (and the scenarios act on).
@@ -207,11 +214,27 @@ async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
         !args.no_wake,
     )
     .await?;
-    let executions = start(&stack, &executor, &arrivals, started).await?;
+    // Published and started through the alias, as the deployment does; a release scenario
+    // holds the later submissions back until it moved the alias.
+    let release = Release::publish(&executor, scenario.release())?;
+    let count = arrivals.each.len();
+    let first = if release.moves() { 1 } else { count };
+    let live = release.live.clone();
+    let mut executions = start(&stack, &executor, &arrivals, 0..first, &live, started).await?;
     reaper.schedule(scaled, executions[0].2.arn())?;
     scenario.started(&executor, executions[0].2.arn(), &watch.rounds, &acted);
+    let mut moved = false;
+    if release.moves() {
+        let within = Duration::from_secs(args.timeout);
+        moved = release
+            .switch_after_first_round(&executor, executions[0].2.arn(), within)
+            .await?;
+        say(started, format!("the alias `{ALIAS}` moved: {moved}"));
+        executions.extend(start(&stack, &executor, &arrivals, first..count, &live, started).await?);
+    }
     let record = args.record_states.as_deref();
     let (mut results, chains) = wait_all(&executor, executions, record, started).await?;
+    let release = release.check(&results, moved);
     let reaped = reaper.collect(ended_without_finalize(&results)).await;
     let ended = Instant::now();
     let bucket = settings_bucket(&settings, args.leaderboard);
@@ -235,6 +258,7 @@ async fn run_to_end(args: LocalRun) -> anyhow::Result<u8> {
         times: (started, ended),
         expected: scenario.expected(),
         audit_passes: scenario.audit_passes(),
+        release,
     };
     let (report, latency) = ran.report(&evalai).await;
     finish(&args, &stack, &report, latency.as_ref(), many, &kubeconfig).await

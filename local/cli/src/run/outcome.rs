@@ -30,6 +30,8 @@ pub(super) struct Ran<'a> {
     pub(super) reaped: Vec<Value>,
     pub(super) logs: &'a [String],
     pub(super) findings: Findings,
+    /// How the executions matched their versions (the deploy and rollback scenarios).
+    pub(super) release: Option<crate::release::ReleaseReport>,
     pub(super) watch: &'a Watch,
     /// The scenario did its act (or had none).
     pub(super) acted: bool,
@@ -118,7 +120,11 @@ impl Ran<'_> {
             && audit_as_expected(expected, &left, self.audit_passes)
             && queue
                 .as_ref()
-                .is_none_or(|q| !many || q.all_ended(expected));
+                .is_none_or(|q| !many || q.all_ended(expected))
+            && self
+                .release
+                .as_ref()
+                .is_none_or(crate::release::ReleaseReport::as_expected);
         let result = &self.result;
         let (started, ended) = self.times;
         let report = RunReport {
@@ -173,6 +179,7 @@ impl Ran<'_> {
             queue,
             reaped: self.reaped,
             left_behind: left,
+            release: self.release,
         };
         (report, latency)
     }

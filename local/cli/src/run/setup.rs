@@ -311,21 +311,25 @@ pub(super) fn pace(args: &LocalRun) -> Pace {
     }
 }
 
-/// The deployed state machine, its function ARNs and wake table filled in.
-pub(super) fn machine() -> anyhow::Result<StateMachine> {
+/// The deployed state machine as `make deploy` publishes it: version `version`'s definition,
+/// naming that version of each function, and the wake table.
+pub(crate) fn machine(version: u32) -> anyhow::Result<StateMachine> {
     let mut substitutions: HashMap<String, String> = ["Intake", "Launch", "Monitor", "Finalize"]
         .iter()
         .map(|f| {
             let arn = format!(
-                "arn:aws:lambda:us-east-1:123456789012:function:{}",
+                "arn:aws:lambda:us-east-1:123456789012:function:{}:{version}",
                 f.to_lowercase()
             );
             (format!("{f}FunctionArn"), arn)
         })
         .collect();
     substitutions.insert("WakeTable".into(), WAKE_TABLE.into());
-    StateMachine::load(&serde_json::from_str(DEFINITION)?, &substitutions)
-        .map_err(|e| anyhow::anyhow!("{e}"))
+    Ok(
+        StateMachine::load(&serde_json::from_str(DEFINITION)?, &substitutions)
+            .map_err(|e| anyhow::anyhow!("{e}"))?
+            .with_name("submission"),
+    )
 }
 
 /// Each team's number of submissions, checked against --submissions.

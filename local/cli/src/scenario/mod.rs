@@ -16,6 +16,7 @@ mod hang;
 mod happy;
 mod no_node;
 mod plant_gpu;
+mod release;
 mod spot;
 mod stop;
 mod unpullable;
@@ -110,6 +111,15 @@ pub enum Scenario {
     /// EvalAI is back the reaper's scheduled pass deletes the Jobs, gives the place back and
     /// tells EvalAI `failed`.
     EvalaiDown,
+    /// A deploy mid-run: once the first submission's Monitor ended a round, a new state
+    /// machine version (naming new function versions) is published and the `live` alias moves
+    /// to it; a second submission then arrives. The first runs to its end, across its
+    /// continuations, on the version it started on; the second on the new one. Both FINISHED.
+    Deploy,
+    /// A rollback mid-run: the first submission starts on version 2; after its first round the
+    /// alias moves back to version 1 and a second submission arrives. The first finishes on
+    /// version 2, the second on version 1. Both FINISHED.
+    Rollback,
 }
 
 impl Scenario {
@@ -136,6 +146,8 @@ impl Scenario {
             Scenario::EvalaiDown => Box::new(evalai_down::EvalAiDown::default()),
             Scenario::DrainLoop => Box::new(drain_loop::DrainLoop::default()),
             Scenario::DiskHog => Box::new(disk_hog::DiskHog),
+            Scenario::Deploy => Box::new(release::Release(crate::release::Move::Deploy)),
+            Scenario::Rollback => Box::new(release::Release(crate::release::Move::Rollback)),
         }
     }
 }
@@ -233,6 +245,11 @@ pub trait Rehearsal: Send + Sync {
     /// Whether it acts during the run: the run is as expected only once it did.
     fn acts(&self) -> bool {
         false
+    }
+
+    /// What moves the state machine's alias during the run (a deploy, a rollback).
+    fn release(&self) -> Option<crate::release::Move> {
+        None
     }
 
     /// Before the executions start.
