@@ -84,6 +84,41 @@ def _zip(directory):
     return buf.getvalue()
 
 
+# What moto's CloudFormation does not model: it fails on a Ref to them. For moto only, the
+# resource is left out and each Ref to one becomes an ARN moto knows: a function's alias its
+# function's (moto has no alias to invoke), a state machine's alias or version its ARN so
+# qualified. The test asserts they are declared, and what moto created.
+UNMODELLED = {"AWS::Lambda::Alias", "AWS::StepFunctions::StateMachineVersion",
+              "AWS::StepFunctions::StateMachineAlias"}
+
+
+def for_moto(template):
+    resources = template["Resources"]
+    skipped = {k: v for k, v in resources.items() if v["Type"] in UNMODELLED}
+
+    def arn(logical):
+        props = skipped[logical]["Properties"]
+        if skipped[logical]["Type"] == "AWS::Lambda::Alias":
+            return {"Fn::GetAtt": [props["FunctionName"]["Ref"], "Arn"]}
+        if skipped[logical]["Type"] == "AWS::StepFunctions::StateMachineAlias":
+            version = props["DeploymentPreference"]["StateMachineVersionArn"]["Ref"]
+            machine = skipped[version]["Properties"]["StateMachineArn"]
+            return {"Fn::Join": [":", [machine, props["Name"]]]}
+        return {"Fn::Join": [":", [props["StateMachineArn"], "1"]]}
+
+    def walk(node):
+        if isinstance(node, dict):
+            if set(node) == {"Ref"} and node["Ref"] in skipped:
+                return arn(node["Ref"])
+            return {k: walk(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [walk(v) for v in node]
+        return node
+
+    kept = {k: v for k, v in resources.items() if k not in skipped}
+    return {**template, "Resources": walk(kept), "Outputs": walk(template.get("Outputs", {}))}
+
+
 def translated(path, parameters, s3=None):
     template = package(load(path), os.path.dirname(os.path.abspath(path)), s3)
     return transform(template, parameters, NoManagedPolicies())
@@ -105,7 +140,7 @@ def main(argv):
     cfn = boto3.client("cloudformation")
     cfn.create_stack(
         StackName=stack,
-        TemplateBody=json.dumps(body),
+        TemplateBody=json.dumps(for_moto(body)),
         Parameters=[{"ParameterKey": k, "ParameterValue": v} for k, v in parameters.items()],
         Capabilities=["CAPABILITY_IAM", "CAPABILITY_AUTO_EXPAND"],
     )
