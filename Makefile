@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv lint-venv real-kube kubernetes-support test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function cluster cluster-manifests
+.PHONY: help venv lint-venv real-kube kubernetes-support test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function rollback cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -145,17 +145,23 @@ deploy: build $(DEPLOY_TOOLS) ## Build the bootstraps and deploy infra/app.yaml 
 		--parameter-overrides Architecture=$(if $(filter arm64,$(LAMBDA_ARCH)),arm64,x86_64) $(PARAMS)
 
 # One function's code, nothing else: cargo lambda deploy to the function the stack created (its
-# name from the stack's outputs), which changes no setting the template owns. BOOTSTRAP=<file>
-# ships that binary instead of building one (the offline test uses it).
+# name from the stack's outputs), which changes no setting the template owns, publishes a
+# version and moves the function's `live` alias to it; then, for a function the state machine
+# invokes, `lbctl ship` publishes a state machine version naming it and moves that alias too.
+# BOOTSTRAP=<file> ships that binary instead of building one (the offline test uses it).
 STACK ?= leaderboard
+ALIAS := live
+SM_FUNCTIONS := intake launch monitor finalize
 FN_OUTPUT = $(shell printf '%s' '$(FN)' | sed 's/^./\U&/')FunctionName
 FN_BOOTSTRAP = $(or $(BOOTSTRAP),$(TARGET_DIR)/lambda/$(FN)/bootstrap)
 FN_ARCH = $(if $(filter arm64,$(LAMBDA_ARCH)),arm64,x86_64)
-deploy-function: $(LAMBDA_TOOLS) $(DEPLOY_TOOLS) ## Ship FN=<name>'s new code to STACK's function with cargo lambda deploy (code only; template changes: make deploy)
+STACK_OUTPUT = $(AWS_CLI) cloudformation describe-stacks --stack-name $(STACK) \
+	--query "Stacks[0].Outputs[?OutputKey=='$(1)'].OutputValue" --output text
+deploy-function: $(LAMBDA_TOOLS) $(DEPLOY_TOOLS) own-cache ## Ship FN=<name>'s new code to STACK's function as a new version, and the state machine version that runs it (code only; template changes: make deploy)
 	@case " $(FUNCTIONS) " in *" $(FN) "*) ;; *) echo "FN must be one of: $(FUNCTIONS)" >&2; exit 2;; esac
 	$(if $(BOOTSTRAP),,PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda build --release --$(LAMBDA_ARCH) -p $(FN))
-	@name=$$($(AWS_CLI) cloudformation describe-stacks --stack-name $(STACK) \
-		--query "Stacks[0].Outputs[?OutputKey=='$(FN_OUTPUT)'].OutputValue" --output text) || exit 1; \
+	$(CARGO) build --quiet -p cli --bin lbctl
+	@name=$$($(call STACK_OUTPUT,$(FN_OUTPUT))) || exit 1; \
 	if [ -z "$$name" ] || [ "$$name" = None ]; then \
 		echo "stack $(STACK) has no output $(FN_OUTPUT): run make deploy first" >&2; exit 1; fi; \
 	arch=$$($(AWS_CLI) lambda get-function-configuration --function-name "$$name" \
@@ -163,7 +169,36 @@ deploy-function: $(LAMBDA_TOOLS) $(DEPLOY_TOOLS) ## Ship FN=<name>'s new code to
 	if [ "$$arch" != "$(FN_ARCH)" ]; then \
 		echo "$$name runs on $$arch but LAMBDA_ARCH=$(LAMBDA_ARCH) builds $(FN_ARCH)" >&2; exit 1; fi; \
 	echo "$(FN) -> $$name"; \
-	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda deploy --binary-path $(FN_BOOTSTRAP) "$$name"
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda deploy --binary-path $(FN_BOOTSTRAP) --alias $(ALIAS) "$$name" || exit 1; \
+	version=$$($(AWS_CLI) lambda get-alias --function-name "$$name" --name $(ALIAS) \
+		--query FunctionVersion --output text) || exit 1; \
+	arn=$$($(AWS_CLI) lambda get-function-configuration --function-name "$$name" \
+		--qualifier "$$version" --query FunctionArn --output text) || exit 1; \
+	echo "$(FN): $(ALIAS) -> version $$version"; \
+	case " $(SM_FUNCTIONS) " in *" $(FN) "*) \
+		machine=$$($(call STACK_OUTPUT,StateMachineAliasArn)) || exit 1; \
+		$(TARGET_DIR)/debug/lbctl ship --state-machine "$$machine" --function-version "$$arn";; esac
+
+# The state machine's alias back one version (TO=<n>: to that one); FN=<name>: that function's
+# alias back one version instead (the wake, the sweep and the reaper's Finalize run through it).
+rollback: $(DEPLOY_TOOLS) own-cache ## Point STACK's live alias back (state machine; FN=<name>: a function's): new submissions start there, runs in flight finish where they are
+	@if [ -n "$(FN)" ]; then \
+		case " $(FUNCTIONS) " in *" $(FN) "*) ;; *) echo "FN must be one of: $(FUNCTIONS)" >&2; exit 2;; esac; \
+		name=$$($(call STACK_OUTPUT,$(FN_OUTPUT))) || exit 1; \
+		now=$$($(AWS_CLI) lambda get-alias --function-name "$$name" --name $(ALIAS) \
+			--query FunctionVersion --output text) || exit 1; \
+		to=$${TO:-$$($(AWS_CLI) lambda list-versions-by-function --function-name "$$name" \
+			--query 'Versions[].Version' --output text | tr '\t' '\n' | grep -E '^[0-9]+$$' \
+			| awk -v now="$$now" '$$1 < now' | sort -n | tail -1)}; \
+		if [ -z "$$to" ]; then echo "$$name: no version before $$now" >&2; exit 1; fi; \
+		$(AWS_CLI) lambda update-alias --function-name "$$name" --name $(ALIAS) \
+			--function-version "$$to" --query FunctionVersion --output text >/dev/null || exit 1; \
+		echo "$$name: $(ALIAS) $$now -> $$to"; \
+	else \
+		$(CARGO) build --quiet -p cli --bin lbctl; \
+		machine=$$($(call STACK_OUTPUT,StateMachineAliasArn)) || exit 1; \
+		$(TARGET_DIR)/debug/lbctl rollback --state-machine "$$machine" $(if $(TO),--to $(TO)); \
+	fi
 
 cluster: $(DEPLOY_TOOLS) ## Deploy infra/cluster.yaml for LEADERBOARD=10|20 (PARAMS="K=V ..." overrides)
 	$(AWS_CLI) cloudformation deploy --template-file infra/cluster.yaml --stack-name $(CLUSTER_STACK) \

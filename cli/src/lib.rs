@@ -14,6 +14,7 @@ mod ops;
 mod plugin;
 mod rescore;
 mod support;
+mod versions;
 mod watch;
 
 use clap::{Parser, Subcommand};
@@ -138,6 +139,12 @@ pub enum Command {
     /// Say where the clusters' Kubernetes minor stands in EKS's standard support (exit 1
     /// within 60 days of its end, past it, or when no date is known).
     KubernetesSupport(support::KubernetesSupport),
+    /// Ship one function's new version: publish a state machine version naming it and move
+    /// the `live` alias there (`make deploy-function` runs it). Running executions keep theirs.
+    Ship(versions::Ship),
+    /// Move the state machine's `live` alias back to an earlier version: new submissions start
+    /// there, executions running on the later one finish on it.
+    Rollback(versions::Rollback),
 }
 
 /// Runs a parsed command line; returns the process exit code. Errors of the operator commands
@@ -157,6 +164,8 @@ pub async fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Submit(args) => executions::submit(args).await?,
         Command::Resume(args) => executions::resume(args).await?,
         Command::Rescore(args) => rescore::rescore(args).await?,
+        Command::Ship(args) => versions::ship(args).await?,
+        Command::Rollback(args) => versions::rollback(args).await?,
         Command::Logs(args) => logs::logs(args).await?,
         Command::Watch(args) => watch::watch(args).await?,
         Command::KubernetesSupport(args) => support::run(args)?,

@@ -828,3 +828,119 @@ async fn release_gives_back_a_leaked_place_after_its_id_is_typed_back() {
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
     assert!(holders().await.is_empty());
 }
+
+/// The deployed definition's shape as far as a release goes: two functions at version 1.
+fn versioned_definition() -> Value {
+    let function = |name: &str| format!("arn:aws:lambda:us-east-1:123456789012:function:{name}:1");
+    json!({"StartAt": "Intake", "States": {
+        "Intake": {"Type": "Task", "Resource": function("lb-intake"), "Next": "Monitor"},
+        "Monitor": {"Type": "Task", "Resource": function("lb-monitor"), "End": true}
+    }})
+}
+
+/// The version the alias routes to, and that version's definition.
+async fn alias_target(sfn: &aws_sdk_sfn::Client, alias: &str) -> (String, Value) {
+    let described = sfn
+        .describe_state_machine_alias()
+        .state_machine_alias_arn(alias)
+        .send()
+        .await
+        .unwrap();
+    let routes = described.routing_configuration();
+    assert_eq!(routes.len(), 1);
+    assert_eq!(routes[0].weight(), 100);
+    let version = routes[0].state_machine_version_arn().to_owned();
+    let definition = sfn
+        .describe_state_machine()
+        .state_machine_arn(&version)
+        .send()
+        .await
+        .unwrap()
+        .definition;
+    (version, serde_json::from_str(&definition).unwrap())
+}
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn ship_publishes_a_version_naming_the_function_s_and_rollback_moves_the_alias_back() {
+    let (stack, mut env) = common::stack(Fixture::default()).await;
+    let sfn = aws_sdk_sfn::Client::new(&stack.sdk);
+    let created = sfn
+        .create_state_machine()
+        .name("submission")
+        .definition(versioned_definition().to_string())
+        .role_arn("arn:aws:iam::123456789012:role/leaderboard-states")
+        .publish(true)
+        .send()
+        .await
+        .unwrap();
+    let v1 = created.state_machine_version_arn().unwrap().to_owned();
+    let route = aws_sdk_sfn::types::RoutingConfigurationListItem::builder()
+        .state_machine_version_arn(&v1)
+        .weight(100)
+        .build()
+        .unwrap();
+    let alias = sfn
+        .create_state_machine_alias()
+        .name("live")
+        .routing_configuration(route)
+        .send()
+        .await
+        .unwrap()
+        .state_machine_alias_arn;
+    env.push(("LB_STATE_MACHINE_ARN", alias.clone()));
+
+    let intake_2 = "arn:aws:lambda:us-east-1:123456789012:function:lb-intake:2";
+    let out = lbctl(&["ship", "--function-version", intake_2], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let (v2, definition) = alias_target(&sfn, &alias).await;
+    assert_ne!(v2, v1, "{}", show(&out));
+    assert_eq!(definition["States"]["Intake"]["Resource"], intake_2);
+    assert_eq!(
+        definition["States"]["Monitor"]["Resource"],
+        versioned_definition()["States"]["Monitor"]["Resource"],
+        "only the shipped function changed"
+    );
+    assert!(
+        stdout(&out).contains("executions already running stay on"),
+        "{}",
+        show(&out)
+    );
+    // Shipped twice: nothing new. A function no state invokes: refused, the alias unmoved.
+    let out = lbctl(&["ship", "--function-version", intake_2], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert!(stdout(&out).contains("nothing to ship"), "{}", show(&out));
+    let wake = "arn:aws:lambda:us-east-1:123456789012:function:lb-wake:3";
+    let out = lbctl(&["ship", "--function-version", wake], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("no state of the definition invokes `lb-wake`"),
+        "{}",
+        show(&out)
+    );
+    assert_eq!(alias_target(&sfn, &alias).await.0, v2);
+
+    // Rolling back: the alias names version 1 again; there is nothing before it.
+    let out = lbctl(&["rollback"], &env, None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    assert_eq!(alias_target(&sfn, &alias).await.0, v1);
+    let out = lbctl(&["rollback"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("nothing to roll back to"),
+        "{}",
+        show(&out)
+    );
+    // Forward again is a rollback's undo: `--to` names only earlier versions.
+    let out = lbctl(&["rollback", "--to", "2"], &env, None);
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    // The unqualified ARN is not the alias's.
+    let machine = created.state_machine_arn;
+    let out = lbctl(&["rollback", "--state-machine", &machine], &env, None);
+    assert_eq!(out.status.code(), Some(2), "{}", show(&out));
+    assert!(
+        stderr(&out).contains("StateMachineAliasArn"),
+        "{}",
+        show(&out)
+    );
+}

@@ -480,22 +480,82 @@ fn function_state(moto: &MotoServer, name: &str) -> Value {
     serde_json::from_str(&out).unwrap()
 }
 
-/// `make deploy-function` in the repository, against moto.
-fn deploy_function(moto: &MotoServer, args: &[&str]) -> std::process::Output {
+/// Sets up (before) what a real deploy's aliases and versions are, on moto.
+const RELEASE_SET_UP: &str = r#"
+import boto3, json, sys
+outputs = json.loads(sys.argv[1]); definition = open(sys.argv[2]).read()
+l = boto3.client('lambda'); sfn = boto3.client('stepfunctions')
+published = {}
+for f in ['Intake', 'Launch', 'Monitor', 'Finalize']:
+    name = outputs[f + 'FunctionName']
+    version = l.publish_version(FunctionName=name)['Version']
+    published[f.lower()] = int(version)
+    l.create_alias(FunctionName=name, Name='live', FunctionVersion=version)
+    arn = l.get_function_configuration(FunctionName=name, Qualifier=version)['FunctionArn']
+    definition = definition.replace('${' + f + 'FunctionArn}', arn)
+definition = definition.replace('${WakeTable}', 'wakes')
+machine = outputs['StateMachineArn']
+v = sfn.update_state_machine(stateMachineArn=machine, definition=definition, publish=True)
+alias = sfn.create_state_machine_alias(name='live', routingConfiguration=[
+    {'stateMachineVersionArn': v['stateMachineVersionArn'], 'weight': 100}])
+assert alias['stateMachineAliasArn'] == outputs['StateMachineAliasArn'], alias
+print(json.dumps(published))
+"#;
+
+/// Reads (after) where the aliases stand: intake's version, the definition's resources.
+const RELEASE_READ: &str = r#"
+import boto3, json, sys
+outputs = json.loads(sys.argv[1])
+l = boto3.client('lambda'); sfn = boto3.client('stepfunctions')
+name = outputs['IntakeFunctionName']
+version = l.get_alias(FunctionName=name, Name='live')['FunctionVersion']
+alias = sfn.describe_state_machine_alias(stateMachineAliasArn=outputs['StateMachineAliasArn'])
+target = alias['routingConfiguration'][0]['stateMachineVersionArn']
+states = json.loads(sfn.describe_state_machine(stateMachineArn=target)['definition'])['States']
+print(json.dumps({
+    'intake': int(version),
+    'intake_arn': l.get_function_configuration(FunctionName=name)['FunctionArn'],
+    'machine_version': target,
+    'first_version': outputs['StateMachineArn'] + ':1',
+    'resources': {k: s.get('Resource') for k, s in states.items() if s['Type'] == 'Task'},
+}))
+"#;
+
+/// `script` (set up or read) with the stack's outputs, on moto; what it printed, as JSON.
+fn release_state(moto: &MotoServer, script: &str, outputs: &Value) -> Value {
+    let definition = root().join("statemachine/submission.asl.json");
+    let out = run(moto_env(
+        Command::new(venv_tool("python"))
+            .args(["-c", script, &outputs.to_string()])
+            .arg(definition),
+        moto,
+    ));
+    let last = out.lines().last().unwrap_or_default();
+    serde_json::from_str(last).unwrap_or_else(|e| panic!("{e}: {out}"))
+}
+
+/// `make <target>` in the repository, against moto.
+fn make(moto: &MotoServer, target: &str, args: &[&str]) -> std::process::Output {
     moto_env(Command::new("make").current_dir(root()), moto)
         .arg("--no-print-directory")
-        .arg("deploy-function")
+        .arg(target)
         .args(args)
         .output()
         .expect("make runs")
 }
 
-/// `make deploy-function FN=intake` ships new code to the function the stack created and
-/// changes nothing the template owns. Moto's Lambda stores functions without running them, so
+/// `make deploy-function` in the repository, against moto.
+fn deploy_function(moto: &MotoServer, args: &[&str]) -> std::process::Output {
+    make(moto, "deploy-function", args)
+}
+
+/// `make deploy-function FN=intake` ships new code to the function the stack created as a new
+/// version, and the state machine version naming it, changing nothing the template owns; `make
+/// rollback` moves both aliases back. Moto's Lambda stores functions without running them, so
 /// the function's own debug binary stands for the release bootstrap `make build` would give.
 #[test]
 #[ignore = "needs moto and the venvs"]
-fn deploy_function_ships_code_only_to_the_stacks_function() {
+fn deploy_function_ships_a_version_of_code_only_and_rollback_moves_the_aliases_back() {
     let moto = MotoServer::start().expect("moto starts");
     let report = deploy(&moto, "leaderboard", &["EvalAiAccountId=210987654321"]);
     assert_eq!(report["status"], "CREATE_COMPLETE");
@@ -513,6 +573,11 @@ fn deploy_function_ships_code_only_to_the_stacks_function() {
         .as_str()
         .expect("the stack names the function");
     let before = function_state(&moto, name);
+    // What CloudFormation's deploy leaves and moto's does not make (`cfn.py`): each function's
+    // version 1 and `live` alias, the state machine's definition naming those versions as a
+    // published version, and its `live` alias. The output StateMachineAliasArn names it.
+    let released = release_state(&moto, RELEASE_SET_UP, &outputs);
+    assert_eq!(released["intake"], 1, "{released}");
 
     // This test runs from `<target>/debug/deps/`; the function's binary lands in `<target>/debug/`.
     let exe = std::env::current_exe().unwrap();
@@ -554,6 +619,42 @@ fn deploy_function_ships_code_only_to_the_stacks_function() {
     );
     assert!(settings(b).contains_key("Role") && settings(b).contains_key("Environment"));
     assert_eq!(before["tags"], after["tags"]);
+    // Shipped as a version: the function's alias and the state machine's moved to it; the
+    // other functions' versions stand.
+    let released = release_state(&moto, RELEASE_READ, &outputs);
+    let shipped = released["intake"].as_u64().unwrap();
+    assert!(shipped > 1, "{released}\n{text}");
+    assert_eq!(
+        released["resources"]["Intake"],
+        format!("{}:{shipped}", released["intake_arn"].as_str().unwrap()),
+        "{released}"
+    );
+    assert!(
+        released["resources"]["Monitor"]
+            .as_str()
+            .unwrap()
+            .ends_with(":1"),
+        "{released}"
+    );
+    assert_ne!(
+        released["machine_version"], released["first_version"],
+        "{released}"
+    );
+    // `make rollback`: the state machine's alias back to the version before; with FN, that
+    // function's alias.
+    for args in [&[][..], &["FN=intake"][..]] {
+        let out = make(&moto, "rollback", args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let back = release_state(&moto, RELEASE_READ, &outputs);
+    assert_eq!(back["machine_version"], back["first_version"], "{back}");
+    assert_eq!(back["intake"], 1, "{back}");
+    let refused = make(&moto, "rollback", &["FN=intake"]);
+    assert!(!refused.status.success(), "nothing before version 1");
 
     // Refused before anything is shipped: an unknown function, a build for the other
     // architecture, a stack that does not exist.
