@@ -8,7 +8,7 @@ VENV := .venv
 VENV_STAMP := $(VENV)/.installed
 CARGO ?= cargo
 
-.PHONY: help venv lint-venv real-kube kubernetes-support test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function rollback cluster cluster-manifests
+.PHONY: help venv lint-venv real-kube rehearse-upgrade kubernetes-support test test-unit lint fmt bench build clean sidecar bench-sidecar bench-latency bench-scale local bench-stack bench-functions deploy deploy-function rollback cluster cluster-manifests
 
 help: ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -40,14 +40,15 @@ kubectl: ## Install kubectl (Debian's kubernetes-client) when it is missing
 # lays it out); a clone alone skips them by name, and says so.
 SHARED_SKIP := $(if $(wildcard ../shared/fixtures),,--skip _when_it_is_beside_the_repository)
 
-real-kube: kubectl ## Build the pinned real Kubernetes control plane the tests hold local-kube to (cached outside the clone)
+real-kube: kubectl ## Build the pinned real Kubernetes control plane the tests hold local-kube to, and the release one minor up its upgrade rehearsal moves to (cached outside the clone)
 	bash local/realkube/build.sh
+	bash local/realkube/build.sh --upgrade
 
 # Test binaries run side by side: most of their time is spent waiting on the processes they start.
 TEST_JOBS ?= 3
 test: venv lint-venv kubectl own-cache ## The whole suite, emulator tests included, TEST_JOBS (3) test binaries at a time (README's and CI's command)
 	@$(if $(SHARED_SKIP),echo "no shared set beside the repository: the kept copies are not compared",:)
-	CARGO=$(CARGO) $(PYTHON) tests/suite.py --jobs $(TEST_JOBS) --beside 'bash local/realkube/build.sh >/dev/null' -- --include-ignored $(SHARED_SKIP)
+	CARGO=$(CARGO) $(PYTHON) tests/suite.py --jobs $(TEST_JOBS) --beside 'bash local/realkube/build.sh >/dev/null && bash local/realkube/build.sh --upgrade >/dev/null' -- --include-ignored $(SHARED_SKIP)
 	$(CARGO) test --workspace --doc
 
 test-unit: own-cache ## Tests that need nothing but cargo (what plain `cargo test` runs)
@@ -212,6 +213,10 @@ cluster-manifests: $(DEPLOY_TOOLS) ## Apply infra/k8s/ to LEADERBOARD's cluster 
 	for f in namespace rbac network-policy nvidia-device-plugin cluster-autoscaler; do \
 		sed -e "s|\$${CLUSTER_NAME}|leaderboard-$(LEADERBOARD)|g" -e "s|\$${AUTOSCALER_ROLE_ARN}|$$role|g" \
 			infra/k8s/$$f.yaml | kubectl apply -f -; done
+
+rehearse-upgrade: venv real-kube own-cache ## The Kubernetes upgrade with an evaluation in flight, on the real control plane: the control plane one minor up, then the GPU node group replaced (docs/operations.md)
+	$(CARGO) build --quiet --workspace --bins
+	$(TARGET_DIR)/debug/lbctl local run --kube real --scenario upgrade $(ARGS)
 
 kubernetes-support: own-cache ## Where the clusters' Kubernetes minor stands in EKS's standard support (exit 1 within 60 days of its end)
 	$(CARGO) run --quiet -p cli --bin lbctl -- kubernetes-support

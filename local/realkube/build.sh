@@ -7,6 +7,7 @@
 # beside everything else) waits for the first, bounded, then finds the binaries built.
 #
 #   local/realkube/build.sh            (prints the folder holding the binaries)
+#   local/realkube/build.sh --upgrade  (the same for the release one minor up)
 #
 # The pins live in local/realkube/versions.env; the cache in $LB_REAL_KUBE_CACHE (default
 # ~/.cache/leaderboard-cloud/real-kube).
@@ -14,6 +15,11 @@ set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 # shellcheck source=versions.env
 . "$here/versions.env"
+case "${1:-}" in
+  "") ;;
+  --upgrade) K8S_VERSION=$UPGRADE_K8S_VERSION GO_VERSION=$UPGRADE_GO_VERSION ;;
+  *) echo "usage: $0 [--upgrade]" >&2; exit 2 ;;
+esac
 cache="${LB_REAL_KUBE_CACHE:-$HOME/.cache/leaderboard-cloud/real-kube}"
 bin="$cache/$K8S_VERSION/bin"
 binaries=(kube-apiserver kube-controller-manager kube-scheduler)

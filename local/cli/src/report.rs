@@ -74,6 +74,8 @@ pub struct RunReport {
     pub left_behind: LeftBehind,
     /// The versions the executions ran, when the alias moved during the run.
     pub release: Option<crate::release::ReleaseReport>,
+    /// The control plane's upgrade (the upgrade scenario).
+    pub upgrade: Option<crate::scenario::UpgradeReport>,
 }
 
 /// What a run left behind it.
@@ -194,6 +196,15 @@ impl RunReport {
         }
         for answer in &self.reaped {
             outln!("reaper         {answer}");
+        }
+        if let Some(upgrade) = &self.upgrade {
+            outln!(
+                "upgrade        control plane {} -> {} (the API out for {:.1} s); the node group's new node joined: {}",
+                upgrade.from,
+                upgrade.to,
+                upgrade.unavailable_seconds,
+                upgrade.new_node_joined
+            );
         }
         if let Some(release) = &self.release {
             let ran: Vec<String> = release

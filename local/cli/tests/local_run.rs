@@ -147,6 +147,26 @@ fn a_run_in_flight_finishes_on_its_version_across_a_deploy_and_a_rollback() {
     }
 }
 
+/// The Kubernetes upgrade rehearsed with an evaluation in flight (`docs/operations.md`,
+/// "Upgrading Kubernetes"): the control plane one minor up in place, then the node group's
+/// new node in and the old one drained. The evictions are free reclaims; FINISHED.
+#[test]
+#[ignore = "needs moto and the real control plane at both releases (make real-kube)"]
+fn on_the_real_control_plane_an_upgrade_mid_route_costs_a_free_reclaim_and_finishes() {
+    let report = scenario_on("real", "upgrade", "FINISHED", &Value::Null);
+    let upgrade = &report["upgrade"];
+    let (from, to) = (text(upgrade, "from"), text(upgrade, "to"));
+    let minor = |v: &str| v.split('.').nth(1).and_then(|m| m.parse::<u32>().ok());
+    assert_eq!(minor(to), minor(from).map(|m| m + 1), "{report}");
+    assert_eq!(upgrade["new_node_joined"], true, "{report}");
+    let reclaim = &report["reclaim"];
+    assert!(
+        !reclaim["evicted"].as_array().unwrap().is_empty(),
+        "{report}"
+    );
+    assert_eq!(reclaim["retries_used"], 0, "{report}");
+}
+
 // The scenarios on the real control plane, one test each, so that they share the test
 // threads with the others rather than run one after another at the end.
 

@@ -21,7 +21,7 @@ use tokio::sync::watch;
 use tracing::{info, warn};
 
 pub use eviction::Disk;
-pub use nodes::{cordon, GPU_TAINT};
+pub use nodes::{cordon, uncordon, GPU_TAINT};
 
 /// Why the agent could not start.
 #[derive(Debug, thiserror::Error)]
@@ -50,6 +50,9 @@ pub struct NodeSpec {
     pub taints: Vec<Taint>,
     /// Its disk (`ephemeral-storage`).
     pub disk: Disk,
+    /// Registered cordoned: a node the scheduler may not use until [`uncordon`] (one a node
+    /// group's update launches mid-run, when the agent serves a fixed set of nodes).
+    pub unschedulable: bool,
 }
 
 /// What the agent serves and how.

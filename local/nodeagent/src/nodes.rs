@@ -71,7 +71,13 @@ pub async fn register(client: &kube::Client, node: &NodeSpec, port: u16) -> Resu
         taints.retain(|t| t.key != NOT_READY);
     })
     .await
-    .map_err(|e| fail("taints", e))
+    .map_err(|e| fail("taints", e))?;
+    if node.unschedulable {
+        cordon(client, &node.name)
+            .await
+            .map_err(|e| fail("cordon", e))?;
+    }
+    Ok(())
 }
 
 /// Cordons `node` as a managed node group does before draining it: unschedulable, with the
@@ -89,6 +95,19 @@ pub async fn cordon(client: &kube::Client, node: &str) -> Result<(), kube::Error
                 ..Taint::default()
             });
         }
+    })
+    .await
+}
+
+/// Makes `node` schedulable again: what a node that joins its group looks like to the
+/// scheduler.
+pub async fn uncordon(client: &kube::Client, node: &str) -> Result<(), kube::Error> {
+    let api: Api<Node> = Api::all(client.clone());
+    let schedulable = json!({"spec": {"unschedulable": false}});
+    api.patch(node, &PatchParams::default(), &Patch::Merge(&schedulable))
+        .await?;
+    set_taints(&api, node, |taints| {
+        taints.retain(|t| t.key != UNSCHEDULABLE)
     })
     .await
 }

@@ -3,11 +3,14 @@
 //! (`versions.env`), built by `build.sh` into a cache outside the clone. Tests hold local-kube
 //! to it and let it judge our manifests and permissions. No kubelet: a test acts as one.
 
+mod front;
+
 use std::fs;
 use std::io;
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
 /// How long the servers get to become ready (a cold start takes about 5 s here).
@@ -66,9 +69,20 @@ impl Identity {
 /// The pinned release's binaries: `build.sh` builds them once per machine (minutes the first
 /// time, nothing after) and says where they are.
 pub fn binaries() -> Result<PathBuf, Error> {
+    build(&[])
+}
+
+/// The binaries of the release one minor up (`versions.env`'s `UPGRADE_K8S_VERSION`), which
+/// [`ControlPlane::upgrade`] replaces the pinned one's with.
+pub fn upgrade_binaries() -> Result<PathBuf, Error> {
+    build(&["--upgrade"])
+}
+
+fn build(args: &[&str]) -> Result<PathBuf, Error> {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("build.sh");
     let out = Command::new("bash")
         .arg(&script)
+        .args(args)
         .stderr(Stdio::inherit())
         .output()?;
     let text = String::from_utf8_lossy(&out.stdout);
@@ -82,10 +96,23 @@ pub fn binaries() -> Result<PathBuf, Error> {
 #[derive(Debug)]
 pub struct ControlPlane {
     dir: tempfile::TempDir,
-    children: Vec<(&'static str, Child)>,
-    /// `https://127.0.0.1:<port>`.
+    /// The servers, in the order they started (an upgrade replaces all but etcd).
+    children: Mutex<Vec<(&'static str, Child)>>,
+    /// `https://127.0.0.1:<port>`: the endpoint (`front`), as the kubeconfigs name it.
     pub server: String,
+    /// The endpoint's load balancer, in front of the ready API server.
+    front: front::Front,
+    /// The API server's own port (a new one after an upgrade).
+    api_port: Mutex<u16>,
+    etcd_port: u16,
 }
+
+/// The servers an upgrade replaces, in the order they stop (the API server last).
+const UPGRADED: [&str; 3] = [
+    "kube-scheduler",
+    "kube-controller-manager",
+    "kube-apiserver",
+];
 
 impl ControlPlane {
     /// Starts etcd, kube-apiserver, kube-controller-manager and kube-scheduler from `bin` on
@@ -94,10 +121,14 @@ impl ControlPlane {
     pub fn start(bin: &Path) -> Result<ControlPlane, Error> {
         let dir = tempfile::Builder::new().prefix("real-kube.").tempdir()?;
         let (api, etcd, peer) = (free_port()?, free_port()?, free_port()?);
-        let mut plane = ControlPlane {
+        let front = front::Front::start(api)?;
+        let plane = ControlPlane {
             dir,
-            children: Vec::new(),
-            server: format!("https://127.0.0.1:{api}"),
+            children: Mutex::new(Vec::new()),
+            server: format!("https://127.0.0.1:{}", front.port()),
+            front,
+            api_port: Mutex::new(api),
+            etcd_port: etcd,
         };
         plane.credentials()?;
         let root = plane.dir.path().to_path_buf();
@@ -114,7 +145,21 @@ impl ControlPlane {
                 &format!("--initial-cluster=real-kube=http://127.0.0.1:{peer}"),
             ]),
         )?;
-        plane.launch(
+        plane.launch_apiserver(bin)?;
+        plane.wait("kube-apiserver", &["get", "--raw", "/readyz"])?;
+        plane.launch_controllers(bin)?;
+        let default_sa = ["-n", "default", "get", "serviceaccount", "default"];
+        plane.wait("kube-controller-manager", &default_sa)?;
+        Ok(plane)
+    }
+
+    /// Starts the API server of `bin` on the plane's port, against its etcd.
+    fn launch_apiserver(&self, bin: &Path) -> Result<(), Error> {
+        let root = self.dir.path().to_path_buf();
+        let at = |name: &str| root.join(name).display().to_string();
+        let api = *self.api_port.lock().unwrap_or_else(PoisonError::into_inner);
+        let etcd = self.etcd_port;
+        self.launch(
             "kube-apiserver",
             Command::new(bin.join("kube-apiserver")).args([
                 &format!("--etcd-servers=http://127.0.0.1:{etcd}"),
@@ -140,15 +185,65 @@ impl ControlPlane {
                 "--profiling=false",
             ]),
         )?;
-        plane.wait("kube-apiserver", &["get", "--raw", "/readyz"])?;
-        plane.launch_controllers(bin)?;
-        let default_sa = ["-n", "default", "get", "serviceaccount", "default"];
-        plane.wait("kube-controller-manager", &default_sa)?;
-        Ok(plane)
+        Ok(())
+    }
+
+    /// Upgrades the control plane in place to `bin`'s release, as EKS upgrades one: the
+    /// endpoint stops passing connections, the scheduler, the controller-manager and the API
+    /// server stop, the new release's API server starts against the same etcd (every object
+    /// kept) and the endpoint sends connections to it once it is ready, then the new
+    /// controllers start. Pods on the nodes keep running meanwhile. How long the endpoint
+    /// answered nothing.
+    pub fn upgrade(&self, bin: &Path) -> Result<Duration, Error> {
+        let stopped = Instant::now();
+        self.front.route(None);
+        {
+            let mut children = self.children();
+            for name in UPGRADED {
+                if let Some(at) = children.iter().position(|(n, _)| *n == name) {
+                    let (_, mut child) = children.remove(at);
+                    let _ = child.kill();
+                    let _ = child.wait();
+                }
+            }
+        }
+        let api = free_port()?;
+        *self.api_port.lock().unwrap_or_else(PoisonError::into_inner) = api;
+        self.launch_apiserver(bin)?;
+        // Ready as the load balancer's health check sees it: on its own port.
+        let direct = format!("--server=https://127.0.0.1:{api}");
+        self.wait("kube-apiserver", &[&direct, "get", "--raw", "/readyz"])?;
+        self.front.route(Some(api));
+        let unavailable = stopped.elapsed();
+        self.launch_controllers(bin)?;
+        Ok(unavailable)
+    }
+
+    /// The API server's release (`gitVersion`, `v1.35.4`).
+    pub fn version(&self) -> Result<String, Error> {
+        let out = Command::new("kubectl")
+            .arg(format!(
+                "--kubeconfig={}",
+                self.kubeconfig(Identity::Admin).display()
+            ))
+            .args(["get", "--raw", "/version"])
+            .output()?;
+        let version: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_default();
+        version["gitVersion"]
+            .as_str()
+            .map(str::to_owned)
+            .ok_or_else(|| Error::Start {
+                what: "kube-apiserver",
+                why: format!("no version: {}", String::from_utf8_lossy(&out.stderr)),
+            })
+    }
+
+    fn children(&self) -> MutexGuard<'_, Vec<(&'static str, Child)>> {
+        self.children.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
     /// Starts the controller-manager and the scheduler, once the API server is ready.
-    fn launch_controllers(&mut self, bin: &Path) -> Result<(), Error> {
+    fn launch_controllers(&self, bin: &Path) -> Result<(), Error> {
         let root = self.dir.path().to_path_buf();
         let at = |name: &str| root.join(name).display().to_string();
         let kubeconfig = self.kubeconfig(Identity::Controllers).display().to_string();
@@ -215,7 +310,7 @@ impl ControlPlane {
 
     /// The PIDs of the servers, by name (for memory readings).
     pub fn pids(&self) -> Vec<(&'static str, u32)> {
-        self.children.iter().map(|(n, c)| (*n, c.id())).collect()
+        self.children().iter().map(|(n, c)| (*n, c.id())).collect()
     }
 
     /// A self-signed serving certificate, the service-account key pair, one token per
@@ -318,7 +413,7 @@ impl ControlPlane {
         Ok(())
     }
 
-    fn launch(&mut self, name: &'static str, command: &mut Command) -> Result<(), Error> {
+    fn launch(&self, name: &'static str, command: &mut Command) -> Result<(), Error> {
         let log = fs::File::create(self.dir.path().join(format!("{name}.log")))?;
         let child = command
             .stdin(Stdio::null())
@@ -329,12 +424,12 @@ impl ControlPlane {
                 what: name,
                 why: e.to_string(),
             })?;
-        self.children.push((name, child));
+        self.children().push((name, child));
         Ok(())
     }
 
     /// Waits until `kubectl <check>` as admin succeeds; fails early when `name` exited.
-    fn wait(&mut self, name: &'static str, check: &[&str]) -> Result<(), Error> {
+    fn wait(&self, name: &'static str, check: &[&str]) -> Result<(), Error> {
         let deadline = Instant::now() + READY_WITHIN;
         let kubeconfig = self.kubeconfig(Identity::Admin);
         loop {
@@ -348,7 +443,7 @@ impl ControlPlane {
                 return Ok(());
             }
             let exited = self
-                .children
+                .children()
                 .iter_mut()
                 .find(|(n, _)| *n == name)
                 .and_then(|(_, c)| c.try_wait().ok().flatten());
@@ -366,7 +461,7 @@ impl ControlPlane {
 
 impl Drop for ControlPlane {
     fn drop(&mut self) {
-        for (_, child) in self.children.iter_mut().rev() {
+        for (_, child) in self.children().iter_mut().rev() {
             let _ = child.kill();
             let _ = child.wait();
         }

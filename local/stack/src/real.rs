@@ -5,6 +5,7 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
+use std::sync::Arc;
 
 use k8s_openapi::api::core::v1::Taint;
 use lb_domain::settings::Settings;
@@ -72,16 +73,61 @@ pub fn node_of(settings: &Settings, behaviour: &Behaviour) -> NodeOf {
     }
 }
 
+/// What an in-place upgrade of the control plane did.
+#[derive(Debug, Clone)]
+pub struct Upgraded {
+    /// The API server's release before.
+    pub from: String,
+    /// And after.
+    pub to: String,
+    /// How long the API answered nothing.
+    pub unavailable_seconds: f64,
+}
+
+/// Upgrades a running control plane to the release one minor up (`build.sh --upgrade`),
+/// as EKS upgrades a cluster's: the pods on the nodes run on meanwhile.
+#[derive(Clone)]
+pub struct Upgrader(Arc<ControlPlane>);
+
+fn upgrade_failed(e: real_kube::Error) -> StackError {
+    StackError::Kube(format!("upgrading the control plane: {e}"))
+}
+
+impl Upgrader {
+    /// The new release's binaries (blocking: built the first time, in minutes; found after).
+    pub fn binaries(&self) -> Result<std::path::PathBuf, StackError> {
+        real_kube::upgrade_binaries().map_err(upgrade_failed)
+    }
+
+    /// Replaces the servers by `bin`'s (blocking: seconds).
+    pub fn upgrade(&self, bin: &Path) -> Result<Upgraded, StackError> {
+        let fail = upgrade_failed;
+        let from = self.0.version().map_err(fail)?;
+        let unavailable = self.0.upgrade(bin).map_err(fail)?;
+        let to = self.0.version().map_err(fail)?;
+        Ok(Upgraded {
+            from,
+            to,
+            unavailable_seconds: unavailable.as_secs_f64(),
+        })
+    }
+}
+
 /// The real control plane and the agent serving its nodes; dropping it stops both.
 pub struct RealCluster {
     // NB: the agent goes first: it ends its pods while the API server still answers.
     /// The node agent.
     pub agent: NodeAgent,
-    /// The control plane.
-    pub plane: ControlPlane,
+    /// The control plane (shared: the upgrade rehearsal replaces its servers mid-run).
+    pub plane: Arc<ControlPlane>,
 }
 
 impl RealCluster {
+    /// What upgrades its control plane in place.
+    pub fn upgrader(&self) -> Upgrader {
+        Upgrader(self.plane.clone())
+    }
+
     /// Builds (once per machine) and starts the control plane, applies `infra/k8s`, and
     /// registers the run's GPU nodes (two when the scenario drains one).
     pub fn start(
@@ -92,7 +138,7 @@ impl RealCluster {
     ) -> Result<RealCluster, StackError> {
         let fail = |e: real_kube::Error| StackError::Kube(format!("real control plane: {e}"));
         let bin = real_kube::binaries().map_err(fail)?;
-        let plane = ControlPlane::start(&bin).map_err(fail)?;
+        let plane = Arc::new(ControlPlane::start(&bin).map_err(fail)?);
         plane.apply(Path::new(INFRA_K8S)).map_err(fail)?;
         let node = node_of(settings, behaviour);
         let gpus = behaviour
@@ -124,6 +170,7 @@ impl RealCluster {
                 labels: labels.clone(),
                 taints: vec![taint.clone()],
                 disk: behaviour.node_disk,
+                unschedulable: i > 1 && behaviour.spare_node_joins_later,
             })
             .collect();
         let agent = NodeAgent::spawn(node_agent::Config {

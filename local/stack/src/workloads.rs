@@ -148,6 +148,9 @@ pub struct Behaviour {
     /// A second node the pods can move to once the first is drained (on the real control
     /// plane a drained node is cordoned; local-kube's one node is not).
     pub spare_node: bool,
+    /// The spare node is registered cordoned and joins when the scenario uncordons it (the
+    /// new node of a node group's update; the real control plane only).
+    pub spare_node_joins_later: bool,
     /// The disk of the real control plane's nodes, which their kubelet evicts pods from when
     /// it runs short (local-kube's node has no disk modelled).
     pub node_disk: node_agent::Disk,
@@ -163,6 +166,7 @@ impl Default for Behaviour {
             node_instance_type: None,
             node_capacity: lb_domain::settings::Capacity::OnDemand,
             spare_node: false,
+            spare_node_joins_later: false,
             node_disk: node_agent::Disk::default(),
         }
     }

@@ -418,6 +418,7 @@ async fn the_real_job_controller_answers_as_recorded_and_local_kube_as_it() {
                 labels: BTreeMap::new(),
                 taints: Vec::new(),
                 disk: node_agent::Disk::default(),
+                unschedulable: false,
             })
             .to_vec(),
         runtime: local_kube::Config {

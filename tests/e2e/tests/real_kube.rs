@@ -194,6 +194,17 @@ fn the_control_plane_is_the_release_our_clusters_run() {
         .map(|v| v.trim().trim_matches('"').to_string())
         .expect("infra/cluster.yaml has a KubernetesVersion default");
     assert_eq!(minor.join("."), default, "upgrade the pin with the cluster");
+    // The upgrade rehearsal's release is one minor up: EKS upgrades one minor at a time.
+    let upgrade = pins
+        .lines()
+        .find_map(|l| l.strip_prefix("UPGRADE_K8S_VERSION=v"))
+        .expect("versions.env pins UPGRADE_K8S_VERSION");
+    let minor_of = |v: &str| v.split('.').nth(1).and_then(|m| m.parse::<u32>().ok());
+    assert_eq!(
+        minor_of(upgrade),
+        minor_of(pinned).map(|m| m + 1),
+        "{upgrade}"
+    );
 }
 
 /// A GPU node as a node group makes it: labelled with its GPU model, `nvidia.com/gpu` of

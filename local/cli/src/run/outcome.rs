@@ -112,7 +112,11 @@ impl Ran<'_> {
         let (queue, latency) = self.on_fake_evalai();
         let left = self.left_behind().await;
         let reclaim = self.findings.reclaim;
+        let upgrade = self.findings.upgrade;
         let ok = self.acted
+            && upgrade
+                .as_ref()
+                .is_none_or(|u| u.from != u.to && u.new_node_joined)
             && reclaim
                 .as_ref()
                 .is_none_or(crate::reclaim::ReclaimReport::as_expected)
@@ -180,6 +184,7 @@ impl Ran<'_> {
             reaped: self.reaped,
             left_behind: left,
             release: self.release,
+            upgrade,
         };
         (report, latency)
     }

@@ -83,6 +83,7 @@ pub(super) fn begin(
             settings_bucket(settings, args.leaderboard),
             submission,
         ),
+        upgrader: stack.real.as_ref().map(|r| r.upgrader()),
     }
 }
 

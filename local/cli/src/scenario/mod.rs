@@ -20,6 +20,7 @@ mod release;
 mod spot;
 mod stop;
 mod unpullable;
+mod upgrade;
 mod wake_flood;
 
 use std::future::Future;
@@ -35,6 +36,7 @@ use local_stepfunctions::Executor;
 use serde_json::Value;
 
 use crate::reclaim::ReclaimReport;
+pub use upgrade::UpgradeReport;
 
 /// The participant's image of every scenario but the unpullable one.
 pub const IMAGE: &str = "123456789012.dkr.ecr.us-west-2.amazonaws.com/team-one:local";
@@ -120,6 +122,13 @@ pub enum Scenario {
     /// alias moves back to version 1 and a second submission arrives. The first finishes on
     /// version 2, the second on version 1. Both FINISHED.
     Rollback,
+    /// A Kubernetes upgrade mid-route, as `docs/operations.md` does it: the control plane one
+    /// minor up in place (`versions.env`'s `UPGRADE_K8S_VERSION`: the API answers nothing
+    /// meanwhile), then the GPU node group replaced: its new node joins, the old one is
+    /// cordoned and its pods evicted through the Eviction API. Each eviction is a free reclaim
+    /// (no retry used), each interrupted route runs again once on the new node. FINISHED
+    /// (`--kube real` only; routes of at least 4 s, so that the drain lands mid-route).
+    Upgrade,
 }
 
 impl Scenario {
@@ -148,6 +157,7 @@ impl Scenario {
             Scenario::DiskHog => Box::new(disk_hog::DiskHog),
             Scenario::Deploy => Box::new(release::Release(crate::release::Move::Deploy)),
             Scenario::Rollback => Box::new(release::Release(crate::release::Move::Rollback)),
+            Scenario::Upgrade => Box::new(upgrade::Upgrade::default()),
         }
     }
 }
@@ -173,6 +183,8 @@ pub struct Begin {
     pub reaper_failures: Arc<AtomicU64>,
     /// The submission's results in S3 (moto), as the Monitor reads them.
     pub store: lb_aws::s3::SubmissionStore,
+    /// What upgrades the real control plane in place (`--kube real` only).
+    pub upgrader: Option<local_stack::real::Upgrader>,
 }
 
 /// A scenario's shared slot, locked: a hook that panicked does not keep the others out.
@@ -215,6 +227,8 @@ pub struct Findings {
     pub reclaim: Option<ReclaimReport>,
     /// When the participant cancelled (the cancel scenario).
     pub cancelled_at: Option<Instant>,
+    /// The control plane's upgrade (the upgrade scenario).
+    pub upgrade: Option<UpgradeReport>,
 }
 
 /// A scenario for one run: what it sets up, what it injects, what it expects. Every hook but
