@@ -50,7 +50,7 @@ fn refused(e: ReleaseError) -> CliError {
     CliError::Refused(e.to_string())
 }
 
-/// The version the alias routes most new executions to.
+/// The newest version the alias routes executions to (during a canary, the new one).
 async fn current(sfn: &aws_sdk_sfn::Client, alias: &str) -> Result<String> {
     let described = sfn
         .describe_state_machine_alias()
@@ -68,7 +68,7 @@ async fn current(sfn: &aws_sdk_sfn::Client, alias: &str) -> Result<String> {
         .iter()
         .map(|r| (r.state_machine_version_arn(), r.weight()))
         .collect();
-    release::routed(&routing)
+    release::newest(&routing)
         .map(str::to_owned)
         .map_err(refused)
 }

@@ -133,14 +133,16 @@ pub fn version_number(arn: &str) -> Result<(&str, u32), ReleaseError> {
     Ok((machine, number))
 }
 
-/// The version an alias's routing sends most new executions to (the larger weight; the later
-/// version on a tie): what "the version the alias names" means during a gradual deploy.
-pub fn routed<'a>(routing: &[(&'a str, i32)]) -> Result<&'a str, ReleaseError> {
+/// The newest version an alias's routing sends executions to, whatever its weight: during a
+/// gradual deploy, the new version (a ship builds on it, a rollback goes back from it to the
+/// one before, which ends the canary).
+pub fn newest<'a>(routing: &[(&'a str, i32)]) -> Result<&'a str, ReleaseError> {
     routing
         .iter()
-        .filter_map(|(arn, weight)| version_number(arn).ok().map(|(_, n)| (*weight, n, *arn)))
+        .filter(|(_, weight)| *weight > 0)
+        .filter_map(|(arn, _)| version_number(arn).ok().map(|(_, n)| (n, *arn)))
         .max()
-        .map(|(_, _, arn)| arn)
+        .map(|(_, arn)| arn)
         .ok_or(ReleaseError::NoRoute)
 }
 
@@ -224,13 +226,15 @@ mod tests {
     }
 
     #[test]
-    fn the_alias_names_the_heavier_version_and_rolls_back_to_an_earlier_one() {
+    fn the_alias_s_newest_version_is_what_a_rollback_goes_back_from() {
         let m = "arn:aws:states:us-east-1:1:stateMachine:s";
         let (v6, v7) = (format!("{m}:6"), format!("{m}:7"));
-        assert_eq!(routed(&[(&v7, 100)]), Ok(v7.as_str()));
-        assert_eq!(routed(&[(&v6, 90), (&v7, 10)]), Ok(v6.as_str()));
-        assert_eq!(routed(&[(&v6, 50), (&v7, 50)]), Ok(v7.as_str()));
-        assert_eq!(routed(&[]), Err(ReleaseError::NoRoute));
+        assert_eq!(newest(&[(&v7, 100)]), Ok(v7.as_str()));
+        // A canary: 10% on 7. Rolling back from 7 goes to 6, which ends the canary.
+        assert_eq!(newest(&[(&v6, 90), (&v7, 10)]), Ok(v7.as_str()));
+        assert_eq!(newest(&[(&v7, 90), (&v6, 10)]), Ok(v7.as_str()));
+        assert_eq!(newest(&[(&v6, 100), (&v7, 0)]), Ok(v6.as_str()));
+        assert_eq!(newest(&[]), Err(ReleaseError::NoRoute));
         assert_eq!(version_number(&v7), Ok((m, 7)));
         assert!(version_number(&format!("{m}:live")).is_err());
         assert!(version_number(m).is_err());
