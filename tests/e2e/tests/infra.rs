@@ -284,10 +284,13 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
         reaper["detail"]["status"],
         serde_json::json!(["FAILED", "TIMED_OUT", "ABORTED"])
     );
-    assert!(reaper["detail"]["stateMachineArn"][0]
-        .as_str()
-        .unwrap()
-        .contains(":stateMachine:leaderboard-SubmissionStateMachine-"));
+    let machine = reaper["detail"]["stateMachineArn"][0].as_str().unwrap();
+    assert!(machine.contains(":stateMachine:leaderboard-SubmissionStateMachine-"));
+    // Its executions started through the alias or a version too.
+    assert_eq!(
+        reaper["detail"]["stateMachineArn"][1]["prefix"],
+        format!("{machine}:")
+    );
     let pattern = &wake["pattern"];
     assert_eq!(
         pattern["detail"]["bucket"]["name"],
