@@ -187,6 +187,20 @@ pub struct Begin {
     pub upgrader: Option<local_stack::real::Upgrader>,
 }
 
+impl Begin {
+    /// The reclaim watcher of this run's submission: cued, it drains the node (cordoned
+    /// first where nodes are modelled), and `acted` is set once it did.
+    pub fn reclaim_watcher(&self) -> crate::reclaim::Reclaim {
+        crate::reclaim::Reclaim::spawn(
+            self.kubeconfig.clone(),
+            self.namespace.clone(),
+            self.submission,
+            self.cordons,
+            self.acted.clone(),
+        )
+    }
+}
+
 /// A scenario's shared slot, locked: a hook that panicked does not keep the others out.
 pub fn held<T>(slot: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     slot.lock()

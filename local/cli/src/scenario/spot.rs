@@ -37,14 +37,7 @@ impl Rehearsal for Spot {
     }
 
     fn begin(&self, run: &Begin) {
-        let watcher = Reclaim::spawn(
-            run.kubeconfig.clone(),
-            run.namespace.clone(),
-            run.submission,
-            run.cordons,
-            run.acted.clone(),
-        );
-        *held(&self.watcher) = Some(watcher);
+        *held(&self.watcher) = Some(run.reclaim_watcher());
     }
 
     /// A route is under way: the node goes now (once; the watcher ignores more cues).

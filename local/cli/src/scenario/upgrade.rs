@@ -65,14 +65,7 @@ impl Rehearsal for Upgrade {
     }
 
     fn begin(&self, run: &Begin) {
-        let watcher = Reclaim::spawn(
-            run.kubeconfig.clone(),
-            run.namespace.clone(),
-            run.submission,
-            run.cordons,
-            run.acted.clone(),
-        );
-        *held(&self.watcher) = Some(watcher);
+        *held(&self.watcher) = Some(run.reclaim_watcher());
         // The new release built (or found) before the run starts, not mid-route.
         let ready = run.upgrader.clone().and_then(|u| match u.binaries() {
             Ok(bin) => Some((u, bin, run.kubeconfig.clone())),
