@@ -351,13 +351,15 @@ pub fn check_function(template: &Template, function: &str, binary: &Path) -> Vec
     problems
 }
 
-/// The queues (as `<Id.Arn>`) whose event source mappings invoke `function`.
+/// The queues (as `<Id.Arn>`) whose event source mappings invoke `function` (or its alias).
 fn event_source_queues(template: &Template, function: &str) -> BTreeSet<String> {
+    let names = [format!("<{function}>"), format!("<{function}.Alias>")];
     template
         .resources_of("AWS::Lambda::EventSourceMapping")
         .into_iter()
         .filter(|id| {
-            template.text(id, &["FunctionName"]).ok().as_deref() == Some(&format!("<{function}>"))
+            let target = template.text(id, &["FunctionName"]).unwrap_or_default();
+            names.contains(&target)
         })
         .filter_map(|id| template.text(&id, &["EventSourceArn"]).ok())
         .collect()
