@@ -197,28 +197,7 @@ impl RunReport {
         for answer in &self.reaped {
             outln!("reaper         {answer}");
         }
-        if let Some(upgrade) = &self.upgrade {
-            outln!(
-                "upgrade        control plane {} -> {} (the API out for {:.1} s); the node group's new node joined: {}",
-                upgrade.from,
-                upgrade.to,
-                upgrade.unavailable_seconds,
-                upgrade.new_node_joined
-            );
-        }
-        if let Some(release) = &self.release {
-            let ran: Vec<String> = release
-                .ran
-                .iter()
-                .map(|v| v.map_or("mixed".into(), |v| format!("version {v}")))
-                .collect();
-            outln!(
-                "release        {}; the submissions ran {} (expected {:?})",
-                release.change,
-                ran.join(", "),
-                release.expected
-            );
-        }
+        self.print_changes();
         if let Some(queue) = &self.queue {
             // Every request took from the shared budget first: EvalAI never had to throttle.
             outln!(
@@ -239,6 +218,32 @@ impl RunReport {
             outln!(
                 "cancel to end  {took:.1}s from the participant's cancel to the Jobs gone (time scale {})",
                 args.time_scale
+            );
+        }
+    }
+
+    /// What changed under the run: the control plane's upgrade, the alias's move.
+    fn print_changes(&self) {
+        if let Some(upgrade) = &self.upgrade {
+            outln!(
+                "upgrade        control plane {} -> {} (the API out for {:.1} s); the node group's new node joined: {}",
+                upgrade.from,
+                upgrade.to,
+                upgrade.unavailable_seconds,
+                upgrade.new_node_joined
+            );
+        }
+        if let Some(release) = &self.release {
+            let ran: Vec<String> = release
+                .ran
+                .iter()
+                .map(|v| v.map_or("mixed".into(), |v| format!("version {v}")))
+                .collect();
+            outln!(
+                "release        {}; the submissions ran {} (expected {:?})",
+                release.change,
+                ran.join(", "),
+                release.expected
             );
         }
     }

@@ -492,6 +492,20 @@ impl Executor {
         self.launch(resolved, name, input)
     }
 
+    /// Whether an execution `name` with `input` may start (the name's rules, the payload
+    /// quota, a runtime to run on): the runtime.
+    fn may_start(&self, name: &str, input: &Value) -> Result<tokio::runtime::Handle, StartError> {
+        validate_name(name)?;
+        let size = payload_size(input);
+        if size > self.options.max_payload_bytes {
+            return Err(StartError::InputTooLarge {
+                size,
+                limit: self.options.max_payload_bytes,
+            });
+        }
+        tokio::runtime::Handle::try_current().map_err(|_| StartError::NoRuntime)
+    }
+
     fn launch(
         &self,
         resolved: Resolved,
@@ -503,15 +517,7 @@ impl Executor {
             version_arn,
             alias_arn,
         } = resolved;
-        validate_name(name)?;
-        let size = payload_size(&input);
-        if size > self.options.max_payload_bytes {
-            return Err(StartError::InputTooLarge {
-                size,
-                limit: self.options.max_payload_bytes,
-            });
-        }
-        let runtime = tokio::runtime::Handle::try_current().map_err(|_| StartError::NoRuntime)?;
+        let runtime = self.may_start(name, &input)?;
         let state_machine_arn = self.arn("stateMachine", state_machine.name());
         let execution_arn = self.execution_arn(state_machine.name(), name);
         let role_arn = self.role_arn();
@@ -543,13 +549,7 @@ impl Executor {
         let root = state_machine.definition.root.clone();
         tracing::info!(execution = %name, state_machine = %state_machine.name(), "execution started");
         let (ended_tx, ended) = watch::channel(None);
-        let mut started_details = json!({"input": input, "roleArn": role_arn});
-        if let Some(v) = &version_arn {
-            started_details["stateMachineVersionArn"] = json!(v);
-        }
-        if let Some(a) = &alias_arn {
-            started_details["stateMachineAliasArn"] = json!(a);
-        }
+        let started_details = started_details(&input, &role_arn, &version_arn, &alias_arn);
         let started = Started {
             recorder: recorder.clone(),
             cancel: cancel.clone(),
@@ -1782,6 +1782,24 @@ fn fail_text(text: &Text, input: &Value, env: &Env<'_>) -> Result<Option<String>
             "The Fail state's ErrorPath/CausePath must select a string, got {other}"
         ))),
     }
+}
+
+/// `ExecutionStarted`'s details: the input and role, and the version and alias the execution
+/// was started through, as AWS's history names them.
+fn started_details(
+    input: &Value,
+    role_arn: &str,
+    version_arn: &Option<String>,
+    alias_arn: &Option<String>,
+) -> Value {
+    let mut details = json!({"input": input, "roleArn": role_arn});
+    if let Some(v) = version_arn {
+        details["stateMachineVersionArn"] = json!(v);
+    }
+    if let Some(a) = alias_arn {
+        details["stateMachineAliasArn"] = json!(a);
+    }
+    details
 }
 
 /// The version `lambda:invoke` reports having run: the function's qualifier, else `$LATEST`.

@@ -10,6 +10,8 @@ use local_stack::Stack;
 use crate::scenario::Rehearsal;
 use local_stepfunctions::{EventType, Execution, ExecutionResult, Executor, HistoryEvent};
 
+use crate::release::{Release, ALIAS};
+
 use super::*;
 
 /// What the run watches of its executions: Monitor rounds, and those that found the cluster's
@@ -122,6 +124,74 @@ pub(super) async fn start(
         );
     }
     Ok(executions)
+}
+
+/// What the deployment delivers to the functions beside the state machine: Step Functions'
+/// "Execution Status Change" events to Finalize as the reaper (as the EventBridge rule and
+/// Lambda's asynchronous invocation do), S3's events and the cancel sweep to the waiting
+/// execution.
+pub(super) async fn deliveries(
+    args: &LocalRun,
+    stack: &Stack,
+    scaled: (&lb_infra::Template, f64),
+    executor: &Executor,
+    (finalize, failures): (
+        Arc<finalize::Deps<local_stack::events::LateCallbacks>>,
+        Arc<AtomicU64>,
+    ),
+) -> anyhow::Result<(crate::reaper::Reaper, crate::relay::Relays)> {
+    let reaper = crate::reaper::Reaper::spawn(executor, finalize, scaled, failures)?;
+    let relays = crate::relay::spawn(
+        &stack.sdk,
+        scaled.0,
+        &local_stack::stack::function_config(),
+        executor.clone(),
+        args.time_scale,
+        !args.no_wake,
+    )
+    .await?;
+    Ok((reaper, relays))
+}
+
+/// What the run's start tells: the scenario with its round count and act, the reaper and the
+/// template with the time scale.
+pub(super) type Hooks<'a> = (
+    &'a dyn Rehearsal,
+    &'a Watch,
+    &'a Arc<AtomicBool>,
+    &'a mut crate::reaper::Reaper,
+    (&'a lb_infra::Template, f64),
+);
+
+/// Starts the arrivals through the release's alias, as the deployment does, and tells the
+/// scenario and the reaper of the first; a release scenario holds the later submissions back
+/// until it moved the alias after the first one's round. The executions, and whether the
+/// alias moved.
+pub(super) async fn start_through(
+    args: &LocalRun,
+    stack: &Stack,
+    executor: &Executor,
+    arrivals: &Arrivals,
+    release: &Release,
+    (scenario, watch, acted, reaper, scaled): Hooks<'_>,
+    started: Instant,
+) -> anyhow::Result<(Vec<(u64, u64, Execution)>, bool)> {
+    let count = arrivals.each.len();
+    let first = if release.moves() { 1 } else { count };
+    let live = &release.live;
+    let mut executions = start(stack, executor, arrivals, 0..first, live, started).await?;
+    reaper.schedule(scaled, executions[0].2.arn())?;
+    scenario.started(executor, executions[0].2.arn(), &watch.rounds, acted);
+    if !release.moves() {
+        return Ok((executions, false));
+    }
+    let within = Duration::from_secs(args.timeout);
+    let moved = release
+        .switch_after_first_round(executor, executions[0].2.arn(), within)
+        .await?;
+    say(started, format!("the alias `{ALIAS}` moved: {moved}"));
+    executions.extend(start(stack, executor, arrivals, first..count, live, started).await?);
+    Ok((executions, moved))
 }
 
 /// Every execution's result, followed through its continuations, in arrival order; and each

@@ -4,14 +4,14 @@
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use anyhow::bail;
 use clap::Args;
 use lb_domain::results::Leaderboard;
 use local_stack::events::LateCallbacks;
 
-use crate::release::{Release, ALIAS};
+use crate::release::Release;
 use crate::scenario::{Rehearsal, Scenario};
 use crate::wiring::Handlers;
 use cli::outln;
@@ -199,39 +199,16 @@ async fn run_to_end(mut args: LocalRun) -> anyhow::Result<u8> {
     let on_event = (!many).then(|| watch.on_event(&args, &stack, &scenario, &acted, started));
     let executor = executor(&args, tasks, on_event)?;
     late.bind(executor.clone());
-    // Step Functions' "Execution Status Change" events go to Finalize as the reaper, as the
-    // deployment's EventBridge rule and Lambda's asynchronous invocation deliver them.
     let template = local_stack::stack::app_template(&settings);
     let scaled = (&template, args.time_scale);
-    let mut reaper = crate::reaper::Reaper::spawn(&executor, reaper_deps, scaled, reaper_failures)?;
-    // S3's events and the cancel sweep wake the waiting execution, as in the deployment.
-    let relays = crate::relay::spawn(
-        &stack.sdk,
-        &template,
-        &local_stack::stack::function_config(),
-        executor.clone(),
-        args.time_scale,
-        !args.no_wake,
+    let reaper = (reaper_deps, reaper_failures);
+    let (mut reaper, relays) = deliveries(&args, &stack, scaled, &executor, reaper).await?;
+    let release = Release::publish(&executor, scenario.release())?;
+    let hooks = (&*scenario, &watch, &acted, &mut reaper, scaled);
+    let (executions, moved) = start_through(
+        &args, &stack, &executor, &arrivals, &release, hooks, started,
     )
     .await?;
-    // Published and started through the alias, as the deployment does; a release scenario
-    // holds the later submissions back until it moved the alias.
-    let release = Release::publish(&executor, scenario.release())?;
-    let count = arrivals.each.len();
-    let first = if release.moves() { 1 } else { count };
-    let live = release.live.clone();
-    let mut executions = start(&stack, &executor, &arrivals, 0..first, &live, started).await?;
-    reaper.schedule(scaled, executions[0].2.arn())?;
-    scenario.started(&executor, executions[0].2.arn(), &watch.rounds, &acted);
-    let mut moved = false;
-    if release.moves() {
-        let within = Duration::from_secs(args.timeout);
-        moved = release
-            .switch_after_first_round(&executor, executions[0].2.arn(), within)
-            .await?;
-        say(started, format!("the alias `{ALIAS}` moved: {moved}"));
-        executions.extend(start(&stack, &executor, &arrivals, first..count, &live, started).await?);
-    }
     let record = args.record_states.as_deref();
     let (mut results, chains) = wait_all(&executor, executions, record, started).await?;
     let release = release.check(&results, moved);
