@@ -158,10 +158,14 @@ FN_BOOTSTRAP = $(or $(BOOTSTRAP),$(TARGET_DIR)/lambda/$(FN)/bootstrap)
 FN_ARCH = $(if $(filter arm64,$(LAMBDA_ARCH)),arm64,x86_64)
 STACK_OUTPUT = $(AWS_CLI) cloudformation describe-stacks --stack-name $(STACK) \
 	--query "Stacks[0].Outputs[?OutputKey=='$(1)'].OutputValue" --output text
+# LBCTL=<file>: that lbctl instead of one built here (the offline test's, built with the others).
+LBCTL ?=
+LBCTL_BIN = $(or $(LBCTL),$(TARGET_DIR)/debug/lbctl)
+BUILD_LBCTL = $(if $(LBCTL),:,$(CARGO) build --quiet -p cli --bin lbctl)
 deploy-function: $(LAMBDA_TOOLS) $(DEPLOY_TOOLS) own-cache ## Ship FN=<name>'s new code to STACK's function as a new version, and the state machine version that runs it (code only; template changes: make deploy)
 	@case " $(FUNCTIONS) " in *" $(FN) "*) ;; *) echo "FN must be one of: $(FUNCTIONS)" >&2; exit 2;; esac
 	$(if $(BOOTSTRAP),,PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(CARGO) lambda build --release --$(LAMBDA_ARCH) -p $(FN))
-	$(CARGO) build --quiet -p cli --bin lbctl
+	$(BUILD_LBCTL)
 	@name=$$($(call STACK_OUTPUT,$(FN_OUTPUT))) || exit 1; \
 	if [ -z "$$name" ] || [ "$$name" = None ]; then \
 		echo "stack $(STACK) has no output $(FN_OUTPUT): run make deploy first" >&2; exit 1; fi; \
@@ -178,7 +182,7 @@ deploy-function: $(LAMBDA_TOOLS) $(DEPLOY_TOOLS) own-cache ## Ship FN=<name>'s n
 	echo "$(FN): $(ALIAS) -> version $$version"; \
 	case " $(SM_FUNCTIONS) " in *" $(FN) "*) \
 		machine=$$($(call STACK_OUTPUT,StateMachineAliasArn)) || exit 1; \
-		$(TARGET_DIR)/debug/lbctl ship --state-machine "$$machine" --function-version "$$arn";; esac
+		$(LBCTL_BIN) ship --state-machine "$$machine" --function-version "$$arn";; esac
 
 # The state machine's alias back one version (TO=<n>: to that one); FN=<name>: that function's
 # alias back one version instead (the wake, the sweep and the reaper's Finalize run through it).
@@ -196,9 +200,9 @@ rollback: $(DEPLOY_TOOLS) own-cache ## Point STACK's live alias back (state mach
 			--function-version "$$to" --query FunctionVersion --output text >/dev/null || exit 1; \
 		echo "$$name: $(ALIAS) $$now -> $$to"; \
 	else \
-		$(CARGO) build --quiet -p cli --bin lbctl; \
+		$(BUILD_LBCTL); \
 		machine=$$($(call STACK_OUTPUT,StateMachineAliasArn)) || exit 1; \
-		$(TARGET_DIR)/debug/lbctl rollback --state-machine "$$machine" $(if $(TO),--to $(TO)); \
+		$(LBCTL_BIN) rollback --state-machine "$$machine" $(if $(TO),--to $(TO)); \
 	fi
 
 cluster: $(DEPLOY_TOOLS) ## Deploy infra/cluster.yaml for LEADERBOARD=10|20 (PARAMS="K=V ..." overrides)

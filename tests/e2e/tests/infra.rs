@@ -588,7 +588,10 @@ fn deploy_function_ships_a_version_of_code_only_and_rollback_moves_the_aliases_b
     local_stack::workloads::build_workspace_bins().expect("the workspace's binaries");
     let binary = debug.join("intake");
     let bootstrap = format!("BOOTSTRAP={}", binary.display());
-    let out = deploy_function(&moto, &["FN=intake", &bootstrap]);
+    // The lbctl built with the others: a cargo build from inside a test would rebuild with the
+    // test's environment, and relink every binary mid-suite.
+    let lbctl = format!("LBCTL={}", debug.join("lbctl").display());
+    let out = deploy_function(&moto, &["FN=intake", &bootstrap, &lbctl]);
     let text = format!(
         "{}\n{}",
         String::from_utf8_lossy(&out.stdout),
@@ -645,7 +648,7 @@ fn deploy_function_ships_a_version_of_code_only_and_rollback_moves_the_aliases_b
     );
     // `make rollback`: the state machine's alias back to the version before; with FN, that
     // function's alias.
-    for args in [&[][..], &["FN=intake"][..]] {
+    for args in [&[lbctl.as_str()][..], &["FN=intake"][..]] {
         let out = make(&moto, "rollback", args);
         assert!(
             out.status.success(),
@@ -664,14 +667,20 @@ fn deploy_function_ships_a_version_of_code_only_and_rollback_moves_the_aliases_b
     let unknown = deploy_function(&moto, &["FN=bogus"]);
     assert_eq!(unknown.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&unknown.stderr).contains("intake launch monitor"));
-    let arm = deploy_function(&moto, &["FN=intake", &bootstrap, "LAMBDA_ARCH=arm64"]);
+    let arm = deploy_function(
+        &moto,
+        &["FN=intake", &bootstrap, &lbctl, "LAMBDA_ARCH=arm64"],
+    );
     assert!(!arm.status.success());
     assert!(
         String::from_utf8_lossy(&arm.stderr).contains("runs on x86_64 but LAMBDA_ARCH=arm64"),
         "{}",
         String::from_utf8_lossy(&arm.stderr)
     );
-    let missing = deploy_function(&moto, &["FN=intake", &bootstrap, "STACK=no-such-stack"]);
+    let missing = deploy_function(
+        &moto,
+        &["FN=intake", &bootstrap, &lbctl, "STACK=no-such-stack"],
+    );
     assert!(!missing.status.success());
     assert_eq!(
         function_state(&moto, name)["configuration"]["CodeSha256"],
