@@ -169,7 +169,15 @@ async fn start(
     Ok((name, out.execution_arn))
 }
 
-fn report(name: &str, arn: &str, input: &Value) {
+fn report(name: &str, arn: &str, input: &Value, state_machine: &str) {
+    // Through the unqualified ARN an execution runs the latest revision, which neither `make
+    // rollback` nor `make deploy-function` moves: not necessarily the version the Pipe runs.
+    if state_machine.split(':').count() == 7 {
+        errln!(
+            "note: `{state_machine}` is the state machine itself: this execution runs its latest \
+             revision, not the version its `live` alias names (the stack's StateMachineAliasArn)"
+        );
+    }
     outln!("execution started: {name}");
     outln!("  arn    {arn}");
     outln!("  input  {input}");
@@ -196,7 +204,7 @@ pub async fn submit(args: Submit) -> Result<u8> {
     let state_machine = args.machine.arn()?;
     let sdk = crate::aws::config().await?;
     let (name, arn) = start(&sdk, state_machine, args.submission, &input).await?;
-    report(&name, &arn, &input);
+    report(&name, &arn, &input, state_machine);
     Ok(0)
 }
 
@@ -298,7 +306,7 @@ pub async fn resume(args: Resume) -> Result<u8> {
 
     let input = pipe_input(challenge, phase, id, image);
     let (name, arn) = start(&deployment.sdk, state_machine, id, &input).await?;
-    report(&name, &arn, &input);
+    report(&name, &arn, &input, state_machine);
     outln!(
         "note: Intake runs it only while EvalAI reports `resuming` (its claim takes a FAILED or \
          CANCELLED record back only then); otherwise the execution ends skipped. EvalAI's own \

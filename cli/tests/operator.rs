@@ -541,6 +541,12 @@ async fn submit_starts_an_execution_with_exactly_the_pipes_input() {
         input,
         json!([{"challenge_pk": 1, "phase_pk": 2, "submission_pk": 8, "submitted_image_uri": null}])
     );
+    // Started on the state machine itself, not its alias: the operator is told what runs.
+    assert!(
+        stderr(&out).contains("runs its latest revision, not the version its `live` alias names"),
+        "{}",
+        show(&out)
+    );
 
     // A state machine that does not exist: the call and the ARN are named.
     let missing = arn.replace(":submission", ":nope");
