@@ -5,7 +5,7 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::{Arc, Weak};
 
 use k8s_openapi::api::core::v1::Taint;
 use lb_domain::settings::Settings;
@@ -85,9 +85,11 @@ pub struct Upgraded {
 }
 
 /// Upgrades a running control plane to the release one minor up (`build.sh --upgrade`),
-/// as EKS upgrades a cluster's: the pods on the nodes run on meanwhile.
+/// as EKS upgrades a cluster's: the pods on the nodes run on meanwhile. It does not keep the
+/// control plane alive: whoever holds it (a scenario the executor's hooks outlive) must not
+/// keep the servers running past the cluster's own drop.
 #[derive(Clone)]
-pub struct Upgrader(Arc<ControlPlane>);
+pub struct Upgrader(Weak<ControlPlane>);
 
 fn upgrade_failed(e: real_kube::Error) -> StackError {
     StackError::Kube(format!("upgrading the control plane: {e}"))
@@ -102,9 +104,13 @@ impl Upgrader {
     /// Replaces the servers by `bin`'s (blocking: seconds).
     pub fn upgrade(&self, bin: &Path) -> Result<Upgraded, StackError> {
         let fail = upgrade_failed;
-        let from = self.0.version().map_err(fail)?;
-        let unavailable = self.0.upgrade(bin).map_err(fail)?;
-        let to = self.0.version().map_err(fail)?;
+        let plane = self
+            .0
+            .upgrade()
+            .ok_or_else(|| StackError::Kube("the control plane is gone".into()))?;
+        let from = plane.version().map_err(fail)?;
+        let unavailable = plane.upgrade(bin).map_err(fail)?;
+        let to = plane.version().map_err(fail)?;
         Ok(Upgraded {
             from,
             to,
@@ -125,7 +131,7 @@ pub struct RealCluster {
 impl RealCluster {
     /// What upgrades its control plane in place.
     pub fn upgrader(&self) -> Upgrader {
-        Upgrader(self.plane.clone())
+        Upgrader(Arc::downgrade(&self.plane))
     }
 
     /// Builds (once per machine) and starts the control plane, applies `infra/k8s`, and
