@@ -263,13 +263,14 @@ impl ControlPlane {
                 "--profiling=false",
             ]),
         )?;
+        let config = root.join("scheduler.json");
+        fs::write(&config, scheduler_config(&kubeconfig)?)?;
         self.launch(
             "kube-scheduler",
             Command::new(bin.join("kube-scheduler")).args([
-                &format!("--kubeconfig={kubeconfig}"),
+                &format!("--config={}", config.display()),
                 &format!("--authentication-kubeconfig={kubeconfig}"),
                 &format!("--authorization-kubeconfig={kubeconfig}"),
-                "--leader-elect=false",
                 "--secure-port=0",
                 "--profiling=false",
             ]),
@@ -499,4 +500,32 @@ fn random_token() -> io::Result<String> {
     let mut bytes = [0u8; 16];
     fs::File::open("/dev/urandom")?.read_exact(&mut bytes)?;
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// The packing scheduler of the deployment (`infra/k8s/scheduler.yaml`), whose name the Job
+/// templates give their pods.
+const PACKING_SCHEDULER: &str = include_str!("../../../infra/k8s/scheduler.yaml");
+
+/// The scheduler's configuration: the default profile, and the packing one exactly as
+/// `infra/k8s/scheduler.yaml` configures it, both served by this one scheduler (which reads
+/// the API server through `kubeconfig` and elects no leader).
+fn scheduler_config(kubeconfig: &str) -> Result<String, Error> {
+    use serde::Deserialize;
+    let unreadable = |why: String| Error::Start {
+        what: "kube-scheduler",
+        why: format!("infra/k8s/scheduler.yaml: {why}"),
+    };
+    let text = serde_yaml::Deserializer::from_str(PACKING_SCHEDULER)
+        .filter_map(|doc| serde_yaml::Value::deserialize(doc).ok())
+        .find(|doc| doc["kind"] == "ConfigMap")
+        .and_then(|doc| doc["data"]["config.yaml"].as_str().map(str::to_owned))
+        .ok_or_else(|| unreadable("no ConfigMap with a config.yaml".into()))?;
+    let mut config: serde_json::Value =
+        serde_yaml::from_str(&text).map_err(|e| unreadable(e.to_string()))?;
+    let mut profiles = vec![serde_json::json!({"schedulerName": "default-scheduler"})];
+    profiles.extend(config["profiles"].as_array().cloned().unwrap_or_default());
+    config["profiles"] = serde_json::Value::Array(profiles);
+    config["leaderElection"] = serde_json::json!({"leaderElect": false});
+    config["clientConnection"] = serde_json::json!({"kubeconfig": kubeconfig});
+    Ok(config.to_string())
 }

@@ -1405,6 +1405,74 @@ fn the_autoscaler_is_the_release_of_the_clusters_minor() {
 }
 
 #[test]
+fn the_levers_the_capacity_model_measures_are_the_ones_infra_sets() {
+    use lb_domain::capacity::fleet::{Model, Placement};
+    let price = lb_domain::capacity::cost::InstancePrice {
+        on_demand: 1.0,
+        spot: 1.0,
+    };
+    let levers = Model::eks_g5(price, 1).with_levers();
+
+    // The autoscaler's scale-down, as flags.
+    let docs = k8s_docs("cluster-autoscaler.yaml");
+    let deployment = docs.iter().find(|d| d["kind"] == "Deployment").unwrap();
+    let args = &deployment["spec"]["template"]["spec"]["containers"][0]["command"];
+    let flag = |name: &str| {
+        let prefix = format!("--{name}=");
+        let values: Vec<&str> = args
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|a| a.as_str()?.strip_prefix(prefix.as_str()))
+            .collect();
+        assert_eq!(values.len(), 1, "{name} in {args}");
+        values[0].to_string()
+    };
+    let seconds = |text: String| match text.split_at(text.len() - 1) {
+        (n, "m") => n.parse::<u64>().unwrap() * 60,
+        (n, "s") => n.parse::<u64>().unwrap(),
+        _ => panic!("{text}: minutes or seconds"),
+    };
+    assert_eq!(
+        seconds(flag("scale-down-unneeded-time")),
+        levers.unneeded_seconds
+    );
+    assert_eq!(
+        seconds(flag("scale-down-delay-after-add")),
+        levers.delay_after_add_seconds
+    );
+
+    // Packing: both Job templates name the profile that scores GPUs MostAllocated.
+    assert_eq!(levers.placement, Placement::Pack);
+    let docs = k8s_docs("scheduler.yaml");
+    let map = docs.iter().find(|d| d["kind"] == "ConfigMap").unwrap();
+    let config: Value = serde_yaml::from_str(map["data"]["config.yaml"].as_str().unwrap()).unwrap();
+    let profile = &config["profiles"][0];
+    let fit = profile["pluginConfig"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "NodeResourcesFit")
+        .unwrap();
+    let strategy = &fit["args"]["scoringStrategy"];
+    assert_eq!(strategy["type"], "MostAllocated");
+    assert!(strategy["resources"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|r| r["name"] == "nvidia.com/gpu"));
+    let name = profile["schedulerName"].as_str().unwrap();
+    for board in ["leaderboard-10", "leaderboard-20"] {
+        let template =
+            std::fs::read_to_string(root().join("templates").join(board).join("job.yaml")).unwrap();
+        assert!(
+            template.contains(&format!("schedulerName: {name}\n")),
+            "{board} names {name}"
+        );
+    }
+}
+
+#[test]
 fn the_autoscaler_grows_the_spot_gpu_group_first_and_both_groups_carry_the_gpu_model() {
     let default = |p: &str| {
         CLUSTER

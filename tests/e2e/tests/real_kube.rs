@@ -211,8 +211,13 @@ fn the_control_plane_is_the_release_our_clusters_run() {
 /// `gpus`, Ready, and without the `not-ready` taint a new Node is created with (no node
 /// lifecycle controller runs here to lift it).
 fn add_node(plane: &ControlPlane, gpu_model: &str, gpus: u32) {
+    add_named_node(plane, "gpu-node", gpu_model, gpus);
+}
+
+/// [`add_node`] under `name`.
+fn add_named_node(plane: &ControlPlane, name: &str, gpu_model: &str, gpus: u32) {
     let node = format!(
-        r#"{{"apiVersion":"v1","kind":"Node","metadata":{{"name":"gpu-node",
+        r#"{{"apiVersion":"v1","kind":"Node","metadata":{{"name":"{name}",
         "labels":{{"leaderboard.carla.org/gpu-model":"{gpu_model}"}}}}}}"#
     );
     let path = std::env::temp_dir().join(format!("node-{}.json", std::process::id()));
@@ -234,7 +239,7 @@ fn add_node(plane: &ControlPlane, gpu_model: &str, gpus: u32) {
     let patch = [
         "patch",
         "node",
-        "gpu-node",
+        name,
         "--subresource=status",
         "--type=merge",
         "-p",
@@ -245,7 +250,7 @@ fn add_node(plane: &ControlPlane, gpu_model: &str, gpus: u32) {
     let untaint = [
         "taint",
         "nodes",
-        "gpu-node",
+        name,
         "node.kubernetes.io/not-ready:NoSchedule-",
     ];
     let _ = kubectl(plane, Identity::Admin, &untaint);
@@ -343,5 +348,96 @@ async fn local_kube_s_scheduler_answers_as_recorded() {
         let case = case(gpu_model, gpus);
         let local = local_unschedulable(gpu_model, gpus).await;
         assert_eq!(recorded[&case], local.as_str(), "{case}");
+    }
+}
+
+/// A pod of `cpu` CPUs and one GPU, placed by `scheduler` (or bound to `node`).
+fn gpu_pod(name: &str, cpu: u32, scheduler: &str, node: Option<&str>) -> String {
+    let node = node.map_or(String::new(), |n| format!(r#""nodeName":"{n}","#));
+    format!(
+        r#"{{"apiVersion":"v1","kind":"Pod","metadata":{{"name":"{name}","namespace":"default"}},
+        "spec":{{{node}"schedulerName":"{scheduler}","containers":[{{"name":"c","image":"example/agent:1",
+        "resources":{{"requests":{{"cpu":"{cpu}","nvidia.com/gpu":"1"}},"limits":{{"nvidia.com/gpu":"1"}}}}}}]}}}}"#
+    )
+}
+
+/// The node the scheduler bound pod `name` to.
+fn bound_to(plane: &ControlPlane, name: &str) -> String {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let args = [
+            "get",
+            "pod",
+            name,
+            "-n",
+            "default",
+            "-o",
+            "jsonpath={.spec.nodeName}",
+        ];
+        let node = text(&kubectl(plane, Identity::Admin, &args))
+            .trim()
+            .to_string();
+        if !node.is_empty() {
+            return node;
+        }
+        assert!(Instant::now() < deadline, "{name} was never bound");
+        std::thread::sleep(Duration::from_millis(250));
+    }
+}
+
+#[test]
+#[ignore = "builds and starts the real control plane (minutes the first time): make test runs it"]
+fn the_packing_profile_puts_a_pair_on_the_fullest_gpu_node() {
+    // The profile infra/k8s/scheduler.yaml configures, as the real scheduler serves it beside
+    // the default one: with one node partly used, packing fills it and the default spreads.
+    let bin = real_kube::binaries().expect("the control plane builds");
+    let plane = ControlPlane::start(&bin).expect("the control plane starts");
+    add_named_node(&plane, "gpu-a", "nvidia-a10g", 4);
+    add_named_node(&plane, "gpu-b", "nvidia-a10g", 4);
+    apply_infra(&plane);
+    let template =
+        std::fs::read_to_string(root().join("templates/leaderboard-20/job.yaml")).unwrap();
+    let packing = template
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("schedulerName: "))
+        .expect("the Job template names its scheduler");
+    let dir = tempfile::tempdir().unwrap();
+    let pods = [
+        (
+            "running",
+            gpu_pod("running", 8, "default-scheduler", Some("gpu-a")),
+        ),
+        ("packed", gpu_pod("packed", 1, packing, None)),
+        ("spread", gpu_pod("spread", 1, "default-scheduler", None)),
+    ];
+    for (name, pod) in pods {
+        let path = dir.path().join(format!("{name}.json"));
+        std::fs::write(&path, pod).unwrap();
+        let created = kubectl(
+            &plane,
+            Identity::Admin,
+            &["create", "-f", path.to_str().unwrap()],
+        );
+        assert!(created.status.success(), "{}", text(&created));
+        if name != "running" {
+            let node = bound_to(&plane, name);
+            let expected = if name == "packed" { "gpu-a" } else { "gpu-b" };
+            assert_eq!(
+                node,
+                expected,
+                "{name} by {}",
+                if name == "packed" {
+                    packing
+                } else {
+                    "default-scheduler"
+                }
+            );
+            let deleted = kubectl(
+                &plane,
+                Identity::Admin,
+                &["delete", "pod", name, "-n", "default", "--wait=false"],
+            );
+            assert!(deleted.status.success(), "{}", text(&deleted));
+        }
     }
 }

@@ -1,0 +1,273 @@
+//! What AWS bills for a deadline rush, on the node model of `lb_domain::capacity::fleet`: the
+//! original's way (a whole on-demand g5.12xlarge per Job), ours on-demand and ours Spot first,
+//! before and after the levers `infra/` adopts, each lever alone, and the start estimate's
+//! error. `make bench-scale` runs it with `--bench` (200 submissions of 40 teams on at most 40
+//! nodes, and a long-run rush); `cargo test` runs a small rush with the same checks.
+
+use lb_domain::capacity::fleet::{self, Miss, Mode, Model, Placement, Report, Rush, Shape};
+
+/// One run of the rush: its name, the fleet and the admission.
+struct Row {
+    name: &'static str,
+    model: Model,
+    mode: Mode,
+    rush: Rush,
+}
+
+fn main() {
+    let full = std::env::args().any(|a| a == "--bench");
+    let settings = include_str!("../../../infra/settings.example.json");
+    let prices = lb_domain::settings::Settings::from_json(settings)
+        .expect("the example settings")
+        .prices;
+    let price = prices["g5.12xlarge"];
+    let (shape, nodes) = if full {
+        (shape(200, 40, 6.0, 20), 40)
+    } else {
+        (shape(40, 10, 2.0, 20), 10)
+    };
+    let before = Model::eks_g5(price, nodes);
+    print_parameters(&before, &shape);
+    let rows = rows(&before, &Rush::deadline(shape, 7));
+    let reports: Vec<Report> = rows
+        .iter()
+        .map(|row| fleet::simulate(&row.model, row.mode, &row.rush))
+        .collect();
+    header();
+    for (row, report) in rows.iter().zip(&reports) {
+        line(row.name, report);
+        assert_eq!(report.evaluations, shape.submissions, "{}", row.name);
+        let billed = report.instance_hours * 3600.0 * f64::from(before.gpus_per_node);
+        assert!(
+            (report.causes.total() - billed).abs() < billed * 1e-3,
+            "{}",
+            row.name
+        );
+    }
+    let find = |name: &str| &reports[rows.iter().position(|r| r.name == name).unwrap()];
+    let (original, on_demand, spot) = (
+        find("original"),
+        find("on-demand, levers"),
+        find("spot-first, levers"),
+    );
+    let per_dollar = |r: &Report| f64::from(r.evaluations) / r.dollars;
+    let ratio = per_dollar(spot) / per_dollar(on_demand);
+    let limit = price.on_demand / price.spot;
+    println!(
+        "compared       spot-first buys {ratio:.2}x the evaluations per billed dollar of on-demand (the prices' ratio {limit:.2}, target {:.2}), {:.2}x the original's way; idle {:.1}% (target 10%)",
+        0.95 * limit,
+        per_dollar(spot) / per_dollar(original),
+        spot.causes.idle_share() * 100.0
+    );
+    estimates("on-demand, levers", on_demand);
+    estimates("spot-first, levers", spot);
+    assert!(per_dollar(on_demand) > per_dollar(original));
+    assert!(ratio >= if full { 0.95 * limit } else { 2.0 }, "{ratio}");
+    assert!(find("on-demand, packing").causes.empty < find("on-demand, as deployed").causes.empty);
+    if full {
+        long_run(&before);
+    }
+}
+
+fn shape(submissions: u32, teams: u32, hours: f64, routes: u32) -> Shape {
+    Shape {
+        submissions,
+        teams,
+        hours,
+        routes,
+        pairs: 4,
+        scale: 1.0,
+        team_limit: 2,
+    }
+}
+
+/// The rush run on the fleet as it was deployed, with each lever alone, with those `infra/`
+/// adopts, and under stresses of the Spot market.
+fn rows(before: &Model, rush: &Rush) -> Vec<Row> {
+    let adopted = before.with_levers();
+    let row = |name, model: &Model, mode| Row {
+        name,
+        model: model.clone(),
+        mode,
+        rush: rush.clone(),
+    };
+    let packing = Model {
+        placement: Placement::Pack,
+        ..before.clone()
+    };
+    let scale_down = Model {
+        unneeded_seconds: adopted.unneeded_seconds,
+        delay_after_add_seconds: adopted.delay_after_add_seconds,
+        ..before.clone()
+    };
+    let cached = Model {
+        carla_pull_seconds: 0,
+        ..before.clone()
+    };
+    let stormy = Model {
+        reclaims_per_hour: adopted.reclaims_per_hour * 10.0,
+        ..adopted.clone()
+    };
+    let scarce = Model {
+        spot_available: adopted.max_nodes * 3 / 4,
+        ..adopted.clone()
+    };
+    let lending = Rush {
+        lend_idle: true,
+        ..rush.clone()
+    };
+    vec![
+        row("original", before, Mode::Original),
+        row("on-demand, as deployed", before, Mode::OnDemand),
+        row("spot-first, as deployed", before, Mode::SpotFirst),
+        row("on-demand, packing", &packing, Mode::OnDemand),
+        row("on-demand, scale-down", &scale_down, Mode::OnDemand),
+        row("on-demand, CARLA cached", &cached, Mode::OnDemand),
+        row("on-demand, levers", &adopted, Mode::OnDemand),
+        row("spot-first, levers", &adopted, Mode::SpotFirst),
+        row("spot-first, 10x reclaims", &stormy, Mode::SpotFirst),
+        row("spot-first, 3/4 Spot", &scarce, Mode::SpotFirst),
+        Row {
+            name: "spot-first, cap lends",
+            model: adopted.clone(),
+            mode: Mode::SpotFirst,
+            rush: lending,
+        },
+    ]
+}
+
+fn print_parameters(m: &Model, s: &Shape) {
+    println!(
+        "fleet          g5.12xlarge, {} GPUs, ${}/h on-demand, ${}/h Spot (infra/settings.example.json), at most {} nodes; launch -> Ready {} s; CARLA's image {} s and the participant's {} s ({} and {} GB at {} MB/s), CARLA's start {} s; autoscaler scan {} s, scale-down after {} s unneeded, {} s after a scale-up; Spot reclaims {:.3}% an instance-hour ({:.0}% of a pool a month), {} s notice",
+        m.gpus_per_node,
+        m.price.on_demand,
+        m.price.spot,
+        m.max_nodes,
+        m.boot_seconds,
+        m.carla_pull_seconds,
+        m.agent_pull_seconds,
+        fleet::CARLA_IMAGE_GB,
+        fleet::AGENT_IMAGE_GB,
+        fleet::PULL_MB_PER_SECOND,
+        m.carla_start_seconds,
+        m.step_seconds,
+        m.unneeded_seconds,
+        m.delay_after_add_seconds,
+        m.reclaims_per_hour * 100.0,
+        fleet::SPOT_INTERRUPTED_A_MONTH * 100.0,
+        m.notice_seconds,
+    );
+    println!(
+        "rush           {} submissions of {} teams (uneven) arriving over {} h, {} routes on {} pairs each, team_limit {}; a route log-normal, median {} s, sigma {} (the results fixtures' 1,188 routes), at most {} s",
+        s.submissions,
+        s.teams,
+        s.hours,
+        s.routes,
+        s.pairs,
+        s.team_limit,
+        fleet::ROUTE_MEDIAN_SECONDS,
+        fleet::ROUTE_SIGMA,
+        fleet::ROUTE_LONGEST_SECONDS,
+    );
+}
+
+fn header() {
+    println!(
+        "{:26} {:>7} {:>8} {:>5} {:>7} {:>6} | {:>5} {:>5} {:>6} {:>6} {:>5} | {:>6} {:>8} {:>7} {:>7} {:>6}",
+        "",
+        "inst-h",
+        "dollars",
+        "evals",
+        "$/eval",
+        "idle",
+        "boot",
+        "pulls",
+        "sc-dn",
+        "empty",
+        "again",
+        "nodes",
+        "reclaims",
+        "wait50",
+        "wait90",
+        "span"
+    );
+}
+
+fn line(name: &str, r: &Report) {
+    let c = &r.causes;
+    let share = |x: f64| x / c.total() * 100.0;
+    let mut waits = r.waits.clone();
+    waits.sort_unstable();
+    println!(
+        "{name:26} {:7.1} {:8.0} {:5} {:7.2} {:5.1}% | {:5.1} {:5.1} {:6.1} {:6.1} {:5.1} | {:6} {:8} {:5.0} m {:5.0} m {:4.1} h",
+        r.instance_hours,
+        r.dollars,
+        r.evaluations,
+        r.dollars_per_evaluation(),
+        c.idle_share() * 100.0,
+        share(c.boot),
+        share(c.pulls),
+        share(c.scale_down),
+        share(c.empty),
+        share(c.run_again),
+        r.nodes,
+        r.reclaims,
+        quantile(&waits, 0.5) as f64 / 60.0,
+        quantile(&waits, 0.9) as f64 / 60.0,
+        r.span as f64 / 3600.0,
+    );
+}
+
+fn quantile<T: Copy + Default>(sorted: &[T], q: f64) -> T {
+    let rank = (q * sorted.len() as f64).ceil().max(1.0) as usize;
+    sorted.get(rank - 1).copied().unwrap_or_default()
+}
+
+/// The start estimate's p90 error against the median wait, at arrival (all, and by what held
+/// the submission) and over every refresh.
+fn estimates(name: &str, r: &Report) {
+    let mut waits = r.waits.clone();
+    waits.sort_unstable();
+    let median = quantile(&waits, 0.5) as f64 / 60.0;
+    let p90 = |misses: &mut dyn Iterator<Item = i64>| {
+        let mut errors: Vec<u64> = misses.map(i64::unsigned_abs).collect();
+        errors.sort_unstable();
+        (quantile(&errors, 0.9) as f64 / 60.0, errors.len())
+    };
+    let arrival = |team_cap: Option<bool>| {
+        let mut chosen = r
+            .arrival_errors
+            .iter()
+            .filter(move |m: &&Miss| team_cap.is_none_or(|t| m.team_cap == t))
+            .map(|m| m.seconds);
+        p90(&mut chosen)
+    };
+    let (all, _) = arrival(None);
+    let (capacity, held_by_capacity) = arrival(Some(false));
+    let (team, held_by_team) = arrival(Some(true));
+    let (refreshed, _) = p90(&mut r.refresh_errors.iter().copied());
+    println!(
+        "estimate       {name}: median wait {median:.0} min; p90 error at arrival {all:.0} min ({:.0}% of it, target 25%): {capacity:.0} min for {held_by_capacity} waiting for GPUs, {team:.0} min for {held_by_team} held by their team's cap; over every refresh {refreshed:.0} min",
+        all / median.max(1e-9) * 100.0,
+    );
+}
+
+/// Evaluations of a hundred routes (25 a pair, about half a day): the original, ours with the
+/// levers, on-demand and Spot first.
+fn long_run(before: &Model) {
+    let shape = shape(100, 40, 12.0, 100);
+    let rush = Rush::deadline(shape, 11);
+    let adopted = before.with_levers();
+    println!(
+        "long run       {} submissions of {} routes on {} pairs arriving over {} h",
+        shape.submissions, shape.routes, shape.pairs, shape.hours
+    );
+    header();
+    for (name, model, mode) in [
+        ("original", before, Mode::Original),
+        ("on-demand, levers", &adopted, Mode::OnDemand),
+        ("spot-first, levers", &adopted, Mode::SpotFirst),
+    ] {
+        line(name, &fleet::simulate(model, mode, &rush));
+    }
+}
