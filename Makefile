@@ -215,7 +215,7 @@ cluster-manifests: $(DEPLOY_TOOLS) ## Apply infra/k8s/ to LEADERBOARD's cluster 
 	$(AWS_CLI) eks update-kubeconfig --name leaderboard-$(LEADERBOARD)
 	role=$$($(AWS_CLI) cloudformation describe-stacks --stack-name $(CLUSTER_STACK) \
 		--query "Stacks[0].Outputs[?OutputKey=='AutoscalerRoleArn'].OutputValue" --output text); \
-	for f in namespace rbac network-policy nvidia-device-plugin cluster-autoscaler; do \
+	for f in namespace rbac network-policy nvidia-device-plugin cluster-autoscaler scheduler; do \
 		sed -e "s|\$${CLUSTER_NAME}|leaderboard-$(LEADERBOARD)|g" -e "s|\$${AUTOSCALER_ROLE_ARN}|$$role|g" \
 			infra/k8s/$$f.yaml | kubectl apply -f -; done
 

@@ -1405,6 +1405,31 @@ fn the_autoscaler_is_the_release_of_the_clusters_minor() {
 }
 
 #[test]
+fn make_cluster_manifests_applies_every_manifest_of_infra_k8s() {
+    // A manifest left out of it is missing on a deployed cluster: the packing scheduler's
+    // would leave every submission pod unscheduled.
+    let makefile = std::fs::read_to_string(root().join("Makefile")).unwrap();
+    let recipe = makefile.split_once("\ncluster-manifests:").expect("the target").1;
+    let listed: BTreeSet<String> = recipe
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("for f in "))
+        .and_then(|l| l.split_once("; do"))
+        .map(|(files, _)| {
+            files
+                .split_whitespace()
+                .map(|f| format!("{f}.yaml"))
+                .collect()
+        })
+        .expect("make cluster-manifests lists its files");
+    let present: BTreeSet<String> = std::fs::read_dir(root().join("infra/k8s"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|name| name.ends_with(".yaml"))
+        .collect();
+    assert_eq!(listed, present);
+}
+
+#[test]
 fn the_levers_the_capacity_model_measures_are_the_ones_infra_sets() {
     use lb_domain::capacity::fleet::{Model, Placement};
     let price = lb_domain::capacity::cost::InstancePrice {
