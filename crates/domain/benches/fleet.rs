@@ -4,6 +4,7 @@
 //! error. `make bench-scale` runs it with `--bench` (200 submissions of 40 teams on at most 40
 //! nodes, and a long-run rush); `cargo test` runs a small rush with the same checks.
 
+use lb_domain::capacity::cost::InstancePrice;
 use lb_domain::capacity::fleet::{self, Miss, Mode, Model, Placement, Report, Rush, Shape};
 
 /// One run of the rush: its name, the fleet and the admission.
@@ -21,6 +22,7 @@ fn main() {
         .expect("the example settings")
         .prices;
     let price = prices["g5.12xlarge"];
+    let single = prices["g5.4xlarge"];
     let (shape, nodes) = if full {
         (shape(200, 40, 6.0, 20), 40)
     } else {
@@ -28,7 +30,9 @@ fn main() {
     };
     let before = Model::eks_g5(price, nodes);
     print_parameters(&before, &shape);
-    let rows = rows(&before, &Rush::deadline(shape, 7));
+    let rush = Rush::deadline(shape, 7);
+    print_evaluations(&rush);
+    let rows = rows(&before, single, &rush);
     let reports: Vec<Report> = rows
         .iter()
         .map(|row| fleet::simulate(&row.model, row.mode, &row.rush))
@@ -37,7 +41,7 @@ fn main() {
     for (row, report) in rows.iter().zip(&reports) {
         line(row.name, report);
         assert_eq!(report.evaluations, shape.submissions, "{}", row.name);
-        let billed = report.instance_hours * 3600.0 * f64::from(before.gpus_per_node);
+        let billed = report.instance_hours * 3600.0 * f64::from(row.model.gpus_per_node);
         assert!(
             (report.causes.total() - billed).abs() < billed * 1e-3,
             "{}",
@@ -83,7 +87,7 @@ fn shape(submissions: u32, teams: u32, hours: f64, routes: u32) -> Shape {
 
 /// The rush run on the fleet as it was deployed, with each lever alone, with those `infra/`
 /// adopts, and under stresses of the Spot market.
-fn rows(before: &Model, rush: &Rush) -> Vec<Row> {
+fn rows(before: &Model, single: InstancePrice, rush: &Rush) -> Vec<Row> {
     let adopted = before.with_levers();
     let row = |name, model: &Model, mode| Row {
         name,
@@ -112,6 +116,14 @@ fn rows(before: &Model, rush: &Rush) -> Vec<Row> {
         spot_available: adopted.max_nodes * 3 / 4,
         ..adopted.clone()
     };
+    // The same GPUs one to a node (the per-pair CPU and memory fit a g5.4xlarge too).
+    let one_gpu = Model {
+        gpus_per_node: 1,
+        price: single,
+        max_nodes: adopted.max_nodes * adopted.gpus_per_node,
+        spot_available: adopted.spot_available * adopted.gpus_per_node,
+        ..adopted.clone()
+    };
     let lending = Rush {
         lend_idle: true,
         ..rush.clone()
@@ -127,6 +139,8 @@ fn rows(before: &Model, rush: &Rush) -> Vec<Row> {
         row("spot-first, levers", &adopted, Mode::SpotFirst),
         row("spot-first, 10x reclaims", &stormy, Mode::SpotFirst),
         row("spot-first, 3/4 Spot", &scarce, Mode::SpotFirst),
+        row("on-demand, 1-GPU nodes", &one_gpu, Mode::OnDemand),
+        row("spot-first, 1-GPU nodes", &one_gpu, Mode::SpotFirst),
         Row {
             name: "spot-first, cap lends",
             model: adopted.clone(),
@@ -168,6 +182,30 @@ fn print_parameters(m: &Model, s: &Shape) {
         fleet::ROUTE_MEDIAN_SECONDS,
         fleet::ROUTE_SIGMA,
         fleet::ROUTE_LONGEST_SECONDS,
+    );
+}
+
+/// How long the rush's evaluations take on their own (their slowest pair's routes): the
+/// spread a forecast of a team's next turn cannot know.
+fn print_evaluations(rush: &Rush) {
+    let mut lengths: Vec<u64> = rush
+        .arrivals
+        .iter()
+        .map(|a| {
+            a.pairs
+                .iter()
+                .map(|p| p.iter().sum::<u64>())
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    lengths.sort_unstable();
+    let minutes = |q: f64| quantile(&lengths, q) as f64 / 60.0;
+    println!(
+        "evaluations    their slowest pair's routes: p10 {:.0} min, p50 {:.0} min, p90 {:.0} min",
+        minutes(0.1),
+        minutes(0.5),
+        minutes(0.9)
     );
 }
 

@@ -1409,7 +1409,10 @@ fn make_cluster_manifests_applies_every_manifest_of_infra_k8s() {
     // A manifest left out of it is missing on a deployed cluster: the packing scheduler's
     // would leave every submission pod unscheduled.
     let makefile = std::fs::read_to_string(root().join("Makefile")).unwrap();
-    let recipe = makefile.split_once("\ncluster-manifests:").expect("the target").1;
+    let recipe = makefile
+        .split_once("\ncluster-manifests:")
+        .expect("the target")
+        .1;
     let listed: BTreeSet<String> = recipe
         .lines()
         .find_map(|l| l.trim().strip_prefix("for f in "))
