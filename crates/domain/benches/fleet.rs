@@ -272,22 +272,27 @@ fn estimates(name: &str, r: &Report) {
         errors.sort_unstable();
         (quantile(&errors, 0.9) as f64 / 60.0, errors.len())
     };
-    let arrival = |team_cap: Option<bool>| {
-        let mut chosen = r
-            .arrival_errors
+    let arrival = |misses: &[Miss], team_cap: Option<bool>| {
+        let mut chosen = misses
             .iter()
             .filter(move |m: &&Miss| team_cap.is_none_or(|t| m.team_cap == t))
             .map(|m| m.seconds);
         p90(&mut chosen)
     };
-    let (all, _) = arrival(None);
-    let (capacity, held_by_capacity) = arrival(Some(false));
-    let (team, held_by_team) = arrival(Some(true));
     let (refreshed, _) = p90(&mut r.refresh_errors.iter().copied());
-    println!(
-        "estimate       {name}: median wait {median:.0} min; p90 error at arrival {all:.0} min ({:.0}% of it, target 25%): {capacity:.0} min for {held_by_capacity} waiting for GPUs, {team:.0} min for {held_by_team} held by their team's cap; over every refresh {refreshed:.0} min",
-        all / median.max(1e-9) * 100.0,
-    );
+    for (what, misses) in [
+        ("forecast", &r.arrival_errors),
+        ("pace (today's note)", &r.pace_errors),
+    ] {
+        let (all, _) = arrival(misses, None);
+        let (capacity, held_by_capacity) = arrival(misses, Some(false));
+        let (team, held_by_team) = arrival(misses, Some(true));
+        println!(
+            "estimate       {name}, {what}: median wait {median:.0} min; p90 error at arrival {all:.0} min ({:.0}% of it, target 25%): {capacity:.0} min for {held_by_capacity} waiting for GPUs, {team:.0} min for {held_by_team} held by their team's cap",
+            all / median.max(1e-9) * 100.0,
+        );
+    }
+    println!("estimate       {name}, forecast over every refresh: p90 error {refreshed:.0} min");
 }
 
 /// Evaluations of a hundred routes (25 a pair, about half a day): the original, ours with the

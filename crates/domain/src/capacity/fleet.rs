@@ -159,6 +159,16 @@ impl Rush {
     }
 }
 
+/// The track's evaluations before the rush: its history's pairs taken an evaluation's worth at
+/// a time, each as long as its slowest.
+fn history_durations(rush: &Rush) -> Vec<u64> {
+    let pairs = rush.arrivals.first().map_or(1, |a| a.pairs.len()).max(1);
+    rush.history
+        .chunks(pairs)
+        .map(|c| c.iter().copied().max().unwrap_or(0))
+        .collect()
+}
+
 /// One route's seconds, `scale` times the leaderboard's.
 fn route(rng: &mut Rng, scale: f64) -> u64 {
     let seconds = rng.log_normal(ROUTE_MEDIAN_SECONDS, ROUTE_SIGMA);
@@ -290,6 +300,8 @@ pub struct Report {
     pub arrival_errors: Vec<Miss>,
     /// The same for every refresh while it waited.
     pub refresh_errors: Vec<i64>,
+    /// The queue note's pace estimate at each submission's arrival against its actual start.
+    pub pace_errors: Vec<Miss>,
     /// Seconds from the first arrival to the last evaluation's end.
     pub span: u64,
 }
@@ -459,6 +471,8 @@ struct Sub {
     estimates: Vec<u64>,
     /// Its team's cap held it at its first estimate.
     capped_at_arrival: bool,
+    /// The queue note's pace estimate at its arrival (absolute seconds), once made.
+    paced_at_arrival: Option<Option<u64>>,
     /// When its estimate was last made.
     estimated_at: Option<u64>,
 }
@@ -478,6 +492,8 @@ struct Sim<'a> {
     rng: Rng,
     /// Finished pairs' seconds (their routes), most recent last: the track's pace.
     pace: Vec<u64>,
+    /// Finished evaluations' seconds, first pair's start to the end, most recent last.
+    durations: Vec<u64>,
 }
 
 /// Runs `rush` on `model`'s fleet bought as `mode` says, to the last evaluation's end.
@@ -495,6 +511,7 @@ pub fn simulate(model: &Model, mode: Mode, rush: &Rush) -> Report {
         reclaims: 0,
         rng: Rng::new(rush.seed),
         pace: rush.history.clone(),
+        durations: history_durations(rush),
     };
     // Bounded: every evaluation ends within its routes' length after the rush drains, so a
     // model that cannot place a pod (no node fits it) stops at a week past the last arrival.
@@ -697,6 +714,7 @@ impl Sim<'_> {
             sub.pods_left -= 1;
             if sub.pods_left == 0 {
                 sub.ended = Some(now);
+                self.durations.push(now - sub.started.unwrap_or(now));
             }
         }
     }
@@ -785,8 +803,34 @@ impl Sim<'_> {
                 }
                 sub.estimates.push(now + after);
             }
+            if self.subs[index].paced_at_arrival.is_none() {
+                let paced = self.pace_estimate(index).map(|after| now + after);
+                self.subs[index].paced_at_arrival = Some(paced);
+            }
             self.subs[index].estimated_at = Some(now);
         }
+    }
+
+    /// What the queue note estimates today (`queue::estimate_start`, `estimate_team_turn`):
+    /// places ahead at the pace of the track's latest evaluations.
+    fn pace_estimate(&self, index: usize) -> Option<u64> {
+        let team = self.rush.arrivals[index].team;
+        let (mut ahead, mut team_ahead, mut running) = (0, 0, 0);
+        for (i, s) in self.subs.iter().enumerate() {
+            let waiting = s.arrived && s.started.is_none();
+            ahead += u32::from(i < index && waiting);
+            team_ahead += u32::from(
+                i < index && !s.admitted && s.arrived && self.rush.arrivals[i].team == team,
+            );
+            running += u32::from(s.started.is_some() && s.ended.is_none());
+        }
+        let latest: Vec<u64> = self.durations.iter().rev().copied().collect();
+        let estimate = if self.subs[index].admitted {
+            super::queue::estimate_start(ahead, running, &latest)
+        } else {
+            super::queue::estimate_team_turn(team_ahead, self.rush.team_limit, &latest)
+        };
+        Some(estimate.map_or(0, |e| e.middle()))
     }
 
     /// The track's latest pairs' seconds, shortest first.
@@ -1052,6 +1096,11 @@ impl Sim<'_> {
                 r.evaluations += 1;
                 r.waits.push(started - arrived);
                 r.span = r.span.max(sub.ended.unwrap_or(0));
+                if let Some(Some(paced)) = sub.paced_at_arrival {
+                    let seconds = paced as i64 - started as i64;
+                    let team_cap = sub.capped_at_arrival;
+                    r.pace_errors.push(Miss { seconds, team_cap });
+                }
                 for (k, &predicted) in sub.estimates.iter().enumerate() {
                     let error = predicted as i64 - started as i64;
                     if k == 0 {
