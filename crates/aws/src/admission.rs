@@ -8,7 +8,10 @@
 //! `"2.0"`), sort key `key` (S):
 //! - `submission#<id>`: an entry: `submission_id`, `team_id`, `arrived_ms` (N), `state` (S:
 //!   `waiting`, `admitted`, `running`), `execution` (S, the execution that queued it last),
-//!   `expires_at` (N, DynamoDB TTL) past any queue time and evaluation.
+//!   `expires_at` (N, DynamoDB TTL) past any queue time and evaluation; once running,
+//!   `running_since` (N, epoch seconds) and, from its Monitor's rounds, `pairs`, `routes` and
+//!   `routes_done` (N): what the queue note's forecast reads of a run
+//!   (`lb_domain::capacity::forecast`).
 //! - `team#<id>`: a team's holds: `holders` (SS of submission ids).
 //! - `pace#<track>`: `durations` (L of N): the seconds its latest evaluations ran, oldest first
 //!   (`lb_domain::capacity::queue::RECENT_DURATIONS` of them), for the queue note's estimated start.
@@ -22,6 +25,7 @@ use std::collections::HashMap;
 
 use aws_sdk_dynamodb::types::{AttributeValue, Delete, TransactWriteItem, Update};
 use aws_sdk_dynamodb::Client;
+use lb_domain::capacity::forecast::Progress;
 use lb_domain::capacity::queue::{Entry, EntryState};
 
 use crate::{condition_failed, AwsError, Result};
@@ -104,6 +108,17 @@ fn entry_of(item: &HashMap<String, AttributeValue>) -> Result<Entry> {
         team_id: number("team_id")?,
         arrived_ms: number("arrived_ms")?,
         state,
+    })
+}
+
+/// A running entry's progress, when all of it is there.
+fn progress_of(item: &HashMap<String, AttributeValue>) -> Option<Progress> {
+    let number = |name: &str| item.get(name)?.as_n().ok()?.parse::<u64>().ok();
+    Some(Progress {
+        pairs: u32::try_from(number("pairs")?).ok()?,
+        done: number("routes_done")?,
+        routes: number("routes")?,
+        since: number("running_since")?,
     })
 }
 
@@ -273,15 +288,8 @@ impl AdmissionTable {
     /// Every entry of `queue`, in arrival order, read consistently. An entry someone edited
     /// into another shape is left out (and logged), not a reason to stop the queue.
     pub async fn entries(&self, queue: &str) -> Result<Vec<Entry>> {
-        let mut entries = Vec::new();
-        for item in self.items_with_prefix(queue, "submission#").await? {
-            match entry_of(&item) {
-                Ok(entry) => entries.push(entry),
-                Err(e) => tracing::warn!(error = %e, "admission entry skipped"),
-            }
-        }
-        entries.sort_by_key(|e| (e.arrived_ms, e.submission_id));
-        Ok(entries)
+        let entries = self.entries_with_progress(queue).await?;
+        Ok(entries.into_iter().map(|(entry, _)| entry).collect())
     }
 
     /// Admits `me` (waiting in `queue`) if its team holds fewer than `limit` places. When the
@@ -429,18 +437,55 @@ impl AdmissionTable {
         Ok(holds)
     }
 
-    /// Marks the entry running (its first pair started). An entry that is not there (a run
-    /// launched before admission existed) is left alone.
-    pub async fn mark_running(&self, queue: &str, submission_id: u64) -> Result<()> {
+    /// Marks the entry running (its first pair started at `since`, epoch seconds; a second
+    /// mark keeps the first time). An entry that is not there (a run launched before admission
+    /// existed) is left alone.
+    pub async fn mark_running(&self, queue: &str, submission_id: u64, since: u64) -> Result<()> {
         let result = self
             .client
             .update_item()
             .table_name(&self.table)
             .set_key(Some(entry_key(queue, submission_id)))
-            .update_expression("SET #state = :running")
+            .update_expression("SET #state = :running, #since = if_not_exists(#since, :since)")
             .condition_expression("attribute_exists(#key)")
             .expression_attribute_names("#state", "state")
+            .expression_attribute_names("#since", "running_since")
             .expression_attribute_names("#key", "key")
+            .expression_attribute_values(":running", s(EntryState::Running.as_str()))
+            .expression_attribute_values(":since", n(since))
+            .send()
+            .await;
+        match result {
+            Ok(_) => Ok(()),
+            Err(e) if condition_failed(&e) => Ok(()),
+            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
+        }
+    }
+
+    /// Keeps a running entry's progress: its `pairs`, routes `done` of `routes`. An entry
+    /// that is gone or not running is left alone (nothing waits on it).
+    pub async fn record_progress(
+        &self,
+        queue: &str,
+        submission_id: u64,
+        pairs: u32,
+        (done, routes): (u64, u64),
+    ) -> Result<()> {
+        let result = self
+            .client
+            .update_item()
+            .table_name(&self.table)
+            .set_key(Some(entry_key(queue, submission_id)))
+            .update_expression("SET #pairs = :pairs, #routes = :routes, #done = :done")
+            .condition_expression("attribute_exists(#key) AND #state = :running")
+            .expression_attribute_names("#pairs", "pairs")
+            .expression_attribute_names("#routes", "routes")
+            .expression_attribute_names("#done", "routes_done")
+            .expression_attribute_names("#state", "state")
+            .expression_attribute_names("#key", "key")
+            .expression_attribute_values(":pairs", n(u64::from(pairs)))
+            .expression_attribute_values(":routes", n(routes))
+            .expression_attribute_values(":done", n(done.min(routes)))
             .expression_attribute_values(":running", s(EntryState::Running.as_str()))
             .send()
             .await;
@@ -449,6 +494,23 @@ impl AdmissionTable {
             Err(e) if condition_failed(&e) => Ok(()),
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
         }
+    }
+
+    /// [`AdmissionTable::entries`], each running one with its progress when its Monitor has
+    /// recorded it (a number out of shape reads as no progress, never as an error).
+    pub async fn entries_with_progress(
+        &self,
+        queue: &str,
+    ) -> Result<Vec<(Entry, Option<Progress>)>> {
+        let mut entries = Vec::new();
+        for item in self.items_with_prefix(queue, "submission#").await? {
+            match entry_of(&item) {
+                Ok(entry) => entries.push((entry, progress_of(&item))),
+                Err(e) => tracing::warn!(error = %e, "admission entry skipped"),
+            }
+        }
+        entries.sort_by_key(|(e, _)| (e.arrived_ms, e.submission_id));
+        Ok(entries)
     }
 
     /// The seconds the latest evaluations of `track` ran, most recent first.

@@ -218,12 +218,27 @@ async fn arrival_survives_a_retry_and_starts_move_the_queue_forward() {
     assert_eq!(ahead(&entries, &entries[2]), 2);
 
     assert_eq!(admit(&table, 1, 2).await, Admit::Admitted);
-    table.mark_running(QUEUE, 1).await.unwrap();
+    table.mark_running(QUEUE, 1, 1_000).await.unwrap();
     let entries = table.entries(QUEUE).await.unwrap();
     assert_eq!(entries[0].state, EntryState::Running);
     assert_eq!(ahead(&entries, &entries[2]), 1);
+    // Its progress, for the forecasts of those waiting: the first start kept, the latest
+    // routes; a waiting entry's or a missing one's progress is not kept.
+    table.mark_running(QUEUE, 1, 5_000).await.unwrap();
+    table.record_progress(QUEUE, 1, 4, (7, 20)).await.unwrap();
+    table.record_progress(QUEUE, 2, 4, (1, 20)).await.unwrap();
+    table.record_progress(QUEUE, 404, 4, (1, 20)).await.unwrap();
+    let read = table.entries_with_progress(QUEUE).await.unwrap();
+    let progress: Vec<_> = read.iter().map(|(e, p)| (e.submission_id, *p)).collect();
+    let running = lb_domain::capacity::forecast::Progress {
+        pairs: 4,
+        done: 7,
+        routes: 20,
+        since: 1_000,
+    };
+    assert_eq!(progress, [(1, Some(running)), (2, None), (3, None)]);
     // A run from before admission existed has no entry: nothing to mark.
-    table.mark_running(QUEUE, 404).await.unwrap();
+    table.mark_running(QUEUE, 404, 1_000).await.unwrap();
     assert!(table.entry(QUEUE, 404).await.unwrap().is_none());
     // Every team's holds, for the reaper's sweep.
     assert_eq!(

@@ -281,8 +281,9 @@ fn estimates(name: &str, r: &Report) {
     };
     let (refreshed, _) = p90(&mut r.refresh_errors.iter().copied());
     for (what, misses) in [
-        ("forecast", &r.arrival_errors),
-        ("pace (today's note)", &r.pace_errors),
+        ("forecast, the model's view", &r.arrival_errors),
+        ("forecast, the admission table's view", &r.table_errors),
+        ("pace (the note before)", &r.pace_errors),
     ] {
         let (all, _) = arrival(misses, None);
         let (capacity, held_by_capacity) = arrival(misses, Some(false));

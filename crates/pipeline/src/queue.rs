@@ -7,6 +7,7 @@ use std::time::Duration;
 use lb_aws::admission::{AdmissionTable, Admit};
 use lb_aws::tasks::{Callbacks, Reported};
 use lb_aws::wake::WakeTable;
+use lb_domain::capacity::forecast;
 pub use lb_domain::capacity::queue::Standing;
 pub use lb_domain::capacity::queue::TeamQueue;
 use lb_domain::capacity::queue::{self, Entry, EntryState, Hold, Place};
@@ -108,9 +109,14 @@ impl Admission {
     }
 
     /// [`note`]; without a queue, the place alone (no pace to estimate from).
-    pub async fn note(&self, submission: &SubmissionInfo, place: Place, hold: Hold) -> String {
+    pub async fn note(
+        &self,
+        submission: &SubmissionInfo,
+        (place, hold): (Place, Hold),
+        now: u64,
+    ) -> String {
         match self {
-            Admission::Queue(table) => note(table, submission, place, hold).await,
+            Admission::Queue(table) => note(table, submission, (place, hold), now).await,
             Admission::Unlimited => queue::describe(place.ahead, hold),
         }
     }
@@ -125,10 +131,26 @@ impl Admission {
     }
 
     /// Out of the count of those waiting (its first pair started).
-    pub async fn mark_running(&self, submission: &SubmissionInfo) -> Result<()> {
+    pub async fn mark_running(&self, submission: &SubmissionInfo, now: u64) -> Result<()> {
         if let Admission::Queue(table) = self {
             let (leaderboard, id) = (submission.leaderboard.as_str(), submission.submission_id);
-            table.mark_running(leaderboard, id).await?;
+            table.mark_running(leaderboard, id, now).await?;
+        }
+        Ok(())
+    }
+
+    /// Its progress on its entry, for the forecasts of those waiting: routes `done` of
+    /// `routes` over its pairs.
+    pub async fn record_progress(
+        &self,
+        submission: &SubmissionInfo,
+        progress: (u64, u64),
+    ) -> Result<()> {
+        if let Admission::Queue(table) = self {
+            let (leaderboard, id) = (submission.leaderboard.as_str(), submission.submission_id);
+            table
+                .record_progress(leaderboard, id, submission.workers, progress)
+                .await?;
         }
         Ok(())
     }
@@ -228,34 +250,51 @@ pub async fn ahead_of(
 }
 
 /// The queue note's words for a submission `ahead` of which wait (`team_ahead` of its own
-/// team), while `running` run: the place, what holds it, and its estimated start from its
-/// track's pace (none when the pace cannot be read: the note goes without it).
+/// team), while `running` run: the place, what holds it, and its estimated start at `now`
+/// (epoch seconds): the queue played forward from its entries, the running ones' progress and
+/// the track's pace (`lb_domain::capacity::forecast`), or, when that cannot say, places ahead
+/// at the track's pace. None when neither can be read: the note goes without it.
 pub async fn note(
     table: &AdmissionTable,
     submission: &SubmissionInfo,
-    place: Place,
-    hold: Hold,
+    (place, hold): (Place, Hold),
+    now: u64,
 ) -> String {
     let Place {
         ahead,
         team_ahead,
         running,
     } = place;
-    let place = queue::describe(ahead, hold);
-    let pace = match table
-        .pace(submission.leaderboard.as_str(), &submission.track)
-        .await
-    {
-        Ok(pace) => pace,
-        Err(e) => {
-            tracing::warn!(submission_id = submission.submission_id, error = %e, "pace not read: no estimate in the note");
-            Vec::new()
+    let leaderboard = submission.leaderboard.as_str();
+    let (pace, entries) = (
+        table.pace(leaderboard, &submission.track).await,
+        table.entries_with_progress(leaderboard).await,
+    );
+    let (pace, entries) = match (pace, entries) {
+        (Ok(pace), Ok(entries)) => (pace, entries),
+        (Err(e), _) | (_, Err(e)) => {
+            tracing::warn!(submission_id = submission.submission_id, error = %e, "queue or pace not read: no estimate in the note");
+            (Vec::new(), Vec::new())
         }
     };
-    let estimate = match hold {
+    let view = forecast::QueueView {
+        entries: &entries,
+        durations: &pace,
+        // Admitted, its pods are queued: later admissions, whatever the cap, queue behind.
+        team_limit: match hold {
+            Hold::TeamLimit { limit } => limit,
+            Hold::Capacity => u32::MAX,
+        },
+        pairs: submission.workers,
+        // The nodes are not read here: a forecast without free GPUs waits for running pairs.
+        free_at: &[],
+        now,
+    };
+    let estimate = forecast::estimate(&view, submission.submission_id).or(match hold {
         Hold::TeamLimit { limit } => queue::estimate_team_turn(team_ahead, limit, &pace),
         Hold::Capacity => queue::estimate_start(ahead, running, &pace),
-    };
+    });
+    let place = queue::describe(ahead, hold);
     match estimate {
         Some(estimate) => format!("{place}; {}", queue::describe_estimate(estimate)),
         None => place,

@@ -206,3 +206,50 @@ async fn leaving_wakes_the_next_for_the_place_it_gives_back_read_beside_the_rele
     let none = Admission::Unlimited.leave(team, 3, waker(&wakes, &callbacks));
     assert!(!none.await.unwrap());
 }
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn the_note_plays_the_queue_out_from_the_runs_progress() {
+    let (stack, _) = test_support::stack::provisioned().await;
+    let client = aws_sdk_dynamodb::Client::new(&stack.sdk);
+    let table = AdmissionTable::new(client, ADMISSION_TABLE);
+    let admission = Admission::Queue(table.clone());
+    let hour = 3600;
+    let now = 100 * hour;
+    // The track's evaluations took two to three hours.
+    let durations: Vec<u64> = (0..20).map(|k| 2 * hour + k * hour / 20).collect();
+    table.keep_pace("2.0", "SENSORS", &durations).await.unwrap();
+    // Team 5 holds its one place with 1, nine tenths through its routes after two hours; 2
+    // waits behind it.
+    for (id, arrived) in [(1, 100), (2, 200)] {
+        take_turn(&table, &info(id, 5), arrived, 1).await.unwrap();
+    }
+    admission
+        .mark_running(&info(1, 5), now - 2 * hour)
+        .await
+        .unwrap();
+    admission
+        .record_progress(&info(1, 5), (18, 20))
+        .await
+        .unwrap();
+    let place = lb_domain::capacity::queue::Place {
+        ahead: 1,
+        team_ahead: 0,
+        running: 1,
+    };
+    let hold = lb_domain::capacity::queue::Hold::TeamLimit { limit: 1 };
+    let note = admission.note(&info(2, 5), (place, hold), now).await;
+    // A tenth of its routes left: well within the hour, where places ahead at the pace (a
+    // whole evaluation) would say two to three hours.
+    assert!(note.contains("it should start"), "{note}");
+    assert!(note.contains("minutes"), "{note}");
+    // Just started instead: hours.
+    admission
+        .record_progress(&info(1, 5), (0, 20))
+        .await
+        .unwrap();
+    let note = admission
+        .note(&info(2, 5), (place, hold), now - 2 * hour + 60)
+        .await;
+    assert!(note.contains("hours"), "{note}");
+}

@@ -162,7 +162,7 @@ impl<'a> Shell<'a> {
         self.deps
             .clients
             .admission
-            .note(self.submission, place, hold)
+            .note(self.submission, (place, hold), clients::now_epoch_seconds())
             .await
     }
 
@@ -240,7 +240,7 @@ impl<'a> Shell<'a> {
             .deps
             .clients
             .admission
-            .mark_running(self.submission)
+            .mark_running(self.submission, clients::now_epoch_seconds())
             .await
         {
             warn!(submission_id = self.id(), error = %e, "queue entry not marked running");
@@ -357,6 +357,11 @@ impl<'a> Shell<'a> {
             table.mark_running(team, id, (&time, &location), progress, (Some(usage), image));
         if let Err(e) = marked.await {
             warn!(submission_id = id, error = %e, "progress not recorded this round");
+        }
+        // The queue's copy, for the forecasts of those waiting.
+        let admission = &self.deps.clients.admission;
+        if let Err(e) = admission.record_progress(self.submission, progress).await {
+            warn!(submission_id = id, error = %e, "progress not kept on the queue entry this round");
         }
         Answer::Done
     }

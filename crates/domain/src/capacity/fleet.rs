@@ -302,6 +302,8 @@ pub struct Report {
     pub refresh_errors: Vec<i64>,
     /// The queue note's pace estimate at each submission's arrival against its actual start.
     pub pace_errors: Vec<Miss>,
+    /// The forecast from the admission table alone (no view of the nodes), the same way.
+    pub table_errors: Vec<Miss>,
     /// Seconds from the first arrival to the last evaluation's end.
     pub span: u64,
 }
@@ -473,6 +475,8 @@ struct Sub {
     capped_at_arrival: bool,
     /// The queue note's pace estimate at its arrival (absolute seconds), once made.
     paced_at_arrival: Option<Option<u64>>,
+    /// The forecast from the admission table's view at its arrival (absolute seconds).
+    viewed_at_arrival: Option<u64>,
     /// When its estimate was last made.
     estimated_at: Option<u64>,
 }
@@ -806,9 +810,77 @@ impl Sim<'_> {
             if self.subs[index].paced_at_arrival.is_none() {
                 let paced = self.pace_estimate(index).map(|after| now + after);
                 self.subs[index].paced_at_arrival = Some(paced);
+                let viewed = self.table_estimate(index).map(|after| now + after);
+                self.subs[index].viewed_at_arrival = viewed;
             }
             self.subs[index].estimated_at = Some(now);
         }
+    }
+
+    /// The forecast from what the admission table holds (`forecast::estimate`): entries, the
+    /// running ones' progress, the track's latest evaluations; no view of the nodes.
+    fn table_estimate(&self, index: usize) -> Option<u64> {
+        let entries: Vec<_> = (0..self.subs.len())
+            .filter(|&i| self.subs[i].arrived && self.subs[i].ended.is_none())
+            .map(|i| (self.entry(i), self.progress_of(i)))
+            .collect();
+        let latest = &self.durations[self
+            .durations
+            .len()
+            .saturating_sub(super::queue::RECENT_DURATIONS)..];
+        let view = forecast::QueueView {
+            entries: &entries,
+            durations: latest,
+            team_limit: self.rush.team_limit,
+            pairs: self.rush.arrivals[index].pairs.len() as u32,
+            free_at: &[],
+            now: self.now,
+        };
+        forecast::estimate(&view, index as u64).map(|e| e.middle())
+    }
+
+    /// Submission `i`'s queue entry.
+    fn entry(&self, i: usize) -> super::queue::Entry {
+        use super::queue::EntryState;
+        let sub = &self.subs[i];
+        let state = match (sub.admitted, sub.started) {
+            (false, _) => EntryState::Waiting,
+            (true, None) => EntryState::Admitted,
+            (true, Some(_)) => EntryState::Running,
+        };
+        let a = &self.rush.arrivals[i];
+        super::queue::Entry {
+            submission_id: i as u64,
+            team_id: a.team,
+            arrived_ms: a.at * 1000,
+            state,
+        }
+    }
+
+    /// Submission `i`'s progress as its Monitor records it: routes done of all its pairs.
+    fn progress_of(&self, i: usize) -> Option<forecast::Progress> {
+        let since = self.subs[i].started?;
+        let pairs = &self.rush.arrivals[i].pairs;
+        let mut done = 0;
+        for pod in self.pods.iter().filter(|p| p.submission == i) {
+            for (slot, &pair) in pod.pairs.iter().enumerate() {
+                done += match &pod.state {
+                    PodState::Running { pairs: running, .. } => match running[slot] {
+                        Pair::Route { route, .. } => route,
+                        Pair::Done => pairs[pair].len(),
+                    },
+                    PodState::Done => pairs[pair].len(),
+                    _ => pod.resume[slot].min(pairs[pair].len()),
+                } as u64;
+            }
+        }
+        let routes = pairs.iter().map(Vec::len).sum::<usize>() as u64;
+        Some(forecast::Progress {
+            pairs: pairs.len() as u32,
+            done,
+            routes,
+            since,
+        })
     }
 
     /// What the queue note estimates today (`queue::estimate_start`, `estimate_team_turn`):
@@ -1096,11 +1168,14 @@ impl Sim<'_> {
                 r.evaluations += 1;
                 r.waits.push(started - arrived);
                 r.span = r.span.max(sub.ended.unwrap_or(0));
-                if let Some(Some(paced)) = sub.paced_at_arrival {
-                    let seconds = paced as i64 - started as i64;
-                    let team_cap = sub.capped_at_arrival;
-                    r.pace_errors.push(Miss { seconds, team_cap });
-                }
+                let team_cap = sub.capped_at_arrival;
+                let miss = |at: u64| Miss {
+                    seconds: at as i64 - started as i64,
+                    team_cap,
+                };
+                r.pace_errors
+                    .extend(sub.paced_at_arrival.flatten().map(miss));
+                r.table_errors.extend(sub.viewed_at_arrival.map(miss));
                 for (k, &predicted) in sub.estimates.iter().enumerate() {
                     let error = predicted as i64 - started as i64;
                     if k == 0 {

@@ -208,9 +208,132 @@ pub fn forecast(outlook: &Outlook, submission: u64) -> Option<u64> {
     None
 }
 
+/// A running evaluation's progress, as its Monitor records it on its queue entry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Progress {
+    /// Its simulator-agent pairs.
+    pub pairs: u32,
+    /// Routes done.
+    pub done: u64,
+    /// Routes planned.
+    pub routes: u64,
+    /// When its first pair started, epoch seconds.
+    pub since: u64,
+}
+
+/// What a forecast from the admission table reads: the entries (in arrival order) with the
+/// progress of those running, the track's latest evaluations, and the evaluation asked about.
+#[derive(Debug, Clone, Copy)]
+pub struct QueueView<'a> {
+    /// Every entry of the queue, arrival order, with the progress of the running ones.
+    pub entries: &'a [(super::queue::Entry, Option<Progress>)],
+    /// The track's latest evaluations, seconds each (first pair's start to the end).
+    pub durations: &'a [u64],
+    /// `team_limit`.
+    pub team_limit: u32,
+    /// Pairs of an evaluation not started (the track's `workers`).
+    pub pairs: u32,
+    /// GPUs no pair holds, seconds from now until each is usable (none known: empty).
+    pub free_at: &'a [u64],
+    /// Epoch seconds.
+    pub now: u64,
+}
+
+/// The expected seconds of a new evaluation's `pairs` pairs, shortest first, from the lengths
+/// of whole evaluations (each its slowest pair's): if a pair's length has distribution `F`,
+/// an evaluation's has `F^pairs`, so the `k`-th of `pairs` (Blom's position `q`) sits at the
+/// evaluations' quantile `q^pairs`.
+pub fn pair_lengths(durations: &[u64], pairs: u32) -> Vec<u64> {
+    let mut sorted = durations.to_vec();
+    sorted.sort_unstable();
+    if sorted.is_empty() {
+        return Vec::new();
+    }
+    let n = f64::from(pairs.max(1));
+    (0..pairs.max(1))
+        .map(|k| {
+            let q = (f64::from(k) + 0.625) / (n + 0.25);
+            let rank = (q.powf(n) * sorted.len() as f64).floor() as usize;
+            sorted[rank.min(sorted.len() - 1)]
+        })
+        .collect()
+}
+
+/// The queue as `view` reads it, every length scaled by `scale` (the track's quick or slow
+/// pace); `None` without a duration to go by.
+pub fn outlook(view: &QueueView, scale: f64) -> Option<Outlook> {
+    use super::queue::EntryState;
+    let pairs = view.pairs;
+    let lengths = pair_lengths(view.durations, pairs);
+    let slowest = *lengths.last()? as f64 * scale;
+    let mut holders = Vec::new();
+    let mut waiting = Vec::new();
+    for (entry, progress) in view.entries {
+        let (submission, team) = (entry.submission_id, entry.team_id);
+        match (entry.state, progress) {
+            (EntryState::Waiting, _) => waiting.push(Waiting { submission, team }),
+            (EntryState::Admitted, _) => holders.push(Holder {
+                submission,
+                team,
+                running: Vec::new(),
+                pending: pairs,
+                until: 0,
+            }),
+            (EntryState::Running, progress) => {
+                let (n, left) = progress.map_or((pairs, 1.0), |p| {
+                    let left = p.routes.saturating_sub(p.done) as f64 / p.routes.max(1) as f64;
+                    (p.pairs.max(1), left)
+                });
+                let elapsed = progress.map_or(0, |p| view.now.saturating_sub(p.since)) as f64;
+                // Each pair what its share of the routes left takes at the pace, and never
+                // less than what a pair of its rank has still to run at this age.
+                let rest = |length: f64| (left * length).max(length - elapsed).max(0.0) as u64;
+                let ranks = pair_lengths(view.durations, n);
+                let running: Vec<u64> = ranks.iter().map(|&l| rest(l as f64 * scale)).collect();
+                let until = rest(slowest);
+                holders.push(Holder {
+                    submission,
+                    team,
+                    running,
+                    pending: 0,
+                    until,
+                });
+            }
+        }
+    }
+    Some(Outlook {
+        free_at: view.free_at.to_vec(),
+        holders,
+        waiting,
+        team_limit: view.team_limit,
+        pair_seconds: lengths.iter().map(|&l| (l as f64 * scale) as u64).collect(),
+    })
+}
+
+/// When `me` may start, seconds from now: the queue played forward at the track's quick and
+/// slow pace (its evaluations' lower and upper quartile against their median); `None` without
+/// a duration to go by or with `me` not in the queue.
+pub fn estimate(view: &QueueView, me: u64) -> Option<super::queue::StartEstimate> {
+    let mut sorted = view.durations.to_vec();
+    sorted.sort_unstable();
+    let quantile = |q: usize| {
+        sorted
+            .get(sorted.len().saturating_sub(1) * q / 4)
+            .map(|&d| d as f64)
+    };
+    let median = quantile(2)?.max(1.0);
+    let at = |scale: f64| forecast(&outlook(view, scale)?, me);
+    let (low, high) = (at(quantile(1)? / median)?, at(quantile(3)? / median)?);
+    Some(super::queue::StartEstimate {
+        low: low.min(high),
+        high: low.max(high),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::capacity::queue::{Entry, EntryState};
 
     fn holder(submission: u64, team: u64, running: &[u64], pending: u32) -> Holder {
         Holder {
@@ -282,6 +405,77 @@ mod tests {
         );
         assert_eq!(forecast(&o, 4), Some(0));
         assert_eq!(forecast(&o, 3), Some(900));
+    }
+
+    #[test]
+    fn pairs_are_read_off_whole_evaluations_each_as_long_as_its_slowest_pair() {
+        let durations: Vec<u64> = (1..=100).collect();
+        // Four pairs: the evaluations' quantiles at Blom's positions to the fourth power.
+        assert_eq!(pair_lengths(&durations, 4), [1, 3, 15, 53]);
+        assert_eq!(pair_lengths(&durations, 1), [51]);
+        assert!(pair_lengths(&[], 4).is_empty());
+    }
+
+    fn entry(submission_id: u64, team_id: u64, state: EntryState) -> Entry {
+        Entry {
+            submission_id,
+            team_id,
+            arrived_ms: submission_id,
+            state,
+        }
+    }
+
+    #[test]
+    fn the_table_s_view_plays_running_runs_out_by_their_progress() {
+        // Evaluations of 100 to 200 minutes; one pair each. Team 1 runs two, one nearly done
+        // (9 of 10 routes after 100 minutes) and one just started; its third waits for the
+        // first to end: about a tenth of a run from now, well before the other.
+        let minute = 60;
+        let durations: Vec<u64> = (100..=200).map(|m| m * minute).collect();
+        let now = 1_000_000;
+        let progress = |done, age| Progress {
+            pairs: 1,
+            done,
+            routes: 10,
+            since: now - age,
+        };
+        let entries = vec![
+            (
+                entry(1, 1, EntryState::Running),
+                Some(progress(9, 100 * minute)),
+            ),
+            (entry(2, 1, EntryState::Running), Some(progress(0, 0))),
+            (entry(3, 1, EntryState::Waiting), None),
+        ];
+        let view = QueueView {
+            entries: &entries,
+            durations: &durations,
+            team_limit: 2,
+            pairs: 1,
+            free_at: &[0, 0],
+            now,
+        };
+        let estimate = estimate(&view, 3).unwrap();
+        assert!(estimate.low <= estimate.high);
+        assert!(
+            (10 * minute..=60 * minute).contains(&estimate.middle()),
+            "{estimate:?}"
+        );
+        // Without durations there is nothing to go by.
+        assert_eq!(
+            estimate_of(
+                &QueueView {
+                    durations: &[],
+                    ..view
+                },
+                3
+            ),
+            None
+        );
+    }
+
+    fn estimate_of(view: &QueueView, me: u64) -> Option<u64> {
+        estimate(view, me).map(|e| e.middle())
     }
 
     #[test]
