@@ -23,6 +23,7 @@
 
 use std::collections::HashMap;
 
+use aws_sdk_dynamodb::operation::update_item::builders::UpdateItemFluentBuilder;
 use aws_sdk_dynamodb::types::{AttributeValue, Delete, TransactWriteItem, Update};
 use aws_sdk_dynamodb::Client;
 use lb_domain::capacity::forecast::Progress;
@@ -199,23 +200,15 @@ impl AdmissionTable {
     /// Makes an existing entry `execution`'s (nothing when it is already, or when there is no
     /// entry): a resume's new execution, or the execution a long run continued as.
     pub async fn adopt(&self, queue: &str, submission_id: u64, execution: &str) -> Result<()> {
-        let result = self
-            .client
-            .update_item()
-            .table_name(&self.table)
-            .set_key(Some(entry_key(queue, submission_id)))
-            .update_expression("SET #execution = :me")
-            .condition_expression("attribute_exists(#key) AND (attribute_not_exists(#execution) OR #execution <> :me)")
-            .expression_attribute_names("#execution", "execution")
-            .expression_attribute_names("#key", "key")
-            .expression_attribute_values(":me", s(execution))
-            .send()
-            .await;
-        match result {
-            Ok(_) => Ok(()),
-            Err(e) if condition_failed(&e) => Ok(()),
-            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
-        }
+        self.update_entry(queue, submission_id, |update| {
+            update
+                .update_expression("SET #execution = :me")
+                .condition_expression("attribute_exists(#key) AND (attribute_not_exists(#execution) OR #execution <> :me)")
+                .expression_attribute_names("#execution", "execution")
+                .expression_attribute_names("#key", "key")
+                .expression_attribute_values(":me", s(execution))
+        })
+        .await
     }
 
     /// The execution that queued `submission_id` last (`None`: no entry, or one written before
@@ -441,25 +434,17 @@ impl AdmissionTable {
     /// mark keeps the first time). An entry that is not there (a run launched before admission
     /// existed) is left alone.
     pub async fn mark_running(&self, queue: &str, submission_id: u64, since: u64) -> Result<()> {
-        let result = self
-            .client
-            .update_item()
-            .table_name(&self.table)
-            .set_key(Some(entry_key(queue, submission_id)))
-            .update_expression("SET #state = :running, #since = if_not_exists(#since, :since)")
-            .condition_expression("attribute_exists(#key)")
-            .expression_attribute_names("#state", "state")
-            .expression_attribute_names("#since", "running_since")
-            .expression_attribute_names("#key", "key")
-            .expression_attribute_values(":running", s(EntryState::Running.as_str()))
-            .expression_attribute_values(":since", n(since))
-            .send()
-            .await;
-        match result {
-            Ok(_) => Ok(()),
-            Err(e) if condition_failed(&e) => Ok(()),
-            Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
-        }
+        self.update_entry(queue, submission_id, |update| {
+            update
+                .update_expression("SET #state = :running, #since = if_not_exists(#since, :since)")
+                .condition_expression("attribute_exists(#key)")
+                .expression_attribute_names("#state", "state")
+                .expression_attribute_names("#since", "running_since")
+                .expression_attribute_names("#key", "key")
+                .expression_attribute_values(":running", s(EntryState::Running.as_str()))
+                .expression_attribute_values(":since", n(since))
+        })
+        .await
     }
 
     /// Keeps a running entry's progress: its `pairs`, routes `done` of `routes`. An entry
@@ -471,25 +456,37 @@ impl AdmissionTable {
         pairs: u32,
         (done, routes): (u64, u64),
     ) -> Result<()> {
-        let result = self
+        self.update_entry(queue, submission_id, |update| {
+            update
+                .update_expression("SET #pairs = :pairs, #routes = :routes, #done = :done")
+                .condition_expression("attribute_exists(#key) AND #state = :running")
+                .expression_attribute_names("#pairs", "pairs")
+                .expression_attribute_names("#routes", "routes")
+                .expression_attribute_names("#done", "routes_done")
+                .expression_attribute_names("#state", "state")
+                .expression_attribute_names("#key", "key")
+                .expression_attribute_values(":pairs", n(u64::from(pairs)))
+                .expression_attribute_values(":routes", n(routes))
+                .expression_attribute_values(":done", n(done.min(routes)))
+                .expression_attribute_values(":running", s(EntryState::Running.as_str()))
+        })
+        .await
+    }
+
+    /// An update of `submission_id`'s entry, made by `update`; one its condition refuses
+    /// changes nothing and is no error.
+    async fn update_entry(
+        &self,
+        queue: &str,
+        submission_id: u64,
+        update: impl FnOnce(UpdateItemFluentBuilder) -> UpdateItemFluentBuilder,
+    ) -> Result<()> {
+        let request = self
             .client
             .update_item()
             .table_name(&self.table)
-            .set_key(Some(entry_key(queue, submission_id)))
-            .update_expression("SET #pairs = :pairs, #routes = :routes, #done = :done")
-            .condition_expression("attribute_exists(#key) AND #state = :running")
-            .expression_attribute_names("#pairs", "pairs")
-            .expression_attribute_names("#routes", "routes")
-            .expression_attribute_names("#done", "routes_done")
-            .expression_attribute_names("#state", "state")
-            .expression_attribute_names("#key", "key")
-            .expression_attribute_values(":pairs", n(u64::from(pairs)))
-            .expression_attribute_values(":routes", n(routes))
-            .expression_attribute_values(":done", n(done.min(routes)))
-            .expression_attribute_values(":running", s(EntryState::Running.as_str()))
-            .send()
-            .await;
-        match result {
+            .set_key(Some(entry_key(queue, submission_id)));
+        match update(request).send().await {
             Ok(_) => Ok(()),
             Err(e) if condition_failed(&e) => Ok(()),
             Err(e) => Err(AwsError::sdk("dynamodb", "UpdateItem", e)),
