@@ -226,18 +226,22 @@ fn short_age(age: time::Duration) -> String {
     }
 }
 
-/// The estimated start of every shown submission whose pods wait for a GPU, from its
-/// leaderboard's running evaluations and its track's pace (none where it cannot be read).
+/// The estimated start of every shown submission whose pods wait for a GPU, as its queue
+/// note gives it (`lb_domain::capacity::forecast::estimate`, else places ahead at its track's
+/// pace): none where neither can be read.
 async fn estimates(
     deployment: &Deployment,
     shown: &[&Record],
     places: &HashMap<(String, u64), Place>,
 ) -> HashMap<(String, u64), lb_domain::capacity::queue::StartEstimate> {
+    use lb_domain::capacity::{forecast, queue};
     let mut out = HashMap::new();
     let Some(table) = &deployment.admission else {
         return out;
     };
+    let now = time::OffsetDateTime::now_utc().unix_timestamp().max(0) as u64;
     let mut paces: HashMap<(String, String), Vec<u64>> = HashMap::new();
+    let mut queues: HashMap<String, Vec<_>> = HashMap::new();
     for record in shown {
         let (Some(id), Some(track)) = (record.submission_id, record.track_name.as_deref()) else {
             continue;
@@ -246,22 +250,32 @@ async fn estimates(
         let Some(place) = places.get(&key) else {
             continue;
         };
-        if place.state != lb_domain::capacity::queue::EntryState::Admitted {
+        if place.state != queue::EntryState::Admitted {
             continue;
         }
         let pace_key = (record.leaderboard.clone(), track.to_string());
         if !paces.contains_key(&pace_key) {
-            let pace = table
-                .pace(&record.leaderboard, track)
-                .await
-                .unwrap_or_default();
-            paces.insert(pace_key.clone(), pace);
+            let pace = table.pace(&record.leaderboard, track).await;
+            paces.insert(pace_key.clone(), pace.unwrap_or_default());
         }
-        if let Some(e) = lb_domain::capacity::queue::estimate_start(
-            place.ahead,
-            place.running,
-            &paces[&pace_key],
-        ) {
+        if !queues.contains_key(&record.leaderboard) {
+            let entries = table.entries_with_progress(&record.leaderboard).await;
+            queues.insert(record.leaderboard.clone(), entries.unwrap_or_default());
+        }
+        let view = forecast::QueueView {
+            entries: &queues[&record.leaderboard],
+            durations: &paces[&pace_key],
+            // Admitted: later admissions queue behind it, whatever the cap.
+            team_limit: u32::MAX,
+            pairs: record
+                .workers
+                .and_then(|w| u32::try_from(w).ok())
+                .unwrap_or(1),
+            free_at: &[],
+            now,
+        };
+        let paced = || queue::estimate_start(place.ahead, place.running, &paces[&pace_key]);
+        if let Some(e) = forecast::estimate(&view, id).or_else(paced) {
             out.insert(key, e);
         }
     }
