@@ -530,7 +530,17 @@ async fn rush(full: bool, mode: Mode) {
     let token = server.host_token().unwrap().to_string();
     let policy = BudgetPolicy::for_limit(LIMIT, period).unwrap();
     let dynamo = aws_sdk_dynamodb::Client::new(&stack.sdk);
-    let budget = Arc::new(BudgetTable::new(dynamo.clone(), BUDGET_TABLE, policy));
+    // The budget on a moto of its own: one moto process answers every request in turn, and
+    // the queue's hundreds of polls would otherwise hold grants past their window (6 real
+    // seconds at this speed), which a table answering in milliseconds never does.
+    let (budget_stack, _) =
+        test_support::stack::provisioned_with(Fixture::default(), LOCAL_SETTINGS).await;
+    let budget_dynamo = aws_sdk_dynamodb::Client::new(&budget_stack.sdk);
+    let budget = Arc::new(BudgetTable::new(
+        budget_dynamo.clone(),
+        BUDGET_TABLE,
+        policy,
+    ));
     let queue = Arc::new(AdmissionTable::new(dynamo, ADMISSION_TABLE));
     let cluster = Arc::new(Semaphore::new(gpus));
     let capacity = Arc::new(match mode {
@@ -695,7 +705,7 @@ async fn rush(full: bool, mode: Mode) {
     // and never sent. At 10x speed a window is 6 real seconds, so a slow table (moto, one busy
     // process serialising every request) wastes places a real one, answering in milliseconds
     // of a 60-second window, would not.
-    let granted = granted(&aws_sdk_dynamodb::Client::new(&stack.sdk)).await;
+    let granted = granted(&budget_dynamo).await;
     println!(
         "budget         {granted} places granted for {} requests sent: {} counted and never sent (a grant back after its window closed is asked for again)",
         log.len(),
