@@ -11,6 +11,7 @@ mod executions;
 mod invoke;
 mod logs;
 mod ops;
+mod plan;
 mod plugin;
 mod rescore;
 mod support;
@@ -145,6 +146,10 @@ pub enum Command {
     /// Move the state machine's `live` alias back to an earlier version: new submissions start
     /// there, executions running on the later one finish on it.
     Rollback(versions::Rollback),
+    /// What a deadline rush would cost on the GPU fleet as `infra/` deploys it (billed
+    /// instance-hours, dollars, the idle share by cause, waits): the original's way, ours
+    /// on-demand and ours Spot first, on the node model `make bench-scale` measures.
+    Plan(plan::Plan),
 }
 
 /// Runs a parsed command line; returns the process exit code. Errors of the operator commands
@@ -169,6 +174,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Logs(args) => logs::logs(args).await?,
         Command::Watch(args) => watch::watch(args).await?,
         Command::KubernetesSupport(args) => support::run(args)?,
+        Command::Plan(args) => plan::run(args)?,
     };
     Ok(code)
 }

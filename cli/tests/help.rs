@@ -17,6 +17,7 @@ const SUBCOMMANDS: &[&str] = &[
     "submit",
     "resume",
     "kubernetes-support",
+    "plan",
 ];
 
 #[test]
@@ -319,4 +320,50 @@ fn kubernetes_support_says_the_template_s_minor_and_asks_to_act_on_an_ending_one
     let out = lbctl(&["kubernetes-support", "--minor", "1.99"], &[], None);
     assert_eq!(out.status.code(), Some(1), "{}", show(&out));
     assert!(stdout(&out).contains("support.rs"), "{}", show(&out));
+}
+
+#[test]
+fn plan_prices_a_rush_three_ways_and_refuses_a_fleet_that_cannot_be() {
+    let args = [
+        "plan",
+        "--submissions",
+        "30",
+        "--teams",
+        "6",
+        "--nodes",
+        "6",
+    ];
+    let out = lbctl(&args, &[], None);
+    assert_eq!(out.status.code(), Some(0), "{}", show(&out));
+    let text = stdout(&out);
+    // Each way's dollars per evaluation, the fifth column of its row.
+    let per_evaluation = |name: &str| -> f64 {
+        let row = text
+            .lines()
+            .find(|l| l.starts_with(name))
+            .unwrap_or_else(|| panic!("{name} in\n{text}"));
+        let columns: Vec<&str> = row[name.len()..].split_whitespace().collect();
+        columns[3].parse().unwrap_or_else(|_| panic!("{row}"))
+    };
+    let (original, on_demand, spot) = (
+        per_evaluation("the original's way"),
+        per_evaluation("ours, on-demand"),
+        per_evaluation("ours, Spot first"),
+    );
+    assert!(spot < on_demand && on_demand < original, "{text}");
+    assert!(text.contains("30 submissions of 6 teams"), "{text}");
+
+    for bad in [
+        &["plan", "--nodes", "0"][..],
+        &["plan", "--spot-share", "2"],
+        &["plan", "--instance-type", "m5.large"],
+    ] {
+        let out = lbctl(bad, &[], None);
+        assert_eq!(out.status.code(), Some(2), "{bad:?}: {}", show(&out));
+        assert!(
+            stderr(&out).contains("--") || stderr(&out).contains("m5.large"),
+            "{}",
+            show(&out)
+        );
+    }
 }

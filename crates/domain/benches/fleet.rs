@@ -5,7 +5,9 @@
 //! nodes, and a long-run rush); `cargo test` runs a small rush with the same checks.
 
 use lb_domain::capacity::cost::InstancePrice;
-use lb_domain::capacity::fleet::{self, Miss, Mode, Model, Placement, Report, Rush, Shape};
+use lb_domain::capacity::fleet::{
+    self, quantile, Miss, Mode, Model, Placement, Report, Rush, Shape,
+};
 
 /// One run of the rush: its name, the fleet and the admission.
 struct Row {
@@ -37,9 +39,9 @@ fn main() {
         .iter()
         .map(|row| fleet::simulate(&row.model, row.mode, &row.rush))
         .collect();
-    header();
+    println!("{}", fleet::table_header());
     for (row, report) in rows.iter().zip(&reports) {
-        line(row.name, report);
+        println!("{}", report.row(row.name));
         assert_eq!(report.evaluations, shape.submissions, "{}", row.name);
         let billed = report.instance_hours * 3600.0 * f64::from(row.model.gpus_per_node);
         assert!(
@@ -209,58 +211,6 @@ fn print_evaluations(rush: &Rush) {
     );
 }
 
-fn header() {
-    println!(
-        "{:26} {:>7} {:>8} {:>5} {:>7} {:>6} | {:>5} {:>5} {:>6} {:>6} {:>5} | {:>6} {:>8} {:>7} {:>7} {:>6}",
-        "",
-        "inst-h",
-        "dollars",
-        "evals",
-        "$/eval",
-        "idle",
-        "boot",
-        "pulls",
-        "sc-dn",
-        "empty",
-        "again",
-        "nodes",
-        "reclaims",
-        "wait50",
-        "wait90",
-        "span"
-    );
-}
-
-fn line(name: &str, r: &Report) {
-    let c = &r.causes;
-    let share = |x: f64| x / c.total() * 100.0;
-    let mut waits = r.waits.clone();
-    waits.sort_unstable();
-    println!(
-        "{name:26} {:7.1} {:8.0} {:5} {:7.2} {:5.1}% | {:5.1} {:5.1} {:6.1} {:6.1} {:5.1} | {:6} {:8} {:5.0} m {:5.0} m {:4.1} h",
-        r.instance_hours,
-        r.dollars,
-        r.evaluations,
-        r.dollars_per_evaluation(),
-        c.idle_share() * 100.0,
-        share(c.boot),
-        share(c.pulls),
-        share(c.scale_down),
-        share(c.empty),
-        share(c.run_again),
-        r.nodes,
-        r.reclaims,
-        quantile(&waits, 0.5) as f64 / 60.0,
-        quantile(&waits, 0.9) as f64 / 60.0,
-        r.span as f64 / 3600.0,
-    );
-}
-
-fn quantile<T: Copy + Default>(sorted: &[T], q: f64) -> T {
-    let rank = (q * sorted.len() as f64).ceil().max(1.0) as usize;
-    sorted.get(rank - 1).copied().unwrap_or_default()
-}
-
 /// The start estimate's p90 error against the median wait, at arrival (all, and by what held
 /// the submission) and over every refresh.
 fn estimates(name: &str, r: &Report) {
@@ -306,12 +256,12 @@ fn long_run(before: &Model) {
         "long run       {} submissions of {} routes on {} pairs arriving over {} h",
         shape.submissions, shape.routes, shape.pairs, shape.hours
     );
-    header();
+    println!("{}", fleet::table_header());
     for (name, model, mode) in [
         ("original", before, Mode::Original),
         ("on-demand, levers", &adopted, Mode::OnDemand),
         ("spot-first, levers", &adopted, Mode::SpotFirst),
     ] {
-        line(name, &fleet::simulate(model, mode, &rush));
+        println!("{}", fleet::simulate(model, mode, &rush).row(name));
     }
 }

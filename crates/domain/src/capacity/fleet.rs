@@ -313,6 +313,48 @@ impl Report {
     pub fn dollars_per_evaluation(&self) -> f64 {
         self.dollars / f64::from(self.evaluations.max(1))
     }
+
+    /// One line of a table under [`table_header`]: the bill, the idle share by cause (percent
+    /// of billed GPU-seconds), the nodes, and what participants waited.
+    pub fn row(&self, name: &str) -> String {
+        let c = &self.causes;
+        let share = |x: f64| x / c.total().max(f64::MIN_POSITIVE) * 100.0;
+        let mut waits = self.waits.clone();
+        waits.sort_unstable();
+        let minutes = |q: f64| quantile(&waits, q) as f64 / 60.0;
+        format!(
+            "{name:26} {:7.1} {:8.0} {:5} {:7.2} {:5.1}% | {:5.1} {:5.1} {:6.1} {:6.1} {:5.1} | {:6} {:8} {:5.0} m {:5.0} m {:4.1} h",
+            self.instance_hours,
+            self.dollars,
+            self.evaluations,
+            self.dollars_per_evaluation(),
+            c.idle_share() * 100.0,
+            share(c.boot),
+            share(c.pulls),
+            share(c.scale_down),
+            share(c.empty),
+            share(c.run_again),
+            self.nodes,
+            self.reclaims,
+            minutes(0.5),
+            minutes(0.9),
+            self.span as f64 / 3600.0,
+        )
+    }
+}
+
+/// The columns of [`Report::row`].
+pub fn table_header() -> String {
+    format!(
+        "{:26} {:>7} {:>8} {:>5} {:>7} {:>6} | {:>5} {:>5} {:>6} {:>6} {:>5} | {:>6} {:>8} {:>7} {:>7} {:>6}",
+        "", "inst-h", "dollars", "evals", "$/eval", "idle", "boot", "pulls", "sc-dn", "empty", "again", "nodes", "reclaims", "wait50", "wait90", "span"
+    )
+}
+
+/// The value at quantile `q` of `sorted` (nearest rank; the default when empty).
+pub fn quantile<T: Copy + Default>(sorted: &[T], q: f64) -> T {
+    let rank = (q * sorted.len() as f64).ceil().max(1.0) as usize;
+    sorted.get(rank - 1).copied().unwrap_or_default()
 }
 
 /// An estimated start against the actual one.
