@@ -778,10 +778,20 @@ fn the_domain_is_folders_in_layers_and_none_uses_a_higher_one() {
         let sources: Vec<PathBuf> = if single.is_file() {
             vec![single]
         } else {
-            std::fs::read_dir(src.join(layer))
-                .unwrap()
-                .map(|e| e.unwrap().path())
-                .collect()
+            // A layer's folder, with the folders of its larger modules (`capacity/fleet/`).
+            let mut files = Vec::new();
+            let mut dirs = vec![src.join(layer)];
+            while let Some(dir) = dirs.pop() {
+                for entry in std::fs::read_dir(&dir).unwrap() {
+                    let path = entry.unwrap().path();
+                    if path.is_dir() {
+                        dirs.push(path);
+                    } else {
+                        files.push(path);
+                    }
+                }
+            }
+            files
         };
         for path in sources {
             let source = std::fs::read_to_string(&path).unwrap();
