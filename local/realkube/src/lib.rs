@@ -119,6 +119,20 @@ impl ControlPlane {
     /// free loopback ports, and waits until Jobs can be created (the default ServiceAccount
     /// exists).
     pub fn start(bin: &Path) -> Result<ControlPlane, Error> {
+        // A port found free can be taken before its server binds it (another plane starting
+        // beside this one asks the kernel for ports too): start again on new ones, a few times.
+        let mut attempt = 1;
+        loop {
+            match ControlPlane::start_once(bin) {
+                Err(e) if attempt < 3 && e.to_string().contains("address already in use") => {
+                    attempt += 1;
+                }
+                started => return started,
+            }
+        }
+    }
+
+    fn start_once(bin: &Path) -> Result<ControlPlane, Error> {
         let dir = tempfile::Builder::new().prefix("real-kube.").tempdir()?;
         let (api, etcd, peer) = (free_port()?, free_port()?, free_port()?);
         let front = front::Front::start(api)?;

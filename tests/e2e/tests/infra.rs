@@ -1387,21 +1387,27 @@ fn expander_priority(priorities: &BTreeMap<i64, Vec<String>>, group: &str) -> Op
 }
 
 #[test]
-fn the_autoscaler_is_the_release_of_the_clusters_minor() {
+fn the_autoscaler_and_the_scheduler_are_releases_of_the_clusters_minor() {
     // The Cluster Autoscaler supports only the Kubernetes minor of its own release.
     let minor = CLUSTER
         .eval(&CLUSTER.root()["Parameters"]["KubernetesVersion"]["Default"])
         .unwrap();
-    let docs = k8s_docs("cluster-autoscaler.yaml");
-    let deployment = docs.iter().find(|d| d["kind"] == "Deployment").unwrap();
-    let image = deployment["spec"]["template"]["spec"]["containers"][0]["image"]
-        .as_str()
-        .unwrap();
-    let tag = image
-        .rsplit_once(":v")
-        .map(|(_, tag)| tag)
-        .unwrap_or_default();
-    assert!(tag.starts_with(&format!("{minor}.")), "{image} on {minor}");
+    // So does the packing kube-scheduler: its configuration's API is the minor's.
+    for file in ["cluster-autoscaler.yaml", "scheduler.yaml"] {
+        let docs = k8s_docs(file);
+        let deployment = docs.iter().find(|d| d["kind"] == "Deployment").unwrap();
+        let image = deployment["spec"]["template"]["spec"]["containers"][0]["image"]
+            .as_str()
+            .unwrap();
+        let tag = image
+            .rsplit_once(":v")
+            .map(|(_, tag)| tag)
+            .unwrap_or_default();
+        assert!(
+            tag.starts_with(&format!("{minor}.")),
+            "{file}: {image} on {minor}"
+        );
+    }
 }
 
 #[test]
