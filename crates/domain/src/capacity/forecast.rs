@@ -249,14 +249,22 @@ pub fn pair_lengths(durations: &[u64], pairs: u32) -> Vec<u64> {
     if sorted.is_empty() {
         return Vec::new();
     }
-    let n = f64::from(pairs.max(1));
-    (0..pairs.max(1))
-        .map(|k| {
-            let q = (f64::from(k) + 0.625) / (n + 0.25);
-            let rank = (q.powf(n) * sorted.len() as f64).floor() as usize;
-            sorted[rank.min(sorted.len() - 1)]
-        })
+    let n = pairs.max(1) as usize;
+    (0..n)
+        .map(|k| at_position(&sorted, blom(k, n).powi(n as i32)))
         .collect()
+}
+
+/// Blom's plotting position of the `k`-th smallest (from 0) of `n` draws:
+/// `(k + 1 - 3/8) / (n + 1/4)`, where its expected value sits in the distribution.
+pub fn blom(k: usize, n: usize) -> f64 {
+    (k as f64 + 0.625) / (n as f64 + 0.25)
+}
+
+/// The value of non-empty `sorted` at `position` (0 to 1) of its distribution.
+pub fn at_position(sorted: &[u64], position: f64) -> u64 {
+    let rank = (position * sorted.len() as f64).floor() as usize;
+    sorted[rank.min(sorted.len() - 1)]
 }
 
 /// The queue as `view` reads it, every length scaled by `scale` (the track's quick or slow

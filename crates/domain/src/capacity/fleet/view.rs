@@ -12,9 +12,7 @@ pub fn expected_order_statistic(sorted: &[u64], k: usize, n: usize) -> u64 {
     if sorted.is_empty() {
         return 0;
     }
-    let position = (k as f64 + 0.625) / (n as f64 + 0.25);
-    let rank = (position * sorted.len() as f64).floor() as usize;
-    sorted[rank.min(sorted.len() - 1)]
+    forecast::at_position(sorted, forecast::blom(k, n))
 }
 
 /// The expected largest of `n` standard normal draws (Blom's positions, `n` up to 8).
