@@ -10,6 +10,7 @@ pub mod budget;
 mod model;
 mod retry;
 pub mod stream;
+pub mod tally;
 
 pub use budget::{Admission, AdmissionFuture, Budget, BudgetPolicy, Priority};
 pub use model::{validate_result, Submission, MAX_TEAM_NAME};
@@ -785,6 +786,7 @@ impl EvalAiClient {
             }
             request = request.timeout(left.min(self.policy.request_timeout));
         }
+        tally::note(|t| t.requests += 1);
         let response = match request.send().await {
             Ok(response) => response,
             Err(e) => {
@@ -835,10 +837,13 @@ fn failure(
 ) -> Failure {
     let message = model::error_message(text);
     match status {
-        StatusCode::TOO_MANY_REQUESTS => Failure::Retry {
-            reason: retry::Reason::Throttled,
-            after: Some(retry_after.unwrap_or(Duration::from_secs(60))),
-        },
+        StatusCode::TOO_MANY_REQUESTS => {
+            tally::note(|t| t.throttled += 1);
+            Failure::Retry {
+                reason: retry::Reason::Throttled,
+                after: Some(retry_after.unwrap_or(Duration::from_secs(60))),
+            }
+        }
         s if s.is_server_error() => Failure::Retry {
             reason: retry::Reason::Unavailable(format!("{s}: {message}")),
             after: None,
@@ -872,6 +877,7 @@ impl EvalAiClient {
             return Ok(());
         };
         let started = Instant::now();
+        let mut waited = false;
         let allowed =
             retry::remaining().map_or(self.policy.budget, |left| left.min(self.policy.budget));
         loop {
@@ -883,12 +889,16 @@ impl EvalAiClient {
                     return Ok(());
                 }
                 Admission::Full { .. } if ask.priority == Priority::Routine => {
-                    return Err(EvalAiError::OverBudget)
+                    tally::note(|t| t.over_budget += 1);
+                    return Err(EvalAiError::OverBudget);
                 }
                 Admission::Booked { wait } => {
                     // A booked place unused is one request EvalAI never sees: harmless.
                     if started.elapsed() + wait > allowed {
                         return Err(EvalAiError::Throttled(started.elapsed() + wait));
+                    }
+                    if !waited {
+                        tally::note(|t| t.budget_waits += 1);
                     }
                     tokio::time::sleep(wait).await;
                     return Ok(());
@@ -905,6 +915,9 @@ impl EvalAiClient {
                         wait_ms = wait.as_millis() as u64,
                         "evalai budget full: waiting"
                     );
+                    if !std::mem::replace(&mut waited, true) {
+                        tally::note(|t| t.budget_waits += 1);
+                    }
                     tokio::time::sleep(wait).await;
                 }
             }

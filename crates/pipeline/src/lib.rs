@@ -4,6 +4,7 @@
 pub mod cluster;
 pub mod config;
 pub mod error;
+pub mod metrics;
 pub mod payload;
 pub mod queue;
 pub mod results;

@@ -12,6 +12,8 @@ pub use lb_domain::capacity::queue::Standing;
 pub use lb_domain::capacity::queue::TeamQueue;
 use lb_domain::capacity::queue::{self, Entry, EntryState, Hold, Place};
 
+use lb_domain::run::metrics::Metric;
+
 use crate::payload::SubmissionInfo;
 use crate::Result;
 
@@ -200,6 +202,7 @@ pub async fn take_turn(
         )
         .await?;
     let entries = table.entries(submission.leaderboard.as_str()).await?;
+    waiting(&entries);
     // The entry as the queue shows it now (an admission since `enqueue` read it).
     let me = entries
         .iter()
@@ -232,6 +235,16 @@ pub async fn take_turn(
     })
 }
 
+/// The queue's length as this read found it, for the invocation's metrics: the entries not
+/// running yet (held by their team's cap, or admitted and waiting for GPUs).
+fn waiting(entries: &[Entry]) {
+    let length = entries
+        .iter()
+        .filter(|e| e.state != EntryState::Running)
+        .count();
+    crate::metrics::sample(Metric::QueueLength, length as f64);
+}
+
 /// How many are ahead of an admitted submission whose pods wait (its entry as the queue shows
 /// it; `None` when it has none: a run from before the queue), and how many run.
 pub async fn ahead_of(
@@ -239,6 +252,7 @@ pub async fn ahead_of(
     submission: &SubmissionInfo,
 ) -> Result<Option<(u32, u32)>> {
     let entries = table.entries(submission.leaderboard.as_str()).await?;
+    waiting(&entries);
     let running = entries
         .iter()
         .filter(|e| e.state == EntryState::Running)

@@ -47,6 +47,13 @@ pub struct Listing {
     partials: Vec<PartialObject>,
 }
 
+impl Listing {
+    /// When the newest of the listed results was written (epoch seconds).
+    pub fn newest(&self) -> Option<u64> {
+        self.partials.iter().filter_map(|p| p.modified).max()
+    }
+}
+
 /// When each pair's results file was last written, by Job index (one pair per Job); empty
 /// when S3 cannot be listed (a reclaimed pod's whole life then counts as run again).
 pub async fn written(store: &SubmissionStore) -> std::collections::BTreeMap<u32, u64> {

@@ -22,6 +22,10 @@ pub trait Invocation: DeserializeOwned {
     fn execution(&self) -> Option<&str> {
         None
     }
+    /// The leaderboard of its submission: its metrics' `Leaderboard`.
+    fn leaderboard(&self) -> Option<lb_domain::results::Leaderboard> {
+        None
+    }
 }
 
 /// An event whose content the function does not read (the sweep's schedule).
@@ -42,25 +46,57 @@ pub trait Function {
     fn handle(&self, input: Self::Input) -> impl Future<Output = Result<Self::Output>>;
 }
 
-/// One invocation of `function` on a JSON event: decoded, handled inside its span, encoded.
-/// Lambda, `lbctl invoke` and local mode all call functions through here.
+/// One invocation of `function` on a JSON event: decoded, handled inside its span, encoded,
+/// and its metrics written as one document (`crate::metrics`). Lambda, `lbctl invoke` and
+/// local mode all call functions through here.
 pub async fn call<F: Function>(function: &F, event: Value) -> Result<Value> {
-    let input: F::Input = FnError::decode(F::NAME, event)?;
+    let started = std::time::Instant::now();
+    let input: F::Input = match FnError::decode(F::NAME, event) {
+        Ok(input) => input,
+        Err(e) => {
+            emit(F::NAME, None, started, true, Default::default());
+            return Err(e);
+        }
+    };
+    let leaderboard = input.leaderboard();
     let span = tracing::info_span!(
         "invocation",
         function = F::NAME,
         submission_id = input.submission_id(),
         execution = input.execution(),
     );
-    async {
-        let output = function.handle(input).await;
+    // Boxed: a handler's future nested in these scopes and the runtime's would overflow the
+    // compiler's layout depth.
+    let work = async {
+        let output = Box::pin(function.handle(input)).await;
         if let Err(e) = &output {
             tracing::warn!(error = e.name(), reason = %e.chain(), "the invocation failed");
         }
         FnError::encode(F::NAME, &output?)
+    };
+    let work = lb_evalai::tally::counted(crate::metrics::gathering(work));
+    let ((output, gathered), evalai) = work.instrument(span).await;
+    let failed = output.is_err();
+    emit(F::NAME, leaderboard, started, failed, (gathered, evalai));
+    output
+}
+
+/// Writes an invocation's document.
+fn emit(
+    stage: &str,
+    leaderboard: Option<lb_domain::results::Leaderboard>,
+    started: std::time::Instant,
+    failed: bool,
+    (mut gathered, evalai): (crate::metrics::Gathered, lb_evalai::tally::Tally),
+) {
+    crate::metrics::invocation(&mut gathered, started.elapsed(), failed, evalai);
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap_or_default();
+    let at = now.as_millis() as u64;
+    if let Some(doc) = crate::metrics::document(stage, leaderboard, at, &gathered) {
+        crate::metrics::write(&doc);
     }
-    .instrument(span)
-    .await
 }
 
 /// Runs a function as a Lambda until the runtime stops it: tracing (JSON when the log format

@@ -19,6 +19,7 @@ use lb_aws::executions::Executions;
 use lb_aws::tasks::{Callbacks, StepFunctions};
 use lb_aws::wake::WakeTable;
 use lb_domain::run::closing::{Closing, Context, Settlement};
+use lb_domain::run::metrics::{self, Signals};
 use lb_domain::status::Settled;
 use lb_domain::submission::SubmissionStatus;
 use lb_pipeline::clients::{self, RunClients};
@@ -126,6 +127,9 @@ impl Invocation for FinalizeInput {
     fn execution(&self) -> Option<&str> {
         Some(&self.submission()?.execution)
     }
+    fn leaderboard(&self) -> Option<lb_domain::results::Leaderboard> {
+        Some(self.submission()?.leaderboard)
+    }
 }
 
 /// What Finalize is asked: by the state machine, or as the reaper (`reaper`). Told apart by
@@ -172,6 +176,12 @@ impl Invocation for Request {
     fn execution(&self) -> Option<&str> {
         match self {
             Request::State(input) => input.execution(),
+            _ => None,
+        }
+    }
+    fn leaderboard(&self) -> Option<lb_domain::results::Leaderboard> {
+        match self {
+            Request::State(input) => input.leaderboard(),
             _ => None,
         }
     }
@@ -249,6 +259,12 @@ async fn refuse<C>(
         stderr: reason.clone(),
     };
     io::post_final(deps, submission, failed).await?;
+    let mut end = Signals::default();
+    end.ended(
+        RecordStatus::Failed.as_str(),
+        Some(metrics::reason::REFUSED),
+    );
+    lb_pipeline::metrics::record(end);
     Ok(FinalizeOutput {
         status: Settled::Ended(RecordStatus::Failed),
         pipeline_error: false,
@@ -307,6 +323,10 @@ async fn finish_run<C: Callbacks>(
     };
     if status == Settled::Superseded {
         warn!(submission_id = id, why = reason.as_deref(), "nothing done");
+    }
+    if let Settled::Ended(ended) = status {
+        let failure = run.as_ref().and_then(|r| r.monitor.failure);
+        lb_pipeline::metrics::record(metrics::ending(ended, failure, error.is_some()));
     }
     Ok(FinalizeOutput {
         status,

@@ -8,13 +8,13 @@ use aws_config::SdkConfig;
 use lb_aws::dynamo::{Claim, NewRecord, QualifierTable, SubmissionsTable};
 use lb_aws::ecr::{Lookup, Registry};
 use lb_domain::run::intake;
+use lb_domain::run::metrics::{Metric, Signals};
 use lb_domain::settings::{Settings, Target};
 use lb_domain::submission::{SubmissionMessage, SubmissionStatus};
 use lb_evalai::{EvalAiClient, Submission};
 use lb_pipeline::payload::{Decision, IntakeInput, SubmissionInfo};
 use lb_pipeline::serve::Function;
 use lb_pipeline::{clients, FnError, FunctionConfig, Result};
-use std::future::Future;
 use tracing::{info, warn};
 
 /// What Intake needs: read access to EvalAI and the settings, the submissions and qualifier
@@ -55,8 +55,19 @@ impl Function for Deps {
     const NAME: &'static str = "intake";
     type Input = IntakeInput;
     type Output = Decision;
-    fn handle(&self, input: IntakeInput) -> impl Future<Output = Result<Decision>> {
-        handle(input, self)
+    async fn handle(&self, input: IntakeInput) -> Result<Decision> {
+        let decision = handle(input, self).await?;
+        let arrival = match &decision {
+            Decision::Run(info) => Some((info.leaderboard, Metric::Arrivals)),
+            Decision::Reject { submission, .. } => Some((submission.leaderboard, Metric::Refusals)),
+            Decision::Skip { .. } => None,
+        };
+        if let Some((leaderboard, metric)) = arrival {
+            let mut signals = Signals::default();
+            signals.add(metric, 1.0);
+            lb_pipeline::metrics::record_for(leaderboard, signals);
+        }
+        Ok(decision)
     }
 }
 

@@ -108,6 +108,9 @@ impl Invocation for LaunchInput {
     fn execution(&self) -> Option<&str> {
         Some(&self.submission.execution)
     }
+    fn leaderboard(&self) -> Option<lb_domain::results::Leaderboard> {
+        Some(self.submission.leaderboard)
+    }
 }
 
 impl Function for Deps {
@@ -182,6 +185,7 @@ async fn launch(input: LaunchInput, deps: &Deps) -> Result<RunState> {
         return Ok(run);
     }
     place.admitted = true;
+    lb_pipeline::metrics::record(lb_domain::run::metrics::admitted(place.arrived_at, now));
     let names = launch_jobs(deps, &target, &submission, &prepared).await?;
     // Queued until a pair starts: the Monitor sends `running` then (EvalAI's `started_at`,
     // the record's start time), so time spent waiting for a GPU is not the participant's.

@@ -10,6 +10,7 @@ use lb_cluster::autoscaler::ScaleUpWord;
 use lb_cluster::Cluster;
 use lb_domain::capacity::cost::Totals;
 use lb_domain::capacity::queue::{Hold, Place};
+use lb_domain::run::metrics::Metric;
 use lb_domain::run::monitor::StatusRead;
 use lb_domain::run::round::{Answer, Collected, NodeRead, Step, Write};
 use lb_domain::settings::Target;
@@ -32,6 +33,8 @@ pub struct Shell<'a> {
     cluster: Option<Cluster>,
     listing: Option<Listing>,
     snapshot: Option<Snapshot>,
+    /// When the newest results read this round were written (epoch seconds).
+    newest: Option<u64>,
 }
 
 impl<'a> Shell<'a> {
@@ -47,6 +50,7 @@ impl<'a> Shell<'a> {
             cluster: None,
             listing: None,
             snapshot: None,
+            newest: None,
         }
     }
 
@@ -268,6 +272,7 @@ impl<'a> Shell<'a> {
         match results::list(&self.store).await {
             Ok(listing) => {
                 let fingerprint = listing.fingerprint.clone();
+                self.newest = listing.newest();
                 self.listing = Some(listing);
                 Ok(Some(fingerprint))
             }
@@ -340,7 +345,15 @@ impl<'a> Shell<'a> {
             .evalai
             .post_partial(self.at(), &update)
             .await;
-        written(self.id(), "partial update", posted)
+        let write = written(self.id(), "partial update", posted)?;
+        if write == Write::Written {
+            let delay = self
+                .newest
+                .map(|at| clients::now_epoch_seconds().saturating_sub(at));
+            lb_pipeline::metrics::sample(Metric::PartialUpdates, 1.0);
+            lb_pipeline::metrics::sample(Metric::PartialUpdateDelay, delay.unwrap_or(0) as f64);
+        }
+        Ok(write)
     }
 
     /// Progress and usage on the record; a failure is tried again next round.

@@ -18,8 +18,8 @@ use aws_config::SdkConfig;
 use lb_aws::wake::{WakeTable, RETENTION_SECONDS};
 use lb_cluster::VerdictPolicy;
 use lb_domain::capacity::cost;
-use lb_domain::run::history;
 use lb_domain::run::round::{Context, Round, Step};
+use lb_domain::run::{history, metrics};
 use lb_pipeline::clients::{self, RunClients};
 use lb_pipeline::cluster::Clusters;
 use lb_pipeline::payload::{RunPhase, RunState, SubmissionInfo};
@@ -90,6 +90,9 @@ impl Invocation for MonitorInput {
     fn execution(&self) -> Option<&str> {
         Some(&self.submission.execution)
     }
+    fn leaderboard(&self) -> Option<lb_domain::results::Leaderboard> {
+        Some(self.submission.leaderboard)
+    }
 }
 
 impl Function for Deps {
@@ -113,6 +116,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
     let meter = clients::Meter::start(&deps.clients.dynamo_requests, deps.clients.memory_mb);
     let target = deps.clients.settings.target(submission.phase_id)?;
     let deployment = target.deployment;
+    let before = run.clone();
     let mut round = Round::begin(
         run,
         Context {
@@ -143,6 +147,8 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
         }
     }
     let mut run = round.finish(deps.history_budget, &submission.execution);
+    let prices = &deps.clients.settings.prices;
+    lb_pipeline::metrics::record(metrics::of_round(&before, &run, prices));
     let (id, monitor) = (submission.submission_id, &run.monitor);
     match monitor.state {
         RunPhase::Running | RunPhase::Admitted => {}

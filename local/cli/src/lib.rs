@@ -1,6 +1,7 @@
 //! `lbctl local`: the rehearsal room's commands, a separate executable (`lbctl-local`) that
 //! the shipped `lbctl` runs for `lbctl local ...`, so nothing of the rehearsal ships.
 
+mod emf;
 mod latency;
 mod queue_report;
 mod reaper;

@@ -76,6 +76,8 @@ pub struct RunReport {
     pub release: Option<crate::release::ReleaseReport>,
     /// The control plane's upgrade (the upgrade scenario).
     pub upgrade: Option<crate::scenario::UpgradeReport>,
+    /// The metrics the functions wrote.
+    pub metrics: crate::emf::EmfReport,
 }
 
 /// What a run left behind it.
@@ -140,6 +142,7 @@ impl RunReport {
         for (stage, seconds) in &self.stages {
             outln!("  {stage:<12} {seconds:>7.1}s");
         }
+        self.metrics.print();
         outln!("results        {} on moto {moto}", self.results);
         outln!("pod logs       {}", self.pod_logs.display());
         if !args.keep {

@@ -872,8 +872,12 @@ fn a_local_run_against_another_evalai_maps_its_phase_to_the_chosen_leaderboard()
 #[test]
 #[ignore = "needs moto"]
 fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
-    let (report, stdout) = local_run(
+    let dir = tempfile::tempdir().unwrap();
+    let metrics = dir.path().join("metrics.jsonl");
+    let (whole, stdout) = local_run(
         &[
+            "--metrics",
+            metrics.to_str().unwrap(),
             "--submissions",
             "12",
             "--teams",
@@ -891,9 +895,10 @@ fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
         ],
         &[],
     );
-    let report = &report["queue"];
+    let report = &whole["queue"];
     let subs = report["submissions"].as_array().unwrap();
     assert_eq!(subs.len(), 12);
+    the_metrics_add_up(&metrics, &whole, &stdout);
     let seq = |s: &serde_json::Value, key: &str| s[key].as_u64();
     for s in subs {
         // Every one finished: waiting for capacity or for its turn failed none.
@@ -971,6 +976,57 @@ fn twelve_submissions_from_four_teams_take_their_turns_on_four_gpus() {
     assert!(
         report["most_in_a_minute"].as_u64().unwrap() <= 60,
         "{report}"
+    );
+}
+
+/// The documents the functions printed follow the format, one per invocation at most, and
+/// add up to what happened: 12 arrivals, admissions, starts and finished ends, the GPU time and
+/// the EvalAI requests the summary reports.
+fn the_metrics_add_up(file: &std::path::Path, report: &Value, stdout: &str) {
+    let text = std::fs::read_to_string(file).unwrap();
+    let docs: Vec<Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert!(!docs.is_empty(), "{stdout}");
+    for doc in &docs {
+        let problems = crate::emf::problems(doc);
+        assert!(problems.is_empty(), "{problems:?} in {doc}");
+        assert_eq!(
+            doc["Invocations"], 1.0,
+            "one document per invocation: {doc}"
+        );
+    }
+    let total = |name: &str| -> f64 {
+        docs.iter()
+            .map(|d| match &d[name] {
+                Value::Array(v) => v.iter().filter_map(Value::as_f64).sum(),
+                v => v.as_f64().unwrap_or(0.0),
+            })
+            .sum()
+    };
+    for name in ["Arrivals", "Admissions", "Starts", "Ends"] {
+        assert_eq!(total(name), 12.0, "{name}: {stdout}");
+    }
+    assert!(docs
+        .iter()
+        .filter(|d| d.get("Ends").is_some())
+        .all(|d| d["Outcome"] == "FINISHED" && d["Leaderboard"] == "2.0"));
+    assert_eq!(total("Failures"), 0.0);
+    // 12 runs of 2 routes on 2 pairs: every route done, some GPU time held.
+    assert_eq!(total("RoutesDone"), 24.0, "{stdout}");
+    assert!(total("GpuSecondsOnDemand") > 0.0);
+    // Every request the functions sent is one EvalAI saw (the summary's own reads besides).
+    let seen = report["queue"]["requests"].as_f64().unwrap();
+    let sent = total("EvalAiRequests");
+    assert!(sent > 0.0 && sent <= seen, "{sent} sent, EvalAI saw {seen}");
+    // The summary says the same totals.
+    let summary = &report["metrics"];
+    assert_eq!(summary["documents"], docs.len());
+    assert_eq!(summary["totals"]["Arrivals"], 12.0);
+    assert!(
+        stdout.contains("arrivals 12, admissions 12, starts 12, ends 12 (12 FINISHED)"),
+        "{stdout}"
     );
 }
 

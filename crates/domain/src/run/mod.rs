@@ -6,6 +6,7 @@ pub mod closing;
 pub mod finalize;
 pub mod history;
 pub mod intake;
+pub mod metrics;
 pub mod monitor;
 pub mod reaper;
 pub mod round;

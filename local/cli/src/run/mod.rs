@@ -63,6 +63,10 @@ pub struct LocalRun {
     /// shown, admission order, requests a minute) to this JSON file.
     #[arg(long, value_name = "FILE")]
     pub report: Option<std::path::PathBuf>,
+    /// Write the metrics documents the functions print (CloudWatch's embedded metric format,
+    /// one a line) to this file instead of the run's working folder, so they outlive it.
+    #[arg(long, value_name = "FILE")]
+    pub metrics: Option<std::path::PathBuf>,
     /// Routes of the track.
     #[arg(long, default_value_t = 20)]
     pub routes: u32,
@@ -175,6 +179,7 @@ async fn run_to_end(mut args: LocalRun) -> anyhow::Result<u8> {
     let arrivals = submissions(&args, &stack, &teams, scenario.image())?;
     // The first is the one the summary describes in detail (and the scenarios act on).
     let submission = arrivals.each[0].0;
+    let metrics = crate::emf::Collector::install(&metrics_file(&args, &stack))?;
     let handlers = Handlers::load(&stack.sdk, kubeconfig.clone(), &pace(&args)).await?;
     // The summary reads the outcome from EvalAI with the functions' own client.
     let evalai = handlers.intake.evalai.clone();
@@ -237,8 +242,14 @@ async fn run_to_end(mut args: LocalRun) -> anyhow::Result<u8> {
         audit_passes: scenario.audit_passes(),
         release,
     };
-    let (report, latency) = ran.report(&evalai).await;
+    let (mut report, latency) = ran.report(&evalai).await;
+    report.metrics = metrics.report();
     finish(&args, &stack, &report, latency.as_ref(), many, &kubeconfig).await
+}
+
+/// Where the functions' metrics documents go: `--metrics`, else the run's working folder.
+fn metrics_file(args: &LocalRun, stack: &local_stack::stack::Stack) -> std::path::PathBuf {
+    (args.metrics.clone()).unwrap_or_else(|| stack.workdir.path().join("metrics.jsonl"))
 }
 
 /// The options no parser checks alone.

@@ -185,6 +185,7 @@ impl Ran<'_> {
             left_behind: left,
             release: self.release,
             upgrade,
+            metrics: Default::default(),
         };
         (report, latency)
     }
