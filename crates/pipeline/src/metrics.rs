@@ -88,6 +88,12 @@ impl Gathered {
     }
 }
 
+/// Records one value on the current invocation, a zero too (a metric whose samples are
+/// counted).
+pub fn sample_count(metric: Metric, value: f64) {
+    let _ = GATHERED.try_with(|g| g.borrow_mut().push(metric, value));
+}
+
 /// Runs `work` gathering its samples.
 pub async fn gathering<F: Future>(work: F) -> (F::Output, Gathered) {
     GATHERED
@@ -167,18 +173,15 @@ pub fn document(
     Some(Value::Object(root))
 }
 
-/// What every invocation says of itself: once, its time, and whether it failed; and what it
-/// asked of EvalAI.
+/// What every invocation says of itself: its time (Lambda counts invocations and errors
+/// itself), and what it asked of EvalAI.
 pub fn invocation(
     gathered: &mut Gathered,
     elapsed: std::time::Duration,
-    failed: bool,
     evalai: lb_evalai::tally::Tally,
 ) {
-    gathered.push(Metric::Invocations, 1.0);
     gathered.push(Metric::Duration, elapsed.as_secs_f64() * 1000.0);
     let counts = [
-        (Metric::Errors, u64::from(failed)),
         (Metric::EvalAiRequests, evalai.requests),
         (Metric::EvalAiThrottled, evalai.throttled),
         (Metric::EvalAiOverBudget, evalai.over_budget),
@@ -211,7 +214,6 @@ mod tests {
         invocation(
             &mut gathered,
             std::time::Duration::from_millis(250),
-            true,
             lb_evalai::tally::Tally {
                 requests: 2,
                 ..Default::default()
@@ -237,6 +239,7 @@ mod tests {
         assert_eq!(
             sets,
             [
+                &json!([[]]),
                 &json!([["Stage"]]),
                 &json!([["Leaderboard"]]),
                 &json!([["Leaderboard", "Outcome"]]),
@@ -246,7 +249,7 @@ mod tests {
         // Without a leaderboard, its metrics are left out rather than sent without it.
         let none = document("wake", None, 1, &gathered).unwrap();
         let sets = none["_aws"]["CloudWatchMetrics"].as_array().unwrap();
-        assert_eq!(sets.len(), 1);
+        assert_eq!(sets.len(), 2, "the account's and the stage's");
         assert!(none.get("QueueLength").is_none());
         assert!(document("wake", None, 1, &Gathered::default()).is_none());
     }

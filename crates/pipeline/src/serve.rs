@@ -54,7 +54,7 @@ pub async fn call<F: Function>(function: &F, event: Value) -> Result<Value> {
     let input: F::Input = match FnError::decode(F::NAME, event) {
         Ok(input) => input,
         Err(e) => {
-            emit(F::NAME, None, started, true, Default::default());
+            emit(F::NAME, None, started, Default::default());
             return Err(e);
         }
     };
@@ -76,8 +76,7 @@ pub async fn call<F: Function>(function: &F, event: Value) -> Result<Value> {
     };
     let work = lb_evalai::tally::counted(crate::metrics::gathering(work));
     let ((output, gathered), evalai) = work.instrument(span).await;
-    let failed = output.is_err();
-    emit(F::NAME, leaderboard, started, failed, (gathered, evalai));
+    emit(F::NAME, leaderboard, started, (gathered, evalai));
     output
 }
 
@@ -86,10 +85,9 @@ fn emit(
     stage: &str,
     leaderboard: Option<lb_domain::results::Leaderboard>,
     started: std::time::Instant,
-    failed: bool,
     (mut gathered, evalai): (crate::metrics::Gathered, lb_evalai::tally::Tally),
 ) {
-    crate::metrics::invocation(&mut gathered, started.elapsed(), failed, evalai);
+    crate::metrics::invocation(&mut gathered, started.elapsed(), evalai);
     let now = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .unwrap_or_default();

@@ -350,8 +350,11 @@ impl<'a> Shell<'a> {
             let delay = self
                 .newest
                 .map(|at| clients::now_epoch_seconds().saturating_sub(at));
-            lb_pipeline::metrics::sample(Metric::PartialUpdates, 1.0);
-            lb_pipeline::metrics::sample(Metric::PartialUpdateDelay, delay.unwrap_or(0) as f64);
+            // Sent even at 0 s: its sample count is the updates sent.
+            lb_pipeline::metrics::sample_count(
+                Metric::PartialUpdateDelay,
+                delay.unwrap_or(0) as f64,
+            );
         }
         Ok(write)
     }

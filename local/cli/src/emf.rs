@@ -153,14 +153,13 @@ impl EmfReport {
             total("RoutesDone"),
         );
         outln!(
-            "               EvalAI {} requests, {} throttled, {} over budget, {} waited; {} partial updates; {} invocations, {} errors",
+            "               EvalAI {} requests, {} throttled, {} over budget, {} waited; {} partial updates; {} invocations",
             total("EvalAiRequests"),
             total("EvalAiThrottled"),
             total("EvalAiOverBudget"),
             total("EvalAiBudgetWaits"),
-            total("PartialUpdates"),
-            count("Invocations"),
-            total("Errors"),
+            count("PartialUpdateDelay"),
+            count("Duration"),
         );
     }
 }

@@ -992,8 +992,9 @@ fn the_metrics_add_up(file: &std::path::Path, report: &Value, stdout: &str) {
     for doc in &docs {
         let problems = crate::emf::problems(doc);
         assert!(problems.is_empty(), "{problems:?} in {doc}");
-        assert_eq!(
-            doc["Invocations"], 1.0,
+        // One time per invocation: one document each.
+        assert!(
+            doc["Duration"].is_number(),
             "one document per invocation: {doc}"
         );
     }

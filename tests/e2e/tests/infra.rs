@@ -154,7 +154,13 @@ fn the_application_stack_transforms_and_deploys_to_moto_with_the_original_table_
     let declared_count = |kind: &str| declared.values().filter(|k| *k == kind).count();
     assert_eq!(declared_count("AWS::Pipes::Pipe"), 1);
     assert_eq!(declared_count("AWS::SecretsManager::Secret"), 2);
-    assert_eq!(declared_count("AWS::CloudWatch::Alarm"), 5);
+    assert_eq!(declared_count("AWS::CloudWatch::Alarm"), 10);
+    assert_eq!(declared_count("AWS::CloudWatch::Dashboard"), 1);
+    assert_eq!(
+        count("AWS::CloudWatch::Dashboard"),
+        1,
+        "moto models dashboards"
+    );
     // Finalize's asynchronous retries as the reaper (SAM's EventInvokeConfig, on the alias
     // the reaper's rules invoke).
     assert_eq!(declared_count("AWS::Lambda::EventInvokeConfig"), 1);
@@ -1592,4 +1598,237 @@ fn the_autoscaler_grows_the_spot_gpu_group_first_and_both_groups_carry_the_gpu_m
             );
         }
     }
+}
+
+/// The functions' stages as the template names them (`IntakeFunction` -> `intake`), which
+/// are the functions' own names.
+fn stages() -> BTreeSet<String> {
+    let names: BTreeSet<String> = APP
+        .resources_of("AWS::Serverless::Function")
+        .iter()
+        .map(|id| id.trim_end_matches("Function").to_lowercase())
+        .collect();
+    use lb_pipeline::serve::Function;
+    let ours = [
+        <intake::Deps as Function>::NAME,
+        <launch::Deps as Function>::NAME,
+        <monitor::Deps as Function>::NAME,
+        <finalize::Deps as Function>::NAME,
+        <sweep::Deps as Function>::NAME,
+        "wake",
+    ];
+    assert_eq!(names, ours.iter().map(|s| s.to_string()).collect());
+    names
+}
+
+/// A metric as a dashboard or alarm names it: its dimensions' names and values.
+type Dims = Vec<(String, String)>;
+
+/// What is wrong with a metric a dashboard or alarm names: `name` with `dims` (name, value).
+fn metric_problem(
+    name: &str,
+    dims: &[(String, String)],
+    stages: &BTreeSet<String>,
+) -> Option<String> {
+    use lb_domain::run::metrics::{reasons, Metric};
+    let Some(metric) = Metric::named(name) else {
+        return Some(format!("`{name}` is no metric the functions emit"));
+    };
+    let keys: Vec<&str> = dims.iter().map(|(k, _)| k.as_str()).collect();
+    let mut expected = metric.dimensions().keys().to_vec();
+    let mut got = keys.clone();
+    expected.sort();
+    got.sort();
+    if got != expected {
+        return Some(format!(
+            "`{name}` is sent with {expected:?}, named with {keys:?}"
+        ));
+    }
+    for (key, value) in dims {
+        let known = match key.as_str() {
+            "Stage" => stages.contains(value),
+            "Leaderboard" => ["1.0", "2.0"].contains(&value.as_str()),
+            "Outcome" => ["FINISHED", "FAILED", "CANCELLED"].contains(&value.as_str()),
+            "Reason" => reasons().contains(&value.as_str()),
+            _ => false,
+        };
+        if !known {
+            return Some(format!("`{name}`: {key} `{value}` is never sent"));
+        }
+    }
+    None
+}
+
+/// The dashboard's body as CloudFormation hands it to CloudWatch.
+fn dashboard() -> Value {
+    let ids = APP.resources_of("AWS::CloudWatch::Dashboard");
+    assert_eq!(ids.len(), 1, "one dashboard");
+    let t = APP.clone().with_parameter("QueueWaitTargetMinutes", "240");
+    let body = &t.root()["Resources"][ids[0].as_str()]["Properties"]["DashboardBody"];
+    let text = t.eval(body).expect("the body is a !Sub");
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("the dashboard is not JSON: {e}\n{text}"))
+}
+
+/// Each CarlaLeaderboard metric of a widget's `metrics`, as (name, dimensions).
+fn widget_metrics(widget: &Value) -> Vec<(String, Dims)> {
+    let mut out = Vec::new();
+    for row in widget["properties"]["metrics"]
+        .as_array()
+        .into_iter()
+        .flatten()
+    {
+        let items = row.as_array().unwrap();
+        match items.first().and_then(Value::as_str) {
+            Some(lb_domain::run::metrics::NAMESPACE) => {}
+            // AWS's own (Lambda's invocations and errors, free): CloudWatch checks them.
+            Some(_) => continue,
+            None => {
+                assert!(
+                    items[0].is_object(),
+                    "a row is a metric or an expression: {row}"
+                );
+                continue;
+            }
+        }
+        let words: Vec<String> = items
+            .iter()
+            .filter_map(|v| v.as_str().map(str::to_owned))
+            .collect();
+        assert!(!words.contains(&".".into()), "no shorthand rows: {row}");
+        let dims = words[2..]
+            .chunks(2)
+            .map(|p| (p[0].clone(), p.get(1).cloned().unwrap_or_default()))
+            .collect();
+        out.push((words[1].clone(), dims));
+    }
+    out
+}
+
+/// The metrics an alarm watches, as (namespace, name, dimensions).
+fn alarm_metrics(alarm: &Value) -> Vec<(String, String, Dims)> {
+    let dims = |d: &Value| -> Dims {
+        d.as_array()
+            .into_iter()
+            .flatten()
+            .map(|d| {
+                (
+                    d["Name"].as_str().unwrap().into(),
+                    d["Value"].as_str().unwrap_or("").into(),
+                )
+            })
+            .collect()
+    };
+    let p = &alarm["Properties"];
+    if let Some(name) = p["MetricName"].as_str() {
+        let ns = p["Namespace"].as_str().unwrap().to_owned();
+        return vec![(ns, name.into(), dims(&p["Dimensions"]))];
+    }
+    p["Metrics"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|m| {
+            let metric = &m["MetricStat"]["Metric"];
+            Some((
+                metric["Namespace"].as_str()?.to_owned(),
+                metric["MetricName"].as_str()?.to_owned(),
+                dims(&metric["Dimensions"]),
+            ))
+        })
+        .collect()
+}
+
+#[test]
+fn every_metric_the_dashboard_and_alarms_name_is_one_the_functions_emit_with_its_dimensions() {
+    use lb_domain::run::metrics::{Metric, NAMESPACE};
+    let stages = stages();
+    let body = dashboard();
+    let widgets = body["widgets"].as_array().unwrap();
+    let mut problems = Vec::new();
+    let mut shown = BTreeSet::new();
+    for widget in widgets {
+        for (name, dims) in widget_metrics(widget) {
+            problems.extend(metric_problem(&name, &dims, &stages));
+            shown.insert(name);
+        }
+        // An expression names only ids its widget defines.
+        let rows = widget["properties"]["metrics"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        let ids: BTreeSet<String> = rows
+            .iter()
+            .filter_map(|r| r.as_array()?.last()?["id"].as_str().map(str::to_owned))
+            .collect();
+        for row in &rows {
+            let Some(expr) = row[0]["expression"].as_str() else {
+                continue;
+            };
+            for word in expr.split(|c: char| !(c.is_alphanumeric() || c == '_')) {
+                let is_id = word.chars().next().is_some_and(char::is_lowercase);
+                if is_id && !ids.contains(word) {
+                    problems.push(format!("expression `{expr}` names `{word}`, not defined"));
+                }
+            }
+        }
+    }
+    // Every metric emitted is on the dashboard: none is paid for and never looked at.
+    for metric in Metric::ALL {
+        if !shown.contains(metric.name()) {
+            problems.push(format!(
+                "`{}` is emitted but not on the dashboard",
+                metric.name()
+            ));
+        }
+    }
+    let alarms = APP.resources_of("AWS::CloudWatch::Alarm");
+    let raw = APP.json(&APP.root()["Resources"]);
+    let mut ours = 0;
+    for id in &alarms {
+        for (ns, name, dims) in alarm_metrics(&raw[id.as_str()]) {
+            if ns == NAMESPACE {
+                ours += 1;
+                problems
+                    .extend(metric_problem(&name, &dims, &stages).map(|p| format!("{id}: {p}")));
+            }
+        }
+    }
+    assert!(ours >= 4, "the new alarms watch our metrics");
+    // The alarm widget shows every alarm of the stack.
+    let listed: BTreeSet<String> = widgets
+        .iter()
+        .filter(|w| w["type"] == "alarm")
+        .flat_map(|w| {
+            w["properties"]["alarms"]
+                .as_array()
+                .cloned()
+                .unwrap_or_default()
+        })
+        .map(|a| {
+            a.as_str()
+                .unwrap()
+                .split_once(":alarm:")
+                .unwrap()
+                .1
+                .to_owned()
+        })
+        .collect();
+    let names: BTreeSet<String> = alarms
+        .iter()
+        .map(|id| APP.eval(&APP.root()["Resources"][id.as_str()]["Properties"]["AlarmName"]))
+        .map(|name| name.expect("every alarm is named, so the dashboard can name it"))
+        .collect();
+    assert_eq!(listed, names);
+    assert!(problems.is_empty(), "{problems:#?}");
+    // The check finds what it looks for.
+    let wrong = [("Leaderboard".to_string(), "2.0".to_string())];
+    assert!(metric_problem("Duration", &wrong, &stages).is_some());
+    assert!(metric_problem("EvalAiRequests", &wrong, &stages).is_some());
+    assert!(metric_problem("EvalAiRequests", &[], &stages).is_none());
+    assert!(metric_problem("Nope", &[], &stages).is_some());
+    let reason = [
+        ("Leaderboard".into(), "2.0".into()),
+        ("Reason".into(), "Gremlins".into()),
+    ];
+    assert!(metric_problem("Failures", &reason, &stages).is_some());
 }

@@ -316,6 +316,21 @@ pub enum FailureKind {
 }
 
 impl FailureKind {
+    /// Every kind.
+    pub const ALL: [FailureKind; 11] = [
+        FailureKind::ParticipantImagePull,
+        FailureKind::InfrastructureImagePull,
+        FailureKind::ContainerConfig,
+        FailureKind::Unschedulable,
+        FailureKind::NoNodeFits,
+        FailureKind::BackoffLimitExceeded,
+        FailureKind::DeadlineExceeded,
+        FailureKind::NotRetriable,
+        FailureKind::JobFailed,
+        FailureKind::JobsMissing,
+        FailureKind::PlatformReclaims,
+    ];
+
     /// The stable PascalCase name.
     pub fn name(self) -> &'static str {
         match self {

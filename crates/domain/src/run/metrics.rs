@@ -2,9 +2,11 @@
 //! name (each metric's name, unit and dimensions), and what a run's state changing says.
 //!
 //! Dimensions stay few so a metric is never one per submission: `Stage` (the function) for
-//! what a function does, `Leaderboard` for what the fleet does, and one bounded word more for
-//! how runs end (`Outcome`, `Reason`). CloudWatch bills each name-and-dimensions pair for every
-//! hour it is sent in, so a sample of zero is not sent.
+//! what a function does, `Leaderboard` for what the fleet does, one bounded word more for how
+//! runs end (`Outcome`, `Reason`), none for the EvalAI budget the whole account shares.
+//! CloudWatch bills each name-and-dimensions pair for every hour it is sent in, so a sample of
+//! zero is not sent, and what Lambda publishes free (`AWS/Lambda`'s invocations and errors) is
+//! not sent again.
 
 use crate::capacity::cost::Totals;
 use crate::results::Leaderboard;
@@ -41,6 +43,8 @@ impl Unit {
 /// Which dimensions a metric is sent with (one set each).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Dimensions {
+    /// None: one metric for the account.
+    Account,
     /// The function (`Stage`).
     Stage,
     /// The leaderboard (`"1.0"`, `"2.0"`).
@@ -55,6 +59,7 @@ impl Dimensions {
     /// The dimension names, as the documents and the dashboard spell them.
     pub fn keys(self) -> &'static [&'static str] {
         match self {
+            Dimensions::Account => &[],
             Dimensions::Stage => &["Stage"],
             Dimensions::Leaderboard => &["Leaderboard"],
             Dimensions::Outcome => &["Leaderboard", "Outcome"],
@@ -100,20 +105,16 @@ macro_rules! catalog {
 }
 
 catalog! {
-    /// An invocation (each function, once).
-    Invocations => Count, Stage;
-    /// An invocation that returned an error.
-    Errors => Count, Stage;
-    /// The handler's time.
+    /// The handler's time (one value per invocation).
     Duration => Milliseconds, Stage;
     /// Requests sent to EvalAI (each attempt).
-    EvalAiRequests => Count, Stage;
+    EvalAiRequests => Count, Account;
     /// EvalAI's 429s.
-    EvalAiThrottled => Count, Stage;
+    EvalAiThrottled => Count, Account;
     /// Routine requests the shared budget refused (sent in a later round).
-    EvalAiOverBudget => Count, Stage;
+    EvalAiOverBudget => Count, Account;
     /// Urgent requests that waited for the budget's next window.
-    EvalAiBudgetWaits => Count, Stage;
+    EvalAiBudgetWaits => Count, Account;
     /// A submission Intake claimed.
     Arrivals => Count, Leaderboard;
     /// A submission Intake refused (told `failed` with the reason).
@@ -146,9 +147,8 @@ catalog! {
     PodFailures => Count, Leaderboard;
     /// Routes finished.
     RoutesDone => Count, Leaderboard;
-    /// Partial updates sent to EvalAI.
-    PartialUpdates => Count, Leaderboard;
-    /// A pair's newest results write -> the partial update carrying it.
+    /// A pair's newest results write -> the partial update carrying it, one value per update
+    /// sent (its sample count is the updates).
     PartialUpdateDelay => Seconds, Leaderboard;
 }
 
@@ -157,6 +157,13 @@ impl Metric {
     pub fn named(name: &str) -> Option<Metric> {
         Metric::ALL.iter().copied().find(|m| m.name() == name)
     }
+}
+
+/// Every word a run's failure may carry as `Reason`: the cluster's verdicts and ours.
+pub fn reasons() -> Vec<&'static str> {
+    let verdicts = crate::cluster::view::FailureKind::ALL.map(|k| k.name());
+    let ours = [reason::REFUSED, reason::PIPELINE, reason::EVALUATION];
+    verdicts.into_iter().chain(ours).collect()
 }
 
 /// Why a run failed, in a few words a dashboard can hold: the cluster's verdict
