@@ -36,6 +36,12 @@ kubectl: ## Install kubectl (Debian's kubernetes-client) when it is missing
 		$$sudo apt-get update -qq && \
 		$$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq kubernetes-client; }
 
+.PHONY: ui-tools
+ui-tools: ## Install tmux and Chromium (Debian's), which the tests drive lbctl top and the bench's report with, when missing
+	@command -v tmux >/dev/null && command -v chromium >/dev/null || { sudo=; [ "$$(id -u)" = 0 ] || sudo=sudo; \
+		$$sudo apt-get update -qq && \
+		$$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq tmux chromium; }
+
 # The comparisons of the kept fixtures with the shared set need it beside the repository (as CI
 # lays it out); a clone alone skips them by name, and says so.
 SHARED_SKIP := $(if $(wildcard ../shared/fixtures),,--skip _when_it_is_beside_the_repository)
@@ -46,7 +52,7 @@ real-kube: kubectl ## Build the pinned real Kubernetes control plane the tests h
 
 # Test binaries run side by side: most of their time is spent waiting on the processes they start.
 TEST_JOBS ?= 3
-test: venv lint-venv kubectl own-cache ## The whole suite, emulator tests included, TEST_JOBS (3) test binaries at a time (README's and CI's command)
+test: venv lint-venv kubectl ui-tools own-cache ## The whole suite, emulator tests included, TEST_JOBS (3) test binaries at a time (README's and CI's command)
 	@$(if $(SHARED_SKIP),echo "no shared set beside the repository: the kept copies are not compared",:)
 	CARGO=$(CARGO) $(PYTHON) tests/suite.py --jobs $(TEST_JOBS) --beside 'bash local/realkube/build.sh >/dev/null && bash local/realkube/build.sh --upgrade >/dev/null' -- --include-ignored $(SHARED_SKIP)
 	$(CARGO) test --workspace --doc

@@ -64,6 +64,9 @@ pub enum CliError {
     /// No AWS region or no credentials: what was looked for and how to provide it.
     #[error("{0}")]
     AwsNotConfigured(String),
+    /// The terminal could not be driven (`lbctl top`): raw mode, its screen, or a signal.
+    #[error("the terminal could not be used: {0}")]
+    Terminal(#[source] std::io::Error),
 }
 
 impl CliError {
@@ -79,6 +82,7 @@ impl CliError {
             CliError::NotFound(_) => "NotFound",
             CliError::Refused(_) => "Refused",
             CliError::AwsNotConfigured(_) => "AwsNotConfigured",
+            CliError::Terminal(_) => "Terminal",
         }
     }
 

@@ -134,6 +134,10 @@ pub enum Command {
     /// Print a submission's logs from S3: each worker's agent and simulator output and the
     /// logcopy logs (recordings with --recorder); --follow until it ends.
     Logs(Logs),
+    /// The fleet, live: each leaderboard's queue with waits and estimated starts, the runs
+    /// with their progress, capacity and cost so far, the GPU nodes paid for and idle, today's
+    /// cost and the recent failures; redrawn in place until `q`.
+    Top(ops::Top),
     /// Follow one submission until it ends: stage and queue position, pods and restarts,
     /// routes per worker, the last partial scores, EvalAI's status; then a summary.
     Watch(Watch),
@@ -173,6 +177,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<u8> {
         Command::Rollback(args) => versions::rollback(args).await?,
         Command::Logs(args) => logs::logs(args).await?,
         Command::Watch(args) => watch::watch(args).await?,
+        Command::Top(args) => ops::top(args).await?,
         Command::KubernetesSupport(args) => support::run(args)?,
         Command::Plan(args) => plan::run(args)?,
     };

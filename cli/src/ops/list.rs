@@ -205,19 +205,22 @@ pub(crate) fn queue_positions(records: &[Record]) -> Vec<(&str, u64)> {
 }
 
 /// How long ago the submission was claimed.
-fn age(record: &Record, now: time::OffsetDateTime) -> Option<time::Duration> {
-    let at = record.submitted_time.as_deref()?;
-    let parsed = time::PrimitiveDateTime::parse(
+pub(super) fn age(record: &Record, now: time::OffsetDateTime) -> Option<time::Duration> {
+    Some(now - parse_time(record.submitted_time.as_deref()?)?)
+}
+
+/// A record's time (`2024-03-07 10:31:02 UTC`, as the original system wrote it, or RFC 3339).
+pub(super) fn parse_time(at: &str) -> Option<time::OffsetDateTime> {
+    time::PrimitiveDateTime::parse(
         at.trim_end_matches(" UTC"),
         time::macros::format_description!("[year]-[month]-[day] [hour]:[minute]:[second]"),
     )
     .map(time::PrimitiveDateTime::assume_utc)
     .or_else(|_| time::OffsetDateTime::parse(at, &time::format_description::well_known::Rfc3339))
-    .ok()?;
-    Some(now - parsed)
+    .ok()
 }
 
-fn short_age(age: time::Duration) -> String {
+pub(super) fn short_age(age: time::Duration) -> String {
     let minutes = age.whole_minutes().max(0);
     match minutes {
         m if m < 60 => format!("{m}m"),
@@ -229,7 +232,7 @@ fn short_age(age: time::Duration) -> String {
 /// The estimated start of every shown submission whose pods wait for a GPU, as its queue
 /// note gives it (`lb_domain::capacity::forecast::estimate`, else places ahead at its track's
 /// pace): none where neither can be read.
-async fn estimates(
+pub(super) async fn estimates(
     deployment: &Deployment,
     shown: &[&Record],
     places: &HashMap<(String, u64), Place>,
@@ -283,7 +286,7 @@ async fn estimates(
 }
 
 /// `~40m`, `1h-3h`: an estimated start in a column.
-fn short_estimate(e: lb_domain::capacity::queue::StartEstimate) -> String {
+pub(super) fn short_estimate(e: lb_domain::capacity::queue::StartEstimate) -> String {
     match e.shown() {
         lb_domain::capacity::queue::Shown::Minutes(low, high) => format!("{low}-{high}m"),
         lb_domain::capacity::queue::Shown::Hours(low, high) => format!("{low}-{high}h"),
@@ -348,7 +351,7 @@ fn team_usage(records: &[&Record]) -> Vec<(String, Usage)> {
     teams
 }
 
-fn shorten(text: &str, width: usize) -> String {
+pub(super) fn shorten(text: &str, width: usize) -> String {
     if text.chars().count() <= width {
         return text.to_string();
     }

@@ -1,17 +1,19 @@
-//! `lbctl status`, `lbctl list`, `lbctl cancel` and `lbctl release`: the submissions of a real
-//! deployment as its DynamoDB records and S3 markers show them, and the operator's hand on
-//! them; one file per command, and here what they share.
+//! `lbctl status`, `lbctl list`, `lbctl top`, `lbctl cancel` and `lbctl release`: the
+//! submissions of a real deployment as its DynamoDB records and S3 markers show them, and the
+//! operator's hand on them; one file per command, and here what they share.
 
 mod cancel;
 mod list;
 mod release;
 mod status;
+mod top;
 
 pub use cancel::{cancel, Cancel};
 pub(crate) use list::queue_positions;
 pub use list::{list, List};
 pub use release::{release, Release};
 pub use status::{status, Status};
+pub use top::{top, Top};
 
 use std::collections::{BTreeMap, HashMap};
 

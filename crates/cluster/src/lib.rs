@@ -7,6 +7,7 @@
 pub mod autoscaler;
 mod cluster;
 mod error;
+pub mod fleet;
 pub mod labels;
 pub mod observe;
 

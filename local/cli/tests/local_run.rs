@@ -8,7 +8,7 @@ use std::process::Command;
 use std::sync::OnceLock;
 
 /// `lbctl`, built beside `lbctl-local` (and the workloads) as `make local` builds them.
-fn lbctl() -> PathBuf {
+pub(crate) fn lbctl() -> PathBuf {
     static BUILT: OnceLock<PathBuf> = OnceLock::new();
     BUILT
         .get_or_init(|| {

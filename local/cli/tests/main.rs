@@ -4,3 +4,4 @@
 mod emf;
 mod local_run;
 mod states;
+mod top;

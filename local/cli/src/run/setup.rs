@@ -49,7 +49,34 @@ pub(super) async fn set_up(
             kubeconfig.display()
         ),
     );
+    let env = lbctl_env(&stack, &kubeconfig)?;
+    say(
+        started,
+        format!(
+            "lbctl against this stack: . {} (then lbctl top)",
+            env.display()
+        ),
+    );
     Ok((stack, settings, kubeconfig))
+}
+
+/// Writes the environment that points `lbctl` at this stack (moto, its secrets and queue
+/// table, the cluster): an operator's `lbctl top`, `list` or `watch` on the rehearsal.
+fn lbctl_env(stack: &Stack, kubeconfig: &std::path::Path) -> anyhow::Result<PathBuf> {
+    use local_stack::stack::{ADMISSION_TABLE, BUDGET_TABLE, SETTINGS_SECRET, TOKEN_SECRET};
+    let mut vars = stack.moto.sdk_env();
+    vars.push(("LB_SETTINGS_SECRET", SETTINGS_SECRET.into()));
+    vars.push(("LB_EVALAI_TOKEN_SECRET", TOKEN_SECRET.into()));
+    vars.push(("LB_ADMISSION_TABLE", ADMISSION_TABLE.into()));
+    vars.push(("LB_BUDGET_TABLE", BUDGET_TABLE.into()));
+    vars.push(("LB_KUBECONFIG", kubeconfig.display().to_string()));
+    let text: String = vars
+        .iter()
+        .map(|(k, v)| format!("export {k}='{v}'\n"))
+        .collect();
+    let path = stack.workdir.path().join("lbctl.env");
+    std::fs::write(&path, text)?;
+    Ok(path)
 }
 
 /// What the scenario is told before the executions start: the operator's kubeconfig (the
