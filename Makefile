@@ -98,9 +98,10 @@ bench-latency: venv kubectl own-cache ## Record -> partial update and last write
 		printf '%-48s %s\n' "$$label" "$${line#latency        }"; \
 	done
 
-bench-scale: venv ## The deadline rush. What AWS bills, on the node model (lb_domain::capacity::fleet): instance-hours, dollars, idle share by cause, evaluations and $/eval for the original's way, ours on-demand and ours Spot first, each lever, the start estimate's error, a long-run rush. Then 200 submissions of 40 teams through the shared EvalAI budget and the admission queue at 10x speed: EvalAI requests per sliding minute (target <= 60, no 429), arrival -> admitted and -> running, record -> partial update and end -> final delays
+bench-scale: venv ui-tools ## The deadline rush. What AWS bills, on the node model (lb_domain::capacity::fleet): instance-hours, dollars, idle share by cause, evaluations and $/eval for the original's way, ours on-demand and ours Spot first, each lever, the start estimate's error, a long-run rush. Then 200 submissions of 40 teams through the shared EvalAI budget and the admission queue at 10x speed: EvalAI requests per sliding minute (target <= 60, no 429), arrival -> admitted and -> running, record -> partial update and end -> final delays; then its HTML report with plots, and a screenshot of it
 	$(CARGO) bench -p lb-domain --bench fleet -- --bench
 	$(CARGO) test --quiet -p e2e --bench scale -- --bench
+	@bash tests/e2e/tools/headless.sh --window-size=1240,2200 --screenshot=$(abspath $(TARGET_DIR))/tmp/bench-scale/report.png $(TARGET_DIR)/tmp/bench-scale/report.html 2>/dev/null
 
 bench-sidecar: venv ## logcopy's peak memory uploading a 1 GiB tree to moto (target < 20 MiB)
 	$(CARGO) bench -p sidecar --bench logcopy

@@ -50,6 +50,7 @@ fn main() {
             row.name
         );
     }
+    keep(&rows, &reports);
     let find = |name: &str| &reports[rows.iter().position(|r| r.name == name).unwrap()];
     let (original, on_demand, spot) = (
         find("original"),
@@ -72,6 +73,28 @@ fn main() {
     assert!(find("on-demand, packing").causes.empty < find("on-demand, as deployed").causes.empty);
     if full {
         long_run(&before);
+    }
+}
+
+/// Where the rush's runs are kept for the report `make bench-scale` draws after the EvalAI
+/// part (`tests/e2e/benches/scale.rs`).
+pub fn data_file() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("bench-scale/fleet.json")
+}
+
+/// Keeps every run's report, by name.
+fn keep(rows: &[Row], reports: &[Report]) {
+    let runs: Vec<serde_json::Value> = rows
+        .iter()
+        .zip(reports)
+        .map(|(row, report)| serde_json::json!({"name": row.name, "report": report}))
+        .collect();
+    let path = data_file();
+    let written = std::fs::create_dir_all(path.parent().unwrap())
+        .and_then(|()| std::fs::write(&path, serde_json::json!({"runs": runs}).to_string()));
+    match written {
+        Ok(()) => println!("data           {}", path.display()),
+        Err(e) => println!("data           not kept ({}: {e})", path.display()),
     }
 }
 

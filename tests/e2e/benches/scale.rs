@@ -27,6 +27,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use e2e::report::{self, EvalAiRush};
 use fake_evalai::{Fixture, NewSubmission};
 use lb_aws::admission::AdmissionTable;
 use lb_aws::budget::BudgetTable;
@@ -48,6 +49,15 @@ use tokio::sync::{Notify, Semaphore};
 
 /// Real life / this bench.
 const SCALE: f64 = 10.0;
+
+/// Prints a line of the bench's text and keeps it for its report.
+macro_rules! say {
+    ($lines:expr, $($arg:tt)*) => {{
+        let line = format!($($arg)*);
+        println!("{line}");
+        $lines.push(line);
+    }};
+}
 /// EvalAI's limit, in real life.
 const LIMIT: u32 = 60;
 /// `partial_update_seconds`, in real life.
@@ -505,12 +515,61 @@ async fn main() {
         spot_share: 0.75,
         reclaim_chance: 0.1,
     };
-    rush(full, Mode::OnDemand).await;
-    rush(full, spot).await;
+    let (on_demand, mut text) = rush(full, Mode::OnDemand).await;
+    let (spot, more) = rush(full, spot).await;
+    text.extend(more);
+    write_report(&[on_demand, spot], &text);
+}
+
+/// The HTML report of both parts: the fleet bench's runs (kept by `cargo bench -p lb-domain
+/// --bench fleet`, which `make bench-scale` runs first) and this part's rushes.
+fn write_report(rushes: &[EvalAiRush], text: &[String]) {
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("bench-scale");
+    let mut charts = Vec::new();
+    let mut page_text = Vec::new();
+    match std::fs::read_to_string(dir.join("fleet.json")) {
+        Ok(json) => {
+            let data: serde_json::Value =
+                serde_json::from_str(&json).expect("the fleet bench's data");
+            let runs: Vec<(String, lb_domain::capacity::fleet::Report)> = data["runs"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .map(|run| {
+                    let name = run["name"].as_str().unwrap_or_default().to_owned();
+                    let report = serde_json::from_value(run["report"].clone()).expect("a report");
+                    (name, report)
+                })
+                .collect();
+            page_text.push(lb_domain::capacity::fleet::table_header());
+            page_text.extend(runs.iter().map(|(name, r)| r.row(name)));
+            charts.extend(report::fleet_charts(&runs));
+        }
+        Err(e) => println!("report         without the fleet's charts (run its bench first: {e})"),
+    }
+    page_text.extend(text.iter().cloned());
+    let window = scaled(60.0).as_millis() as i128;
+    charts.extend(report::evalai_charts(rushes, window, SCALE, LIMIT));
+    let page = report::page(
+        "The deadline rush (make bench-scale)",
+        &page_text.join("\n"),
+        &charts,
+    );
+    let path = dir.join("report.html");
+    let written = std::fs::create_dir_all(&dir).and_then(|()| std::fs::write(&path, page));
+    match written {
+        Ok(()) => println!(
+            "report         {} ({} charts)",
+            path.display(),
+            charts.len()
+        ),
+        Err(e) => println!("report         not written ({}: {e})", path.display()),
+    }
 }
 
 /// One rush on the capacity `mode` buys.
-async fn rush(full: bool, mode: Mode) {
+async fn rush(full: bool, mode: Mode) -> (EvalAiRush, Vec<String>) {
+    let mut lines = Vec::new();
     // (submissions, teams, GPUs, minutes over which they arrive, evaluation minutes)
     let (count, teams, gpus, arriving, minutes): (u32, u32, usize, f64, (f64, f64)) = if full {
         (200, 40, 160, 15.0, (3.0, 8.0))
@@ -692,11 +751,13 @@ async fn rush(full: bool, mode: Mode) {
     }
     let simulated = started.elapsed().as_secs_f64() * SCALE / 60.0;
 
-    println!(
+    say!(
+        lines,
         "scale          {count} submissions of {teams} teams (largest {:?}) on {gpus} GPUs, {PAIRS} pairs each, for {simulated:.1} minutes (time x{SCALE}), partial_update_seconds {INTERVAL}, team_limit {TEAM_LIMIT}",
         &team_sizes[..3.min(team_sizes.len())]
     );
-    println!(
+    say!(
+        lines,
         "EvalAI         {} requests, {:.1} a minute on average, {busiest} in the busiest sliding minute (target <= {LIMIT}), {throttled} throttled (429)",
         log.len(),
         log.len() as f64 / simulated,
@@ -706,34 +767,40 @@ async fn rush(full: bool, mode: Mode) {
     // process serialising every request) wastes places a real one, answering in milliseconds
     // of a 60-second window, would not.
     let granted = granted(&budget_dynamo).await;
-    println!(
+    say!(
+        lines,
         "budget         {granted} places granted for {} requests sent: {} counted and never sent (a grant back after its window closed is asked for again)",
         log.len(),
         granted as i64 - log.len() as i64,
     );
-    println!(
+    say!(
+        lines,
         "urgent         {retries} queued/running/final writes run again after the budget stayed full past the client's minute (the state machine's retry)"
     );
-    println!(
+    say!(
+        lines,
         "partial        {updates} updates sent, {skipped} deferred by the budget; record -> partial update p50 {:.0} s, p99 {:.0} s ({} records; {in_final} more only in the final update)",
         quantile(&delays, 0.5),
         quantile(&delays, 0.99),
         delays.len()
     );
-    println!(
+    say!(
+        lines,
         "final          end -> final status p50 {:.1} s, max {:.1} s ({} submissions)",
         quantile(&finals, 0.5),
         finals.last().copied().unwrap_or(f64::NAN),
         finals.len()
     );
     let in_minutes = |q: f64, v: &[f64]| quantile(v, q) / 60.0;
-    println!(
+    say!(
+        lines,
         "admission      arrival -> admitted p50 {:.1} min, p99 {:.1} min, max {:.1} min; most places a team held {most_held} (limit {TEAM_LIMIT}); {woken} turns taken on a released place's wake",
         in_minutes(0.5, &admission),
         in_minutes(0.99, &admission),
         admission.last().copied().unwrap_or(f64::NAN) / 60.0,
     );
-    println!(
+    say!(
+        lines,
         "start          arrival -> running (its GPUs free) p50 {:.1} min, p99 {:.1} min, max {:.1} min",
         in_minutes(0.5, &start),
         in_minutes(0.99, &start),
@@ -742,7 +809,8 @@ async fn rush(full: bool, mode: Mode) {
 
     estimate_errors.sort_by(f64::total_cmp);
     let hours = |s: u64| s as f64 / 3600.0;
-    println!(
+    say!(
+        lines,
         "GPUs ({})  {} finished; {:.1} pod GPU-hours as the Monitor counts them ({:.1} on Spot), {:.2} run again after {reclaims} reclaims (what AWS bills: the fleet bench)",
         mode.name(),
         finals.len(),
@@ -750,7 +818,8 @@ async fn rush(full: bool, mode: Mode) {
         hours(usage.spot),
         hours(usage.run_again),
     );
-    println!(
+    say!(
+        lines,
         "estimate       the pace estimate (the note's fallback): predicted -> actual start error p50 {:.1} min, p90 {:.1} min (arrival -> running p50 {:.1} min)",
         quantile(&estimate_errors, 0.5) / 60.0,
         quantile(&estimate_errors, 0.9) / 60.0,
@@ -773,4 +842,12 @@ async fn rush(full: bool, mode: Mode) {
         "a team held {most_held} places"
     );
     assert!(updates > 0);
+    let minutes = |v: &[f64]| v.iter().map(|s| s / 60.0).collect();
+    let seen = EvalAiRush {
+        name: mode.name().into(),
+        requests_ms: arrivals,
+        admission: minutes(&admission),
+        start: minutes(&start),
+    };
+    (seen, lines)
 }

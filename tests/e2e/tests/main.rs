@@ -7,3 +7,4 @@ mod layout;
 mod payloads;
 mod pipeline;
 mod real_kube;
+mod report;

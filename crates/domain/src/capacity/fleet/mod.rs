@@ -21,7 +21,7 @@ pub use params::{
     pull_seconds, spot_rate, Rng, Shape, AGENT_IMAGE_GB, CARLA_IMAGE_GB, PULL_MB_PER_SECOND,
     ROUTE_LONGEST_SECONDS, ROUTE_MEDIAN_SECONDS, ROUTE_SIGMA, SPOT_INTERRUPTED_A_MONTH,
 };
-pub use report::{quantile, table_header, Causes, Miss, Report};
+pub use report::{quantile, table_header, Causes, Miss, Moment, Report, MOMENT_SECONDS};
 pub use view::{expected_order_statistic, max_of_normals};
 
 /// What the rush runs on: the node type, its start and the autoscaler's rules.
@@ -219,6 +219,8 @@ struct Sim<'a> {
     pace: Vec<u64>,
     /// Finished evaluations' seconds, first pair's start to the end, most recent last.
     durations: Vec<u64>,
+    /// The fleet every [`MOMENT_SECONDS`].
+    timeline: Vec<Moment>,
 }
 
 /// Runs `rush` on `model`'s fleet bought as `mode` says, to the last evaluation's end.
@@ -237,6 +239,7 @@ pub fn simulate(model: &Model, mode: Mode, rush: &Rush) -> Report {
         rng: Rng::new(rush.seed),
         pace: rush.history.clone(),
         durations: history_durations(rush),
+        timeline: Vec::new(),
     };
     // Bounded: every evaluation ends within its routes' length after the rush drains, so a
     // model that cannot place a pod (no node fits it) stops at a week past the last arrival.
@@ -610,6 +613,9 @@ impl Sim<'_> {
                 _ => {}
             }
         }
+        if now % MOMENT_SECONDS == 0 {
+            self.moment(&c);
+        }
         let s = &mut self.causes;
         s.boot += c.boot;
         s.run_again += c.run_again;
@@ -619,8 +625,30 @@ impl Sim<'_> {
         s.work += c.work;
     }
 
+    /// The fleet now, from this step's GPU-seconds (`c`: work is a pair's route).
+    fn moment(&mut self, c: &Causes) {
+        let now = self.now;
+        let step = self.model.step_seconds as f64;
+        let live = self
+            .nodes
+            .iter()
+            .filter(|n| n.launched <= now && n.live(now));
+        let nodes = live.count() as u32;
+        let waiting = (self.subs.iter())
+            .filter(|s| s.arrived && s.started.is_none())
+            .count() as u32;
+        self.timeline.push(Moment {
+            at: now,
+            waiting,
+            pairs: (c.work / step).round() as u32,
+            nodes,
+            gpus: nodes * self.model.gpus_per_node,
+        });
+    }
+
     fn report(&self) -> Report {
         let mut r = Report {
+            timeline: self.timeline.clone(),
             causes: self.causes,
             reclaims: self.reclaims,
             nodes: self.nodes.len() as u32,

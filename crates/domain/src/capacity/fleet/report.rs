@@ -1,7 +1,7 @@
 //! What a rush cost and what its participants saw, and its table.
 
 /// Billed GPU-seconds by what they did.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Causes {
     /// Routes that counted.
     pub work: f64,
@@ -35,7 +35,7 @@ impl Causes {
 }
 
 /// What the rush cost and what its participants saw.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Report {
     /// Instance-hours billed (per second, at least 60 s an instance).
     pub instance_hours: f64,
@@ -63,6 +63,27 @@ pub struct Report {
     pub table_errors: Vec<Miss>,
     /// Seconds from the first arrival to the last evaluation's end.
     pub span: u64,
+    /// The fleet every [`MOMENT_SECONDS`], from the first arrival to the last node's end.
+    #[serde(default)]
+    pub timeline: Vec<Moment>,
+}
+
+/// Seconds between two [`Moment`]s of a report's timeline.
+pub const MOMENT_SECONDS: u64 = 300;
+
+/// The fleet at one moment of a rush.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Moment {
+    /// Seconds since the rush began.
+    pub at: u64,
+    /// Submissions arrived and not started (held by their team's cap, or their pods waiting).
+    pub waiting: u32,
+    /// Pairs running a route.
+    pub pairs: u32,
+    /// Nodes billed.
+    pub nodes: u32,
+    /// GPUs billed (every GPU of every node billed).
+    pub gpus: u32,
 }
 
 impl Report {
@@ -115,7 +136,7 @@ pub fn quantile<T: Copy + Default>(sorted: &[T], q: f64) -> T {
 }
 
 /// An estimated start against the actual one.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Miss {
     /// Estimated minus actual, seconds.
     pub seconds: i64,
