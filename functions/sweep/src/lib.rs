@@ -1,4 +1,5 @@
-//! Sweep: once a minute (an EventBridge schedule), the cancels of the submissions in flight.
+//! Sweep: once a minute (an EventBridge schedule), the cancels of the submissions in flight,
+//! and the GPUs the clusters bill and hold (the fleet's idle share).
 //!
 //! A participant cancels on EvalAI, which writes nothing to S3, so no upload wakes the
 //! execution. The sweep lists the executions waiting (the wake table), asks EvalAI for each of
@@ -6,6 +7,10 @@
 //! each waiting one it finds, and reports the token it took, so the Monitor runs within the
 //! minute, confirms the cancel with EvalAI and writes the cancel marker. One request per
 //! challenge a minute, whatever the number of submissions in flight.
+//!
+//! Then it counts each cluster's GPU nodes and the GPUs its pods hold (a list of each, its
+//! Kubernetes group's only access) for the metrics: what the account pays for and leaves
+//! idle, which no submission's own rounds can see.
 
 use lb_pipeline::serve::Function;
 use std::collections::{BTreeMap, BTreeSet};
@@ -14,17 +19,24 @@ use std::future::Future;
 use aws_config::SdkConfig;
 use lb_aws::tasks::{Callbacks, Reported, StepFunctions};
 use lb_aws::wake::{Waiting, WakeTable};
+use lb_domain::run::metrics::Metric;
+use lb_domain::settings::LeaderboardSettings;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::EvalAiClient;
+use lb_pipeline::cluster::Clusters;
 use lb_pipeline::{clients, FnError, FunctionConfig, Result};
 use serde::Serialize;
 use tracing::{info, warn};
 
-/// What the sweep needs: EvalAI, the wake table and where tokens are reported.
-#[derive(Debug, Clone)]
+/// What the sweep needs: EvalAI, the wake table, where tokens are reported, the clusters.
+#[derive(Debug)]
 pub struct Deps<C = StepFunctions> {
     /// EvalAI, as the host.
     pub evalai: EvalAiClient,
+    /// The leaderboards' clusters (EKS, or `LB_KUBECONFIG`).
+    pub clusters: Clusters,
+    /// Each leaderboard's deployment (its cluster).
+    pub deployments: Vec<LeaderboardSettings>,
     /// The wake table.
     pub wakes: WakeTable,
     /// Step Functions (the embedded executor in local mode).
@@ -46,6 +58,8 @@ impl<C: Callbacks> Deps<C> {
         let settings = clients::settings(sdk, config).await?;
         Ok(Deps {
             evalai: clients::evalai(sdk, config, &settings).await?,
+            clusters: Clusters::from_env(sdk),
+            deployments: settings.leaderboards.values().cloned().collect(),
             wakes: WakeTable::new(aws_sdk_dynamodb::Client::new(sdk), config.wake_table()?),
             callbacks,
         })
@@ -63,6 +77,10 @@ pub struct Sweep {
     pub cancelled: Vec<u64>,
     /// Of those, executions woken now.
     pub woken: Vec<u64>,
+    /// GPUs the clusters' nodes offer and those their pods hold; none when a cluster could not
+    /// be read (a partial count would read as idle GPUs).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpus: Option<(u32, u32)>,
 }
 
 impl<C: Callbacks> Function for Deps<C> {
@@ -129,17 +147,50 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
             }
         }
     }
+    sweep.gpus = gpus(deps).await;
+    if let Some((billed, held)) = sweep.gpus {
+        lb_pipeline::metrics::sample_count(Metric::GpusBilled, f64::from(billed));
+        lb_pipeline::metrics::sample_count(Metric::GpusHeld, f64::from(held));
+    }
     info!(
         waiting = sweep.waiting,
         challenges = sweep.challenges,
         cancelled = ?sweep.cancelled,
         woken = ?sweep.woken,
+        gpus = ?sweep.gpus,
         "sweep"
     );
     if !problems.is_empty() {
         return Err(FnError::SweepIncomplete(problems));
     }
     Ok(sweep)
+}
+
+/// The GPUs every cluster's nodes offer and those its pods hold, each cluster once (two
+/// leaderboards may share one); none when one could not be read.
+async fn gpus<C>(deps: &Deps<C>) -> Option<(u32, u32)> {
+    let mut seen = BTreeSet::new();
+    let (mut billed, mut held) = (0, 0);
+    for deployment in &deps.deployments {
+        if !seen.insert(deployment.cluster.as_str()) {
+            continue;
+        }
+        let fleet = match deps.clusters.connect(deployment).await {
+            Ok(cluster) => cluster.gpu_fleet().await.map_err(FnError::from),
+            Err(e) => Err(e),
+        };
+        match fleet {
+            Ok(fleet) => {
+                billed += fleet.gpus();
+                held += fleet.held();
+            }
+            Err(e) => {
+                warn!(cluster = %deployment.cluster, error = %e.chain(), "GPUs not counted this sweep");
+                return None;
+            }
+        }
+    }
+    Some((billed, held))
 }
 
 /// Per challenge, when EvalAI received the oldest submission waiting (epoch seconds): its

@@ -43,12 +43,13 @@ impl Drop for Relays {
 }
 
 /// Starts the wake queue's mapping (unless `wake` is false) and the sweep's schedule against
-/// `executor`; the schedule's period is multiplied by `time_scale`.
+/// `executor`, the sweep counting the GPUs of `clusters`; the schedule's period is multiplied
+/// by `time_scale`.
 pub async fn spawn(
     sdk: &SdkConfig,
     template: &Template,
     config: &FunctionConfig,
-    executor: Executor,
+    (executor, clusters): (Executor, lb_pipeline::cluster::Clusters),
     time_scale: f64,
     wake: bool,
 ) -> anyhow::Result<Relays> {
@@ -88,7 +89,8 @@ pub async fn spawn(
         }
     });
     let period = schedule_period(template, "SweepSchedule")?.mul_f64(time_scale);
-    let sweep = sweep::Deps::load(sdk, config, ExecutorCallbacks(executor)).await?;
+    let mut sweep = sweep::Deps::load(sdk, config, ExecutorCallbacks(executor)).await?;
+    sweep.clusters = clusters;
     let sweep_wakes = Arc::new(AtomicU64::new(0));
     let woken = sweep_wakes.clone();
     let sweeps = tokio::spawn(async move {
@@ -96,13 +98,16 @@ pub async fn spawn(
         ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             ticks.tick().await;
-            match sweep::handle(&sweep).await {
-                Ok(done) => {
-                    for id in &done.woken {
+            // Through the one entry path, as its schedule invokes it: its metrics are written.
+            let done = lb_pipeline::serve::call(&sweep, serde_json::json!({})).await;
+            match done.map(|v| serde_json::from_value::<Vec<u64>>(v["woken"].clone())) {
+                Ok(Ok(ids)) => {
+                    for id in &ids {
                         outln!("           the cancel sweep found submission {id} cancelled on EvalAI and woke its execution");
                     }
-                    woken.fetch_add(done.woken.len() as u64, Ordering::Relaxed);
+                    woken.fetch_add(ids.len() as u64, Ordering::Relaxed);
                 }
+                Ok(Err(e)) => tracing::warn!(error = %e, "the sweep's answer"),
                 Err(e) => tracing::warn!(error = %e.chain(), "the sweep did not finish"),
             }
         }

@@ -1021,6 +1021,18 @@ fn the_metrics_add_up(file: &std::path::Path, report: &Value, stdout: &str) {
     let seen = report["queue"]["requests"].as_f64().unwrap();
     let sent = total("EvalAiRequests");
     assert!(sent > 0.0 && sent <= seen, "{sent} sent, EvalAI saw {seen}");
+    // The sweep counted the local node's 4 GPUs every time it ran, and at most those held.
+    let sweeps: Vec<&Value> = docs.iter().filter(|d| d["Stage"] == "sweep").collect();
+    assert!(!sweeps.is_empty(), "{stdout}");
+    for doc in &sweeps {
+        assert_eq!(doc["GpusBilled"], 4.0, "{doc}");
+        assert!(
+            doc["GpusHeld"]
+                .as_f64()
+                .is_some_and(|h| (0.0..=4.0).contains(&h)),
+            "{doc}"
+        );
+    }
     // The summary says the same totals.
     let summary = &report["metrics"];
     assert_eq!(summary["documents"], docs.len());

@@ -43,17 +43,26 @@ pub enum Identity {
     /// The group Launch, Monitor and Finalize get from their EKS access entries
     /// (`leaderboard-pipeline`, `infra/cluster.yaml`).
     Pipeline,
+    /// The group the sweep gets from its access entry (`leaderboard-fleet`): it counts the
+    /// GPUs.
+    Fleet,
     /// The controller-manager and scheduler (`system:masters` too: they are not under test).
     Controllers,
 }
 
 impl Identity {
-    const ALL: [Identity; 3] = [Identity::Admin, Identity::Pipeline, Identity::Controllers];
+    const ALL: [Identity; 4] = [
+        Identity::Admin,
+        Identity::Pipeline,
+        Identity::Fleet,
+        Identity::Controllers,
+    ];
 
     fn user(self) -> &'static str {
         match self {
             Identity::Admin => "admin",
             Identity::Pipeline => "leaderboard-finalize",
+            Identity::Fleet => "leaderboard-sweep",
             Identity::Controllers => "controllers",
         }
     }
@@ -62,6 +71,7 @@ impl Identity {
         match self {
             Identity::Admin | Identity::Controllers => "system:masters",
             Identity::Pipeline => "leaderboard-pipeline",
+            Identity::Fleet => "leaderboard-fleet",
         }
     }
 }

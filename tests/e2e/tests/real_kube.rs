@@ -158,6 +158,35 @@ async fn the_real_control_plane_admits_our_manifests_and_only_the_pipeline_s_own
         );
     }
 
+    // The sweep's count of the GPUs, as its group; and nothing more.
+    let fleet = Cluster::from_kubeconfig(&plane.kubeconfig(Identity::Fleet), None)
+        .await
+        .unwrap()
+        .with_namespace(NAMESPACE);
+    let counted = fleet
+        .gpu_fleet()
+        .await
+        .expect("the sweep lists nodes and pods");
+    assert_eq!(counted.held(), 0, "the Jobs are gone");
+    for request in [
+        &["-n", NAMESPACE, "get", "jobs"][..],
+        &["-n", NAMESPACE, "get", "secrets"],
+        &["-n", "default", "get", "pods"],
+        &["get", "node", "any"],
+        &["delete", "node", "any"],
+    ] {
+        let out = kubectl(&plane, Identity::Fleet, request);
+        assert!(
+            !out.status.success(),
+            "{request:?} was allowed to the sweep"
+        );
+        assert!(
+            text(&out).contains("Forbidden"),
+            "{request:?}: {}",
+            text(&out)
+        );
+    }
+
     // The namespace's level holds whoever asks: a privileged pod is refused even to an admin.
     let privileged = r#"{"apiVersion":"v1","kind":"Pod","metadata":{"name":"privileged"},
         "spec":{"containers":[{"name":"c","image":"busybox",

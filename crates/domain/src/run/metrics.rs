@@ -4,8 +4,8 @@
 //! Dimensions stay few so a metric is never one per submission: `Stage` (the function) for
 //! what a function does, `Leaderboard` for what the fleet does, one bounded word more for how
 //! runs end (`Outcome`, `Reason`), none for the EvalAI budget the whole account shares.
-//! CloudWatch bills each name-and-dimensions pair for every hour it is sent in, so a sample of
-//! zero is not sent, and what Lambda publishes free (`AWS/Lambda`'s invocations and errors) is
+//! CloudWatch bills each name-and-dimensions pair for every hour it is sent in, so a count of
+//! zero is not sent (a gauge's zero is), and what Lambda publishes free (`AWS/Lambda`'s invocations and errors) is
 //! not sent again.
 
 use crate::capacity::cost::Totals;
@@ -115,6 +115,10 @@ catalog! {
     EvalAiOverBudget => Count, Account;
     /// Urgent requests that waited for the budget's next window.
     EvalAiBudgetWaits => Count, Account;
+    /// GPUs the clusters' nodes offer, every one billed (the sweep's count, a zero too).
+    GpusBilled => Count, Account;
+    /// Of those, GPUs pods hold (the sweep's count, a zero too).
+    GpusHeld => Count, Account;
     /// A submission Intake claimed.
     Arrivals => Count, Leaderboard;
     /// A submission Intake refused (told `failed` with the reason).

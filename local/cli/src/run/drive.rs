@@ -134,7 +134,7 @@ pub(super) async fn deliveries(
     args: &LocalRun,
     stack: &Stack,
     scaled: (&lb_infra::Template, f64),
-    executor: &Executor,
+    (executor, kubeconfig): (&Executor, &std::path::Path),
     (finalize, failures): (
         Arc<finalize::Deps<local_stack::events::LateCallbacks>>,
         Arc<AtomicU64>,
@@ -145,7 +145,10 @@ pub(super) async fn deliveries(
         &stack.sdk,
         scaled.0,
         &local_stack::stack::function_config(),
-        executor.clone(),
+        (
+            executor.clone(),
+            lb_pipeline::cluster::Clusters::kubeconfig(kubeconfig.to_owned()),
+        ),
         args.time_scale,
         !args.no_wake,
     )

@@ -175,11 +175,10 @@ async fn run_to_end(mut args: LocalRun) -> anyhow::Result<u8> {
     check(&args)?;
     let teams = team_sizes(&args)?;
     let started = Instant::now();
-    let (stack, settings, kubeconfig) = set_up(&args, &*scenario, teams.len(), started).await?;
+    let (stack, settings, kubeconfig, metrics) = set_up(&args, &*scenario, &teams, started).await?;
     let arrivals = submissions(&args, &stack, &teams, scenario.image())?;
     // The first is the one the summary describes in detail (and the scenarios act on).
     let submission = arrivals.each[0].0;
-    let metrics = crate::emf::Collector::install(&metrics_file(&args, &stack))?;
     let handlers = Handlers::load(&stack.sdk, kubeconfig.clone(), &pace(&args)).await?;
     // The summary reads the outcome from EvalAI with the functions' own client.
     let evalai = handlers.intake.evalai.clone();
@@ -207,7 +206,8 @@ async fn run_to_end(mut args: LocalRun) -> anyhow::Result<u8> {
     let template = local_stack::stack::app_template(&settings);
     let scaled = (&template, args.time_scale);
     let reaper = (reaper_deps, reaper_failures);
-    let (mut reaper, relays) = deliveries(&args, &stack, scaled, &executor, reaper).await?;
+    let executor_and = (&executor, kubeconfig.as_path());
+    let (mut reaper, relays) = deliveries(&args, &stack, scaled, executor_and, reaper).await?;
     let release = Release::publish(&executor, scenario.release())?;
     let hooks = (&*scenario, &watch, &acted, &mut reaper, scaled);
     let (executions, moved) = start_through(
@@ -245,11 +245,6 @@ async fn run_to_end(mut args: LocalRun) -> anyhow::Result<u8> {
     let (mut report, latency) = ran.report(&evalai).await;
     report.metrics = metrics.report();
     finish(&args, &stack, &report, latency.as_ref(), many, &kubeconfig).await
-}
-
-/// Where the functions' metrics documents go: `--metrics`, else the run's working folder.
-fn metrics_file(args: &LocalRun, stack: &local_stack::stack::Stack) -> std::path::PathBuf {
-    (args.metrics.clone()).unwrap_or_else(|| stack.workdir.path().join("metrics.jsonl"))
 }
 
 /// The options no parser checks alone.

@@ -26,10 +26,15 @@ use super::*;
 pub(super) async fn set_up(
     args: &LocalRun,
     scenario: &dyn Rehearsal,
-    teams: usize,
+    teams: &[u32],
     started: Instant,
-) -> anyhow::Result<(Stack, lb_domain::settings::Settings, PathBuf)> {
-    let (mut stack, settings) = start_stack(args, teams, started).await?;
+) -> anyhow::Result<(
+    Stack,
+    lb_domain::settings::Settings,
+    PathBuf,
+    std::sync::Arc<crate::emf::Collector>,
+)> {
+    let (mut stack, settings) = start_stack(args, teams.len(), started).await?;
     let record_log = record_log(&stack);
     let kubeconfig = start_workloads(args, scenario, &mut stack, &settings, &record_log).await?;
     say(
@@ -57,7 +62,11 @@ pub(super) async fn set_up(
             env.display()
         ),
     );
-    Ok((stack, settings, kubeconfig))
+    // The functions' metrics documents: `--metrics`, else the run's working folder.
+    let metrics_file =
+        (args.metrics.clone()).unwrap_or_else(|| stack.workdir.path().join("metrics.jsonl"));
+    let metrics = crate::emf::Collector::install(&metrics_file)?;
+    Ok((stack, settings, kubeconfig, metrics))
 }
 
 /// Writes the environment that points `lbctl` at this stack (moto, its secrets and queue
