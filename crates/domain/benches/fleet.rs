@@ -71,6 +71,12 @@ fn main() {
     assert!(per_dollar(on_demand) > per_dollar(original));
     assert!(ratio >= if full { 0.95 * limit } else { 2.0 }, "{ratio}");
     assert!(find("on-demand, packing").causes.empty < find("on-demand, as deployed").causes.empty);
+    let consolidated = find("on-demand, consolidating");
+    assert!(consolidated.causes.empty < on_demand.causes.empty);
+    assert!(
+        consolidated.causes.run_again <= on_demand.causes.run_again,
+        "moved at route ends"
+    );
     if full {
         long_run(&before);
     }
@@ -149,6 +155,11 @@ fn rows(before: &Model, single: InstancePrice, rush: &Rush) -> Vec<Row> {
         spot_available: adopted.spot_available * adopted.gpus_per_node,
         ..adopted.clone()
     };
+    // Not in infra/ yet: a node at most half used drained at its pairs' route ends.
+    let consolidating = Model {
+        consolidate: true,
+        ..adopted.clone()
+    };
     let lending = Rush {
         lend_idle: true,
         ..rush.clone()
@@ -162,6 +173,8 @@ fn rows(before: &Model, single: InstancePrice, rush: &Rush) -> Vec<Row> {
         row("on-demand, CARLA cached", &cached, Mode::OnDemand),
         row("on-demand, levers", &adopted, Mode::OnDemand),
         row("spot-first, levers", &adopted, Mode::SpotFirst),
+        row("on-demand, consolidating", &consolidating, Mode::OnDemand),
+        row("spot-first, consolidating", &consolidating, Mode::SpotFirst),
         row("spot-first, 10x reclaims", &stormy, Mode::SpotFirst),
         row("spot-first, 3/4 Spot", &scarce, Mode::SpotFirst),
         row("on-demand, 1-GPU nodes", &one_gpu, Mode::OnDemand),

@@ -56,6 +56,9 @@ pub struct Model {
     pub spot_available: u32,
     /// The autoscaler's scan interval: the model's step.
     pub step_seconds: u64,
+    /// Once nothing waits, a node at most half used is drained: its pairs move at their next
+    /// route's end (nothing run again) to nodes with room, and it empties and goes.
+    pub consolidate: bool,
 }
 
 /// How the scheduler scores nodes a pod fits on.
@@ -169,6 +172,8 @@ struct Node {
     /// Reclaimed: when its notice came.
     notice: Option<u64>,
     ended: Option<u64>,
+    /// Drained by consolidation: no new pod, its pairs leave at their next route's end.
+    draining: bool,
 }
 
 impl Node {
@@ -177,7 +182,7 @@ impl Node {
     }
 
     fn schedulable(&self, now: u64) -> bool {
-        self.live(now) && self.notice.is_none() && now >= self.ready
+        self.live(now) && self.notice.is_none() && now >= self.ready && !self.draining
     }
 }
 
@@ -260,6 +265,7 @@ impl Sim<'_> {
     fn step(&mut self) {
         self.arrive();
         self.reclaim();
+        self.consolidate();
         self.progress();
         self.admit();
         self.schedule();
@@ -401,11 +407,55 @@ impl Sim<'_> {
         pod.state = PodState::Pending { since: self.now };
     }
 
+    /// Once nothing waits: the least used nodes whose pairs the others have room for are
+    /// drained; when something waits again, none is.
+    fn consolidate(&mut self) {
+        if !self.model.consolidate {
+            return;
+        }
+        let now = self.now;
+        let pending: u32 = (self.pods.iter())
+            .filter(|p| matches!(p.state, PodState::Pending { .. }))
+            .map(|p| p.gpus)
+            .sum();
+        if pending > 0 {
+            // Room elsewhere for what waits, or the drained nodes take pods again.
+            let open: u32 = (self.nodes.iter())
+                .filter(|n| n.schedulable(now))
+                .map(|n| n.free)
+                .sum();
+            if open < pending {
+                for node in &mut self.nodes {
+                    node.draining = false;
+                }
+            }
+            return;
+        }
+        let gpus = self.model.gpus_per_node;
+        let mut open: Vec<usize> = (0..self.nodes.len())
+            .filter(|&n| self.nodes[n].schedulable(now))
+            .collect();
+        open.sort_by_key(|&n| (gpus - self.nodes[n].free, n));
+        // Free GPUs on the nodes staying open, less the pairs already sent to them.
+        let mut room: i64 = open.iter().map(|&n| i64::from(self.nodes[n].free)).sum();
+        for &n in &open {
+            let busy = i64::from(gpus - self.nodes[n].free);
+            let elsewhere = room - i64::from(self.nodes[n].free);
+            if busy == 0 || busy * 2 > i64::from(gpus) || elsewhere < busy {
+                continue;
+            }
+            self.nodes[n].draining = true;
+            room = elsewhere - busy;
+        }
+    }
+
     /// Pods past their start run routes; pairs past their last route end; pods whose pairs
-    /// all ended free their GPUs.
+    /// all ended free their GPUs; a pod on a drained node leaves at its route's end.
     fn progress(&mut self) {
         let now = self.now;
         let mut ended = Vec::new();
+        let draining: Vec<bool> = self.nodes.iter().map(|n| n.draining).collect();
+        let mut moved = Vec::new();
         for pod in &mut self.pods {
             if let PodState::Starting { node, until } = pod.state {
                 if until <= now {
@@ -418,6 +468,7 @@ impl Sim<'_> {
             let PodState::Running { node, pairs } = &mut pod.state else {
                 continue;
             };
+            let mut leaves = false;
             for (slot, pair) in pairs.iter_mut().enumerate() {
                 let lengths = &routes[pod.pairs[slot]];
                 while let Pair::Route { route, since } = *pair {
@@ -428,13 +479,25 @@ impl Sim<'_> {
                     if route + 1 == lengths.len() {
                         self.pace.push(lengths.iter().sum());
                         *pair = Pair::Done;
+                    } else if draining[*node] && pod.pairs.len() == 1 {
+                        // Its results are written: a new pod resumes at the next route.
+                        pod.resume[slot] = route + 1;
+                        leaves = true;
+                        break;
                     }
                 }
             }
-            if pairs.iter().all(|p| *p == Pair::Done) {
-                ended.push((*node, pod.gpus, pod.submission));
+            let n = *node;
+            if leaves {
+                moved.push((n, pod.gpus));
+                pod.state = PodState::Pending { since: now };
+            } else if pairs.iter().all(|p| *p == Pair::Done) {
+                ended.push((n, pod.gpus, pod.submission));
                 pod.state = PodState::Done;
             }
+        }
+        for (node, gpus) in moved {
+            self.release(node, gpus);
         }
         for (node, gpus, index) in ended {
             self.release(node, gpus);
@@ -558,6 +621,7 @@ impl Sim<'_> {
             empty_since: Some(self.now + self.model.boot_seconds),
             notice: None,
             ended: None,
+            draining: false,
         });
     }
 

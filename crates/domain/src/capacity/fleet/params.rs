@@ -37,6 +37,7 @@ impl Model {
             max_nodes,
             spot_available: max_nodes,
             step_seconds: 10,
+            consolidate: false,
         }
     }
 }
