@@ -191,14 +191,19 @@ async fn the_real_control_plane_admits_our_manifests_and_only_the_pipeline_s_own
     let privileged = r#"{"apiVersion":"v1","kind":"Pod","metadata":{"name":"privileged"},
         "spec":{"containers":[{"name":"c","image":"busybox",
         "securityContext":{"privileged":true}}]}}"#;
-    let path = std::env::temp_dir().join(format!("privileged-{}.json", std::process::id()));
-    std::fs::write(&path, privileged).unwrap();
+    let file = tempfile::NamedTempFile::with_suffix(".json").unwrap();
+    std::fs::write(file.path(), privileged).unwrap();
     let out = kubectl(
         &plane,
         Identity::Admin,
-        &["-n", NAMESPACE, "create", "-f", path.to_str().unwrap()],
+        &[
+            "-n",
+            NAMESPACE,
+            "create",
+            "-f",
+            file.path().to_str().unwrap(),
+        ],
     );
-    let _ = std::fs::remove_file(&path);
     assert!(!out.status.success(), "a privileged pod was admitted");
     assert!(
         text(&out).contains("violates PodSecurity \"baseline"),
@@ -249,14 +254,14 @@ fn add_named_node(plane: &ControlPlane, name: &str, gpu_model: &str, gpus: u32) 
         r#"{{"apiVersion":"v1","kind":"Node","metadata":{{"name":"{name}",
         "labels":{{"leaderboard.carla.org/gpu-model":"{gpu_model}"}}}}}}"#
     );
-    let path = std::env::temp_dir().join(format!("node-{}.json", std::process::id()));
-    std::fs::write(&path, node).unwrap();
+    // A file of its own: tests that add nodes run side by side in this process.
+    let file = tempfile::NamedTempFile::with_suffix(".json").unwrap();
+    std::fs::write(file.path(), node).unwrap();
     let created = kubectl(
         plane,
         Identity::Admin,
-        &["create", "-f", path.to_str().unwrap()],
+        &["create", "-f", file.path().to_str().unwrap()],
     );
-    let _ = std::fs::remove_file(&path);
     assert!(created.status.success(), "{}", text(&created));
     let resources = format!(
         r#"{{"cpu":"32","memory":"128Gi","pods":"110","ephemeral-storage":"200Gi","nvidia.com/gpu":"{gpus}"}}"#
