@@ -108,9 +108,11 @@ async fn invoke<F: lb_pipeline::serve::Function>(
     lb_pipeline::serve::call(&deps?, event).await
 }
 
-/// Runs the handler; prints its result (exit 0) or its error object (exit 1) on stdout.
+/// Runs the handler; prints its result (exit 0) or its error object (exit 1) on stdout, and
+/// its metrics document on stderr (stdout is the result a script reads).
 pub async fn run(args: Invoke) -> Result<u8> {
     let event = read_event(args.event.as_deref())?;
+    lb_pipeline::metrics::write_to(std::sync::Arc::new(|line: &str| eprintln!("{line}")));
     let name = args.function.as_str();
     let result = match args.function {
         Function::Intake => invoke(intake::Deps::from_env().await, event).await,

@@ -41,6 +41,20 @@ async fn invoke_intake_claims_a_submission_and_reports_errors_as_lambda_does() {
     assert_eq!(out.status.code(), Some(0), "{}", show(&out));
     let result: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(result["action"], "run", "{result}");
+    // Its metrics document, beside the result and not in it: an arrival on leaderboard 2.0.
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let document = stderr
+        .lines()
+        .find(|l| l.contains("\"CloudWatchMetrics\""))
+        .unwrap_or_else(|| panic!("no metrics document: {}", show(&out)));
+    let document: Value = serde_json::from_str(document).unwrap();
+    assert_eq!(
+        (
+            document["Arrivals"].as_f64(),
+            document["Leaderboard"].as_str()
+        ),
+        (Some(1.0), Some("2.0"))
+    );
     assert_eq!(result["submission"]["team_id"], 1, "{result}");
     assert_eq!(result["submission"]["image"], pinned, "{result}");
     assert_eq!(result["submission"]["workers"], 4, "{result}");
