@@ -446,22 +446,14 @@ impl Cluster {
             .await?
             .map_err(|e| ClusterError::from_kube("get node", name, e))?;
         Ok(node.map(|node| {
-            let labels = node.metadata.labels.unwrap_or_default();
-            let label = |key: &str| labels.get(key).map(String::as_str);
-            let kind = NodeKind {
-                instance_type: label("node.kubernetes.io/instance-type")
-                    .unwrap_or("unknown")
-                    .to_string(),
-                capacity: CapacityType::from_label(label(lb_domain::settings::Capacity::LABEL)),
-            };
+            let (kind, ready) = (kind_of(&node), is_ready(&node));
             let spec = node.spec.unwrap_or_default();
-            let conditions = node.status.and_then(|s| s.conditions).unwrap_or_default();
             let facts = NodeFacts {
                 unschedulable: spec.unschedulable.unwrap_or(false),
                 taints: (spec.taints.unwrap_or_default().into_iter())
                     .map(|t| t.key)
                     .collect(),
-                ready: (conditions.iter()).any(|c| c.type_ == "Ready" && c.status == "True"),
+                ready,
             };
             (kind, facts)
         }))
@@ -629,6 +621,26 @@ where
         }
     }
     Ok(answers)
+}
+
+/// What a node is, from the labels its node group gives it
+/// (`node.kubernetes.io/instance-type`, `eks.amazonaws.com/capacityType`): what a pod on it
+/// costs.
+pub(crate) fn kind_of(node: &Node) -> NodeKind {
+    let labels = node.metadata.labels.as_ref();
+    let label = |key: &str| labels.and_then(|l| l.get(key)).map(String::as_str);
+    NodeKind {
+        instance_type: label("node.kubernetes.io/instance-type")
+            .unwrap_or("unknown")
+            .to_string(),
+        capacity: CapacityType::from_label(label(lb_domain::settings::Capacity::LABEL)),
+    }
+}
+
+/// The node reports `Ready`.
+pub(crate) fn is_ready(node: &Node) -> bool {
+    let conditions = node.status.as_ref().and_then(|s| s.conditions.as_ref());
+    (conditions.into_iter().flatten()).any(|c| c.type_ == "Ready" && c.status == "True")
 }
 
 /// The wait before the next look when the last waited `previous` (zero before the first):

@@ -7,7 +7,7 @@ use k8s_openapi::api::core::v1::{Node, Pod};
 use kube::api::ListParams;
 use lb_domain::capacity::cost::{CapacityType, NodeKind};
 
-use crate::cluster::Cluster;
+use crate::cluster::{is_ready, kind_of, Cluster};
 use crate::error::{ClusterError, Result};
 
 /// The resource a pair's pod asks GPUs by.
@@ -44,24 +44,12 @@ impl GpuFleet {
             .iter()
             .filter_map(|node| {
                 let gpus = quantity(node.status.as_ref()?.allocatable.as_ref()?.get(GPU)?)?;
-                let labels = node.metadata.labels.clone().unwrap_or_default();
-                let label = |key: &str| labels.get(key).map(String::as_str);
-                let conditions = node.status.as_ref()?.conditions.clone().unwrap_or_default();
                 Some(GpuNode {
                     name: node.metadata.name.clone()?,
-                    kind: NodeKind {
-                        instance_type: label("node.kubernetes.io/instance-type")
-                            .unwrap_or("unknown")
-                            .to_owned(),
-                        capacity: CapacityType::from_label(label(
-                            lb_domain::settings::Capacity::LABEL,
-                        )),
-                    },
+                    kind: kind_of(node),
                     gpus,
                     held: 0,
-                    ready: conditions
-                        .iter()
-                        .any(|c| c.type_ == "Ready" && c.status == "True"),
+                    ready: is_ready(node),
                 })
             })
             .filter(|n| n.gpus > 0)

@@ -18,9 +18,6 @@ use serde_json::{json, Map, Value};
 /// Values one metric keeps in a document (EMF's limit).
 pub const MAX_VALUES: usize = 100;
 
-/// Metrics one directive holds (EMF's limit).
-pub const MAX_METRICS: usize = 100;
-
 /// Where documents go: a Lambda's stdout, where CloudWatch Logs extracts the metrics, unless
 /// the process says otherwise (`lbctl local run` keeps its own).
 pub type Sink = Arc<dyn Fn(&str) + Send + Sync>;
@@ -80,11 +77,6 @@ impl Gathered {
         } else {
             self.dropped += 1;
         }
-    }
-
-    /// The values of `metric` gathered.
-    pub fn values(&self, metric: Metric) -> &[f64] {
-        self.values.get(&metric).map_or(&[], Vec::as_slice)
     }
 }
 
@@ -260,7 +252,7 @@ mod tests {
         for i in 0..150 {
             g.push(Metric::QueueLength, f64::from(i));
         }
-        assert_eq!(g.values(Metric::QueueLength).len(), MAX_VALUES);
+        assert_eq!(g.values[&Metric::QueueLength].len(), MAX_VALUES);
         assert_eq!(g.dropped, 50);
     }
 }

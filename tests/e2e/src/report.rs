@@ -1,7 +1,7 @@
 //! The deadline rush's HTML report (`make bench-scale`): its charts as data, and one
 //! self-contained page (no file or network beside it) whose script draws each as SVG.
 
-use lb_domain::capacity::fleet::Report;
+use lb_domain::capacity::fleet::{Moment, Report};
 use serde::Serialize;
 
 /// How a chart draws its series.
@@ -111,20 +111,23 @@ pub fn sliding_counts(times_ms: &[i128], window_ms: i128, scale: f64) -> Vec<(f6
 /// The runs of the fleet bench the report draws, by name.
 const TIMELINES: [&str; 3] = ["original", "on-demand, as deployed", "spot-first, levers"];
 
+/// `f` of each moment of `run`'s timeline, over hours since the first arrival, as `name`.
+fn over_time(name: &str, run: &Report, f: &dyn Fn(&Moment) -> f64) -> Series {
+    Series {
+        name: name.into(),
+        points: (run.timeline.iter())
+            .map(|m| (m.at as f64 / 3600.0, f(m)))
+            .collect(),
+    }
+}
+
 /// The fleet bench's charts from its runs: the queue, the fleet in use and idle over the rush,
 /// the waits, the start estimate's error, and the dollars per evaluation of every run.
 pub fn fleet_charts(runs: &[(String, Report)]) -> Vec<Chart> {
     let run = |name: &str| runs.iter().find(|(n, _)| n == name).map(|(_, r)| r);
-    let hours = |at: u64| at as f64 / 3600.0;
-    let series = |name: &str, f: &dyn Fn(&lb_domain::capacity::fleet::Moment) -> f64| {
-        run(name).map(|r| Series {
-            name: name.into(),
-            points: r.timeline.iter().map(|m| (hours(m.at), f(m))).collect(),
-        })
-    };
     let queue = TIMELINES
         .iter()
-        .filter_map(|n| series(n, &|m| f64::from(m.waiting)))
+        .filter_map(|n| Some(over_time(n, run(n)?, &|m| f64::from(m.waiting))))
         .collect();
     let mut charts = vec![Chart::line(
         "queue",
@@ -138,10 +141,7 @@ pub fn fleet_charts(runs: &[(String, Report)]) -> Vec<Chart> {
         ("fleet-original", "original"),
     ] {
         let Some(r) = run(name) else { continue };
-        let line = |label: &str, f: &dyn Fn(&lb_domain::capacity::fleet::Moment) -> f64| Series {
-            name: label.into(),
-            points: r.timeline.iter().map(|m| (hours(m.at), f(m))).collect(),
-        };
+        let line = |label: &str, f: &dyn Fn(&Moment) -> f64| over_time(label, r, f);
         charts.push(
             Chart::line(
                 id,

@@ -9,7 +9,6 @@
 //! not sent again.
 
 use crate::capacity::cost::Totals;
-use crate::results::Leaderboard;
 use crate::run::state::RunState;
 
 /// The CloudWatch namespace of every metric here.
@@ -314,11 +313,6 @@ fn pods(run: &RunState) -> (u64, u64) {
             f + u64::from(job.failed.unwrap_or(0)),
         )
     })
-}
-
-/// The dimension value of a leaderboard.
-pub fn leaderboard(leaderboard: Leaderboard) -> &'static str {
-    leaderboard.as_str()
 }
 
 #[cfg(test)]
