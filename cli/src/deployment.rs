@@ -160,6 +160,7 @@ impl Deployment {
                 Some(table) => Shared::Table(table.to_owned()),
             },
             admission: Shared::Unlimited,
+            consolidate_nodes: false,
             memory_mb: 0,
         };
         lb_pipeline::clients::evalai(&self.sdk, &config, &self.settings).await

@@ -522,6 +522,10 @@ fn gpus_line(gpus: Option<&Gpus>) -> String {
     if paid > 0 {
         let _ = write!(line, " ({:.0}%)", f64::from(idle) * 100.0 / f64::from(paid));
     }
+    let draining = fleet.nodes.iter().filter(|n| n.draining).count();
+    if draining > 0 {
+        let _ = write!(line, ", {draining} draining");
+    }
     if let Some(h) = hourly {
         let _ = write!(line, "; ${h:.2} an hour");
     }

@@ -7,7 +7,7 @@ use std::time::Duration;
 use k8s_openapi::api::batch::v1::Job;
 use k8s_openapi::api::core::v1::{Event, Node, Pod};
 use k8s_openapi::jiff::Timestamp;
-use kube::api::{Api, DeleteParams, ListParams, Patch, PatchParams, PostParams};
+use kube::api::{Api, DeleteParams, EvictParams, ListParams, Patch, PatchParams, PostParams};
 use kube::config::{KubeConfigOptions, Kubeconfig};
 use lb_domain::capacity::cost::{CapacityType, NodeKind};
 use lb_domain::cluster::disruption::NodeFacts;
@@ -445,18 +445,7 @@ impl Cluster {
             .call("get node", self.nodes().get_opt(name))
             .await?
             .map_err(|e| ClusterError::from_kube("get node", name, e))?;
-        Ok(node.map(|node| {
-            let (kind, ready) = (kind_of(&node), is_ready(&node));
-            let spec = node.spec.unwrap_or_default();
-            let facts = NodeFacts {
-                unschedulable: spec.unschedulable.unwrap_or(false),
-                taints: (spec.taints.unwrap_or_default().into_iter())
-                    .map(|t| t.key)
-                    .collect(),
-                ready,
-            };
-            (kind, facts)
-        }))
+        Ok(node.map(|node| (kind_of(&node), facts_of(&node))))
     }
 
     /// Sets Job `name`'s `activeDeadlineSeconds` to `seconds` (a merge patch: the field is
@@ -481,6 +470,31 @@ impl Cluster {
             Err(e) => Err(ClusterError::from_kube(
                 "patch job",
                 &format!("Job `{name}`"),
+                e,
+            )),
+        }
+    }
+
+    /// Evicts pod `name` through the Eviction API: the pod gets `DisruptionTarget` (reason
+    /// `EvictionByEvictionAPI`), so its Job's failure policy ignores it and the Job starts a
+    /// pod in its place, where the scheduler finds room. `Ok(false)` when the pod is gone or
+    /// already going (nothing moved).
+    pub async fn evict(&self, name: &str) -> Result<bool> {
+        let pods = self.pods();
+        let evicted = self
+            .call("evict pod", pods.evict(name, &EvictParams::default()))
+            .await?;
+        match evicted {
+            Ok(_) => {
+                info!(pod = name, "pod evicted from a drained node");
+                Ok(true)
+            }
+            Err(kube::Error::Api(s)) if s.is_not_found() || s.code == 409 || s.code == 429 => {
+                Ok(false)
+            }
+            Err(e) => Err(ClusterError::from_kube(
+                "evict pod",
+                &format!("Pod `{name}`"),
                 e,
             )),
         }
@@ -637,10 +651,19 @@ pub(crate) fn kind_of(node: &Node) -> NodeKind {
     }
 }
 
-/// The node reports `Ready`.
-pub(crate) fn is_ready(node: &Node) -> bool {
+/// What the node's object says of its going: cordoned, its taints' keys, `Ready`.
+pub(crate) fn facts_of(node: &Node) -> NodeFacts {
     let conditions = node.status.as_ref().and_then(|s| s.conditions.as_ref());
-    (conditions.into_iter().flatten()).any(|c| c.type_ == "Ready" && c.status == "True")
+    let ready =
+        (conditions.into_iter().flatten()).any(|c| c.type_ == "Ready" && c.status == "True");
+    let spec = node.spec.as_ref();
+    NodeFacts {
+        unschedulable: spec.and_then(|s| s.unschedulable).unwrap_or(false),
+        taints: (spec.and_then(|s| s.taints.as_ref()).into_iter().flatten())
+            .map(|t| t.key.clone())
+            .collect(),
+        ready,
+    }
 }
 
 /// The wait before the next look when the last waited `previous` (zero before the first):

@@ -1,20 +1,24 @@
-//! What a cluster's GPU nodes hold, for operators (`lbctl top`): each GPU node with its kind
-//! and GPUs, and the GPUs the pods bound to it take. It lists the nodes and the namespace's
-//! pods: an operator's access. Nothing of the pipeline calls it, and the pipeline's role does
-//! not grant listing nodes.
+//! What a cluster's GPU nodes hold, for the sweep and operators (`lbctl top`): each GPU node
+//! with its kind, its GPUs and the GPUs the pods bound to it take, and the GPUs pods wait for;
+//! and the sweep's one change, a node's consolidation taint set or taken off. It lists the
+//! nodes and the namespace's pods and patches nodes: the fleet group's access. Nothing of the
+//! pipeline calls it, and the pipeline's role grants none of it.
 
-use k8s_openapi::api::core::v1::{Node, Pod};
-use kube::api::ListParams;
+use k8s_openapi::api::core::v1::{Node, Pod, Taint};
+use kube::api::{ListParams, Patch, PatchParams};
+use lb_domain::capacity::consolidation::{self, NodeUse};
 use lb_domain::capacity::cost::{CapacityType, NodeKind};
+use lb_domain::cluster::disruption;
+use tracing::info;
 
-use crate::cluster::{is_ready, kind_of, Cluster};
+use crate::cluster::{facts_of, kind_of, Cluster};
 use crate::error::{ClusterError, Result};
 
 /// The resource a pair's pod asks GPUs by.
 const GPU: &str = "nvidia.com/gpu";
 
 /// One GPU node.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct GpuNode {
     /// Its name.
     pub name: String,
@@ -26,30 +30,49 @@ pub struct GpuNode {
     pub held: u32,
     /// It reports `Ready`.
     pub ready: bool,
+    /// It takes pods: ready, neither cordoned nor leaving for anyone but us.
+    pub open: bool,
+    /// It carries the consolidation taint.
+    pub draining: bool,
+    /// Its taints and object version, for a patch that changes only ours.
+    #[serde(skip)]
+    taints: Vec<Taint>,
+    #[serde(skip)]
+    version: Option<String>,
 }
 
 /// The GPU nodes of a cluster: every one is paid for, from its launch to its termination,
 /// whether its GPUs are held or not.
-#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct GpuFleet {
     /// By name.
     pub nodes: Vec<GpuNode>,
+    /// GPUs the namespace's pods ask for and no node holds yet (not bound, not ended).
+    pub pending: u32,
 }
 
 impl GpuFleet {
     /// The fleet `nodes` and `pods` describe: the nodes with GPUs, each with the GPUs of the
     /// pods bound to it that have not ended.
     pub fn of(nodes: &[Node], pods: &[Pod]) -> GpuFleet {
+        let mut pending = 0u32;
         let mut out: Vec<GpuNode> = nodes
             .iter()
             .filter_map(|node| {
                 let gpus = quantity(node.status.as_ref()?.allocatable.as_ref()?.get(GPU)?)?;
+                let mut facts = facts_of(node);
+                let draining = consolidation::drained(&facts);
+                facts.taints.retain(|t| t != consolidation::TAINT);
                 Some(GpuNode {
                     name: node.metadata.name.clone()?,
                     kind: kind_of(node),
                     gpus,
                     held: 0,
-                    ready: is_ready(node),
+                    ready: facts.ready,
+                    open: !disruption::leaving(Some(&facts)),
+                    draining,
+                    taints: (node.spec.as_ref().and_then(|s| s.taints.clone())).unwrap_or_default(),
+                    version: node.metadata.resource_version.clone(),
                 })
             })
             .filter(|n| n.gpus > 0)
@@ -60,9 +83,6 @@ impl GpuFleet {
                 continue;
             }
             let Some(spec) = &pod.spec else { continue };
-            let Some(node) = spec.node_name.as_deref() else {
-                continue;
-            };
             let gpus: u32 = spec
                 .containers
                 .iter()
@@ -72,12 +92,32 @@ impl GpuFleet {
                     quantity(asked.or(r.requests.as_ref().and_then(|q| q.get(GPU)))?)
                 })
                 .sum();
+            let Some(node) = spec.node_name.as_deref() else {
+                pending = pending.saturating_add(gpus);
+                continue;
+            };
             if let Some(n) = out.iter_mut().find(|n| n.name == node) {
                 n.held = n.held.saturating_add(gpus);
             }
         }
         out.sort_by(|a, b| a.name.cmp(&b.name));
-        GpuFleet { nodes: out }
+        GpuFleet {
+            nodes: out,
+            pending,
+        }
+    }
+
+    /// The nodes as the consolidation rule sees them.
+    pub fn uses(&self) -> Vec<NodeUse> {
+        (self.nodes.iter())
+            .map(|n| NodeUse {
+                name: n.name.clone(),
+                gpus: n.gpus,
+                held: n.held,
+                open: n.open,
+                draining: n.draining,
+            })
+            .collect()
     }
 
     /// GPUs paid for.
@@ -115,6 +155,46 @@ impl Cluster {
         let nodes = nodes?.map_err(|e| ClusterError::from_kube("list nodes", "", e))?;
         let pods = pods?.map_err(|e| ClusterError::from_kube("list pods", "", e))?;
         Ok(GpuFleet::of(&nodes.items, &pods.items))
+    }
+
+    /// Sets or takes off `node`'s consolidation taint (`NoSchedule`), its other taints kept. The
+    /// patch carries the version the fleet read, so a node changed since (a taint of the
+    /// autoscaler's, a cordon) is left for the next sweep: `Ok(false)`, as for a node gone.
+    pub async fn set_draining(&self, node: &GpuNode, draining: bool) -> Result<bool> {
+        let mut taints: Vec<Taint> = (node.taints.iter())
+            .filter(|t| t.key != consolidation::TAINT)
+            .cloned()
+            .collect();
+        if draining {
+            taints.push(Taint {
+                key: consolidation::TAINT.into(),
+                effect: "NoSchedule".into(),
+                ..Taint::default()
+            });
+        }
+        let patch = Patch::Merge(serde_json::json!({
+            "metadata": {"resourceVersion": node.version},
+            "spec": {"taints": taints},
+        }));
+        let nodes = self.nodes();
+        let patched = self
+            .call(
+                "patch node",
+                nodes.patch(&node.name, &PatchParams::default(), &patch),
+            )
+            .await?;
+        match patched {
+            Ok(_) => {
+                info!(node = node.name, draining, "consolidation taint set");
+                Ok(true)
+            }
+            Err(kube::Error::Api(s)) if s.is_not_found() || s.code == 409 => Ok(false),
+            Err(e) => Err(ClusterError::from_kube(
+                "patch node",
+                &format!("Node `{}`", node.name),
+                e,
+            )),
+        }
     }
 }
 
@@ -162,7 +242,30 @@ mod tests {
         let fleet = GpuFleet::of(&nodes, &pods);
         assert_eq!(fleet.nodes.len(), 2, "the CPU node is not a GPU node");
         assert_eq!((fleet.gpus(), fleet.held()), (8, 2));
+        assert_eq!(fleet.pending, 1, "the pod no node holds yet");
         assert_eq!(fleet.spot_nodes(), 1);
         assert!(fleet.nodes.iter().all(|n| n.ready));
+    }
+
+    #[test]
+    fn a_node_with_our_taint_is_draining_and_open_and_one_cordoned_by_another_is_not_open() {
+        let taint = |n: &mut Node, key: &str| {
+            let spec = n.spec.get_or_insert_with(Default::default);
+            spec.taints.get_or_insert_with(Vec::new).push(Taint {
+                key: key.into(),
+                effect: "NoSchedule".into(),
+                ..Taint::default()
+            });
+        };
+        let mut ours = node("ours", "4", "SPOT");
+        taint(&mut ours, consolidation::TAINT);
+        let mut cordoned = node("cordoned", "4", "SPOT");
+        taint(&mut cordoned, "node.kubernetes.io/unschedulable");
+        let fleet = GpuFleet::of(&[ours, cordoned], &[pod(Some("ours"), "1", "Running")]);
+        let uses = fleet.uses();
+        let by = |name: &str| uses.iter().find(|u| u.name == name).unwrap().clone();
+        assert!(by("ours").open && by("ours").draining);
+        assert_eq!(by("ours").held, 1);
+        assert!(!by("cordoned").open && !by("cordoned").draining);
     }
 }

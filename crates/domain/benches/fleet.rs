@@ -70,12 +70,22 @@ fn main() {
     estimates("spot-first, levers", spot);
     assert!(per_dollar(on_demand) > per_dollar(original));
     assert!(ratio >= if full { 0.95 * limit } else { 2.0 }, "{ratio}");
+    if full {
+        assert!(
+            spot.causes.idle_share() <= 0.10,
+            "{}",
+            spot.causes.idle_share()
+        );
+    }
     assert!(find("on-demand, packing").causes.empty < find("on-demand, as deployed").causes.empty);
-    let consolidated = find("on-demand, consolidating");
-    assert!(consolidated.causes.empty < on_demand.causes.empty);
+    let staying = find("on-demand, no consolidation");
+    assert!(on_demand.causes.empty < staying.causes.empty);
     assert!(
-        consolidated.causes.run_again <= on_demand.causes.run_again,
+        on_demand.causes.run_again <= staying.causes.run_again,
         "moved at route ends"
+    );
+    assert!(
+        find("on-demand, consolidation").causes.empty < find("on-demand, as deployed").causes.empty
     );
     if full {
         long_run(&before);
@@ -155,9 +165,12 @@ fn rows(before: &Model, single: InstancePrice, rush: &Rush) -> Vec<Row> {
         spot_available: adopted.spot_available * adopted.gpus_per_node,
         ..adopted.clone()
     };
-    // Not in infra/ yet: a node at most half used drained at its pairs' route ends.
     let consolidating = Model {
         consolidate: true,
+        ..before.clone()
+    };
+    let staying = Model {
+        consolidate: false,
         ..adopted.clone()
     };
     let lending = Rush {
@@ -171,10 +184,11 @@ fn rows(before: &Model, single: InstancePrice, rush: &Rush) -> Vec<Row> {
         row("on-demand, packing", &packing, Mode::OnDemand),
         row("on-demand, scale-down", &scale_down, Mode::OnDemand),
         row("on-demand, CARLA cached", &cached, Mode::OnDemand),
+        row("on-demand, consolidation", &consolidating, Mode::OnDemand),
+        row("on-demand, no consolidation", &staying, Mode::OnDemand),
+        row("spot-first, no consolidation", &staying, Mode::SpotFirst),
         row("on-demand, levers", &adopted, Mode::OnDemand),
         row("spot-first, levers", &adopted, Mode::SpotFirst),
-        row("on-demand, consolidating", &consolidating, Mode::OnDemand),
-        row("spot-first, consolidating", &consolidating, Mode::SpotFirst),
         row("spot-first, 10x reclaims", &stormy, Mode::SpotFirst),
         row("spot-first, 3/4 Spot", &scarce, Mode::SpotFirst),
         row("on-demand, 1-GPU nodes", &one_gpu, Mode::OnDemand),

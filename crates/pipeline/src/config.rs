@@ -20,6 +20,10 @@ pub struct FunctionConfig {
     /// admits and the Monitor and Finalize move a submission on, or [`Shared::Unlimited`]
     /// (every submission is admitted at once: a tool run by hand).
     pub admission: Shared,
+    /// `LB_CONSOLIDATE_NODES` (`true` or `false`, unset `false`): whether the sweep drains the
+    /// GPU nodes consolidation chooses (`lb_domain::capacity::consolidation`). Off unless a
+    /// deployment asks: a function run by hand changes no node.
+    pub consolidate_nodes: bool,
     /// `AWS_LAMBDA_FUNCTION_MEMORY_SIZE` (the runtime sets it): the function's memory in MB,
     /// what its invocations cost per second; Lambda's default, 128, where it is not set.
     pub memory_mb: u32,
@@ -44,10 +48,22 @@ impl FunctionConfig {
             wake_table: lookup("LB_WAKE_TABLE").filter(|v| !v.trim().is_empty()),
             budget: Shared::parse("LB_BUDGET_TABLE", &get("LB_BUDGET_TABLE")?)?,
             admission: Shared::parse("LB_ADMISSION_TABLE", &get("LB_ADMISSION_TABLE")?)?,
+            consolidate_nodes: flag(&lookup, "LB_CONSOLIDATE_NODES")?,
             memory_mb: lookup("AWS_LAMBDA_FUNCTION_MEMORY_SIZE")
                 .and_then(|v| v.trim().parse().ok())
                 .unwrap_or(128),
         })
+    }
+}
+
+/// A `true` / `false` variable, unset `false`; anything else an error naming it.
+fn flag(lookup: &impl Fn(&str) -> Option<String>, name: &str) -> Result<bool, FnError> {
+    match lookup(name).as_deref().map(str::trim) {
+        None | Some("") | Some("false") => Ok(false),
+        Some("true") => Ok(true),
+        Some(other) => Err(FnError::Config(format!(
+            "environment variable `{name}` is `{other}`: `true` or `false`"
+        ))),
     }
 }
 
@@ -138,6 +154,28 @@ mod tests {
         assert_eq!(
             Shared::parse("X", " leaderboard-admission ").unwrap(),
             Shared::Table("leaderboard-admission".into())
+        );
+    }
+
+    #[test]
+    fn consolidation_is_off_unless_asked_and_a_word_other_than_true_or_false_is_refused() {
+        assert!(
+            !FunctionConfig::from_lookup(env(""))
+                .unwrap()
+                .consolidate_nodes
+        );
+        let with = |value: &'static str| {
+            FunctionConfig::from_lookup(move |name| match name {
+                "LB_CONSOLIDATE_NODES" => Some(value.into()),
+                other => env("")(other),
+            })
+        };
+        assert!(with("true").unwrap().consolidate_nodes);
+        assert!(!with("false").unwrap().consolidate_nodes);
+        let err = with("yes").unwrap_err();
+        assert!(
+            err.to_string().contains("`LB_CONSOLIDATE_NODES` is `yes`"),
+            "{err}"
         );
     }
 

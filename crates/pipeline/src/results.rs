@@ -52,16 +52,25 @@ impl Listing {
     pub fn newest(&self) -> Option<u64> {
         self.partials.iter().filter_map(|p| p.modified).max()
     }
+
+    /// When each pair's results file was last written, by Job index (one pair per Job).
+    pub fn written(&self) -> std::collections::BTreeMap<u32, u64> {
+        written_of(&self.partials)
+    }
+}
+
+fn written_of(partials: &[PartialObject]) -> std::collections::BTreeMap<u32, u64> {
+    partials
+        .iter()
+        .filter_map(|p| Some((lb_domain::job::plan::job_of_pair(p.pair_id)?, p.modified?)))
+        .collect()
 }
 
 /// When each pair's results file was last written, by Job index (one pair per Job); empty
 /// when S3 cannot be listed (a reclaimed pod's whole life then counts as run again).
 pub async fn written(store: &SubmissionStore) -> std::collections::BTreeMap<u32, u64> {
     match store.partials().await {
-        Ok(partials) => partials
-            .iter()
-            .filter_map(|p| Some((lb_domain::job::plan::job_of_pair(p.pair_id)?, p.modified?)))
-            .collect(),
+        Ok(partials) => written_of(&partials),
         Err(e) => {
             warn!(error = %e, "results not listed: a reclaimed pod's time counts as run again");
             std::collections::BTreeMap::new()

@@ -8,6 +8,7 @@ use lb_aws::dynamo::SubmissionsTable;
 use lb_aws::s3::SubmissionStore;
 use lb_cluster::autoscaler::ScaleUpWord;
 use lb_cluster::Cluster;
+use lb_domain::capacity::consolidation::Running;
 use lb_domain::capacity::cost::Totals;
 use lb_domain::capacity::queue::{Hold, Place};
 use lb_domain::run::metrics::Metric;
@@ -35,6 +36,8 @@ pub struct Shell<'a> {
     snapshot: Option<Snapshot>,
     /// When the newest results read this round were written (epoch seconds).
     newest: Option<u64>,
+    /// When each pair's results were written, as this round's listing found them.
+    written: Option<BTreeMap<u32, u64>>,
 }
 
 impl<'a> Shell<'a> {
@@ -51,6 +54,7 @@ impl<'a> Shell<'a> {
             listing: None,
             snapshot: None,
             newest: None,
+            written: None,
         }
     }
 
@@ -80,7 +84,11 @@ impl<'a> Shell<'a> {
             Step::Observe => self.observe().await?,
             Step::ReadAutoscaler(uid) => Answer::Autoscaler(self.autoscaler_word(&uid).await),
             Step::ReadNodes(nodes) => Answer::Nodes(self.read_nodes(nodes).await),
-            Step::ResultsWritten => Answer::ResultsWritten(results::written(&self.store).await),
+            Step::ResultsWritten => Answer::ResultsWritten(match &self.written {
+                Some(written) => written.clone(),
+                None => results::written(&self.store).await,
+            }),
+            Step::Evict(pods) => Answer::Moved(self.evict(pods).await),
             Step::SetDeadlines(jobs) => self.set_deadlines(jobs).await,
             Step::MarkStarted(jobs) => Answer::Started(self.mark_started(&jobs).await?),
             Step::ListResults => Answer::Listed(self.list().await?),
@@ -223,6 +231,34 @@ impl<'a> Shell<'a> {
         Some(read)
     }
 
+    /// Evicts each pod the round moves off its drained node: the Jobs whose evictions were
+    /// accepted. One that fails waits for its pair's next write.
+    async fn evict(&self, pods: Vec<Running>) -> Vec<u32> {
+        let Some(cluster) = &self.cluster else {
+            return Vec::new();
+        };
+        let mut moved = Vec::new();
+        for pod in pods {
+            match cluster.evict(&pod.pod).await {
+                Ok(true) => {
+                    info!(
+                        submission_id = self.id(),
+                        pod = pod.pod,
+                        node = pod.node,
+                        job = pod.job,
+                        "pair moved off a drained node at its route's end"
+                    );
+                    moved.push(pod.job);
+                }
+                Ok(false) => {}
+                Err(e) => {
+                    warn!(submission_id = self.id(), pod = pod.pod, error = %e, "pod not moved this round");
+                }
+            }
+        }
+        moved
+    }
+
     /// A patch that fails is tried again next round: the value set does not depend on what
     /// the Job has.
     async fn set_deadlines(&self, jobs: Vec<(String, u64)>) -> Answer {
@@ -273,6 +309,7 @@ impl<'a> Shell<'a> {
             Ok(listing) => {
                 let fingerprint = listing.fingerprint.clone();
                 self.newest = listing.newest();
+                self.written = Some(listing.written());
                 self.listing = Some(listing);
                 Ok(Some(fingerprint))
             }

@@ -1,5 +1,6 @@
 //! Sweep: once a minute (an EventBridge schedule), the cancels of the submissions in flight,
-//! and the GPUs the clusters bill and hold (the fleet's idle share).
+//! the GPUs the clusters bill and hold (the fleet's idle share), and the GPU nodes
+//! consolidation drains.
 //!
 //! A participant cancels on EvalAI, which writes nothing to S3, so no upload wakes the
 //! execution. The sweep lists the executions waiting (the wake table), asks EvalAI for each of
@@ -8,9 +9,12 @@
 //! minute, confirms the cancel with EvalAI and writes the cancel marker. One request per
 //! challenge a minute, whatever the number of submissions in flight.
 //!
-//! Then it counts each cluster's GPU nodes and the GPUs its pods hold (a list of each, its
-//! Kubernetes group's only access) for the metrics: what the account pays for and leaves
-//! idle, which no submission's own rounds can see.
+//! Then it counts each cluster's GPU nodes and the GPUs its pods hold (a list of each) for the
+//! metrics: what the account pays for and leaves idle, which no submission's own rounds can
+//! see. From the same lists it drains the nodes consolidation chooses and opens drained ones
+//! again when pods wait without room (`lb_domain::capacity::consolidation`: a taint on the
+//! node, its Kubernetes group's one write); each Monitor moves its pods off a drained node at
+//! their routes' ends.
 
 use lb_pipeline::serve::Function;
 use std::collections::{BTreeMap, BTreeSet};
@@ -19,6 +23,8 @@ use std::future::Future;
 use aws_config::SdkConfig;
 use lb_aws::tasks::{Callbacks, Reported, StepFunctions};
 use lb_aws::wake::{Waiting, WakeTable};
+use lb_cluster::fleet::GpuFleet;
+use lb_domain::capacity::consolidation;
 use lb_domain::run::metrics::Metric;
 use lb_domain::settings::LeaderboardSettings;
 use lb_domain::submission::SubmissionStatus;
@@ -41,6 +47,8 @@ pub struct Deps<C = StepFunctions> {
     pub wakes: WakeTable,
     /// Step Functions (the embedded executor in local mode).
     pub callbacks: C,
+    /// Drain the nodes consolidation chooses (`LB_CONSOLIDATE_NODES`).
+    pub consolidate: bool,
 }
 
 impl Deps {
@@ -62,6 +70,7 @@ impl<C: Callbacks> Deps<C> {
             deployments: settings.leaderboards.values().cloned().collect(),
             wakes: WakeTable::new(aws_sdk_dynamodb::Client::new(sdk), config.wake_table()?),
             callbacks,
+            consolidate: config.consolidate_nodes,
         })
     }
 }
@@ -81,6 +90,12 @@ pub struct Sweep {
     /// be read (a partial count would read as idle GPUs).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gpus: Option<(u32, u32)>,
+    /// Nodes drained now.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub drained: Vec<String>,
+    /// Drained nodes opened again now.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub reopened: Vec<String>,
 }
 
 impl<C: Callbacks> Function for Deps<C> {
@@ -147,7 +162,7 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
             }
         }
     }
-    sweep.gpus = gpus(deps).await;
+    fleet(deps, &mut sweep).await;
     if let Some((billed, held)) = sweep.gpus {
         lb_pipeline::metrics::sample_count(Metric::GpusBilled, f64::from(billed));
         lb_pipeline::metrics::sample_count(Metric::GpusHeld, f64::from(held));
@@ -158,6 +173,8 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
         cancelled = ?sweep.cancelled,
         woken = ?sweep.woken,
         gpus = ?sweep.gpus,
+        drained = ?sweep.drained,
+        reopened = ?sweep.reopened,
         "sweep"
     );
     if !problems.is_empty() {
@@ -166,31 +183,61 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
     Ok(sweep)
 }
 
-/// The GPUs every cluster's nodes offer and those its pods hold, each cluster once (two
-/// leaderboards may share one); none when one could not be read.
-async fn gpus<C>(deps: &Deps<C>) -> Option<(u32, u32)> {
+/// Every cluster's GPUs, each cluster once (two leaderboards may share one): those its nodes
+/// offer and those its pods hold, none when one could not be read (a partial count would read
+/// as idle GPUs); and, when asked, its nodes drained or opened again as consolidation says.
+async fn fleet<C>(deps: &Deps<C>, sweep: &mut Sweep) {
     let mut seen = BTreeSet::new();
-    let (mut billed, mut held) = (0, 0);
+    let mut counted = Some((0, 0));
     for deployment in &deps.deployments {
         if !seen.insert(deployment.cluster.as_str()) {
             continue;
         }
-        let fleet = match deps.clusters.connect(deployment).await {
-            Ok(cluster) => cluster.gpu_fleet().await.map_err(FnError::from),
+        let read = match deps.clusters.connect(deployment).await {
+            Ok(cluster) => (cluster.gpu_fleet().await)
+                .map(|fleet| (cluster, fleet))
+                .map_err(FnError::from),
             Err(e) => Err(e),
         };
-        match fleet {
-            Ok(fleet) => {
-                billed += fleet.gpus();
-                held += fleet.held();
-            }
+        let (cluster, fleet) = match read {
+            Ok(read) => read,
             Err(e) => {
                 warn!(cluster = %deployment.cluster, error = %e.chain(), "GPUs not counted this sweep");
-                return None;
+                counted = None;
+                continue;
+            }
+        };
+        if let Some((billed, held)) = counted.as_mut() {
+            *billed += fleet.gpus();
+            *held += fleet.held();
+        }
+        if deps.consolidate {
+            consolidate(&cluster, &fleet, sweep).await;
+        }
+    }
+    sweep.gpus = counted;
+}
+
+/// Taints the nodes the plan drains and takes the taint off those it opens again. A patch
+/// refused or failed is left to the next sweep, which reads the nodes afresh.
+async fn consolidate(cluster: &lb_cluster::Cluster, fleet: &GpuFleet, sweep: &mut Sweep) {
+    let plan = consolidation::plan(&fleet.uses(), fleet.pending);
+    let drain = plan.drain.iter().map(|n| (n, true));
+    for (name, draining) in drain.chain(plan.reopen.iter().map(|n| (n, false))) {
+        let Some(node) = fleet.nodes.iter().find(|n| &n.name == name) else {
+            continue;
+        };
+        match cluster.set_draining(node, draining).await {
+            Ok(true) if draining => sweep.drained.push(name.clone()),
+            Ok(true) => sweep.reopened.push(name.clone()),
+            Ok(false) => {
+                info!(node = %name, "node changed or gone since it was read: left to the next sweep");
+            }
+            Err(e) => {
+                warn!(node = %name, error = %FnError::from(e).chain(), "node not changed this sweep");
             }
         }
     }
-    Some((billed, held))
 }
 
 /// Per challenge, when EvalAI received the oldest submission waiting (epoch seconds): its

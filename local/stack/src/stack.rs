@@ -39,6 +39,8 @@ pub fn function_config() -> lb_pipeline::FunctionConfig {
         wake_table: Some(WAKE_TABLE.into()),
         budget: lb_pipeline::config::Shared::Table(BUDGET_TABLE.into()),
         admission: lb_pipeline::config::Shared::Table(ADMISSION_TABLE.into()),
+        // The template's default (`ConsolidateNodes`): the sweep drains as it would deployed.
+        consolidate_nodes: true,
         // The template's Monitor and Finalize, which take most of a run's Lambda time.
         memory_mb: 512,
     }

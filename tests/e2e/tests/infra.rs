@@ -1058,8 +1058,14 @@ fn cluster_calls(file: &str) -> BTreeSet<(String, String, String)> {
             let method = rest.split('(').next().unwrap();
             (bindings[var].clone(), method.to_string())
         };
+        // An eviction is a `create` of the pod's `eviction` subresource.
+        let (receiver, method) = match method.as_str() {
+            "evict" => (format!("{receiver}/eviction"), "create".to_string()),
+            _ => (receiver, method),
+        };
         let (group, resource) = match receiver.as_str() {
             "jobs" => ("batch", "jobs"),
+            "pods/eviction" => ("", "pods/eviction"),
             "pods" => ("", "pods"),
             "events" => ("", "events"),
             "nodes" => ("", "nodes"),

@@ -159,6 +159,7 @@ fn worst_usage() -> Ledger {
         reclaims: COUNT_CAP,
         charged: COUNT_CAP,
         excess: COUNT_CAP,
+        moves: COUNT_CAP,
         start: Some(u64::MAX),
     };
     Ledger {

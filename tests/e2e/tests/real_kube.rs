@@ -123,6 +123,11 @@ async fn the_real_control_plane_admits_our_manifests_and_only_the_pipeline_s_own
     let first = &seen.jobs[0].name;
     assert!(cluster.set_deadline(first, 300_000).await.unwrap());
     assert_eq!(cluster.node("no-such-node").await.unwrap(), None);
+    // A pair moved off a drained node: the Eviction API, as the pipeline; a pod gone already
+    // moves nothing.
+    let pod = &seen.jobs[0].pods[0].name;
+    assert!(cluster.evict(pod).await.expect("the pipeline evicts"));
+    assert!(!cluster.evict("no-such-pod").await.unwrap());
     cluster
         .delete_all("4242", Whose::Any)
         .await
@@ -163,11 +168,29 @@ async fn the_real_control_plane_admits_our_manifests_and_only_the_pipeline_s_own
         .await
         .unwrap()
         .with_namespace(NAMESPACE);
+    add_named_node(&plane, "drained", "A10G", 4);
     let counted = fleet
         .gpu_fleet()
         .await
         .expect("the sweep lists nodes and pods");
     assert_eq!(counted.held(), 0, "the Jobs are gone");
+    // Consolidation: the sweep taints the node and takes the taint off again; a patch of a
+    // node changed since it was read is refused, left to the next sweep.
+    let node = counted.nodes.iter().find(|n| n.name == "drained").unwrap();
+    assert!(fleet
+        .set_draining(node, true)
+        .await
+        .expect("the sweep drains"));
+    let tainted = fleet.gpu_fleet().await.unwrap();
+    let read = tainted.nodes.iter().find(|n| n.name == "drained").unwrap();
+    assert!(read.draining && read.open, "{read:?}");
+    assert!(
+        !fleet.set_draining(node, false).await.unwrap(),
+        "stale version"
+    );
+    assert!(fleet.set_draining(read, false).await.unwrap());
+    let again = fleet.gpu_fleet().await.unwrap();
+    assert!(!again.nodes.iter().any(|n| n.draining));
     for request in [
         &["-n", NAMESPACE, "get", "jobs"][..],
         &["-n", NAMESPACE, "get", "secrets"],

@@ -188,6 +188,9 @@ pub struct JobEntry {
     pub failed: Option<u32>,
     /// Reclaims given free so far: at [`FREE_RECLAIMS_PER_PAIR`] the next counts as a crash.
     pub reclaims: u32,
+    /// Pods the Monitor moved off a drained node ([`crate::capacity::consolidation`]): each is seen as one more
+    /// reclaim, and each adds one to the free ones, so a move never takes a pair's allowance.
+    pub moves: u32,
     /// Pods that ended by a disruption of their own (or a reclaim beyond the free ones):
     /// crashes its Job did not count, which count against its `backoffLimit` all the same
     /// ([`Ledger::charged_to`]).
@@ -560,9 +563,21 @@ impl Ledger {
         self.entry(job).failed
     }
 
-    /// Whether the Job has a free reclaim left.
+    /// Whether the Job has a free reclaim left (its moves given back).
     fn free(&self, job: u32) -> bool {
-        self.entry(job).reclaims < FREE_RECLAIMS_PER_PAIR
+        let entry = self.entry(job);
+        entry.reclaims < FREE_RECLAIMS_PER_PAIR + entry.moves
+    }
+
+    /// The Job's pods moved off drained nodes so far.
+    pub fn moves_of(&self, job: u32) -> u32 {
+        self.entry(job).moves
+    }
+
+    /// One more pod of the Job moved off a drained node (its eviction accepted).
+    pub fn count_move(&mut self, job: u32) {
+        let entry = self.entry_mut(job);
+        entry.moves = (entry.moves + 1).min(COUNT_CAP);
     }
 
     /// One more reclaim given free to the Job.
@@ -981,6 +996,26 @@ mod tests {
         // Beyond the free reclaims a reclaim is a crash too, known as the platform's.
         assert_eq!(after(Disruption::Reclaim, 2), ((0, 0), 200, 300));
         assert_eq!(after(Disruption::Reclaim, 3), ((1, 1), 0, 0));
+        // A move off a drained node is seen as a reclaim and gives one back: after three
+        // reclaims and a move, the move itself is free, and the pair keeps its allowance.
+        let moved = |reclaims: u32| {
+            let mut ledger = with_reclaims(reclaims);
+            ledger.count_move(0);
+            ledger.account(&running, &kinds, (&results, &none_failed), 500);
+            let evicted = [with(Some(Disruption::Reclaim), Some(900))];
+            ledger.account(&evicted, &kinds, (&results, &none_failed), 1000);
+            (
+                ledger.charged_to(0),
+                ledger.jobs[0].reclaims,
+                ledger.moves_of(0),
+            )
+        };
+        assert_eq!(moved(3), (0, 4, 1));
+        assert_eq!(
+            moved(4),
+            (1, 4, 1),
+            "a move gives back one reclaim, not more"
+        );
         // A pod gone between two rounds unseen (only the control plane deletes): free while
         // the pair has free reclaims, then charged.
         let gone = |reclaims: u32| {

@@ -5,8 +5,9 @@
 //! - `jobs`: `.` no pod running at the last round, `a` + n its pod ran on the kind of usage
 //!   line n, `A` + n the same disrupted (its lost time counted), `-` its disrupted pod went and
 //!   no next pod started yet; trailing `.` left out;
-//! - `failed`, `reclaims`, `charged`, `excess`: one base-36 digit per Job (`failed` only for
-//!   the Jobs a round saw, the others trailing `0` left out; `excess` no more than `charged`);
+//! - `failed`, `reclaims`, `charged`, `excess`, `moves`: one base-36 digit per Job (`failed`
+//!   only for the Jobs a round saw, the others trailing `0` left out; `excess` no more than
+//!   `charged`);
 //! - `starts`: base-36 epoch seconds separated by commas, an empty field for none, trailing
 //!   ones left out.
 //!
@@ -46,6 +47,8 @@ struct Stored {
     #[serde(default, skip_serializing_if = "String::is_empty")]
     excess: String,
     #[serde(default, skip_serializing_if = "String::is_empty")]
+    moves: String,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
     starts: String,
 }
 
@@ -70,6 +73,7 @@ impl Serialize for Ledger {
             reclaims: digits(jobs.iter().map(|e| e.reclaims)),
             charged: digits(jobs.iter().map(|e| e.charged)),
             excess: digits(jobs.iter().map(|e| e.excess)),
+            moves: digits(jobs.iter().map(|e| e.moves)),
             starts: starts(jobs.iter().map(|e| e.start)),
         };
         stored.serialize(serializer)
@@ -97,6 +101,7 @@ fn read(stored: Stored) -> Result<Ledger, String> {
         &stored.reclaims,
         &stored.charged,
         &stored.excess,
+        &stored.moves,
     ];
     let count = fields.iter().map(|f| f.chars().count()).max().unwrap_or(0);
     let count =
@@ -127,6 +132,9 @@ fn read(stored: Stored) -> Result<Ledger, String> {
                 entry.excess, entry.charged
             ));
         }
+    }
+    for (entry, c) in jobs.iter_mut().zip(stored.moves.chars()) {
+        entry.moves = count_digit("moves", c)?;
     }
     if !stored.starts.is_empty() {
         for (entry, field) in jobs.iter_mut().zip(stored.starts.split(',')) {
@@ -252,10 +260,11 @@ mod tests {
         let stored = serde_json::json!({
             "lines": [{"type": "g5.12xlarge", "capacity": "spot", "held": 60, "run_again": 0}],
             "jobs": ".aA-", "gpus": 1, "last": 1000, "failed": "0102",
-            "reclaims": "001", "charged": "02", "starts": ",rs,rt"
+            "reclaims": "001", "charged": "02", "moves": "0001", "starts": ",rs,rt"
         });
         let ledger: Ledger = serde_json::from_value(stored.clone()).unwrap();
         assert_eq!(ledger.jobs.len(), 4);
+        assert_eq!(ledger.jobs[3].moves, 1);
         assert_eq!(
             ledger.jobs[1].mark,
             JobMark::Running(Running {
@@ -300,6 +309,7 @@ mod tests {
         assert!(refused(serde_json::json!({"jobs": "a"})).contains("usage line 0"));
         assert!(refused(serde_json::json!({"jobs": "*"})).contains("no mark"));
         assert!(refused(serde_json::json!({"charged": "!"})).contains("`charged`"));
+        assert!(refused(serde_json::json!({"moves": "?"})).contains("`moves`"));
         let excess = refused(serde_json::json!({"charged": "1", "excess": "2"}));
         assert!(
             excess.contains("`excess` counts 2 reclaims of a Job it charged 1"),

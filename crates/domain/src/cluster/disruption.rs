@@ -44,10 +44,17 @@ const OVER_REQUEST: &str = "has larger consumption of";
 /// container, so the evicted pod is the top user, its own doing.
 const RANKED_BY_REQUEST: [&str; 2] = ["ephemeral-storage", "memory"];
 
-/// Node taints that mean the node is going away: cordoned (drain), chosen by the Cluster
-/// Autoscaler or Karpenter for removal, shut down, out of service, unreachable.
-const LEAVING_TAINTS: [&str; 7] = [
+/// The taint (effect `NoSchedule`) on a node our consolidation drains
+/// (`capacity::consolidation`). Ours alone: a node cordoned by anyone else (an upgrade, an
+/// operator) is never moved from by the Monitor.
+pub const CONSOLIDATING_TAINT: &str = "leaderboard.carla.org/consolidating";
+
+/// Node taints that mean the node is going away: cordoned (drain), drained by our own
+/// consolidation, chosen by the Cluster Autoscaler or Karpenter for removal, shut down, out of
+/// service, unreachable.
+const LEAVING_TAINTS: [&str; 8] = [
     "node.kubernetes.io/unschedulable",
+    CONSOLIDATING_TAINT,
     "ToBeDeletedByClusterAutoscaler",
     "karpenter.sh/disrupted",
     "node.cloudprovider.kubernetes.io/shutdown",

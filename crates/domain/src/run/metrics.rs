@@ -144,8 +144,10 @@ catalog! {
     GpuSecondsRunAgain => Seconds, Leaderboard;
     /// Dollars of GPU time at the settings' prices.
     GpuCost => None, Leaderboard;
-    /// Pods the platform took away (Spot reclaims, node drains) and the Job ran again.
+    /// Pods the platform took away (Spot reclaims, node drains, moves) and the Job ran again.
     Reclaims => Count, Leaderboard;
+    /// Of those, pods the Monitor moved off a node consolidation drains, at a route's end.
+    Moves => Count, Leaderboard;
     /// Pods that failed and their Job ran again (the participant's crashes among them).
     PodFailures => Count, Leaderboard;
     /// Routes finished.
@@ -273,6 +275,15 @@ pub fn of_round(
     signals.add(Metric::GpuCost, dollars.max(0.0));
     let (reclaims, failed) = pods(after);
     let (reclaims_before, failed_before) = pods(before);
+    let moves = |run: &RunState| -> u64 {
+        (run.monitor.usage.jobs.iter())
+            .map(|job| u64::from(job.moves))
+            .sum()
+    };
+    signals.add(
+        Metric::Moves,
+        moves(after).saturating_sub(moves(before)) as f64,
+    );
     signals.add(
         Metric::Reclaims,
         reclaims.saturating_sub(reclaims_before) as f64,
@@ -406,6 +417,7 @@ mod tests {
         after.monitor.usage.jobs = vec![
             JobEntry {
                 reclaims: 1,
+                moves: 1,
                 failed: Some(2),
                 ..JobEntry::default()
             },
@@ -428,6 +440,7 @@ mod tests {
         let dollars = value(Metric::GpuCost).unwrap();
         assert!((dollars - (1.0 + 5.672 / 4.0)).abs() < 1e-9, "{dollars}");
         assert_eq!(value(Metric::Reclaims), Some(1.0));
+        assert_eq!(value(Metric::Moves), Some(1.0));
         assert_eq!(value(Metric::PodFailures), Some(2.0));
         assert_eq!(value(Metric::RoutesDone), Some(3.0));
         // The next round with nothing new sends nothing.

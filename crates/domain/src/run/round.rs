@@ -14,6 +14,7 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
+use crate::capacity::consolidation;
 use crate::capacity::cost::{self, InstancePrice, NodeKind, PodSeen, Totals};
 use crate::capacity::queue::{self, Hold, Place, Standing};
 use crate::cluster::autoscaler::ScaleUpWord;
@@ -87,11 +88,15 @@ pub enum Step {
     /// Read the Cluster Autoscaler's latest word on the pod with this uid, one the scheduler
     /// has not placed for the grace ([`Answer::Autoscaler`]).
     ReadAutoscaler(String),
-    /// Read these nodes: the kinds of those new pods run on, and whether the node of a pod
-    /// the kubelet evicted is leaving ([`Answer::Nodes`]).
+    /// Read these nodes: the kinds of those new pods run on, whether the node of a pod the
+    /// kubelet evicted is leaving, and whether the nodes of pods that may move are drained
+    /// ([`Answer::Nodes`]).
     ReadNodes(Vec<String>),
     /// When each Job's pair last wrote results (epoch seconds; [`Answer::ResultsWritten`]).
     ResultsWritten,
+    /// Evict these pods, each from a drained node just after its pair's results were written
+    /// ([`consolidation`]; [`Answer::Moved`]).
+    Evict(Vec<consolidation::Running>),
     /// Set these Jobs' `activeDeadlineSeconds` to these seconds: grown by the time reclaims
     /// cost, or [`monitor::END_NOW`] for a pair out of retries ([`Answer::Done`]; a failed
     /// patch is tried again next round).
@@ -211,6 +216,8 @@ pub enum Answer {
     Unreachable(&'static str),
     /// When each Job's pair last wrote results.
     ResultsWritten(BTreeMap<u32, u64>),
+    /// The Jobs whose pods' evictions were accepted.
+    Moved(Vec<u32>),
     /// EvalAI was told the submission runs.
     Started(bool),
     /// The results' fingerprint (`None`: not listed this round).
@@ -235,6 +242,7 @@ enum Stage {
     Started,
     Note,
     Results,
+    Move,
     Status,
     Cancel,
     Verdict,
@@ -267,6 +275,10 @@ pub struct Round {
     listed: Option<String>,
     /// The merged results' fingerprint while they are sent.
     merged: Option<(String, String)>,
+    /// The results changed since those last sent: a pair may have just written.
+    written: bool,
+    /// The pods whose pairs just wrote, while their nodes are read.
+    moving: Vec<consolidation::Running>,
 }
 
 impl Round {
@@ -305,6 +317,8 @@ impl Round {
             showing: None,
             listed: None,
             merged: None,
+            written: false,
+            moving: Vec::new(),
         };
         round.next = round.drive();
         round
@@ -385,7 +399,11 @@ impl Round {
                 _ => self.advance(Stage::Results),
             },
             Stage::Results if self.status.is_none() => return Some(Step::ListResults),
-            Stage::Results => self.advance(Stage::Status),
+            Stage::Results => self.advance(Stage::Move),
+            Stage::Move => match self.may_move() {
+                true => return Some(Step::ResultsWritten),
+                false => self.advance(Stage::Status),
+            },
             Stage::Status => match (self.status, self.status_read()) {
                 (Some(SubmissionStatus::Cancelled), _) => self.advance(Stage::Cancel),
                 (None, Some(read)) => return Some(Step::ReadStatus(read)),
@@ -487,9 +505,17 @@ impl Round {
             (Stage::Results, Answer::Stored(false)) => {
                 self.merged = None;
                 self.shorten_wait(self.cx.partial_update_seconds);
-                self.advance(Stage::Status);
+                self.advance(Stage::Move);
             }
             (Stage::Results, Answer::Posted(write)) => self.posted(write),
+            (Stage::Move, Answer::ResultsWritten(at)) => self.due_to_move(&at),
+            (Stage::Move, Answer::Nodes(nodes)) => self.drained(nodes),
+            (Stage::Move, Answer::Moved(jobs)) => {
+                for job in jobs {
+                    self.run.monitor.usage.count_move(job);
+                }
+                self.advance(Stage::Status);
+            }
             (Stage::Status, Answer::Status(status)) => {
                 self.read_status(status);
                 // Only a cancel ends the round; any other word is left to the verdict.
@@ -781,22 +807,67 @@ impl Round {
         let interval = self.cx.partial_update_seconds;
         let Some(fingerprint) = fingerprint else {
             self.shorten_wait(interval);
-            return self.advance(Stage::Status);
+            return self.advance(Stage::Move);
         };
         if fingerprint.is_empty() || Some(&fingerprint) == self.run.monitor.fingerprint.as_ref() {
-            return self.advance(Stage::Status);
+            return self.advance(Stage::Move);
         }
+        self.written = true;
         let last = self.run.monitor.updated_at;
         if let Err(wait) = monitor::partial_update_due(last, self.cx.now, interval) {
             // Too soon (a round the hold did not cover): the wait ends when it may go.
             self.shorten_wait(wait.as_secs());
-            return self.advance(Stage::Status);
+            return self.advance(Stage::Move);
         }
         self.listed = Some(fingerprint);
         self.pending = Some(Step::CollectResults {
             pairs: self.run.pairs.clone(),
             repetitions: self.run.repetitions,
         });
+    }
+
+    /// Whether a pod may move this round: results changed since those sent (a pair wrote; a
+    /// quiet round asks nothing more), no final word or cancel from EvalAI, and a pod running
+    /// on a node.
+    fn may_move(&self) -> bool {
+        let running = |seen: &Sighting| !consolidation::running(&seen.observation.jobs).is_empty();
+        let ending = self.status.is_some_and(|s| s.is_final());
+        self.written && !ending && self.sighting.as_ref().is_some_and(running)
+    }
+
+    /// The pods whose pairs just wrote their results, and their nodes to read.
+    fn due_to_move(&mut self, written: &BTreeMap<u32, u64>) {
+        let Some(seen) = &self.sighting else {
+            return self.advance(Stage::Status);
+        };
+        let usage = &self.run.monitor.usage;
+        let running = consolidation::running(&seen.observation.jobs);
+        let due = consolidation::due(&running, written, |job| usage.moves_of(job), self.cx.now);
+        let mut nodes: Vec<String> = due.iter().map(|p| p.node.clone()).collect();
+        nodes.sort();
+        nodes.dedup();
+        if nodes.is_empty() {
+            return self.advance(Stage::Status);
+        }
+        self.moving = due;
+        self.pending = Some(Step::ReadNodes(nodes));
+    }
+
+    /// Those nodes read: the pods on drained ones are evicted.
+    fn drained(&mut self, nodes: Option<BTreeMap<String, NodeRead>>) {
+        let due = std::mem::take(&mut self.moving);
+        let drained = (nodes.unwrap_or_default().into_iter())
+            .filter(|(_, read)| {
+                read.as_ref()
+                    .is_some_and(|(_, facts)| consolidation::drained(facts))
+            })
+            .map(|(name, _)| name)
+            .collect();
+        let to_move = consolidation::to_move(due, &drained);
+        match to_move.is_empty() {
+            true => self.advance(Stage::Status),
+            false => self.pending = Some(Step::Evict(to_move)),
+        }
     }
 
     fn collected(&mut self, collected: Collected) {
@@ -810,18 +881,18 @@ impl Round {
                 if self.run.monitor.posted.as_ref() == Some(&content) {
                     // Rewritten, not changed: not read again until the files change again.
                     self.run.monitor.fingerprint = Some(fingerprint);
-                    return self.advance(Stage::Status);
+                    return self.advance(Stage::Move);
                 }
                 self.merged = Some((fingerprint, content));
                 self.pending = Some(Step::StoreFiles);
             }
             Collected::NotNow => {
                 self.shorten_wait(self.cx.partial_update_seconds);
-                self.advance(Stage::Status);
+                self.advance(Stage::Move);
             }
             Collected::Unusable => {
                 self.run.monitor.fingerprint = self.listed.take();
-                self.advance(Stage::Status);
+                self.advance(Stage::Move);
             }
         }
     }
@@ -846,7 +917,7 @@ impl Round {
                 None
             }
         };
-        self.advance(Stage::Status);
+        self.advance(Stage::Move);
     }
 
     /// The cluster's verdict on a run its status did not end: too long, still queued,
@@ -1013,6 +1084,7 @@ mod tests {
                 Step::ReadAutoscaler(_) => "autoscaler",
                 Step::ReadNodes(_) => "nodes",
                 Step::ResultsWritten => "written",
+                Step::Evict(_) => "evict",
                 Step::SetDeadlines(_) => "deadlines",
                 Step::MarkStarted(_) => "started",
                 Step::ListResults => "list",
@@ -1492,6 +1564,68 @@ mod tests {
             ready: true,
         };
         Some((kind, facts))
+    }
+
+    #[test]
+    fn a_pod_on_a_drained_node_moves_just_after_its_pair_wrote_and_the_move_is_counted() {
+        for (taint, moved) in [
+            (crate::capacity::consolidation::TAINT, true),
+            ("other", false),
+        ] {
+            let mut evicted = Vec::new();
+            let (steps, after) = drive(started(run(true)), cx(), |step| match step {
+                Step::Observe => on_node("n1", false),
+                Step::ReadNodes(nodes) => {
+                    let mut read = node("SPOT", false);
+                    if let Some((_, facts)) = read.as_mut() {
+                        facts.taints = vec![taint.to_string()];
+                    }
+                    Answer::Nodes(Some(
+                        nodes.iter().map(|n| (n.clone(), read.clone())).collect(),
+                    ))
+                }
+                Step::ListResults => Answer::Listed(Some("etag-2".into())),
+                Step::CollectResults { .. } => Answer::Collected(Collected::Merged {
+                    progress: (3, 10),
+                    fingerprint: "etag-2".into(),
+                    content: "c2".into(),
+                }),
+                Step::PostPartial => Answer::Posted(Write::Written),
+                // The pod started at NOW - 60; its pair wrote 10 seconds ago.
+                Step::ResultsWritten => Answer::ResultsWritten(BTreeMap::from([(0, NOW - 10)])),
+                Step::Evict(pods) => {
+                    evicted.extend(pods.iter().map(|p| (p.job, p.pod.clone(), p.node.clone())));
+                    Answer::Moved(pods.iter().map(|p| p.job).collect())
+                }
+                other => quiet(JobState::Running)(other),
+            });
+            let expected = match moved {
+                true => vec![(0, "lb-7-0-a".to_string(), "n1".to_string())],
+                false => vec![],
+            };
+            assert_eq!(evicted, expected, "{taint}: {steps:?}");
+            assert_eq!(after.monitor.usage.moves_of(0), u32::from(moved));
+            assert!(
+                kinds(&steps).contains(&"record"),
+                "the round goes on: {steps:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_round_whose_results_did_not_change_asks_nothing_about_moves() {
+        let (steps, _) = drive(started(run(true)), cx(), |step| match step {
+            Step::Observe => on_node("n1", false),
+            Step::ReadNodes(nodes) => Answer::Nodes(Some(
+                nodes
+                    .iter()
+                    .map(|n| (n.clone(), node("SPOT", false)))
+                    .collect(),
+            )),
+            other => quiet(JobState::Running)(other),
+        });
+        assert!(!kinds(&steps).contains(&"written"), "{steps:?}");
+        assert!(!kinds(&steps).contains(&"evict"), "{steps:?}");
     }
 
     #[test]

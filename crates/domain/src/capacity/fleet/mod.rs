@@ -16,6 +16,7 @@ mod view;
 
 use std::collections::BTreeMap;
 
+use crate::capacity::consolidation::{self, NodeUse, MAX_MOVES_PER_PAIR};
 use params::history_durations;
 pub use params::{
     pull_seconds, spot_rate, Rng, Shape, AGENT_IMAGE_GB, CARLA_IMAGE_GB, PULL_MB_PER_SECOND,
@@ -23,6 +24,9 @@ pub use params::{
 };
 pub use report::{quantile, table_header, Causes, Miss, Moment, Report, MOMENT_SECONDS};
 pub use view::{expected_order_statistic, max_of_normals};
+
+/// The sweep's schedule: how often the nodes to drain are chosen.
+pub const SWEEP_SECONDS: u64 = 60;
 
 /// What the rush runs on: the node type, its start and the autoscaler's rules.
 #[derive(Debug, Clone, PartialEq)]
@@ -56,8 +60,9 @@ pub struct Model {
     pub spot_available: u32,
     /// The autoscaler's scan interval: the model's step.
     pub step_seconds: u64,
-    /// Once nothing waits, a node at most half used is drained: its pairs move at their next
-    /// route's end (nothing run again) to nodes with room, and it empties and goes.
+    /// Consolidation at route ends (`consolidation`): once nothing waits, the sweep drains a
+    /// node at most half used, its pairs move at their next route's end (nothing run again) to
+    /// nodes with room, and it empties and goes.
     pub consolidate: bool,
 }
 
@@ -156,6 +161,8 @@ struct Pod {
     /// The next route of each of its pairs.
     resume: Vec<usize>,
     state: PodState,
+    /// Times its pair moved off a drained node.
+    moves: u32,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -309,6 +316,7 @@ impl Sim<'_> {
                 resume: vec![0; group.len()],
                 pairs: group,
                 state: PodState::Pending { since: self.now },
+                moves: 0,
             });
         }
     }
@@ -407,10 +415,10 @@ impl Sim<'_> {
         pod.state = PodState::Pending { since: self.now };
     }
 
-    /// Once nothing waits: the least used nodes whose pairs the others have room for are
-    /// drained; when something waits again, none is.
+    /// The sweep's minute: the nodes drained and opened again as
+    /// [`consolidation::plan`] says for the fleet and the pods waiting.
     fn consolidate(&mut self) {
-        if !self.model.consolidate {
+        if !self.model.consolidate || self.now % SWEEP_SECONDS != 0 {
             return;
         }
         let now = self.now;
@@ -418,34 +426,24 @@ impl Sim<'_> {
             .filter(|p| matches!(p.state, PodState::Pending { .. }))
             .map(|p| p.gpus)
             .sum();
-        if pending > 0 {
-            // Room elsewhere for what waits, or the drained nodes take pods again.
-            let open: u32 = (self.nodes.iter())
-                .filter(|n| n.schedulable(now))
-                .map(|n| n.free)
-                .sum();
-            if open < pending {
-                for node in &mut self.nodes {
-                    node.draining = false;
-                }
-            }
-            return;
-        }
         let gpus = self.model.gpus_per_node;
-        let mut open: Vec<usize> = (0..self.nodes.len())
-            .filter(|&n| self.nodes[n].schedulable(now))
+        let nodes: Vec<NodeUse> = (self.nodes.iter().enumerate())
+            .filter(|(_, n)| n.live(now))
+            .map(|(i, n)| NodeUse {
+                name: i.to_string(),
+                gpus,
+                held: gpus - n.free,
+                open: n.notice.is_none() && now >= n.ready,
+                draining: n.draining,
+            })
             .collect();
-        open.sort_by_key(|&n| (gpus - self.nodes[n].free, n));
-        // Free GPUs on the nodes staying open, less the pairs already sent to them.
-        let mut room: i64 = open.iter().map(|&n| i64::from(self.nodes[n].free)).sum();
-        for &n in &open {
-            let busy = i64::from(gpus - self.nodes[n].free);
-            let elsewhere = room - i64::from(self.nodes[n].free);
-            if busy == 0 || busy * 2 > i64::from(gpus) || elsewhere < busy {
-                continue;
-            }
+        let plan = consolidation::plan(&nodes, pending);
+        let index = |name: &String| name.parse::<usize>().ok();
+        for n in plan.drain.iter().filter_map(index) {
             self.nodes[n].draining = true;
-            room = elsewhere - busy;
+        }
+        for n in plan.reopen.iter().filter_map(index) {
+            self.nodes[n].draining = false;
         }
     }
 
@@ -479,9 +477,13 @@ impl Sim<'_> {
                     if route + 1 == lengths.len() {
                         self.pace.push(lengths.iter().sum());
                         *pair = Pair::Done;
-                    } else if draining[*node] && pod.pairs.len() == 1 {
+                    } else if draining[*node]
+                        && pod.pairs.len() == 1
+                        && pod.moves < MAX_MOVES_PER_PAIR
+                    {
                         // Its results are written: a new pod resumes at the next route.
                         pod.resume[slot] = route + 1;
+                        pod.moves += 1;
                         leaves = true;
                         break;
                     }

@@ -44,13 +44,15 @@ impl Model {
 
 impl Model {
     /// The fleet with the levers `infra/` sets: the packing scheduler profile
-    /// (`infra/k8s/scheduler.yaml`, named by the Job templates) and the autoscaler's prompt
-    /// scale-down (`infra/k8s/cluster-autoscaler.yaml`).
+    /// (`infra/k8s/scheduler.yaml`, named by the Job templates), the autoscaler's prompt
+    /// scale-down (`infra/k8s/cluster-autoscaler.yaml`) and consolidation at route ends (the
+    /// sweep and the Monitor, `ConsolidateNodes` in `infra/app.yaml`).
     pub fn with_levers(&self) -> Model {
         Model {
             placement: Placement::Pack,
             unneeded_seconds: 120,
             delay_after_add_seconds: 0,
+            consolidate: true,
             ..self.clone()
         }
     }
