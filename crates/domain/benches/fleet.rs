@@ -68,6 +68,7 @@ fn main() {
     );
     estimates("on-demand, levers", on_demand);
     estimates("spot-first, levers", spot);
+    let floor = estimate_floor(&rush, on_demand);
     assert!(per_dollar(on_demand) > per_dollar(original));
     assert!(ratio >= if full { 0.95 * limit } else { 2.0 }, "{ratio}");
     if full {
@@ -76,6 +77,9 @@ fn main() {
             "{}",
             spot.causes.idle_share()
         );
+        // Why the start estimate's target (25%) is not met for the submissions a team's cap
+        // holds: no single estimate can be, on these evaluations' lengths.
+        assert!(floor > 0.25, "{floor}");
     }
     assert!(find("on-demand, packing").causes.empty < find("on-demand, as deployed").causes.empty);
     let staying = find("on-demand, no consolidation");
@@ -294,6 +298,42 @@ fn estimates(name: &str, r: &Report) {
         );
     }
     println!("estimate       {name}, forecast over every refresh: p90 error {refreshed:.0} min");
+}
+
+/// The least p90 error any single estimate can have for a submission its team's cap holds
+/// behind two evaluations that just started: it starts when the earlier of them ends. Over
+/// every two of the rush's own evaluations (their slowest pair's routes), the best estimate is
+/// the median of the earlier end; its p90 error against the median wait of `r`. Returns that
+/// share of the median wait.
+fn estimate_floor(rush: &Rush, r: &Report) -> f64 {
+    let lengths: Vec<u64> = (rush.arrivals.iter())
+        .map(|a| {
+            a.pairs
+                .iter()
+                .map(|p| p.iter().sum::<u64>())
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    let mut earlier: Vec<u64> = Vec::new();
+    for (i, a) in lengths.iter().enumerate() {
+        earlier.extend(lengths[i + 1..].iter().map(|b| (*a).min(*b)));
+    }
+    earlier.sort_unstable();
+    let best = quantile(&earlier, 0.5);
+    let mut errors: Vec<u64> = earlier.iter().map(|e| e.abs_diff(best)).collect();
+    errors.sort_unstable();
+    let mut waits = r.waits.clone();
+    waits.sort_unstable();
+    let median = quantile(&waits, 0.5) as f64;
+    let p90 = quantile(&errors, 0.9) as f64;
+    println!(
+        "estimate floor a submission its team's cap holds behind two evaluations just started starts when the earlier ends: over every two of the rush's evaluations the best single estimate ({:.0} min) misses by p90 {:.0} min, {:.0}% of the median wait",
+        best as f64 / 60.0,
+        p90 / 60.0,
+        p90 / median.max(1.0) * 100.0
+    );
+    p90 / median.max(1.0)
 }
 
 /// Evaluations of a hundred routes (25 a pair, about half a day): the original, ours with the

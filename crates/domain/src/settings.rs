@@ -130,6 +130,10 @@ pub struct LeaderboardSettings {
     /// (changes meanwhile are sent together at its end).
     #[serde(default = "default_partial_update_seconds")]
     pub partial_update_seconds: u64,
+    /// How long after its pair's results write a pod on a drained node is still moved, seconds
+    /// (`crate::capacity::consolidation`): the most of a route a move may run again.
+    #[serde(default = "default_move_window_seconds")]
+    pub move_window_seconds: u64,
     /// Log objects each pair may store over an evaluation besides the protocol's own files;
     /// the rest are refused and counted in the record (`crate::job::uploads`).
     #[serde(default = "default_log_objects")]
@@ -251,6 +255,10 @@ fn default_log_objects() -> u32 {
 
 fn default_partial_update_seconds() -> u64 {
     PARTIAL_UPDATE_INTERVAL.as_secs()
+}
+
+fn default_move_window_seconds() -> u64 {
+    crate::capacity::consolidation::MOVE_WINDOW_SECONDS
 }
 
 /// Images of the Job containers (the participant's comes with the submission).
@@ -409,6 +417,12 @@ impl LeaderboardSettings {
             (
                 "partial_update_seconds",
                 self.partial_update_seconds,
+                1..=3600,
+                "must be between 1 and 3600",
+            ),
+            (
+                "move_window_seconds",
+                self.move_window_seconds,
                 1..=3600,
                 "must be between 1 and 3600",
             ),

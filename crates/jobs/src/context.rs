@@ -876,6 +876,7 @@ impl JobContext {
             team_limit: 2,
             pair_resources: None,
             partial_update_seconds: 30,
+            move_window_seconds: lb_domain::capacity::consolidation::MOVE_WINDOW_SECONDS,
             max_log_objects_per_pair: lb_domain::job::uploads::LOG_OBJECTS_PER_PAIR,
         };
         let settings = JobSettings::from_deployment(

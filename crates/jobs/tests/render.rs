@@ -51,6 +51,7 @@ fn settings(leaderboard: Leaderboard) -> JobSettings {
         team_limit: 2,
         pair_resources: None,
         partial_update_seconds: 30,
+        move_window_seconds: lb_domain::capacity::consolidation::MOVE_WINDOW_SECONDS,
         max_log_objects_per_pair: lb_domain::job::uploads::LOG_OBJECTS_PER_PAIR,
     };
     JobSettings::from_deployment(

@@ -125,6 +125,7 @@ pub async fn handle(input: MonitorInput, deps: &Deps) -> Result<RunState> {
             retries,
             arrived_ms: submission.arrived_ms,
             partial_update_seconds: deployment.partial_update_seconds,
+            move_window_seconds: deployment.move_window_seconds,
             max_queue_hours: deployment.max_queue_hours,
             max_cluster_outage_hours: deployment.max_cluster_outage_hours,
             team_limit: deployment.team_limit,

@@ -76,6 +76,8 @@ pub struct RunReport {
     pub release: Option<crate::release::ReleaseReport>,
     /// The control plane's upgrade (the upgrade scenario).
     pub upgrade: Option<crate::scenario::UpgradeReport>,
+    /// The nodes drained and the pairs moved (the consolidate scenario).
+    pub consolidation: Option<crate::scenario::ConsolidationReport>,
     /// The metrics the functions wrote.
     pub metrics: crate::emf::EmfReport,
 }
@@ -286,6 +288,19 @@ impl RunReport {
                 args.time_scale,
                 usage["orchestration_usd"],
                 usage["state_transitions"],
+            );
+        }
+        if let Some(c) = &self.consolidation {
+            outln!(
+                "consolidation  drained {:?}; {} pod(s) moved, {} move(s) in the ledger; retries used {}; {} route(s) run again ({} interrupted, {} resumed behind them); the pairs ended on {:?}",
+                c.drained,
+                c.reclaim.evicted.len(),
+                c.moves,
+                c.reclaim.retries_used,
+                c.reclaim.routes_run_again,
+                c.reclaim.interrupted.len(),
+                c.reclaim.resumed_behind.len(),
+                c.ended_on
             );
         }
         if let Some(r) = &self.reclaim {

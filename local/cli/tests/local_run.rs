@@ -172,9 +172,10 @@ fn on_the_real_control_plane_an_upgrade_mid_route_costs_a_free_reclaim_and_finis
 
 #[test]
 #[ignore = "needs moto and the real control plane (make real-kube)"]
-fn on_the_real_control_plane_a_spot_reclaim_scores_as_the_happy_run() {
+fn on_the_real_control_plane_a_spot_reclaim_and_consolidation_score_as_the_happy_run() {
     let happy = scenario_on("real", "happy", "FINISHED", &Value::Null);
     scenario_on("real", "spot", "FINISHED", &happy["scores"]);
+    scenario_on("real", "consolidate", "FINISHED", &happy["scores"]);
 }
 
 #[test]
@@ -460,6 +461,20 @@ fn scenario_on(kube: &str, scenario: &str, expected: &str, happy_scores: &Value)
                     "pair {pair}: {report}"
                 );
             }
+        }
+        "consolidate" => {
+            // The sweep drained the half-used node once the other joined, and each pod taken
+            // off it was a move the Monitor made and counted, free: no retry used, the pairs
+            // ended on the node that joined, the scores as the happy run's.
+            let moved = &report["consolidation"];
+            assert_eq!(moved["drained"], json!(["gpu-node-1"]), "{report}");
+            let evicted = moved["evicted"].as_array().unwrap().len();
+            assert!(evicted > 0, "{report}");
+            assert_eq!(moved["moves"], evicted, "{report}");
+            assert_eq!(moved["retries_used"], 0, "{report}");
+            assert_eq!(moved["ended_on"], json!(["gpu-node-2"]), "{report}");
+            assert_eq!(report["merged"]["records"], 20, "{report}");
+            assert_eq!(&report["scores"], happy_scores, "{report}");
         }
         "spot" => {
             // Every evicted pod was replaced without using a retry; the route each was in

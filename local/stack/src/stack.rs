@@ -117,6 +117,8 @@ pub struct Stack {
     pub kubeconfig: Option<std::path::PathBuf>,
     /// The operator's kubeconfig, when it is another identity.
     pub operator_kubeconfig: Option<std::path::PathBuf>,
+    /// The sweep's kubeconfig (the fleet's group), when it is another identity.
+    pub fleet_kubeconfig: Option<std::path::PathBuf>,
     /// The real control plane and its node agent, when the workloads run there.
     pub real: Option<RealCluster>,
     /// Scratch directory of this stack (kubeconfig, pod directories); removed on drop.
@@ -196,6 +198,7 @@ impl Stack {
             kube,
             kubeconfig,
             operator_kubeconfig: None,
+            fleet_kubeconfig: None,
             real: None,
             workdir,
             started_in: started.elapsed(),
@@ -246,6 +249,7 @@ impl Stack {
         let real = RealCluster::start(settings, behaviour, images, self.workdir.path())?;
         self.kubeconfig = Some(real.plane.kubeconfig(real_kube::Identity::Pipeline));
         self.operator_kubeconfig = Some(real.plane.kubeconfig(real_kube::Identity::Admin));
+        self.fleet_kubeconfig = Some(real.plane.kubeconfig(real_kube::Identity::Fleet));
         self.real = Some(real);
         Ok(())
     }
@@ -275,6 +279,14 @@ impl Stack {
     /// functions' own on local-kube, the admin's on the real control plane.
     pub fn operator_kubeconfig(&self) -> Option<&std::path::Path> {
         self.operator_kubeconfig
+            .as_deref()
+            .or(self.kubeconfig.as_deref())
+    }
+
+    /// The kubeconfig the sweep counts and drains the nodes with: the functions' own on
+    /// local-kube, the fleet group's on the real control plane.
+    pub fn fleet_kubeconfig(&self) -> Option<&std::path::Path> {
+        self.fleet_kubeconfig
             .as_deref()
             .or(self.kubeconfig.as_deref())
     }

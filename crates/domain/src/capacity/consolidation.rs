@@ -20,9 +20,10 @@ use crate::status::PodPhase;
 /// The taint (effect `NoSchedule`) on a node being drained.
 pub const TAINT: &str = disruption::CONSOLIDATING_TAINT;
 
-/// How long after its pair's results were written a pod on a drained node is still moved:
-/// the route it began since is what runs again. The write wakes the Monitor within seconds;
-/// a later round leaves the pod to the next route's end.
+/// How long after its pair's results were written a pod on a drained node is still moved, by
+/// default (the leaderboard's `move_window_seconds`): the route it began since is what runs
+/// again. The write wakes the Monitor within seconds; a later round leaves the pod to the
+/// next route's end.
 pub const MOVE_WINDOW_SECONDS: u64 = 120;
 
 /// Moves per pair over its evaluation. Each costs the pair a pod's start (its images and
@@ -135,21 +136,21 @@ pub fn drained(node: &NodeFacts) -> bool {
     node.taints.iter().any(|t| t == TAINT)
 }
 
-/// The pods that may move now: their pair wrote results since the pod started and within
-/// [`MOVE_WINDOW_SECONDS`], and it has moves left (`moved`: its moves so far). Whether their
+/// The pods that may move at `now`: their pair wrote results since the pod started and at
+/// most `window` seconds ago, and it has moves left (`moved`: its moves so far). Whether their
 /// nodes are drained is read next, for these alone.
 pub fn due(
     pods: &[Running],
     written: &BTreeMap<u32, u64>,
     moved: impl Fn(u32) -> u32,
-    now: u64,
+    (now, window): (u64, u64),
 ) -> Vec<Running> {
     pods.iter()
         .filter(|p| moved(p.job) < MAX_MOVES_PER_PAIR)
         .filter(|p| {
-            written.get(&p.job).is_some_and(|&at| {
-                at > p.started_at && at <= now && now - at <= MOVE_WINDOW_SECONDS
-            })
+            written
+                .get(&p.job)
+                .is_some_and(|&at| at > p.started_at && at <= now && now - at <= window)
         })
         .cloned()
         .collect()
@@ -242,7 +243,7 @@ mod tests {
             (4, now - 5),                       // out of moves
         ]);
         let moved = |job| if job == 4 { MAX_MOVES_PER_PAIR } else { 0 };
-        let due = due(&pods, &written, moved, now);
+        let due = due(&pods, &written, moved, (now, MOVE_WINDOW_SECONDS));
         let jobs: Vec<u32> = due.iter().map(|p| p.job).collect();
         assert_eq!(jobs, [0, 3]);
         let drained = BTreeSet::from(["drained".to_string()]);

@@ -49,6 +49,8 @@ pub struct Context {
     pub max_cluster_outage_hours: u64,
     /// The leaderboard's `team_limit`.
     pub team_limit: u32,
+    /// The leaderboard's `move_window_seconds`.
+    pub move_window_seconds: u64,
     /// The least interval between two rewrites of the queue note, seconds.
     pub note_interval: u64,
     /// The GPU prices the record's usage is priced at.
@@ -842,7 +844,8 @@ impl Round {
         };
         let usage = &self.run.monitor.usage;
         let running = consolidation::running(&seen.observation.jobs);
-        let due = consolidation::due(&running, written, |job| usage.moves_of(job), self.cx.now);
+        let at = (self.cx.now, self.cx.move_window_seconds);
+        let due = consolidation::due(&running, written, |job| usage.moves_of(job), at);
         let mut nodes: Vec<String> = due.iter().map(|p| p.node.clone()).collect();
         nodes.sort();
         nodes.dedup();
@@ -998,6 +1001,7 @@ mod tests {
             retries: 0,
             arrived_ms: None,
             partial_update_seconds: INTERVAL,
+            move_window_seconds: crate::capacity::consolidation::MOVE_WINDOW_SECONDS,
             max_queue_hours: 24,
             max_cluster_outage_hours: 6,
             team_limit: 2,

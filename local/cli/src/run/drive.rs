@@ -147,7 +147,10 @@ pub(super) async fn deliveries(
         &local_stack::stack::function_config(),
         (
             executor.clone(),
-            lb_pipeline::cluster::Clusters::kubeconfig(kubeconfig.to_owned()),
+            // The sweep as its own group where the cluster tells identities apart.
+            lb_pipeline::cluster::Clusters::kubeconfig(
+                stack.fleet_kubeconfig().unwrap_or(kubeconfig).to_owned(),
+            ),
         ),
         args.time_scale,
         !args.no_wake,

@@ -113,7 +113,10 @@ impl Ran<'_> {
         let left = self.left_behind().await;
         let reclaim = self.findings.reclaim;
         let upgrade = self.findings.upgrade;
+        let consolidation = self.findings.consolidation;
         let ok = self.acted
+            && (consolidation.as_ref())
+                .is_none_or(crate::scenario::ConsolidationReport::as_expected)
             && upgrade
                 .as_ref()
                 .is_none_or(|u| u.from != u.to && u.new_node_joined)
@@ -185,6 +188,7 @@ impl Ran<'_> {
             left_behind: left,
             release: self.release,
             upgrade,
+            consolidation,
             metrics: Default::default(),
         };
         (report, latency)

@@ -180,6 +180,10 @@ pub(super) fn settings_for(args: &LocalRun) -> anyhow::Result<Value> {
             .max(1.0) as u64,
     );
     settings["leaderboards"][board]["partial_update_seconds"] = json!(interval);
+    // Likewise the window after a write in which a pod moves off a drained node: a route
+    // lasts seconds here, so a window of minutes would move pods mid-route.
+    let window = lb_domain::capacity::consolidation::MOVE_WINDOW_SECONDS as f64 * args.time_scale;
+    settings["leaderboards"][board]["move_window_seconds"] = json!(window.round().max(1.0) as u64);
     if args.kube == KubeKind::Real {
         // The namespace infra/k8s declares (Pod Security baseline, the pipeline's Role).
         for leaderboard in settings["leaderboards"]

@@ -4,6 +4,7 @@
 
 mod cancel;
 mod cancel_flood;
+mod consolidate;
 mod crash;
 mod crash_loop;
 mod disk_hog;
@@ -36,6 +37,7 @@ use local_stepfunctions::Executor;
 use serde_json::Value;
 
 use crate::reclaim::ReclaimReport;
+pub use consolidate::ConsolidationReport;
 pub use upgrade::UpgradeReport;
 
 /// The participant's image of every scenario but the unpullable one.
@@ -129,6 +131,12 @@ pub enum Scenario {
     /// (no retry used), each interrupted route runs again once on the new node. FINISHED
     /// (`--kube real` only; routes of at least 4 s, so that the drain lands mid-route).
     Upgrade,
+    /// Consolidation at route ends: the pairs hold half of a node of 8 GPUs; once a route is
+    /// done a second node joins with room for them, the sweep drains the first and each
+    /// Monitor round moves its pairs at their next results write (Eviction API). Each move is
+    /// free (no retry used), the pairs end on the second node. FINISHED (`--kube real` only;
+    /// routes of at least 8 s, so that a move lands just after a route's end).
+    Consolidate,
 }
 
 impl Scenario {
@@ -158,6 +166,7 @@ impl Scenario {
             Scenario::Deploy => Box::new(release::Release(crate::release::Move::Deploy)),
             Scenario::Rollback => Box::new(release::Release(crate::release::Move::Rollback)),
             Scenario::Upgrade => Box::new(upgrade::Upgrade::default()),
+            Scenario::Consolidate => Box::new(consolidate::Consolidate::default()),
         }
     }
 }
@@ -243,6 +252,8 @@ pub struct Findings {
     pub cancelled_at: Option<Instant>,
     /// The control plane's upgrade (the upgrade scenario).
     pub upgrade: Option<UpgradeReport>,
+    /// The nodes drained and the pairs moved (the consolidate scenario).
+    pub consolidation: Option<ConsolidationReport>,
 }
 
 /// A scenario for one run: what it sets up, what it injects, what it expects. Every hook but
