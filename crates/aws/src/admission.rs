@@ -15,6 +15,9 @@
 //! - `team#<id>`: a team's holds: `holders` (SS of submission ids).
 //! - `pace#<track>`: `durations` (L of N): the seconds its latest evaluations ran, oldest first
 //!   (`lb_domain::capacity::queue::RECENT_DURATIONS` of them), for the queue note's estimated start.
+//! - `fleet`: the leaderboard's cluster as the sweep counted it last, `free`, `booting` and
+//!   `addable` GPUs (N) at `at` (N, epoch seconds): what the note's forecast waits for besides
+//!   the running pairs (`lb_domain::capacity::forecast::Capacity`).
 //!
 //! Admission decides on the holders as they are when it writes, never on an earlier read of
 //! the queue: the hold is conditional on the set's size, and a holder whose entry is gone
@@ -26,7 +29,7 @@ use std::collections::HashMap;
 use aws_sdk_dynamodb::operation::update_item::builders::UpdateItemFluentBuilder;
 use aws_sdk_dynamodb::types::{AttributeValue, Delete, TransactWriteItem, Update};
 use aws_sdk_dynamodb::Client;
-use lb_domain::capacity::forecast::Progress;
+use lb_domain::capacity::forecast::{Capacity, Progress};
 use lb_domain::capacity::queue::{Entry, EntryState};
 
 use crate::{condition_failed, AwsError, Result};
@@ -66,6 +69,13 @@ fn pace_key(queue: &str, track: &str) -> HashMap<String, AttributeValue> {
     HashMap::from([
         ("queue".to_string(), s(queue)),
         ("key".to_string(), s(format!("pace#{track}"))),
+    ])
+}
+
+fn fleet_key(queue: &str) -> HashMap<String, AttributeValue> {
+    HashMap::from([
+        ("queue".to_string(), s(queue)),
+        ("key".to_string(), s("fleet")),
     ])
 }
 
@@ -551,6 +561,39 @@ impl AdmissionTable {
             .await
             .map_err(|e| AwsError::sdk("dynamodb", "PutItem", e))?;
         Ok(())
+    }
+
+    /// Keeps `capacity`, counted at `at` (epoch seconds), as `queue`'s cluster's.
+    pub async fn keep_fleet(&self, queue: &str, capacity: &Capacity, at: u64) -> Result<()> {
+        let mut item = fleet_key(queue);
+        item.insert("free".into(), n(u64::from(capacity.free)));
+        item.insert("booting".into(), n(u64::from(capacity.booting)));
+        item.insert("addable".into(), n(u64::from(capacity.addable)));
+        item.insert("at".into(), n(at));
+        self.client
+            .put_item()
+            .table_name(&self.table)
+            .set_item(Some(item))
+            .send()
+            .await
+            .map_err(|e| AwsError::sdk("dynamodb", "PutItem", e))?;
+        Ok(())
+    }
+
+    /// `queue`'s cluster as the sweep counted it last, and when (epoch seconds); none when it
+    /// never did or the item is out of shape.
+    pub async fn fleet(&self, queue: &str) -> Result<Option<(Capacity, u64)>> {
+        let item = self.get(fleet_key(queue)).await?;
+        Ok(item.and_then(|item| {
+            let count = |name: &str| -> Option<u64> { item.get(name)?.as_n().ok()?.parse().ok() };
+            let gpus = |name: &str| count(name).and_then(|v| u32::try_from(v).ok());
+            let capacity = Capacity {
+                free: gpus("free")?,
+                booting: gpus("booting")?,
+                addable: gpus("addable")?,
+            };
+            Some((capacity, count("at")?))
+        }))
     }
 
     /// Gives the submission's team its place back and takes the submission out of the queue,

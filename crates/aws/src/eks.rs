@@ -1,5 +1,5 @@
 //! EKS access: the cluster endpoint and CA from `DescribeCluster`, and the standard EKS IAM
-//! bearer token, refreshed before it expires.
+//! bearer token, refreshed before it expires; a GPU node group's maximum.
 //!
 //! The token is `k8s-aws-v1.` + base64url (no padding) of a presigned STS
 //! `GetCallerIdentity` URL whose signature covers the `x-k8s-aws-id: <cluster>` header, as
@@ -53,6 +53,34 @@ pub async fn describe_cluster(client: &aws_sdk_eks::Client, name: &str) -> Resul
         .decode(ca.trim())
         .map_err(|e| malformed(&format!("certificate authority data is not base64: {e}")))?;
     Ok(ClusterAccess { endpoint, ca_pem })
+}
+
+/// The most nodes managed node group `nodegroup` of cluster `cluster` may grow to (its
+/// scaling configuration's `maxSize`); none when the group does not exist.
+pub async fn nodegroup_max(
+    client: &aws_sdk_eks::Client,
+    cluster: &str,
+    nodegroup: &str,
+) -> Result<Option<u32>> {
+    let out = client
+        .describe_nodegroup()
+        .cluster_name(cluster)
+        .nodegroup_name(nodegroup)
+        .send()
+        .await;
+    match out {
+        Ok(out) => Ok(out
+            .nodegroup
+            .and_then(|g| g.scaling_config?.max_size)
+            .and_then(|max| u32::try_from(max).ok())),
+        Err(e)
+            if e.as_service_error()
+                .is_some_and(|s| s.is_resource_not_found_exception()) =>
+        {
+            Ok(None)
+        }
+        Err(e) => Err(AwsError::sdk("eks", "DescribeNodegroup", e)),
+    }
 }
 
 /// How long EKS accepts a token.

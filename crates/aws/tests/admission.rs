@@ -257,6 +257,15 @@ async fn arrival_survives_a_retry_and_starts_move_the_queue_forward() {
     assert_eq!(pace.len() as u64, recent);
     assert_eq!((pace[0], *pace.last().unwrap()), (recent + 3, 4));
     assert!(table.pace(QUEUE, "MAP").await.unwrap().is_empty());
+    // The cluster as the sweep counted it, beside them too.
+    assert_eq!(table.fleet(QUEUE).await.unwrap(), None);
+    let counted = lb_domain::capacity::forecast::Capacity {
+        free: 3,
+        booting: 4,
+        addable: 36,
+    };
+    table.keep_fleet(QUEUE, &counted, 1_700).await.unwrap();
+    assert_eq!(table.fleet(QUEUE).await.unwrap(), Some((counted, 1_700)));
     assert_eq!(table.entries(QUEUE).await.unwrap().len(), 3, "not an entry");
 }
 

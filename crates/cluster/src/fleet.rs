@@ -8,7 +8,9 @@ use k8s_openapi::api::core::v1::{Node, Pod, Taint};
 use kube::api::{ListParams, Patch, PatchParams};
 use lb_domain::capacity::consolidation::{self, NodeUse};
 use lb_domain::capacity::cost::{CapacityType, NodeKind};
+use lb_domain::capacity::forecast::Capacity;
 use lb_domain::cluster::disruption;
+use lb_domain::cluster::resources;
 use tracing::info;
 
 use crate::cluster::{facts_of, kind_of, Cluster};
@@ -49,6 +51,8 @@ pub struct GpuFleet {
     pub nodes: Vec<GpuNode>,
     /// GPUs the namespace's pods ask for and no node holds yet (not bound, not ended).
     pub pending: u32,
+    /// GPU nodes (labelled with a GPU model) not ready yet or not yet advertising their GPUs.
+    pub booting: u32,
 }
 
 impl GpuFleet {
@@ -56,6 +60,19 @@ impl GpuFleet {
     /// pods bound to it that have not ended.
     pub fn of(nodes: &[Node], pods: &[Pod]) -> GpuFleet {
         let mut pending = 0u32;
+        let booting = (nodes.iter())
+            .filter(|n| {
+                let labels = n.metadata.labels.as_ref();
+                labels.is_some_and(|l| l.contains_key(resources::GPU_MODEL_LABEL))
+            })
+            .filter(|n| {
+                let gpus = n
+                    .status
+                    .as_ref()
+                    .and_then(|s| s.allocatable.as_ref()?.get(GPU));
+                !facts_of(n).ready || gpus.and_then(quantity).unwrap_or(0) == 0
+            })
+            .count() as u32;
         let mut out: Vec<GpuNode> = nodes
             .iter()
             .filter_map(|node| {
@@ -104,6 +121,25 @@ impl GpuFleet {
         GpuFleet {
             nodes: out,
             pending,
+            booting,
+        }
+    }
+
+    /// What a forecast of the queue waits for (`forecast::Capacity`): GPUs free on the nodes
+    /// taking pods and not drained, those of the nodes booting (`gpus_per_node` each), and
+    /// those of the nodes the node groups' maxima (`max_nodes`, none when unknown) leave room
+    /// for.
+    pub fn capacity(&self, gpus_per_node: u32, max_nodes: Option<u32>) -> Capacity {
+        let free = (self.nodes.iter())
+            .filter(|n| n.open && n.ready && !n.draining)
+            .map(|n| n.gpus.saturating_sub(n.held))
+            .sum();
+        let nodes = (self.nodes.len() as u32).saturating_add(self.booting);
+        let addable = max_nodes.map_or(0, |max| max.saturating_sub(nodes));
+        Capacity {
+            free,
+            booting: self.booting.saturating_mul(gpus_per_node),
+            addable: addable.saturating_mul(gpus_per_node),
         }
     }
 
@@ -267,5 +303,33 @@ mod tests {
         assert!(by("ours").open && by("ours").draining);
         assert_eq!(by("ours").held, 1);
         assert!(!by("cordoned").open && !by("cordoned").draining);
+    }
+
+    #[test]
+    fn the_capacity_a_forecast_waits_for_counts_free_booting_and_addable_gpus() {
+        let mut drained = node("drained", "4", "SPOT");
+        drained.spec = Some(k8s_openapi::api::core::v1::NodeSpec {
+            taints: Some(vec![Taint {
+                key: consolidation::TAINT.into(),
+                effect: "NoSchedule".into(),
+                ..Taint::default()
+            }]),
+            ..Default::default()
+        });
+        let booting: Node = serde_json::from_value(json!({
+            "metadata": {"name": "new", "labels": {resources::GPU_MODEL_LABEL: "nvidia-a10g-24gb"}},
+            "status": {"conditions": [{"type": "Ready", "status": "False"}]}
+        }))
+        .unwrap();
+        let pods = [
+            pod(Some("a"), "1", "Running"),
+            pod(Some("drained"), "1", "Running"),
+        ];
+        let fleet = GpuFleet::of(&[node("a", "4", "SPOT"), drained, booting], &pods);
+        assert_eq!(fleet.booting, 1);
+        let counted = fleet.capacity(4, Some(5));
+        // 3 free on "a" (none on the drained node), one node of 4 booting, room for 2 more.
+        assert_eq!((counted.free, counted.booting, counted.addable), (3, 4, 8));
+        assert_eq!(fleet.capacity(4, None).addable, 0, "maxima unknown");
     }
 }

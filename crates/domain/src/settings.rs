@@ -158,6 +158,18 @@ impl Capacity {
     /// The label EKS managed node groups put on their nodes with the capacity type.
     pub const LABEL: &'static str = "eks.amazonaws.com/capacityType";
 
+    /// The GPU node groups of `cluster` its pairs may run on, as `infra/cluster.yaml` names
+    /// them: what the autoscaler may still add nodes to.
+    pub fn node_groups(self, cluster: &str) -> Vec<String> {
+        let on_demand = format!("{cluster}-gpu-on-demand");
+        let spot = format!("{cluster}-gpu-spot");
+        match self {
+            Capacity::OnDemand => vec![on_demand],
+            Capacity::Spot => vec![spot],
+            Capacity::SpotThenOnDemand => vec![spot, on_demand],
+        }
+    }
+
     /// The value of [`Capacity::LABEL`] the pairs must have, when pinned.
     pub fn node_label(self) -> Option<&'static str> {
         match self {

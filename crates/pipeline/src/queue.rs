@@ -265,9 +265,10 @@ pub async fn ahead_of(
 
 /// The queue note's words for a submission `ahead` of which wait (`team_ahead` of its own
 /// team), while `running` run: the place, what holds it, and its estimated start at `now`
-/// (epoch seconds): the queue played forward from its entries, the running ones' progress and
-/// the track's pace (`lb_domain::capacity::forecast`), or, when that cannot say, places ahead
-/// at the track's pace. None when neither can be read: the note goes without it.
+/// (epoch seconds): the queue played forward from its entries, the running ones' progress,
+/// the track's pace and the cluster's GPUs as the sweep counted them
+/// (`lb_domain::capacity::forecast`), or, when that cannot say, places ahead at the track's
+/// pace. None when neither can be read: the note goes without it.
 pub async fn note(
     table: &AdmissionTable,
     submission: &SubmissionInfo,
@@ -280,10 +281,12 @@ pub async fn note(
         running,
     } = place;
     let leaderboard = submission.leaderboard.as_str();
-    let (pace, entries) = (
-        table.pace(leaderboard, &submission.track).await,
-        table.entries_with_progress(leaderboard).await,
+    let (pace, entries, fleet) = tokio::join!(
+        table.pace(leaderboard, &submission.track),
+        table.entries_with_progress(leaderboard),
+        table.fleet(leaderboard),
     );
+    let free_at = counted_gpus(fleet, now).map_or_else(Vec::new, |c| c.free_at());
     let (pace, entries) = match (pace, entries) {
         (Ok(pace), Ok(entries)) => (pace, entries),
         (Err(e), _) | (_, Err(e)) => {
@@ -300,8 +303,7 @@ pub async fn note(
             Hold::Capacity => u32::MAX,
         },
         pairs: submission.workers,
-        // The nodes are not read here: a forecast without free GPUs waits for running pairs.
-        free_at: &[],
+        free_at: &free_at,
         now,
     };
     let estimate = forecast::estimate(&view, submission.submission_id).or(match hold {
@@ -312,6 +314,28 @@ pub async fn note(
     match estimate {
         Some(estimate) => format!("{place}; {}", queue::describe_estimate(estimate)),
         None => place,
+    }
+}
+
+/// How old the sweep's count of the cluster may be and still be believed: a few of its
+/// minutes. Older (the sweep failing), the forecast waits for the running pairs alone.
+const FLEET_COUNT_FRESH_SECONDS: u64 = 300;
+
+/// The cluster's GPUs as the sweep counted them, when it did within
+/// [`FLEET_COUNT_FRESH_SECONDS`] of `now`.
+fn counted_gpus(
+    fleet: lb_aws::Result<Option<(forecast::Capacity, u64)>>,
+    now: u64,
+) -> Option<forecast::Capacity> {
+    match fleet {
+        Ok(Some((capacity, at))) if now.saturating_sub(at) <= FLEET_COUNT_FRESH_SECONDS => {
+            Some(capacity)
+        }
+        Ok(_) => None,
+        Err(e) => {
+            tracing::warn!(error = %e, "the sweep's GPU count not read: the estimate waits for running pairs");
+            None
+        }
     }
 }
 
@@ -395,4 +419,33 @@ async fn wake_each<C: Callbacks>(next: &[u64], waker: Waker<'_, C>) -> Result<Ve
         );
     }
     Ok(woken)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_sweep_s_count_is_believed_for_a_few_minutes_and_never_when_unread() {
+        let counted = forecast::Capacity {
+            free: 2,
+            booting: 4,
+            addable: 8,
+        };
+        let at = 10_000;
+        let fresh = counted_gpus(Ok(Some((counted, at))), at + FLEET_COUNT_FRESH_SECONDS);
+        assert_eq!(fresh, Some(counted));
+        let stale = counted_gpus(Ok(Some((counted, at))), at + FLEET_COUNT_FRESH_SECONDS + 1);
+        assert_eq!(stale, None);
+        assert_eq!(counted_gpus(Ok(None), at), None);
+        let unread = lb_aws::AwsError::Malformed {
+            what: "fleet".into(),
+            problem: "unread".into(),
+        };
+        assert_eq!(counted_gpus(Err(unread), at), None);
+        // Free GPUs now, the others once a node starts.
+        let free_at = counted.free_at();
+        assert_eq!(free_at.len(), 14);
+        assert_eq!(free_at.iter().filter(|&&s| s == 0).count(), 2);
+    }
 }

@@ -17,19 +17,24 @@
 //! their routes' ends.
 
 use lb_pipeline::serve::Function;
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::future::Future;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
 use aws_config::SdkConfig;
+use lb_aws::admission::AdmissionTable;
 use lb_aws::tasks::{Callbacks, Reported, StepFunctions};
 use lb_aws::wake::{Waiting, WakeTable};
 use lb_cluster::fleet::GpuFleet;
 use lb_domain::capacity::consolidation;
+use lb_domain::results::Leaderboard;
 use lb_domain::run::metrics::Metric;
 use lb_domain::settings::LeaderboardSettings;
 use lb_domain::submission::SubmissionStatus;
 use lb_evalai::EvalAiClient;
 use lb_pipeline::cluster::Clusters;
+use lb_pipeline::config::Shared;
 use lb_pipeline::{clients, FnError, FunctionConfig, Result};
 use serde::Serialize;
 use tracing::{info, warn};
@@ -42,7 +47,14 @@ pub struct Deps<C = StepFunctions> {
     /// The leaderboards' clusters (EKS, or `LB_KUBECONFIG`).
     pub clusters: Clusters,
     /// Each leaderboard's deployment (its cluster).
-    pub deployments: Vec<LeaderboardSettings>,
+    pub deployments: Vec<(Leaderboard, LeaderboardSettings)>,
+    /// The queues, where each leaderboard's cluster count is kept for the queue note's
+    /// forecast (none: a sweep run by hand, `LB_ADMISSION_TABLE=unlimited`).
+    pub admission: Option<AdmissionTable>,
+    /// EKS, for the GPU node groups' maxima (none where the clusters are a kubeconfig's).
+    pub eks: Option<aws_sdk_eks::Client>,
+    /// The maxima read, by node group, and when: they change with a stack update only.
+    maxima: Mutex<HashMap<String, (Instant, Option<u32>)>>,
     /// The wake table.
     pub wakes: WakeTable,
     /// Step Functions (the embedded executor in local mode).
@@ -67,7 +79,20 @@ impl<C: Callbacks> Deps<C> {
         Ok(Deps {
             evalai: clients::evalai(sdk, config, &settings).await?,
             clusters: Clusters::from_env(sdk),
-            deployments: settings.leaderboards.values().cloned().collect(),
+            deployments: (settings.leaderboards.iter())
+                .map(|(board, deployment)| (*board, deployment.clone()))
+                .collect(),
+            admission: match &config.admission {
+                Shared::Table(name) => Some(AdmissionTable::new(
+                    aws_sdk_dynamodb::Client::new(sdk),
+                    name,
+                )),
+                Shared::Unlimited => None,
+            },
+            eks: std::env::var_os("LB_KUBECONFIG")
+                .is_none_or(|k| k.is_empty())
+                .then(|| aws_sdk_eks::Client::new(sdk)),
+            maxima: Mutex::new(HashMap::new()),
             wakes: WakeTable::new(aws_sdk_dynamodb::Client::new(sdk), config.wake_table()?),
             callbacks,
             consolidate: config.consolidate_nodes,
@@ -189,7 +214,7 @@ pub async fn handle<C: Callbacks>(deps: &Deps<C>) -> Result<Sweep> {
 async fn fleet<C>(deps: &Deps<C>, sweep: &mut Sweep) {
     let mut seen = BTreeSet::new();
     let mut counted = Some((0, 0));
-    for deployment in &deps.deployments {
+    for (_, deployment) in &deps.deployments {
         if !seen.insert(deployment.cluster.as_str()) {
             continue;
         }
@@ -214,8 +239,61 @@ async fn fleet<C>(deps: &Deps<C>, sweep: &mut Sweep) {
         if deps.consolidate {
             consolidate(&cluster, &fleet, sweep).await;
         }
+        keep_counts(deps, &deployment.cluster, &fleet).await;
     }
     sweep.gpus = counted;
+}
+
+/// How long a node group's maximum is believed before it is read again.
+const MAXIMA_KEPT: Duration = Duration::from_secs(600);
+
+/// Keeps, for each leaderboard on `cluster`, what its queue note's forecast waits for: the
+/// GPUs free, booting and addable. Trouble is logged: the note then waits for running pairs.
+async fn keep_counts<C>(deps: &Deps<C>, cluster: &str, fleet: &GpuFleet) {
+    let Some(admission) = &deps.admission else {
+        return;
+    };
+    let now = lb_pipeline::clients::now_epoch_seconds();
+    let on_cluster = deps
+        .deployments
+        .iter()
+        .filter(|(_, d)| d.cluster == cluster);
+    for (board, deployment) in on_cluster {
+        let groups = deployment.capacity.node_groups(cluster);
+        let max = node_max(deps, cluster, &groups).await;
+        let counted = fleet.capacity(deployment.gpus_per_node, max);
+        if let Err(e) = admission.keep_fleet(board.as_str(), &counted, now).await {
+            warn!(leaderboard = board.as_str(), error = %e, "GPU count not kept for the queue note");
+        }
+    }
+}
+
+/// The most GPU nodes `groups` of `cluster` may hold together; none when unknown (no EKS, a
+/// group not read).
+async fn node_max<C>(deps: &Deps<C>, cluster: &str, groups: &[String]) -> Option<u32> {
+    let eks = deps.eks.as_ref()?;
+    let mut total = 0u32;
+    for group in groups {
+        let kept = deps.maxima.lock().ok()?.get(group).copied();
+        let max = match kept {
+            Some((at, max)) if at.elapsed() < MAXIMA_KEPT => max,
+            _ => match lb_aws::eks::nodegroup_max(eks, cluster, group).await {
+                Ok(max) => {
+                    deps.maxima
+                        .lock()
+                        .ok()?
+                        .insert(group.clone(), (Instant::now(), max));
+                    max
+                }
+                Err(e) => {
+                    warn!(nodegroup = %group, error = %e, "node group's maximum not read");
+                    return None;
+                }
+            },
+        };
+        total = total.saturating_add(max.unwrap_or(0));
+    }
+    Some(total)
 }
 
 /// Taints the nodes the plan drains and takes the taint off those it opens again. A patch

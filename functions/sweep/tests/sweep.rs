@@ -156,3 +156,36 @@ async fn another_team_s_huge_cancelled_submissions_do_not_blind_the_sweep() {
         started.elapsed()
     );
 }
+
+#[tokio::test]
+#[ignore = "needs moto"]
+async fn each_leaderboard_s_queue_gets_its_cluster_s_gpus_for_the_note_s_forecast() {
+    let (mut stack, mut deps) = sweep_on_a_stack().await;
+    stack
+        .start_kube(local_kube::Config {
+            gpus: Some(4),
+            ..local_kube::Config::default()
+        })
+        .unwrap();
+    let kubeconfig = stack.kubeconfig.clone().unwrap();
+    deps.clusters = lb_pipeline::cluster::Clusters::kubeconfig(kubeconfig);
+    // No EKS here: nothing is known of the node groups' maxima, so nothing is addable.
+    deps.eks = None;
+    let before = lb_pipeline::clients::now_epoch_seconds();
+    let sweep = sweep::handle(&deps).await.unwrap();
+    assert_eq!(sweep.gpus, Some((4, 0)), "{sweep:?}");
+    assert!(
+        sweep.drained.is_empty(),
+        "one node drains nowhere: {sweep:?}"
+    );
+    let table = lb_aws::admission::AdmissionTable::new(
+        aws_sdk_dynamodb::Client::new(&stack.sdk),
+        local_stack::stack::ADMISSION_TABLE,
+    );
+    // Both leaderboards run on the one cluster: each queue has its count.
+    for queue in ["1.0", "2.0"] {
+        let (counted, at) = table.fleet(queue).await.unwrap().expect("counted");
+        assert_eq!((counted.free, counted.booting, counted.addable), (4, 0, 0));
+        assert!(at >= before, "{at} {before}");
+    }
+}

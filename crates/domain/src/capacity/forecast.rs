@@ -37,6 +37,34 @@ pub struct Waiting {
     pub team: u64,
 }
 
+/// A new GPU node's launch to its GPUs usable, seconds: what the forecast waits for a node
+/// booting or one the autoscaler may still add (the fleet model's `boot_seconds`).
+pub const NODE_START_SECONDS: u64 = 150;
+
+/// A leaderboard's cluster as the sweep counts it each minute (the admission table's `fleet`
+/// item): GPUs no pod holds on the nodes that take pods, GPUs of nodes still starting, and
+/// GPUs of the nodes its GPU node groups may still add.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Capacity {
+    /// Free now.
+    pub free: u32,
+    /// On nodes launched and not ready.
+    pub booting: u32,
+    /// On nodes the node groups' maxima leave room for.
+    pub addable: u32,
+}
+
+impl Capacity {
+    /// Seconds from now until each GPU is usable, as [`QueueView::free_at`] takes them: the
+    /// free ones now, the others once a node starts (a booting one sooner at worst).
+    pub fn free_at(&self) -> Vec<u64> {
+        let later = self.booting.saturating_add(self.addable);
+        let mut out = vec![0; self.free as usize];
+        out.extend(std::iter::repeat_n(NODE_START_SECONDS, later as usize));
+        out
+    }
+}
+
 /// The queue as it is now.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Outlook {

@@ -81,8 +81,10 @@ impl Sim<'_> {
     }
 
     /// The forecast from what the admission table holds (`forecast::estimate`): entries, the
-    /// running ones' progress, the track's latest evaluations; no view of the nodes.
+    /// running ones' progress, the track's latest evaluations, and the cluster's GPUs as the
+    /// sweep counts them each minute (free, booting, addable).
     fn table_estimate(&self, index: usize) -> Option<u64> {
+        let free_at = self.capacity().free_at();
         let entries: Vec<_> = (0..self.subs.len())
             .filter(|&i| self.subs[i].arrived && self.subs[i].ended.is_none())
             .map(|i| (self.entry(i), self.progress_of(i)))
@@ -96,10 +98,33 @@ impl Sim<'_> {
             durations: latest,
             team_limit: self.rush.team_limit,
             pairs: self.rush.arrivals[index].pairs.len() as u32,
-            free_at: &[],
+            free_at: &free_at,
             now: self.now,
         };
         forecast::estimate(&view, index as u64).map(|e| e.middle())
+    }
+
+    /// The cluster's GPUs as the sweep counts them: free on the nodes taking pods, on nodes
+    /// booting, and on the nodes the group's maximum leaves room for.
+    fn capacity(&self) -> forecast::Capacity {
+        let (now, gpus) = (self.now, self.model.gpus_per_node);
+        let live = |n: &&super::Node| n.live(now) && n.notice.is_none();
+        let free = (self.nodes.iter().filter(live))
+            .filter(|n| n.schedulable(now))
+            .map(|n| n.free)
+            .sum();
+        let booting = self
+            .nodes
+            .iter()
+            .filter(live)
+            .filter(|n| now < n.ready)
+            .count() as u32;
+        let addable = self.model.max_nodes.saturating_sub(self.group_size(None));
+        forecast::Capacity {
+            free,
+            booting: booting * gpus,
+            addable: addable * gpus,
+        }
     }
 
     /// Submission `i`'s queue entry.
