@@ -553,14 +553,7 @@ impl AdmissionTable {
         let list = durations.iter().rev().map(|&d| n(d)).collect();
         let mut item = pace_key(queue, track);
         item.insert("durations".into(), AttributeValue::L(list));
-        self.client
-            .put_item()
-            .table_name(&self.table)
-            .set_item(Some(item))
-            .send()
-            .await
-            .map_err(|e| AwsError::sdk("dynamodb", "PutItem", e))?;
-        Ok(())
+        self.put(item).await
     }
 
     /// Keeps `capacity`, counted at `at` (epoch seconds), as `queue`'s cluster's.
@@ -570,6 +563,11 @@ impl AdmissionTable {
         item.insert("booting".into(), n(u64::from(capacity.booting)));
         item.insert("addable".into(), n(u64::from(capacity.addable)));
         item.insert("at".into(), n(at));
+        self.put(item).await
+    }
+
+    /// Writes `item` whole, over what its key held.
+    async fn put(&self, item: HashMap<String, AttributeValue>) -> Result<()> {
         self.client
             .put_item()
             .table_name(&self.table)

@@ -244,17 +244,7 @@ fn print_parameters(m: &Model, s: &Shape) {
 /// How long the rush's evaluations take on their own (their slowest pair's routes): the
 /// spread a forecast of a team's next turn cannot know.
 fn print_evaluations(rush: &Rush) {
-    let mut lengths: Vec<u64> = rush
-        .arrivals
-        .iter()
-        .map(|a| {
-            a.pairs
-                .iter()
-                .map(|p| p.iter().sum::<u64>())
-                .max()
-                .unwrap_or(0)
-        })
-        .collect();
+    let mut lengths = evaluation_lengths(rush);
     lengths.sort_unstable();
     let minutes = |q: f64| quantile(&lengths, q) as f64 / 60.0;
     println!(
@@ -263,6 +253,19 @@ fn print_evaluations(rush: &Rush) {
         minutes(0.5),
         minutes(0.9)
     );
+}
+
+/// Each evaluation's length on its own: its slowest pair's routes, seconds.
+fn evaluation_lengths(rush: &Rush) -> Vec<u64> {
+    (rush.arrivals.iter())
+        .map(|a| {
+            a.pairs
+                .iter()
+                .map(|p| p.iter().sum::<u64>())
+                .max()
+                .unwrap_or(0)
+        })
+        .collect()
 }
 
 /// The start estimate's p90 error against the median wait, at arrival (all, and by what held
@@ -306,15 +309,7 @@ fn estimates(name: &str, r: &Report) {
 /// the median of the earlier end; its p90 error against the median wait of `r`. Returns that
 /// share of the median wait.
 fn estimate_floor(rush: &Rush, r: &Report) -> f64 {
-    let lengths: Vec<u64> = (rush.arrivals.iter())
-        .map(|a| {
-            a.pairs
-                .iter()
-                .map(|p| p.iter().sum::<u64>())
-                .max()
-                .unwrap_or(0)
-        })
-        .collect();
+    let lengths = evaluation_lengths(rush);
     let mut earlier: Vec<u64> = Vec::new();
     for (i, a) in lengths.iter().enumerate() {
         earlier.extend(lengths[i + 1..].iter().map(|b| (*a).min(*b)));
