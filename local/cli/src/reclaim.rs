@@ -273,9 +273,13 @@ async fn disruption_of(api: &Api<Pod>, name: &str) -> Option<String> {
 /// The Jobs' failures counted so far, and the pods the control plane is taking away, as the
 /// Monitor observes them.
 async fn look(cluster: &lb_cluster::Cluster, submission: u64, report: &mut ReclaimReport) {
-    let Ok(seen) = cluster.observe(&submission.to_string()).await else {
-        return;
-    };
+    if let Ok(seen) = cluster.observe(&submission.to_string()).await {
+        note_disruptions(&seen, report);
+    }
+}
+
+/// What `seen` shows of the Jobs' failures and the pods taken away, added to `report`.
+pub fn note_disruptions(seen: &lb_domain::cluster::view::Observation, report: &mut ReclaimReport) {
     for job in &seen.jobs {
         report.retries_used = report.retries_used.max(job.failed);
         for pod in &job.pods {

@@ -5,26 +5,24 @@
 //! node, and the run scores as the happy one. FINISHED (`--kube real` only: local-kube has one
 //! node).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use k8s_openapi::api::core::v1::Node;
-use kube::api::{Api, ListParams};
 use local_stack::workloads::Behaviour;
 use serde::Serialize;
 use serde_json::Value;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
-use lb_domain::capacity::consolidation::TAINT;
+use lb_domain::capacity::cost::Ledger;
 use lb_domain::status::PodPhase;
 
 use super::{held, Begin, Findings, Rehearsal};
-use crate::reclaim::{count_route_runs, ReclaimReport};
+use crate::reclaim::{count_route_runs, note_disruptions, ReclaimReport};
 
 /// The least seconds per route: a move lands within the leaderboard's window after a write
 /// (120 s scaled by the run's time scale), well before the next route's end.
@@ -119,10 +117,7 @@ impl Rehearsal for Consolidate {
             return;
         };
         tokio::spawn(async move {
-            let joined = match node_agent::client(&kubeconfig).await {
-                Ok(client) => node_agent::uncordon(&client, JOINS).await.is_ok(),
-                Err(_) => false,
-            };
+            let joined = super::node_joins(&kubeconfig, JOINS).await;
             cli::outln!(
                 "           scenario: node {JOINS} joined with room for every pair: {joined}"
             );
@@ -150,10 +145,10 @@ impl Rehearsal for Consolidate {
     }
 }
 
-/// The moves the run state's ledger counts (`usage.moves`: a base-36 digit per Job).
+/// The moves the run state's ledger counts, over its Jobs.
 fn moves_in(monitor: &Value) -> u32 {
-    let digits = monitor["usage"]["moves"].as_str().unwrap_or_default();
-    digits.chars().filter_map(|c| c.to_digit(36)).sum()
+    let ledger = serde_json::from_value::<Ledger>(monitor["usage"].clone());
+    ledger.map_or(0, |l| l.jobs.iter().map(|j| j.moves).sum())
 }
 
 /// Watches the submission's pods (those taken away, the Jobs' retries, the nodes the running
@@ -169,47 +164,31 @@ async fn watch_pods_and_nodes(
         return report;
     };
     let cluster = cluster.with_namespace(namespace);
-    let Ok(client) = node_agent::client(&kubeconfig).await else {
-        return report;
-    };
-    let nodes: Api<Node> = Api::all(client);
     loop {
         tokio::select! {
             _ = stopped.changed() => return report,
             () = tokio::time::sleep(LOOK_EVERY) => {}
         }
-        if let Ok(list) = nodes.list(&ListParams::default()).await {
-            let tainted = list.items.into_iter().filter(|n| {
-                let taints = n.spec.as_ref().and_then(|s| s.taints.as_ref());
-                taints.is_some_and(|t| t.iter().any(|t| t.key == TAINT))
-            });
-            report
-                .drained
-                .extend(tainted.filter_map(|n| n.metadata.name));
+        if let Ok(fleet) = cluster.gpu_fleet().await {
+            let drained = fleet.nodes.into_iter().filter(|n| n.draining);
+            report.drained.extend(drained.map(|n| n.name));
         }
         let Ok(seen) = cluster.observe(&submission.to_string()).await else {
             continue;
         };
-        let mut on = BTreeSet::new();
-        let mut moved: BTreeMap<String, String> = BTreeMap::new();
-        for job in &seen.jobs {
-            report.reclaim.retries_used = report.reclaim.retries_used.max(job.failed);
-            for pod in &job.pods {
-                if let Some(reason) = &pod.disruption {
-                    moved.insert(pod.name.clone(), reason.clone());
-                }
-                if pod.phase == PodPhase::Running && !pod.terminating {
-                    on.extend(pod.node.clone());
-                }
+        note_disruptions(&seen, &mut report.reclaim);
+        // Every pod taken away here is one the Monitor moved (nothing else evicts).
+        let reclaim = &mut report.reclaim;
+        for pod in reclaim.disrupted.keys() {
+            if !reclaim.evicted.contains(pod) {
+                reclaim.evicted.push(pod.clone());
+                acted.store(true, Ordering::SeqCst);
             }
         }
-        for (pod, reason) in moved {
-            if !report.reclaim.evicted.contains(&pod) {
-                report.reclaim.evicted.push(pod.clone());
-            }
-            report.reclaim.disrupted.insert(pod, reason);
-            acted.store(true, Ordering::SeqCst);
-        }
+        let on: BTreeSet<String> = (seen.jobs.iter().flat_map(|j| &j.pods))
+            .filter(|p| p.phase == PodPhase::Running && !p.terminating)
+            .filter_map(|p| p.node.clone())
+            .collect();
         if !on.is_empty() {
             report.ended_on = on;
         }

@@ -171,6 +171,14 @@ impl Scenario {
     }
 }
 
+/// Makes `node` schedulable, as a node group's new node joins: whether it did.
+pub async fn node_joins(kubeconfig: &Path, node: &str) -> bool {
+    match node_agent::client(kubeconfig).await {
+        Ok(client) => node_agent::uncordon(&client, node).await.is_ok(),
+        Err(_) => false,
+    }
+}
+
 /// What a run tells its scenario before the executions start.
 pub struct Begin {
     /// The local cluster's kubeconfig, as an operator (and a node group's drain) uses it.

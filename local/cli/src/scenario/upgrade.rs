@@ -104,10 +104,7 @@ impl Rehearsal for Upgrade {
                 upgraded.to,
                 upgraded.unavailable_seconds
             );
-            let joined = match node_agent::client(&kubeconfig).await {
-                Ok(client) => node_agent::uncordon(&client, NEW_NODE).await.is_ok(),
-                Err(_) => false,
-            };
+            let joined = super::node_joins(&kubeconfig, NEW_NODE).await;
             cli::outln!(
                 "           scenario: the node group's new node {NEW_NODE} joined: {joined}"
             );
